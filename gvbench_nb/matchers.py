@@ -1,0 +1,167 @@
+"""Matchers, one small class a type, selected by ``conf['type']``.
+
+A sparse matcher takes two feature dicts (from the cache: keypoints in original
+pixels, descriptors, ``image_size`` as (width, height)) and returns
+``matches`` (M, 2) int64 indices into keypoints0/1 and ``scores`` (M,) float32.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Callable
+
+import numpy as np
+import torch
+
+from . import weights
+
+Matches = tuple[np.ndarray, np.ndarray]
+
+
+def _empty_matches() -> Matches:
+    return np.zeros((0, 2), np.int64), np.zeros((0,), np.float32)
+
+
+def _unpack_bits(binary: torch.Tensor) -> torch.Tensor:
+    """uint8 (N, B) -> float (N, 8B) of +-1, so Hamming distance becomes a matrix product."""
+    bits = torch.from_numpy(np.unpackbits(binary.cpu().numpy(), axis=1)).to(binary.device)
+    return bits.float().mul_(2).sub_(1)
+
+
+def nearest_neighbour_matches(
+    descriptors0: torch.Tensor,
+    descriptors1: torch.Tensor,
+    mutual: bool = True,
+    ratio_threshold: float | None = None,
+    distance_threshold: float | None = None,
+    metric: str = "l2",
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest-neighbour matches as hloc computes them.
+
+    ``l2``: descriptors are L2-normalised, squared distance = 2 - 2 * similarity; the
+    Lowe ratio is applied to distances (d1 <= ratio * d2) and the absolute threshold to
+    the distance (d1 <= threshold). Score = (similarity + 1) / 2.
+    ``hamming``: binary uint8 descriptors; distance in bits; score = 1 - distance / bits.
+    Returns (matches (M, 2) long, scores (M,) float).
+    """
+    if len(descriptors0) == 0 or len(descriptors1) == 0:
+        return torch.zeros((0, 2), dtype=torch.long), torch.zeros((0,))
+    if metric == "hamming":
+        unpacked0, unpacked1 = _unpack_bits(descriptors0), _unpack_bits(descriptors1)
+        n_bits = unpacked0.shape[1]
+        similarity = unpacked0 @ unpacked1.T  # = n_bits - 2 * hamming
+        to_distance_squared = lambda sim: ((n_bits - sim) / 2) ** 2  # noqa: E731
+        to_score = lambda sim: 1 - (n_bits - sim) / 2 / n_bits  # noqa: E731
+    elif metric == "l2":
+        descriptors0 = torch.nn.functional.normalize(descriptors0.float(), dim=1)
+        descriptors1 = torch.nn.functional.normalize(descriptors1.float(), dim=1)
+        similarity = descriptors0 @ descriptors1.T
+        to_distance_squared = lambda sim: (2 - 2 * sim).clamp(min=0)  # noqa: E731
+        to_score = lambda sim: (sim + 1) / 2  # noqa: E731
+    else:
+        raise ValueError(f"unknown metric {metric!r}; use 'l2' or 'hamming'")
+    k = 2 if ratio_threshold and similarity.shape[1] > 1 else 1
+    best_similarity, best_index = similarity.topk(k, dim=1)
+    # Distances only of the k best: the full distance matrix would cost as much as the product.
+    best_distance_squared = to_distance_squared(best_similarity)
+    keep = torch.ones(len(descriptors0), dtype=torch.bool, device=similarity.device)
+    if ratio_threshold and k == 2:
+        keep &= best_distance_squared[:, 0] <= ratio_threshold**2 * best_distance_squared[:, 1]
+    if distance_threshold:
+        keep &= best_distance_squared[:, 0] <= distance_threshold**2
+    index0 = torch.arange(len(descriptors0), device=similarity.device)
+    index1 = best_index[:, 0]
+    if mutual:
+        # Row-wise argmax of the transposed copy: column-wise argmax is several times slower on CPU.
+        keep &= similarity.T.contiguous().argmax(dim=1)[index1] == index0
+    matches = torch.stack([index0[keep], index1[keep]], dim=1)
+    return matches.cpu(), to_score(best_similarity[keep, 0]).float().cpu()
+
+
+class NearestNeighbourMatcher:
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        self.conf, self.device = conf, device
+
+    def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
+        matches, scores = nearest_neighbour_matches(
+            torch.from_numpy(features0["descriptors"]).to(self.device),
+            torch.from_numpy(features1["descriptors"]).to(self.device),
+            mutual=self.conf.get("mutual", True),
+            ratio_threshold=self.conf.get("ratio_threshold"),
+            distance_threshold=self.conf.get("distance_threshold"),
+            metric=self.conf.get("metric", "l2"),
+        )
+        return matches.numpy().astype(np.int64), scores.numpy().astype(np.float32)
+
+
+class LightGlueMatcher:
+    """kornia LightGlue (and LighterGlue for XFeat) with the paper's thresholds."""
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        from kornia.feature import LightGlue
+
+        weights.require(*conf["checkpoints"])
+        self.device = device
+        options = {k: conf[k] for k in ("depth_confidence", "width_confidence", "filter_threshold") if k in conf}
+        self.model = LightGlue(conf["features"], **options).to(device).eval()
+
+    @torch.inference_mode()
+    def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
+        if len(features0["keypoints"]) == 0 or len(features1["keypoints"]) == 0:
+            return _empty_matches()
+
+        def side(features: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
+            return {
+                "keypoints": torch.from_numpy(features["keypoints"]).float()[None].to(self.device),
+                "descriptors": torch.from_numpy(features["descriptors"]).float()[None].to(self.device),
+                "image_size": torch.from_numpy(features["image_size"]).float()[None].to(self.device),
+            }
+
+        output = self.model({"image0": side(features0), "image1": side(features1)})
+        return (
+            output["matches"][0].cpu().numpy().astype(np.int64),
+            output["scores"][0].cpu().numpy().astype(np.float32),
+        )
+
+
+class SuperGlueMatcher:
+    """Our SuperGlue (``models/superglue.py``) on the official outdoor weights."""
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        from .models.superglue import load_superglue
+
+        self.device = device
+        model_conf = {k: conf[k] for k in ("sinkhorn_iterations", "match_threshold") if k in conf}
+        self.model = load_superglue(model_conf, device=device).eval()
+
+    @torch.inference_mode()
+    def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
+        if len(features0["keypoints"]) == 0 or len(features1["keypoints"]) == 0:
+            return _empty_matches()
+        data = {}
+        for i, features in enumerate((features0, features1)):
+            width, height = (int(v) for v in features["image_size"])
+            data[f"keypoints{i}"] = torch.from_numpy(features["keypoints"]).float()[None].to(self.device)
+            data[f"scores{i}"] = torch.from_numpy(features["scores"]).float()[None].to(self.device)
+            data[f"descriptors{i}"] = torch.from_numpy(features["descriptors"]).float()[None].to(self.device)
+            data[f"image_size{i}"] = (height, width)
+        output = self.model(data)
+        matches0 = output["matches0"][0].cpu().numpy()
+        scores0 = output["matching_scores0"][0].cpu().numpy()
+        valid = matches0 > -1
+        matches = np.stack([np.nonzero(valid)[0], matches0[valid]], axis=1).astype(np.int64)
+        return matches, scores0[valid].astype(np.float32)
+
+
+MATCHER_TYPES: dict[str, Callable[[dict[str, Any], torch.device], Callable[..., Matches]]] = {
+    "nn": NearestNeighbourMatcher,
+    "lightglue": LightGlueMatcher,
+    "superglue": SuperGlueMatcher,
+}
+
+
+def build_matcher(conf: dict[str, Any], device: torch.device) -> Callable[..., Matches]:
+    try:
+        kind = MATCHER_TYPES[conf["type"]]
+    except KeyError:
+        raise KeyError(f"unknown matcher type {conf['type']!r}; known: {', '.join(MATCHER_TYPES)}") from None
+    return kind(conf, device)

@@ -1,0 +1,188 @@
+"""The method registry: a method is an extractor conf + a matcher conf, plain dicts.
+
+Adding a matcher is one entry in ``METHODS`` (and, if new, one in ``EXTRACTORS`` or
+``MATCHERS``). Confs follow the paper's protocol (``../shared/reference/MODELS.md``
+section 1); the ``fast`` profile trades resolution for CPU speed and is recorded in
+every output it produces.
+"""
+
+from __future__ import annotations
+
+import copy
+import hashlib
+import json
+from typing import Any
+
+from . import weights
+
+EXTRACTORS: dict[str, dict[str, Any]] = {
+    "sift": {
+        "type": "sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
+        "max_keypoints": 8192, "peak_threshold": 0.01, "root_sift": True, "checkpoints": [],
+    },
+    "orb": {
+        "type": "orb", "grayscale": True, "resize_max": 1600, "resize_force": False,
+        "max_keypoints": 2000, "scale_factor": 1.2, "levels": 8, "fast_threshold": 20, "checkpoints": [],
+    },
+    "disk": {
+        "type": "disk", "grayscale": False, "resize_max": None, "resize_force": False, "weights": "depth",
+        "max_keypoints": 5000, "nms_window": 5, "detection_threshold": 0.0, "checkpoints": ["disk_depth"],
+    },
+    "superpoint": {
+        "type": "superpoint", "grayscale": True, "resize_max": 1600, "resize_force": True,
+        "nms_radius": 3, "keypoint_threshold": 0.005, "max_keypoints": 4096, "remove_borders": 4,
+        "checkpoints": ["superpoint_v1"],
+    },
+    "aliked": {
+        "type": "aliked", "grayscale": False, "resize_max": 1024, "resize_force": False, "model_name": "aliked-n16",
+        "max_keypoints": 4096, "detection_threshold": 0.2, "nms_radius": 2, "checkpoints": ["aliked_n16"],
+    },
+    "xfeat": {
+        "type": "xfeat", "grayscale": False, "resize_max": 1024, "resize_force": False,
+        "max_keypoints": 4096, "detection_threshold": 0.05, "checkpoints": ["xfeat"],
+    },
+}
+
+MATCHERS: dict[str, dict[str, Any]] = {
+    "nn-ratio": {"type": "nn", "mutual": True, "ratio_threshold": 0.8, "distance_threshold": None, "checkpoints": []},
+    "nn-distance": {"type": "nn", "mutual": True, "ratio_threshold": None, "distance_threshold": 0.7, "checkpoints": []},
+    "nn-mutual": {"type": "nn", "mutual": True, "ratio_threshold": None, "distance_threshold": None, "checkpoints": []},
+    "nn-hamming": {"type": "nn", "metric": "hamming", "mutual": True, "ratio_threshold": 0.8, "checkpoints": []},
+    "lightglue-disk": {
+        "type": "lightglue", "features": "disk", "depth_confidence": 0.95, "width_confidence": 0.99,
+        "filter_threshold": 0.1, "checkpoints": ["lightglue_disk"],
+    },
+    "lightglue-superpoint": {
+        "type": "lightglue", "features": "superpoint", "depth_confidence": 0.95, "width_confidence": 0.99,
+        "filter_threshold": 0.1, "checkpoints": ["lightglue_superpoint"],
+    },
+    "lightglue-aliked": {
+        "type": "lightglue", "features": "aliked", "depth_confidence": 0.95, "width_confidence": 0.99,
+        "filter_threshold": 0.1, "checkpoints": ["lightglue_aliked"],
+    },
+    # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
+    "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
+    "superglue-outdoor": {
+        "type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2,
+        "checkpoints": ["superglue_outdoor"],
+    },
+}
+
+METHODS: dict[str, dict[str, Any]] = {
+    "sift-nn": {"paper_name": "SIFT+NN", "extractor": "sift", "matcher": "nn-ratio", "in_paper": True},
+    "sp-nn": {"paper_name": "SP+NN", "extractor": "superpoint", "matcher": "nn-distance", "in_paper": True},
+    "sp-sg": {"paper_name": "SP+SG", "extractor": "superpoint", "matcher": "superglue-outdoor", "in_paper": True},
+    "disk-nn": {"paper_name": "DISK+NN", "extractor": "disk", "matcher": "nn-ratio", "in_paper": True},
+    "disk-lg": {"paper_name": "DISK+LG", "extractor": "disk", "matcher": "lightglue-disk", "in_paper": True},
+    "sp-lg": {"paper_name": "SP+LG", "extractor": "superpoint", "matcher": "lightglue-superpoint", "in_paper": False},
+    "aliked-nn": {"paper_name": "ALIKED+NN", "extractor": "aliked", "matcher": "nn-mutual", "in_paper": False},
+    "aliked-lg": {"paper_name": "ALIKED+LG", "extractor": "aliked", "matcher": "lightglue-aliked", "in_paper": False},
+    "xfeat-nn": {"paper_name": "XFeat+NN", "extractor": "xfeat", "matcher": "nn-mutual", "in_paper": False},
+    "xfeat-lg": {"paper_name": "XFeat+LighterGlue", "extractor": "xfeat", "matcher": "lighterglue-xfeat",
+                 "in_paper": False},
+    "orb-nn": {"paper_name": "ORB+NN", "extractor": "orb", "matcher": "nn-hamming", "in_paper": False},
+}
+
+# Profile -> extractor type -> overrides. 'paper' is the protocol as published.
+PROFILES: dict[str, dict[str, dict[str, Any]]] = {
+    "paper": {},
+    "fast": {
+        "sift": {"resize_max": 640, "max_keypoints": 4096},
+        "orb": {"resize_max": 640},
+        "disk": {"resize_max": 640, "max_keypoints": 2048},
+        "superpoint": {"resize_max": 640, "max_keypoints": 2048},
+        "aliked": {"resize_max": 640, "max_keypoints": 2048},
+        "xfeat": {"resize_max": 640, "max_keypoints": 2048},
+    },
+}
+
+# The score > 0.5 filter applies to every match before RANSAC (it matters for SG, LG, LoFTR).
+VERIFIER: dict[str, Any] = {
+    "type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.99, "max_iters": 1000,
+    "min_matches": 8, "min_match_score": 0.5,
+}
+
+
+class UnknownNameError(KeyError):
+    def __str__(self) -> str:  # KeyError quotes its message; ours reads as a sentence
+        return str(self.args[0])
+
+
+def _unknown(kind: str, name: str, known: list[str]) -> UnknownNameError:
+    import difflib
+
+    close = difflib.get_close_matches(name, known, n=1)
+    hint = f" Did you mean {close[0]!r}?" if close else ""
+    return UnknownNameError(f"unknown {kind} {name!r}.{hint} Valid {kind}s: {', '.join(known)}")
+
+
+def check_profile(profile: str) -> None:
+    if profile not in PROFILES:
+        raise _unknown("profile", profile, list(PROFILES))
+
+
+def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
+    """The full conf of a method under a profile: name, extractor, matcher, verifier."""
+    if name not in METHODS:
+        raise _unknown("method", name, list(METHODS))
+    check_profile(profile)
+    method = METHODS[name]
+    extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
+    extractor.update(PROFILES[profile].get(extractor["type"], {}))
+    extractor["name"] = method["extractor"]
+    matcher = copy.deepcopy(MATCHERS[method["matcher"]])
+    matcher["name"] = method["matcher"]
+    return {
+        "method": name,
+        "paper_name": method["paper_name"],
+        "profile": profile,
+        "extractor": extractor,
+        "matcher": matcher,
+        "verifier": copy.deepcopy(VERIFIER),
+    }
+
+
+def conf_hash(conf: dict[str, Any]) -> str:
+    """Short stable hash of a conf (its cache identity)."""
+    return hashlib.sha1(json.dumps(conf, sort_keys=True).encode()).hexdigest()[:10]
+
+
+def required_checkpoints(name: str, profile: str = "paper") -> list[str]:
+    conf = resolve_method(name, profile)
+    return list(dict.fromkeys(conf["extractor"]["checkpoints"] + conf["matcher"]["checkpoints"]))
+
+
+def method_table() -> list[dict[str, Any]]:
+    """One row a method for ``python -m gvbench_nb methods``."""
+    rows = []
+    for name, method in METHODS.items():
+        needed = required_checkpoints(name)
+        missing = [c for c in needed if not weights.is_present(c)]
+        rows.append({
+            "method": name, "paper_name": method["paper_name"], "in_paper": method["in_paper"],
+            "extractor": method["extractor"], "matcher": method["matcher"],
+            "weights": ", ".join(needed) or "-", "available": not missing,
+            "missing": ", ".join(weights.get(c).file for c in missing),
+        })
+    return rows
+
+
+def available_methods() -> list[str]:
+    return [row["method"] for row in method_table() if row["available"]]
+
+
+def expand_methods(names: list[str] | str) -> list[str]:
+    """Method names from a list or a comma string; ``all`` and ``all-available`` expand."""
+    if isinstance(names, str):
+        names = [n.strip() for n in names.split(",") if n.strip()]
+    expanded: list[str] = []
+    for name in names:
+        if name == "all":
+            expanded.extend(METHODS)
+        elif name == "all-available":
+            expanded.extend(available_methods())
+        elif name in METHODS:
+            expanded.append(name)
+        else:
+            raise _unknown("method", name, list(METHODS) + ["all", "all-available"])
+    return list(dict.fromkeys(expanded))

@@ -1,0 +1,63 @@
+"""The paper's metrics: AP and max recall at 100% precision (MR), plus the PR curve."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+from sklearn.metrics import average_precision_score, precision_recall_curve
+
+
+class MetricsUndefinedError(ValueError):
+    """AP and MR are undefined: the pairs have no positives or no negatives."""
+
+
+def _check(labels: np.ndarray, scores: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
+    labels = np.asarray(labels).astype(int).ravel()
+    scores = np.asarray(scores, dtype=np.float64).ravel()
+    if len(labels) != len(scores):
+        raise ValueError(f"{where}: {len(labels)} labels but {len(scores)} scores")
+    if not np.isin(labels, (0, 1)).all():
+        raise ValueError(f"{where}: labels must be 0 or 1")
+    n_positive = int(labels.sum())
+    if n_positive == 0 or n_positive == len(labels):
+        kind = "positives" if n_positive == 0 else "negatives"
+        raise MetricsUndefinedError(
+            f"{where}: {len(labels)} pairs with no {kind}: AP and MR are undefined. "
+            "Use pairs with both true and false loop closures (check the labels or --limit)."
+        )
+    if not np.isfinite(scores).all():
+        raise ValueError(f"{where}: scores contain NaN or infinity")
+    return labels, scores
+
+
+def average_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
+    labels, scores = _check(labels, scores, where)
+    return float(average_precision_score(labels, scores))
+
+
+def max_recall_at_full_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
+    """Largest recall among the PR-curve points whose precision is exactly 1.0.
+
+    Ties count as the curve counts them: a false pair tied with the best true pair
+    lowers precision at that threshold, so MR can be 0.
+    """
+    labels, scores = _check(labels, scores, where)
+    precision, recall, _ = precision_recall_curve(labels, scores)
+    return float(recall[precision == 1.0].max())
+
+
+def pr_curve(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> dict[str, np.ndarray]:
+    labels, scores = _check(labels, scores, where)
+    precision, recall, thresholds = precision_recall_curve(labels, scores)
+    return {"precision": precision, "recall": recall, "thresholds": thresholds}
+
+
+def evaluate_scores(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> dict[str, Any]:
+    labels, scores = _check(labels, scores, where)
+    return {
+        "n_pairs": int(len(labels)),
+        "n_positives": int(labels.sum()),
+        "ap": average_precision(labels, scores, where),
+        "max_recall": max_recall_at_full_precision(labels, scores, where),
+    }

@@ -1,0 +1,1 @@
+"""Readable PyTorch models written for gvbench_nb (one file a model)."""

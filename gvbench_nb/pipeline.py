@@ -1,0 +1,331 @@
+"""The one way through: extract once per unique image -> match each pair -> verify ->
+per-pair table (``<output_dir>/<method>/pairs.csv``) -> results (``results.csv``).
+
+Every stage reads and writes crash-safe stores (``store.py``), so a rerun resumes
+where an interrupted run stopped and evaluation reads only what runs wrote.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import platform
+import time
+import zlib
+from collections import Counter
+from concurrent.futures import Future, ThreadPoolExecutor
+from functools import lru_cache
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, TypeVar
+
+import cv2
+import numpy as np
+import pandas as pd
+import torch
+from tqdm import tqdm
+
+from . import methods as method_registry
+from . import weights
+from .extractors import build_extractor, resolve_device
+from .images import ImageReadError, load_for_extraction, to_original_pixels
+from .io_utils import atomic_write_csv, atomic_write_json
+from .matchers import build_matcher
+from .metrics import evaluate_scores
+from .sequences import Sequence
+from .store import ShardedStore
+from .verify import verify_matches
+
+T = TypeVar("T")
+R = TypeVar("R")
+
+PAIRS_COLUMNS = [
+    "pair_index", "query", "reference", "label", "method", "profile",
+    "num_keypoints_query", "num_keypoints_reference", "num_matches", "num_matches_filtered",
+    "num_inliers", "score", "extract_seconds", "match_seconds", "verify_seconds",
+]
+
+
+def configure_threads(n_threads: int | None = None) -> None:
+    """Use every core for torch and OpenCV once (both default sensibly, but a
+    notebook kernel may have inherited a lower limit)."""
+    import os
+
+    n = n_threads or os.cpu_count() or 1
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+
+
+def prefetch(items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers: int = 2
+             ) -> Iterator[tuple[T, R | BaseException]]:
+    """Yield (item, load(item)) in order while the next ``depth`` loads run in threads.
+
+    Decoding and resizing (OpenCV releases the GIL) then overlap the model's compute.
+    A failed load is yielded as its exception, in its place, for the caller to raise
+    with context.
+    """
+    iterator = iter(items)
+    pending: list[tuple[T, Future[R]]] = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for item in iterator:
+            pending.append((item, pool.submit(load, item)))
+            if len(pending) >= depth:
+                break
+        while pending:
+            item, future = pending.pop(0)
+            try:
+                result: R | BaseException = future.result()
+            except Exception as error:  # surfaced in order by the caller
+                result = error
+            next_item = next(iterator, None)
+            if next_item is not None:
+                pending.append((next_item, pool.submit(load, next_item)))
+            yield item, result
+
+
+# ---------------------------------------------------------------- feature cache --
+def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedStore:
+    """The cache folder of one extractor conf: ``<cache_dir>/features/<name>-<hash>``."""
+    return ShardedStore(Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}")
+
+
+def image_key(image_root: Path, name: str) -> str:
+    # Keyed by the resolved path: sequences sharing images share cache entries.
+    return str((Path(image_root) / name).resolve())
+
+
+def extract_features(
+    sequence: Sequence,
+    extractor_conf: dict[str, Any],
+    cache_dir: Path,
+    device: torch.device | str = "auto",
+    progress: bool = True,
+    flush_every: int = 16,
+) -> dict[str, int]:
+    """Extract every unique image of ``sequence`` not yet in the cache. Returns counts."""
+    store = feature_store(cache_dir, extractor_conf)
+    store.refresh()
+    wanted = {image_key(sequence.image_root, name): name for name in sequence.images}
+    todo = [key for key in wanted if key not in store]
+    counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
+    if not todo:
+        return counts
+    extractor = build_extractor(extractor_conf, resolve_device(device))
+    bar = tqdm(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
+    with store.writer(flush_every) as writer:
+        for key, loaded in prefetch(todo, lambda k: load_for_extraction(k, extractor_conf)):
+            if isinstance(loaded, BaseException):
+                raise ImageReadError(f"{loaded} (image {wanted[key]!r} of sequence {sequence.name!r})") from loaded
+            image, scale = loaded
+            start = time.perf_counter()
+            features = extractor(image)
+            seconds = time.perf_counter() - start
+            original_size = np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64)
+            writer.put(
+                key,
+                {
+                    "keypoints": to_original_pixels(features["keypoints"], scale),
+                    "scores": features["scores"],
+                    "descriptors": features["descriptors"],
+                    "image_size": original_size,  # (width, height) of the original image
+                },
+                {"seconds": seconds},
+            )
+            counts["extracted"] += 1
+            bar.update()
+    bar.close()
+    return counts
+
+
+# ---------------------------------------------------------- matching + verifying --
+def pair_key(query: str, reference: str) -> str:
+    return f"{query}\t{reference}"
+
+
+def pair_seed(seed: int, query: str, reference: str) -> int:
+    """RANSAC seed of one pair: the same whatever order or shard the pair runs in."""
+    return zlib.crc32(f"{seed}\t{query}\t{reference}".encode()) & 0x7FFFFFFF
+
+
+def method_dir(output_dir: Path, method: str) -> Path:
+    return Path(output_dir) / method
+
+
+def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
+    """Per-pair matches and inlier masks of one method conf (a changed conf starts afresh)."""
+    matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
+    return ShardedStore(method_dir(output_dir, conf["method"]) / f"matches-{method_registry.conf_hash(matching_conf)}")
+
+
+def match_and_verify(
+    sequence: Sequence,
+    conf: dict[str, Any],
+    cache_dir: Path,
+    output_dir: Path,
+    device: torch.device | str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    flush_every: int = 64,
+) -> dict[str, int]:
+    """Match and verify every pair not yet in the method's match store."""
+    features = feature_store(cache_dir, conf["extractor"])
+    matches = match_store(output_dir, conf)
+    matches.refresh()
+    todo = [p for p in sequence.pairs if pair_key(p.query, p.reference) not in matches]
+    counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
+    if not todo:
+        return counts
+    matcher = build_matcher(conf["matcher"], resolve_device(device))
+
+    @lru_cache(maxsize=256)  # a query's candidates are consecutive; references recur
+    def load(name: str) -> dict[str, np.ndarray]:
+        key = image_key(sequence.image_root, name)
+        if key not in features:
+            raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
+        return features.read(key)
+
+    bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+    with matches.writer(flush_every) as writer:
+        for pair in todo:
+            features0, features1 = load(pair.query), load(pair.reference)
+            start = time.perf_counter()
+            pair_matches, match_scores = matcher(features0, features1)
+            matched = time.perf_counter()
+            verified = verify_matches(
+                features0["keypoints"], features1["keypoints"], pair_matches, match_scores, conf["verifier"],
+                seed=pair_seed(seed, pair.query, pair.reference),
+            )
+            done = time.perf_counter()
+            writer.put(
+                pair_key(pair.query, pair.reference),
+                {"matches": pair_matches.astype(np.int32), "match_scores": match_scores.astype(np.float32),
+                 "inlier_mask": verified["inlier_mask"]},
+                {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
+                 "num_inliers": verified["num_inliers"], "match_seconds": matched - start,
+                 "verify_seconds": done - matched},
+            )
+            counts["matched"] += 1
+            bar.update()
+    bar.close()
+    return counts
+
+
+def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path) -> pd.DataFrame:
+    """The per-pair table of a finished run, built only from the stores."""
+    features = feature_store(cache_dir, conf["extractor"])
+    matches = match_store(output_dir, conf)
+    features.refresh()
+    matches.refresh()
+    uses = Counter(name for pair in sequence.pairs for name in (pair.query, pair.reference))
+    image_info: dict[str, tuple[int, float]] = {}
+    for name in uses:
+        entry = features.read(image_key(sequence.image_root, name))
+        image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
+    rows = []
+    for index, pair in enumerate(sequence.pairs):
+        entry = matches.read(pair_key(pair.query, pair.reference))
+        # Extraction is amortised: each image's time is shared among the pairs that use it.
+        extract_seconds = sum(image_info[n][1] / uses[n] for n in (pair.query, pair.reference))
+        rows.append({
+            "pair_index": index, "query": pair.query, "reference": pair.reference, "label": pair.label,
+            "method": conf["method"], "profile": conf["profile"],
+            "num_keypoints_query": image_info[pair.query][0], "num_keypoints_reference": image_info[pair.reference][0],
+            "num_matches": int(entry["attr:num_matches"]), "num_matches_filtered": int(entry["attr:num_matches_filtered"]),
+            "num_inliers": int(entry["attr:num_inliers"]), "score": int(entry["attr:num_inliers"]),
+            "extract_seconds": extract_seconds, "match_seconds": float(entry["attr:match_seconds"]),
+            "verify_seconds": float(entry["attr:verify_seconds"]),
+        })
+    features.close()
+    matches.close()
+    return pd.DataFrame(rows, columns=PAIRS_COLUMNS)
+
+
+def environment_info(device: torch.device) -> dict[str, Any]:
+    import kornia
+
+    info = {
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or platform.machine(),
+        "cpu_count": __import__("os").cpu_count(),
+        "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
+        "numpy": np.__version__, "python": platform.python_version(), "platform": platform.platform(),
+    }
+    return info
+
+
+def run_method(
+    sequence: Sequence,
+    method: str,
+    profile: str,
+    output_dir: Path,
+    cache_dir: Path,
+    device: str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+) -> pd.DataFrame:
+    """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
+
+    Missing weights fail here, before any work. Finished work found in the caches is
+    reused, so an interrupted run resumes.
+    """
+    conf = method_registry.resolve_method(method, profile)
+    weights.require(*method_registry.required_checkpoints(method, profile))
+    resolved_device = resolve_device(device)
+    configure_threads()
+    started = time.perf_counter()
+    extraction = extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress)
+    extracted = time.perf_counter()
+    matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress)
+    finished = time.perf_counter()
+    table = pairs_table(sequence, conf, cache_dir, output_dir)
+    folder = method_dir(output_dir, method)
+    atomic_write_csv(folder / "pairs.csv", table)
+    atomic_write_json(folder / "run.json", {
+        "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
+        "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
+        "this_run": {"extraction": extraction, "matching": matching,
+                     "extract_wall_seconds": extracted - started, "match_verify_wall_seconds": finished - extracted},
+        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    })
+    return table
+
+
+# ------------------------------------------------------------------- evaluation --
+def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
+    path = method_dir(output_dir, method) / "pairs.csv"
+    if not path.is_file():
+        raise FileNotFoundError(f"no results for method {method!r}: {path} is missing; run the method first")
+    return pd.read_csv(path, keep_default_na=False)
+
+
+def methods_with_results(output_dir: Path) -> list[str]:
+    """Methods that have a finished ``pairs.csv``, in registry order, then any others."""
+    found = {p.parent.name for p in Path(output_dir).glob("*/pairs.csv")}
+    ordered = [m for m in method_registry.METHODS if m in found]
+    return ordered + sorted(found - set(ordered))
+
+
+def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = True) -> pd.DataFrame:
+    """AP, MR and seconds per pair for every method with results; writes ``results.csv``."""
+    output_dir = Path(output_dir)
+    methods = methods or methods_with_results(output_dir)
+    if not methods:
+        raise FileNotFoundError(f"no method results under {output_dir}: run a method first")
+    rows = []
+    for method in methods:
+        table = load_pairs_table(output_dir, method)
+        run = json.loads((method_dir(output_dir, method) / "run.json").read_text())
+        metrics = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy(),
+                                  where=f"{method_dir(output_dir, method) / 'pairs.csv'}")
+        rows.append({
+            "sequence": run["sequence"], "method": method, "paper_name": run["conf"]["paper_name"],
+            "profile": run["conf"]["profile"], **metrics,
+            "extract_seconds_per_pair": table["extract_seconds"].mean(),
+            "match_seconds_per_pair": table["match_seconds"].mean(),
+            "verify_seconds_per_pair": table["verify_seconds"].mean(),
+            "seconds_per_pair": (table["extract_seconds"] + table["match_seconds"] + table["verify_seconds"]).mean(),
+            "device": run["environment"]["device"],
+        })
+    results = pd.DataFrame(rows)
+    if write:
+        atomic_write_csv(output_dir / "results.csv", results)
+    return results

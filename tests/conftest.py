@@ -1,0 +1,50 @@
+"""Shared fixtures: where the real data and the reference layouts are.
+
+Tests that need them skip with a message saying where to put them; in CI here
+``make test`` points GVBENCH_DATA at ../shared/data, so they always run.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+PROJECT_ROOT = Path(__file__).resolve().parent.parent
+
+
+def _first_dir(*candidates: Path | None) -> Path | None:
+    return next((c for c in candidates if c is not None and c.is_dir()), None)
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    """The data folder holding gardens_point/ and gvbench_gt/."""
+    env = os.environ.get("GVBENCH_DATA")
+    found = _first_dir(Path(env) if env else None, PROJECT_ROOT.parent / "shared" / "data")
+    if found is None or not (found / "gardens_point").is_dir():
+        pytest.skip("real data not found: set GVBENCH_DATA to the folder holding gardens_point/ and gvbench_gt/")
+    return found
+
+
+@pytest.fixture(scope="session")
+def reference_dir() -> Path:
+    """``$GVBENCH_REFERENCE`` or ``<repo>/../shared/reference`` (holding ``layouts/``)."""
+    env = os.environ.get("GVBENCH_REFERENCE")
+    found = _first_dir(Path(env) if env else None, PROJECT_ROOT.parent / "shared" / "reference")
+    if found is None or not (found / "layouts").is_dir():
+        pytest.skip("reference layouts not found: set GVBENCH_REFERENCE to the folder holding layouts/")
+    return found
+
+
+@pytest.fixture
+def hub_dir(tmp_path, monkeypatch) -> Path:
+    """An empty torch hub folder: no checkpoint is present."""
+    import torch
+
+    old = torch.hub.get_dir()
+    torch.hub.set_dir(str(tmp_path / "hub"))
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "hub"))
+    yield tmp_path / "hub"
+    torch.hub.set_dir(old)

@@ -1,0 +1,120 @@
+"""The pipeline on real pairs: cache reuse, resumable stores, the results contract."""
+
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from gvbench_nb import config, methods, pipeline
+from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb.store import ShardedStore
+
+PAIRS_COLUMNS = {"query", "reference", "label", "num_matches", "num_inliers", "score",
+                 "extract_seconds", "match_seconds", "verify_seconds"}
+RESULTS_COLUMNS = {"method", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"}
+
+
+def gardens_point(shared_data: Path, queries=(40, 120), far=60) -> Sequence:
+    """Two queries, each with two true references and one far-apart false one."""
+    pairs = []
+    for q in queries:
+        for r, label in ((q, 1), (q + 1, 1), ((q + far) % 200, 0)):
+            pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
+    return Sequence("gp_test", shared_data / "gardens_point", pairs)
+
+
+@pytest.mark.real_data
+def test_second_run_extracts_and_matches_nothing(shared_data, tmp_path):
+    sequence = gardens_point(shared_data)
+    first = pipeline.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
+    assert run["this_run"]["extraction"] == {"images": 8, "cached": 0, "extracted": 8}
+    second = pipeline.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
+    assert run["this_run"]["extraction"] == {"images": 8, "cached": 8, "extracted": 0}
+    assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}
+    pd.testing.assert_frame_equal(first, second)
+    assert PAIRS_COLUMNS <= set(first.columns)
+    # Another method with the same extractor conf reuses the cached features.
+    pipeline.run_method(sequence, "orb-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    assert len(list((tmp_path / "cache" / "features").iterdir())) == 2  # sift + orb, once each
+
+
+@pytest.mark.real_data
+def test_extraction_time_is_amortised_over_the_pairs_of_each_image(shared_data, tmp_path):
+    sequence = gardens_point(shared_data)
+    table = pipeline.run_method(sequence, "sift-nn", "paper", tmp_path / "o", tmp_path / "c", progress=False)
+    store = pipeline.feature_store(tmp_path / "c", methods.resolve_method("sift-nn")["extractor"])
+    total = sum(float(store.read(k)["attr:seconds"]) for k in store.keys())
+    assert table["extract_seconds"].sum() == pytest.approx(total, rel=1e-6)
+
+
+@pytest.mark.real_data
+@pytest.mark.parametrize("method, profile", [("sift-nn", "paper"), ("disk-nn", "fast"), ("disk-lg", "fast")])
+def test_true_pairs_score_above_far_false_pairs(shared_data, tmp_path, method, profile):
+    sequence = gardens_point(shared_data, queries=(10, 45, 80, 115, 150, 185))
+    table = pipeline.run_method(sequence, method, profile, tmp_path / "o", tmp_path / "c", progress=False)
+    true_mean = table.loc[table.label == 1, "score"].mean()
+    false_mean = table.loc[table.label == 0, "score"].mean()
+    assert true_mean > false_mean, table[["query", "reference", "label", "score"]]
+    assert (table["profile"] == profile).all()
+
+
+def test_store_resumes_and_ignores_half_written_shards(tmp_path):
+    store = ShardedStore(tmp_path / "s")
+    with store.writer(flush_every=2) as writer:
+        for i in range(3):
+            writer.put(f"img/{i}.png", {"x": np.full(3, i)}, {"seconds": 0.5})
+    # A writer killed mid-shard leaves only a hidden temporary file: readers skip it.
+    (tmp_path / "s" / ".shard-999-dead.tmp").write_bytes(b"\x89HDF half written")
+    reread = ShardedStore(tmp_path / "s")
+    assert sorted(reread.keys()) == ["img/0.png", "img/1.png", "img/2.png"]
+    assert reread.read("img/2.png")["x"].tolist() == [2, 2, 2]
+    assert reread.read("img/1.png")["attr:seconds"] == 0.5
+    assert len(reread.shards()) == 2
+
+
+def test_prefetch_preserves_order_and_surfaces_errors_in_place():
+    def load(i):
+        time.sleep(0.01 * (5 - i % 5))  # later items finish first
+        if i == 3:
+            raise OSError("bad image 3")
+        return i * 10
+
+    results = list(pipeline.prefetch(range(8), load, depth=4, workers=3))
+    assert [item for item, _ in results] == list(range(8))
+    assert [r for i, r in results if i != 3] == [0, 10, 20, 40, 50, 60, 70]
+    assert isinstance(results[3][1], OSError)
+
+
+@pytest.mark.real_data
+def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
+    output = tmp_path / "gp"
+    completed = subprocess.run(
+        [sys.executable, "-m", "gvbench_nb", "run", str(config.PROJECT_ROOT / "params" / "gardens_point.yaml"),
+         "--methods", "sift-nn", "--limit", "24", "--output-dir", str(output)],
+        capture_output=True, text=True, timeout=600,
+    )
+    assert completed.returncode == 0, completed.stderr[-3000:]
+    assert f"results table: {output / 'results.csv'}" in completed.stdout
+    results = pd.read_csv(output / "results.csv")
+    assert RESULTS_COLUMNS <= set(results.columns)
+    assert results.loc[0, "n_pairs"] == 24 and 0 <= results.loc[0, "ap"] <= 1
+    pairs = pd.read_csv(output / "sift-nn" / "pairs.csv")
+    assert PAIRS_COLUMNS <= set(pairs.columns) and len(pairs) == 24
+    for name in ("01_sequence.ipynb", "02_verify_sift-nn.ipynb", "03_evaluate.ipynb", "pr_curves.png",
+                 "sequence_examples.png", "inliers_sift-nn.png"):
+        assert (output / name).is_file(), name
+
+
+def test_cli_reports_bad_params_clearly(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("sequence: x\npairs: p.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: paper\n"
+                   "output_dir: o\nlimt: 3\n")
+    completed = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(bad)], capture_output=True, text=True)
+    assert completed.returncode == 2
+    assert "unknown key(s) 'limt' (did you mean 'limit'?)" in completed.stderr

@@ -1,0 +1,51 @@
+import numpy as np
+import pytest
+
+from gvbench_nb.verify import ESTIMATORS, fundamental_inliers, verify_matches
+from gvbench_nb.methods import VERIFIER
+
+
+def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
+    """Points of a non-planar scene seen by two cameras, plus random outlier matches."""
+    rng = np.random.default_rng(seed)
+    points = np.c_[rng.uniform(-4, 4, n_inliers), rng.uniform(-3, 3, n_inliers), rng.uniform(6, 20, n_inliers)]
+    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
+    angle = np.deg2rad(8)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    t = np.array([1.0, 0.1, 0.3])
+    project = lambda X: (X @ K.T)[:, :2] / (X @ K.T)[:, 2:]  # noqa: E731
+    p0, p1 = project(points), project(points @ R.T + t)
+    p0 = p0 + rng.normal(0, 0.3, p0.shape)
+    p1 = p1 + rng.normal(0, 0.3, p1.shape)
+    o0 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
+    o1 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
+    order = rng.permutation(n_inliers + n_outliers)
+    truth = np.r_[np.ones(n_inliers, bool), np.zeros(n_outliers, bool)][order]
+    return np.r_[p0, o0][order], np.r_[p1, o1][order], truth
+
+
+@pytest.mark.parametrize("method", list(ESTIMATORS))
+def test_estimators_recover_the_planted_inliers(method):
+    p0, p1, truth = two_view_scene()
+    mask = fundamental_inliers(p0, p1, method=method)
+    assert (mask & truth).sum() >= 0.95 * truth.sum()
+    assert (mask & ~truth).sum() <= 3  # a random match may fall near its epipolar line
+
+
+def test_fewer_than_eight_matches_give_no_inliers():
+    p0, p1, _ = two_view_scene(n_inliers=7, n_outliers=0)
+    assert fundamental_inliers(p0, p1).sum() == 0
+
+
+def test_same_seed_same_inliers():
+    p0, p1, _ = two_view_scene(n_inliers=40, n_outliers=40, seed=3)
+    assert (fundamental_inliers(p0, p1, seed=5) == fundamental_inliers(p0, p1, seed=5)).all()
+
+
+def test_score_filter_drops_low_confidence_matches_before_ransac():
+    p0, p1, truth = two_view_scene(n_inliers=100, n_outliers=0)
+    matches = np.c_[np.arange(100), np.arange(100)]
+    scores = np.where(np.arange(100) < 50, 0.9, 0.4)  # half below the 0.5 filter
+    result = verify_matches(p0, p1, matches, scores, VERIFIER)
+    assert result["num_matches"] == 100 and result["num_matches_filtered"] == 50
+    assert result["num_inliers"] >= 45 and not result["inlier_mask"][50:].any()

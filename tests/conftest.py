@@ -39,12 +39,13 @@ def reference_dir() -> Path:
 
 
 @pytest.fixture
-def hub_dir(tmp_path, monkeypatch) -> Path:
-    """An empty torch hub folder: no checkpoint is present."""
+def empty_hub(tmp_path, monkeypatch) -> Path:
+    """Point the torch hub cache at an empty folder: no checkpoint is present.
+    Yields the checkpoints folder a missing file should be put in."""
     import torch
 
     old = torch.hub.get_dir()
     torch.hub.set_dir(str(tmp_path / "hub"))
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "hub"))
-    yield tmp_path / "hub"
+    yield tmp_path / "hub" / "checkpoints"
     torch.hub.set_dir(old)

@@ -1,0 +1,278 @@
+"""NetVLAD (VGG16 + NetVLAD + whitening, Pitts30K weights) in plain PyTorch.
+
+The global descriptor GV-Bench used to retrieve its loop-closure candidates
+(top 20 database frames per query). Architecture (Arandjelovic et al., CVPR 2016):
+
+    RGB 0..255 minus average colour
+    -> VGG16 conv1_1 .. conv5_3 (ReLU after every conv but conv5_3; 2x2 max-pool
+       after blocks 1-4; no pool5)                                  (B, 512, h, w)
+    -> L2 normalisation of every location's 512-d feature ("preL2")
+    -> NetVLAD, K=64: soft-assignment a = softmax_k(1x1 conv without bias),
+       V[d, k] = sum_locations a_k * (x_d - c_{k,d})                (B, 512, 64)
+    -> intra-normalisation (each cluster's 512-d residual to unit L2)
+    -> flatten d-major (index d * 64 + k, MATLAB's column-major [K, D] order)
+       and L2 ("postL2")                                            (B, 32768)
+    -> whitening PCA: linear 32768 -> 4096 with bias ("WPCA")
+    -> L2 ("finalL2")                                               (B, 4096)
+
+Our state dict (the layout ``load_netvlad`` fills; 30 tensors)::
+
+    backbone.conv{b}_{i}.weight  (out, in, 3, 3)   13 VGG16 convs, b=1..5
+    backbone.conv{b}_{i}.bias    (out,)            channels 64,64 | 128,128 |
+                                                   256x3 | 512x3 | 512x3
+    vlad.assignment.weight       (64, 512, 1, 1)   soft-assignment 1x1 conv, no bias
+    vlad.centres                 (64, 512)         cluster centres c_k (row k)
+    whiten.weight                (4096, 32768)     WPCA projection
+    whiten.bias                  (4096,)           -U^T mu of the PCA
+
+Mapping from ``Pitts30K_struct.mat`` (MatConvNet simplenn exported to a struct by
+netvlad_tf_open's net_class2struct.m; read with ``loadmat(squeeze_me=True,
+struct_as_record=False)``)::
+
+    net.layers[i].name 'conv1_1'..'conv5_3' (type 'conv', layers 0..28 with the
+        ReLUs/pools between them): weights[0] (3, 3, in, out) -> permute (3, 2, 0, 1);
+        weights[1] (out,)
+    net.layers 'vlad:core' (type 'custom', layer 30): weights[0] (512, 64) = D x K
+        assignment -> transpose, unsqueeze to (64, 512, 1, 1); weights[1] (512, 64) =
+        the centres NEGATED (layerVLAD.m stores -clsts) -> centres = -weights[1].T
+    net.layers 'WPCA' (type 'conv', layer 33): weights[0] (1, 1, 32768, 4096) ->
+        squeeze, transpose -> (4096, 32768); weights[1] (4096,)
+    net.meta.normalization.averageImage (H, W, 3) -> its pixel [0, 0] is the
+        average RGB colour (the same choice as hloc and netvlad_tf_open)
+
+'preL2', 'vlad:intranorm', 'postL2' and 'finalL2' hold no weights.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, Iterable, Sequence
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from gvbench_nb import weights
+
+CHECKPOINT_NAME = "netvlad_pitts30k"
+MAX_SIDE = 1024
+NUM_CLUSTERS = 64
+FEATURE_DIM = 512
+WHITENED_DIM = 4096
+# MatConvNet's normalisation adds 1e-12 under the square root; a tiny eps keeps us equal.
+NORM_EPS = 1e-12
+
+# (block, number of convs, output channels) of VGG16's conv part.
+VGG16_BLOCKS: tuple[tuple[int, int, int], ...] = ((1, 2, 64), (2, 2, 128), (3, 3, 256), (4, 3, 512), (5, 3, 512))
+VGG16_CONV_NAMES: tuple[str, ...] = tuple(f"conv{b}_{i}" for b, n, _ in VGG16_BLOCKS for i in range(1, n + 1))
+
+
+def l2_normalise(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """x / sqrt(sum x^2 + eps), MatConvNet's form (not clamped like F.normalize)."""
+    return x / torch.sqrt((x * x).sum(dim=dim, keepdim=True) + NORM_EPS)
+
+
+class VGG16Conv5(nn.Module):
+    """VGG16 convolutions up to conv5_3, without the last ReLU and max-pool."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        in_channels = 3
+        for block, count, channels in VGG16_BLOCKS:
+            for i in range(1, count + 1):
+                self.add_module(f"conv{block}_{i}", nn.Conv2d(in_channels, channels, 3, padding=1))
+                in_channels = channels
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        x = image
+        for name in VGG16_CONV_NAMES:
+            x = getattr(self, name)(x)
+            if name == "conv5_3":
+                break  # NetVLAD crops at conv5_3 before its ReLU
+            x = F.relu(x)
+            if name in ("conv1_2", "conv2_2", "conv3_3", "conv4_3"):
+                x = F.max_pool2d(x, 2, 2)
+        return x
+
+
+class NetVLADLayer(nn.Module):
+    """Soft-assignment VLAD pooling with intra-normalisation and L2.
+
+    Input: (B, D, h, w) features already L2-normalised per location.
+    Output: (B, D * K), d-major (index d * K + k), unit L2 norm.
+    """
+
+    def __init__(self, num_clusters: int = NUM_CLUSTERS, dim: int = FEATURE_DIM) -> None:
+        super().__init__()
+        self.num_clusters = num_clusters
+        self.dim = dim
+        self.assignment = nn.Conv2d(dim, num_clusters, 1, bias=False)
+        self.centres = nn.Parameter(torch.empty(num_clusters, dim))
+        nn.init.normal_(self.centres, std=dim**-0.5)
+
+    def aggregate(self, features: torch.Tensor) -> torch.Tensor:
+        """Intra-normalised VLAD matrix (B, D, K) before the flattening L2."""
+        soft = F.softmax(self.assignment(features), dim=1).flatten(2)  # (B, K, N)
+        x = features.flatten(2)  # (B, D, N)
+        # sum_n a_kn (x_dn - c_kd) = (x a^T)_dk - c_kd * sum_n a_kn
+        weighted = torch.einsum("bdn,bkn->bdk", x, soft)
+        vlad = weighted - self.centres.t().unsqueeze(0) * soft.sum(dim=2).unsqueeze(1)
+        return l2_normalise(vlad, dim=1)  # intra-normalisation: per cluster over D
+
+    def forward(self, features: torch.Tensor) -> torch.Tensor:
+        vlad = self.aggregate(features)
+        return l2_normalise(vlad.flatten(1), dim=1)
+
+
+class NetVLAD(nn.Module):
+    """VGG16-NetVLAD with optional whitening: image (B, 3, H, W) RGB 0..255 -> descriptor."""
+
+    def __init__(
+        self,
+        num_clusters: int = NUM_CLUSTERS,
+        whitened_dim: int | None = WHITENED_DIM,
+        average_rgb: Sequence[float] = (123.68, 116.779, 103.939),
+    ) -> None:
+        super().__init__()
+        self.backbone = VGG16Conv5()
+        self.vlad = NetVLADLayer(num_clusters, FEATURE_DIM)
+        self.whiten = nn.Linear(num_clusters * FEATURE_DIM, whitened_dim) if whitened_dim else None
+        # A buffer set from the .mat, kept out of the state dict (not a learnt weight).
+        self.register_buffer("average_rgb", torch.tensor(average_rgb, dtype=torch.float32), persistent=False)
+
+    @property
+    def output_dim(self) -> int:
+        return self.whiten.out_features if self.whiten is not None else self.vlad.num_clusters * FEATURE_DIM
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        """image: (B, 3, H, W) RGB in 0..255 (mean not yet removed)."""
+        x = image - self.average_rgb.view(1, 3, 1, 1)
+        features = l2_normalise(self.backbone(x), dim=1)  # preL2, per location
+        descriptor = self.vlad(features)
+        if self.whiten is not None:
+            descriptor = l2_normalise(self.whiten(descriptor), dim=1)
+        return descriptor
+
+
+# ----------------------------------------------------------------------------- .mat
+
+
+def _mat_field(obj: Any, name: str) -> Any:
+    """Attribute of a loadmat struct, with a clear message when absent."""
+    if not hasattr(obj, name):
+        raise weights.WeightsLayoutError(f"NetVLAD .mat: struct has no field {name!r}")
+    return getattr(obj, name)
+
+
+def _layers_by_name(mat_net: Any) -> dict[str, Any]:
+    layers = np.atleast_1d(_mat_field(mat_net, "layers"))
+    return {str(getattr(layer, "name", f"#{i}")): layer for i, layer in enumerate(layers)}
+
+
+def _layer(layers: dict[str, Any], *names: str) -> Any:
+    for name in names:
+        if name in layers:
+            return layers[name]
+    raise weights.WeightsLayoutError(
+        f"NetVLAD .mat: no layer named {' or '.join(map(repr, names))}; layers: {', '.join(layers)}"
+    )
+
+
+def _as_tensor(array: Any) -> torch.Tensor:
+    return torch.from_numpy(np.ascontiguousarray(np.asarray(array, dtype=np.float32)))
+
+
+def average_rgb_from_mat(mat_net: Any) -> np.ndarray:
+    """The average colour (3,) from ``net.meta.normalization.averageImage``."""
+    average = np.asarray(_mat_field(_mat_field(_mat_field(mat_net, "meta"), "normalization"), "averageImage"), float)
+    if average.ndim == 3:
+        return average[0, 0, :]  # a constant image in the released nets; take pixel [0, 0]
+    return average.reshape(3)
+
+
+def state_dict_from_mat(mat_net: Any) -> dict[str, torch.Tensor]:
+    """Our NetVLAD state dict (module docstring) from the loadmat struct ``mat['net']``."""
+    layers = _layers_by_name(mat_net)
+    state: dict[str, torch.Tensor] = {}
+    for name in VGG16_CONV_NAMES:
+        kernel, bias = _mat_field(_layer(layers, name), "weights")
+        state[f"backbone.{name}.weight"] = _as_tensor(kernel).permute(3, 2, 0, 1).contiguous()  # HWIO -> OIHW
+        state[f"backbone.{name}.bias"] = _as_tensor(bias).reshape(-1)
+
+    assignment, negated_centres = _mat_field(_layer(layers, "vlad:core", "vlad_core"), "weights")
+    assignment = _as_tensor(assignment).reshape(FEATURE_DIM, -1)  # D x K
+    state["vlad.assignment.weight"] = assignment.t().contiguous()[:, :, None, None]
+    state["vlad.centres"] = (-_as_tensor(negated_centres).reshape(FEATURE_DIM, -1)).t().contiguous()
+
+    projection, bias = _mat_field(_layer(layers, "WPCA"), "weights")
+    projection = _as_tensor(projection)
+    state["whiten.weight"] = projection.reshape(projection.shape[-2], projection.shape[-1]).t().contiguous()
+    state["whiten.bias"] = _as_tensor(bias).reshape(-1)
+    return state
+
+
+def load_netvlad(path: str | os.PathLike[str] | None = None, device: str | torch.device = "cpu") -> NetVLAD:
+    """NetVLAD with the Pitts30K weights, in eval mode.
+
+    ``path`` defaults to ``<torch hub dir>/checkpoints/Pitts30K_struct.mat``; when that
+    file is missing, ``weights.require`` raises ``MissingWeightsError`` naming it and
+    its download URL.
+    """
+    from scipy.io import loadmat  # scipy only needed when loading real weights
+
+    if path is None:
+        path = weights.require(CHECKPOINT_NAME)[0]
+    elif not Path(path).is_file():
+        raise weights.MissingWeightsError(f"{path} not found\n" + weights.missing_message(CHECKPOINT_NAME))
+    mat_net = loadmat(str(path), struct_as_record=False, squeeze_me=True)["net"]
+    state = state_dict_from_mat(mat_net)
+    model = NetVLAD(
+        num_clusters=state["vlad.centres"].shape[0],
+        whitened_dim=state["whiten.weight"].shape[0],
+        average_rgb=tuple(float(v) for v in average_rgb_from_mat(mat_net)),
+    )
+    weights.load_state_dict_strict(model, state, str(path))
+    return model.eval().to(device)
+
+
+# ----------------------------------------------------------------------------- images
+
+
+def resize_longest_side(image: np.ndarray, max_side: int = MAX_SIDE) -> np.ndarray:
+    """Shrink (never enlarge) so the longest side is <= max_side; INTER_AREA as hloc."""
+    height, width = image.shape[:2]
+    scale = max_side / max(height, width)
+    if scale >= 1.0:
+        return image
+    size = (max(1, round(width * scale)), max(1, round(height * scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+
+
+def image_to_tensor(image_rgb: np.ndarray, max_side: int = MAX_SIDE) -> torch.Tensor:
+    """(H, W, 3) uint8 RGB -> (1, 3, h, w) float 0..255, longest side <= max_side."""
+    if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) RGB image, got shape {image_rgb.shape}")
+    image = resize_longest_side(image_rgb, max_side).astype(np.float32)
+    return torch.from_numpy(image).permute(2, 0, 1).unsqueeze(0).contiguous()
+
+
+def read_rgb(path: str | os.PathLike[str]) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if image is None:
+        raise FileNotFoundError(f"cannot read image {path}")
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+@torch.inference_mode()
+def describe_images(
+    model: NetVLAD,
+    image_paths: Iterable[str | os.PathLike[str]],
+    max_side: int = MAX_SIDE,
+) -> np.ndarray:
+    """NetVLAD descriptors (N, output_dim) float32, one image at a time (sizes differ)."""
+    device = next(model.parameters()).device
+    rows = [model(image_to_tensor(read_rgb(p), max_side).to(device))[0].cpu().numpy() for p in image_paths]
+    return np.stack(rows).astype(np.float32) if rows else np.zeros((0, model.output_dim), np.float32)

@@ -1,0 +1,183 @@
+"""Label rules, retrieval, recall, VLAD/BoW encodings on hand-made data."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from gvbench_nb import retrieval as rt
+
+# ----------------------------------------------------------------------------- labels
+
+
+def test_heading_difference_wraps_at_360() -> None:
+    np.testing.assert_allclose(rt.heading_difference_deg([359.0, 10.0, 0.0, 90.0], [1.0, 350.0, 180.0, -270.0]), [2.0, 20.0, 180.0, 0.0])
+
+
+def pose_tables() -> tuple[dict, dict]:
+    query = rt.frame_table(["q0", "q1"], positions=[[0.0, 0.0], [100.0, 0.0]], headings=[359.0, 90.0])
+    reference = rt.frame_table(
+        ["r0", "r1", "r2", "r3", "r4"],
+        positions=[[10.0, 0.0], [20.0, 15.0], [0.0, 5.0], [0.0, 5.0], [110.0, 0.0]],
+        headings=[1.0, 0.0, 45.0, 300.0, 180.0],
+    )
+    return query, reference
+
+
+def test_pose_rule_distance_and_wrapped_heading() -> None:
+    query, reference = pose_tables()
+    pairs = [(0, 0), (0, 1), (0, 2), (0, 3), (1, 4), (0, 4)]
+    labels = rt.label_pairs("pose", None, query, reference, pairs)
+    # r0: 10 m, 2 deg across 0 | r1: 25 m exactly (inclusive), 1 deg | r2: 46 deg |
+    # r3: 59 deg | r4 vs q1: 10 m but 90 deg | r4 vs q0: 110 m
+    np.testing.assert_array_equal(labels, [True, True, False, False, False, False])
+    loose = rt.label_pairs("pose", {"max_heading_deg": 60.0}, query, reference, pairs)
+    np.testing.assert_array_equal(loose, [True, True, True, True, False, False])
+    no_heading = rt.label_pairs("pose", {"max_heading_deg": None, "max_distance_m": 10.0}, query, reference, pairs)
+    np.testing.assert_array_equal(no_heading, [True, False, True, True, True, False])
+
+
+def test_frame_tolerance_rule_and_matrix() -> None:
+    query = rt.frame_table([f"q{i}" for i in range(4)])
+    reference = rt.frame_table([f"r{i}" for i in range(6)])
+    labels = rt.label_pairs("frame_tolerance", {"k": 2}, query, reference, [(0, 2), (0, 3), (3, 1), (3, 5), (2, 2)])
+    np.testing.assert_array_equal(labels, [True, False, True, True, True])
+    truth = rt.ground_truth_matrix("frame_tolerance", None, query, reference)  # default k = 2
+    assert truth.shape == (4, 6)
+    expected = np.abs(np.arange(4)[:, None] - np.arange(6)[None, :]) <= 2
+    np.testing.assert_array_equal(truth, expected)
+
+
+def test_manual_rule() -> None:
+    query = rt.frame_table(["a", "b"])
+    reference = rt.frame_table(["x", "y", "z"])
+    params = {"true_pairs": [("a", "y"), ("b", "x"), ("b", "z"), ("c", "x")]}  # 'c' is not a query here
+    labels = rt.label_pairs("manual", params, query, reference, [(0, 0), (0, 1), (1, 0), (1, 1), (1, 2)])
+    np.testing.assert_array_equal(labels, [False, True, True, False, True])
+    truth = rt.ground_truth_matrix("manual", params, query, reference)
+    np.testing.assert_array_equal(truth, [[False, True, False], [True, False, True]])
+
+
+def test_rule_errors_are_clear() -> None:
+    table = rt.frame_table(["a"])
+    with pytest.raises(KeyError, match="unknown label rule"):
+        rt.label_pairs("gps", None, table, table, [(0, 0)])
+    with pytest.raises(KeyError, match="no parameter"):
+        rt.label_pairs("frame_tolerance", {"tolerance": 3}, table, table, [(0, 0)])
+    with pytest.raises(KeyError, match="position"):
+        rt.label_pairs("pose", None, table, table, [(0, 0)])
+
+
+# ----------------------------------------------------------------------------- retrieval
+
+
+def test_retrieve_top_n_known_answer() -> None:
+    reference = np.eye(4, dtype=np.float32)
+    query = np.array([[0.1, 0.9, 0.3, 0.0], [0.0, 0.0, 0.0, 1.0], [0.5, 0.5, 0.0, 0.0]], np.float32)
+    indices, similarities = rt.retrieve_top_n(query, reference, 2)
+    np.testing.assert_array_equal(indices, [[1, 2], [3, 0], [0, 1]])  # tie 0/1 -> lower index first
+    np.testing.assert_allclose(similarities, [[0.9, 0.3], [1.0, 0.0], [0.5, 0.5]])
+    indices, _ = rt.retrieve_top_n(query, reference, 10)  # n capped at R
+    assert indices.shape == (3, 4)
+
+
+def test_multi_experience_union_and_best_experience() -> None:
+    query = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
+    experiences = {
+        "day": np.array([[0.9, 0.1], [0.2, 0.8]], np.float32),
+        "night": np.array([[0.95, 0.05], [0.0, 0.3], [0.1, 0.99]], np.float32),
+    }
+    candidates = rt.retrieve_top_n_experiences(query, experiences, 2)
+    assert len(candidates) == 4
+    np.testing.assert_array_equal(candidates.query, [0, 0, 1, 1])
+    np.testing.assert_array_equal(candidates.experience, ["night", "day", "night", "day"])
+    np.testing.assert_array_equal(candidates.reference, [0, 0, 2, 1])
+    np.testing.assert_array_equal(candidates.rank, [0, 1, 0, 1])
+    frame = candidates.to_frame()
+    assert list(frame.columns) == ["query", "experience", "reference", "rank", "similarity"]
+    best = rt.best_experience(candidates, scores=np.array([10, 40, 7, 7]))
+    np.testing.assert_array_equal(best.query, [0, 1])
+    np.testing.assert_array_equal(best.experience, ["day", "night"])  # query 1: tie -> better rank
+    np.testing.assert_array_equal(best.score, [40, 7])
+    np.testing.assert_array_equal(best.pair_row, [1, 2])
+
+
+def test_recall_at_known_ranking() -> None:
+    truth = np.zeros((4, 5), dtype=bool)
+    truth[0, 2] = True  # found at rank 1
+    truth[1, 4] = True  # found at rank 3
+    truth[2, 0] = True  # never retrieved
+    # query 3 has no true reference: excluded
+    ranked = np.array([[2, 0, 1], [0, 1, 4], [1, 2, 3], [0, 1, 2]])
+    recall = rt.retrieval_recall_at([1, 2, 3], ranked, truth)
+    assert recall["recall@1"] == pytest.approx(1 / 3)
+    assert recall["recall@2"] == pytest.approx(1 / 3)
+    assert recall["recall@3"] == pytest.approx(2 / 3)
+    assert recall["queries_evaluated"] == 3 and recall["queries_excluded"] == 1
+    with pytest.raises(ValueError):
+        rt.retrieval_recall_at([5], ranked, truth)
+
+
+def test_choose_queries() -> None:
+    np.testing.assert_array_equal(rt.choose_queries(5), np.arange(5))
+    subset = rt.choose_queries(100, 10, seed=3)
+    assert len(subset) == 10 and len(set(subset)) == 10 and np.all(np.diff(subset) > 0)
+    np.testing.assert_array_equal(subset, rt.choose_queries(100, 10, seed=3))
+    assert not np.array_equal(subset, rt.choose_queries(100, 10, seed=4))
+
+
+# ----------------------------------------------------------------------------- VLAD / BoW
+
+
+def synthetic_local(seed: int, num_images: int = 12, dim: int = 16, binary: bool = False) -> dict[str, np.ndarray]:
+    """Images whose descriptors come from image-specific mixtures of 8 modes."""
+    rng = np.random.default_rng(seed)
+    modes = rng.standard_normal((8, dim)) * 3
+    local = {}
+    for i in range(num_images):
+        picks = rng.choice(8, size=60, p=np.roll([0.5, 0.2, 0.1, 0.05, 0.05, 0.05, 0.03, 0.02], i))
+        data = modes[picks] + rng.standard_normal((60, dim)) * 0.3
+        local[f"img{i:02d}"] = np.packbits(data > 0, axis=1) if binary else data.astype(np.float32)
+    return local
+
+
+@pytest.mark.parametrize("method, params", [("vlad", {"num_words": 8}), ("bow", {"num_words": 16})])
+def test_encodings_deterministic_and_normalised(method: str, params: dict) -> None:
+    reference = synthetic_local(0)
+    query = {k: v[::2] for k, v in synthetic_local(1).items()}
+    a = rt.compute_global_descriptors(method, reference, query, seed=7, **params)
+    b = rt.compute_global_descriptors(method, dict(reversed(reference.items())), query, seed=7, **params)
+    np.testing.assert_array_equal(a.query, b.query)  # same seed: identical, whatever the dict order
+    assert a.reference_names == list(reference) and a.query_names == list(query)
+    np.testing.assert_allclose(np.linalg.norm(a.reference, axis=1), 1.0, rtol=1e-5)
+    np.testing.assert_allclose(np.linalg.norm(a.query, axis=1), 1.0, rtol=1e-5)
+    # each reference image retrieves itself first
+    indices, _ = rt.retrieve_top_n(a.reference, a.reference, 1)
+    np.testing.assert_array_equal(indices[:, 0], np.arange(len(reference)))
+
+
+def test_vlad_intra_normalised_blocks() -> None:
+    reference = synthetic_local(0)
+    encoder = rt.VladEncoder.fit(reference, num_words=8, seed=0)
+    vector = encoder.encode(reference["img03"]).reshape(8, 16)
+    norms = np.linalg.norm(vector, axis=1)
+    used = norms > 0
+    np.testing.assert_allclose(norms[used], 1 / np.sqrt(used.sum()), rtol=1e-5)  # equal blocks before L2
+    assert not np.any(encoder.encode(np.zeros((0, 16), np.float32)))  # no descriptors -> zeros
+
+
+def test_bow_on_binary_descriptors() -> None:
+    reference = synthetic_local(2, binary=True)
+    encoder = rt.BowEncoder.fit(reference, num_words=12, seed=0)
+    assert reference["img00"].dtype == np.uint8
+    assert encoder.centres.shape == (12, reference["img00"].shape[1] * 8)  # unpacked bits
+    again = rt.BowEncoder.fit(reference, num_words=12, seed=0)
+    np.testing.assert_array_equal(encoder.centres, again.centres)
+    vector = encoder.encode(reference["img00"])
+    assert vector.shape == (12,) and np.isclose(np.linalg.norm(vector), 1.0)
+    assert np.all(encoder.idf >= 0)
+
+
+def test_unknown_global_descriptor() -> None:
+    with pytest.raises(KeyError, match="known: netvlad, vlad, bow"):
+        rt.compute_global_descriptors("cosplace", {}, {})

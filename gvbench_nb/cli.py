@@ -49,9 +49,11 @@ def command_run(args: argparse.Namespace) -> int:
 
     from . import config, methods, weights
 
+    # Paths typed on the command line are relative to the current folder, not the params file.
+    absolute = lambda path: str(Path(path).resolve()) if path else None  # noqa: E731
     params = config.load_params(
-        args.params, methods=args.methods, limit=args.limit, profile=args.profile, output_dir=args.output_dir,
-        image_root=args.image_root,
+        args.params, methods=args.methods, limit=args.limit, profile=args.profile,
+        output_dir=absolute(args.output_dir), image_root=absolute(args.image_root),
     )
     # Every method's weights are checked before any work: nothing half-runs.
     missing = [c for m in params["methods"] for c in methods.required_checkpoints(m, params["profile"])

@@ -124,7 +124,7 @@ class AlikedExtractor:
         features = self.model(_to_tensor(image, self.device))[0]
         return {
             "keypoints": features.keypoints.cpu().numpy().astype(np.float32),
-            "scores": features.detection_scores.cpu().numpy().astype(np.float32),
+            "scores": features.keypoint_scores.cpu().numpy().astype(np.float32),
             "descriptors": features.descriptors.cpu().numpy().astype(np.float32),
         }
 

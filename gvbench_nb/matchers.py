@@ -152,10 +152,47 @@ class SuperGlueMatcher:
         return matches, scores0[valid].astype(np.float32)
 
 
+class LoFTRMatcher:
+    """kornia LoFTR run as a dense pair matcher (no per-image cache) with the paper's
+    preprocessing: grayscale, longest side <= 1024, both sides floored to a multiple of 8.
+
+    Takes two prepared grayscale uint8 images; returns points in their pixels and
+    confidences. The official checkpoint is loaded here with ``weights_only=True``.
+    """
+
+    dense = True
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        from kornia.feature import LoFTR
+
+        (path,) = weights.require(*conf["checkpoints"])
+        self.device = device
+        self.model = LoFTR(pretrained=None)
+        self.model.coarse_matching.thr = conf.get("coarse_threshold", 0.2)
+        checkpoint = weights.load_checkpoint(path)
+        state_dict = checkpoint.get("state_dict", checkpoint)
+        state_dict = {k.removeprefix("matcher."): v for k, v in state_dict.items()}
+        weights.load_state_dict_strict(self.model, state_dict, str(path))
+        self.model = self.model.to(device).eval()
+
+    @torch.inference_mode()
+    def __call__(self, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        def tensor(image: np.ndarray) -> torch.Tensor:
+            return torch.from_numpy(image).float().div(255.0)[None, None].to(self.device)
+
+        output = self.model({"image0": tensor(image0), "image1": tensor(image1)})
+        return (
+            output["keypoints0"].cpu().numpy().astype(np.float32),
+            output["keypoints1"].cpu().numpy().astype(np.float32),
+            output["confidence"].cpu().numpy().astype(np.float32),
+        )
+
+
 MATCHER_TYPES: dict[str, Callable[[dict[str, Any], torch.device], Callable[..., Matches]]] = {
     "nn": NearestNeighbourMatcher,
     "lightglue": LightGlueMatcher,
     "superglue": SuperGlueMatcher,
+    "loftr": LoFTRMatcher,
 }
 
 

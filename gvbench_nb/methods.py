@@ -62,6 +62,11 @@ MATCHERS: dict[str, dict[str, Any]] = {
     },
     # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
     "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
+    # Dense: matches an image pair directly; its image preparation lives in the matcher conf.
+    "loftr-outdoor": {
+        "type": "loftr", "dense": True, "weights": "outdoor", "grayscale": True, "resize_max": 1024,
+        "resize_force": False, "multiple_of": 8, "coarse_threshold": 0.2, "checkpoints": ["loftr_outdoor"],
+    },
     "superglue-outdoor": {
         "type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2,
         "checkpoints": ["superglue_outdoor"],
@@ -74,6 +79,7 @@ METHODS: dict[str, dict[str, Any]] = {
     "sp-sg": {"paper_name": "SP+SG", "extractor": "superpoint", "matcher": "superglue-outdoor", "in_paper": True},
     "disk-nn": {"paper_name": "DISK+NN", "extractor": "disk", "matcher": "nn-ratio", "in_paper": True},
     "disk-lg": {"paper_name": "DISK+LG", "extractor": "disk", "matcher": "lightglue-disk", "in_paper": True},
+    "loftr": {"paper_name": "LoFTR", "extractor": None, "matcher": "loftr-outdoor", "in_paper": True},
     "sp-lg": {"paper_name": "SP+LG", "extractor": "superpoint", "matcher": "lightglue-superpoint", "in_paper": False},
     "aliked-nn": {"paper_name": "ALIKED+NN", "extractor": "aliked", "matcher": "nn-mutual", "in_paper": False},
     "aliked-lg": {"paper_name": "ALIKED+LG", "extractor": "aliked", "matcher": "lightglue-aliked", "in_paper": False},
@@ -83,16 +89,19 @@ METHODS: dict[str, dict[str, Any]] = {
     "orb-nn": {"paper_name": "ORB+NN", "extractor": "orb", "matcher": "nn-hamming", "in_paper": False},
 }
 
-# Profile -> extractor type -> overrides. 'paper' is the protocol as published.
+# Profile -> extractor (or dense matcher) type -> overrides. 'paper' is the protocol as
+# published. 'fast' runs at 512 px on the longest side (the resolution of the benchmark's
+# later code) with at most 1024 learned keypoints, so a CPU gets through a real sequence.
 PROFILES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {},
     "fast": {
-        "sift": {"resize_max": 640, "max_keypoints": 4096},
-        "orb": {"resize_max": 640},
-        "disk": {"resize_max": 640, "max_keypoints": 2048},
-        "superpoint": {"resize_max": 640, "max_keypoints": 2048},
-        "aliked": {"resize_max": 640, "max_keypoints": 2048},
-        "xfeat": {"resize_max": 640, "max_keypoints": 2048},
+        "sift": {"resize_max": 512, "max_keypoints": 4096},
+        "orb": {"resize_max": 512},
+        "disk": {"resize_max": 512, "max_keypoints": 1024},
+        "superpoint": {"resize_max": 512, "max_keypoints": 1024},
+        "aliked": {"resize_max": 512, "max_keypoints": 1024},
+        "xfeat": {"resize_max": 512, "max_keypoints": 1024},
+        "loftr": {"resize_max": 512},
     },
 }
 
@@ -127,10 +136,13 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
         raise _unknown("method", name, list(METHODS))
     check_profile(profile)
     method = METHODS[name]
-    extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
-    extractor.update(PROFILES[profile].get(extractor["type"], {}))
-    extractor["name"] = method["extractor"]
+    extractor = None  # dense matchers (LoFTR) have none: they cannot use the per-image cache
+    if method["extractor"] is not None:
+        extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
+        extractor.update(PROFILES[profile].get(extractor["type"], {}))
+        extractor["name"] = method["extractor"]
     matcher = copy.deepcopy(MATCHERS[method["matcher"]])
+    matcher.update(PROFILES[profile].get(matcher["type"], {}))
     matcher["name"] = method["matcher"]
     return {
         "method": name,
@@ -149,7 +161,8 @@ def conf_hash(conf: dict[str, Any]) -> str:
 
 def required_checkpoints(name: str, profile: str = "paper") -> list[str]:
     conf = resolve_method(name, profile)
-    return list(dict.fromkeys(conf["extractor"]["checkpoints"] + conf["matcher"]["checkpoints"]))
+    extractor_checkpoints = conf["extractor"]["checkpoints"] if conf["extractor"] else []
+    return list(dict.fromkeys(extractor_checkpoints + conf["matcher"]["checkpoints"]))
 
 
 def method_table() -> list[dict[str, Any]]:
@@ -160,7 +173,7 @@ def method_table() -> list[dict[str, Any]]:
         missing = [c for c in needed if not weights.is_present(c)]
         rows.append({
             "method": name, "paper_name": method["paper_name"], "in_paper": method["in_paper"],
-            "extractor": method["extractor"], "matcher": method["matcher"],
+            "extractor": method["extractor"] or "(dense)", "matcher": method["matcher"],
             "weights": ", ".join(needed) or "-", "available": not missing,
             "missing": ", ".join(weights.get(c).file for c in missing),
         })

@@ -1,0 +1,279 @@
+"""The analyses read written results right: best-per-column, the paper join, failures,
+offsets, normalised inliers and the query bootstrap (agreement, coverage, determinism)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+from sklearn.metrics import average_precision_score
+
+from gvbench_nb import analysis, metrics, pipeline
+
+
+def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
+    return pd.DataFrame({"pair_index": range(len(labels)), "query": queries, "reference": references,
+                         "label": labels, "score": scores, "num_inliers": scores,
+                         "num_matches": np.asarray(scores) + 10})
+
+
+def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, separation: float = 1.0
+                   ) -> pd.DataFrame:
+    """Independent queries of ``per_query`` pairs: label ~ Bernoulli(0.4), score ~ N(separation * label, 1)."""
+    n = n_queries * per_query
+    labels = (rng.random(n) < 0.4).astype(int)
+    labels[0], labels[1] = 1, 0  # both classes, always
+    scores = rng.normal(separation * labels, 1.0)
+    queries = np.repeat([f"q{i}" for i in range(n_queries)], per_query)
+    return pairs_frame(queries, [f"r{i}" for i in range(n)], labels, scores)
+
+
+# ------------------------------------------------------------ best per column --
+def test_best_per_column_marks_all_ties_and_never_nan():
+    table = pd.DataFrame({"a": [0.5, 0.9, 0.9], "b": [np.nan, 0.1, 0.2], "c": [np.nan, np.nan, np.nan]})
+    best = analysis.best_per_column(table)
+    assert best["a"].tolist() == [False, True, True]
+    assert best["b"].tolist() == [False, False, True]
+    assert not best["c"].any()
+
+
+def test_best_per_column_lower_is_better_per_column():
+    table = pd.DataFrame({"max_recall": [0.2, 0.4], "seconds_per_pair": [0.3, 0.1]})
+    best = analysis.best_per_column(table, {"seconds_per_pair": False})
+    assert best["max_recall"].tolist() == [False, True]
+    assert best["seconds_per_pair"].tolist() == [False, True]
+    assert analysis.best_per_column(table, False)["max_recall"].tolist() == [True, False]
+
+
+# ------------------------------------------------------------ the paper's table --
+def test_paper_table_join_labels_values_and_mapping(tmp_path):
+    path = tmp_path / "paper_table.csv"
+    path.write_text("method,sequence,ap,max_recall\nSIFT+NN,night,62.1,8.7\nNotOurs+XX,night,97.9,18.2\n"
+                    "SIFT+NN,day,98.1,36.0\nDISK+LG,night,81.4,25.0\n")
+    paper = analysis.load_paper_table(path)
+    assert paper.loc[paper.paper_name == "SIFT+NN", "method"].unique().tolist() == ["sift-nn"]
+    assert paper.loc[paper.paper_name == "NotOurs+XX", "method"].isna().all()  # not one of ours
+    results = pd.DataFrame({"method": ["sift-nn", "disk-nn"], "sequence": ["night", "night"],
+                            "ap": [0.7, 0.5], "max_recall": [0.1, 0.2]})
+    joined = analysis.join_paper_table(results, paper)
+    assert set(joined["source"]) == {"ours", "paper"}
+    theirs = joined[joined.source == "paper"]
+    # Only methods and sequences we ran; % turned into fractions.
+    assert theirs[["method", "sequence"]].values.tolist() == [["sift-nn", "night"]]
+    assert theirs["ap"].iloc[0] == pytest.approx(0.621)
+    assert theirs["max_recall"].iloc[0] == pytest.approx(0.087)
+    wide = analysis.results_table(joined)
+    assert ("night", "ap", "paper") in wide.columns and ("night", "ap", "ours") in wide.columns
+    assert wide.loc["sift-nn (SIFT+NN)", ("night", "max_recall", "paper")] == pytest.approx(0.087)
+    assert np.isnan(wide.loc["disk-nn (DISK+NN)", ("night", "ap", "paper")])
+    text = analysis.text_results_table(wide)
+    assert text.loc["disk-nn (DISK+NN)", ("night", "max_recall", "ours")] == "20.0*"
+    assert text.loc["disk-nn (DISK+NN)", ("night", "ap", "paper")] == "-"
+
+
+def test_missing_paper_table_is_empty_not_an_error(tmp_path):
+    assert analysis.load_paper_table(tmp_path / "absent.csv").empty
+
+
+# ------------------------------------------------------------------ failures --
+def test_top_false_positives_and_negatives_with_frame_offsets():
+    queries = [f"night/Image{i:03d}.jpg" for i in (10, 10, 10, 20, 20, 20)]
+    references = [f"day/Image{j:03d}.jpg" for j in (10, 14, 40, 21, 23, 20)]
+    table = pairs_frame(queries, references, [1, 0, 0, 1, 0, 1], [50, 30, 30, 3, 44, 0])
+    false_positives = analysis.top_false_positives(table, 2)
+    assert false_positives["pair_index"].tolist() == [4, 1]  # 44, then the first of the tied 30s
+    assert analysis.top_false_negatives(table, 2)["pair_index"].tolist() == [5, 3]
+    offsets = analysis.ground_truth_offsets(table)
+    assert offsets["frame_offset"].tolist() == [0, 4, 30, 1, 3, 0]
+    failures = analysis.failures_table({"m": table}, k=2)
+    fp = failures[failures.kind == "false_positive"]
+    assert fp["frame_offset"].tolist() == [3, 4] and fp["rank"].tolist() == [1, 2]
+    near = analysis.near_miss_false_positives(table, offsets, top_k=2, low=3, high=5)
+    assert near["near_in_top"] == 2 and near["near_share_all_false"] == pytest.approx(2 / 3)
+
+
+def test_pose_offsets_from_poses_csv(tmp_path):
+    rows = []
+    for name, x, yaw in (("night/000.png", 0.0, 0.0), ("day/001.png", 3.0, 0.0), ("day/002.png", 0.0, 90.0)):
+        c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
+        rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # optical axis turned by yaw
+        rows.append({"image": name, "x": x, "y": 4.0, "z": 1.5,
+                     **{f"r{i}{j}": rotation[i, j] for i in range(3) for j in range(3)}})
+    pd.DataFrame(rows).to_csv(tmp_path / "poses.csv", index=False)
+    table = pairs_frame(["night/000.png"] * 2, ["day/001.png", "day/002.png"], [1, 0], [5, 1])
+    offsets = analysis.ground_truth_offsets(table, tmp_path)
+    assert offsets["distance_m"].tolist() == pytest.approx([3.0, 0.0])
+    assert offsets["heading_deg"].tolist() == pytest.approx([0.0, 90.0])
+    assert offsets["frame_offset"].tolist() == [1, 2]
+    with pytest.raises(KeyError, match="no pose"):
+        analysis.ground_truth_offsets(pairs_frame(["night/009.png"], ["day/001.png"], [1], [1]), tmp_path)
+
+
+# ------------------------------------------------------------------- inliers --
+def test_normalised_inliers_and_overlap_summary():
+    table = pairs_frame(["q"] * 6, list("abcdef"), [1, 1, 1, 0, 0, 1], [40, 10, 0, 10, 5, 0])
+    assert analysis.normalised_inliers(table).tolist() == pytest.approx([1, 0.25, 0, 0.25, 0.125, 0])
+    summary = analysis.inlier_overlap_summary(table)
+    assert summary["true_zero_inliers"] == pytest.approx(0.5)
+    assert summary["top_false_score"] == 10 and summary["top_false_normalised"] == pytest.approx(0.25)
+    # Strictly above the top false pair is exactly what MR can reach.
+    assert summary["true_above_top_false"] == pytest.approx(
+        metrics.max_recall_at_full_precision(table["label"], table["score"]))
+    assert analysis.normalised_inliers(table.assign(num_inliers=0)).tolist() == [0] * 6
+
+
+# ------------------------------------------------------------------ bootstrap --
+def test_weighted_metrics_equal_sklearn_on_repeated_pairs():
+    rng = np.random.default_rng(3)
+    checked = 0
+    for _ in range(100):
+        n = int(rng.integers(4, 40))
+        labels = rng.integers(0, 2, n)
+        scores = rng.integers(0, 5, n).astype(float)  # many ties, as inlier counts have
+        weights = rng.integers(0, 3, (4, n))
+        ap, max_recall = analysis.weighted_ap_max_recall(labels, scores, weights)
+        for row in range(4):
+            repeated = np.repeat(np.arange(n), weights[row])
+            l, s = labels[repeated], scores[repeated]
+            if l.sum() in (0, len(l)):
+                continue
+            assert ap[row] == pytest.approx(average_precision_score(l, s))
+            assert max_recall[row] == pytest.approx(metrics.max_recall_at_full_precision(l, s))
+            checked += 1
+    assert checked > 200
+
+
+def test_query_resample_weights_keep_a_query_together():
+    codes = np.array([0, 0, 0, 1, 1, 2])
+    weights = analysis.query_resample_weights(codes, 50, seed=1)
+    assert weights.shape == (50, 6)
+    assert (weights[:, 0] == weights[:, 1]).all() and (weights[:, 3] == weights[:, 4]).all()
+    # Each resample draws exactly n_queries queries.
+    assert (weights[:, [0, 3, 5]].sum(axis=1) == 3).all()
+
+
+def test_bootstrap_is_deterministic_by_seed():
+    table = grouped_scores(np.random.default_rng(0), 30, 5)
+    tables = {"a": table, "b": table.assign(score=table["score"] * 0.5 + np.random.default_rng(1).normal(size=150))}
+    first = analysis.bootstrap(tables, 100, seed=7)
+    again = analysis.bootstrap(tables, 100, seed=7)
+    other = analysis.bootstrap(tables, 100, seed=8)
+    pd.testing.assert_frame_equal(first.intervals(), again.intervals())
+    pd.testing.assert_frame_equal(first.pairwise(), again.pairwise())
+    assert not first.samples["ap"].equals(other.samples["ap"])
+    assert first.estimates.loc["a", "ap"] == pytest.approx(average_precision_score(table["label"], table["score"]))
+
+
+def test_bootstrap_ci_covers_the_true_ap_about_95_percent():
+    rng = np.random.default_rng(2024)
+    huge = grouped_scores(rng, 100_000, 4)
+    true_ap = average_precision_score(huge["label"], huge["score"])
+    covered, widths = 0, []
+    for _ in range(100):
+        sample = grouped_scores(rng, 50, 4)
+        interval = analysis.bootstrap({"m": sample}, 200, seed=int(rng.integers(1 << 31))).intervals()
+        ap = interval[interval.metric == "ap"].iloc[0]
+        covered += ap["low"] <= true_ap <= ap["high"]
+        widths.append(ap["high"] - ap["low"])
+    # 95% nominal; 100 experiments give a binomial sd of about 2.2 points.
+    assert 0.87 <= covered / 100 <= 0.995, covered
+    assert 0.05 < np.mean(widths) < 0.4
+
+
+def test_bootstrap_ranking_significant_only_when_it_should_be():
+    rng = np.random.default_rng(5)
+    table = grouped_scores(rng, 60, 5, separation=0.3)
+    perfect = table.assign(score=table["label"] * 10.0 + rng.random(len(table)))
+    result = analysis.bootstrap({"weak": table, "perfect": perfect, "same": table.copy()}, 300, seed=0)
+    pairs = result.pairwise("max_recall").set_index(["method_a", "method_b"])
+    assert pairs.loc[("perfect", "weak"), "a_better"]
+    assert not pairs.loc[("weak", "perfect"), "a_better"]
+    assert not pairs.loc[("same", "weak"), "a_better"] and pairs.loc[("same", "weak"), "tied"] == 1.0
+    matrix = result.ranking_matrix("max_recall")
+    assert matrix.loc["perfect", "weak"] == ">" and matrix.loc["weak", "perfect"] == "<"
+    assert matrix.loc["same", "weak"] == "~"
+    intervals = result.intervals().set_index(["method", "metric"])
+    assert intervals.loc[("perfect", "max_recall"), "low"] == 1.0
+
+
+def test_bootstrap_is_fast_enough():
+    import time
+
+    table = grouped_scores(np.random.default_rng(0), 200, 10)
+    started = time.perf_counter()
+    analysis.bootstrap({"a": table, "b": table.assign(score=-table["score"])}, 1000, seed=0)
+    assert time.perf_counter() - started < 10
+
+
+def test_bootstrap_refuses_methods_on_different_pairs():
+    table = grouped_scores(np.random.default_rng(0), 10, 4)
+    with pytest.raises(ValueError, match="scored different pairs"):
+        analysis.bootstrap({"a": table, "b": table.iloc[:-3]}, 10)
+
+
+# ---------------------------------------------------------------- results I/O --
+def write_fake_run(output_dir, method="sift-nn", sequence="toy"):
+    table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
+    table = table.assign(extract_seconds=0.1, match_seconds=0.2, verify_seconds=0.05)
+    folder = pipeline.method_dir(output_dir, method)
+    folder.mkdir(parents=True)
+    table.to_csv(folder / "pairs.csv", index=False)
+    (folder / "run.json").write_text(json.dumps({
+        "sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": "fast"},
+        "environment": {"device": "cpu"}}))
+
+
+def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
+    output_dir = tmp_path / "toy"
+    write_fake_run(output_dir)
+    (tmp_path / "pairs.txt").write_text("q0 r0 1\n")
+    params = tmp_path / "toy.yaml"
+    params.write_text(f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\n"
+                      f"output_dir: {output_dir}\n")
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("run_method must not run when pairs.csv exists")
+
+    monkeypatch.setattr(pipeline, "run_method", refuse)
+    assert analysis.ensure_results(params, ["sift-nn"]) == output_dir
+    results = analysis.load_results(analysis.find_output_dirs(tmp_path))
+    assert results["method"].tolist() == ["sift-nn"]
+    assert results["max_recall"].iloc[0] == pytest.approx(0.5)
+    assert results["fps"].iloc[0] == pytest.approx(1 / 0.35)
+    with pytest.raises(FileNotFoundError, match="results.csv"):
+        analysis.find_output_dirs(tmp_path, ["absent"])
+
+
+# -------------------------------------------------------------------- report --
+def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypatch):
+    import argparse
+
+    from gvbench_nb import report
+
+    output_dir = tmp_path / "outputs" / "toy"
+    write_fake_run(output_dir)
+    pipeline.evaluate(output_dir)
+    reference = tmp_path / "reference"
+    reference.mkdir()
+    (reference / "paper_table.csv").write_text("method,sequence,ap,max_recall\nSIFT+NN,toy,50.0,12.5\n")
+    monkeypatch.setenv("GVBENCH_REFERENCE", str(reference))
+    report_dir = tmp_path / "report"
+    (report_dir / "toy").mkdir(parents=True)
+    (report_dir / "toy" / "analysis_failures.html").write_text("<html></html>")
+    executed = [report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_failures.ipynb",
+                                        report_dir / "toy" / "analysis_failures.html"),
+                report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_uncertainty.ipynb", None,
+                                        "ValueError: boom")]
+    page = report.summary_page(report_dir, [output_dir], executed)
+    assert ">paper<" in page and ">ours<" in page
+    assert ">12.5<" in page and ">50.0<" in page  # the paper's values, in %
+    assert "href='toy/analysis_failures.html'" in page
+    assert "failed: ValueError: boom" in page
+
+    parser = argparse.ArgumentParser()
+    report.add_command(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["report", "--outputs-root", str(tmp_path / "outputs"), "--sequences", "absent",
+                              "--output-dir", str(report_dir)])
+    assert args.handler(args) == 2  # a named sequence without results is refused, not a traceback

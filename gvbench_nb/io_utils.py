@@ -15,6 +15,20 @@ from typing import Any, Callable
 import pandas as pd
 
 
+def fsync_folder(folder: Path) -> None:
+    """Make a rename in ``folder`` durable (a power cut could otherwise undo it)."""
+    try:
+        descriptor = os.open(folder, os.O_RDONLY)
+    except OSError:  # some platforms cannot open folders; the rename is still atomic there
+        return
+    try:
+        os.fsync(descriptor)
+    except OSError:
+        pass
+    finally:
+        os.close(descriptor)
+
+
 def _atomic_write(path: Path, write: Callable[[Path], None]) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -25,6 +39,7 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> Path:
         with open(temporary, "rb") as stream:
             os.fsync(stream.fileno())
         os.replace(temporary, path)
+        fsync_folder(path.parent)
     except BaseException:
         if os.path.exists(temporary):
             os.unlink(temporary)

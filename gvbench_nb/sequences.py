@@ -31,8 +31,10 @@ class Pair:
 
 
 def _check_relative(path_text: str, where: str) -> None:
-    path = PurePosixPath(path_text)
-    if path.is_absolute() or path_text.startswith("\\") or (len(path_text) > 1 and path_text[1] == ":"):
+    # Backslashes count as separators too: a list written on Windows must not escape
+    # the root when it is read there ('..\\x', 'C:\\x', '\\\\server\\share').
+    path = PurePosixPath(path_text.replace("\\", "/"))
+    if path.is_absolute() or (len(path_text) > 1 and path_text[1] == ":"):
         raise PairFileError(f"{where}: absolute path {path_text!r}; paths must be relative to the image root")
     if ".." in path.parts:
         raise PairFileError(f"{where}: path {path_text!r} escapes the image root ('..'); paths must stay inside it")
@@ -75,8 +77,18 @@ def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"pair file not found: {path}")
-    with open(path, encoding="utf-8") as handle:
-        pairs = parse_pairs(handle, source=str(path))
+    data = path.read_bytes()
+    try:
+        # utf-8-sig drops the byte-order mark some Windows editors write.
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line_number = data[: error.start].count(b"\n") + 1
+        raise PairFileError(
+            f"{path}:{line_number}: not UTF-8 text ({data[error.start:error.start + 4]!r}); "
+            "is this a pair file? Save it as UTF-8 text"
+        ) from None
+    # splitlines() and strip() make CRLF (and lone CR) line endings read like LF.
+    pairs = parse_pairs(text.splitlines(), source=str(path))
     if not pairs:
         raise PairFileError(f"{path}: holds no pairs")
     return pairs

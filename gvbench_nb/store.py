@@ -4,12 +4,14 @@ Each writer buffers entries and commits them as a new shard file: written under 
 temporary name, closed, fsynced and renamed. A killed run therefore loses only its
 uncommitted buffer, a reader never sees a half-written entry, and two runs writing
 the same store (two sequences sharing images, two methods at once) never touch the
-same file. hloc keeps one HDF5 file a conf; we keep one folder a conf.
+same file. A killed writer's hidden temporary file is deleted by the next writer on
+the same host. hloc keeps one HDF5 file a conf; we keep one folder a conf.
 """
 
 from __future__ import annotations
 
 import os
+import socket
 import uuid
 from pathlib import Path
 from typing import Iterable, Iterator, Mapping
@@ -18,7 +20,29 @@ from urllib.parse import quote, unquote
 import h5py
 import numpy as np
 
+from .io_utils import fsync_folder
+
 SHARD_SUFFIX = ".h5"
+
+
+# In temporary names, so a writer only ever cleans up after dead writers of its own host.
+_HOST = quote(socket.gethostname(), safe="") or "host"
+
+
+def _process_alive(pid: int) -> bool:
+    if os.name == "nt":  # os.kill(pid, 0) would terminate the process there: assume alive
+        return True
+    try:
+        os.kill(pid, 0)  # signal 0: only asks whether the process exists
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # exists, owned by someone else
+        return True
+    return True
+
+
+class StoreCorruptError(OSError):
+    """A committed shard cannot be read (damaged after it was written)."""
 
 
 def _group_name(key: str) -> str:
@@ -41,12 +65,22 @@ class ShardedStore:
         return sorted(p for p in self.folder.iterdir() if p.suffix == SHARD_SUFFIX and not p.name.startswith("."))
 
     def refresh(self) -> None:
+        """Re-list the committed shards (other processes may have added some)."""
         self.close()
         index: dict[str, Path] = {}
         for shard in self.shards():
-            with h5py.File(shard, "r") as handle:
-                for name in handle.keys():
-                    index.setdefault(unquote(name), shard)
+            try:
+                with h5py.File(shard, "r") as handle:
+                    names = list(handle.keys())
+            except OSError as error:
+                # Committed shards are complete (fsync then rename); one that is not was
+                # damaged afterwards (disk, copy, another tool): say which, and the way out.
+                raise StoreCorruptError(
+                    f"cannot read shard {shard} of the store {self.folder}: {error}. Delete that file; "
+                    "the entries it held are recomputed by the next run"
+                ) from error
+            for name in names:
+                index.setdefault(unquote(name), shard)
         self._index = index
 
     @property
@@ -91,7 +125,24 @@ class ShardedStore:
 
     # -- writing -----------------------------------------------------------------
     def writer(self, flush_every: int = 32) -> "ShardWriter":
+        self.remove_dead_temporaries()
         return ShardWriter(self, flush_every)
+
+    def remove_dead_temporaries(self) -> list[Path]:
+        """Delete the half-written shards of killed writers (readers skip them anyway).
+
+        Only files of this host whose writing process is gone: on a shared folder a
+        live writer elsewhere, or here, keeps its file.
+        """
+        removed = []
+        if not self.folder.is_dir():
+            return removed
+        for path in self.folder.glob(f".shard-*.{_HOST}.tmp"):
+            pid_text = path.name.split("-")[1]
+            if pid_text.isdigit() and not _process_alive(int(pid_text)):
+                path.unlink(missing_ok=True)
+                removed.append(path)
+        return removed
 
 
 class ShardWriter:
@@ -113,7 +164,7 @@ class ShardWriter:
         folder = self.store.folder
         folder.mkdir(parents=True, exist_ok=True)
         name = f"shard-{os.getpid()}-{uuid.uuid4().hex[:12]}"
-        temporary = folder / f".{name}.tmp"
+        temporary = folder / f".{name}.{_HOST}.tmp"
         final = folder / f"{name}{SHARD_SUFFIX}"
         try:
             with h5py.File(temporary, "w") as handle:
@@ -126,6 +177,7 @@ class ShardWriter:
             with open(temporary, "rb") as stream:
                 os.fsync(stream.fileno())
             os.replace(temporary, final)
+            fsync_folder(folder)
         except BaseException:
             if temporary.exists():
                 temporary.unlink()

@@ -30,8 +30,10 @@ def fundamental_inliers(
 
     Fewer than ``min_matches`` matches, or no model found, gives no inliers (the
     benchmark's later code counted every match as an inlier then: a bug we avoid).
-    OpenCV's RANSAC draws from its global RNG, so it is re-seeded for every call:
-    the result depends only on the pair and the seed, not on the order pairs run in.
+    OpenCV's RANSAC and USAC estimators sample from a fixed internal seed, so the
+    result depends only on the pair, not on the order or shard pairs run in
+    (tests/test_reliability.py checks it); ``seed`` is kept for estimators that
+    honour ``cv2.setRNGSeed``.
     """
     points0 = np.ascontiguousarray(points0, dtype=np.float64).reshape(-1, 2)
     points1 = np.ascontiguousarray(points1, dtype=np.float64).reshape(-1, 2)

@@ -27,6 +27,10 @@ class WeightsLayoutError(ValueError):
     """A checkpoint's tensors do not match the module they are loaded into."""
 
 
+class CheckpointReadError(WeightsLayoutError):
+    """A file is not a loadable checkpoint: truncated, not PyTorch, or pickled code."""
+
+
 @dataclass(frozen=True)
 class Checkpoint:
     name: str
@@ -247,9 +251,34 @@ def status_table() -> list[dict[str, Any]]:
     return rows
 
 
+def _torch_load_reason(error: Exception) -> str:
+    """The informative sentence of torch.load's error, without its boilerplate (which
+    advises dropping ``weights_only``: exactly what must not be done with such a file)."""
+    boilerplate = ("Weights only load failed", "Please file an issue", "Check the documentation")
+    lines = [line.strip() for line in str(error).splitlines() if line.strip()]
+    informative = [line for line in lines if not line.startswith(boilerplate)]
+    reason = informative[0].split(". ")[0].rstrip(".") if informative else ""
+    return f"{type(error).__name__}: {reason}" if reason else type(error).__name__
+
+
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Any:
-    """torch.load with ``weights_only=True``: a checkpoint cannot run code."""
-    return torch.load(path, map_location=map_location, weights_only=True)
+    """torch.load with ``weights_only=True``: a checkpoint cannot run code.
+
+    A file that is not a checkpoint (truncated, an HTML error page, pickled code)
+    raises ``CheckpointReadError`` naming it; nothing in it is executed.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise MissingWeightsError(f"checkpoint not found: {path}")
+    try:
+        return torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as error:  # torch raises UnpicklingError, RuntimeError or EOFError here
+        raise CheckpointReadError(
+            f"{path} ({path.stat().st_size} bytes) is not a loadable checkpoint ({_torch_load_reason(error)}). "
+            "It is truncated, not a PyTorch checkpoint, or holds pickled objects other than tensors "
+            "(refused: loading those could run code). Download it again from the URL that "
+            "'python -m gvbench_nb weights' lists"
+        ) from None
 
 
 def load_state_dict_strict(

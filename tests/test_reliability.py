@@ -1,0 +1,675 @@
+"""Reliability: bad input gets a clear error, interrupted runs lose nothing, concurrent
+runs cannot corrupt the caches, the same input gives the same scores, nothing is executed.
+
+Runs use ``sift-nn`` on real Gardens Point frames downscaled to 320x180 (so a run
+takes a second or two). Interruptions are real SIGKILLs of a child process at
+deterministic points: the child (the ``CHILD`` script below, test code only) wraps
+``ShardWriter.put``, h5py's ``create_group`` or ``DataFrame.to_csv`` and kills itself
+at the n-th item. A parent polling the stores for a shard would race a run this
+small; this way the library holds no fault-injection code.
+"""
+
+from __future__ import annotations
+
+import ast
+import csv
+import io
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from gvbench_nb import config, pipeline, weights
+from gvbench_nb.images import ImageReadError, read_image
+from gvbench_nb.metrics import MetricsUndefinedError
+from gvbench_nb.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
+from gvbench_nb.store import ShardedStore, StoreCorruptError
+
+pytestmark = pytest.mark.reliability
+
+PACKAGE_DIR = Path(pipeline.__file__).resolve().parent
+METHOD = "sift-nn"
+PROFILE = "paper"
+FRAMES = list(range(0, 200, 10))  # 20 queries, 20 references -> 40 images
+N_PAIRS = 4 * len(FRAMES)  # 80 pairs: 20 true, 60 false
+EXTRACT_FLUSH, MATCH_FLUSH = 16, 64  # pipeline's shard sizes: kills are placed past one commit
+
+
+# ---------------------------------------------------------------- fixtures --
+def frame_pairs() -> list[Pair]:
+    """Each query with its own frame (true) and three frames 10-100 away (false)."""
+    pairs = []
+    for q in FRAMES:
+        for offset in (0, 10, 20, 100):
+            r = (q + offset) % 200
+            pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", int(offset == 0)))
+    return pairs
+
+
+def one_thread(n_threads: int | None = None) -> None:
+    """Stand-in for ``pipeline.configure_threads``: on tiny images (and a shared, busy
+    machine) one thread is about twice as fast as all cores; scores do not change."""
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def single_thread():
+    threads = torch.get_num_threads()
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(pipeline, "configure_threads", one_thread)
+        yield
+    torch.set_num_threads(threads)
+
+
+@pytest.fixture(scope="module")
+def small_root(shared_data, tmp_path_factory) -> Path:
+    """Gardens Point frames downscaled 3x into a scratch image root."""
+    root = tmp_path_factory.mktemp("gp_small")
+    for folder in ("night_right", "day_right"):
+        (root / folder).mkdir()
+        for frame in FRAMES:
+            image = cv2.imread(str(shared_data / "gardens_point" / folder / f"Image{frame:03d}.jpg"))
+            small = cv2.resize(image, (320, 180), interpolation=cv2.INTER_AREA)
+            cv2.imwrite(str(root / folder / f"Image{frame:03d}.jpg"), small, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    return root
+
+
+@pytest.fixture(scope="module")
+def sequence(small_root) -> Sequence:
+    return Sequence("gp_small", small_root, frame_pairs())
+
+
+@pytest.fixture(scope="module")
+def baseline(single_thread, sequence, tmp_path_factory) -> dict[str, Path]:
+    """One uninterrupted run from scratch: what every other run must reproduce."""
+    base = tmp_path_factory.mktemp("baseline")
+    pipeline.run_method(sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False)
+    return {"out": base / "out", "cache": base / "cache"}
+
+
+CHILD = r"""
+import json, os, signal, sys
+from pathlib import Path
+
+spec = json.loads(Path(sys.argv[1]).read_text())
+from gvbench_nb import pipeline, store
+from gvbench_nb.sequences import Pair, Sequence
+
+def one_thread(n_threads=None):  # as the tests' in-process runs (speed only)
+    import cv2, torch
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+pipeline.configure_threads = one_thread
+stage, _, count = (spec.get("kill") or "").partition(":")
+seen = [0]
+
+def die():
+    sys.stdout.flush()
+    os.kill(os.getpid(), signal.SIGKILL)
+
+if stage in ("extract", "match"):
+    put = store.ShardWriter.put
+    def counting_put(self, key, arrays, attrs=None):
+        if (self.store.folder.parent.name == "features") == (stage == "extract"):
+            seen[0] += 1
+            if seen[0] > int(count):
+                die()  # killed while item n+1 is being stored
+        put(self, key, arrays, attrs)
+    store.ShardWriter.put = counting_put
+elif stage == "flush":  # killed while a shard file is being written
+    import h5py
+    create_group = h5py.Group.create_group
+    def counting_create_group(self, name, *args, **kwargs):
+        seen[0] += 1
+        if seen[0] > int(count):
+            die()
+        return create_group(self, name, *args, **kwargs)
+    h5py.Group.create_group = counting_create_group
+elif stage == "write":
+    import pandas as pd
+    to_csv = pd.DataFrame.to_csv
+    def half_to_csv(self, path=None, *args, **kwargs):
+        if path is not None and count in Path(path).name:  # the temporary file (or, unsafely, the file)
+            text = to_csv(self, None, *args, **kwargs)
+            with open(path, "w") as stream:  # the temporary file, half written, on disk
+                stream.write(text[: len(text) // 2])
+                stream.flush()
+                os.fsync(stream.fileno())
+            die()
+        return to_csv(self, path, *args, **kwargs)
+    pd.DataFrame.to_csv = half_to_csv
+
+if spec.get("go_file"):  # start together with another process
+    import time
+    Path(spec["ready_file"]).touch()
+    while not Path(spec["go_file"]).exists():
+        time.sleep(0.005)
+
+sequence = Sequence(spec["name"], Path(spec["image_root"]), [Pair(*p) for p in spec["pairs"]])
+pipeline.run_method(sequence, spec["method"], spec["profile"], Path(spec["output_dir"]), Path(spec["cache_dir"]),
+                    device="cpu", progress=False)
+print("finished")
+"""
+
+
+STARTED: list[subprocess.Popen] = []
+
+
+@pytest.fixture(autouse=True)
+def no_child_left_running():
+    """A failed test must not leave a child process running (it would write on)."""
+    yield
+    while STARTED:
+        child = STARTED.pop()
+        if child.poll() is None:
+            child.kill()
+            child.wait()
+
+
+def start_child(sequence: Sequence, work: Path, name: str, kill: str | None = None,
+                go_file: Path | None = None) -> subprocess.Popen:
+    spec = {
+        "name": sequence.name, "image_root": str(sequence.image_root),
+        "pairs": [[p.query, p.reference, p.label] for p in sequence.pairs],
+        "method": METHOD, "profile": PROFILE, "output_dir": str(work / "out"), "cache_dir": str(work / "cache"),
+        "kill": kill, "go_file": str(go_file) if go_file else None, "ready_file": str(work / f"{name}.ready"),
+    }
+    spec_path = work / f"{name}.json"
+    spec_path.write_text(json.dumps(spec))
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    child = subprocess.Popen([sys.executable, "-c", CHILD, str(spec_path)], stdout=subprocess.PIPE,
+                             stderr=subprocess.PIPE, text=True, env=env)
+    STARTED.append(child)
+    return child
+
+
+def finish(child: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str]:
+    stdout, stderr = child.communicate(timeout=timeout)
+    return child.returncode, stdout, stderr
+
+
+def run_json(output_dir: Path) -> dict:
+    return json.loads((pipeline.method_dir(output_dir, METHOD) / "run.json").read_text())
+
+
+def rows_without_timings(path: Path) -> list[list[str]]:
+    """pairs.csv as exact text fields, minus the ``*_seconds`` columns (measurements)."""
+    rows = list(csv.reader(io.StringIO(path.read_text())))
+    keep = [i for i, column in enumerate(rows[0]) if not column.endswith("_seconds")]
+    assert len(keep) == len(rows[0]) - 3, rows[0]
+    return [[row[i] for i in keep] for row in rows]
+
+
+def assert_same_pairs(output_dir: Path, baseline_out: Path) -> None:
+    produced = rows_without_timings(pipeline.method_dir(output_dir, METHOD) / "pairs.csv")
+    expected = rows_without_timings(pipeline.method_dir(baseline_out, METHOD) / "pairs.csv")
+    assert len(produced) == N_PAIRS + 1
+    assert produced == expected
+
+
+def store_entries(store: ShardedStore) -> dict[str, list[dict[str, np.ndarray]]]:
+    """Every copy of every entry, read shard by shard (duplicates from concurrent writers too)."""
+    import h5py
+    from urllib.parse import unquote
+
+    entries: dict[str, list[dict[str, np.ndarray]]] = {}
+    for shard in store.shards():
+        with h5py.File(shard, "r") as handle:
+            for name, group in handle.items():
+                arrays = {k: group[k][()] for k in group.keys()}
+                arrays.update({f"attr:{k}": v for k, v in group.attrs.items() if not k.endswith("seconds")})
+                entries.setdefault(unquote(name), []).append(arrays)
+    return entries
+
+
+def assert_store_matches(store: ShardedStore, reference: ShardedStore) -> None:
+    expected = {key: copies[0] for key, copies in store_entries(reference).items()}
+    found = store_entries(store)
+    assert sorted(found) == sorted(expected)
+    for key, copies in found.items():
+        for entry in copies:
+            assert sorted(entry) == sorted(expected[key]), key
+            for name, value in entry.items():
+                np.testing.assert_array_equal(value, expected[key][name], err_msg=f"{key} {name}")
+
+
+def stores(work: Path) -> tuple[ShardedStore, ShardedStore]:
+    conf = pipeline.method_registry.resolve_method(METHOD, PROFILE)
+    return pipeline.feature_store(work / "cache", conf["extractor"]), pipeline.match_store(work / "out", conf)
+
+
+# -------------------------------------------------------- 1. bad input, clear error --
+def _truncated(source: Path, target: Path) -> Path:
+    data = source.read_bytes()
+    target.write_bytes(data[: len(data) // 2])
+    return target
+
+
+@pytest.mark.parametrize("kind", ["missing", "empty", "truncated_jpeg", "truncated_png", "text_as_jpg", "folder"])
+def test_unreadable_images_raise_an_error_naming_the_file(small_root, tmp_path, kind):
+    real = small_root / "day_right" / "Image000.jpg"
+    path = tmp_path / ("bad.png" if kind == "truncated_png" else "bad.jpg")
+    if kind == "empty":
+        path.write_bytes(b"")
+    elif kind == "truncated_jpeg":
+        _truncated(real, path)
+    elif kind == "truncated_png":
+        cv2.imwrite(str(tmp_path / "whole.png"), cv2.imread(str(real)))
+        _truncated(tmp_path / "whole.png", path)
+    elif kind == "text_as_jpg":
+        path.write_text("<html>404 Not Found</html>\n")
+    elif kind == "folder":
+        path.mkdir()
+    with pytest.raises(ImageReadError) as error:
+        read_image(path)
+    message = str(error.value)
+    assert str(path) in message
+    what = {"missing": "not found", "empty": "empty", "truncated_jpeg": "truncated", "truncated_png": "truncated",
+            "text_as_jpg": "<html>", "folder": "folder"}[kind]
+    assert what in message
+    assert "image_root" in message or "remove the pairs" in message  # what to do
+
+
+def _write_png(path: Path, array: np.ndarray) -> Path:
+    assert cv2.imwrite(str(path), array)
+    return path
+
+
+def test_uncommon_image_kinds_are_read_not_rejected(tmp_path):
+    from PIL import Image
+
+    rng = np.random.default_rng(3)
+    rgb = rng.integers(0, 256, (11, 13, 3), dtype=np.uint8)
+    gray = rng.integers(0, 256, (11, 13), dtype=np.uint8)
+    bgr = rgb[..., ::-1]
+
+    sixteen_rgb = read_image(_write_png(tmp_path / "rgb16.png", bgr.astype(np.uint16) * 257))
+    np.testing.assert_array_equal(sixteen_rgb, rgb)
+    sixteen_gray = read_image(_write_png(tmp_path / "gray16.png", gray.astype(np.uint16) * 257), grayscale=True)
+    np.testing.assert_array_equal(sixteen_gray, gray)
+    rgba = read_image(_write_png(tmp_path / "rgba.png", np.dstack([bgr, gray])))
+    np.testing.assert_array_equal(rgba, rgb)  # alpha dropped, colours kept
+    gray_png = _write_png(tmp_path / "gray.png", gray)
+    np.testing.assert_array_equal(read_image(gray_png, grayscale=True), gray)
+    np.testing.assert_array_equal(read_image(gray_png), np.dstack([gray] * 3))
+
+    palette = Image.fromarray(rgb).convert("P", palette=Image.ADAPTIVE, colors=8)
+    palette.save(tmp_path / "palette.png")
+    palette.save(tmp_path / "palette_transparent.png", transparency=0)
+    expected = np.asarray(palette.convert("RGB"))
+    np.testing.assert_array_equal(read_image(tmp_path / "palette.png"), expected)
+    np.testing.assert_array_equal(read_image(tmp_path / "palette_transparent.png"), expected)
+
+    # JPEG is lossy: a flat grey image survives exactly, and the shape must be right.
+    flat = np.full((16, 24), 77, dtype=np.uint8)
+    Image.fromarray(flat, "L").save(tmp_path / "gray.jpg", quality=100)
+    assert read_image(tmp_path / "gray.jpg", grayscale=True).shape == (16, 24)
+    np.testing.assert_allclose(read_image(tmp_path / "gray.jpg").astype(int), 77, atol=1)
+    assert read_image(tmp_path / "gray.jpg").shape == (16, 24, 3)
+
+
+@pytest.mark.real_data
+def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(small_root, tmp_path):
+    root = tmp_path / "root"
+    shutil.copytree(small_root, root)
+    good = [Pair("night_right/Image000.jpg", "day_right/Image000.jpg", 1),
+            Pair("night_right/Image010.jpg", "day_right/Image000.jpg", 0)]
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    pipeline.run_method(Sequence("s", root, good), METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    assert (pipeline.method_dir(out, METHOD) / "pairs.csv").is_file()
+
+    broken = root / "day_right" / "Image010.jpg"
+    _truncated(small_root / "day_right" / "Image010.jpg", broken)
+    bad_pair = Pair("night_right/Image020.jpg", "day_right/Image010.jpg", 0)
+    bigger = Sequence("s", root, good + [Pair("night_right/Image020.jpg", "day_right/Image000.jpg", 0), bad_pair])
+    with pytest.raises(ImageReadError) as error:
+        pipeline.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    message = str(error.value)
+    assert str(broken) in message and "sequence 's'" in message
+    assert "pair 3: night_right/Image020.jpg day_right/Image010.jpg" in message
+    # The previous run's results are gone, not left to pass for this run's.
+    assert not (pipeline.method_dir(out, METHOD) / "pairs.csv").exists()
+    assert pipeline.methods_with_results(out) == []
+    # What was extracted before the error is kept: after the fix only the repaired image is extracted.
+    shutil.copy(small_root / "day_right" / "Image010.jpg", broken)
+    pipeline.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    assert run_json(out)["this_run"]["extraction"] == {"images": 5, "cached": 4, "extracted": 1}
+
+
+@pytest.mark.parametrize(
+    "line, message",
+    [
+        ("C:\\data\\a.png b.png 1", "absolute path"),
+        ("C:/data/a.png b.png 1", "absolute path"),
+        ("\\\\server\\share\\a.png b.png 1", "absolute path"),
+        ("a.png \\etc\\passwd 1", "absolute path"),
+        ("..\\a.png b.png 1", "escapes the image root"),
+        ("a.png day\\..\\..\\b.png 1", "escapes the image root"),
+        ("a.png b.png 1.0", "label must be 0 or 1"),
+        ("a.png b.png -1", "label must be 0 or 1"),
+    ],
+)
+def test_windows_style_escapes_and_odd_labels_are_rejected_with_file_and_line(line, message):
+    with pytest.raises(PairFileError, match=message) as error:
+        parse_pairs(["ok.png ok2.png 1", line], source="pairs.txt")
+    assert "pairs.txt:2" in str(error.value)
+
+
+def test_crlf_bom_and_tabs_are_accepted_and_line_numbers_stay_right(tmp_path):
+    path = tmp_path / "pairs.txt"
+    path.write_bytes(b"\xef\xbb\xbfnight/a.png day/b.png 1\r\n# comment\r\nnight/a.png\tday/c.png 0\r\n\r\n")
+    assert read_pairs(path) == [Pair("night/a.png", "day/b.png", 1), Pair("night/a.png", "day/c.png", 0)]
+    path.write_bytes(b"a.png b.png 1\r\nc.png d.png 2\r\n")
+    with pytest.raises(PairFileError, match=re.escape(f"{path}:2: label must be 0 or 1, got '2'")):
+        read_pairs(path)
+    path.write_bytes(b"a.png b.png 1\n\xff\xfe\x00binary\n")
+    with pytest.raises(PairFileError, match=re.escape(f"{path}:2: not UTF-8 text")):
+        read_pairs(path)
+
+
+def _evaluate_with_labels(baseline_out: Path, tmp_path: Path, label: int) -> Path:
+    out = tmp_path / f"only_{label}"
+    folder = pipeline.method_dir(out, METHOD)
+    folder.mkdir(parents=True)
+    table = pipeline.load_pairs_table(baseline_out, METHOD)
+    table[table["label"] == label].to_csv(folder / "pairs.csv", index=False)
+    shutil.copy(pipeline.method_dir(baseline_out, METHOD) / "run.json", folder / "run.json")
+    return out
+
+
+@pytest.mark.real_data
+@pytest.mark.parametrize("label, missing", [(1, "negatives"), (0, "positives")])
+def test_a_sequence_without_positives_or_negatives_is_an_error_not_nan(baseline, tmp_path, label, missing):
+    out = _evaluate_with_labels(baseline["out"], tmp_path, label)
+    with pytest.raises(MetricsUndefinedError, match=f"with no {missing}: AP and MR are undefined") as error:
+        pipeline.evaluate(out)
+    assert str(pipeline.method_dir(out, METHOD) / "pairs.csv") in str(error.value)
+    assert not (out / "results.csv").exists()
+
+
+def _params_file(tmp_path: Path, **changes) -> Path:
+    params = {"sequence": "x", "pairs": "p.txt", "image_root": ".", "methods": ["sift-nn"], "profile": "paper",
+              "output_dir": "o"}
+    params.update(changes)
+    params = {k: v for k, v in params.items() if v is not None}
+    path = tmp_path / "params.yaml"
+    import yaml
+
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+@pytest.mark.parametrize(
+    "changes, expected",
+    [
+        ({"seeed": 1}, ["unknown key(s) 'seeed' (did you mean 'seed'?)", "Valid keys: sequence, pairs"]),
+        ({"output_dir": None}, ["missing key(s) output_dir", "Required keys: sequence, pairs, image_root"]),
+        ({"methods": ["sift-nn", "sift_nn2"]}, ["unknown method 'sift_nn2'", "Valid methods: sift-nn, sp-nn"]),
+        ({"methods": "sift-nn,disk-lgg"}, ["unknown method 'disk-lgg'. Did you mean 'disk-lg'?"]),
+        ({"profile": "fastest"}, ["unknown profile 'fastest'", "Valid profiles: paper, fast"]),
+        ({"methods": []}, ["methods is empty"]),
+        ({"seed": "zero"}, ["seed must be an integer, got 'zero'"]),
+        ({"limit": True}, ["limit must be a positive integer or null, got True"]),
+        ({"limit": 0}, ["limit must be a positive integer or null, got 0"]),
+        ({"device": "gpu"}, ["device must be 'auto', 'cpu', 'cuda', 'cuda:N' or 'mps', got 'gpu'"]),
+        ({"builder_options": [1, 2]}, ["builder_options must be a mapping"]),
+        ({"pairs_builder": "magic"}, ["unknown pairs_builder 'magic'; valid: sample, frame_tolerance"]),
+    ],
+)
+def test_bad_params_name_the_file_and_the_valid_choices(tmp_path, changes, expected):
+    path = _params_file(tmp_path, **changes)
+    with pytest.raises(config.ParamsError) as error:
+        config.load_params(path)
+    message = str(error.value)
+    assert message.startswith(str(path))
+    for part in expected:
+        assert part in message
+
+
+def test_params_yaml_tags_are_not_executed(tmp_path):
+    path = tmp_path / "params.yaml"
+    path.write_text("sequence: !!python/object/apply:os.system ['touch pwned']\npairs: p\n")
+    with pytest.raises(config.ParamsError, match="not valid YAML"):
+        config.load_params(path)
+    assert not (tmp_path / "pwned").exists() and not Path("pwned").exists()
+
+
+def test_a_wrong_weights_layout_names_missing_unexpected_and_mis_shaped_tensors():
+    module = torch.nn.Sequential(torch.nn.Conv2d(1, 4, 3), torch.nn.ReLU(), torch.nn.Conv2d(4, 2, 1))
+    state = module.state_dict()
+    state.pop("2.bias")
+    state["head.weight"] = torch.zeros(1)
+    state["0.weight"] = torch.zeros(4, 1, 5, 5)
+    with pytest.raises(weights.WeightsLayoutError) as error:
+        weights.load_state_dict_strict(module, state, "model.pth")
+    message = str(error.value)
+    assert "model.pth: wrong layout for Sequential" in message
+    assert "missing tensors: 2.bias" in message
+    assert "unexpected tensors: head.weight" in message
+    assert "0.weight: file (4, 1, 5, 5) vs model (4, 1, 3, 3)" in message
+
+
+@pytest.mark.parametrize("content", ["garbage", "truncated", "html"])
+def test_a_file_that_is_not_a_checkpoint_is_refused_naming_it(tmp_path, content):
+    path = tmp_path / "superpoint_v1.pth"
+    if content == "garbage":
+        path.write_bytes(np.random.default_rng(0).integers(0, 256, 4096, dtype=np.uint8).tobytes())
+    elif content == "truncated":
+        torch.save({"w": torch.zeros(1000)}, path)
+        path.write_bytes(path.read_bytes()[:2000])
+    else:
+        path.write_text("<!DOCTYPE html><html>rate limited</html>")
+    with pytest.raises(weights.CheckpointReadError) as error:
+        weights.load_checkpoint(path)
+    assert str(path) in str(error.value) and "Download it again" in str(error.value)
+    with pytest.raises(weights.MissingWeightsError, match="checkpoint not found"):
+        weights.load_checkpoint(tmp_path / "absent.pth")
+
+
+# ------------------------------------------------------------- 2. nothing lost --
+@pytest.mark.real_data
+@pytest.mark.parametrize(
+    "kill, committed_features, committed_matches, extracted_again, matched_again",
+    [
+        # killed while storing image 21: 16 images committed in one shard, 4 in the buffer lost
+        (f"extract:{EXTRACT_FLUSH + 4}", EXTRACT_FLUSH, 0, 40 - EXTRACT_FLUSH, N_PAIRS),
+        # killed while writing the second shard (5 of its 16 entries in the file): that shard is not read
+        (f"flush:{EXTRACT_FLUSH + 5}", EXTRACT_FLUSH, 0, 40 - EXTRACT_FLUSH, N_PAIRS),
+        # killed while storing pair 71: every image and 64 pairs committed
+        (f"match:{MATCH_FLUSH + 6}", 40, MATCH_FLUSH, 0, N_PAIRS - MATCH_FLUSH),
+        # killed half-way through writing pairs.csv: everything committed, nothing to redo
+        ("write:pairs.csv", 40, N_PAIRS, 0, 0),
+    ],
+)
+def test_a_killed_run_resumes_and_ends_identical(sequence, baseline, tmp_path, kill, committed_features,
+                                                 committed_matches, extracted_again, matched_again):
+    returncode, stdout, stderr = finish(start_child(sequence, tmp_path, "killed", kill=kill))
+    assert returncode == -9, stderr[-2000:]  # SIGKILL, not a clean exit
+    assert "finished" not in stdout
+    features, matches = stores(tmp_path)
+    assert (len(features), len(matches)) == (committed_features, committed_matches)
+    half_written = list(features.folder.glob(".shard-*.tmp"))
+    assert len(half_written) == (1 if kill.startswith("flush") else 0)
+    # No results that look complete; any half-written file is a hidden temporary one.
+    folder = pipeline.method_dir(tmp_path / "out", METHOD)
+    assert not (folder / "pairs.csv").exists()
+    assert pipeline.methods_with_results(tmp_path / "out") == []
+    visible = [p for p in folder.rglob("*") if p.is_file() and not p.name.startswith(".")] if folder.exists() else []
+    assert all(p.suffix in (".h5", ".json") for p in visible), visible
+
+    pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False)
+    this_run = run_json(tmp_path / "out")["this_run"]
+    assert extracted_again + matched_again < 40 + N_PAIRS  # finished work was kept, not redone
+    assert this_run["extraction"] == {"images": 40, "cached": 40 - extracted_again, "extracted": extracted_again}
+    assert this_run["matching"] == {"pairs": N_PAIRS, "cached": N_PAIRS - matched_again, "matched": matched_again}
+    assert_same_pairs(tmp_path / "out", baseline["out"])
+    assert not any(p.exists() for p in half_written)  # the dead writer's file was cleaned up
+    features, matches = stores(tmp_path)
+    reference_features, reference_matches = stores(baseline["out"].parent)
+    assert_store_matches(features, reference_features)
+    assert_store_matches(matches, reference_matches)
+
+
+def test_a_damaged_shard_is_reported_by_name_not_read(tmp_path):
+    store = ShardedStore(tmp_path / "s")
+    with store.writer(flush_every=1) as writer:
+        writer.put("a", {"x": np.arange(3)})
+    damaged = tmp_path / "s" / "shard-1-damaged.h5"
+    damaged.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 40)
+    with pytest.raises(StoreCorruptError, match=re.escape(f"cannot read shard {damaged}")) as error:
+        ShardedStore(tmp_path / "s").refresh()
+    assert "Delete that file" in str(error.value)
+
+
+# --------------------------------------------------------- 3. concurrent runs --
+@pytest.mark.real_data
+def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing(sequence, baseline, tmp_path):
+    go = tmp_path / "go"
+    children = [start_child(sequence, tmp_path, f"writer{i}", go_file=go) for i in range(2)]
+    deadline = time.monotonic() + 120
+    while not all((tmp_path / f"writer{i}.ready").exists() for i in range(2)):
+        assert time.monotonic() < deadline and all(c.poll() is None for c in children), \
+            [c.communicate()[1][-2000:] for c in children if c.poll() is not None]
+        time.sleep(0.01)
+    go.touch()
+    for child in children:
+        returncode, stdout, stderr = finish(child)
+        assert returncode == 0 and "finished" in stdout, stderr[-2000:]
+    features, matches = stores(tmp_path)
+    writers = {re.match(r"shard-(\d+)-", p.name).group(1) for p in features.shards()}
+    assert len(writers) == 2, "both processes should have extracted at the same time"
+    # Every copy of every entry, from either writer, equals the single-process run.
+    reference_features, reference_matches = stores(baseline["out"].parent)
+    assert_store_matches(features, reference_features)
+    assert_store_matches(matches, reference_matches)
+    assert_same_pairs(tmp_path / "out", baseline["out"])
+    leftovers = [p.name for p in (tmp_path / "out").rglob(".*")] + [p.name for p in (tmp_path / "cache").rglob(".*")]
+    assert leftovers == []
+
+
+# ------------------------------------------------------------- 4. determinism --
+@pytest.mark.real_data
+def test_two_runs_from_scratch_give_identical_pairs_and_results(sequence, baseline, tmp_path):
+    pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False)
+    assert_same_pairs(tmp_path / "out", baseline["out"])
+    first = (pipeline.method_dir(baseline["out"], METHOD) / "pairs.csv").read_text().splitlines()
+    second = (pipeline.method_dir(tmp_path / "out", METHOD) / "pairs.csv").read_text().splitlines()
+    # Byte-identical apart from the three trailing timing fields of each row.
+    assert [line.rsplit(",", 3)[0] for line in first] == [line.rsplit(",", 3)[0] for line in second]
+    results = [pipeline.evaluate(out, write=False) for out in (baseline["out"], tmp_path / "out")]
+    scores = ["sequence", "method", "n_pairs", "n_positives", "ap", "max_recall"]
+    pd.testing.assert_frame_equal(results[0][scores], results[1][scores])
+    assert 0 < results[0].loc[0, "ap"] <= 1
+
+
+@pytest.mark.real_data
+def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_data, tmp_path):
+    def build(seed: int, name: str) -> bytes:
+        params = config.load_params(config.PROJECT_ROOT / "params" / "gardens_point.yaml", seed=seed,
+                                    pairs=str(tmp_path / name), output_dir=str(tmp_path / "out"))
+        config.prepare_sequence(params)
+        return (tmp_path / name).read_bytes()
+
+    assert build(0, "first.txt") == build(0, "second.txt")
+    assert build(0, "first.txt") != build(1, "other_seed.txt")
+
+
+@pytest.mark.real_data
+def test_scores_do_not_depend_on_the_order_pairs_run_in(sequence, baseline, tmp_path):
+    reversed_sequence = Sequence(sequence.name, sequence.image_root, sequence.pairs[::-1])
+    table = pipeline.run_method(reversed_sequence, METHOD, PROFILE, tmp_path / "out", baseline["cache"],
+                                device="cpu", progress=False)
+    expected = pipeline.load_pairs_table(baseline["out"], METHOD)
+    columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
+    pd.testing.assert_frame_equal(table[columns].iloc[::-1].reset_index(drop=True), expected[columns])
+
+
+# ------------------------------------------------------------------ 5. safety --
+@pytest.mark.parametrize("layout", ["zip", "legacy_pickle"])
+def test_a_malicious_checkpoint_is_refused_without_running_its_payload(tmp_path, layout):
+    marker = tmp_path / "payload_ran"
+
+    class Payload:
+        def __reduce__(self):
+            return (os.system, (f"touch {marker}",))
+
+    path = tmp_path / "evil.pth"
+    if layout == "zip":
+        torch.save({"weight": torch.zeros(2), "extra": Payload()}, path)
+    else:
+        import pickle
+
+        path.write_bytes(pickle.dumps({"extra": Payload()}, protocol=2))
+    with pytest.raises(weights.CheckpointReadError) as error:
+        weights.load_checkpoint(path)
+    assert str(path) in str(error.value)
+    assert not marker.exists()
+
+
+UNSAFE_CALLS = {"eval", "exec", "compile", "os.system", "os.popen", "yaml.load", "yaml.unsafe_load",
+                "pickle.load", "pickle.loads", "marshal.loads", "subprocess.run", "subprocess.call",
+                "subprocess.check_call", "subprocess.check_output", "subprocess.Popen"}
+UNSAFE_MODULES = {"pickle", "marshal", "shelve", "subprocess"}
+
+
+def _dotted(node: ast.AST) -> str:
+    if isinstance(node, ast.Name):
+        return node.id
+    if isinstance(node, ast.Attribute):
+        return f"{_dotted(node.value)}.{node.attr}"
+    return ""
+
+
+def _is_constant(node: ast.AST, value: object) -> bool:
+    return isinstance(node, ast.Constant) and node.value is value
+
+
+def unsafe_code(source: str) -> list[str]:
+    """Calls and imports in code (not docstrings or comments) that could run what a
+    pair file, params file or checkpoint holds."""
+    found = []
+    for node in ast.walk(ast.parse(source)):
+        if isinstance(node, ast.Call):
+            name = _dotted(node.func)
+            if name in UNSAFE_CALLS:
+                found.append(f"{node.lineno}: {name}(")
+            if any(k.arg == "shell" and not _is_constant(k.value, False) for k in node.keywords):
+                found.append(f"{node.lineno}: shell=True")
+            if name == "torch.load" and not any(k.arg == "weights_only" and _is_constant(k.value, True)
+                                                for k in node.keywords):
+                found.append(f"{node.lineno}: torch.load without weights_only=True")
+        elif isinstance(node, (ast.Import, ast.ImportFrom)):
+            modules = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
+            imported = [f"{node.module}.{a.name}" for a in node.names] if isinstance(node, ast.ImportFrom) else []
+            if any(m.split(".")[0] in UNSAFE_MODULES for m in modules) or set(imported) & UNSAFE_CALLS:
+                found.append(f"{node.lineno}: import {', '.join(modules + imported)}")
+    return sorted(found, key=lambda hit: int(hit.split(":")[0]))
+
+
+def test_the_package_has_no_code_execution_paths():
+    hits = [f"{source.relative_to(PACKAGE_DIR.parent)}:{hit}"
+            for source in sorted(PACKAGE_DIR.rglob("*.py"))
+            for hit in unsafe_code(source.read_text(encoding="utf-8"))]
+    assert hits == []
+    # A plain-text grep agrees (docstrings may mention eval() of modules, hence the lookbehind).
+    for source in PACKAGE_DIR.rglob("*.py"):
+        text = source.read_text(encoding="utf-8")
+        assert not re.search(r"shell\s*=\s*True|os\.system|yaml\.load\(|(?<![\w.`])(eval|exec)\(", text), source
+    # The checker finds what it looks for (so this test can fail).
+    bad = ("import subprocess\nfrom os import system\nx = eval(s)\nsubprocess.run(c, shell=True)\n"
+           "torch.load(p)\nyaml.load(f)\nmodel.eval()\n")
+    assert [hit.split(": ", 1)[1] for hit in unsafe_code(bad)] == [
+        "import subprocess", "import os, os.system", "eval(", "subprocess.run(", "shell=True",
+        "torch.load without weights_only=True", "yaml.load("]

@@ -93,6 +93,12 @@ def image_key(image_root: Path, name: str) -> str:
     return str((Path(image_root) / name).resolve())
 
 
+def first_pair_using(sequence: Sequence, name: str) -> str:
+    """'pair N: query reference' of the first pair that uses image ``name`` (for errors)."""
+    index, pair = next((i, p) for i, p in enumerate(sequence.pairs) if name in (p.query, p.reference))
+    return f"pair {index}: {pair.query} {pair.reference}"
+
+
 def extract_features(
     sequence: Sequence,
     extractor_conf: dict[str, Any],
@@ -114,7 +120,8 @@ def extract_features(
     with store.writer(flush_every) as writer:
         for key, loaded in prefetch(todo, lambda k: load_for_extraction(k, extractor_conf)):
             if isinstance(loaded, BaseException):
-                raise ImageReadError(f"{loaded} (image {wanted[key]!r} of sequence {sequence.name!r})") from loaded
+                raise ImageReadError(f"{loaded} (image {wanted[key]!r} of sequence {sequence.name!r}, "
+                                     f"{first_pair_using(sequence, wanted[key])})") from loaded
             image, scale = loaded
             start = time.perf_counter()
             features = extractor(image)
@@ -167,7 +174,6 @@ def match_and_verify(
     flush_every: int = 64,
 ) -> dict[str, int]:
     """Match and verify every pair not yet in the method's match store."""
-    features = feature_store(cache_dir, conf["extractor"])
     matches = match_store(output_dir, conf)
     matches.refresh()
     todo = [p for p in sequence.pairs if pair_key(p.query, p.reference) not in matches]
@@ -175,6 +181,11 @@ def match_and_verify(
     if not todo:
         return counts
     matcher = build_matcher(conf["matcher"], resolve_device(device))
+    if conf["extractor"] is None:
+        _match_dense_pairs(sequence, todo, conf, matcher, matches, seed, progress, flush_every)
+        counts["matched"] = len(todo)
+        return counts
+    features = feature_store(cache_dir, conf["extractor"])
 
     @lru_cache(maxsize=256)  # a query's candidates are consecutive; references recur
     def load(name: str) -> dict[str, np.ndarray]:
@@ -209,34 +220,88 @@ def match_and_verify(
     return counts
 
 
+def _match_dense_pairs(sequence: Sequence, todo: list, conf: dict[str, Any], matcher: Callable, matches: ShardedStore,
+                       seed: int, progress: bool, flush_every: int) -> None:
+    """Dense matchers (LoFTR) see both images of every pair: no per-image cache.
+    Decoding overlaps compute through the same prefetching loader."""
+    def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        image0, scale0 = load_for_extraction(sequence.image_root / pair.query, conf["matcher"])
+        image1, scale1 = load_for_extraction(sequence.image_root / pair.reference, conf["matcher"])
+        return image0, scale0, image1, scale1
+
+    bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+    with matches.writer(flush_every) as writer:
+        for pair, loaded in prefetch(todo, load_pair):
+            if isinstance(loaded, BaseException):
+                raise ImageReadError(f"{loaded} (pair {pair.query} {pair.reference} of {sequence.name!r})") from loaded
+            image0, scale0, image1, scale1 = loaded
+            start = time.perf_counter()
+            points0, points1, match_scores = matcher(image0, image1)
+            points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
+            matched = time.perf_counter()
+            identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+            verified = verify_matches(points0, points1, identity, match_scores, conf["verifier"],
+                                      seed=pair_seed(seed, pair.query, pair.reference))
+            done = time.perf_counter()
+            writer.put(
+                pair_key(pair.query, pair.reference),
+                {"points0": points0, "points1": points1, "match_scores": match_scores,
+                 "inlier_mask": verified["inlier_mask"]},
+                {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
+                 "num_inliers": verified["num_inliers"], "match_seconds": matched - start,
+                 "verify_seconds": done - matched},
+            )
+            bar.update()
+    bar.close()
+
+
 def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path) -> pd.DataFrame:
     """The per-pair table of a finished run, built only from the stores."""
-    features = feature_store(cache_dir, conf["extractor"])
     matches = match_store(output_dir, conf)
-    features.refresh()
     matches.refresh()
+    dense = conf["extractor"] is None
     uses = Counter(name for pair in sequence.pairs for name in (pair.query, pair.reference))
     image_info: dict[str, tuple[int, float]] = {}
-    for name in uses:
-        entry = features.read(image_key(sequence.image_root, name))
-        image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
+    if not dense:
+        features = feature_store(cache_dir, conf["extractor"])
+        features.refresh()
+        for name in uses:
+            entry = features.read(image_key(sequence.image_root, name))
+            image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
+        features.close()
     rows = []
     for index, pair in enumerate(sequence.pairs):
         entry = matches.read(pair_key(pair.query, pair.reference))
-        # Extraction is amortised: each image's time is shared among the pairs that use it.
-        extract_seconds = sum(image_info[n][1] / uses[n] for n in (pair.query, pair.reference))
+        if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
+            keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
+            extract_seconds = 0.0
+        else:
+            keypoints_query, keypoints_reference = image_info[pair.query][0], image_info[pair.reference][0]
+            # Extraction is amortised: each image's time is shared among the pairs that use it.
+            extract_seconds = sum(image_info[n][1] / uses[n] for n in (pair.query, pair.reference))
         rows.append({
             "pair_index": index, "query": pair.query, "reference": pair.reference, "label": pair.label,
             "method": conf["method"], "profile": conf["profile"],
-            "num_keypoints_query": image_info[pair.query][0], "num_keypoints_reference": image_info[pair.reference][0],
+            "num_keypoints_query": keypoints_query, "num_keypoints_reference": keypoints_reference,
             "num_matches": int(entry["attr:num_matches"]), "num_matches_filtered": int(entry["attr:num_matches_filtered"]),
             "num_inliers": int(entry["attr:num_inliers"]), "score": int(entry["attr:num_inliers"]),
             "extract_seconds": extract_seconds, "match_seconds": float(entry["attr:match_seconds"]),
             "verify_seconds": float(entry["attr:verify_seconds"]),
         })
-    features.close()
     matches.close()
     return pd.DataFrame(rows, columns=PAIRS_COLUMNS)
+
+
+def cpu_name() -> str:
+    """The CPU model (for timings to say what they were measured on)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as handle:
+            for line in handle:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
 
 
 def environment_info(device: torch.device) -> dict[str, Any]:
@@ -244,7 +309,7 @@ def environment_info(device: torch.device) -> dict[str, Any]:
 
     info = {
         "device": str(device),
-        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or platform.machine(),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
         "cpu_count": __import__("os").cpu_count(),
         "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
         "numpy": np.__version__, "python": platform.python_version(), "platform": platform.platform(),
@@ -271,14 +336,18 @@ def run_method(
     weights.require(*method_registry.required_checkpoints(method, profile))
     resolved_device = resolve_device(device)
     configure_threads()
+    folder = method_dir(output_dir, method)
+    # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
+    for stale in ("pairs.csv", "run.json"):
+        (folder / stale).unlink(missing_ok=True)
     started = time.perf_counter()
-    extraction = extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress)
+    extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress)
+                  if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
     extracted = time.perf_counter()
     matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress)
     finished = time.perf_counter()
     table = pairs_table(sequence, conf, cache_dir, output_dir)
-    folder = method_dir(output_dir, method)
-    atomic_write_csv(folder / "pairs.csv", table)
+    # pairs.csv is written last: its presence marks a finished run (methods_with_results).
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
         "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
@@ -286,6 +355,7 @@ def run_method(
                      "extract_wall_seconds": extracted - started, "match_verify_wall_seconds": finished - extracted},
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
+    atomic_write_csv(folder / "pairs.csv", table)
     return table
 
 

@@ -53,17 +53,6 @@ def test_extraction_time_is_amortised_over_the_pairs_of_each_image(shared_data, 
     assert table["extract_seconds"].sum() == pytest.approx(total, rel=1e-6)
 
 
-@pytest.mark.real_data
-@pytest.mark.parametrize("method, profile", [("sift-nn", "paper"), ("disk-nn", "fast"), ("disk-lg", "fast")])
-def test_true_pairs_score_above_far_false_pairs(shared_data, tmp_path, method, profile):
-    sequence = gardens_point(shared_data, queries=(10, 45, 80, 115, 150, 185))
-    table = pipeline.run_method(sequence, method, profile, tmp_path / "o", tmp_path / "c", progress=False)
-    true_mean = table.loc[table.label == 1, "score"].mean()
-    false_mean = table.loc[table.label == 0, "score"].mean()
-    assert true_mean > false_mean, table[["query", "reference", "label", "score"]]
-    assert (table["profile"] == profile).all()
-
-
 def test_store_resumes_and_ignores_half_written_shards(tmp_path):
     store = ShardedStore(tmp_path / "s")
     with store.writer(flush_every=2) as writer:

@@ -14,6 +14,9 @@ from typing import Any, Callable
 
 import pandas as pd
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)  # read once: os.umask can only be read by setting it
+
 
 def fsync_folder(folder: Path) -> None:
     """Make a rename in ``folder`` durable (a power cut could otherwise undo it)."""
@@ -34,6 +37,7 @@ def _atomic_write(path: Path, write: Callable[[Path], None]) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     handle, temporary = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     os.close(handle)
+    os.chmod(temporary, 0o666 & ~_UMASK)  # mkstemp makes 0600; results are for everyone who may read
     try:
         write(Path(temporary))
         with open(temporary, "rb") as stream:

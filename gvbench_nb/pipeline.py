@@ -45,14 +45,16 @@ PAIRS_COLUMNS = [
 ]
 
 
-def configure_threads(n_threads: int | None = None) -> None:
-    """Use every core for torch and OpenCV once (both default sensibly, but a
-    notebook kernel may have inherited a lower limit)."""
+def configure_threads(n_threads: int | None = None) -> int:
+    """Set torch's and OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else
+    every core. On a machine shared with other work, fewer threads than cores can be
+    much faster (small matrix products then wait on busy cores); scores do not change."""
     import os
 
-    n = n_threads or os.cpu_count() or 1
+    n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    return n
 
 
 def prefetch(items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers: int = 2
@@ -326,6 +328,7 @@ def run_method(
     device: str = "auto",
     seed: int = 0,
     progress: bool = True,
+    threads: int | None = None,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
 
@@ -335,7 +338,7 @@ def run_method(
     conf = method_registry.resolve_method(method, profile)
     weights.require(*method_registry.required_checkpoints(method, profile))
     resolved_device = resolve_device(device)
-    configure_threads()
+    configure_threads(threads)
     folder = method_dir(output_dir, method)
     # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
     for stale in ("pairs.csv", "run.json"):

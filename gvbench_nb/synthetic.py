@@ -60,7 +60,11 @@ __all__ = [
     "heading_difference_deg",
     "pose_rule_labels",
     "select_pairs",
+    "look_alike_labels",
     "fundamental_from_poses",
+    "Route",
+    "make_route",
+    "write_traversal_images",
     "generate_sample",
 ]
 
@@ -982,6 +986,41 @@ def _alias_reference_position(scene: Scene, query_x: float, look_ahead_m: float 
     return None
 
 
+LOOK_ALIKE_LOOK_AHEAD_M = 25.0
+
+
+def look_alike_labels(scene: Scene, query: Traversal, reference: Traversal,
+                      max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
+                      max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
+                      look_ahead_m: float = LOOK_ALIKE_LOOK_AHEAD_M) -> np.ndarray:
+    """(Q, R) bool: false pairs whose reference sees the look-alike of what the query sees.
+
+    A pair is a look-alike (aliasing) pair when it is false by the pose rule but
+    would be true if the query stood at its look-alike position (its position
+    shifted by the repeated façade block's offset, see ``_alias_reference_position``):
+    the reference then views the copy of the block the query views from the same
+    relative pose, so the two images show the same façades.  ``look_ahead_m`` is
+    how far ahead the block may start for the query to count as seeing it.  It is
+    wider than the 15 m ``select_pairs`` uses to pick one look-alike a query: on the
+    30-frame seed-0 route, query frame 0 stands 15.4 m before the block and its
+    look-alike reference scores 147 SIFT inliers, more than most true pairs.
+    """
+    headings_q = heading_from_rotation(query.rotations)
+    headings_r = heading_from_rotation(reference.rotations)
+    true_pairs = pose_rule_labels(query.positions, headings_q, reference.positions, headings_r,
+                                  max_distance_m, max_heading_deg)
+    look_alike = np.zeros_like(true_pairs)
+    for qi, position in enumerate(query.positions):
+        alias_x = _alias_reference_position(scene, float(position[0]), look_ahead_m)
+        if alias_x is None:
+            continue
+        shifted = position.copy()
+        shifted[0] = alias_x
+        look_alike[qi] = pose_rule_labels(shifted, headings_q[qi:qi + 1], reference.positions,
+                                          headings_r, max_distance_m, max_heading_deg)[0]
+    return look_alike & ~true_pairs
+
+
 def select_pairs(scene: Scene, query: Traversal, reference: Traversal, seed: int = 0,
                  max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
                  max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
@@ -1076,7 +1115,9 @@ def _pose_rows(name: str, traversal: Traversal, K: np.ndarray, image_names: list
     return rows
 
 
-def _write_images(folder: Path, images: list[np.ndarray], width: int) -> list[str]:
+def write_traversal_images(folder: Path, images: list[np.ndarray], width: int) -> list[str]:
+    """Write RGB frames as ``<folder>/<frame:0width>.png``; returns ``<folder name>/<file>``
+    names (relative to the folder's parent, the image root)."""
     folder.mkdir(parents=True, exist_ok=True)
     names = []
     for frame, image in enumerate(images):
@@ -1084,6 +1125,45 @@ def _write_images(folder: Path, images: list[np.ndarray], width: int) -> list[st
         cv2.imwrite(str(folder / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
         names.append(f"{folder.name}/{name}")
     return names
+
+
+@dataclass
+class Route:
+    """One street with its clear reference drive and the offset query drive."""
+
+    scene: Scene
+    reference: Traversal  # traversal index 0: on the lane centre, clear
+    query: Traversal  # traversal index 1: lateral, heading and along-track offsets
+    K: np.ndarray
+    image_size: tuple[int, int]
+    seed: int
+
+    @property
+    def name_width(self) -> int:
+        """Digits of the frame file names (at least 3)."""
+        return max(3, len(str(len(self.reference) - 1)))
+
+    def render_reference(self) -> list[np.ndarray]:
+        return render_traversal(self.scene, self.reference, self.K, self.image_size, {}, self.seed, 0)
+
+    def render_query(self, conditions: Mapping[str, float] | None = None) -> list[np.ndarray]:
+        """Query frames under ``conditions``; each frame keeps its random stream
+        whatever the strengths, so renders at different strengths differ only by
+        the strength (common random numbers)."""
+        return render_traversal(self.scene, self.query, self.K, self.image_size, conditions or {},
+                                self.seed, 1)
+
+
+def make_route(seed: int = 0, n_frames: int = 30, image_size: tuple[int, int] = (640, 480),
+               spacing_m: float = 2.0, lateral_offset_m: float = 1.0,
+               heading_offset_deg: float = 4.0, along_offset_m: float = 1.0) -> Route:
+    """The scene and both drives ``generate_sample`` renders (same parameters, same result)."""
+    scene = build_scene((n_frames - 1) * spacing_m + along_offset_m, seed)
+    reference = make_traversal(n_frames, spacing_m, seed=seed, traversal_index=0)
+    query = make_traversal(n_frames, spacing_m, lateral_offset_m, heading_offset_deg,
+                           along_offset_m, seed=seed, traversal_index=1)
+    return Route(scene, reference, query, default_intrinsics(image_size),
+                 (int(image_size[0]), int(image_size[1])), int(seed))
 
 
 def generate_sample(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
@@ -1124,16 +1204,12 @@ def generate_sample(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
         for stale in (out_dir / folder).glob("*.png"):
             if stale.stem.isdigit():  # only this generator's frame files
                 stale.unlink()
-    K = default_intrinsics(image_size)
-    scene = build_scene((n_frames - 1) * spacing_m + along_offset_m, seed)
-    day = make_traversal(n_frames, spacing_m, seed=seed, traversal_index=0)
-    night = make_traversal(n_frames, spacing_m, lateral_offset_m, heading_offset_deg,
-                           along_offset_m, seed=seed, traversal_index=1)
-    width = max(3, len(str(n_frames - 1)))
-    day_names = _write_images(out_dir / "day", render_traversal(
-        scene, day, K, image_size, {}, seed, 0), width)
-    night_names = _write_images(out_dir / "night", render_traversal(
-        scene, night, K, image_size, conditions, seed, 1), width)
+    route = make_route(seed, n_frames, image_size, spacing_m, lateral_offset_m,
+                       heading_offset_deg, along_offset_m)
+    K, scene, day, night = route.K, route.scene, route.reference, route.query
+    day_names = write_traversal_images(out_dir / "day", route.render_reference(), route.name_width)
+    night_names = write_traversal_images(out_dir / "night", route.render_query(conditions),
+                                         route.name_width)
 
     with open(out_dir / "poses.csv", "w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=POSE_COLUMNS)

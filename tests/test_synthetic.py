@@ -163,6 +163,42 @@ def test_poses_csv_rotation_matches_angles(sample_dir: Path) -> None:
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-8)
 
 
+def test_make_route_is_what_generate_sample_renders(sample_dir: Path) -> None:
+    route = syn.make_route(seed=0, n_frames=16, image_size=SMALL_SIZE)
+    frame = 7
+    on_disk = cv2.cvtColor(cv2.imread(str(sample_dir / "night" / f"{frame:03d}.png")), cv2.COLOR_BGR2RGB)
+    night = syn.render_frame(route.scene, route.query.rotations[frame], route.query.positions[frame],
+                             route.K, SMALL_SIZE)
+    expected = syn.apply_conditions(night.image, night.depth, night.normals,
+                                    syn.DEFAULT_NIGHT_CONDITIONS, syn.frame_rng(0, 1, frame),
+                                    light_points=night.light_points)
+    assert np.array_equal(on_disk, expected)
+    poses = _read_poses(sample_dir)
+    np.testing.assert_allclose(poses["day/003.png"][0], route.reference.positions[3], atol=1e-5)
+
+
+def test_look_alike_pairs_are_false_and_see_the_repeated_block() -> None:
+    route = syn.make_route(seed=0, n_frames=30, image_size=SMALL_SIZE)
+    look_alike = syn.look_alike_labels(route.scene, route.query, route.reference)
+    true_pairs = syn.pose_rule_labels(route.query.positions, syn.heading_from_rotation(route.query.rotations),
+                                      route.reference.positions,
+                                      syn.heading_from_rotation(route.reference.rotations))
+    assert look_alike.sum() > 20
+    assert not (look_alike & true_pairs).any()
+    (source_x, copy_x, length), = route.scene.alias_blocks
+    shift = copy_x - source_x
+    for q, r in zip(*np.nonzero(look_alike)):
+        query_x, reference_x = route.query.positions[q, 0], route.reference.positions[r, 0]
+        # The reference stands within the pose threshold of the query's look-alike position.
+        assert abs(abs(reference_x - query_x) - shift) <= syn.DEFAULT_MAX_DISTANCE_M
+        # ... and the query is before or beside the block it looks at, not past it.
+        seen_from = source_x if reference_x > query_x else copy_x
+        assert seen_from - syn.LOOK_ALIKE_LOOK_AHEAD_M <= query_x <= seen_from + 0.5 * length
+    # A wider look-ahead only adds look-alikes.
+    wider = syn.look_alike_labels(route.scene, route.query, route.reference, look_ahead_m=40.0)
+    assert (wider | ~look_alike).all()
+
+
 def test_generate_sample_skips_when_parameters_match(sample_dir: Path) -> None:
     before = {p: p.stat().st_mtime_ns for p in sample_dir.rglob("*.png")}
     summary = syn.generate_sample(sample_dir, seed=0, n_frames=16, image_size=SMALL_SIZE)

@@ -28,7 +28,7 @@ import math
 import shutil
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Iterator, Mapping, Sequence as SequenceType
+from typing import Any, Iterable, Mapping, Sequence as SequenceType
 
 import matplotlib.pyplot as plt
 import numpy as np

@@ -48,7 +48,7 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
 def command_run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from . import config, methods, weights
+    from . import config, distributed, methods, weights
 
     # Paths typed on the command line are relative to the current folder, not the params file.
     absolute = lambda path: str(Path(path).resolve()) if path else None  # noqa: E731
@@ -64,6 +64,8 @@ def command_run(args: argparse.Namespace) -> int:
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
             + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
         )
+    if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
+        return distributed.run_from_cli(args, params)
     sequence = config.prepare_sequence(params)
     output_dir = Path(params["output_dir"])
     common = {"params_file": params["params_file"], "output_dir": str(output_dir)}
@@ -143,6 +145,8 @@ def command_weights(args: argparse.Namespace) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from . import distributed
+
     parser = argparse.ArgumentParser(
         prog="python -m gvbench_nb", description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
@@ -162,6 +166,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
     run.set_defaults(handler=command_run)
+    distributed.add_run_arguments(run)  # --shard I/N, --merge, --dask, --scheduler, --shards, --workers
 
     results = commands.add_parser(
         "results", help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
@@ -182,16 +187,17 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
-    from . import report
+    from . import bench, report
 
     report.add_command(commands)
+    bench.add_command(commands)
     return parser
 
 
 def main(argv: SequenceType[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
-    from . import config, metrics, weights
+    from . import config, distributed, metrics, weights
     from .images import ImageReadError
     from .sequences import PairFileError
 
@@ -206,6 +212,6 @@ def main(argv: SequenceType[str] | None = None) -> int:
         print("the executed notebook (with the full traceback) is in the output folder", file=sys.stderr)
         return 1
     except (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
-            metrics.MetricsUndefinedError, ImageReadError) as error:
+            metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

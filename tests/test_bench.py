@@ -1,0 +1,127 @@
+"""The bench: both pipelines agree on scores, mismatches fail loudly, the arithmetic of
+summaries, scaling and estimates is right."""
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import torch
+
+from gvbench_nb import bench, methods
+from gvbench_nb.sequences import Pair, Sequence
+
+
+def few_pairs(shared_data: Path) -> Sequence:
+    """Two queries, each with a true and a false reference, plus one reused reference (5 pairs)."""
+    pairs = [Pair("night_right/Image060.jpg", "day_right/Image060.jpg", 1),
+             Pair("night_right/Image060.jpg", "day_right/Image140.jpg", 0),
+             Pair("night_right/Image140.jpg", "day_right/Image141.jpg", 1),
+             Pair("night_right/Image140.jpg", "day_right/Image060.jpg", 0),
+             Pair("night_right/Image061.jpg", "day_right/Image060.jpg", 1)]
+    return Sequence("gp_bench", shared_data / "gardens_point", pairs)
+
+
+@pytest.mark.real_data
+def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path):
+    sequence = few_pairs(shared_data)
+    conf = methods.resolve_method("sift-nn", "fast")
+    ours, our_seconds = bench.run_cached_pipeline(sequence, conf, tmp_path, torch.device("cpu"), seed=3)
+    reference, reference_seconds = bench.run_per_pair_pipeline(sequence, conf, torch.device("cpu"), seed=3)
+    bench.check_same_scores(ours, reference, "test")  # raises on any difference
+    assert ours["num_inliers"].tolist() == reference["num_inliers"].tolist()
+    assert (ours["num_matches"] > 0).all() and ours["num_inliers"].nunique() > 1  # not trivially equal
+    for seconds in (our_seconds, reference_seconds):
+        assert seconds["wall"] == pytest.approx(sum(seconds[s] for s in bench.STAGES))
+        assert min(seconds[s] for s in ("extract", "match", "verify")) > 0
+
+
+def test_a_score_mismatch_fails_loudly_naming_the_pair():
+    ours = pd.DataFrame({"query": ["q0", "q1"], "reference": ["r0", "r1"], "num_matches": [50, 40],
+                         "num_inliers": [30, 12]})
+    other = ours.copy()
+    bench.check_same_scores(ours, other, "same")
+    other.loc[1, "num_inliers"] = 13
+    with pytest.raises(bench.ScoreMismatchError, match=r"(?s)1 of 2 pairs.*pair 1: q1 r1: cached 12 inliers"):
+        bench.check_same_scores(ours, other, "where")
+
+
+def timing_rows(cached_rates, per_pair_rates) -> pd.DataFrame:
+    rows = []
+    for repeat, (fast, slow) in enumerate(zip(cached_rates, per_pair_rates)):
+        for which, rate in ((bench.CACHED, fast), (bench.PER_PAIR, slow)):
+            rows.append({"sequence": "s", "method": "sift-nn", "profile": "fast", "n_pairs": 100, "n_images": 40,
+                         "repeat": repeat, "pipeline": which, "wall_seconds": 100 / rate, "pairs_per_second": rate,
+                         "extract_seconds_per_pair": 0.5 / rate, "match_seconds_per_pair": 0.3 / rate,
+                         "verify_seconds_per_pair": 0.2 / rate, "other_seconds_per_pair": 0.0,
+                         "device": "cpu", "device_name": "x86_64", "torch_threads": 1, "opencv_threads": 1,
+                         "cpu_count": 2, "loadavg_1m": 1.0 + repeat, "loadavg_5m": 1.0, "date": "2026-01-01"})
+    return pd.DataFrame(rows)
+
+
+def test_summary_takes_the_median_of_per_repeat_ratios():
+    summary = bench.summarize_bench(timing_rows([10.0, 30.0, 12.0], [2.0, 3.0, 4.0])).iloc[0]
+    assert summary["speedup"] == pytest.approx(5.0)  # ratios 5, 10, 3
+    assert (summary["speedup_min"], summary["speedup_max"]) == pytest.approx((3.0, 10.0))
+    assert summary["cached_pairs_per_second"] == 12.0 and summary["per_pair_pairs_per_second"] == 3.0
+    assert summary["meets_target"] and summary["speedup_target"] == 5.0
+    slower = bench.summarize_bench(timing_rows([8.0], [2.0])).iloc[0]
+    assert not slower["meets_target"]
+    assert summary["uses_per_image"] == 5.0
+    assert summary["cached_extract_seconds_per_image"] == pytest.approx(0.5 / 12 * 100 / 40)
+    assert (summary["loadavg_1m_start"], summary["loadavg_1m_max"]) == (1.0, 3.0)
+
+
+def test_bench_csvs_keep_other_runs_and_replace_the_same_run(tmp_path):
+    path = tmp_path / "summary.csv"
+    keys = ["sequence", "method", "profile", "n_pairs"]
+    first = bench.summarize_bench(timing_rows([10.0], [2.0]))
+    bench._merge_csv(path, first, keys)
+    paper = first.assign(profile="paper")
+    bench._merge_csv(path, paper, keys)
+    again = bench._merge_csv(path, first.assign(speedup=7.0), keys)
+    assert sorted(again["profile"]) == ["fast", "paper"]
+    assert again.set_index("profile").loc["fast", "speedup"] == 7.0
+
+
+def test_estimate_scales_measured_costs_by_images_and_pairs():
+    summary = bench.summarize_bench(timing_rows([10.0], [2.0]))
+    sizes = pd.DataFrame([{"sequence": "day", "n_pairs": 3600, "n_images": 720, "uses_per_image": 10.0}])
+    row = bench.estimate_official_runtime(summary, sizes).iloc[0]
+    per_image = 0.5 / 10 * 100 / 40
+    assert row["cached_hours"] == pytest.approx((720 * per_image + 3600 * 0.5 / 10) / 3600)
+    assert row["per_pair_hours"] == pytest.approx(3600 / 2.0 / 3600)
+
+
+@pytest.mark.real_data
+def test_official_sizes_count_unique_images(shared_data):
+    sizes = bench.official_sequence_sizes(shared_data / "gvbench_gt").set_index("sequence")
+    assert list(sizes.index) == list(bench.OFFICIAL_SEQUENCES)
+    assert sizes.loc["uacampus", "n_pairs"] == sum(1 for line in open(shared_data / "gvbench_gt" / "uacampus.txt")
+                                                  if line.strip())
+    assert (sizes["n_images"] < sizes["n_pairs"]).all()
+
+
+@pytest.mark.real_data
+def test_scaling_table_sums_the_measured_stage_costs(shared_data):
+    sequence = few_pairs(shared_data)
+    table = bench.scaling_table(sequence, "sift-nn", "fast", limits=(2, 5, 50), device="cpu").set_index("n_pairs")
+    assert list(table.index) == [2, 5]  # 50 is capped at the sequence's length
+    assert table.loc[5, "n_images"] == len(sequence.images) == 6
+    assert table.loc[2, "n_images"] == 3
+    assert table.loc[5, "extract_seconds"] > table.loc[2, "extract_seconds"] > 0
+    # The per-pair pipeline extracts each pair's two images: 10 extractions for 6 images here.
+    assert table.loc[5, "per_pair_extract_seconds"] > table.loc[5, "extract_seconds"]
+    assert np.isclose(table.loc[5, "total_seconds"],
+                      table.loc[5, ["extract_seconds", "match_seconds", "verify_seconds"]].sum())
+
+
+def test_add_command_registers_bench():
+    parser = argparse.ArgumentParser()
+    bench.add_command(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["bench", "p.yaml", "--methods", "sift-nn,disk-lg", "--limit", "50", "--repeats", "2",
+                              "--profile", "fast"])
+    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == ("p.yaml", "sift-nn,disk-lg", 50, 2,
+                                                                                   "fast")
+    assert args.handler is bench.command_bench

@@ -184,9 +184,17 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
     write_pairs(params["pairs"], pairs)
 
 
+def build_retrieval(params: dict[str, Any]) -> None:
+    """GV-Bench's way: top-N retrieval by a global descriptor, labelled by a rule (``build.py``)."""
+    from . import build
+
+    build.build_retrieval_pairs(params)
+
+
 PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
     "sample": build_sample,
     "frame_tolerance": build_frame_tolerance,
+    "retrieval": build_retrieval,
 }
 
 

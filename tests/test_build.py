@@ -1,0 +1,244 @@
+"""Building sequences by retrieval + a label rule (gvbench_nb.build) on tiny made-up traversals.
+
+Local descriptors are written straight into the feature cache, so no image is
+extracted: place p's images share descriptors drawn around place p's own centres,
+which makes "the same frame comes first" the known answer of retrieval.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from gvbench_nb import build, pipeline, sequences
+
+NUM_FRAMES = 8
+DIM = 16
+
+
+WORD_CENTRES = 3.0 * np.random.default_rng(99).normal(size=(4, DIM))
+
+
+def place_descriptors(frame: int, rng: np.random.Generator, design: str, count: int = 32) -> np.ndarray:
+    """Descriptors of place ``frame``, the same distribution in every traversal.
+
+    "vlad": 4 visual words shared by all places, each place offset from every word in
+    its own way (VLAD's residuals tell places apart; use 4 words). "bow": a centre only
+    this place has (its own visual words tell places apart; use more words than places).
+    """
+    place = np.random.default_rng(1000 + frame)
+    if design == "vlad":
+        words = np.arange(count) % len(WORD_CENTRES)
+        rows = WORD_CENTRES[words] + 0.5 * place.normal(size=(len(WORD_CENTRES), DIM))[words]
+    else:
+        rows = np.repeat(place.normal(size=(1, DIM)), count, axis=0)
+    return (rows + 0.02 * rng.normal(size=rows.shape)).astype(np.float32)
+
+
+def make_traversals(root: Path, cache_dir: Path, folders: list[str], design: str = "vlad", profile: str = "fast") -> None:
+    """Image files (tiny placeholders) and their cached local descriptors."""
+    options = build.parse_options({"query_folder": "x", "reference_folders": ["y"]})
+    store = pipeline.feature_store(cache_dir, build.local_feature_conf(options, profile))
+    rng = np.random.default_rng(7)
+    with store.writer() as writer:
+        for folder in folders:
+            (root / folder).mkdir(parents=True, exist_ok=True)
+            for frame in range(NUM_FRAMES):
+                name = f"{folder}/Image{frame:03d}.png"
+                cv2.imwrite(str(root / name), np.full((8, 8), 40 * frame % 255, np.uint8))
+                descriptors = place_descriptors(frame, rng, design)
+                writer.put(pipeline.image_key(root, name),
+                           {"keypoints": np.zeros((len(descriptors), 2), np.float32),
+                            "scores": np.ones(len(descriptors), np.float32),
+                            "descriptors": descriptors, "image_size": np.array([8, 8])},
+                           {"seconds": 0.0})
+
+
+def write_params(tmp_path: Path, **options: object) -> Path:
+    builder_options = {"query_folder": "night", "reference_folders": ["day"], "descriptor": "vlad",
+                       "descriptor_options": {"vlad": {"num_words": 4}, "bow": {"num_words": 4}}, "top_n": 3, "label_rule": "frame_tolerance",
+                       "label_params": {"k": 1}, **options}
+    params = {"sequence": "tiny", "pairs_builder": "retrieval", "builder_options": builder_options,
+              "image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "out" / "pairs.txt"),
+              "methods": ["sift-nn"], "profile": "fast", "output_dir": str(tmp_path / "out"),
+              "cache_dir": str(tmp_path / "cache"), "seed": 0}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+@pytest.fixture
+def tiny(tmp_path: Path) -> Path:
+    make_traversals(tmp_path / "images", tmp_path / "cache", ["night", "day", "dusk"])
+    return tmp_path
+
+
+def built(tmp_path: Path, **options: object) -> dict:
+    return build.build_sequence(build.load_build_params(write_params(tmp_path, **options)), progress=False)
+
+
+# ------------------------------------------------------------------ files and card
+
+
+def test_pair_file_round_trips_and_card_counts_match(tiny: Path) -> None:
+    card = built(tiny)
+    pairs = sequences.read_pairs(card["files"]["pairs"])
+    candidates = pd.read_csv(card["files"]["candidates"])
+    assert len(pairs) == NUM_FRAMES * 3 == len(candidates)
+    assert [(p.query, p.reference, p.label) for p in pairs] == list(
+        zip(candidates["query"], candidates["reference"], candidates["label"]))
+    summary = sequences.summarize(sequences.Sequence("tiny", tiny / "images", pairs))
+    assert card["counts"] == {k: v for k, v in summary.items() if k != "sequence"}
+    assert json.loads(Path(card["files"]["card_json"]).read_text())["counts"] == card["counts"]
+    assert f"| pairs | {len(pairs)} |" in Path(card["files"]["card_markdown"]).read_text()
+    build.check_card(card["files"]["pairs"])
+    # an edited pair file no longer matches its card
+    lines = Path(card["files"]["pairs"]).read_text().splitlines()
+    Path(card["files"]["pairs"]).write_text("\n".join(lines[:-1]) + "\n")
+    with pytest.raises(build.BuildError, match="card counts differ"):
+        build.check_card(card["files"]["pairs"])
+
+
+@pytest.mark.parametrize("descriptor, num_words", [("vlad", 4), ("bow", 2 * NUM_FRAMES)])
+def test_retrieval_finds_the_known_place_first(tmp_path: Path, descriptor: str, num_words: int) -> None:
+    make_traversals(tmp_path / "images", tmp_path / "cache", ["night", "day"], design=descriptor)
+    card = built(tmp_path, descriptor=descriptor, descriptor_options={descriptor: {"num_words": num_words}})
+    assert card["descriptor_options"] == {"num_words": num_words}
+    candidates = pd.read_csv(card["files"]["candidates"])
+    first = candidates[candidates["rank"] == 0]
+    assert [sequences.frame_index(q) for q in first["query"]] == [sequences.frame_index(r) for r in first["reference"]]
+    assert card["retrieval_recall"]["recall@1"] == 1.0
+    # labels are the rule |i - j| <= 1, recomputed here from the names
+    expected = [int(abs(sequences.frame_index(q) - sequences.frame_index(r)) <= 1)
+                for q, r in zip(candidates["query"], candidates["reference"])]
+    assert candidates["label"].tolist() == expected
+    # ground truth: 2 true references at the ends of the route, 3 elsewhere
+    assert card["ground_truth"]["true_references_per_query"] == pytest.approx((2 * 2 + 3 * (NUM_FRAMES - 2)) / NUM_FRAMES)
+
+
+def test_same_seed_same_sequence_other_seed_other_queries(tiny: Path) -> None:
+    queries = lambda card: {p.query for p in sequences.read_pairs(card["files"]["pairs"])}  # noqa: E731
+    first = built(tiny, num_queries=4)
+    text, first_queries = Path(first["files"]["pairs"]).read_text(), queries(first)
+    second = built(tiny, num_queries=4)
+    assert Path(second["files"]["pairs"]).read_text() == text
+    assert {k: v for k, v in first.items() if k != "seconds"} == {k: v for k, v in second.items() if k != "seconds"}
+    assert first["counts"]["n_queries"] == 4
+    params = build.load_build_params(write_params(tiny, num_queries=4))
+    params["seed"] = 1
+    other = build.build_sequence(params, progress=False)
+    assert len(queries(other)) == 4 and queries(other) != first_queries
+
+
+def test_multi_experience_candidates_come_from_every_experience(tiny: Path) -> None:
+    card = built(tiny, reference_folders=["day", "dusk"], top_n=2)
+    candidates = pd.read_csv(card["files"]["candidates"])
+    # the same place in both experiences is the best pair: day/i and dusk/i take the two slots
+    for _, group in candidates.groupby("query"):
+        assert set(group["experience"]) == {"day", "dusk"}
+        assert {sequences.frame_index(r) for r in group["reference"]} == {sequences.frame_index(group["query"].iloc[0])}
+    assert set(card["per_experience"]) == {"day", "dusk"}
+    assert all(v["n_pairs"] == NUM_FRAMES for v in card["per_experience"].values())
+    pairs = sequences.read_pairs(card["files"]["pairs"])
+    assert {p.reference.split("/")[0] for p in pairs} == {"day", "dusk"}
+    assert card["retrieval_recall"]["recall@1"] == 1.0
+
+
+def test_best_experience_table_keeps_each_query_best_pair() -> None:
+    candidates = pd.DataFrame({
+        "query": ["q0", "q0", "q1", "q1"], "experience": ["day", "dusk", "day", "dusk"],
+        "reference": ["day/a", "dusk/a", "day/b", "dusk/b"], "rank": [0, 1, 0, 1],
+        "similarity": [0.9, 0.8, 0.7, 0.6], "label": [0, 1, 1, 0],
+    })
+    scores = pd.DataFrame({"query": candidates["query"], "reference": candidates["reference"], "score": [5, 40, 12, 12]})
+    best = build.best_experience_table(candidates, scores)
+    assert best["experience"].tolist() == ["dusk", "day"]  # q1: a tie goes to the better rank
+    assert best["label"].tolist() == [1, 1]
+    with pytest.raises(build.BuildError, match="no 'score' for candidate pair q1 dusk/b"):
+        build.best_experience_table(candidates, scores.iloc[:3])
+
+
+# ------------------------------------------------------------------ metadata + pose rule
+
+
+def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Path) -> None:
+    """The sample's own pair file was labelled by its generator; our pose rule on its
+    poses.csv (thresholds from generator.json) must give every one of those labels."""
+    from gvbench_nb import synthetic
+
+    root = tmp_path / "sample"
+    synthetic.generate_sample(root, n_frames=8, image_size=(80, 60))
+    options = build.parse_options({
+        "query_folder": "night", "reference_folders": ["day"], "label_rule": "pose",
+        "label_params_file": "generator.json",
+        "metadata": {"csv": "poses.csv", "name": "image", "position": ["x", "y", "z"], "heading": "yaw_deg", "frame": "frame"},
+    })
+    inputs = build.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "fast"}, options)
+    assert inputs.rule_params == {"max_distance_m": 8.0, "max_heading_deg": 40.0}
+    truth = build.ground_truth(inputs)
+    night, day = inputs.query.names, inputs.experiences["day"].names
+    given = sequences.read_pairs(root / "pairs.txt")
+    ours = [bool(truth[night.index(p.query), day.index(p.reference)]) for p in given]
+    assert ours == [bool(p.label) for p in given]
+    assert 0 < sum(ours) < len(ours)
+
+
+def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
+    (tiny / "images" / "meta.csv").write_text("name,x,y\nImage000.png,0,0\n")
+    spec = {"csv": "meta.csv", "heading": None}
+    options = build.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": spec})
+    with pytest.raises(build.BuildError, match=r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"):
+        build.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
+    options = build.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": {"csv": "meta.csv"}})
+    with pytest.raises(build.BuildError, match=r"missing column\(s\) \['heading'\]"):
+        build.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
+
+
+# ------------------------------------------------------------------ options and CLI
+
+
+@pytest.mark.parametrize("options, message", [
+    ({"query_folder": "night", "reference_folders": ["day"], "top_nn": 3}, "'top_nn' \\(did you mean 'top_n'\\?\\)"),
+    ({"query_folder": "night"}, "missing 'reference_folders'"),
+    ({"query_folder": "day", "reference_folders": ["day"]}, "also a reference folder"),
+    ({"query_folder": "night", "reference_folders": ["day"], "descriptor": "gem"}, "unknown descriptor 'gem'"),
+    ({"query_folder": "night", "reference_folders": ["day"], "top_n": 0}, "top_n must be a positive integer"),
+    ({"query_folder": "night", "reference_folders": ["day"], "descriptor_options": {"num_words": 8}},
+     "descriptor_options maps descriptor names"),
+    ({"query_folder": "night", "reference_folders": ["day"], "label_rule": "gps"}, "unknown label_rule 'gps'"),
+])
+def test_bad_options_say_what_is_wrong(options: dict, message: str) -> None:
+    with pytest.raises(build.BuildError, match=message):
+        build.parse_options(options)
+
+
+def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import argparse
+
+    parser = argparse.ArgumentParser()
+    build.add_command(parser.add_subparsers(dest="command", required=True))
+    args = parser.parse_args(["build", str(write_params(tiny)), "--top-n", "2", "--descriptor", "bow"])
+    assert args.handler(args) == 0
+    printed = capsys.readouterr().out
+    assert "top 2 by bow" in printed and f"| pairs | {2 * NUM_FRAMES} |" in printed
+    assert len(sequences.read_pairs(tiny / "out" / "pairs.txt")) == 2 * NUM_FRAMES
+    args = parser.parse_args(["build", str(write_params(tiny, query_folder="nowhere"))])
+    assert args.handler(args) == 2
+    assert "image folder not found" in capsys.readouterr().err
+
+
+def test_recall_curves_are_monotone_and_reach_the_card(tiny: Path) -> None:
+    params = build.load_build_params(write_params(tiny))
+    card = build.build_sequence(params, progress=False)
+    curves = build.recall_curves(params, ["vlad", "bow"], progress=False)
+    assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3
+    for _, group in curves.groupby("descriptor"):
+        assert np.all(np.diff(group["recall"]) >= 0)
+    vlad = curves[curves["descriptor"] == "vlad"].set_index("k")["recall"]
+    assert vlad[1] == card["retrieval_recall"]["recall@1"] and vlad[3] == card["retrieval_recall"]["recall@3"]

@@ -22,6 +22,7 @@ examples:
   python -m gvbench_nb run params/gardens_point.yaml --methods sift-nn,disk-lg --limit 200
   python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile fast
   python -m gvbench_nb results outputs/sample --markdown
+  python -m gvbench_nb build params/gardens_point_retrieval.yaml
   python -m gvbench_nb methods
   python -m gvbench_nb weights --link
 """
@@ -187,8 +188,9 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
-    from . import bench, report
+    from . import bench, build, report
 
+    build.add_command(commands)
     report.add_command(commands)
     bench.add_command(commands)
     return parser

@@ -9,13 +9,10 @@ results; with their defaults they first run what is missing on the sample
 
 from __future__ import annotations
 
-from pathlib import Path
 
-import nbformat
 
-from build_notebooks import build  # same folder: run this file as a script
+from build_notebooks import write_notebooks  # same folder: run this file as a script
 
-HERE = Path(__file__).resolve().parent
 
 PARAMETERS = """\
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
@@ -175,11 +172,5 @@ pd.concat(all_intervals).to_csv(figures / "bootstrap_intervals.csv", index=False
 }
 
 
-def main() -> None:
-    for name, cells in NOTEBOOKS.items():
-        nbformat.write(build(name, cells), HERE / name)
-        print("wrote", HERE / name)
-
-
 if __name__ == "__main__":
-    main()
+    write_notebooks(NOTEBOOKS)

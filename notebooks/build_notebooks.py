@@ -22,6 +22,40 @@ from IPython.display import display
 from gvbench_nb import config, pipeline, plots, sequences"""
 
 NOTEBOOKS: dict[str, list[tuple[str, str]]] = {
+    "00_build_sequence.ipynb": [
+        ("md", "# 00 - Build a sequence the GV-Bench way\nTop-N retrieval by a global descriptor, labels by a ground-truth rule: "
+               "writes the pair file and its card (`<stem>.card.json`, `.card.md`, `.candidates.csv`)."),
+        ("params", """\
+params_file = "../params/sample_retrieval.yaml"  # a params YAML with pairs_builder: retrieval
+descriptor = None  # 'vlad', 'bow' or 'netvlad'; default: the params'
+top_n = None  # candidates a query; default: the params'
+compare_descriptors = ["vlad", "bow"]  # recall@k figure, each with the params' descriptor_options (netvlad: weights, slow on CPU)
+strip_count = 4  # queries shown with their top candidates
+output_dir = None  # figures go here; default: the params file's output_dir"""),
+        ("code", """\
+from pathlib import Path
+import matplotlib.pyplot as plt
+import pandas as pd
+from IPython.display import Markdown, display
+from gvbench_nb import build, plots"""),
+        ("code", """\
+params = build.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
+figures = Path(params["output_dir"])
+card = build.build_sequence(params)
+build.check_card(card["files"]["pairs"])  # the card's counts are the pair file's
+display(Markdown(build.card_markdown(card)))"""),
+        ("code", """\
+curves = build.recall_curves(params, compare_descriptors)
+display(curves.pivot(index="k", columns="descriptor", values="recall").round(3).T)
+figure = build.plot_recall_curves(curves, title=f"{card['sequence']}: retrieval recall@k ({curves.queries_evaluated.iloc[0]} queries)")
+plots.save(figure, figures / "build_recall_at_k.png"); plt.show()"""),
+        ("code", """\
+candidates = pd.read_csv(card["files"]["candidates"])
+shown = build.strip_queries(candidates, strip_count)
+figure = build.candidate_strips(params["image_root"], candidates, shown, k=min(5, card["top_n"]),
+                                title=f"{card['sequence']}: top candidates by {card['descriptor']} (green true, red false)")
+plots.save(figure, figures / "build_candidates.png"); plt.show()"""),
+    ],
     "01_sequence.ipynb": [
         ("md", "# 01 - What a sequence holds\nCounts, positives a query and example pairs of one sequence."),
         ("params", """\
@@ -106,11 +140,12 @@ def build(name: str, cells: list[tuple[str, str]]) -> nbformat.NotebookNode:
     return notebook
 
 
-def main() -> None:
-    for name, cells in NOTEBOOKS.items():
+def write_notebooks(notebooks: dict[str, list[tuple[str, str]]]) -> None:
+    """Write each notebook beside this file (the other builders call this too)."""
+    for name, cells in notebooks.items():
         nbformat.write(build(name, cells), HERE / name)
         print("wrote", HERE / name)
 
 
 if __name__ == "__main__":
-    main()
+    write_notebooks(NOTEBOOKS)

@@ -8,13 +8,10 @@ in about a minute; the real sweep injects its parameters with papermill.
 
 from __future__ import annotations
 
-from pathlib import Path
 
-import nbformat
 
-from build_notebooks import build
+from build_notebooks import write_notebooks
 
-HERE = Path(__file__).resolve().parent
 NAME = "analysis_condition_sweep.ipynb"
 
 CELLS: list[tuple[str, str]] = [
@@ -71,10 +68,5 @@ plots.save(figure, out / "sweep_examples.png"); plt.show()"""),
 ]
 
 
-def main() -> None:
-    nbformat.write(build(NAME, CELLS), HERE / NAME)
-    print("wrote", HERE / NAME)
-
-
 if __name__ == "__main__":
-    main()
+    write_notebooks({NAME: CELLS})

@@ -10,13 +10,10 @@ Rewrite them with:
 
 from __future__ import annotations
 
-from pathlib import Path
 
-import nbformat
 
-from build_notebooks import build  # same folder: run this file as a script
+from build_notebooks import write_notebooks  # same folder: run this file as a script
 
-HERE = Path(__file__).resolve().parent
 
 PARAMETERS = """\
 params_file = "../params/sample.yaml"  # runs `method` when results_dir lacks its pairs.csv (None: run nothing)
@@ -134,11 +131,5 @@ pd.Series(model[-1].coef_[0], index=features.columns, name="coefficient").sort_v
 }
 
 
-def main() -> None:
-    for name, cells in NOTEBOOKS.items():
-        nbformat.write(build(name, cells), HERE / name)
-        print("wrote", HERE / name)
-
-
 if __name__ == "__main__":
-    main()
+    write_notebooks(NOTEBOOKS)

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import os
 from pathlib import Path
 
 import cv2
@@ -25,7 +24,6 @@ from gvbench_nb.models.doppelgangers import (
 )
 from gvbench_nb.weights import MissingWeightsError, WeightsLayoutError
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 @pytest.fixture(scope="module")

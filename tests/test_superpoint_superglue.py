@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 from pathlib import Path
 
 import pytest
@@ -17,7 +16,6 @@ from gvbench_nb import weights
 from gvbench_nb.models import superglue as sg
 from gvbench_nb.models import superpoint as sp
 
-REPO = Path(__file__).resolve().parents[1]
 
 
 # ----------------------------------------------------------------------------- fixtures

@@ -59,16 +59,6 @@ def pair_shard(sequence: Sequence, index: int, count: int) -> Sequence:
     return Sequence(sequence.name, sequence.image_root, sequence.pairs[index::count])
 
 
-def image_shard(sequence: Sequence, index: int, count: int) -> Sequence:
-    """A sequence whose unique images are slice ``index::count`` of ``sequence.images``.
-
-    ``extract_features`` extracts a sequence's unique images; self-pairs give it exactly
-    this slice (pairs that span two slices would make two shards extract one image).
-    """
-    return Sequence(sequence.name, sequence.image_root,
-                    [Pair(name, name, 0) for name in sequence.images[index::count]])
-
-
 def default_threads(workers_on_this_machine: int) -> int:
     """torch/OpenCV threads per task so the tasks together use each core once (more
     threads than cores makes torch spin-wait: measured 2-5x slower under load)."""
@@ -79,8 +69,8 @@ def extract_shard(sequence: Sequence, extractor_conf: dict[str, Any], cache_dir:
                   device: str = "auto", threads: int | None = None) -> dict[str, int]:
     """Phase 1 task: extract image slice ``index::count`` of ``sequence`` into the cache."""
     pipeline.configure_threads(threads)
-    return pipeline.extract_features(image_shard(sequence, index, count), extractor_conf, Path(cache_dir),
-                                     resolve_device(device), progress=False)
+    return pipeline.extract_features(sequence, extractor_conf, Path(cache_dir), resolve_device(device),
+                                     progress=False, images=sequence.images[index::count])
 
 
 def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output_dir: str, index: int, count: int,

@@ -108,11 +108,13 @@ def extract_features(
     device: torch.device | str = "auto",
     progress: bool = True,
     flush_every: int = 16,
+    images: list[str] | None = None,
 ) -> dict[str, int]:
-    """Extract every unique image of ``sequence`` not yet in the cache. Returns counts."""
+    """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
+    not yet in the cache. Returns counts."""
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
-    wanted = {image_key(sequence.image_root, name): name for name in sequence.images}
+    wanted = {image_key(sequence.image_root, name): name for name in (sequence.images if images is None else images)}
     todo = [key for key in wanted if key not in store]
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:

@@ -86,14 +86,12 @@ def test_merge_with_a_missing_shard_names_the_missing_pairs(shared_data, tmp_pat
     assert not (Path(params["output_dir"]) / METHOD / "pairs.csv").exists()
 
 
-def test_shards_partition_the_pairs_and_images():
+def test_pair_shards_partition_the_pairs():
     from gvbench_nb.sequences import Sequence
 
     sequence = Sequence("s", Path("/images"), twelve_pairs())
     shards = [distributed.pair_shard(sequence, i, 5) for i in range(5)]
     assert sorted((p for s in shards for p in s.pairs), key=sequence.pairs.index) == sequence.pairs
-    images = [name for i in range(5) for name in distributed.image_shard(sequence, i, 5).images]
-    assert sorted(images) == sorted(sequence.images)
 
 
 @pytest.mark.parametrize("text", ["3/3", "-1/2", "1", "a/b", "0/0"])

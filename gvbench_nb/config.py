@@ -65,6 +65,15 @@ def _expand(value: str, source: str, key: str) -> str:
     return re.sub(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}", replace, value)
 
 
+def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
+    """``'limt' (did you mean 'limit'?), 'x'``: each unknown key with its closest valid one."""
+    hints = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, valid, n=1)
+        hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return ", ".join(hints)
+
+
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
     """Read, validate and resolve a params file; ``overrides`` (not None) replace keys."""
     path = Path(path).resolve()
@@ -81,11 +90,7 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     unknown = [k for k in raw if k not in valid]
     if unknown:
-        hints = []
-        for key in unknown:
-            close = difflib.get_close_matches(key, valid, n=1)
-            hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
-        raise ParamsError(f"{path}: unknown key(s) {', '.join(hints)}. Valid keys: {', '.join(valid)}")
+        raise ParamsError(f"{path}: unknown key(s) {unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
     missing = [k for k in REQUIRED_KEYS if k not in raw]
     if missing:
         raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")

@@ -54,7 +54,7 @@ from .io_utils import atomic_write_csv, atomic_write_json
 from .metrics import evaluate_scores
 from .sequences import frame_index
 from .sue import sue as spatial_uncertainty
-from .verify import ESTIMATORS, fundamental_inliers
+from .verify import ESTIMATORS, as_point_arrays, fundamental_inliers
 from .weights import MissingWeightsError
 
 # ------------------------------------------------------------------ registry --
@@ -268,10 +268,7 @@ def homography_inliers(points0: np.ndarray, points1: np.ndarray, threshold_px: f
     ``method`` takes the fundamental estimators' names; FM_RANSAC means plain
     ``cv2.RANSAC``. Fewer than ``min_matches`` (>= 4) matches or no model: no inliers.
     """
-    points0 = np.ascontiguousarray(points0, dtype=np.float64).reshape(-1, 2)
-    points1 = np.ascontiguousarray(points1, dtype=np.float64).reshape(-1, 2)
-    if len(points0) != len(points1):
-        raise ValueError(f"point arrays differ in length: {len(points0)} vs {len(points1)}")
+    points0, points1 = as_point_arrays(points0, points1)
     no_inliers = np.zeros(len(points0), dtype=bool)
     if len(points0) < max(min_matches, 4):
         return no_inliers

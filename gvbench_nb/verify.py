@@ -16,6 +16,15 @@ ESTIMATORS: dict[str, int] = {
 }
 
 
+def as_point_arrays(points0: np.ndarray, points1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Matched points as the contiguous float64 (N, 2) arrays OpenCV's estimators take."""
+    points0 = np.ascontiguousarray(points0, dtype=np.float64).reshape(-1, 2)
+    points1 = np.ascontiguousarray(points1, dtype=np.float64).reshape(-1, 2)
+    if len(points0) != len(points1):
+        raise ValueError(f"point arrays differ in length: {len(points0)} vs {len(points1)}")
+    return points0, points1
+
+
 def fundamental_inliers(
     points0: np.ndarray,
     points1: np.ndarray,
@@ -35,10 +44,7 @@ def fundamental_inliers(
     (tests/test_reliability.py checks it); ``seed`` is kept for estimators that
     honour ``cv2.setRNGSeed``.
     """
-    points0 = np.ascontiguousarray(points0, dtype=np.float64).reshape(-1, 2)
-    points1 = np.ascontiguousarray(points1, dtype=np.float64).reshape(-1, 2)
-    if len(points0) != len(points1):
-        raise ValueError(f"point arrays differ in length: {len(points0)} vs {len(points1)}")
+    points0, points1 = as_point_arrays(points0, points1)
     no_inliers = np.zeros(len(points0), dtype=bool)
     if len(points0) < max(min_matches, 8):
         return no_inliers

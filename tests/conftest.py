@@ -6,6 +6,7 @@ Tests that need them skip with a message saying where to put them; in CI here
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 
@@ -49,3 +50,27 @@ def empty_hub(tmp_path, monkeypatch) -> Path:
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "hub"))
     yield tmp_path / "hub" / "checkpoints"
     torch.hub.set_dir(old)
+
+
+def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:
+    """An official checkpoint's layout: tensor name -> shape ([] for scalars)."""
+    path = reference_dir / "layouts" / f"{name}.layout.json"
+    if not path.is_file():
+        pytest.skip(f"missing {path}")
+    return json.loads(path.read_text())
+
+
+def random_state_dict(layout: dict[str, list[int]]) -> dict:
+    """Random tensors in a layout, BatchNorm buffers valid (so a strict load can run)."""
+    import torch
+
+    generator = torch.Generator().manual_seed(0)
+    state = {}
+    for name, shape in layout.items():
+        if name.endswith("num_batches_tracked"):
+            state[name] = torch.tensor(7, dtype=torch.long)
+        elif name.endswith("running_var"):
+            state[name] = torch.rand(shape, generator=generator) + 0.5
+        else:
+            state[name] = torch.randn(shape, generator=generator)
+    return state

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
@@ -22,29 +21,14 @@ from gvbench_nb.models.doppelgangers import (
     to_resized_frame,
     train_classifier,
 )
+from conftest import random_state_dict, read_layout
 from gvbench_nb.weights import MissingWeightsError, WeightsLayoutError
 
 
 
 @pytest.fixture(scope="module")
 def layout(reference_dir: Path) -> dict[str, list[int]]:
-    path = reference_dir / "layouts" / "doppelgangers_classifier_loftr.layout.json"
-    if not path.is_file():
-        pytest.skip(f"{path} not found")
-    return json.loads(path.read_text())
-
-
-def random_state(layout: dict[str, list[int]]) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(0)
-    state = {}
-    for name, shape in layout.items():
-        if name.endswith("num_batches_tracked"):
-            state[name] = torch.tensor(7, dtype=torch.long)
-        elif name.endswith("running_var"):
-            state[name] = torch.rand(shape, generator=g) + 0.5
-        else:
-            state[name] = torch.randn(shape, generator=g)
-    return state
+    return read_layout(reference_dir, "doppelgangers_classifier_loftr")
 
 
 # --------------------------------------------------------------------------- weights
@@ -57,7 +41,7 @@ def test_state_dict_matches_official_layout(layout):
 
 
 def test_load_official_format_strips_module_prefix(layout, tmp_path):
-    state = random_state(layout)
+    state = random_state_dict(layout)
     path = tmp_path / "doppelgangers_classifier_loftr.pt"
     torch.save({"dec": {"module." + k: v for k, v in state.items()}, "epoch": 20}, path)
     model = load_doppelgangers(path)
@@ -70,7 +54,7 @@ def test_load_official_format_strips_module_prefix(layout, tmp_path):
 
 
 def test_wrong_layout_names_bad_tensors(layout, tmp_path):
-    state = random_state(layout)
+    state = random_state_dict(layout)
     del state["layer2.1.conv1.weight"]
     state["fc.weight"] = torch.zeros(3, 512)
     state["head.extra"] = torch.zeros(1)

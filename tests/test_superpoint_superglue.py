@@ -4,14 +4,13 @@ the layouts of the official checkpoints are read from the reference folder."""
 
 from __future__ import annotations
 
-import json
 import math
-from pathlib import Path
 
 import pytest
 import torch
 import torch.nn.functional as F
 
+from conftest import random_state_dict, read_layout
 from gvbench_nb import weights
 from gvbench_nb.models import superglue as sg
 from gvbench_nb.models import superpoint as sp
@@ -19,28 +18,6 @@ from gvbench_nb.models import superpoint as sp
 
 
 # ----------------------------------------------------------------------------- fixtures
-
-
-def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:
-    """A layout JSON maps tensor name -> shape (list of ints, [] for scalars)."""
-    path = reference_dir / "layouts" / f"{name}.layout.json"
-    if not path.is_file():
-        pytest.skip(f"missing {path}")
-    with open(path) as f:
-        return json.load(f)
-
-
-def synthetic_state_dict(layout: dict[str, list[int]]) -> dict[str, torch.Tensor]:
-    gen = torch.Generator().manual_seed(0)
-    out = {}
-    for name, shape in layout.items():
-        if name.endswith("num_batches_tracked"):
-            out[name] = torch.tensor(7, dtype=torch.long)
-        elif name.endswith("running_var"):
-            out[name] = torch.rand(shape, generator=gen) + 0.5
-        else:
-            out[name] = torch.randn(shape, generator=gen)
-    return out
 
 
 MODELS = {
@@ -66,7 +43,7 @@ def test_state_dict_matches_official_layout(reference_dir, name, count):
 @pytest.mark.parametrize("name", ["superpoint_v1", "superglue_outdoor"])
 def test_synthetic_checkpoint_loads_strictly(reference_dir, name):
     layout = read_layout(reference_dir, name)
-    state = synthetic_state_dict(layout)
+    state = random_state_dict(layout)
     model = MODELS[name]()
     weights.load_state_dict_strict(model, state, f"synthetic {name}")
     loaded = model.state_dict()
@@ -82,7 +59,7 @@ def test_synthetic_checkpoint_loads_strictly(reference_dir, name):
     ],
 )
 def test_broken_checkpoint_names_the_bad_tensors(reference_dir, name, renamed, dropped):
-    state = synthetic_state_dict(read_layout(reference_dir, name))
+    state = random_state_dict(read_layout(reference_dir, name))
     state[renamed + "_renamed"] = state.pop(renamed)
     del state[dropped]
     with pytest.raises(weights.WeightsLayoutError) as err:

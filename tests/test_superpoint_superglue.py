@@ -172,22 +172,15 @@ def test_superpoint_rejects_bad_max_keypoints():
         sp.SuperPoint({"max_keypoints": 0})
 
 
-def test_load_superpoint_without_weights(empty_hub):
+@pytest.mark.parametrize("load, checkpoint", [(sp.load_superpoint, "superpoint_v1"),
+                                              (sg.load_superglue, "superglue_outdoor")])
+def test_loading_without_weights_names_file_url_and_place(empty_hub, load, checkpoint):
     with pytest.raises(weights.MissingWeightsError) as err:
-        sp.load_superpoint()
+        load()
     message = str(err.value)
-    assert "superpoint_v1.pth" in message
-    assert weights.CHECKPOINTS["superpoint_v1"].urls[0] in message
-    assert str(empty_hub / "superpoint_v1.pth") in message
-
-
-def test_load_superglue_without_weights(empty_hub):
-    with pytest.raises(weights.MissingWeightsError) as err:
-        sg.load_superglue()
-    message = str(err.value)
-    assert "superglue_outdoor.pth" in message
-    assert weights.CHECKPOINTS["superglue_outdoor"].urls[0] in message
-    assert str(empty_hub / "superglue_outdoor.pth") in message
+    assert f"{checkpoint}.pth" in message
+    assert weights.CHECKPOINTS[checkpoint].urls[0] in message
+    assert str(empty_hub / f"{checkpoint}.pth") in message
 
 
 # ----------------------------------------------------------------------------- SuperGlue pieces

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
+import os
 import platform
 import time
 import zlib
@@ -49,8 +50,6 @@ def configure_threads(n_threads: int | None = None) -> int:
     """Set torch's and OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else
     every core. On a machine shared with other work, fewer threads than cores can be
     much faster (small matrix products then wait on busy cores); scores do not change."""
-    import os
-
     n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
@@ -204,24 +203,29 @@ def match_and_verify(
             features0, features1 = load(pair.query), load(pair.reference)
             start = time.perf_counter()
             pair_matches, match_scores = matcher(features0, features1)
-            matched = time.perf_counter()
-            verified = verify_matches(
-                features0["keypoints"], features1["keypoints"], pair_matches, match_scores, conf["verifier"],
-                seed=pair_seed(seed, pair.query, pair.reference),
-            )
-            done = time.perf_counter()
-            writer.put(
-                pair_key(pair.query, pair.reference),
-                {"matches": pair_matches.astype(np.int32), "match_scores": match_scores.astype(np.float32),
-                 "inlier_mask": verified["inlier_mask"]},
-                {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
-                 "num_inliers": verified["num_inliers"], "match_seconds": matched - start,
-                 "verify_seconds": done - matched},
-            )
+            match_seconds = time.perf_counter() - start
+            _verify_and_store(writer, pair, conf, seed, features0["keypoints"], features1["keypoints"], pair_matches,
+                              match_scores, {"matches": pair_matches.astype(np.int32)}, match_seconds)
             counts["matched"] += 1
             bar.update()
     bar.close()
     return counts
+
+
+def _verify_and_store(writer: Any, pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray,
+                      keypoints1: np.ndarray, pair_matches: np.ndarray, match_scores: np.ndarray,
+                      arrays: dict[str, np.ndarray], match_seconds: float) -> None:
+    """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
+    start = time.perf_counter()
+    verified = verify_matches(keypoints0, keypoints1, pair_matches, match_scores, conf["verifier"],
+                              seed=pair_seed(seed, pair.query, pair.reference))
+    writer.put(
+        pair_key(pair.query, pair.reference),
+        {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
+        {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
+         "num_inliers": verified["num_inliers"], "match_seconds": match_seconds,
+         "verify_seconds": time.perf_counter() - start},
+    )
 
 
 def _match_dense_pairs(sequence: Sequence, todo: list, conf: dict[str, Any], matcher: Callable, matches: ShardedStore,
@@ -242,19 +246,10 @@ def _match_dense_pairs(sequence: Sequence, todo: list, conf: dict[str, Any], mat
             start = time.perf_counter()
             points0, points1, match_scores = matcher(image0, image1)
             points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
-            matched = time.perf_counter()
+            match_seconds = time.perf_counter() - start
             identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
-            verified = verify_matches(points0, points1, identity, match_scores, conf["verifier"],
-                                      seed=pair_seed(seed, pair.query, pair.reference))
-            done = time.perf_counter()
-            writer.put(
-                pair_key(pair.query, pair.reference),
-                {"points0": points0, "points1": points1, "match_scores": match_scores,
-                 "inlier_mask": verified["inlier_mask"]},
-                {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
-                 "num_inliers": verified["num_inliers"], "match_seconds": matched - start,
-                 "verify_seconds": done - matched},
-            )
+            _verify_and_store(writer, pair, conf, seed, points0, points1, identity, match_scores,
+                              {"points0": points0, "points1": points1}, match_seconds)
             bar.update()
     bar.close()
 
@@ -314,7 +309,7 @@ def environment_info(device: torch.device) -> dict[str, Any]:
     info = {
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
-        "cpu_count": __import__("os").cpu_count(),
+        "cpu_count": os.cpu_count(),
         "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
         "numpy": np.__version__, "python": platform.python_version(), "platform": platform.platform(),
     }

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Sequence as SequenceType
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -88,11 +87,3 @@ def draw_matches(image0: np.ndarray, image1: np.ndarray, points0: np.ndarray, po
                   linewidth=0.6, alpha=0.8)
     axis.axis("off")
     return axis
-
-
-def results_bar(results: pd.DataFrame, metrics: SequenceType[str] = ("ap", "max_recall")) -> plt.Figure:
-    data = results.melt(id_vars="method", value_vars=list(metrics), var_name="metric")
-    figure, axis = plt.subplots(figsize=(6.5, 3.5))
-    sns.barplot(data=data, x="method", y="value", hue="metric", ax=axis)
-    axis.set(ylim=(0, 1), ylabel="")
-    return figure

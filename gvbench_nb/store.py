@@ -14,7 +14,7 @@ import os
 import socket
 import uuid
 from pathlib import Path
-from typing import Iterable, Iterator, Mapping
+from typing import Mapping
 from urllib.parse import quote, unquote
 
 import h5py
@@ -195,8 +195,3 @@ class ShardWriter:
     def __exit__(self, *exc: object) -> None:
         # Commit what is finished even when the loop raised: a rerun resumes from it.
         self.flush()
-
-
-def iter_missing(store: ShardedStore, keys: Iterable[str]) -> Iterator[str]:
-    done = store.index
-    return (k for k in keys if k not in done)

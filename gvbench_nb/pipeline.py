@@ -197,13 +197,21 @@ def match_and_verify(
             raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
         return features.read(key)
 
+    def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
+        features0, features1 = load(pair.query), load(pair.reference)
+        start = time.perf_counter()
+        pair_matches, match_scores = matcher(features0, features1)
+        return features0, features1, pair_matches, match_scores, time.perf_counter() - start
+
+    # Matching runs one pair ahead in a worker thread while this thread verifies and
+    # writes the previous one: torch and OpenCV both release the GIL, so on two or more
+    # cores verification costs no wall time. The store is written from this thread only.
     bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
     with matches.writer(flush_every) as writer:
-        for pair in todo:
-            features0, features1 = load(pair.query), load(pair.reference)
-            start = time.perf_counter()
-            pair_matches, match_scores = matcher(features0, features1)
-            match_seconds = time.perf_counter() - start
+        for pair, matched in prefetch(todo, match_pair, depth=2, workers=1):
+            if isinstance(matched, BaseException):
+                raise matched
+            features0, features1, pair_matches, match_scores, match_seconds = matched
             _verify_and_store(writer, pair, conf, seed, features0["keypoints"], features1["keypoints"], pair_matches,
                               match_scores, {"matches": pair_matches.astype(np.int32)}, match_seconds)
             counts["matched"] += 1

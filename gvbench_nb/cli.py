@@ -118,7 +118,30 @@ def command_results(args: argparse.Namespace) -> int:
               f"kornia {environment['kornia']}, opencv {environment['opencv']}\n")
         print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
         print()
+        if args.all_methods:
+            others = not_run_table(set(results["method"]))
+            if len(others):
+                print(f"registered methods without results in {folder}:\n")
+                print(markdown_table(others) if args.markdown else others.to_string(index=False))
+                print()
     return 0
+
+
+def not_run_table(ran: set[str]) -> "Any":
+    """Registered methods that have no results: why, and the files a user needs to run them."""
+    import pandas as pd
+
+    from . import methods, weights
+
+    rows = []
+    for row in methods.method_table():
+        if row["method"] in ran:
+            continue
+        missing = [c for c in methods.required_checkpoints(row["method"]) if not weights.is_present(c)]
+        needs = "; ".join(f"`{weights.get(c).file}` from {weights.get(c).urls[0]}" for c in missing)
+        rows.append({"method": row["method"], "paper_name": row["paper_name"],
+                     "status": f"not run here: needs {needs}" if missing else "weights present, not run"})
+    return pd.DataFrame(rows, columns=["method", "paper_name", "status"])
 
 
 def command_methods(args: argparse.Namespace) -> int:
@@ -174,6 +197,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
     results.add_argument("--markdown", action="store_true", help="print a markdown table (for a README)")
+    results.add_argument("--all-methods", action="store_true",
+                         help="also list every registered method without results, with the weight files it needs")
     results.set_defaults(handler=command_results)
 
     listing = commands.add_parser("methods", help="list every method, its paper name and whether its weights are here")

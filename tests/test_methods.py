@@ -48,6 +48,16 @@ def test_missing_weights_fail_before_any_work(empty_hub, tmp_path):
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
+def test_results_lists_every_method_without_results_with_the_files_it_needs(empty_hub):
+    from gvbench_nb.cli import not_run_table
+
+    table = not_run_table({"sift-nn", "disk-nn"}).set_index("method")
+    assert set(table.index) == set(methods.METHODS) - {"sift-nn", "disk-nn"}
+    assert table.loc["orb-nn", "status"] == "weights present, not run"  # ORB needs no weights
+    assert "`disk_lightglue_v0-1_arxiv-pth`" in table.loc["disk-lg", "status"]
+    assert "`superglue_outdoor.pth` from https://" in table.loc["sp-sg", "status"]
+
+
 def test_loftr_loads_an_official_layout_checkpoint_strictly(empty_hub):
     from kornia.feature import LoFTR
 

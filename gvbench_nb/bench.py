@@ -482,6 +482,21 @@ def print_estimate(bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = No
     return estimate
 
 
+def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int | None) -> pd.DataFrame:
+    """Time the condition sweep's renderer and write ``render.csv`` (one row a setting)."""
+    from .condition_sweep import time_render
+
+    table = time_render(n_frames=n_frames, repeats=repeats, workers=workers)
+    _merge_csv(Path(bench_dir) / "render.csv", table, ["setting", "n_frames", "image_size", "workers"])
+    print(f"render time of one {n_frames}-frame query traversal ({table['image_size'].iat[0]}, "
+          f"{table['workers'].iat[0]} worker threads, median of {repeats}; scene built once in "
+          f"{table['scene_seconds'].iat[0]:.1f} s):")
+    print(table[["setting", "median_seconds", "min_seconds", "max_seconds", "loadavg_1m"]]
+          .to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    print(f"written to {Path(bench_dir) / 'render.csv'}\n")
+    return table
+
+
 # ------------------------------------------------------------------------- CLI --
 def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``bench`` on the CLI's subparsers."""
@@ -494,7 +509,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     )
     bench.add_argument("params", nargs="?", help="params YAML, e.g. params/gardens_point.yaml")
     bench.add_argument("--methods", help="comma-separated method names (default: the params')")
-    bench.add_argument("--limit", type=int, default=200, help="first N pairs (default 200)")
+    bench.add_argument("--limit", type=int, help="only the first N pairs, as in `run` (default: every pair)")
     bench.add_argument("--repeats", type=int, default=3, help="repeats per method; medians reported (default 3)")
     bench.add_argument("--profile", help="'paper' or 'fast' (default: the params')")
     bench.add_argument("--device", help="override the params' device")
@@ -507,6 +522,10 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     bench.add_argument("--overlap", action="store_true", help="also measure whether prefetching hides decoding")
     bench.add_argument("--cprofile", action="store_true", help="also write a cProfile report of our pipeline")
     bench.add_argument("--estimate", action="store_true", help="print the official-sequence estimate at the end")
+    bench.add_argument("--render", action="store_true",
+                       help="time rendering one synthetic query traversal, clear and under each condition at "
+                            "strength 1 (writes render.csv); needs no params")
+    bench.add_argument("--frames", type=int, default=100, help="frames of the --render traversal (default 100)")
     bench.set_defaults(handler=command_bench)
     return bench
 
@@ -515,10 +534,13 @@ def command_bench(args: argparse.Namespace) -> int:
     from . import config
 
     bench_dir = Path(args.bench_dir)
+    if args.render:
+        print_render_time(bench_dir, args.frames, args.repeats, args.threads)
     if args.params is None:
-        if not args.estimate:
-            raise config.ParamsError("bench needs a params file (or --estimate alone to print the estimate)")
-        print_estimate(bench_dir)
+        if not (args.estimate or args.render):
+            raise config.ParamsError("bench needs a params file (or --estimate or --render alone)")
+        if args.estimate:
+            print_estimate(bench_dir)
         return 0
     if args.repeats < 1:
         raise config.ParamsError(f"--repeats must be at least 1, got {args.repeats}")

@@ -446,3 +446,43 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
     figure.suptitle("MR as one condition strengthens (dashed: breaking strength, MR < half its clear value)")
     figure.tight_layout()
     return figure
+
+
+# ----------------------------------------------------------------- render time --
+RENDER_SETTINGS: dict[str, dict[str, float]] = {
+    "clear": {},
+    **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
+    "all three": {condition: 1.0 for condition in synthetic.CONDITIONS},
+}
+
+
+def time_render(n_frames: int = 100, image_size: SequenceType[int] = (640, 480), seed: int = 0,
+                repeats: int = 3, settings: Mapping[str, Mapping[str, float]] | None = None,
+                workers: int | None = None) -> pd.DataFrame:
+    """Seconds to render one ``n_frames`` query traversal per condition setting (strength 1).
+
+    Rendering only (writing PNGs is not counted); the scene is built once and timed
+    apart. Medians over ``repeats``; the load average is recorded beside each row,
+    since a busy machine slows the render.
+    """
+    import os
+    import time
+
+    started = time.perf_counter()
+    route = synthetic.make_route(seed=seed, n_frames=n_frames, image_size=tuple(image_size))
+    scene_seconds = time.perf_counter() - started
+    rows = []
+    for name, conditions in (settings or RENDER_SETTINGS).items():
+        seconds = []
+        for _ in range(repeats):
+            start = time.perf_counter()
+            synthetic.render_traversal(route.scene, route.query, route.K, route.image_size, conditions,
+                                       seed, 1, workers=workers)
+            seconds.append(time.perf_counter() - start)
+        rows.append({"setting": name, "conditions": json.dumps(dict(conditions)), "n_frames": n_frames,
+                     "image_size": f"{image_size[0]}x{image_size[1]}", "repeats": repeats,
+                     "median_seconds": float(np.median(seconds)), "min_seconds": min(seconds),
+                     "max_seconds": max(seconds), "scene_seconds": scene_seconds,
+                     "workers": workers or min(4, os.cpu_count() or 1), "cpu_count": os.cpu_count(),
+                     "loadavg_1m": round(os.getloadavg()[0], 2)})
+    return pd.DataFrame(rows)

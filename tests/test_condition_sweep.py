@@ -200,3 +200,13 @@ def test_breaking_strength_exactly_at_half_is_not_below() -> None:
     # 0.4 is not below half of 0.8; the curve drops below it between 0.5 and 0.75,
     # where it leaves 0.4 at 0.5 exactly.
     assert result.loc[0, "breaking_strength"] == pytest.approx(0.5)
+
+
+def test_render_timing_covers_clear_each_condition_and_all_three(tmp_path):
+    from gvbench_nb import bench
+
+    table = bench.print_render_time(tmp_path, n_frames=2, repeats=1, workers=1)
+    assert table["setting"].tolist() == ["clear", "illumination", "season", "weather", "all three"]
+    assert (table["median_seconds"] > 0).all() and (table["n_frames"] == 2).all()
+    written = pd.read_csv(tmp_path / "render.csv")
+    assert len(written) == 5 and set(written["workers"]) == {1}

@@ -245,8 +245,7 @@ def summarize_bench(rows: pd.DataFrame) -> pd.DataFrame:
                                if row["method"] in SPEEDUP_TARGETS else "")
         for name, frame in ((CACHED, cached), (PER_PAIR, per_pair)):
             for stage in TIMED:
-                if f"{stage}_seconds_per_pair" in frame:  # rows written before the overlap have no wall column
-                    row[f"{name}_{stage}_seconds_per_pair"] = frame[f"{stage}_seconds_per_pair"].median()
+                row[f"{name}_{stage}_seconds_per_pair"] = frame[f"{stage}_seconds_per_pair"].median()
         # Per unique image: what extraction costs when each image is extracted once (for estimates).
         row["cached_extract_seconds_per_image"] = row[f"{CACHED}_extract_seconds_per_pair"] * row["n_pairs"] / n_images
         row["scores_identical"] = True  # bench_method raised otherwise
@@ -434,6 +433,7 @@ def estimate_official_runtime(summary: pd.DataFrame, sizes: pd.DataFrame) -> pd.
     latest = summary.sort_values("n_pairs").groupby(["method", "profile"], sort=False).tail(1)
     rows = []
     for _, measured in latest.iterrows():
+        # Summaries written before matching overlapped verification have no wall column.
         wall_column = f"{CACHED}_match_verify_wall_seconds_per_pair"
         stages = ("match_verify_wall", "other") if pd.notna(measured.get(wall_column)) else ("match", "verify", "other")
         per_pair_cached = sum(measured[f"{CACHED}_{s}_seconds_per_pair"] for s in stages)

@@ -109,13 +109,7 @@ def run_cached_pipeline(sequence: Sequence, conf: dict[str, Any], work_dir: Path
 def _extract_image(path: Path, extractor_conf: dict[str, Any], extractor: Callable) -> dict[str, np.ndarray]:
     """One image's features exactly as ``pipeline.extract_features`` stores them."""
     image, scale = load_for_extraction(path, extractor_conf)
-    features = extractor(image)
-    return {
-        "keypoints": to_original_pixels(features["keypoints"], scale),
-        "scores": features["scores"],
-        "descriptors": features["descriptors"],
-        "image_size": np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64),
-    }
+    return pipeline.stored_features(extractor(image), image, scale)
 
 
 def _dense_pair(root: Path, pair: Any, matcher_conf: dict[str, Any], matcher: Callable

@@ -100,6 +100,17 @@ def first_pair_using(sequence: Sequence, name: str) -> str:
     return f"pair {index}: {pair.query} {pair.reference}"
 
 
+def stored_features(features: dict[str, np.ndarray], image: np.ndarray, scale: float) -> dict[str, np.ndarray]:
+    """What the cache holds for one image: keypoints in original pixels, scores,
+    descriptors and the original (width, height)."""
+    return {
+        "keypoints": to_original_pixels(features["keypoints"], scale),
+        "scores": features["scores"],
+        "descriptors": features["descriptors"],
+        "image_size": np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64),
+    }
+
+
 def extract_features(
     sequence: Sequence,
     extractor_conf: dict[str, Any],
@@ -129,17 +140,7 @@ def extract_features(
             start = time.perf_counter()
             features = extractor(image)
             seconds = time.perf_counter() - start
-            original_size = np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64)
-            writer.put(
-                key,
-                {
-                    "keypoints": to_original_pixels(features["keypoints"], scale),
-                    "scores": features["scores"],
-                    "descriptors": features["descriptors"],
-                    "image_size": original_size,  # (width, height) of the original image
-                },
-                {"seconds": seconds},
-            )
+            writer.put(key, stored_features(features, image, scale), {"seconds": seconds})
             counts["extracted"] += 1
             bar.update()
     bar.close()

@@ -417,54 +417,96 @@ def official_sequence_sizes(gt_dir: Path) -> pd.DataFrame:
     return pd.DataFrame(rows)
 
 
-def estimate_official_runtime(summary: pd.DataFrame, sizes: pd.DataFrame) -> pd.DataFrame:
-    """Hours of each official sequence x measured (method, profile), both pipelines.
-
-    Ours: unique images x measured extraction seconds per image + pairs x measured
-    matching-and-verification wall seconds (they overlap) and overhead per pair. Per-pair pipeline: pairs x
-    its measured seconds per pair. Uses the largest measured n_pairs per method.
-    """
+def costs_from_bench(summary: pd.DataFrame) -> pd.DataFrame:
+    """Per (method, profile): measured seconds per unique image (extraction) and per pair
+    (ours: matching and verification, overlapped, plus overhead; the per-pair pipeline:
+    everything). From the largest bench run of each."""
     latest = summary.sort_values("n_pairs").groupby(["method", "profile"], sort=False).tail(1)
     rows = []
     for _, measured in latest.iterrows():
         # Summaries written before matching overlapped verification have no wall column.
         wall_column = f"{CACHED}_match_verify_wall_seconds_per_pair"
         stages = ("match_verify_wall", "other") if pd.notna(measured.get(wall_column)) else ("match", "verify", "other")
-        per_pair_cached = sum(measured[f"{CACHED}_{s}_seconds_per_pair"] for s in stages)
-        per_pair_reference = 1.0 / measured["per_pair_pairs_per_second"]
+        rows.append({
+            "method": measured["method"], "profile": measured["profile"], "source": "bench",
+            "extract_seconds_per_image": measured["cached_extract_seconds_per_image"],
+            "cached_seconds_per_pair": sum(measured[f"{CACHED}_{s}_seconds_per_pair"] for s in stages),
+            "per_pair_seconds_per_pair": 1.0 / measured["per_pair_pairs_per_second"],
+            "measured_on": f"bench: {measured['sequence']} ({measured['n_pairs']} pairs), {measured['device_name']}, "
+                           f"{measured['cpu_count']} CPUs, load {measured['loadavg_1m_start']}",
+        })
+    return pd.DataFrame(rows)
+
+
+def costs_from_runs(output_dir: Path) -> pd.DataFrame:
+    """The same costs from the per-pair timers of finished runs (``<output_dir>/<method>/pairs.csv``),
+    for every method that ran. The per-pair pipeline is then estimated as two extractions
+    and one match a pair (without decoding, which the bench measures)."""
+    from .analysis import load_run
+
+    rows = []
+    for method in pipeline.methods_with_results(output_dir):
+        table = pipeline.load_pairs_table(output_dir, method)
+        n_images = len(set(table["query"]) | set(table["reference"]))
+        # A pair's extract_seconds is its images' times shared among their pairs: the sum is the total.
+        per_image = float(table["extract_seconds"].sum()) / n_images
+        per_pair = float((table["match_seconds"] + table["verify_seconds"]).mean())
+        run = load_run(output_dir, method)
+        rows.append({
+            "method": method, "profile": table["profile"].iat[0], "source": "run",
+            "extract_seconds_per_image": per_image, "cached_seconds_per_pair": per_pair,
+            "per_pair_seconds_per_pair": 2 * per_image + per_pair,
+            "measured_on": f"run: {Path(output_dir).name} ({len(table)} pairs), "
+                           f"{run['environment']['device_name']}, finished {run['finished_at']}",
+        })
+    return pd.DataFrame(rows)
+
+
+def estimate_official_runtime(costs: pd.DataFrame, sizes: pd.DataFrame) -> pd.DataFrame:
+    """Hours of each official sequence x costed (method, profile), both pipelines.
+
+    Ours: unique images x seconds per image + pairs x our seconds per pair. The per-pair
+    pipeline: pairs x its seconds per pair.
+    """
+    rows = []
+    for _, cost in costs.iterrows():
         for _, size in sizes.iterrows():
-            cached_seconds = (size["n_images"] * measured["cached_extract_seconds_per_image"]
-                              + size["n_pairs"] * per_pair_cached)
-            reference_seconds = size["n_pairs"] * per_pair_reference
+            cached_seconds = (size["n_images"] * cost["extract_seconds_per_image"]
+                              + size["n_pairs"] * cost["cached_seconds_per_pair"])
+            reference_seconds = size["n_pairs"] * cost["per_pair_seconds_per_pair"]
             rows.append({
-                "sequence": size["sequence"], "method": measured["method"], "profile": measured["profile"],
-                "n_pairs": size["n_pairs"], "n_images": size["n_images"],
+                "sequence": size["sequence"], "method": cost["method"], "profile": cost["profile"],
+                "source": cost["source"], "n_pairs": size["n_pairs"], "n_images": size["n_images"],
                 "cached_hours": cached_seconds / 3600, "per_pair_hours": reference_seconds / 3600,
-                "speedup": reference_seconds / cached_seconds,
-                "measured_on": f"{measured['sequence']} ({measured['n_pairs']} pairs), {measured['device_name']}, "
-                               f"{measured['cpu_count']} CPUs, load {measured['loadavg_1m_start']}",
+                "speedup": reference_seconds / cached_seconds, "measured_on": cost["measured_on"],
             })
     return pd.DataFrame(rows)
 
 
-def print_estimate(bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = None) -> pd.DataFrame:
-    """Print (and write ``estimate.csv``) the official-sequence estimate from ``summary.csv``."""
+def print_estimate(bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = None,
+                   runs: Path | None = None) -> pd.DataFrame:
+    """Print (and write ``estimate.csv``) the official-sequence estimate from ``summary.csv``
+    and, with ``runs`` (a sequence output folder), from every method that ran there."""
     from .config import data_dir
 
     summary_path = Path(bench_dir) / "summary.csv"
-    if not summary_path.is_file():
-        raise FileNotFoundError(f"no bench summary at {summary_path}: run `python -m gvbench_nb bench PARAMS` first")
+    if not summary_path.is_file() and runs is None:
+        raise FileNotFoundError(f"no bench summary at {summary_path}: run `python -m gvbench_nb bench PARAMS` "
+                                "first, or give --runs outputs/<sequence>")
     if gt_dir is None:
         folder = data_dir()
         if folder is None:
             raise FileNotFoundError("GVBENCH_DATA is not set: it must hold gvbench_gt/ with the official pair lists")
         gt_dir = folder / "gvbench_gt"
     sizes = official_sequence_sizes(gt_dir)
-    estimate = estimate_official_runtime(pd.read_csv(summary_path, keep_default_na=False), sizes)
+    costs = [costs_from_bench(pd.read_csv(summary_path, keep_default_na=False))] if summary_path.is_file() else []
+    if runs is not None:
+        costs.append(costs_from_runs(Path(runs)))
+    estimate = estimate_official_runtime(pd.concat(costs, ignore_index=True), sizes)
     atomic_write_csv(Path(bench_dir) / "estimate.csv", estimate)
     print("Official sequences (from their pair lists):")
     print(sizes.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
-    totals = estimate.groupby(["method", "profile"], sort=False)[["cached_hours", "per_pair_hours"]].sum()
+    totals = estimate.groupby(["source", "method", "profile"], sort=False)[["cached_hours", "per_pair_hours"]].sum()
     print("\nEstimated hours on this CPU (extraction cost per image and matching cost per pair as measured):")
     print(estimate.drop(columns="measured_on").to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     print("\nAll six sequences, per method:")
@@ -516,6 +558,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     bench.add_argument("--overlap", action="store_true", help="also measure whether prefetching hides decoding")
     bench.add_argument("--cprofile", action="store_true", help="also write a cProfile report of our pipeline")
     bench.add_argument("--estimate", action="store_true", help="print the official-sequence estimate at the end")
+    bench.add_argument("--runs", help="with --estimate: also cost every method that ran in this sequence output "
+                                      "folder, from its per-pair timers (e.g. outputs/gardens_point)")
     bench.add_argument("--render", action="store_true",
                        help="time rendering one synthetic query traversal, clear and under each condition at "
                             "strength 1 (writes render.csv); needs no params")
@@ -534,7 +578,7 @@ def command_bench(args: argparse.Namespace) -> int:
         if not (args.estimate or args.render):
             raise config.ParamsError("bench needs a params file (or --estimate or --render alone)")
         if args.estimate:
-            print_estimate(bench_dir)
+            print_estimate(bench_dir, runs=args.runs)
         return 0
     if args.repeats < 1:
         raise config.ParamsError(f"--repeats must be at least 1, got {args.repeats}")
@@ -575,7 +619,7 @@ def command_bench(args: argparse.Namespace) -> int:
     print(f"\nCSVs in {bench_dir}: {sequence.name}_<method>.csv, summary.csv, scaling_{sequence.name}_<method>.csv")
     if args.estimate:
         print()
-        print_estimate(bench_dir)
+        print_estimate(bench_dir, runs=args.runs)
     else:
         print(GPU_NOTE if resolve_device(device).type != "cuda" else "")
     return 0

@@ -90,10 +90,32 @@ def test_bench_csvs_keep_other_runs_and_replace_the_same_run(tmp_path):
 def test_estimate_scales_measured_costs_by_images_and_pairs():
     summary = bench.summarize_bench(timing_rows([10.0], [2.0]))
     sizes = pd.DataFrame([{"sequence": "day", "n_pairs": 3600, "n_images": 720, "uses_per_image": 10.0}])
-    row = bench.estimate_official_runtime(summary, sizes).iloc[0]
+    row = bench.estimate_official_runtime(bench.costs_from_bench(summary), sizes).iloc[0]
     per_image = 0.5 / 10 * 100 / 40
     assert row["cached_hours"] == pytest.approx((720 * per_image + 3600 * 0.35 / 10) / 3600)  # the wall, not the sum
     assert row["per_pair_hours"] == pytest.approx(3600 / 2.0 / 3600)
+
+
+def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path):
+    import json
+
+    # Two queries x two references; each image extracted once in 0.4 s, its time shared by its 2 pairs.
+    table = pd.DataFrame({"query": ["q0", "q0", "q1", "q1"], "reference": ["r0", "r1", "r0", "r1"],
+                          "profile": "fast", "extract_seconds": 0.4, "match_seconds": [0.1, 0.2, 0.3, 0.2],
+                          "verify_seconds": 0.05})
+    for method in ("xfeat-nn", "sift-nn"):
+        (tmp_path / method).mkdir()
+        table.to_csv(tmp_path / method / "pairs.csv", index=False)
+        (tmp_path / method / "run.json").write_text(json.dumps(
+            {"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"}))
+    costs = bench.costs_from_runs(tmp_path).set_index("method")
+    assert list(costs.index) == ["sift-nn", "xfeat-nn"]  # registry order
+    assert costs.loc["sift-nn", "extract_seconds_per_image"] == pytest.approx(4 * 0.4 / 4)
+    assert costs.loc["sift-nn", "cached_seconds_per_pair"] == pytest.approx(0.2 + 0.05)
+    assert costs.loc["sift-nn", "per_pair_seconds_per_pair"] == pytest.approx(2 * 0.4 + 0.25)
+    sizes = pd.DataFrame([{"sequence": "day", "n_pairs": 3600, "n_images": 720, "uses_per_image": 10.0}])
+    row = bench.estimate_official_runtime(costs.reset_index(), sizes).iloc[0]
+    assert row["source"] == "run" and row["cached_hours"] == pytest.approx((720 * 0.4 + 3600 * 0.25) / 3600)
 
 
 @pytest.mark.real_data

@@ -167,7 +167,8 @@ def join_paper_table(results: pd.DataFrame, paper: pd.DataFrame) -> pd.DataFrame
     ours["paper_name"] = ours["method"].map(lambda m: method_registry.METHODS.get(m, {}).get("paper_name", m))
     ours["source"] = OURS_LABEL
     ran = set(zip(ours["method"], ours["sequence"]))
-    theirs = paper[[(m, s) in ran for m, s in zip(paper["method"], paper["sequence"])]].copy()
+    # A boolean array, not a list: an empty list would select no columns instead of no rows.
+    theirs = paper[np.array([(m, s) in ran for m, s in zip(paper["method"], paper["sequence"])], dtype=bool)].copy()
     theirs["source"] = PAPER_LABEL
     columns = ["method", "paper_name", "sequence", "source", *METRICS]
     return pd.concat([ours[columns], theirs[columns]], ignore_index=True)

@@ -277,3 +277,11 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     args = parser.parse_args(["report", "--outputs-root", str(tmp_path / "outputs"), "--sequences", "absent",
                               "--output-dir", str(report_dir)])
     assert args.handler(args) == 2  # a named sequence without results is refused, not a traceback
+
+
+def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
+    results = pd.DataFrame({"method": ["sift-nn"], "sequence": ["sample"], "ap": [0.8], "max_recall": [0.1]})
+    paper = analysis.load_paper_table(tmp_path / "absent.csv")
+    joined = analysis.join_paper_table(results, paper)
+    assert joined["source"].tolist() == [analysis.OURS_LABEL]
+    assert analysis.results_table(joined).shape == (1, 2)

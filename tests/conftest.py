@@ -74,3 +74,15 @@ def random_state_dict(layout: dict[str, list[int]]) -> dict:
         else:
             state[name] = torch.randn(shape, generator=generator)
     return state
+
+
+def with_outlier_matches(rng, p0, p1, n_outliers: int):
+    """Planted inlier matches (p0, p1) mixed with uniform random outlier matches in a
+    640x480 image, shuffled. Returns points0, points1 and the true inlier mask."""
+    import numpy as np
+
+    o0 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
+    o1 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
+    order = rng.permutation(len(p0) + n_outliers)
+    truth = np.r_[np.ones(len(p0), bool), np.zeros(n_outliers, bool)][order]
+    return np.r_[p0, o0][order], np.r_[p1, o1][order], truth

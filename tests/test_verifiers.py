@@ -13,6 +13,7 @@ from gvbench_nb import pipeline, verifiers
 from gvbench_nb.sequences import Pair, Sequence, frame_index, frame_tolerance_pairs
 from gvbench_nb.verify import ESTIMATORS
 from test_verify import two_view_scene  # the shared synthetic two-view scene
+from conftest import with_outlier_matches
 
 
 def as_pair(points0: np.ndarray, points1: np.ndarray, n_keypoints: int = 1000) -> verifiers.PairMatches:
@@ -28,10 +29,7 @@ def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
     p0 = rng.uniform([0, 0], [640, 480], (n_inliers, 2))
     mapped = np.c_[p0, np.ones(n_inliers)] @ H.T
     p1 = mapped[:, :2] / mapped[:, 2:] + rng.normal(0, 0.3, (n_inliers, 2))
-    o0, o1 = rng.uniform([0, 0], [640, 480], (n_outliers, 2)), rng.uniform([0, 0], [640, 480], (n_outliers, 2))
-    order = rng.permutation(n_inliers + n_outliers)
-    truth = np.r_[np.ones(n_inliers, bool), np.zeros(n_outliers, bool)][order]
-    return np.r_[p0, o0][order], np.r_[p1, o1][order], truth
+    return with_outlier_matches(rng, p0, p1, n_outliers)
 
 
 # ---------------------------------------------------------------- estimators --

@@ -3,6 +3,7 @@ import pytest
 
 from gvbench_nb.verify import ESTIMATORS, fundamental_inliers, verify_matches
 from gvbench_nb.methods import VERIFIER
+from conftest import with_outlier_matches
 
 
 def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
@@ -17,11 +18,7 @@ def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
     p0, p1 = project(points), project(points @ R.T + t)
     p0 = p0 + rng.normal(0, 0.3, p0.shape)
     p1 = p1 + rng.normal(0, 0.3, p1.shape)
-    o0 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
-    o1 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
-    order = rng.permutation(n_inliers + n_outliers)
-    truth = np.r_[np.ones(n_inliers, bool), np.zeros(n_outliers, bool)][order]
-    return np.r_[p0, o0][order], np.r_[p1, o1][order], truth
+    return with_outlier_matches(rng, p0, p1, n_outliers)
 
 
 @pytest.mark.parametrize("method", list(ESTIMATORS))

@@ -11,6 +11,7 @@ import datetime as _dt
 import json
 import os
 import platform
+import threading
 import time
 import zlib
 from collections import Counter
@@ -53,6 +54,21 @@ def configure_threads(n_threads: int | None = None) -> int:
     n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    return n
+
+
+def worker_count(workers: int | None = None) -> int:
+    """How many images are extracted, and pairs matched and verified, at once:
+    ``workers``, else $GVBENCH_WORKERS, else 1.
+
+    With 1, each stage's per-image and per-pair timers are that item's own cost (what
+    the runtime analyses report). With 2 on a 2-core CPU, throughput rises (measured by
+    ``bench``) but the timers then include the wait for the shared cores. Scores are the
+    same either way.
+    """
+    n = workers if workers is not None else int(os.environ.get("GVBENCH_WORKERS") or 1)
+    if n < 1:
+        raise ValueError(f"workers must be at least 1, got {n} (argument or $GVBENCH_WORKERS)")
     return n
 
 
@@ -119,9 +135,11 @@ def extract_features(
     progress: bool = True,
     flush_every: int = 16,
     images: list[str] | None = None,
+    workers: int | None = None,
 ) -> dict[str, int]:
     """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
-    not yet in the cache. Returns counts."""
+    not yet in the cache, ``workers`` images at a time (default ``worker_count()``).
+    Returns counts."""
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
     wanted = {image_key(sequence.image_root, name): name for name in (sequence.images if images is None else images)}
@@ -130,17 +148,41 @@ def extract_features(
     if not todo:
         return counts
     extractor = build_extractor(extractor_conf, resolve_device(device))
+
+    def load(key: str) -> tuple[np.ndarray, float]:
+        try:
+            return load_for_extraction(key, extractor_conf)
+        except Exception as error:  # whatever decoding raised, it is this image's fault
+            if isinstance(error, ImageReadError):
+                raise
+            raise ImageReadError(str(error)) from error
+
+    def extract(loaded: tuple[np.ndarray, float]) -> tuple[dict[str, np.ndarray], float]:
+        image, scale = loaded
+        start = time.perf_counter()
+        features = extractor(image)
+        return stored_features(features, image, scale), time.perf_counter() - start
+
+    workers = worker_count(workers)
+    # One worker: decoding runs ahead in threads while this thread extracts. Several:
+    # each worker decodes and extracts its own image (OpenCV and torch release the GIL).
+    # Either way results come back in order and only this thread writes the store.
+    if workers == 1:
+        results: Iterable[tuple[str, Any]] = (
+            (key, loaded if isinstance(loaded, BaseException) else extract(loaded))
+            for key, loaded in prefetch(todo, load))
+    else:
+        results = prefetch(todo, lambda key: extract(load(key)), depth=2 * workers, workers=workers)
     bar = tqdm(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
     with store.writer(flush_every) as writer:
-        for key, loaded in prefetch(todo, lambda k: load_for_extraction(k, extractor_conf)):
-            if isinstance(loaded, BaseException):
-                raise ImageReadError(f"{loaded} (image {wanted[key]!r} of sequence {sequence.name!r}, "
-                                     f"{first_pair_using(sequence, wanted[key])})") from loaded
-            image, scale = loaded
-            start = time.perf_counter()
-            features = extractor(image)
-            seconds = time.perf_counter() - start
-            writer.put(key, stored_features(features, image, scale), {"seconds": seconds})
+        for key, extracted in results:
+            if isinstance(extracted, ImageReadError):
+                raise ImageReadError(f"{extracted} (image {wanted[key]!r} of sequence {sequence.name!r}, "
+                                     f"{first_pair_using(sequence, wanted[key])})") from extracted
+            if isinstance(extracted, BaseException):
+                raise extracted
+            features, seconds = extracted
+            writer.put(key, features, {"seconds": seconds})
             counts["extracted"] += 1
             bar.update()
     bar.close()
@@ -176,8 +218,10 @@ def match_and_verify(
     seed: int = 0,
     progress: bool = True,
     flush_every: int = 64,
+    workers: int | None = None,
 ) -> dict[str, int]:
-    """Match and verify every pair not yet in the method's match store."""
+    """Match and verify every pair not yet in the method's match store, ``workers``
+    pairs at a time (default: ``pair_workers()``)."""
     matches = match_store(output_dir, conf)
     matches.refresh()
     todo = [p for p in sequence.pairs if pair_key(p.query, p.reference) not in matches]
@@ -190,13 +234,15 @@ def match_and_verify(
         counts["matched"] = len(todo)
         return counts
     features = feature_store(cache_dir, conf["extractor"])
+    reading = threading.Lock()  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
 
     @lru_cache(maxsize=256)  # a query's candidates are consecutive; references recur
     def load(name: str) -> dict[str, np.ndarray]:
         key = image_key(sequence.image_root, name)
-        if key not in features:
-            raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
-        return features.read(key)
+        with reading:
+            if key not in features:
+                raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
+            return features.read(key)
 
     def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
         features0, features1 = load(pair.query), load(pair.reference)
@@ -204,19 +250,40 @@ def match_and_verify(
         pair_matches, match_scores = matcher(features0, features1)
         return features0, features1, pair_matches, match_scores, time.perf_counter() - start
 
-    # Matching runs one pair ahead in a worker thread while this thread verifies and
-    # writes the previous one: torch and OpenCV both release the GIL, so on two or more
-    # cores verification costs no wall time. The store is written from this thread only.
+    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
+        features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
+        start = time.perf_counter()
+        verified = verify_matches(features0["keypoints"], features1["keypoints"], pair_matches, match_scores,
+                                  conf["verifier"], seed=pair_seed(seed, pair.query, pair.reference))
+        return pair_matches, match_scores, verified, match_seconds, time.perf_counter() - start
+
+    workers = worker_count(workers)
     bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
     with matches.writer(flush_every) as writer:
-        for pair, matched in prefetch(todo, match_pair, depth=2, workers=1):
-            if isinstance(matched, BaseException):
-                raise matched
-            features0, features1, pair_matches, match_scores, match_seconds = matched
-            _verify_and_store(writer, pair, conf, seed, features0["keypoints"], features1["keypoints"], pair_matches,
-                              match_scores, {"matches": pair_matches.astype(np.int32)}, match_seconds)
-            counts["matched"] += 1
-            bar.update()
+        if workers == 1:
+            # Matching runs one pair ahead in a worker thread while this thread verifies
+            # and writes the previous one: torch and OpenCV release the GIL, so
+            # verification overlaps matching. The store is written from this thread only.
+            for pair, matched in prefetch(todo, match_pair, depth=2, workers=1):
+                if isinstance(matched, BaseException):
+                    raise matched
+                features0, features1, pair_matches, match_scores, match_seconds = matched
+                _verify_and_store(writer, pair, conf, seed, features0["keypoints"], features1["keypoints"],
+                                  pair_matches, match_scores, {"matches": pair_matches.astype(np.int32)},
+                                  match_seconds)
+                counts["matched"] += 1
+                bar.update()
+        else:
+            # Several pairs at once, each matched then verified in its own thread; results
+            # come back in order and are written from this thread only.
+            for pair, done in prefetch(todo, match_and_verify_pair, depth=2 * workers, workers=workers):
+                if isinstance(done, BaseException):
+                    raise done
+                pair_matches, match_scores, verified, match_seconds, verify_seconds = done
+                _store_verified(writer, pair, pair_matches, match_scores, verified,
+                                {"matches": pair_matches.astype(np.int32)}, match_seconds, verify_seconds)
+                counts["matched"] += 1
+                bar.update()
     bar.close()
     return counts
 
@@ -228,12 +295,19 @@ def _verify_and_store(writer: Any, pair: Any, conf: dict[str, Any], seed: int, k
     start = time.perf_counter()
     verified = verify_matches(keypoints0, keypoints1, pair_matches, match_scores, conf["verifier"],
                               seed=pair_seed(seed, pair.query, pair.reference))
+    _store_verified(writer, pair, pair_matches, match_scores, verified, arrays, match_seconds,
+                    time.perf_counter() - start)
+
+
+def _store_verified(writer: Any, pair: Any, pair_matches: np.ndarray, match_scores: np.ndarray,
+                    verified: dict[str, Any], arrays: dict[str, np.ndarray], match_seconds: float,
+                    verify_seconds: float) -> None:
+    """Commit one verified pair: its matches, inlier mask, counts and timings."""
     writer.put(
         pair_key(pair.query, pair.reference),
         {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
         {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
-         "num_inliers": verified["num_inliers"], "match_seconds": match_seconds,
-         "verify_seconds": time.perf_counter() - start},
+         "num_inliers": verified["num_inliers"], "match_seconds": match_seconds, "verify_seconds": verify_seconds},
     )
 
 
@@ -335,8 +409,10 @@ def run_method(
     seed: int = 0,
     progress: bool = True,
     threads: int | None = None,
+    workers: int | None = None,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
+    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_WORKERS or 1).
 
     Missing weights fail here, before any work. Finished work found in the caches is
     reused, so an interrupted run resumes.
@@ -350,17 +426,18 @@ def run_method(
     for stale in ("pairs.csv", "run.json"):
         (folder / stale).unlink(missing_ok=True)
     started = time.perf_counter()
-    extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress)
+    workers = worker_count(workers)
+    extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
                   if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
     extracted = time.perf_counter()
-    matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress)
+    matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers)
     finished = time.perf_counter()
     table = pairs_table(sequence, conf, cache_dir, output_dir)
     # pairs.csv is written last: its presence marks a finished run (methods_with_results).
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
         "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
-        "this_run": {"extraction": extraction, "matching": matching,
+        "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
                      "extract_wall_seconds": extracted - started, "match_verify_wall_seconds": finished - extracted},
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })

@@ -29,7 +29,7 @@ import pandas as pd
 import pytest
 import torch
 
-from gvbench_nb import config, pipeline, weights
+from gvbench_nb import config, methods, pipeline, weights
 from gvbench_nb.images import ImageReadError, read_image
 from gvbench_nb.metrics import MetricsUndefinedError
 from gvbench_nb.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
@@ -321,7 +321,10 @@ def test_uncommon_image_kinds_are_read_not_rejected(tmp_path):
 
 
 @pytest.mark.real_data
-def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(small_root, tmp_path):
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(small_root, tmp_path,
+                                                                                     monkeypatch, workers):
+    monkeypatch.setenv("GVBENCH_WORKERS", workers)  # the error surfaces from a worker thread as well
     root = tmp_path / "root"
     shutil.copytree(small_root, root)
     good = [Pair("night_right/Image000.jpg", "day_right/Image000.jpg", 1),
@@ -584,6 +587,36 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
 
     assert build(0, "first.txt") == build(0, "second.txt")
     assert build(0, "first.txt") != build(1, "other_seed.txt")
+
+
+@pytest.mark.real_data
+def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
+    table = pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu",
+                                progress=False, workers=2)
+    assert run_json(tmp_path / "out")["this_run"]["workers"] == 2
+    expected = pipeline.load_pairs_table(baseline["out"], METHOD)
+    columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
+    pd.testing.assert_frame_equal(table[columns], expected[columns])
+    conf = methods.resolve_method(METHOD, PROFILE)
+    ours, theirs = (pipeline.feature_store(cache, conf["extractor"]) for cache in (tmp_path / "cache", baseline["cache"]))
+    assert sorted(ours.keys()) == sorted(theirs.keys()) and len(ours) == 40
+    for key in ours.keys():
+        for name in ("keypoints", "descriptors", "scores", "image_size"):
+            np.testing.assert_array_equal(ours.read(key)[name], theirs.read(key)[name])
+    mine, reference = (pipeline.match_store(out, conf) for out in (tmp_path / "out", baseline["out"]))
+    for pair in sequence.pairs[::7]:
+        key = pipeline.pair_key(pair.query, pair.reference)
+        for name in ("matches", "inlier_mask"):
+            np.testing.assert_array_equal(mine.read(key)[name], reference.read(key)[name])
+
+
+def test_worker_count_comes_from_the_argument_then_the_environment(monkeypatch):
+    monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
+    assert pipeline.worker_count() == 1
+    monkeypatch.setenv("GVBENCH_WORKERS", "3")
+    assert pipeline.worker_count() == 3 and pipeline.worker_count(2) == 2
+    with pytest.raises(ValueError, match="GVBENCH_WORKERS"):
+        pipeline.worker_count(0)
 
 
 @pytest.mark.real_data

@@ -348,12 +348,12 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
         features = feature_store(cache_dir, conf["extractor"])
         features.refresh()
         for name in uses:
-            entry = features.read(image_key(sequence.image_root, name))
+            entry = features.read(image_key(sequence.image_root, name), fields=("keypoints",))  # not descriptors
             image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
         features.close()
     rows = []
     for index, pair in enumerate(sequence.pairs):
-        entry = matches.read(pair_key(pair.query, pair.reference))
+        entry = matches.read(pair_key(pair.query, pair.reference), fields=())  # the counts and timers only
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
             extract_seconds = 0.0

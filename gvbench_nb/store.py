@@ -14,7 +14,7 @@ import os
 import socket
 import uuid
 from pathlib import Path
-from typing import Mapping
+from typing import Iterable, Mapping
 from urllib.parse import quote, unquote
 
 import h5py
@@ -99,7 +99,8 @@ class ShardedStore:
     def __len__(self) -> int:
         return len(self.index)
 
-    def read(self, key: str) -> dict[str, np.ndarray]:
+    def read(self, key: str, fields: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+        """One entry: its arrays (only ``fields`` when given) and its attributes as ``attr:NAME``."""
         try:
             shard = self.index[key]
         except KeyError:
@@ -108,7 +109,8 @@ class ShardedStore:
         if handle is None:
             handle = self._open[shard] = h5py.File(shard, "r")
         group = handle[_group_name(key)]
-        entry = {name: group[name][()] for name in group.keys()}
+        wanted = group.keys() if fields is None else [name for name in fields if name in group]
+        entry = {name: group[name][()] for name in wanted}
         entry.update({f"attr:{name}": value for name, value in group.attrs.items()})
         return entry
 

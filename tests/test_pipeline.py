@@ -65,6 +65,13 @@ def test_store_resumes_and_ignores_half_written_shards(tmp_path):
     assert reread.read("img/2.png")["x"].tolist() == [2, 2, 2]
     assert reread.read("img/1.png")["attr:seconds"] == 0.5
     assert len(reread.shards()) == 2
+    # A reader that needs only some arrays (or only the attributes) gets only those.
+    with store.writer() as writer:
+        writer.put("both", {"keypoints": np.zeros((4, 2)), "descriptors": np.ones((4, 8))}, {"seconds": 1.0})
+    reread.refresh()
+    assert set(reread.read("both", fields=("keypoints", "absent"))) == {"keypoints", "attr:seconds"}
+    assert set(reread.read("both", fields=())) == {"attr:seconds"}
+    assert set(reread.read("both")) == {"keypoints", "descriptors", "attr:seconds"}
 
 
 def test_prefetch_preserves_order_and_surfaces_errors_in_place():

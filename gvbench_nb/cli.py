@@ -25,6 +25,14 @@ examples:
   python -m gvbench_nb build params/gardens_point_retrieval.yaml
   python -m gvbench_nb methods
   python -m gvbench_nb weights --link
+  GVBENCH_WORKERS=2 python -m gvbench_nb run params/gardens_point.yaml
+
+environment:
+  GVBENCH_DATA     the folder ${GVBENCH_DATA} stands for in params (real data)
+  GVBENCH_THREADS  torch and OpenCV threads (default: every core)
+  GVBENCH_WORKERS  images, then pairs, processed at once (default 1). 2 is faster on two or
+                   more cores (see `bench`), but each image's and pair's timer then includes
+                   waiting for the shared cores: keep 1 for the runtime analyses.
 """
 
 

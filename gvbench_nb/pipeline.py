@@ -221,7 +221,7 @@ def match_and_verify(
     workers: int | None = None,
 ) -> dict[str, int]:
     """Match and verify every pair not yet in the method's match store, ``workers``
-    pairs at a time (default: ``pair_workers()``)."""
+    pairs at a time (default: ``worker_count()``; dense matchers run one pair at a time)."""
     matches = match_store(output_dir, conf)
     matches.refresh()
     todo = [p for p in sequence.pairs if pair_key(p.query, p.reference) not in matches]
@@ -480,6 +480,8 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
             "verify_seconds_per_pair": table["verify_seconds"].mean(),
             "seconds_per_pair": (table["extract_seconds"] + table["match_seconds"] + table["verify_seconds"]).mean(),
             "device": run["environment"]["device"],
+            # >1: the seconds above include waiting for cores shared by concurrent images/pairs
+            "workers": run["this_run"].get("workers", 1),
         })
     results = pd.DataFrame(rows)
     if write:

@@ -481,7 +481,7 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
             "seconds_per_pair": (table["extract_seconds"] + table["match_seconds"] + table["verify_seconds"]).mean(),
             "device": run["environment"]["device"],
             # >1: the seconds above include waiting for cores shared by concurrent images/pairs
-            "workers": run["this_run"].get("workers", 1),
+            "workers": run.get("this_run", {}).get("workers", 1),  # runs written before workers existed: 1
         })
     results = pd.DataFrame(rows)
     if write:

@@ -61,10 +61,11 @@ def worker_count(workers: int | None = None) -> int:
     """How many images are extracted, and pairs matched and verified, at once:
     ``workers``, else $GVBENCH_WORKERS, else 1.
 
-    With 1, each stage's per-image and per-pair timers are that item's own cost (what
-    the runtime analyses report). With 2 on a 2-core CPU, throughput rises (measured by
-    ``bench``) but the timers then include the wait for the shared cores. Scores are the
-    same either way.
+    With 1, one image (decoded ahead) and one pair (verified while the next is matched)
+    are in flight, so the per-image and per-pair timers are close to each item's own
+    cost, which the runtime analyses report. With 2 on a 2-core CPU, throughput rises
+    (measured by ``bench``) but the timers include waiting for the shared cores. Scores
+    are the same either way.
     """
     n = workers if workers is not None else int(os.environ.get("GVBENCH_WORKERS") or 1)
     if n < 1:
@@ -252,10 +253,9 @@ def match_and_verify(
 
     def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
         features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
-        start = time.perf_counter()
-        verified = verify_matches(features0["keypoints"], features1["keypoints"], pair_matches, match_scores,
-                                  conf["verifier"], seed=pair_seed(seed, pair.query, pair.reference))
-        return pair_matches, match_scores, verified, match_seconds, time.perf_counter() - start
+        verified, verify_seconds = _verify_pair(pair, conf, seed, features0["keypoints"], features1["keypoints"],
+                                                pair_matches, match_scores)
+        return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
     workers = worker_count(workers)
     bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
@@ -292,11 +292,17 @@ def _verify_and_store(writer: Any, pair: Any, conf: dict[str, Any], seed: int, k
                       keypoints1: np.ndarray, pair_matches: np.ndarray, match_scores: np.ndarray,
                       arrays: dict[str, np.ndarray], match_seconds: float) -> None:
     """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
+    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores)
+    _store_verified(writer, pair, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
+
+
+def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray, keypoints1: np.ndarray,
+                 pair_matches: np.ndarray, match_scores: np.ndarray) -> tuple[dict[str, Any], float]:
+    """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
     start = time.perf_counter()
     verified = verify_matches(keypoints0, keypoints1, pair_matches, match_scores, conf["verifier"],
                               seed=pair_seed(seed, pair.query, pair.reference))
-    _store_verified(writer, pair, pair_matches, match_scores, verified, arrays, match_seconds,
-                    time.perf_counter() - start)
+    return verified, time.perf_counter() - start
 
 
 def _store_verified(writer: Any, pair: Any, pair_matches: np.ndarray, match_scores: np.ndarray,

@@ -37,6 +37,18 @@ def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path)
         assert min(seconds[s] for s in ("extract", "match", "verify")) > 0
 
 
+@pytest.mark.real_data
+def test_the_bench_runs_ours_with_two_workers_and_the_reference_with_one(shared_data):
+    rows = bench.bench_method(few_pairs(shared_data), "sift-nn", "fast", repeats=1, device="cpu", progress=False)
+    assert dict(zip(rows["pipeline"], rows["workers"])) == {bench.CACHED: 2, bench.PER_PAIR: 1}
+    summary = bench.summarize_bench(rows).iloc[0]
+    assert summary["cached_workers"] == 2 and summary["scores_identical"]
+    # the per-pair pipeline's own split bounds what caching alone can gain
+    per_pair = rows.set_index("pipeline").loc[bench.PER_PAIR]
+    expected = 1 / (per_pair["pairs_per_second"] * per_pair["match_verify_wall_seconds_per_pair"])
+    assert summary["speedup_if_extraction_were_free"] == pytest.approx(expected) and expected > 1
+
+
 def test_a_score_mismatch_fails_loudly_naming_the_pair():
     ours = pd.DataFrame({"query": ["q0", "q1"], "reference": ["r0", "r1"], "num_matches": [50, 40],
                          "num_inliers": [30, 12]})

@@ -48,8 +48,8 @@ from .verify import verify_matches
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 DEFAULT_BENCH_DIR = PROJECT_ROOT / "outputs" / "bench"
 DEFAULT_SCALING_LIMITS = (50, 100, 200, 400)
-# Ours runs two images or pairs at a time when benched: on two or more cores that uses
-# the cores better than one model call with two threads (measured: bench --workers 1).
+# Ours runs two images or pairs at a time when benched: on two cores that used them better
+# than one model call with two threads for sift-nn (README); for LightGlue not consistently.
 DEFAULT_BENCH_WORKERS = 2
 # Issue 7's targets: our throughput over the per-pair pipeline's, per method.
 SPEEDUP_TARGETS: dict[str, float] = {"sift-nn": 5.0, "disk-lg": 3.0}

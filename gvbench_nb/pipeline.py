@@ -14,7 +14,7 @@ import platform
 import threading
 import time
 import zlib
-from collections import Counter
+from collections import Counter, OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
 from pathlib import Path
@@ -191,6 +191,37 @@ def extract_features(
 
 
 # ---------------------------------------------------------- matching + verifying --
+class PreparedCache:
+    """Per-image matcher states by image name, least recently used first out once they
+    hold more than ``max_bytes``. Thread-safe; two threads that miss the same image at
+    once both prepare it (same result), which is cheaper than making one wait."""
+
+    def __init__(self, prepare: Callable[[dict[str, np.ndarray]], Any], max_bytes: int = 1 << 30):
+        self.prepare, self.max_bytes = prepare, max_bytes
+        self._states: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, name: str, features: dict[str, np.ndarray]) -> Any:
+        with self._lock:
+            if name in self._states:
+                self._states.move_to_end(name)
+                return self._states[name][0]
+        state = self.prepare(features)
+        size = state.nbytes() if state is not None else 0
+        with self._lock:
+            if name not in self._states:
+                self._states[name] = (state, size)
+                self._bytes += size
+                while self._bytes > self.max_bytes and len(self._states) > 1:
+                    _, (_, dropped) = self._states.popitem(last=False)
+                    self._bytes -= dropped
+        return state
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+
 def pair_key(query: str, reference: str) -> str:
     return f"{query}\t{reference}"
 
@@ -245,10 +276,19 @@ def match_and_verify(
                 raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
             return features.read(key)
 
+    # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
+    # models/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
+    # the first pair using an image is charged for preparing it.
+    prepared = PreparedCache(matcher.prepare) if getattr(matcher, "can_prepare", False) else None
+
     def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
         features0, features1 = load(pair.query), load(pair.reference)
         start = time.perf_counter()
-        pair_matches, match_scores = matcher(features0, features1)
+        if prepared is not None:
+            pair_matches, match_scores = matcher.match_prepared(prepared.get(pair.query, features0),
+                                                                prepared.get(pair.reference, features1))
+        else:
+            pair_matches, match_scores = matcher(features0, features1)
         return features0, features1, pair_matches, match_scores, time.perf_counter() - start
 
     def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:

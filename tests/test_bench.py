@@ -24,9 +24,10 @@ def few_pairs(shared_data: Path) -> Sequence:
 
 
 @pytest.mark.real_data
-def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path):
+@pytest.mark.parametrize("method", ["sift-nn", "disk-lg"])  # disk-lg: ours prepares LightGlue once per image
+def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path, method):
     sequence = few_pairs(shared_data)
-    conf = methods.resolve_method("sift-nn", "fast")
+    conf = methods.resolve_method(method, "fast")
     ours, our_seconds = bench.run_cached_pipeline(sequence, conf, tmp_path, torch.device("cpu"), seed=3)
     reference, reference_seconds = bench.run_per_pair_pipeline(sequence, conf, torch.device("cpu"), seed=3)
     bench.check_same_scores(ours, reference, "test")  # raises on any difference

@@ -1,0 +1,133 @@
+"""kornia's LightGlue forward, split so that the work that sees one image only is done
+once per image instead of once per pair.
+
+In LightGlue the two images first meet in the cross-attention of layer 0. Everything
+before it depends on one image alone: the input projection of the descriptors, the
+positional encoding of the keypoints, the layer-0 self-attention block, and the
+layer-0 cross block's query/key and value projections. ``prepare_image`` computes
+those for one image; ``match_prepared`` runs the rest for a pair. Both call kornia's
+own modules with the same tensors, in the same order, as ``kornia.feature.LightGlue``
+does for one pair (``_forward`` with a batch of one, kornia 0.9), so the matches and
+scores are bit-identical to ``LightGlue.forward`` (tests/test_lightglue_prepared.py
+checks this on real images, with early stopping and point pruning).
+
+GV-Bench's sequences use each image in ~10-20 pairs, so this saves about a tenth of
+LightGlue's time per pair on a CPU (README, bench). Only the configuration the paper
+uses is supported: one pair, no mixed precision, no compiled static lengths, no
+scale/orientation or LAF inputs; ``supports_prepared`` says whether a model qualifies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from kornia.feature.lightglue import LightGlue, _check_keypoints_normalized, filter_matches, normalize_keypoints
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """One image's LightGlue state up to its first meeting with another image."""
+
+    descriptors: torch.Tensor  # (1, N, D): after the layer-0 self-attention block
+    encoding: torch.Tensor  # (2, 1, 1, N, head_dim): rotary positional encoding
+    query_key: torch.Tensor  # (1, H, N, head_dim): layer-0 cross block, scaled as kornia scales it
+    value: torch.Tensor  # (1, H, N, head_dim): layer-0 cross block
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.descriptors.shape[1])
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.descriptors, self.encoding, self.query_key, self.value))
+
+
+def supports_prepared(model: LightGlue) -> bool:
+    """Whether ``model`` runs the plain single-pair path that this module reproduces."""
+    conf = model.conf
+    return not (conf.mp or conf.add_scale_ori or conf.add_laf or model.static_lengths)
+
+
+@torch.inference_mode()
+def prepare_image(model: LightGlue, keypoints: torch.Tensor, descriptors: torch.Tensor,
+                  image_size: torch.Tensor) -> PreparedImage:
+    """The per-image part of LightGlue for ``keypoints`` (1, N, 2) in pixels,
+    ``descriptors`` (1, N, input_dim) and ``image_size`` (1, 2) as (width, height); N > 0."""
+    keypoints = normalize_keypoints(keypoints, image_size).clone()
+    _check_keypoints_normalized(keypoints)
+    descriptors = model.input_proj(descriptors.detach().contiguous())
+    encoding = model.posenc(keypoints.to(model.posenc.Wr.weight.dtype))
+    layer = model.transformers[0]
+    descriptors = layer.self_attn(descriptors, encoding)
+    cross = layer.cross_attn
+    query_key, value = cross.to_qk(descriptors), cross.to_v(descriptors)
+    query_key, value = (t.unflatten(-1, (cross.heads, -1)).transpose(1, 2) for t in (query_key, value))
+    query_key = query_key * cross.scale**0.5
+    return PreparedImage(descriptors, encoding, query_key, value)
+
+
+def _first_cross_block(model: LightGlue, image0: PreparedImage,
+                       image1: PreparedImage) -> tuple[torch.Tensor, torch.Tensor]:
+    """kornia ``CrossBlock.forward`` of layer 0 (CPU path, no mask) from prepared projections."""
+    cross = model.transformers[0].cross_attn
+    sim = torch.einsum("bhid, bhjd -> bhij", image0.query_key, image1.query_key)
+    attn01 = F.softmax(sim, dim=-1)
+    attn10 = F.softmax(sim.transpose(-2, -1).contiguous(), dim=-1)
+    message0 = torch.einsum("bhij, bhjd -> bhid", attn01, image1.value)
+    message1 = torch.einsum("bhji, bhjd -> bhid", attn10.transpose(-2, -1), image0.value)
+    message0, message1 = (cross.to_out(t.transpose(1, 2).flatten(start_dim=-2)) for t in (message0, message1))
+    x0, x1 = image0.descriptors, image1.descriptors
+    return x0 + cross.ffn(torch.cat([x0, message0], -1)), x1 + cross.ffn(torch.cat([x1, message1], -1))
+
+
+@torch.inference_mode()
+def match_prepared(model: LightGlue, image0: PreparedImage,
+                   image1: PreparedImage) -> tuple[torch.Tensor, torch.Tensor]:
+    """Matches (K, 2) and their scores (K,) of one pair from its prepared images,
+    as ``model({"image0": ..., "image1": ...})["matches"][0]`` and ``["scores"][0]``."""
+    if image0.descriptors.device.type == "cuda" and model.transformers[0].cross_attn.flash is not None:
+        raise ValueError("match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA")
+    m, n = image0.num_keypoints, image1.num_keypoints
+    device = image0.descriptors.device
+    conf = model.conf
+    do_early_stop = conf.depth_confidence > 0
+    do_point_pruning = conf.width_confidence > 0
+    pruning_th = model.pruning_min_kpts(device)
+    ind0 = torch.arange(0, m, device=device)[None]
+    ind1 = torch.arange(0, n, device=device)[None]
+    encoding0, encoding1 = image0.encoding, image1.encoding
+    desc0 = desc1 = None
+    for i in range(conf.n_layers):
+        if i == 0:
+            desc0, desc1 = _first_cross_block(model, image0, image1)
+        else:
+            desc0, desc1 = model.transformers[i](desc0, desc1, encoding0, encoding1)
+        if i == conf.n_layers - 1:
+            continue  # no early stopping or adaptive width at the last layer
+        token0 = token1 = None
+        if do_early_stop:
+            token0, token1 = model.token_confidence[i](desc0, desc1)
+            if model.check_if_stop(token0, token1, i, m + n):
+                break
+        if do_point_pruning and desc0.shape[-2] > pruning_th:
+            scores0 = model.log_assignment[i].get_matchability(desc0)
+            keep0 = torch.where(model.get_pruning_mask(token0, scores0, i))[1]
+            ind0 = ind0.index_select(1, keep0)
+            desc0 = desc0.index_select(1, keep0)
+            encoding0 = encoding0.index_select(-2, keep0)
+        if do_point_pruning and desc1.shape[-2] > pruning_th:
+            scores1 = model.log_assignment[i].get_matchability(desc1)
+            keep1 = torch.where(model.get_pruning_mask(token1, scores1, i))[1]
+            ind1 = ind1.index_select(1, keep1)
+            desc1 = desc1.index_select(1, keep1)
+            encoding1 = encoding1.index_select(-2, keep1)
+    if desc0.shape[-2] == 0 or desc1.shape[-2] == 0:  # pruning removed every point of one image
+        return torch.zeros((0, 2), dtype=torch.long, device=device), torch.zeros(0, device=device)
+    scores, _ = model.log_assignment[i](desc0, desc1)
+    matches0, _, match_scores0, _ = filter_matches(scores, conf.filter_threshold)
+    valid = matches0[0] > -1
+    indices0 = torch.where(valid)[0]
+    indices1 = matches0[0][valid]
+    matches = torch.stack([ind0[0, indices0], ind1[0, indices1]], -1)
+    return matches, match_scores0[0][valid]

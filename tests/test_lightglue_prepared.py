@@ -1,0 +1,116 @@
+"""LightGlue split into a per-image and a per-pair part gives kornia's matches and scores
+bit for bit; the per-image cache is bounded and thread-safe."""
+
+import threading
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from gvbench_nb import extractors, images, matchers, methods
+from gvbench_nb.pipeline import PreparedCache
+
+# Two true pairs (many matches: LightGlue runs deep and prunes) and false pairs (it stops early).
+IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image061.jpg",
+          "day_right/Image140.jpg", "night_right/Image140.jpg"]
+
+
+def features_of(shared_data: Path, method: str) -> tuple[dict, list[dict]]:
+    conf = methods.resolve_method(method, "fast")
+    extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
+    features = []
+    for name in IMAGES:
+        image, _ = images.load_for_extraction(shared_data / "gardens_point" / name, conf["extractor"])
+        found = extractor(image)
+        found["image_size"] = np.array(image.shape[:2][::-1], np.float32)
+        features.append(found)
+    return conf, features
+
+
+@pytest.fixture(scope="module")
+def disk_features(shared_data):
+    return features_of(shared_data, "disk-lg")
+
+
+@pytest.mark.real_data
+@pytest.mark.parametrize("options", [{}, {"depth_confidence": -1, "width_confidence": -1}],
+                         ids=["paper-early-stop-and-pruning", "all-layers-no-pruning"])
+def test_prepared_matches_equal_kornia_bit_for_bit(disk_features, options):
+    conf, features = disk_features
+    matcher = matchers.build_matcher({**conf["matcher"], **options}, torch.device("cpu"))
+    assert matcher.can_prepare
+    prepared = [matcher.prepare(f) for f in features]
+    counts = []
+    for i, j in [(0, 1), (0, 2), (1, 0), (0, 3), (4, 3), (4, 1)]:
+        expected_matches, expected_scores = matcher(features[i], features[j])
+        got_matches, got_scores = matcher.match_prepared(prepared[i], prepared[j])
+        assert got_matches.dtype == np.int64 and got_scores.dtype == np.float32
+        np.testing.assert_array_equal(got_matches, expected_matches, err_msg=f"pair {IMAGES[i]} {IMAGES[j]}")
+        np.testing.assert_array_equal(got_scores, expected_scores, err_msg=f"pair {IMAGES[i]} {IMAGES[j]}")
+        counts.append(len(expected_matches))
+    assert max(counts) > 100 and min(counts) < max(counts) / 2  # true and false pairs, not all alike
+
+
+@pytest.mark.real_data
+def test_prepared_image_without_keypoints_matches_nothing(disk_features):
+    conf, features = disk_features
+    matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
+    empty = {**features[0], "keypoints": features[0]["keypoints"][:0], "descriptors": features[0]["descriptors"][:0]}
+    assert matcher.prepare(empty) is None
+    pair_matches, scores = matcher.match_prepared(None, matcher.prepare(features[1]))
+    assert pair_matches.shape == (0, 2) and scores.shape == (0,)
+
+
+@pytest.mark.real_data
+def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):
+    conf, features = disk_features
+    matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
+    matcher.model.conf.mp = True
+    from gvbench_nb.models.lightglue_prepared import supports_prepared
+
+    assert not supports_prepared(matcher.model)
+
+
+class Sized:
+    def __init__(self, size: int):
+        self.size = size
+
+    def nbytes(self) -> int:
+        return self.size
+
+
+def test_prepared_cache_drops_least_recently_used_beyond_its_bytes():
+    calls = []
+    cache = PreparedCache(lambda features: calls.append(features["name"]) or Sized(40), max_bytes=100)
+    for name in ["a", "b", "a", "c"]:  # a is used again before c arrives, so b is dropped
+        cache.get(name, {"name": name})
+    assert calls == ["a", "b", "c"] and len(cache) == 2
+    cache.get("a", {"name": "a"})
+    cache.get("b", {"name": "b"})
+    assert calls == ["a", "b", "c", "b"]
+
+
+def test_prepared_cache_keeps_one_state_larger_than_its_budget_and_none_states():
+    cache = PreparedCache(lambda features: None if features["empty"] else Sized(500), max_bytes=100)
+    assert cache.get("big", {"empty": False}).nbytes() == 500 and len(cache) == 1
+    assert cache.get("empty", {"empty": True}) is None
+    assert len(cache) == 1  # the big one went: over budget with two entries
+
+
+def test_prepared_cache_serves_many_threads_the_same_states():
+    lock, calls = threading.Lock(), []
+
+    def prepare(features):
+        with lock:
+            calls.append(features["name"])
+        return Sized(1)
+
+    cache = PreparedCache(prepare, max_bytes=1000)
+    names = [f"image{i % 7}" for i in range(200)]
+    with ThreadPoolExecutor(4) as pool:
+        states = list(pool.map(lambda n: cache.get(n, {"name": n}), names))
+    assert len(cache) == 7 and set(calls) == set(names)
+    for name, state in zip(names, states):
+        assert cache.get(name, {"name": name}) is state or calls.count(name) > 1

@@ -193,12 +193,13 @@ def extract_features(
 # ---------------------------------------------------------- matching + verifying --
 class PreparedCache:
     """Per-image matcher states by image name, least recently used first out once they
-    hold more than ``max_bytes``. Thread-safe; two threads that miss the same image at
-    once both prepare it (same result), which is cheaper than making one wait."""
+    hold more than ``max_bytes`` (the newest state always stays). Thread-safe: a thread
+    that asks for an image another thread is preparing waits for that state."""
 
     def __init__(self, prepare: Callable[[dict[str, np.ndarray]], Any], max_bytes: int = 1 << 30):
         self.prepare, self.max_bytes = prepare, max_bytes
         self._states: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self._pending: dict[str, Future] = {}
         self._bytes = 0
         self._lock = threading.Lock()
 
@@ -207,15 +208,27 @@ class PreparedCache:
             if name in self._states:
                 self._states.move_to_end(name)
                 return self._states[name][0]
-        state = self.prepare(features)
+            pending = self._pending.get(name)
+            if pending is None:
+                mine = self._pending[name] = Future()
+        if pending is not None:
+            return pending.result()  # re-raises the preparing thread's error
+        try:
+            state = self.prepare(features)
+        except BaseException as error:
+            with self._lock:
+                del self._pending[name]
+            mine.set_exception(error)
+            raise
         size = state.nbytes() if state is not None else 0
         with self._lock:
-            if name not in self._states:
-                self._states[name] = (state, size)
-                self._bytes += size
-                while self._bytes > self.max_bytes and len(self._states) > 1:
-                    _, (_, dropped) = self._states.popitem(last=False)
-                    self._bytes -= dropped
+            del self._pending[name]
+            self._states[name] = (state, size)
+            self._bytes += size
+            while self._bytes > self.max_bytes and len(self._states) > 1:
+                _, (_, dropped) = self._states.popitem(last=False)
+                self._bytes -= dropped
+        mine.set_result(state)
         return state
 
     def __len__(self) -> int:

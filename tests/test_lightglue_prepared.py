@@ -2,6 +2,7 @@
 bit for bit; the per-image cache is bounded and thread-safe."""
 
 import threading
+import time
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
@@ -54,6 +55,19 @@ def test_prepared_matches_equal_kornia_bit_for_bit(disk_features, options):
 
 
 @pytest.mark.real_data
+@pytest.mark.parametrize("method", ["aliked-lg", "xfeat-lg"])  # other weights, widths and depths
+def test_prepared_matches_equal_kornia_for_other_lightglue_weights(shared_data, method):
+    conf, features = features_of(shared_data, method)
+    matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
+    assert matcher.can_prepare
+    for i, j in [(0, 1), (0, 3)]:
+        expected = matcher(features[i], features[j])
+        got = matcher.match_prepared(matcher.prepare(features[i]), matcher.prepare(features[j]))
+        np.testing.assert_array_equal(got[0], expected[0], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
+        np.testing.assert_array_equal(got[1], expected[1], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
+
+
+@pytest.mark.real_data
 def test_prepared_image_without_keypoints_matches_nothing(disk_features):
     conf, features = disk_features
     matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
@@ -99,18 +113,46 @@ def test_prepared_cache_keeps_one_state_larger_than_its_budget_and_none_states()
     assert len(cache) == 1  # the big one went: over budget with two entries
 
 
-def test_prepared_cache_serves_many_threads_the_same_states():
+def test_prepared_cache_prepares_each_image_once_for_many_threads():
     lock, calls = threading.Lock(), []
 
     def prepare(features):
         with lock:
             calls.append(features["name"])
+        time.sleep(0.01)  # keep others asking for it while it is being prepared
         return Sized(1)
 
     cache = PreparedCache(prepare, max_bytes=1000)
     names = [f"image{i % 7}" for i in range(200)]
     with ThreadPoolExecutor(4) as pool:
         states = list(pool.map(lambda n: cache.get(n, {"name": n}), names))
-    assert len(cache) == 7 and set(calls) == set(names)
+    assert sorted(calls) == sorted(set(names)) and len(cache) == 7
     for name, state in zip(names, states):
-        assert cache.get(name, {"name": name}) is state or calls.count(name) > 1
+        assert cache.get(name, {"name": name}) is state
+
+
+def test_prepared_cache_hands_an_error_to_every_waiting_thread_and_retries_later():
+    started, release, attempts = threading.Event(), threading.Event(), []
+
+    def prepare(features):
+        attempts.append(1)
+        if len(attempts) == 1:
+            started.set()
+            release.wait(5)
+            raise ValueError("bad descriptors in image0")
+        return Sized(1)
+
+    cache = PreparedCache(prepare)
+    with ThreadPoolExecutor(2) as pool:
+        first = pool.submit(cache.get, "image0", {})
+        started.wait(5)
+        second = pool.submit(cache.get, "image0", {})
+        while not second.running():
+            time.sleep(0.01)
+        time.sleep(0.2)  # let it reach the wait on the first thread's state
+        release.set()
+        for future in (first, second):
+            with pytest.raises(ValueError, match="image0"):
+                future.result()
+    assert len(attempts) == 1 and len(cache) == 0
+    assert cache.get("image0", {}).nbytes() == 1 and len(attempts) == 2

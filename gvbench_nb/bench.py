@@ -131,8 +131,8 @@ def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torc
     """GV-Bench's way: for every pair, load and extract both images, then match and verify.
 
     Same extractor, matcher and verifier models (and seeds) as ours; no cache, no
-    prefetching; the matcher's plain two-image call for every pair. ``extract`` includes decoding (the reference does it inline); model
-    construction is in ``other``.
+    prefetching; the matcher's plain two-image call for every pair. ``extract`` includes
+    decoding (the reference does it inline); model construction is in ``other``.
     """
     start = time.perf_counter()
     dense = conf["extractor"] is None

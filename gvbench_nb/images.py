@@ -55,15 +55,18 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
 
 
 def target_size(width: int, height: int, resize_max: int | None, resize_force: bool = False,
-                multiple_of: int | None = None) -> tuple[int, int]:
+                multiple_of: int | None = None, resize_to: tuple[int, int] | None = None) -> tuple[int, int]:
     """(width, height) after resizing the longest side to ``resize_max``.
 
     Without ``resize_force`` images are only shrunk (hloc's convention); with it they
     are also enlarged (the paper's SuperPoint at 1600). ``multiple_of`` floors both
-    sides (LoFTR's multiple of 8).
+    sides (LoFTR's multiple of 8). ``resize_to`` = (width, height) is a fixed size
+    whatever the aspect ratio (the GV-Bench repository's 512x288); it replaces ``resize_max``.
     """
     new_w, new_h = width, height
-    if resize_max and (resize_force or max(width, height) > resize_max):
+    if resize_to:
+        new_w, new_h = int(resize_to[0]), int(resize_to[1])
+    elif resize_max and (resize_force or max(width, height) > resize_max):
         scale = resize_max / max(width, height)
         new_w, new_h = int(round(width * scale)), int(round(height * scale))
     if multiple_of:
@@ -84,7 +87,8 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
     """Image prepared for an extractor conf, and the (sx, sy) scale back to original pixels."""
     image = read_image(path, grayscale=conf.get("grayscale", False))
     height, width = image.shape[:2]
-    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False), conf.get("multiple_of"))
+    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False), conf.get("multiple_of"),
+                       conf.get("resize_to"))
     resized = resize_image(image, size)
     scale = np.array([width / size[0], height / size[1]], dtype=np.float64)
     return resized, scale

@@ -46,3 +46,12 @@ def test_score_filter_drops_low_confidence_matches_before_ransac():
     result = verify_matches(p0, p1, matches, scores, VERIFIER)
     assert result["num_matches"] == 100 and result["num_matches_filtered"] == 50
     assert result["num_inliers"] >= 45 and not result["inlier_mask"][50:].any()
+
+
+def test_resize_to_is_a_fixed_size_whatever_the_aspect_ratio():
+    from gvbench_nb.images import target_size
+
+    # The GV-Bench repository resizes every image to 512x288, portrait ones too.
+    assert target_size(640, 480, None, resize_to=(512, 288)) == (512, 288)
+    assert target_size(300, 900, 1600, resize_to=(512, 288)) == (512, 288)
+    assert target_size(960, 540, 512) == (512, 288)

@@ -150,7 +150,7 @@ def _source_of(dataset: Dataset, item: DataFile, mirror: str | None) -> tuple[st
     return str(local), local
 
 
-def _download(url: str, partial: Path, item: DataFile, target: Path, bar: Any) -> None:
+def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any) -> None:
     """Bring ``url`` into ``partial``, resuming from what it holds; raise DataError when it cannot."""
     last_problem = ""
     for _ in range(ATTEMPTS):
@@ -181,7 +181,7 @@ def _download(url: str, partial: Path, item: DataFile, target: Path, bar: Any) -
                 bar.update(-have)
                 continue
             raise DataError(
-                f"{target.name}: {url} answered HTTP {error.code} {error.reason}; check the address (or that the "
+                f"{label}: {url} answered HTTP {error.code} {error.reason}; check the address (or that the "
                 f"source still has the file), or pass --mirror with a folder or URL holding the same layout"
             ) from None
         except (urllib.error.URLError, http.client.HTTPException, OSError) as error:
@@ -192,7 +192,7 @@ def _download(url: str, partial: Path, item: DataFile, target: Path, bar: Any) -
         last_problem = "the connection closed early"
     kept = partial.stat().st_size if partial.is_file() else 0
     raise DataError(
-        f"{target.name}: could not download {url} after {ATTEMPTS} attempts ({last_problem}); {kept} of {item.bytes} "
+        f"{label}: could not download {url} after {ATTEMPTS} attempts ({last_problem}); {kept} of {item.bytes} "
         f"bytes are kept in {partial}: rerun the same command to resume, or pass --mirror with a local copy"
     )
 
@@ -215,7 +215,7 @@ def fetch_file(dataset: Dataset, item: DataFile, root: Path, mirror: str | None,
         bar.update(item.bytes)
     else:
         bar.update(partial.stat().st_size if partial.is_file() else 0)
-        _download(source, partial, item, target, bar)
+        _download(source, partial, item, f"{dataset.name}: {item.path}", bar)
     size = partial.stat().st_size
     digest = sha256_of(partial)
     if size != item.bytes or digest != item.sha256:
@@ -296,13 +296,8 @@ def _builder_folders(options: dict[str, Any]) -> list[str]:
 
 
 def images_of_params(params: dict[str, Any]) -> tuple[list[str], str]:
-    """The images a sequence names (relative to its image root) and where the names came from."""
-    pairs = Path(params["pairs"])
-    if pairs.is_file():
-        from .sequences import read_pairs
-
-        found = read_pairs(pairs)
-        return list(dict.fromkeys(n for p in found for n in (p.query, p.reference))), f"the pair list {pairs}"
+    """The images a sequence names (relative to its image root) and where the names came from:
+    a builder's folders when it has them (its pair file is made from them), else the pair list."""
     folders = _builder_folders(dict(params["builder_options"]))
     if params["pairs_builder"] and folders:
         root = Path(params["image_root"])
@@ -314,6 +309,12 @@ def images_of_params(params: dict[str, Any]) -> tuple[list[str], str]:
                 continue
             names += sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
         return names, f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)"
+    pairs = Path(params["pairs"])
+    if pairs.is_file():
+        from .sequences import read_pairs
+
+        found = read_pairs(pairs)
+        return list(dict.fromkeys(n for p in found for n in (p.query, p.reference))), f"the pair list {pairs}"
     raise DataError(
         f"{params['params_file']}: its pair list {pairs} does not exist; for an official sequence run "
         "`python -m gvbench_nb data fetch gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)"
@@ -357,7 +358,10 @@ def check_params(params_file: str, image_root: str | None = None, progress: bool
              f"  present {result.present}, decode {result.decoded}, missing {len(result.missing)}, "
              f"do not decode {len(result.undecodable)}"]
     if result.missing:
-        lines.append("  first missing: " + ", ".join(result.missing[:10]) + fetch_hint(root))
+        official = Path(params["pairs"]).parent == data_dir() / get_dataset("gvbench-lists").folder
+        hint = ("; the GV-Bench images are not fetchable: `python -m gvbench_nb data list` says where to get them "
+                "(gvbench-images) and how to lay them out") if official else fetch_hint(root)
+        lines.append("  first missing: " + ", ".join(result.missing[:10]) + hint)
     if result.undecodable:
         lines.append("  first that do not decode: " + ", ".join(result.undecodable[:10]))
     if result.named == 0:

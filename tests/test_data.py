@@ -182,7 +182,7 @@ def test_a_missing_file_fails_naming_the_url_and_what_to_do(server, tmp_path):
 def test_an_unreachable_source_keeps_the_partial_file_and_says_rerun(tmp_path, monkeypatch):
     monkeypatch.setattr(data, "TIMEOUT_SECONDS", 2.0)
     closed = make_dataset({"x.bin": b"abc"}, "http://127.0.0.1:9")  # the discard port: nothing listens
-    with pytest.raises(data.DataError, match=r"x\.bin: could not download http://127\.0\.0\.1:9/src/x\.bin .*rerun"):
+    with pytest.raises(data.DataError, match=r"toy: x\.bin: could not download http://127\.0\.0\.1:9/src/x\.bin .*rerun"):
         data.fetch(["toy"], to=tmp_path, progress=False, datasets={"toy": closed})
 
 
@@ -318,6 +318,7 @@ def test_check_reports_counts_and_first_missing_files_of_a_params(tmp_path, monk
     report = capsys.readouterr().out
     assert status == 1 and "4 images named by the pair list" in report
     assert "missing 1" in report and "first missing: night_right/Image099.jpg" in report
+    assert "data list` says where to get them (gvbench-images)" in report
 
 
 def test_check_without_data_names_the_fetch_command(tmp_path, monkeypatch, capsys):

@@ -184,6 +184,8 @@ def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any) -> 
                 f"{label}: {url} answered HTTP {error.code} {error.reason}; check the address (or that the "
                 f"source still has the file), or pass --mirror with a folder or URL holding the same layout"
             ) from None
+        except PermissionError:
+            raise  # the data folder is not writable: no retry helps (fetch says what to do)
         except (urllib.error.URLError, http.client.HTTPException, OSError) as error:
             last_problem = str(getattr(error, "reason", None) or error) or type(error).__name__
             continue  # a cut connection: resume from what arrived

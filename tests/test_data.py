@@ -346,3 +346,19 @@ def test_the_real_data_folder_matches_the_manifest(shared_data):
     for name in ("gvbench-lists", "gardens_point"):
         for item in datasets[name].files[::25]:
             assert data.is_verified(shared_data / datasets[name].folder / item.path, item), item.path
+
+
+def test_a_data_folder_that_cannot_be_written_says_where_to_write_instead(server, tmp_path, monkeypatch):
+    serve(server, TOY)
+    toy = make_dataset(TOY, server.url)
+
+    def refusing_open(path, mode="r", *args, **kwargs):  # as a read-only folder answers (also for root)
+        if "w" in mode or "a" in mode:
+            raise PermissionError(13, "Permission denied", str(path))
+        return open(path, mode, *args, **kwargs)
+
+    monkeypatch.setattr(data, "open", refusing_open, raising=False)
+    with pytest.raises(data.DataError, match=r"toy: cannot write .*one\.bin\.partial \(permission denied\); "
+                                             "set GVBENCH_DATA or pass --to a writable folder"):
+        data.fetch(["toy"], to=tmp_path, progress=False, datasets={"toy": toy})
+    assert len(server.requests) == 1  # not retried

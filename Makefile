@@ -5,9 +5,11 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
-# Real data for tests and gardens_point: ../shared/data when it exists, unless set.
-GVBENCH_DATA ?= $(shell [ -d ../shared/data ] && cd ../shared/data && pwd)
-export GVBENCH_DATA
+# The data folder the tests read: $(GVBENCH_DATA) when set, else one inside the clone
+# (ignored by git), so a read-only ../shared still works. `test` first fills it from
+# ../shared/data when that folder exists; files already there and verified are kept.
+TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
+DATA_MIRROR := ../shared/data
 
 .PHONY: setup demo test notebooks clean
 
@@ -25,7 +27,8 @@ demo: setup
 	$(PY) -m gvbench_nb run params/sample.yaml
 
 test: setup
-	$(PY) -m pytest -q tests --nbmake notebooks
+	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q tests --nbmake notebooks
 
 notebooks: setup
 	$(PY) notebooks/build_notebooks.py

@@ -430,8 +430,8 @@ def official_sequence_sizes(gt_dir: Path) -> pd.DataFrame:
     for name in OFFICIAL_SEQUENCES:
         path = Path(gt_dir) / f"{name}.txt"
         if not path.is_file():
-            raise FileNotFoundError(f"official pair list missing: {path}; "
-                                    "set GVBENCH_DATA to the folder holding gvbench_gt/")
+            raise FileNotFoundError(f"official pair list missing: {path}; run `python -m gvbench_nb data fetch "
+                                    "gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)")
         pairs = read_pairs(path)
         images = {p for pair in pairs for p in (pair.query, pair.reference)}
         rows.append({"sequence": name, "n_pairs": len(pairs), "n_images": len(images),
@@ -516,10 +516,7 @@ def print_estimate(bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = No
         raise FileNotFoundError(f"no bench summary at {summary_path}: run `python -m gvbench_nb bench PARAMS` "
                                 "first, or give --runs outputs/<sequence>")
     if gt_dir is None:
-        folder = data_dir()
-        if folder is None:
-            raise FileNotFoundError("GVBENCH_DATA is not set: it must hold gvbench_gt/ with the official pair lists")
-        gt_dir = folder / "gvbench_gt"
+        gt_dir = data_dir() / "gvbench_gt"
     sizes = official_sequence_sizes(gt_dir)
     costs = [costs_from_bench(pd.read_csv(summary_path, keep_default_na=False))] if summary_path.is_file() else []
     if runs is not None:

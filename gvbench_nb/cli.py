@@ -19,6 +19,8 @@ the methods and the profile; results land in <output_dir>/<method>/pairs.csv and
 EPILOG = """\
 examples:
   python -m gvbench_nb run params/sample.yaml
+  python -m gvbench_nb data fetch gardens_point gvbench-lists
+  python -m gvbench_nb data check params/night.yaml --image-root /data/gvbench/images
   python -m gvbench_nb run params/gardens_point.yaml --methods sift-nn,disk-lg --limit 200
   python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile fast
   python -m gvbench_nb results outputs/sample --markdown
@@ -28,7 +30,8 @@ examples:
   GVBENCH_WORKERS=2 python -m gvbench_nb run params/gardens_point.yaml
 
 environment:
-  GVBENCH_DATA     the folder ${GVBENCH_DATA} stands for in params (real data)
+  GVBENCH_DATA     the data folder: what ${GVBENCH_DATA} stands for in params and where `data fetch`
+                   puts datasets (default: a per-user cache folder, printed by `data list`)
   GVBENCH_THREADS  torch and OpenCV threads (default: every core)
   GVBENCH_WORKERS  images, then pairs, processed at once (default 1). 2 is faster on two or
                    more cores (see `bench`), but each image's and pair's timer then includes
@@ -221,8 +224,9 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
-    from . import bench, build, report
+    from . import bench, build, data, report
 
+    data.add_command(commands)
     build.add_command(commands)
     report.add_command(commands)
     bench.add_command(commands)
@@ -230,9 +234,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: SequenceType[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
+        from . import data
+
+        return data.main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
-    from . import config, distributed, metrics, weights
+    from . import config, data, distributed, metrics, weights
     from .images import ImageReadError
     from .sequences import PairFileError
 
@@ -247,6 +256,6 @@ def main(argv: SequenceType[str] | None = None) -> int:
         print("the executed notebook (with the full traceback) is in the output folder", file=sys.stderr)
         return 1
     except (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
-            metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError) as error:
+            metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError, data.DataError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

@@ -2,8 +2,8 @@
 sequence is prepared from them.
 
 Relative paths in a params file are relative to the file's folder. ``${NAME}``
-expands from the environment; ``${GVBENCH_DATA}`` (the data folder) falls back to
-``<project>/../shared/data`` when that folder exists.
+expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.data_dir``
+(``$GVBENCH_DATA``, else a per-user cache folder that ``python -m gvbench_nb data fetch`` fills).
 """
 
 from __future__ import annotations
@@ -38,26 +38,18 @@ class ParamsError(ValueError):
     """A params file is malformed: missing, misspelled or invalid keys or values."""
 
 
-def data_dir() -> Path | None:
-    """The data folder: $GVBENCH_DATA, else ``../shared/data`` beside the project."""
-    value = os.environ.get("GVBENCH_DATA")
-    if value:
-        return Path(value).expanduser().resolve()
-    fallback = PROJECT_ROOT.parent / "shared" / "data"
-    return fallback.resolve() if fallback.is_dir() else None
+def data_dir() -> Path:
+    """The data folder: $GVBENCH_DATA, else the per-user cache folder (see ``data.data_dir``)."""
+    from . import data
+
+    return data.data_dir()
 
 
 def _expand(value: str, source: str, key: str) -> str:
     def replace(match: re.Match[str]) -> str:
         name = match.group(1)
         if name == "GVBENCH_DATA":
-            folder = data_dir()
-            if folder is None:
-                raise ParamsError(
-                    f"{source}: {key} uses ${{GVBENCH_DATA}} but it is not set and ../shared/data does not exist; "
-                    "export GVBENCH_DATA=/path/to/data (the folder holding gardens_point/, gvbench_gt/)"
-                )
-            return str(folder)
+            return str(data_dir())
         if name not in os.environ:
             raise ParamsError(f"{source}: {key} uses ${{{name}}}, which is not set in the environment")
         return os.environ[name]
@@ -182,11 +174,22 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
     def names(folder: str) -> list[str]:
         directory = root / folder
         if not directory.is_dir():
-            raise FileNotFoundError(f"image folder not found: {directory} (image_root {root}, folder {folder!r})")
+            from .data import fetch_hint
+
+            raise ParamsError(
+                f"{params['params_file']}: image folder {directory} not found (image_root {root}, folder {folder!r})"
+                + (fetch_hint(directory) or "; set image_root to the folder holding it")
+            )
         return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in extensions)
 
-    pairs = frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
-    write_pairs(params["pairs"], pairs)
+    try:
+        pairs = frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
+    except (TypeError, ValueError) as error:
+        raise ParamsError(f"{params['params_file']}: builder_options: {error}") from None
+    # Rebuilt on every run (milliseconds, seeded): a pair file made under other options is
+    # replaced, and an unchanged one is left untouched.
+    if not Path(params["pairs"]).is_file() or read_pairs(params["pairs"]) != pairs:
+        write_pairs(params["pairs"], pairs)
 
 
 def build_retrieval(params: dict[str, Any]) -> None:
@@ -211,7 +214,7 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
             f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
         )
     builder = params["pairs_builder"]
-    if builder == "sample" or (builder and not Path(params["pairs"]).is_file()):
+    if builder in ("sample", "frame_tolerance") or (builder and not Path(params["pairs"]).is_file()):
         PAIR_BUILDERS[builder](params)
     sequence = Sequence(params["sequence"], Path(params["image_root"]), read_pairs(params["pairs"]))
     return sequence.limited(params["limit"])

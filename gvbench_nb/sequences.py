@@ -189,14 +189,27 @@ def frame_tolerance_pairs(
     near_negatives: int = 2,
     near_window: int = 8,
     seed: int = 0,
+    negative_margin: int | None = None,
 ) -> list[Pair]:
     """Rule-built candidates for a frame-aligned sequence, before retrieval exists.
 
     For query frame i: every reference j with |i - j| <= tolerance (true), then
-    ``near_negatives`` seeded picks with tolerance < |i - j| <= near_window (hard:
-    overlapping views just outside the ground truth), then seeded far negatives
-    (|i - j| > 4 * near_window) up to ``candidates_per_query``.
+    ``near_negatives`` seeded picks from the near band (hard negatives), then seeded far
+    negatives (|i - j| > 4 * near_window) up to ``candidates_per_query``.
+
+    Without ``negative_margin`` the near band is tolerance < |i - j| <= near_window: views
+    that still overlap the query, labelled false. With it, no negative is closer than
+    ``negative_margin`` frames: the band becomes negative_margin <= |i - j| <= near_window and
+    the frames between tolerance and the margin are left out (neither true nor false), as
+    place-recognition benchmarks leave out views too close to call.
     """
+    low = tolerance + 1 if negative_margin is None else negative_margin
+    if negative_margin is not None and negative_margin <= tolerance:
+        raise ValueError(f"negative_margin {negative_margin} must exceed tolerance {tolerance} "
+                         "(a negative cannot be as close as a true neighbour); raise it or drop it")
+    if near_negatives and near_window < low:
+        raise ValueError(f"near_window {near_window} is below the smallest negative gap {low}: "
+                         f"no near negative can be drawn; set near_window to at least {low}")
     rng = random.Random(seed)
     references = {frame_index(r): r for r in reference_names}
     frames = sorted(references)
@@ -204,7 +217,7 @@ def frame_tolerance_pairs(
     for query in query_names:
         i = frame_index(query)
         positives = [j for j in frames if abs(i - j) <= tolerance]
-        near = [j for j in frames if tolerance < abs(i - j) <= near_window]
+        near = [j for j in frames if low <= abs(i - j) <= near_window]
         far = [j for j in frames if abs(i - j) > 4 * near_window]
         chosen_near = rng.sample(near, min(near_negatives, len(near)))
         n_far = max(candidates_per_query - len(positives) - len(chosen_near), 0)

@@ -1,7 +1,8 @@
 """Shared fixtures: where the real data and the reference layouts are.
 
-Tests that need them skip with a message saying where to put them; in CI here
-``make test`` points GVBENCH_DATA at ../shared/data, so they always run.
+The real data is found through the package's data folder (``$GVBENCH_DATA``, else the
+per-user cache): tests that need it skip with the ``data fetch`` command that fills it.
+``make test`` runs that command first, from ../shared/data when that folder exists.
 """
 
 from __future__ import annotations
@@ -19,14 +20,21 @@ def _first_dir(*candidates: Path | None) -> Path | None:
     return next((c for c in candidates if c is not None and c.is_dir()), None)
 
 
+REAL_DATASETS = ("gvbench-lists", "gardens_point")
+
+
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
-    """The data folder holding gardens_point/ and gvbench_gt/."""
-    env = os.environ.get("GVBENCH_DATA")
-    found = _first_dir(Path(env) if env else None, PROJECT_ROOT.parent / "shared" / "data")
-    if found is None or not (found / "gardens_point").is_dir():
-        pytest.skip("real data not found: set GVBENCH_DATA to the folder holding gardens_point/ and gvbench_gt/")
-    return found
+    """The data folder, holding every file of gardens_point/ and gvbench_gt/ (sizes checked)."""
+    from gvbench_nb import data
+
+    root = data.data_dir()
+    datasets, _ = data.load_manifest()
+    incomplete = [name for name in REAL_DATASETS if data.presence(datasets[name], root)[0] != len(datasets[name].files)]
+    if incomplete:
+        pytest.skip(f"real data not found in {root} ({', '.join(incomplete)}): run "
+                    f"`python -m gvbench_nb data fetch {' '.join(REAL_DATASETS)}` (offline: add --mirror DIR)")
+    return root
 
 
 @pytest.fixture(scope="session")

@@ -74,3 +74,76 @@ def test_official_pair_lists_load_without_images(shared_data, name):
     pairs, positives, queries = OFFICIAL[name]
     summary = summarize(sequence)
     assert (summary["n_pairs"], summary["n_positives"], summary["n_queries"]) == (pairs, positives, queries)
+
+
+def gap(pair) -> int:
+    return abs(frame_index(pair.query) - frame_index(pair.reference))
+
+
+def test_negative_margin_keeps_negatives_out_of_the_ambiguous_band():
+    queries = [f"night/Image{i:03d}.jpg" for i in range(200)]
+    references = [f"day/Image{i:03d}.jpg" for i in range(200)]
+    pairs = frame_tolerance_pairs(queries, references, tolerance=2, negative_margin=6, near_window=10, seed=3)
+    assert all(pair.label == int(gap(pair) <= 2) for pair in pairs)
+    assert not [p for p in pairs if 2 < gap(p) < 6]  # neither true nor false: left out
+    assert all(gap(p) >= 6 for p in pairs if p.label == 0)
+    for i in (30, 100, 170):
+        near = [p for p in pairs if frame_index(p.query) == i and 6 <= gap(p) <= 10]
+        far = [p for p in pairs if frame_index(p.query) == i and gap(p) > 40]
+        assert len(near) == 2 and len(far) == 3
+    # The positives do not depend on the margin.
+    without = frame_tolerance_pairs(queries, references, tolerance=2, seed=3)
+    assert [p for p in pairs if p.label] == [p for p in without if p.label]
+    assert any(2 < gap(p) < 6 for p in without)
+
+
+def test_a_margin_just_beyond_the_tolerance_is_the_rule_without_margin():
+    queries = [f"q/Image{i:03d}.jpg" for i in range(0, 120, 3)]
+    references = [f"r/Image{i:03d}.jpg" for i in range(120)]
+    assert frame_tolerance_pairs(queries, references, tolerance=2, negative_margin=3, seed=5) == \
+        frame_tolerance_pairs(queries, references, tolerance=2, seed=5)
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    ({"negative_margin": 2}, "negative_margin 2 must exceed tolerance 2"),
+    ({"negative_margin": 9, "near_window": 8}, "near_window 8 is below the smallest negative gap 9"),
+])
+def test_a_margin_that_cannot_work_says_why(options, message):
+    with pytest.raises(ValueError, match=message):
+        frame_tolerance_pairs(["q/Image010.jpg"], ["r/Image010.jpg"], tolerance=2, **options)
+
+
+@pytest.mark.real_data
+@pytest.mark.parametrize(("name", "folders", "smallest_negative_gap", "near_band"), [
+    ("gardens_point", ("night_right", "day_right"), 6, (6, 10)),
+    ("gardens_point_viewpoint", ("day_left", "day_right"), 6, (6, 10)),
+    ("gardens_point_night_viewpoint", ("night_right", "day_left"), 6, (6, 10)),
+    ("gardens_point_no_margin", ("night_right", "day_right"), 3, (3, 8)),
+])
+def test_gardens_point_params_build_their_rule(shared_data, tmp_path, name, folders, smallest_negative_gap, near_band):
+    params = config.load_params(config.PROJECT_ROOT / "params" / f"{name}.yaml", pairs=str(tmp_path / "pairs.txt"),
+                                output_dir=str(tmp_path / "out"))
+    sequence = config.prepare_sequence(params)
+    assert params["image_root"] == str(shared_data / "gardens_point")
+    assert {p.query.split("/")[0] for p in sequence.pairs} == {folders[0]}
+    assert {p.reference.split("/")[0] for p in sequence.pairs} == {folders[1]}
+    summary = summarize(sequence)
+    assert (summary["n_queries"], summary["n_pairs"], summary["queries_without_positive"]) == (200, 2000, 0)
+    assert all(p.label == int(gap(p) <= 2) for p in sequence.pairs)
+    negatives = [gap(p) for p in sequence.pairs if p.label == 0]
+    assert min(negatives) == smallest_negative_gap
+    low, high = near_band
+    assert sum(low <= g <= high for g in negatives) == 2 * 200
+
+
+@pytest.mark.real_data
+def test_the_frame_tolerance_pairs_are_rebuilt_when_the_options_change(shared_data, tmp_path):
+    pairs = tmp_path / "pairs.txt"
+    folder = config.PROJECT_ROOT / "params"
+    old = config.load_params(folder / "gardens_point_no_margin.yaml", pairs=str(pairs), output_dir=str(tmp_path / "o"))
+    config.prepare_sequence(old)
+    new = config.load_params(folder / "gardens_point.yaml", pairs=str(pairs), output_dir=str(tmp_path / "o"))
+    assert min(gap(p) for p in config.prepare_sequence(new).pairs if p.label == 0) == 6
+    written = pairs.stat().st_mtime_ns
+    config.prepare_sequence(new)
+    assert pairs.stat().st_mtime_ns == written  # unchanged pairs are not rewritten

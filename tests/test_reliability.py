@@ -605,7 +605,7 @@ def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
             np.testing.assert_array_equal(ours.read(key)[name], theirs.read(key)[name])
     mine, reference = (pipeline.match_store(out, conf) for out in (tmp_path / "out", baseline["out"]))
     for pair in sequence.pairs[::7]:
-        key = pipeline.pair_key(pair.query, pair.reference)
+        key = pipeline.pair_key(sequence.image_root, pair.query, pair.reference, 0)
         for name in ("matches", "inlier_mask"):
             np.testing.assert_array_equal(mine.read(key)[name], reference.read(key)[name])
 

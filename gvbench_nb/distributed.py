@@ -119,11 +119,13 @@ def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outp
     folder = pipeline.method_dir(output_dir, conf["method"])
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "conf": conf, "seed": seed, "environment": pipeline.environment_info(resolve_device(device)),
+        "pairs": sequence.origin, "conf": conf, "seed": seed,
+        "environment": pipeline.environment_info(resolve_device(device)),
         "this_run": {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
     atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
+    (folder / pipeline.UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
 
 

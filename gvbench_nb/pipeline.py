@@ -307,6 +307,58 @@ def method_dir(output_dir: Path, method: str) -> Path:
     return Path(output_dir) / method
 
 
+UNFINISHED_MARKER = ".unfinished.json"  # in a method folder while a run is making its outputs
+FINISHED_OUTPUTS = ("pairs.csv", "run.json")
+
+
+class ResultsError(FileNotFoundError):
+    """An output folder holds no results, or a method's results are unfinished or partial."""
+
+
+def claim_method_outputs(output_dir: Path, methods: Iterable[str], params_file: str | None = None) -> None:
+    """Before any work of a run: remove each method's previous ``pairs.csv`` and
+    ``run.json`` (and the folder's ``results.csv``) and mark its folder unfinished, so a
+    run that fails at any point leaves nothing that looks like its result."""
+    output_dir = Path(output_dir)
+    (output_dir / "results.csv").unlink(missing_ok=True)
+    for method in methods:
+        folder = method_dir(output_dir, method)
+        atomic_write_json(folder / UNFINISHED_MARKER, {
+            "started_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "pid": os.getpid(), "host": platform.node(), "params_file": params_file})
+        for stale in FINISHED_OUTPUTS:
+            (folder / stale).unlink(missing_ok=True)
+
+
+def unfinished_methods(output_dir: Path) -> dict[str, str]:
+    """Method folders under ``output_dir`` whose results are not those of one finished
+    run: method -> why (a run started and did not finish, or a file of the pair is missing)."""
+    problems = {}
+    for folder in sorted(p for p in Path(output_dir).iterdir() if p.is_dir()) if Path(output_dir).is_dir() else []:
+        marker = folder / UNFINISHED_MARKER
+        present = [name for name in FINISHED_OUTPUTS if (folder / name).is_file()]
+        if marker.is_file():
+            try:
+                started = json.loads(marker.read_text(encoding="utf-8")).get("started_at", "?")
+            except (OSError, ValueError):
+                started = "?"
+            problems[folder.name] = f"a run started at {started} has not finished (still running, failed or killed)"
+        elif len(present) == 1:
+            missing = next(name for name in FINISHED_OUTPUTS if name not in present)
+            problems[folder.name] = f"{folder / missing} is missing beside {present[0]}"
+    return problems
+
+
+def check_results_finished(output_dir: Path) -> None:
+    """Raise ``ResultsError`` naming each unfinished or partial method folder and what to do."""
+    problems = unfinished_methods(output_dir)
+    if problems:
+        lines = "; ".join(f"{method}: {why}" for method, why in problems.items())
+        raise ResultsError(
+            f"{output_dir} holds unfinished results ({lines}); run those methods again "
+            f"(python -m gvbench_nb run PARAMS --methods {','.join(problems)}) or delete their folders")
+
+
 def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """Per-pair matches and inlier masks of one method conf (a changed conf starts afresh)."""
     matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
@@ -544,8 +596,7 @@ def run_method(
     configure_threads(threads)
     folder = method_dir(output_dir, method)
     # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
-    for stale in ("pairs.csv", "run.json"):
-        (folder / stale).unlink(missing_ok=True)
+    claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
     started = time.perf_counter()
     workers = worker_count(workers)
     extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
@@ -557,12 +608,13 @@ def run_method(
     # pairs.csv is written last: its presence marks a finished run (methods_with_results).
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
+        "pairs": sequence.origin, "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
         "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
                      "extract_wall_seconds": extracted - started, "match_verify_wall_seconds": finished - extracted},
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
     atomic_write_csv(folder / "pairs.csv", table)
+    (folder / UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
 
 
@@ -570,7 +622,7 @@ def run_method(
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     path = method_dir(output_dir, method) / "pairs.csv"
     if not path.is_file():
-        raise FileNotFoundError(f"no results for method {method!r}: {path} is missing; run the method first")
+        raise ResultsError(f"no results for method {method!r}: {path} is missing; run the method first")
     return pd.read_csv(path, keep_default_na=False)
 
 
@@ -586,7 +638,9 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
     output_dir = Path(output_dir)
     methods = methods or methods_with_results(output_dir)
     if not methods:
-        raise FileNotFoundError(f"no method results under {output_dir}: run a method first")
+        what = "does not exist" if not output_dir.exists() else "holds no method results (<method>/pairs.csv)"
+        raise ResultsError(f"{output_dir} {what}; give the output_dir of a finished run, or run a method first "
+                           "(python -m gvbench_nb run PARAMS)")
     rows = []
     for method in methods:
         table = load_pairs_table(output_dir, method)

@@ -19,7 +19,7 @@ import posixpath
 import random
 import shlex
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Iterable, Sequence as SequenceType
 
@@ -30,6 +30,10 @@ from .io_utils import atomic_write_text
 
 class PairFileError(ValueError):
     """A pair file line is malformed, duplicated or points outside the image root."""
+
+
+class MissingImagesError(PairFileError):
+    """Images the pairs name are not under the image root."""
 
 
 @dataclass(frozen=True)
@@ -185,6 +189,8 @@ class Sequence:
     name: str
     image_root: Path
     pairs: list[Pair]
+    # Where the pairs came from (pair file and its SHA-256, builder and options), for run.json.
+    origin: dict[str, object] = field(default_factory=dict, compare=False)
 
     @property
     def images(self) -> list[str]:
@@ -211,10 +217,26 @@ class Sequence:
             return self
         if limit < 1:
             raise ValueError(f"limit must be a positive number of pairs, got {limit}")
-        return Sequence(self.name, self.image_root, self.pairs[:limit])
+        return Sequence(self.name, self.image_root, self.pairs[:limit], {**self.origin, "limit": limit})
 
     def missing_images(self) -> list[str]:
         return [name for name in self.images if not (self.image_root / name).is_file()]
+
+    def check_images(self) -> None:
+        """Raise ``MissingImagesError`` naming how many images are missing, the first one
+        and the pair that uses it, when any image of the pairs is not a file."""
+        if not Path(self.image_root).is_dir():
+            raise MissingImagesError(
+                f"image_root {self.image_root} of sequence {self.name!r} does not exist or is not a folder; "
+                "set image_root (or --image-root) to the folder the pair file's paths are relative to")
+        missing = self.missing_images()
+        if missing:
+            index, pair = next((i, p) for i, p in enumerate(self.pairs) if missing[0] in (p.query, p.reference))
+            raise MissingImagesError(
+                f"{len(missing)} of {len(self.images)} images of sequence {self.name!r} are missing under "
+                f"{self.image_root}, first {missing[0]} (pair {index}: {pair.query} {pair.reference}"
+                f"{', ' + str(self.origin['pairs_file']) if self.origin.get('pairs_file') else ''}); "
+                "restore them, or remove the pairs that use them")
 
 
 def summarize(sequence: Sequence) -> dict[str, object]:

@@ -39,18 +39,22 @@ def check_pixel_bound(path: str | os.PathLike[str]) -> None:
     """
     from PIL import Image
 
+    import re
+
     bound = max_pixels()
     try:
         with Image.open(path) as image:  # lazy: the pixels are not read
             width, height = image.size
-    except Image.DecompressionBombError:  # Pillow's own limit, far above ours
-        width = height = None
+            size, pixels = f"is {width} x {height} = {width * height:,} pixels", width * height
+    except Image.DecompressionBombError as error:  # Pillow's own limit, far above ours; it says the count
+        found = re.search(r"\((\d+) pixels\)", str(error))
+        pixels = int(found.group(1)) if found else bound + 1
+        size = f"has {pixels:,} pixels" if found else "is larger than Pillow opens"
     except Exception:  # not a format Pillow knows (or damaged): the decoder reports it
         return
-    if width is None or width * height > bound:
-        size = "beyond Pillow's own limit" if width is None else f"{width} x {height} = {width * height:,} pixels"
+    if pixels > bound:
         raise ImageReadError(
-            f"image {path} is {size}, above the bound of {bound:,} pixels (refused before decoding); "
+            f"image {path} {size}, above the bound of {bound:,} pixels (refused before decoding); "
             "shrink it, or raise the bound with GVBENCH_MAX_PIXELS")
 
 

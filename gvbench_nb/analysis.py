@@ -255,8 +255,11 @@ def image_size_of_run(output_dir: str | os.PathLike[str], method: str, run: dict
     extractor = run["conf"].get("extractor")
     if extractor:
         store = pipeline.feature_store(cache_dir, extractor)
-        key = pipeline.image_key(Path(run["image_root"]), first_query)
-        if store.folder.is_dir() and key in store:
+        try:
+            key: str | None = pipeline.image_key(Path(run["image_root"]), first_query)
+        except OSError:  # the image is gone: no key to look up
+            key = None
+        if key is not None and store.folder.is_dir() and key in store:
             size = store.read(key)["image_size"]
             store.close()
             return int(size[0]), int(size[1])
@@ -425,7 +428,7 @@ def match_lines(output_dir: str | os.PathLike[str], method: str, query: str, ref
     output_dir = Path(output_dir)
     run = load_run(output_dir, method)
     matches = pipeline.match_store(output_dir, run["conf"])
-    key = pipeline.pair_key(query, reference)
+    key = pipeline.pair_key(Path(run["image_root"]), query, reference, int(run["seed"]))
     if key not in matches:
         raise KeyError(f"pair {query} {reference} is not in the match store {matches.folder} of {method!r}")
     entry = matches.read(key)

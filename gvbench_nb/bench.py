@@ -103,7 +103,7 @@ def run_cached_pipeline(sequence: Sequence, conf: dict[str, Any], work_dir: Path
     extracted = time.perf_counter()
     pipeline.match_and_verify(sequence, conf, cache_dir, output_dir, device, seed, progress=False, workers=workers)
     matched = time.perf_counter()
-    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir)
+    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
     wall = time.perf_counter() - start
     match, verify = float(table["match_seconds"].sum()), float(table["verify_seconds"].sum())
     seconds = {"wall": wall, "extract": extracted - start, "match": match, "verify": verify,
@@ -328,7 +328,7 @@ def scaling_table(sequence: Sequence, method: str, profile: str, limits: tuple[i
         wall = time.perf_counter() - started
         image_seconds = (_image_seconds(largest, conf, Path(work_dir) / "cache") if conf["extractor"]
                          else {name: 0.0 for name in largest.images})
-        full = pipeline.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out")
+        full = pipeline.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out", seed)
     environment = environment_row(resolved)
     rows = []
     for limit in limits:

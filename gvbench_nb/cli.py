@@ -60,7 +60,7 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
 def command_run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from . import config, distributed, methods, weights
+    from . import config, distributed, methods, pipeline, weights
 
     # Paths typed on the command line are relative to the current folder, not the params file.
     absolute = lambda path: str(Path(path).resolve()) if path else None  # noqa: E731
@@ -68,6 +68,8 @@ def command_run(args: argparse.Namespace) -> int:
         args.params, methods=args.methods, limit=args.limit, profile=args.profile,
         output_dir=absolute(args.output_dir), image_root=absolute(args.image_root),
     )
+    config.check_writable_folder(params, "output_dir")
+    config.check_writable_folder(params, "cache_dir")
     # Every method's weights are checked before any work: nothing half-runs.
     missing = [c for m in params["methods"] for c in methods.required_checkpoints(m, params["profile"])
                if not weights.is_present(c)]
@@ -78,18 +80,21 @@ def command_run(args: argparse.Namespace) -> int:
         )
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         return distributed.run_from_cli(args, params)
-    sequence = config.prepare_sequence(params)
     output_dir = Path(params["output_dir"])
-    common = {"params_file": params["params_file"], "output_dir": str(output_dir)}
-    limited = {**common, "limit": params["limit"]}
-    jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", limited)]
-    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**limited, "method": m, "profile": params["profile"]})
-             for m in params["methods"]]
+    # This run owns its methods' outputs from here: whatever fails next, no earlier
+    # pairs.csv, run.json or results.csv survives looking like its result.
+    pipeline.claim_method_outputs(output_dir, params["methods"], params["params_file"])
+    # One resolved params file (overrides applied) is what every notebook loads.
+    resolved = str(config.write_resolved_params(params, output_dir))
+    sequence = config.prepare_sequence(params)
+    sequence.check_images()
+    common = {"params_file": resolved}
+    jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
+    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m}) for m in params["methods"]]
     jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": params["methods"]}))
     print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
-          f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}")
-    # A results table from an earlier run must not survive a failed one looking complete.
-    (output_dir / "results.csv").unlink(missing_ok=True)
+          f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir} "
+          f"(params as run: {resolved})")
     for source, target, extra in tqdm(jobs, desc="notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {output_dir / target}")
         execute_notebook(source, output_dir / target, extra)
@@ -118,6 +123,7 @@ def command_results(args: argparse.Namespace) -> int:
 
     for folder in args.output_dirs:
         folder = Path(folder)
+        pipeline.check_results_finished(folder)
         results = pipeline.evaluate(folder, write=False)
         runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
         environment = runs[0]["environment"]
@@ -179,6 +185,17 @@ def command_weights(args: argparse.Namespace) -> int:
     return 0
 
 
+def positive_int(text: str) -> int:
+    """argparse type of --limit: a whole number of at least 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a positive whole number of pairs, got {text!r}")
+    return value
+
+
 def build_parser() -> argparse.ArgumentParser:
     from . import distributed
 
@@ -186,6 +203,8 @@ def build_parser() -> argparse.ArgumentParser:
         prog="python -m gvbench_nb", description=DESCRIPTION, epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
+    parser.add_argument("--debug", action="store_true",
+                        help="show the full traceback of an error instead of its one-line message")
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     run = commands.add_parser(
@@ -196,7 +215,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
     run.add_argument("--methods", help="comma-separated method names, 'all' or 'all-available' (default: the params')")
-    run.add_argument("--limit", type=int, help="only the first N pairs")
+    run.add_argument("--limit", type=positive_int, help="only the first N pairs")
     run.add_argument("--profile", help="'paper' (the published protocol) or 'fast' (reduced resolution for CPUs)")
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
@@ -241,21 +260,36 @@ def main(argv: SequenceType[str] | None = None) -> int:
         return data.main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
-    from . import config, data, distributed, metrics, weights
-    from .images import ImageReadError
-    from .sequences import PairFileError
-
-    from papermill.exceptions import PapermillExecutionError
-
     try:
         return args.handler(args)
-    except PapermillExecutionError as error:
+    except Exception as error:
+        report = None if args.debug else user_error(error)
+        if report is None:  # --debug, or a fault of the program rather than of its input
+            raise
+        message, code = report
+        print(message, file=sys.stderr)
+        return code
+
+
+def user_error(error: BaseException) -> tuple[str, int] | None:
+    """The message and exit code of an error a user can cause (bad params, pairs,
+    images, weights, caches or paths); None for any other error."""
+    from papermill.exceptions import PapermillExecutionError
+
+    from . import config, data, distributed, metrics, pipeline, weights
+    from .images import ImageReadError
+    from .sequences import PairFileError
+    from .store import StoreCorruptError
+
+    if isinstance(error, PapermillExecutionError):
         # The failing cell's own error, without the notebook machinery around it.
-        print(f"error in {error.exec_count and 'cell ' + str(error.exec_count)}: {error.ename}: {error.evalue}",
-              file=sys.stderr)
-        print("the executed notebook (with the full traceback) is in the output folder", file=sys.stderr)
-        return 1
-    except (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
-            metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError, data.DataError) as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        return (f"error in {error.exec_count and 'cell ' + str(error.exec_count)}: {error.ename}: {error.evalue}\n"
+                "the executed notebook (with the full traceback) is in the output folder"), 1
+    if isinstance(error, (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
+                          metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError,
+                          StoreCorruptError, pipeline.ResultsError, data.DataError)):
+        return f"error: {error}", 2
+    if isinstance(error, OSError):  # a file or folder the user named cannot be used
+        where = f" {error.filename}:" if error.filename else ""
+        return f"error:{where} {error.strerror or error}; check that path (--debug shows the traceback)", 2
+    return None

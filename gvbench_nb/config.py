@@ -9,14 +9,18 @@ expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.d
 from __future__ import annotations
 
 import difflib
+import hashlib
+import json
 import os
 import re
+import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
 import yaml
 
 from . import methods as method_registry
+from .io_utils import atomic_write_json, atomic_write_text
 from .sequences import Sequence, frame_tolerance_pairs, read_pairs, write_pairs
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
@@ -69,8 +73,12 @@ def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
     """Read, validate and resolve a params file; ``overrides`` (not None) replace keys."""
     path = Path(path).resolve()
+    if path.is_dir():
+        examples = sorted(p.name for p in path.glob("*.yaml"))[:3]
+        raise ParamsError(f"params path {path} is a folder, not a params file; give a YAML file"
+                          + (f" such as {path / examples[0]}" if examples else ""))
     if not path.is_file():
-        raise ParamsError(f"params file not found: {path}")
+        raise ParamsError(f"params file not found: {path}; give the path of a params YAML (e.g. params/sample.yaml)")
     with open(path, encoding="utf-8") as handle:
         try:
             raw = yaml.safe_load(handle) or {}
@@ -206,21 +214,125 @@ PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
 }
 
 
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
+    """``<pairs>.builder.json``: what built a pair file (builder, options, seed, image root)."""
+    pairs = Path(pairs)
+    return pairs.with_name(pairs.name + ".builder.json")
+
+
+def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
+    """What a builder's output depends on, as JSON would read it back."""
+    stamp = {"pairs_builder": params["pairs_builder"], "builder_options": params["builder_options"],
+             "seed": params["seed"], "image_root": params["image_root"]}
+    return json.loads(json.dumps(stamp, sort_keys=True, default=str))
+
+
+def _stamp_matches(params: dict[str, Any]) -> bool:
+    """The pair file was built by this builder, with these options and seed, and not changed since."""
+    pairs, stamp_path = Path(params["pairs"]), builder_stamp_path(params["pairs"])
+    if not pairs.is_file() or not stamp_path.is_file():
+        return False
+    try:
+        recorded = json.loads(stamp_path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return False
+    if not isinstance(recorded, dict):
+        return False
+    sha256 = recorded.pop("pairs_sha256", None)
+    return recorded == builder_stamp(params) and sha256 == file_sha256(pairs)
+
+
+def _missing_pairs_error(params: dict[str, Any]) -> ParamsError:
+    pairs = Path(params["pairs"])
+    what = "is a folder, not a pair file" if pairs.is_dir() else "does not exist"
+    return ParamsError(f"{params['params_file']}: the pair file {pairs} {what}; set pairs to a file of "
+                       "'query_path reference_path label' lines, or set pairs_builder to make it")
+
+
 def prepare_sequence(params: dict[str, Any]) -> Sequence:
-    """The sequence of a params file, building its pairs (and images) when a builder is set."""
+    """The sequence of a params file, building its pairs (and images) when a builder is set.
+
+    A builder's pair file is rebuilt whenever its builder, options, seed or image root
+    differ from those recorded beside it (``<pairs>.builder.json``) or the file changed
+    since: a pair file made by a builder belongs to it, so change the options, not the file.
+    """
+    source = params["params_file"]
     if params["image_root"] is None:
         raise ParamsError(
-            f"{params['params_file']}: image_root is not set. Set it to the folder holding the images "
+            f"{source}: image_root is not set. Set it (or pass --image-root) to the folder holding the images "
             f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
         )
+    root = Path(params["image_root"])
     builder = params["pairs_builder"]
-    if builder in ("sample", "frame_tolerance") or (builder and not Path(params["pairs"]).is_file()):
+    if builder != "sample" and not root.is_dir():  # the sample builder renders its images into the root
+        from .data import fetch_hint
+
+        what = "is a file, not a folder" if root.exists() else "does not exist"
+        raise ParamsError(f"{source}: image_root {root} {what}"
+                          + (fetch_hint(root) or "; set image_root (or pass --image-root) to the folder "
+                             "holding the images that the pair file's paths are relative to"))
+    if builder and (builder == "sample" or not _stamp_matches(params)):
+        builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds
         PAIR_BUILDERS[builder](params)
-    sequence = Sequence(params["sequence"], Path(params["image_root"]), read_pairs(params["pairs"]))
+        atomic_write_json(builder_stamp_path(params["pairs"]),
+                          {**builder_stamp(params), "pairs_sha256": file_sha256(params["pairs"])})
+    if not Path(params["pairs"]).is_file():
+        raise _missing_pairs_error(params)
+    sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
     return sequence.limited(params["limit"])
+
+
+def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
+    """Where a sequence's pairs came from, as run.json records it."""
+    return {"params_file": params["params_file"], "pairs_file": params["pairs"],
+            "pairs_sha256": file_sha256(params["pairs"]), "image_root": params["image_root"],
+            "pairs_builder": params["pairs_builder"], "builder_options": params["builder_options"],
+            "seed": params["seed"], "limit": params["limit"]}
 
 
 def load_sequence_pairs_only(params: dict[str, Any]) -> Sequence:
     """Pairs without touching images (works for the official lists without their images)."""
     root = Path(params["image_root"]) if params["image_root"] else Path(".")
+    if not Path(params["pairs"]).is_file():
+        raise _missing_pairs_error(params)
     return Sequence(params["sequence"], root, read_pairs(params["pairs"])).limited(params["limit"])
+
+
+def check_writable_folder(params: dict[str, Any], key: str) -> Path:
+    """Create ``params[key]`` (a folder) if needed and check a file can be written in it."""
+    folder = Path(params[key])
+    flag = f"--{key.replace('_', '-')}"
+    if folder.exists() and not folder.is_dir():
+        raise ParamsError(f"{params['params_file']}: {key} {folder} is a file, not a folder; "
+                          f"set {key} (or pass {flag}) to a folder")
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
+            pass
+    except OSError as error:
+        raise ParamsError(f"{params['params_file']}: cannot write in {key} {folder} "
+                          f"({error.strerror or type(error).__name__}); set {key} (or pass {flag}) to a folder "
+                          "you can write in") from None
+    return folder
+
+
+RESOLVED_PARAMS_NAME = "params.resolved.yaml"
+
+
+def write_resolved_params(params: dict[str, Any], folder: str | os.PathLike[str]) -> Path:
+    """The params a run uses, command-line overrides applied and paths absolute, as one
+    YAML the notebooks load (``<output_dir>/params.resolved.yaml``)."""
+    keys = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
+    values = {key: params[key] for key in keys if key in params}
+    header = (f"# The params this run used: {params['params_file']} with the command line's overrides.\n"
+              "# Written by `python -m gvbench_nb run`; every notebook of the run loads this file.\n")
+    text = header + yaml.safe_dump(values, sort_keys=False, allow_unicode=True)
+    return atomic_write_text(Path(folder) / RESOLVED_PARAMS_NAME, text)

@@ -95,10 +95,11 @@ def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output
 
 
 # ------------------------------------------------------------------------- merge --
-def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path) -> list[Pair]:
+def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Pair]:
     store = pipeline.match_store(output_dir, conf)
     store.refresh()
-    missing = [p for p in sequence.pairs if pipeline.pair_key(p.query, p.reference) not in store]
+    missing = [p for p in sequence.pairs
+               if pipeline.pair_key(sequence.image_root, p.query, p.reference, seed) not in store]
     store.close()
     return missing
 
@@ -106,7 +107,7 @@ def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path)
 def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int = 0,
                  device: str = "auto", shards: list[dict[str, Any]] | None = None) -> pd.DataFrame:
     """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
-    missing = unfinished_pairs(sequence, conf, output_dir)
+    missing = unfinished_pairs(sequence, conf, output_dir, seed)
     if missing:
         first = sequence.pairs.index(missing[0])
         raise ShardError(
@@ -114,15 +115,17 @@ def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outp
             f"no result in {pipeline.match_store(output_dir, conf).folder} (first: pair {first}, "
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge.")
-    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir)
+    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
     folder = pipeline.method_dir(output_dir, conf["method"])
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "conf": conf, "seed": seed, "environment": pipeline.environment_info(resolve_device(device)),
+        "pairs": sequence.origin, "conf": conf, "seed": seed,
+        "environment": pipeline.environment_info(resolve_device(device)),
         "this_run": {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
     atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
+    (folder / pipeline.UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
 
 

@@ -15,6 +15,48 @@ class ImageReadError(OSError):
 
 _REPLACE_HINT = "copy the file again from its source, or remove the pairs that use it from the pair file"
 
+# Images above this many pixels are refused before decoding (a 20000 x 20000 PNG of 1 MB
+# decodes to gigabytes). 64 MP is over 50 times a GV-Bench frame and above most cameras;
+# $GVBENCH_MAX_PIXELS raises or lowers it.
+DEFAULT_MAX_PIXELS = 64_000_000
+
+
+def max_pixels() -> int:
+    """The pixel bound: $GVBENCH_MAX_PIXELS, else ``DEFAULT_MAX_PIXELS``."""
+    value = os.environ.get("GVBENCH_MAX_PIXELS")
+    if not value:
+        return DEFAULT_MAX_PIXELS
+    if not value.isdigit() or int(value) < 1:
+        raise ImageReadError(f"GVBENCH_MAX_PIXELS must be a positive whole number of pixels, got {value!r}; "
+                             "fix or unset it")
+    return int(value)
+
+
+def check_pixel_bound(path: str | os.PathLike[str]) -> None:
+    """Refuse an image whose header says it is larger than ``max_pixels()``, without decoding it.
+
+    Pillow reads only the header here; a file it cannot identify is left to the decoder.
+    """
+    from PIL import Image
+
+    import re
+
+    bound = max_pixels()
+    try:
+        with Image.open(path) as image:  # lazy: the pixels are not read
+            width, height = image.size
+            size, pixels = f"is {width} x {height} = {width * height:,} pixels", width * height
+    except Image.DecompressionBombError as error:  # Pillow's own limit, far above ours; it says the count
+        found = re.search(r"\((\d+) pixels\)", str(error))
+        pixels = int(found.group(1)) if found else bound + 1
+        size = f"has {pixels:,} pixels" if found else "is larger than Pillow opens"
+    except Exception:  # not a format Pillow knows (or damaged): the decoder reports it
+        return
+    if pixels > bound:
+        raise ImageReadError(
+            f"image {path} {size}, above the bound of {bound:,} pixels (refused before decoding); "
+            "shrink it, or raise the bound with GVBENCH_MAX_PIXELS")
+
 
 def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
     """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
@@ -26,6 +68,7 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     if not path.is_file():
         what = "is a folder, not an image file" if path.is_dir() else "not found"
         raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
+    check_pixel_bound(path)
     try:
         data = np.fromfile(path, dtype=np.uint8)
     except OSError as error:

@@ -8,6 +8,7 @@ where an interrupted run stopped and evaluation reads only what runs wrote.
 from __future__ import annotations
 
 import datetime as _dt
+import hashlib
 import json
 import os
 import platform
@@ -106,9 +107,45 @@ def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedSto
     return ShardedStore(Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}")
 
 
+# (resolved path, size, mtime_ns, inode, device) -> content key: a file is hashed again
+# only when one of those changes, so a run hashes each image once.
+_content_keys: dict[tuple[str, int, int, int, int], str] = {}
+_content_keys_lock = threading.Lock()
+
+
+def content_key(path: str | os.PathLike[str]) -> str:
+    """``blake2b-<hex>`` of a file's bytes: the cache key of what the file holds, not where it is."""
+    path = Path(path)
+    try:
+        stat = path.stat()
+    except OSError:
+        stat = None
+    if stat is None or not path.is_file():
+        what = "is a folder, not an image file" if path.is_dir() else "not found"
+        raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
+    memo = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_dev)
+    with _content_keys_lock:
+        known = _content_keys.get(memo)
+    if known is not None:
+        return known
+    digest = hashlib.blake2b(digest_size=20)
+    try:
+        with open(path, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
+    key = f"blake2b-{digest.hexdigest()}"
+    with _content_keys_lock:
+        _content_keys[memo] = key
+    return key
+
+
 def image_key(image_root: Path, name: str) -> str:
-    # Keyed by the resolved path: sequences sharing images share cache entries.
-    return str((Path(image_root) / name).resolve())
+    """Feature-cache key of image ``name``: its content, so a replaced image or another
+    root is extracted again while identical files (any sequence, any path) share an entry.
+    The extractor conf is the store's folder name (``feature_store``)."""
+    return content_key(Path(image_root) / name)
 
 
 def first_pair_using(sequence: Sequence, name: str) -> str:
@@ -143,7 +180,13 @@ def extract_features(
     Returns counts."""
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
-    wanted = {image_key(sequence.image_root, name): name for name in (sequence.images if images is None else images)}
+    wanted: dict[str, str] = {}
+    for name in sequence.images if images is None else images:
+        try:
+            wanted.setdefault(image_key(sequence.image_root, name), name)
+        except ImageReadError as error:
+            raise ImageReadError(f"{error} (image {name!r} of sequence {sequence.name!r}, "
+                                 f"{first_pair_using(sequence, name)})") from None
     todo = [key for key in wanted if key not in store]
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:
@@ -152,7 +195,7 @@ def extract_features(
 
     def load(key: str) -> tuple[np.ndarray, float]:
         try:
-            return load_for_extraction(key, extractor_conf)
+            return load_for_extraction(Path(sequence.image_root) / wanted[key], extractor_conf)
         except Exception as error:  # whatever decoding raised, it is this image's fault
             if isinstance(error, ImageReadError):
                 raise
@@ -235,8 +278,24 @@ class PreparedCache:
         return len(self._states)
 
 
-def pair_key(query: str, reference: str) -> str:
-    return f"{query}\t{reference}"
+def pair_key(image_root: Path, query: str, reference: str, seed: int) -> str:
+    """Match-store key of a pair: both images' content keys (a changed image or root
+    matches again), their names and the seed (which seed its RANSAC: ``pair_seed``).
+    The extractor, matcher and verifier confs are the store's folder name (``match_store``);
+    dense matchers have no feature entry, and the content keys serve them the same way."""
+    return "\t".join([query, reference, image_key(image_root, query), image_key(image_root, reference), f"seed={seed}"])
+
+
+def pair_keys(sequence: Sequence, seed: int) -> dict[Any, str]:
+    """``pair_key`` of every pair; a missing or unreadable image is named with its pair."""
+    keys = {}
+    for index, pair in enumerate(sequence.pairs):
+        try:
+            keys[pair] = pair_key(sequence.image_root, pair.query, pair.reference, seed)
+        except ImageReadError as error:
+            raise ImageReadError(f"{error} (pair {index}: {pair.query} {pair.reference} of sequence "
+                                 f"{sequence.name!r})") from None
+    return keys
 
 
 def pair_seed(seed: int, query: str, reference: str) -> int:
@@ -246,6 +305,58 @@ def pair_seed(seed: int, query: str, reference: str) -> int:
 
 def method_dir(output_dir: Path, method: str) -> Path:
     return Path(output_dir) / method
+
+
+UNFINISHED_MARKER = ".unfinished.json"  # in a method folder while a run is making its outputs
+FINISHED_OUTPUTS = ("pairs.csv", "run.json")
+
+
+class ResultsError(FileNotFoundError):
+    """An output folder holds no results, or a method's results are unfinished or partial."""
+
+
+def claim_method_outputs(output_dir: Path, methods: Iterable[str], params_file: str | None = None) -> None:
+    """Before any work of a run: remove each method's previous ``pairs.csv`` and
+    ``run.json`` (and the folder's ``results.csv``) and mark its folder unfinished, so a
+    run that fails at any point leaves nothing that looks like its result."""
+    output_dir = Path(output_dir)
+    (output_dir / "results.csv").unlink(missing_ok=True)
+    for method in methods:
+        folder = method_dir(output_dir, method)
+        atomic_write_json(folder / UNFINISHED_MARKER, {
+            "started_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+            "pid": os.getpid(), "host": platform.node(), "params_file": params_file})
+        for stale in FINISHED_OUTPUTS:
+            (folder / stale).unlink(missing_ok=True)
+
+
+def unfinished_methods(output_dir: Path) -> dict[str, str]:
+    """Method folders under ``output_dir`` whose results are not those of one finished
+    run: method -> why (a run started and did not finish, or a file of the pair is missing)."""
+    problems = {}
+    for folder in sorted(p for p in Path(output_dir).iterdir() if p.is_dir()) if Path(output_dir).is_dir() else []:
+        marker = folder / UNFINISHED_MARKER
+        present = [name for name in FINISHED_OUTPUTS if (folder / name).is_file()]
+        if marker.is_file():
+            try:
+                started = json.loads(marker.read_text(encoding="utf-8")).get("started_at", "?")
+            except (OSError, ValueError):
+                started = "?"
+            problems[folder.name] = f"a run started at {started} has not finished (still running, failed or killed)"
+        elif len(present) == 1:
+            missing = next(name for name in FINISHED_OUTPUTS if name not in present)
+            problems[folder.name] = f"{folder / missing} is missing beside {present[0]}"
+    return problems
+
+
+def check_results_finished(output_dir: Path) -> None:
+    """Raise ``ResultsError`` naming each unfinished or partial method folder and what to do."""
+    problems = unfinished_methods(output_dir)
+    if problems:
+        lines = "; ".join(f"{method}: {why}" for method, why in problems.items())
+        raise ResultsError(
+            f"{output_dir} holds unfinished results ({lines}); run those methods again "
+            f"(python -m gvbench_nb run PARAMS --methods {','.join(problems)}) or delete their folders")
 
 
 def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
@@ -269,13 +380,14 @@ def match_and_verify(
     pairs at a time (default: ``worker_count()``; dense matchers run one pair at a time)."""
     matches = match_store(output_dir, conf)
     matches.refresh()
-    todo = [p for p in sequence.pairs if pair_key(p.query, p.reference) not in matches]
+    keys = pair_keys(sequence, seed)
+    todo = [p for p in sequence.pairs if keys[p] not in matches]
     counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
     if not todo:
         return counts
     matcher = build_matcher(conf["matcher"], resolve_device(device))
     if conf["extractor"] is None:
-        _match_dense_pairs(sequence, todo, conf, matcher, matches, seed, progress, flush_every)
+        _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every)
         counts["matched"] = len(todo)
         return counts
     features = feature_store(cache_dir, conf["extractor"])
@@ -321,7 +433,7 @@ def match_and_verify(
                 if isinstance(matched, BaseException):
                     raise matched
                 features0, features1, pair_matches, match_scores, match_seconds = matched
-                _verify_and_store(writer, pair, conf, seed, features0["keypoints"], features1["keypoints"],
+                _verify_and_store(writer, pair, keys[pair], conf, seed, features0["keypoints"], features1["keypoints"],
                                   pair_matches, match_scores, {"matches": pair_matches.astype(np.int32)},
                                   match_seconds)
                 counts["matched"] += 1
@@ -333,7 +445,7 @@ def match_and_verify(
                 if isinstance(done, BaseException):
                     raise done
                 pair_matches, match_scores, verified, match_seconds, verify_seconds = done
-                _store_verified(writer, pair, pair_matches, match_scores, verified,
+                _store_verified(writer, keys[pair], pair_matches, match_scores, verified,
                                 {"matches": pair_matches.astype(np.int32)}, match_seconds, verify_seconds)
                 counts["matched"] += 1
                 bar.update()
@@ -341,12 +453,12 @@ def match_and_verify(
     return counts
 
 
-def _verify_and_store(writer: Any, pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray,
+def _verify_and_store(writer: Any, pair: Any, key: str, conf: dict[str, Any], seed: int, keypoints0: np.ndarray,
                       keypoints1: np.ndarray, pair_matches: np.ndarray, match_scores: np.ndarray,
                       arrays: dict[str, np.ndarray], match_seconds: float) -> None:
     """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
     verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores)
-    _store_verified(writer, pair, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
+    _store_verified(writer, key, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
 
 
 def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray, keypoints1: np.ndarray,
@@ -358,19 +470,19 @@ def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndar
     return verified, time.perf_counter() - start
 
 
-def _store_verified(writer: Any, pair: Any, pair_matches: np.ndarray, match_scores: np.ndarray,
+def _store_verified(writer: Any, key: str, pair_matches: np.ndarray, match_scores: np.ndarray,
                     verified: dict[str, Any], arrays: dict[str, np.ndarray], match_seconds: float,
                     verify_seconds: float) -> None:
     """Commit one verified pair: its matches, inlier mask, counts and timings."""
     writer.put(
-        pair_key(pair.query, pair.reference),
+        key,
         {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
         {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
          "num_inliers": verified["num_inliers"], "match_seconds": match_seconds, "verify_seconds": verify_seconds},
     )
 
 
-def _match_dense_pairs(sequence: Sequence, todo: list, conf: dict[str, Any], matcher: Callable, matches: ShardedStore,
+def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], conf: dict[str, Any], matcher: Callable, matches: ShardedStore,
                        seed: int, progress: bool, flush_every: int) -> None:
     """Dense matchers (LoFTR) see both images of every pair: no per-image cache.
     Decoding overlaps compute through the same prefetching loader."""
@@ -390,13 +502,14 @@ def _match_dense_pairs(sequence: Sequence, todo: list, conf: dict[str, Any], mat
             points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
             match_seconds = time.perf_counter() - start
             identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
-            _verify_and_store(writer, pair, conf, seed, points0, points1, identity, match_scores,
+            _verify_and_store(writer, pair, keys[pair], conf, seed, points0, points1, identity, match_scores,
                               {"points0": points0, "points1": points1}, match_seconds)
             bar.update()
     bar.close()
 
 
-def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path) -> pd.DataFrame:
+def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int
+                ) -> pd.DataFrame:
     """The per-pair table of a finished run, built only from the stores."""
     matches = match_store(output_dir, conf)
     matches.refresh()
@@ -410,9 +523,10 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
             entry = features.read(image_key(sequence.image_root, name), fields=("keypoints",))  # not descriptors
             image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
         features.close()
+    keys = pair_keys(sequence, seed)
     rows = []
     for index, pair in enumerate(sequence.pairs):
-        entry = matches.read(pair_key(pair.query, pair.reference), fields=())  # the counts and timers only
+        entry = matches.read(keys[pair], fields=())  # the counts and timers only
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
             extract_seconds = 0.0
@@ -482,8 +596,7 @@ def run_method(
     configure_threads(threads)
     folder = method_dir(output_dir, method)
     # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
-    for stale in ("pairs.csv", "run.json"):
-        (folder / stale).unlink(missing_ok=True)
+    claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
     started = time.perf_counter()
     workers = worker_count(workers)
     extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
@@ -491,16 +604,17 @@ def run_method(
     extracted = time.perf_counter()
     matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers)
     finished = time.perf_counter()
-    table = pairs_table(sequence, conf, cache_dir, output_dir)
+    table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
     # pairs.csv is written last: its presence marks a finished run (methods_with_results).
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
+        "pairs": sequence.origin, "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
         "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
                      "extract_wall_seconds": extracted - started, "match_verify_wall_seconds": finished - extracted},
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
     atomic_write_csv(folder / "pairs.csv", table)
+    (folder / UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
 
 
@@ -508,7 +622,7 @@ def run_method(
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     path = method_dir(output_dir, method) / "pairs.csv"
     if not path.is_file():
-        raise FileNotFoundError(f"no results for method {method!r}: {path} is missing; run the method first")
+        raise ResultsError(f"no results for method {method!r}: {path} is missing; run the method first")
     return pd.read_csv(path, keep_default_na=False)
 
 
@@ -524,7 +638,9 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
     output_dir = Path(output_dir)
     methods = methods or methods_with_results(output_dir)
     if not methods:
-        raise FileNotFoundError(f"no method results under {output_dir}: run a method first")
+        what = "does not exist" if not output_dir.exists() else "holds no method results (<method>/pairs.csv)"
+        raise ResultsError(f"{output_dir} {what}; give the output_dir of a finished run, or run a method first "
+                           "(python -m gvbench_nb run PARAMS)")
     rows = []
     for method in methods:
         table = load_pairs_table(output_dir, method)

@@ -3,14 +3,23 @@
 Pair files use GV-Bench's format, one pair a line: ``query_path reference_path label``
 with paths relative to the image root and label 1 (true loop closure) or 0. Loading
 pairs never touches the images, so the official lists load without them.
+
+A path holding spaces is written in double or single quotes (``"day 1/a b.jpg"``); on
+a line with quotes a backslash escapes the next character, as in a POSIX shell. Paths
+are normalised (``night/./a.jpg`` and ``night//a.jpg`` are ``night/a.jpg``) before the
+checks for duplicates and self-pairs. Symlinks inside the image root are followed,
+wherever they point: the caches key images by their content, so a link is the file it
+names (see docs/reliability.md).
 """
 
 from __future__ import annotations
 
 import os
+import posixpath
 import random
+import shlex
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
 from typing import Iterable, Sequence as SequenceType
 
@@ -23,11 +32,49 @@ class PairFileError(ValueError):
     """A pair file line is malformed, duplicated or points outside the image root."""
 
 
+class MissingImagesError(PairFileError):
+    """Images the pairs name are not under the image root."""
+
+
 @dataclass(frozen=True)
 class Pair:
     query: str
     reference: str
     label: int
+
+
+MAX_PATH_CHARS = 4096  # PATH_MAX of Linux; longer names cannot be opened anyway
+MAX_NAME_BYTES = 255  # NAME_MAX: the longest file or folder name most file systems take
+
+
+def shorten(text: str, limit: int = 80) -> str:
+    """``text`` cut to ``limit`` characters with how long it was (for error messages)."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def _check_length(path_text: str, where: str) -> None:
+    if len(path_text) > MAX_PATH_CHARS:
+        raise PairFileError(f"{where}: path {shorten(path_text)!r} is longer than {MAX_PATH_CHARS} characters; "
+                            "is this line a pair? Write 'query_path reference_path label'")
+    longest = max(path_text.replace("\\", "/").split("/"), key=lambda part: len(part.encode()))
+    if len(longest.encode()) > MAX_NAME_BYTES:
+        raise PairFileError(f"{where}: the name {shorten(longest)!r} in a path is longer than {MAX_NAME_BYTES} bytes, "
+                            "which file systems do not allow; fix the path")
+
+
+def normalise_path(path_text: str) -> str:
+    """``night/./a.jpg``, ``night//a.jpg`` -> ``night/a.jpg``: one spelling a file."""
+    return posixpath.normpath(path_text)
+
+
+def _split_fields(line: str, where: str) -> list[str]:
+    if '"' not in line and "'" not in line:
+        return line.split()
+    try:
+        return shlex.split(line, comments=False, posix=True)
+    except ValueError as error:  # an unclosed quote
+        raise PairFileError(f"{where}: {error} in {shorten(line)!r}; close the quote around the path "
+                            "(paths with spaces are written \"like this.jpg\")") from None
 
 
 def _check_relative(path_text: str, where: str) -> None:
@@ -47,36 +94,51 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
     line number and say what to do.
     """
     pairs: list[Pair] = []
-    seen: dict[tuple[str, str], int] = {}
+    seen: dict[tuple[str, str], tuple[int, int]] = {}  # (query, reference) -> (line, label)
     for line_number, raw in enumerate(lines, start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
         where = f"{source}:{line_number}"
-        fields = line.split()
+        fields = _split_fields(line, where)
         if len(fields) != 3:
+            hint = ("; write a path holding spaces in quotes, e.g. \"day 1/a.jpg\""
+                    if len(fields) > 3 and fields[-1] in ("0", "1") else "")
             raise PairFileError(
-                f"{where}: expected 3 fields 'query_path reference_path label', got {len(fields)}: {line!r}"
+                f"{where}: expected 3 fields 'query_path reference_path label', got {len(fields)}: "
+                f"{shorten(line)!r}{hint}"
             )
         query, reference, label_text = fields
         if label_text not in ("0", "1"):
-            raise PairFileError(f"{where}: label must be 0 or 1, got {label_text!r}")
-        _check_relative(query, where)
-        _check_relative(reference, where)
-        key = (query, reference)
-        if key in seen:
-            raise PairFileError(
-                f"{where}: duplicate pair {query} {reference} (first on line {seen[key]}); remove one of them"
-            )
-        seen[key] = line_number
-        pairs.append(Pair(query, reference, int(label_text)))
+            raise PairFileError(f"{where}: label must be 0 or 1, got {shorten(label_text)!r}")
+        for path_text in (query, reference):
+            _check_length(path_text, where)
+            _check_relative(path_text, where)
+        query, reference = normalise_path(query), normalise_path(reference)
+        label = int(label_text)
+        if query == reference:
+            raise PairFileError(f"{where}: self-pair: query and reference are both {query}; "
+                                "a pair needs two different images, remove this line")
+        for key, order in (((query, reference), ""), ((reference, query), ", in the other order")):
+            if key in seen:
+                first_line, first_label = seen[key]
+                labels = (f", with the opposite label: {first_label} there, {label} here"
+                          if first_label != label else "")
+                raise PairFileError(
+                    f"{where}: duplicate pair {query} {reference} (first on line {first_line}{order}{labels}); "
+                    "remove one of them"
+                )
+        seen[(query, reference)] = (line_number, label)
+        pairs.append(Pair(query, reference, label))
     return pairs
 
 
 def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     path = Path(path)
     if not path.is_file():
-        raise FileNotFoundError(f"pair file not found: {path}")
+        what = "is a folder, not a pair file" if path.is_dir() else "not found"
+        raise PairFileError(f"pair file {what}: {path}; set the params' pairs to a file of "
+                            "'query_path reference_path label' lines (or a pairs_builder that makes it)")
     data = path.read_bytes()
     try:
         # utf-8-sig drops the byte-order mark some Windows editors write.
@@ -94,11 +156,18 @@ def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     return pairs
 
 
+def quote_path(path_text: str) -> str:
+    """A path as a pair file writes it: in quotes when it holds spaces or quotes."""
+    if path_text and not any(ch.isspace() or ch in "'\"" for ch in path_text):
+        return path_text
+    return shlex.quote(path_text)
+
+
 def format_pairs(pairs: Iterable[Pair | tuple[str, str, int]]) -> str:
     lines = []
     for pair in pairs:
         query, reference, label = (pair.query, pair.reference, pair.label) if isinstance(pair, Pair) else pair
-        lines.append(f"{query} {reference} {int(label)}")
+        lines.append(f"{quote_path(query)} {quote_path(reference)} {int(label)}")
     return "\n".join(lines) + "\n"
 
 
@@ -108,8 +177,8 @@ def write_pairs(path: str | os.PathLike[str], pairs: Iterable[Pair | tuple[str, 
     for pair in pairs:
         if pair.label not in (0, 1):
             raise PairFileError(f"label must be 0 or 1, got {pair.label!r} for {pair}")
-        if any(len(part.split()) != 1 for part in (pair.query, pair.reference)):
-            raise PairFileError(f"paths may not contain whitespace: {pair}")
+        if any(not part.strip() or "\n" in part or "\r" in part for part in (pair.query, pair.reference)):
+            raise PairFileError(f"paths may not be empty or hold line breaks: {pair}")
     return atomic_write_text(Path(path), format_pairs(pairs))
 
 
@@ -120,6 +189,8 @@ class Sequence:
     name: str
     image_root: Path
     pairs: list[Pair]
+    # Where the pairs came from (pair file and its SHA-256, builder and options), for run.json.
+    origin: dict[str, object] = field(default_factory=dict, compare=False)
 
     @property
     def images(self) -> list[str]:
@@ -146,10 +217,26 @@ class Sequence:
             return self
         if limit < 1:
             raise ValueError(f"limit must be a positive number of pairs, got {limit}")
-        return Sequence(self.name, self.image_root, self.pairs[:limit])
+        return Sequence(self.name, self.image_root, self.pairs[:limit], {**self.origin, "limit": limit})
 
     def missing_images(self) -> list[str]:
         return [name for name in self.images if not (self.image_root / name).is_file()]
+
+    def check_images(self) -> None:
+        """Raise ``MissingImagesError`` naming how many images are missing, the first one
+        and the pair that uses it, when any image of the pairs is not a file."""
+        if not Path(self.image_root).is_dir():
+            raise MissingImagesError(
+                f"image_root {self.image_root} of sequence {self.name!r} does not exist or is not a folder; "
+                "set image_root (or --image-root) to the folder the pair file's paths are relative to")
+        missing = self.missing_images()
+        if missing:
+            index, pair = next((i, p) for i, p in enumerate(self.pairs) if missing[0] in (p.query, p.reference))
+            raise MissingImagesError(
+                f"{len(missing)} of {len(self.images)} images of sequence {self.name!r} are missing under "
+                f"{self.image_root}, first {missing[0]} (pair {index}: {pair.query} {pair.reference}"
+                f"{', ' + str(self.origin['pairs_file']) if self.origin.get('pairs_file') else ''}); "
+                "restore them, or remove the pairs that use them")
 
 
 def summarize(sequence: Sequence) -> dict[str, object]:

@@ -231,7 +231,7 @@ class CachedMatches:
         return self._read_image(name)
 
     def pair(self, query: str, reference: str) -> PairMatches:
-        key = pipeline.pair_key(query, reference)
+        key = pipeline.pair_key(self.image_root, query, reference, self.seed)
         if key not in self.matches:
             raise KeyError(f"pair {query} {reference} is not in the match store {self.matches.folder}; "
                            f"rerun {self.method!r} on these pairs")

@@ -200,12 +200,26 @@ def missing_message(name: str) -> str:
     return "\n".join(lines)
 
 
+# (path, size, mtime_ns) of checkpoints that loaded with weights_only=True in this process.
+_checked_checkpoints: set[tuple[str, int, int]] = set()
+
+
 def require(*names: str) -> list[Path]:
-    """Paths of the named checkpoints; raises one error listing every missing one."""
+    """Paths of the named checkpoints; raises one error listing every missing one, and
+    ``CheckpointReadError`` for one that does not load safely (``load_checkpoint``), before
+    a model's loader sees it: kornia's would quote torch's advice to drop weights_only
+    and then try to download the file again."""
     missing = [n for n in names if not is_present(n)]
     if missing:
         raise MissingWeightsError("\n".join(missing_message(n) for n in missing))
-    return [checkpoint_path(n) for n in names]
+    paths = [checkpoint_path(n) for n in names]
+    for path in paths:
+        stat = path.stat()
+        memo = (str(path), stat.st_size, stat.st_mtime_ns)
+        if memo not in _checked_checkpoints:
+            load_checkpoint(path)
+            _checked_checkpoints.add(memo)
+    return paths
 
 
 def link_carried_weights() -> dict[str, str]:

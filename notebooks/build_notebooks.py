@@ -59,7 +59,7 @@ plots.save(figure, figures / "build_candidates.png"); plt.show()"""),
     "01_sequence.ipynb": [
         ("md", "# 01 - What a sequence holds\nCounts, positives a query and example pairs of one sequence."),
         ("params", """\
-params_file = "../params/sample.yaml"  # a params YAML (paths inside are relative to it)
+params_file = "../params/sample.yaml"  # a params YAML (paths inside are relative to it); a run passes its params.resolved.yaml
 limit = None  # first N pairs only
 output_dir = None  # default: the params file's output_dir"""),
         ("code", SETUP),
@@ -71,8 +71,7 @@ summary = sequences.summarize(sequence)
 pd.Series(summary, name=sequence.name).to_frame()"""),
         ("code", """\
 pairs = sequence.to_frame()
-missing = sequence.missing_images()
-assert not missing, f"{len(missing)} images missing under {sequence.image_root}, e.g. {missing[:3]}"
+sequence.check_images()  # names the first missing image and its pair
 figure = plots.positives_per_query(pairs, title=f"{sequence.name}: true references a query")
 plots.save(figure, figures / "sequence_positives_per_query.png"); plt.show()"""),
         ("code", """\

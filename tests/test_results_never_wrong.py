@@ -1,0 +1,493 @@
+"""Fault injection: no change of input leaves a stale result, and every error a user can
+cause is one sentence naming what, where and what to do.
+
+Part of ``pytest -m reliability``. The sequence is four small photographs (scikit-image's)
+and their warped copies, matched with SIFT at native size: seconds, no real data needed.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import struct
+import zlib
+from pathlib import Path
+
+import cv2
+import h5py
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+
+from gvbench_nb import cli, config, pipeline, weights
+from gvbench_nb.images import ImageReadError, read_image
+from gvbench_nb.sequences import (Pair, PairFileError, Sequence, format_pairs, frame_tolerance_pairs, parse_pairs,
+                                  read_pairs, write_pairs)
+from gvbench_nb.store import ShardedStore, StoreCorruptError
+
+pytestmark = pytest.mark.reliability
+
+METHOD, PROFILE = "sift-nn", "paper"
+PHOTOS = ("astronaut", "coffee", "chelsea", "rocket", "camera")
+SCORE_COLUMNS = ["query", "reference", "label", "num_keypoints_query", "num_keypoints_reference",
+                 "num_matches", "num_inliers", "score"]
+
+
+def _photo(name: str, warped: bool) -> np.ndarray:
+    import skimage.data
+
+    image = getattr(skimage.data, name)()
+    image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
+    image = cv2.resize(image, (320, 240), interpolation=cv2.INTER_AREA)
+    if warped:  # the "query" view: a small rotation and zoom
+        matrix = cv2.getRotationMatrix2D((160, 120), 4.0, 1.05)
+        image = cv2.warpAffine(image, matrix, (320, 240), borderMode=cv2.BORDER_REFLECT)
+    return image
+
+
+def write_root(root: Path, photos: tuple[str, str] = ("astronaut", "coffee")) -> Path:
+    """``query/a.png``, ``query/b.png`` (warped) and ``reference/a.png``, ``reference/b.png``."""
+    for folder, warped in (("query", True), ("reference", False)):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+        for letter, photo in zip("ab", photos):
+            cv2.imwrite(str(root / folder / f"{letter}.png"), cv2.cvtColor(_photo(photo, warped), cv2.COLOR_RGB2BGR))
+    return root
+
+
+PAIRS = [Pair("query/a.png", "reference/a.png", 1), Pair("query/a.png", "reference/b.png", 0),
+         Pair("query/b.png", "reference/b.png", 1), Pair("query/b.png", "reference/a.png", 0)]
+
+
+def run(root: Path, work: Path, pairs: list[Pair] = PAIRS, seed: int = 0) -> pd.DataFrame:
+    sequence = Sequence("photos", root, list(pairs))
+    return pipeline.run_method(sequence, METHOD, PROFILE, work / "out", work / "cache", device="cpu",
+                               seed=seed, progress=False, threads=1)
+
+
+def this_run(work: Path) -> dict:
+    return json.loads((work / "out" / METHOD / "run.json").read_text())["this_run"]
+
+
+@pytest.fixture
+def root(tmp_path) -> Path:
+    return write_root(tmp_path / "images")
+
+
+# ------------------------------------------------------- 1, 2: content-keyed caches --
+def test_an_image_replaced_in_place_is_extracted_and_matched_again(root, tmp_path):
+    first = run(root, tmp_path / "work")
+    other = cv2.cvtColor(_photo("chelsea", warped=True), cv2.COLOR_RGB2BGR)
+    cv2.imwrite(str(root / "query" / "a.png"), other)  # another photo, same name
+    second = run(root, tmp_path / "work")
+    fresh = run(root, tmp_path / "fresh")
+    pd.testing.assert_frame_equal(second[SCORE_COLUMNS], fresh[SCORE_COLUMNS])
+    assert not first[SCORE_COLUMNS].equals(second[SCORE_COLUMNS])
+    # Exactly what the change invalidates: one image, the two pairs that use it.
+    assert this_run(tmp_path / "work")["extraction"] == {"images": 4, "cached": 3, "extracted": 1}
+    assert this_run(tmp_path / "work")["matching"] == {"pairs": 4, "cached": 2, "matched": 2}
+
+
+def test_another_image_root_with_the_same_output_dir_recomputes_every_score(root, tmp_path):
+    other = write_root(tmp_path / "other_images", photos=("chelsea", "rocket"))
+    run(root, tmp_path / "work")
+    switched = run(other, tmp_path / "work")
+    fresh = run(other, tmp_path / "fresh")
+    pd.testing.assert_frame_equal(switched[SCORE_COLUMNS], fresh[SCORE_COLUMNS])
+    assert this_run(tmp_path / "work")["matching"]["matched"] == 4
+
+
+def test_an_identical_copy_of_the_images_elsewhere_reuses_the_caches(root, tmp_path):
+    first = run(root, tmp_path / "work")
+    copy = shutil.copytree(root, tmp_path / "copy")
+    again = run(copy, tmp_path / "work")
+    pd.testing.assert_frame_equal(first[SCORE_COLUMNS], again[SCORE_COLUMNS])
+    assert this_run(tmp_path / "work")["extraction"]["extracted"] == 0
+    assert this_run(tmp_path / "work")["matching"]["matched"] == 0
+
+
+def test_another_seed_is_verified_again(root, tmp_path):
+    run(root, tmp_path / "work", seed=0)
+    run(root, tmp_path / "work", seed=1)
+    assert this_run(tmp_path / "work")["matching"]["matched"] == 4
+    assert this_run(tmp_path / "work")["extraction"]["extracted"] == 0  # features do not depend on it
+
+
+def test_content_keys_follow_the_bytes_not_the_name(root, tmp_path):
+    key = pipeline.image_key(root, "query/a.png")
+    assert key == pipeline.content_key(root / "query" / "a.png")
+    assert key.startswith("blake2b-") and str(root) not in key
+    assert pipeline.image_key(shutil.copytree(root, tmp_path / "copy"), "query/a.png") == key
+    (root / "query" / "a.png").write_bytes((root / "query" / "b.png").read_bytes())
+    assert pipeline.image_key(root, "query/a.png") != key
+    with pytest.raises(ImageReadError, match="image not found: .*missing.png; check image_root"):
+        pipeline.image_key(root, "missing.png")
+
+
+# ----------------------------------------- 3: builder-built pair files and run.json --
+def _frame_root(root: Path) -> Path:
+    for folder in ("night", "day"):
+        (root / folder).mkdir(parents=True)
+        for frame in range(60):
+            (root / folder / f"Image{frame:03d}.png").write_bytes(b"")  # the builder reads names only
+    return root
+
+
+def _params(tmp_path: Path, **changes) -> Path:
+    params = {"sequence": "s", "image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "pairs.txt"),
+              "methods": [METHOD], "profile": PROFILE, "output_dir": str(tmp_path / "out"), "seed": 0}
+    params.update(changes)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+def test_a_builder_pair_file_is_rebuilt_when_its_options_or_seed_change(tmp_path):
+    _frame_root(tmp_path / "images")
+    options = {"query_folder": "night", "reference_folder": "day", "candidates_per_query": 10}
+
+    def build(seed: int = 0, **option_changes) -> Sequence:
+        path = _params(tmp_path, pairs_builder="frame_tolerance", builder_options={**options, **option_changes},
+                       seed=seed)
+        return config.prepare_sequence(config.load_params(path))
+
+    def expected(candidates_per_query: int) -> int:
+        names = [f"Image{frame:03d}.png" for frame in range(60)]
+        return len(frame_tolerance_pairs([f"night/{n}" for n in names], [f"day/{n}" for n in names],
+                                         candidates_per_query=candidates_per_query))
+
+    assert len(build().pairs) == expected(10) > len(build(candidates_per_query=4).pairs) == expected(4)
+    first_seed = build(seed=0).pairs
+    assert build(seed=1).pairs != first_seed and build(seed=0).pairs == first_seed
+    sequence = build()
+    pairs_file = tmp_path / "pairs.txt"
+    assert sequence.origin["pairs_sha256"] == hashlib.sha256(pairs_file.read_bytes()).hexdigest()
+    assert sequence.origin["builder_options"] == options and sequence.origin["pairs_builder"] == "frame_tolerance"
+    # A builder's file edited by hand is its builder's again at the next run.
+    pairs_file.write_text("night/Image000.png day/Image001.png 1\n")
+    assert len(build().pairs) == expected(10)
+
+
+def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root, tmp_path):
+    pairs_file = write_pairs(tmp_path / "pairs.txt", PAIRS)
+    params = config.load_params(_params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache")))
+    sequence = config.prepare_sequence(params)
+    pipeline.run_method(sequence, METHOD, PROFILE, Path(params["output_dir"]), Path(params["cache_dir"]),
+                        device="cpu", progress=False, threads=1)
+    recorded = json.loads((Path(params["output_dir"]) / METHOD / "run.json").read_text())
+    assert recorded["pairs"]["pairs_sha256"] == hashlib.sha256(pairs_file.read_bytes()).hexdigest()
+    assert recorded["pairs"]["pairs_file"] == str(pairs_file)
+    assert recorded["pairs"]["builder_options"] == {} and recorded["pairs"]["pairs_builder"] is None
+    assert recorded["image_root"] == recorded["pairs"]["image_root"] == str(root)
+
+
+# ------------------------------------------------------ 4, 5: a run owns its outputs --
+def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(root, tmp_path, monkeypatch):
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    params_path = _params(tmp_path, image_root=None)  # as the official lists ship: no image root
+    seen: list[dict] = []
+
+    def fake_execute(name, output_path, parameters):  # what each notebook's first cell loads
+        loaded = config.load_params(parameters["params_file"], profile=parameters.get("profile"))
+        seen.append({"notebook": name, "image_root": loaded["image_root"], "limit": loaded["limit"],
+                     "profile": loaded["profile"], "output_dir": loaded["output_dir"]})
+        if name == "03_evaluate.ipynb":
+            output_path.parent.mkdir(parents=True, exist_ok=True)
+            pd.DataFrame([{"method": METHOD, "profile": "fast", "n_pairs": 3, "n_positives": 2, "ap": 1.0,
+                           "max_recall": 1.0, "seconds_per_pair": 0.0}]).to_csv(output_path.parent / "results.csv")
+
+    monkeypatch.setattr(cli, "execute_notebook", fake_execute)
+    out = tmp_path / "elsewhere"
+    assert cli.main(["run", str(params_path), "--image-root", str(root), "--limit", "3", "--profile", "fast",
+                     "--output-dir", str(out)]) == 0
+    assert [s["notebook"] for s in seen] == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
+    assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "fast", "output_dir": str(out)}
+               for s in seen)
+    assert yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())["image_root"] == str(root)
+
+
+@pytest.mark.slow
+def test_image_root_given_on_the_command_line_reaches_the_real_notebooks(root, tmp_path):
+    """The README's `run params/night.yaml --image-root /path`, through papermill."""
+    import subprocess
+    import sys
+
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    params_path = _params(tmp_path, image_root=None, cache_dir=str(tmp_path / "cache"))
+    done = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(params_path), "--image-root", str(root)],
+                          capture_output=True, text=True, timeout=600, cwd=tmp_path,
+                          env={**os.environ, "GVBENCH_THREADS": "1"})
+    assert done.returncode == 0, done.stderr[-2000:]
+    results = pd.read_csv(tmp_path / "out" / "results.csv")
+    assert list(results["method"]) == [METHOD] and results["n_pairs"].iloc[0] == 4
+    assert json.loads((tmp_path / "out" / METHOD / "run.json").read_text())["image_root"] == str(root)
+
+
+def test_the_generated_notebooks_load_the_params_file_they_are_given():
+    notebooks = Path(cli.NOTEBOOKS_DIR)
+    for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
+        source = "\n".join("".join(cell["source"]) for cell in json.loads((notebooks / name).read_text())["cells"])
+        assert "config.load_params(params_file" in source, name
+
+
+def test_a_run_that_fails_before_a_method_starts_leaves_no_old_result_and_results_refuses(root, tmp_path,
+                                                                                           monkeypatch, capsys):
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    params_path = _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache"))
+    out = tmp_path / "out"
+    run_first = run(root, tmp_path / "work")  # an earlier finished run in the same folder
+    shutil.copytree(tmp_path / "work" / "out" / METHOD, out / METHOD)
+    pipeline.evaluate(out)
+    assert len(run_first) == 4 and (out / "results.csv").is_file()
+
+    def kernel_dies(name, output_path, parameters):
+        raise RuntimeError("the kernel died")
+
+    monkeypatch.setattr(cli, "execute_notebook", kernel_dies)
+    with pytest.raises(RuntimeError, match="kernel died"):
+        cli.main(["run", str(params_path)])
+    for stale in (out / METHOD / "pairs.csv", out / METHOD / "run.json", out / "results.csv"):
+        assert not stale.exists(), stale
+    capsys.readouterr()
+    assert cli.main(["results", str(out)]) == 2
+    message = capsys.readouterr().err
+    assert f"{out} holds unfinished results ({METHOD}: a run started at" in message
+    assert f"--methods {METHOD}" in message and len(message.strip().splitlines()) == 1
+
+
+def test_results_refuses_a_method_folder_with_pairs_but_no_run_record(root, tmp_path, capsys):
+    run(root, tmp_path / "work")
+    (tmp_path / "work" / "out" / METHOD / "run.json").unlink()
+    assert cli.main(["results", str(tmp_path / "work" / "out")]) == 2
+    assert "run.json is missing beside pairs.csv" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------- 6: verified stores --
+def _dataset_offset(shard: Path, name: str) -> tuple[int, int]:
+    with h5py.File(shard, "r") as handle:
+        for group in handle.values():
+            if name in group:
+                return group[name].id.get_offset(), group[name].id.get_storage_size()
+    raise AssertionError(f"no dataset {name} in {shard}")
+
+
+def test_bytes_overwritten_inside_a_feature_shard_raise_store_corrupt_naming_it(root, tmp_path):
+    run(root, tmp_path / "work")
+    store = pipeline.feature_store(tmp_path / "work" / "cache", pipeline.method_registry.resolve_method(METHOD)["extractor"])
+    shard = store.shards()[0]
+    offset, size = _dataset_offset(shard, "keypoints")
+    data = bytearray(shard.read_bytes())
+    data[offset + size // 2: offset + size // 2 + 16] = bytes(16)  # same file size, keypoints changed
+    shard.write_bytes(bytes(data))
+    with pytest.raises(StoreCorruptError) as error:
+        run(root, tmp_path / "work")
+    assert f"shard {shard}" in str(error.value) and "'keypoints'" in str(error.value)
+    assert "Delete that file" in str(error.value)
+
+
+def test_an_attribute_changed_inside_a_match_shard_is_detected(root, tmp_path):
+    run(root, tmp_path / "work")
+    store = pipeline.match_store(tmp_path / "work" / "out", pipeline.method_registry.resolve_method(METHOD))
+    shard = store.shards()[0]
+    with h5py.File(shard, "r+") as handle:  # a tool "fixing" an inlier count in place
+        group = next(iter(handle.values()))
+        group.attrs["num_inliers"] = group.attrs["num_inliers"] + 5
+    with pytest.raises(StoreCorruptError, match="attributes of entry .* do not match their checksum"):
+        run(root, tmp_path / "work")
+
+
+def test_every_dataset_and_attribute_of_an_entry_is_checked(tmp_path):
+    store = ShardedStore(tmp_path / "s")
+    with store.writer() as writer:
+        writer.put("k", {"x": np.arange(6, dtype=np.float32).reshape(3, 2), "empty": np.zeros((0, 2)),
+                         "scalar": np.int64(7)}, {"num_inliers": 13, "name": "a"})
+    entry = ShardedStore(tmp_path / "s").read("k")
+    assert entry["attr:num_inliers"] == 13 and entry["scalar"] == 7 and entry["empty"].shape == (0, 2)
+    assert not any(name.startswith("attr:_digest") for name in entry)
+    with h5py.File(store.shards()[0], "r+") as handle:
+        handle["k"]["x"][0, 0] = 99.0
+    with pytest.raises(StoreCorruptError, match="dataset 'x' of entry 'k' does not match its checksum"):
+        ShardedStore(tmp_path / "s").read("k")
+    assert ShardedStore(tmp_path / "s").read("k", fields=("empty",))["empty"].shape == (0, 2)
+
+
+# ------------------------------------------------------ 7: pairs are identities --
+@pytest.mark.parametrize("first, second, message", [
+    ("night/./a.jpg day/b.jpg 1", "night//a.jpg day/b.jpg 0",
+     "duplicate pair night/a.jpg day/b.jpg (first on line 1, with the opposite label: 1 there, 0 here)"),
+    ("night/a.jpg day/b.jpg 1", "night/a.jpg day/./b.jpg 1", "duplicate pair night/a.jpg day/b.jpg (first on line 1)"),
+    ("night/a.jpg day/b.jpg 1", "day/b.jpg night/a.jpg 1", "(first on line 1, in the other order)"),
+])
+def test_the_same_pair_spelled_twice_is_refused_with_file_and_line(first, second, message):
+    with pytest.raises(PairFileError) as error:
+        parse_pairs([first, second], source="pairs.txt")
+    assert str(error.value).startswith("pairs.txt:2: ") and message in str(error.value)
+
+
+@pytest.mark.parametrize("line", ["night/a.jpg night/a.jpg 1", "night/a.jpg night/./a.jpg 0", "a.jpg ./a.jpg 1"])
+def test_a_self_pair_is_refused(line):
+    with pytest.raises(PairFileError, match=r"pairs.txt:1: self-pair: query and reference are both"):
+        parse_pairs([line], source="pairs.txt")
+
+
+def test_paths_are_stored_normalised():
+    assert parse_pairs(["night/./a.jpg day//b.jpg 1"]) == [Pair("night/a.jpg", "day/b.jpg", 1)]
+
+
+def test_names_with_spaces_are_written_in_quotes_and_read_back(tmp_path):
+    pairs = [Pair("day 1/a b.jpg", "night/it's.jpg", 1), Pair("plain/a.jpg", 'odd/"q".jpg', 0)]
+    path = write_pairs(tmp_path / "pairs.txt", pairs)
+    assert read_pairs(path) == pairs
+    assert format_pairs([Pair("plain/a.jpg", "plain/b.jpg", 1)]) == "plain/a.jpg plain/b.jpg 1\n"
+    assert parse_pairs(['"day 1/a.jpg" \'day 2/b.jpg\' 1']) == [Pair("day 1/a.jpg", "day 2/b.jpg", 1)]
+    with pytest.raises(PairFileError, match=r'pairs.txt:1: expected 3 fields .* got 4: .*in quotes, e.g. "day 1/a.jpg"'):
+        parse_pairs(["day 1/a.jpg day/b.jpg 1"], source="pairs.txt")
+    with pytest.raises(PairFileError, match=r"pairs.txt:1: No closing quotation .*close the quote"):
+        parse_pairs(['"day 1/a.jpg day/b.jpg 1'], source="pairs.txt")
+
+
+def test_a_name_with_spaces_runs_end_to_end(root, tmp_path):
+    (root / "query" / "a.png").rename(root / "query" / "a copy.png")
+    path = write_pairs(tmp_path / "pairs.txt", [Pair("query/a copy.png", "reference/a.png", 1),
+                                                Pair("query/a copy.png", "reference/b.png", 0)])
+    table = run(root, tmp_path / "work", read_pairs(path))
+    assert list(table["query"]) == ["query/a copy.png"] * 2 and table["num_inliers"].iloc[0] > 0
+
+
+def test_a_symlink_leaving_the_image_root_is_followed_as_documented(root, tmp_path):
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    shutil.move(str(root / "reference" / "b.png"), outside / "b.png")
+    (root / "reference" / "b.png").symlink_to(outside / "b.png")
+    linked = run(root, tmp_path / "work")
+    fresh = run(write_root(tmp_path / "plain"), tmp_path / "fresh")
+    pd.testing.assert_frame_equal(linked[SCORE_COLUMNS], fresh[SCORE_COLUMNS])
+
+
+# ----------------------------------------------------- errors are one sentence --
+def cli_error(capsys, *argv: str) -> str:
+    """Run the CLI expecting a user error: exit 2 and one line on stderr, no traceback."""
+    capsys.readouterr()
+    assert cli.main(list(argv)) == 2
+    message = capsys.readouterr().err
+    assert "Traceback" not in message and len(message.strip().splitlines()) == 1, message
+    return message
+
+
+@pytest.fixture
+def valid(root, tmp_path) -> Path:
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    return _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache"))
+
+
+def test_a_missing_pair_file_is_one_sentence(tmp_path, capsys, root):
+    params = _params(tmp_path, image_root=str(root), pairs=str(tmp_path / "absent.txt"))
+    message = cli_error(capsys, "run", str(params))
+    assert f"{params}: the pair file {tmp_path / 'absent.txt'} does not exist; set pairs" in message
+
+
+def test_output_dir_that_is_a_file_is_one_sentence(tmp_path, capsys, valid):
+    (tmp_path / "out").write_text("")
+    message = cli_error(capsys, "run", str(valid))
+    assert f"output_dir {tmp_path / 'out'} is a file, not a folder; set output_dir (or pass --output-dir)" in message
+
+
+def test_an_output_folder_that_cannot_be_written_is_one_sentence(tmp_path, capsys, valid):
+    if os.geteuid() == 0:  # root writes anywhere a mode allows nothing; /proc refuses even root
+        target = Path("/proc/gvbench-nb-not-writable")
+    else:
+        target = tmp_path / "read_only"
+        target.mkdir()
+        target.chmod(0o500)
+    message = cli_error(capsys, "run", str(valid), "--output-dir", str(target))
+    assert f"cannot write in output_dir {target}" in message and "--output-dir" in message
+
+
+def test_results_on_a_folder_without_results_is_one_sentence(tmp_path, capsys):
+    (tmp_path / "empty").mkdir()
+    message = cli_error(capsys, "results", str(tmp_path / "empty"))
+    assert f"{tmp_path / 'empty'} holds no method results" in message
+
+
+def test_a_missing_image_root_says_the_folder_does_not_exist(tmp_path, capsys, valid):
+    message = cli_error(capsys, "run", str(valid), "--image-root", str(tmp_path / "nowhere"))
+    assert f"image_root {tmp_path / 'nowhere'} does not exist" in message and "--image-root" in message
+
+
+def test_an_image_deleted_since_the_last_run_names_it_and_its_pair(tmp_path, capsys, valid, root):
+    (root / "reference" / "b.png").unlink()
+    message = cli_error(capsys, "run", str(valid))
+    assert "1 of 4 images of sequence 's' are missing" in message
+    assert "first reference/b.png (pair 1: query/a.png reference/b.png" in message
+    with pytest.raises(ImageReadError, match=r"reference/b.png.*pair 1: query/a.png reference/b.png"):
+        run(root, tmp_path / "work")
+
+
+def test_a_megabyte_path_is_reported_by_file_and_line_and_shortened(tmp_path):
+    path = tmp_path / "pairs.txt"
+    path.write_text("query/a.png reference/a.png 1\n" + "x" * 1_000_000 + " reference/b.png 0\n")
+    with pytest.raises(PairFileError) as error:
+        read_pairs(path)
+    assert str(error.value).startswith(f"{path}:2: path 'xxx") and len(str(error.value)) < 400
+    assert "(1000000 characters)" in str(error.value)
+
+
+def _png_header_only(path: Path, width: int, height: int) -> Path:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8-bit grayscale
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
+                     + chunk(b"IEND", b""))
+    return path
+
+
+def test_an_image_beyond_the_pixel_bound_is_refused_before_decoding(tmp_path, monkeypatch):
+    huge = _png_header_only(tmp_path / "huge.png", 40000, 40000)  # 1.6 gigapixels in 100 bytes
+    with pytest.raises(ImageReadError) as error:
+        read_image(huge)
+    assert f"image {huge} has 1,600,000,000 pixels, above the bound of 64,000,000 pixels" in str(error.value)
+    assert "refused before decoding" in str(error.value)
+    assert "GVBENCH_MAX_PIXELS" in str(error.value)
+    monkeypatch.setenv("GVBENCH_MAX_PIXELS", "1000")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((40, 40), np.uint8))
+    with pytest.raises(ImageReadError, match="40 x 40 = 1,600 pixels, above the bound of 1,000"):
+        read_image(small)
+
+
+def test_a_params_path_that_is_a_folder_says_so(tmp_path, capsys):
+    (tmp_path / "params").mkdir()
+    (tmp_path / "params" / "mine.yaml").write_text("{}")
+    message = cli_error(capsys, "run", str(tmp_path / "params"))
+    assert f"params path {tmp_path / 'params'} is a folder, not a params file" in message
+    assert str(tmp_path / "params" / "mine.yaml") in message
+
+
+def test_a_negative_limit_is_blamed_on_the_option(valid, capsys):
+    with pytest.raises(SystemExit) as exit_code:
+        cli.main(["run", str(valid), "--limit", "-3"])
+    assert exit_code.value.code == 2
+    message = capsys.readouterr().err
+    assert "argument --limit: must be a positive whole number of pairs, got '-3'" in message
+    assert str(valid) not in message
+
+
+def test_a_pickled_checkpoint_for_a_kornia_model_is_refused_before_kornia_loads_it(empty_hub):
+    import pickle
+
+    empty_hub.mkdir(parents=True)
+    target = weights.checkpoint_path("disk_depth")
+    target.write_bytes(pickle.dumps({"extra": os.getcwd}, protocol=2))  # a global: weights_only refuses it
+    with pytest.raises(weights.CheckpointReadError) as error:
+        weights.require("disk_depth")
+    message = str(error.value)
+    assert str(target) in message and "Download it again" in message and "weights_only=False" not in message
+
+
+def test_debug_shows_the_traceback(tmp_path):
+    (tmp_path / "params").mkdir()
+    with pytest.raises(config.ParamsError, match="is a folder"):
+        cli.main(["--debug", "run", str(tmp_path / "params")])

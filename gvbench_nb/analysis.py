@@ -286,7 +286,9 @@ def run_description(output_dir: str | os.PathLike[str], methods: SequenceType[st
         size = image_size_of_run(output_dir, method, run, resolve_cache_dir(output_dir, cache_dir))
         native = f"{size[0]}x{size[1]}" if size else "?"
         longest = f"{'=' if resizing.get('resize_force') else '<='}{resize}" if resize else "native"
-        sizes.add(f"{resizing['name']}: {native}, longest side {longest}")
+        fixed = resizing.get("resize_to")
+        sizes.add(f"{resizing['name']}: {native}, " + (f"resized to {fixed[0]}x{fixed[1]}" if fixed
+                                                       else f"longest side {longest}"))
     return (f"device {' / '.join(sorted(devices))}; profile {' / '.join(sorted(profiles))}; "
             f"images {'; '.join(sorted(sizes))}")
 

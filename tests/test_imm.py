@@ -217,3 +217,21 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
         compared += 1
     assert compared >= 8
     assert ours["num_inliers"].nunique() > 3  # the pairs tell true from false: not a trivial agreement
+
+
+@pytest.mark.real_data
+def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(shared_data, tmp_path, monkeypatch):
+    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    import peer_vismatch
+    from gvbench_nb import config
+
+    monkeypatch.setenv("GVBENCH_DATA", str(shared_data))
+    params = config.load_params(Path(__file__).resolve().parent.parent / "params" / "gardens_point.yaml", limit=7,
+                                profile="fast", output_dir=str(tmp_path / "out"))
+    params["pairs"] = str(tmp_path / "pairs.txt")
+    sequence = config.prepare_sequence(params)
+    assert peer_vismatch.peer_image_size(params, "sift-nn", sequence) == (288, 512)  # 960x540, longest side 512
+    assert peer_vismatch.peer_image_size(params, "imm:sift-nn", sequence) == (288, 512)  # resize_to
+    peer_vismatch.write_pair_file(sequence, tmp_path / "peer.txt")
+    lines = (tmp_path / "peer.txt").read_text().splitlines()
+    assert lines == [f"{p.query} {p.reference} {p.label}" for p in sequence.pairs] and len(lines) == 7

@@ -150,8 +150,8 @@ def orchestrate(args: argparse.Namespace) -> int:
     ours, peer = summary
     print(f"\nours {ours['method']}: median {ours['median_wall_seconds']:.1f} s, AP {ours['ap']:.3f}, "
           f"MR {ours['max_recall']:.3f}\npeer {peer['method']}: median {peer['median_wall_seconds']:.1f} s, "
-          f"AP {peer['ap']:.3f}, MR {peer['max_recall']:.3f}\nours faster by {ratio:.2f}x "
-          f"(ratio of medians, {args.runs} alternating runs each)\n{out / 'peer_runs.csv'}\n{out / 'peer_summary.csv'}")
+          f"AP {peer['ap']:.3f}, MR {peer['max_recall']:.3f}\npeer / ours wall time {ratio:.2f}x "
+          f"({'ours' if ratio > 1 else 'the peer'} faster; ratio of medians, {args.runs} alternating runs each)\n{out / 'peer_runs.csv'}\n{out / 'peer_summary.csv'}")
     return 0
 
 

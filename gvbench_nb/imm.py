@@ -43,6 +43,7 @@ KNOWN_WEIGHTS: dict[str, tuple[str, ...]] = {
     "disk-lightglue": ("depth-save.pth", "disk_lightglue_v0-1_arxiv.pth"),
     "aliked-lightglue": ("aliked-n16.pth", "aliked_lightglue_v0-1_arxiv.pth"),
     "superpoint-lightglue": ("superpoint_v1.pth", "superpoint_lightglue_v0-1_arxiv.pth"),
+    "sift-lightglue": ("sift_lightglue_v0-1_arxiv.pth",),
 }
 
 # vismatch's LightGlue file name -> the name kornia (our default venv) stores the same file under.

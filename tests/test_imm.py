@@ -170,11 +170,13 @@ def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
 
 # ------------------------------------------------------------- needs vismatch --
 def gardens_point_pairs(shared_data: Path) -> Sequence:
-    """Night queries against day references: true neighbours, a near and a far negative."""
+    """Day-left and night-right queries against day-right references: true neighbours, a near
+    and a far negative (vismatch's sift-nn at 512x288 finds about 10-30 inliers on these)."""
     pairs = []
-    for q in (20, 75, 140):
-        for r, label in ((q, 1), (q + 1, 1), (q + 5, 0), ((q + 60) % 200, 0)):
-            pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
+    for folder in ("day_left", "night_right"):
+        for q in (20, 75, 140):
+            for r, label in ((q, 1), (q + 1, 1), (q + 5, 0), ((q + 60) % 200, 0)):
+                pairs.append(Pair(f"{folder}/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
     return Sequence("gp_imm", shared_data / "gardens_point", pairs)
 
 
@@ -215,8 +217,8 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
             continue  # the fork counts every match as an inlier there; our verifier's rule is a profile option
         assert row["num_inliers"] == result["num_inliers"], pair
         compared += 1
-    assert compared >= 8
-    assert ours["num_inliers"].nunique() > 3  # the pairs tell true from false: not a trivial agreement
+    assert compared >= 16
+    assert ours["num_inliers"].max() >= 20  # agreement beyond near-empty pairs
 
 
 @pytest.mark.real_data

@@ -166,6 +166,11 @@ def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
     results = pipeline.evaluate(tmp_path / "out")
     assert results["method"].tolist() == ["imm:fake-nn"]
     assert results["paper_name"].tolist() == ["fake-nn (image-matching-models)"]
+    from gvbench_nb import analysis
+
+    assert "resized to 512x288" in analysis.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
+    lines = analysis.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
+    assert lines["points0"].shape == (60, 2) and lines["inlier_mask"].sum() == table["num_inliers"].iloc[0]
 
 
 # ------------------------------------------------------------- needs vismatch --

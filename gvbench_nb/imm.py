@@ -117,7 +117,7 @@ def matcher_conf(method: str, overrides: dict[str, Any] | None = None) -> dict[s
 
 
 def paper_name(method: str) -> str:
-    return f"{vismatch_name(method)} (image-matching-models)"
+    return f"vismatch {vismatch_name(method)}"
 
 
 def checkpoints_dir() -> Path:

@@ -164,6 +164,14 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
     }
 
 
+def paper_name(name: str) -> str:
+    """The name a method goes by in tables: its paper name, ``vismatch <name>``
+    for ``imm:`` methods, else the name itself."""
+    if imm.is_imm(name):
+        return imm.paper_name(name)
+    return METHODS.get(name, {}).get("paper_name", name)
+
+
 def conf_hash(conf: dict[str, Any]) -> str:
     """Short stable hash of a conf (its cache identity)."""
     return hashlib.sha1(json.dumps(conf, sort_keys=True).encode()).hexdigest()[:10]

@@ -78,7 +78,7 @@ def test_imm_methods_resolve_as_dense_pair_matchers(no_vismatch):
     conf = methods.resolve_method("imm:sift-nn", "paper")
     assert conf["extractor"] is None and conf["matcher"]["dense"]
     assert conf["matcher"]["type"] == "imm" and conf["matcher"]["vismatch_name"] == "sift-nn"
-    assert conf["matcher"]["resize_to"] == [512, 288] and conf["paper_name"] == "sift-nn (image-matching-models)"
+    assert conf["matcher"]["resize_to"] == [512, 288] and conf["paper_name"] == "vismatch sift-nn"
     assert methods.required_checkpoints("imm:sift-nn") == []
     assert methods.expand_methods("sift-nn, imm:orb-nn") == ["sift-nn", "imm:orb-nn"]
     with pytest.raises(imm.ImmUnavailableError, match="names no matcher"):
@@ -165,10 +165,12 @@ def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
     assert set(table["method"]) == {"imm:fake-nn"}
     results = pipeline.evaluate(tmp_path / "out")
     assert results["method"].tolist() == ["imm:fake-nn"]
-    assert results["paper_name"].tolist() == ["fake-nn (image-matching-models)"]
+    assert results["paper_name"].tolist() == ["vismatch fake-nn"]
     from gvbench_nb import analysis
 
     assert "resized to 512x288" in analysis.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
+    joined = analysis.join_paper_table(results, analysis.load_paper_table(Path("/nonexistent.csv")))
+    assert analysis.results_table(joined).index.tolist() == ["imm:fake-nn (vismatch fake-nn)"]
     lines = analysis.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
     assert lines["points0"].shape == (60, 2) and lines["inlier_mask"].sum() == table["num_inliers"].iloc[0]
 

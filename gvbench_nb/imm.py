@@ -196,7 +196,7 @@ class ImmPairMatcher:
     scored by vismatch's per-match confidence where the matcher gives one, else 1.
     """
 
-    def __init__(self, conf: dict[str, Any], device: Any):
+    def __init__(self, conf: dict[str, Any], device: Any) -> None:
         if not vismatch_installed():
             raise ImmUnavailableError(f"matcher {conf['name']!r} needs vismatch; {SETUP_HINT}")
         import torch

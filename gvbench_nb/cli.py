@@ -26,6 +26,7 @@ examples:
   python -m gvbench_nb results outputs/sample --markdown
   python -m gvbench_nb build params/gardens_point_retrieval.yaml
   python -m gvbench_nb methods
+  .venv-imm/bin/python -m gvbench_nb run params/gardens_point.yaml --methods imm:sift-nn,imm:orb-nn
   python -m gvbench_nb weights --link
   GVBENCH_WORKERS=2 python -m gvbench_nb run params/gardens_point.yaml
 
@@ -78,6 +79,11 @@ def command_run(args: argparse.Namespace) -> int:
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
             + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
         )
+    from . import imm
+
+    for method in params["methods"]:  # vismatch and its weights, for imm: methods
+        if imm.is_imm(method):
+            imm.require(method)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         return distributed.run_from_cli(args, params)
     output_dir = Path(params["output_dir"])
@@ -164,8 +170,16 @@ def not_run_table(ran: set[str]) -> "Any":
 def command_methods(args: argparse.Namespace) -> int:
     from . import methods
 
+    from . import imm
+
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
     print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
+    if not imm.vismatch_installed():
+        print(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
+        return 0
+    print(f"\nimage-matching-models (vismatch {imm.vismatch_version()}) matchers, run as imm:<name> "
+          f"(weights in {imm.checkpoints_dir()}):\n")
+    _print_table(imm.method_rows(), ["method", "weights", "available", "missing"])
     return 0
 
 
@@ -175,6 +189,11 @@ def command_weights(args: argparse.Namespace) -> int:
     if args.link:
         for name, what in weights.link_carried_weights().items():
             print(f"{name}: {what}")
+        from . import imm
+
+        if imm.vismatch_installed():  # the same LightGlue files under the names vismatch loads
+            for name, what in imm.link_local_weights().items():
+                print(f"{name} (vismatch): {what}")
         print()
     rows = weights.status_table()
     _print_table(rows, ["name", "present", "carrier", "used_by", "licence"])
@@ -214,7 +233,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "an interrupted run resumes where it stopped.",
     )
     run.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
-    run.add_argument("--methods", help="comma-separated method names, 'all' or 'all-available' (default: the params')")
+    run.add_argument("--methods", help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "
+                                       "(needs `make setup-imm`) (default: the params')")
     run.add_argument("--limit", type=positive_int, help="only the first N pairs")
     run.add_argument("--profile", help="'paper' (the published protocol) or 'fast' (reduced resolution for CPUs)")
     run.add_argument("--output-dir", help="override the params' output_dir")
@@ -278,6 +298,7 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
 
     from . import config, data, distributed, metrics, pipeline, weights
     from .images import ImageReadError
+    from .imm import ImmUnavailableError
     from .sequences import PairFileError
     from .store import StoreCorruptError
 
@@ -287,7 +308,8 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
                 "the executed notebook (with the full traceback) is in the output folder"), 1
     if isinstance(error, (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
                           metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError,
-                          StoreCorruptError, pipeline.ResultsError, data.DataError)):
+                          StoreCorruptError, pipeline.ResultsError, data.DataError,
+                          ImmUnavailableError)):
         return f"error: {error}", 2
     if isinstance(error, OSError):  # a file or folder the user named cannot be used
         where = f" {error.filename}:" if error.filename else ""

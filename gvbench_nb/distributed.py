@@ -31,7 +31,7 @@ from typing import Any, Iterator
 import pandas as pd
 
 from . import methods as method_registry
-from . import pipeline, weights
+from . import pipeline
 from .extractors import resolve_device
 from .io_utils import atomic_write_csv, atomic_write_json
 from .sequences import Pair, Sequence
@@ -137,7 +137,7 @@ def _remove_stale_results(output_dir: Path, method: str) -> None:
 
 def _require_weights(params: dict[str, Any]) -> None:
     for method in params["methods"]:
-        weights.require(*method_registry.required_checkpoints(method, params["profile"]))
+        method_registry.require(method, params["profile"])
 
 
 # --------------------------------------------------------------- one machine ----

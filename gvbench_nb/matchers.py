@@ -234,6 +234,10 @@ MATCHER_TYPES: dict[str, Callable[[dict[str, Any], torch.device], Callable[..., 
 
 
 def build_matcher(conf: dict[str, Any], device: torch.device) -> Callable[..., Matches]:
+    if conf["type"] == "imm":  # vismatch is imported only by imm methods (opt-in environment)
+        from .imm import ImmPairMatcher
+
+        return ImmPairMatcher(conf, device)
     try:
         kind = MATCHER_TYPES[conf["type"]]
     except KeyError:

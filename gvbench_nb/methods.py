@@ -13,7 +13,7 @@ import hashlib
 import json
 from typing import Any
 
-from . import weights
+from . import imm, weights
 
 EXTRACTORS: dict[str, dict[str, Any]] = {
     "sift": {
@@ -131,27 +131,45 @@ def check_profile(profile: str) -> None:
 
 
 def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
-    """The full conf of a method under a profile: name, extractor, matcher, verifier."""
-    if name not in METHODS:
-        raise _unknown("method", name, list(METHODS))
-    check_profile(profile)
-    method = METHODS[name]
-    extractor = None  # dense matchers (LoFTR) have none: they cannot use the per-image cache
-    if method["extractor"] is not None:
-        extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
-        extractor.update(PROFILES[profile].get(extractor["type"], {}))
-        extractor["name"] = method["extractor"]
-    matcher = copy.deepcopy(MATCHERS[method["matcher"]])
-    matcher.update(PROFILES[profile].get(matcher["type"], {}))
-    matcher["name"] = method["matcher"]
+    """The full conf of a method under a profile: name, extractor, matcher, verifier.
+
+    ``imm:<name>`` is vismatch's matcher ``<name>`` run as a pair matcher (``imm.py``); a
+    profile's ``imm`` entry overrides its image preparation."""
+    if imm.is_imm(name):
+        check_profile(profile)
+        extractor = None
+        matcher = imm.matcher_conf(name, PROFILES[profile].get("imm"))
+        paper_name = imm.paper_name(name)
+    else:
+        if name not in METHODS:
+            raise _unknown("method", name, list(METHODS))
+        check_profile(profile)
+        method = METHODS[name]
+        paper_name = method["paper_name"]
+        extractor = None  # dense matchers (LoFTR) have none: they cannot use the per-image cache
+        if method["extractor"] is not None:
+            extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
+            extractor.update(PROFILES[profile].get(extractor["type"], {}))
+            extractor["name"] = method["extractor"]
+        matcher = copy.deepcopy(MATCHERS[method["matcher"]])
+        matcher.update(PROFILES[profile].get(matcher["type"], {}))
+        matcher["name"] = method["matcher"]
     return {
         "method": name,
-        "paper_name": method["paper_name"],
+        "paper_name": paper_name,
         "profile": profile,
         "extractor": extractor,
         "matcher": matcher,
         "verifier": copy.deepcopy(VERIFIER),
     }
+
+
+def paper_name(name: str) -> str:
+    """The name a method goes by in tables: its paper name, ``vismatch <name>``
+    for ``imm:`` methods, else the name itself."""
+    if imm.is_imm(name):
+        return imm.paper_name(name)
+    return METHODS.get(name, {}).get("paper_name", name)
 
 
 def conf_hash(conf: dict[str, Any]) -> str:
@@ -160,6 +178,7 @@ def conf_hash(conf: dict[str, Any]) -> str:
 
 
 def required_checkpoints(name: str, profile: str = "paper") -> list[str]:
+    """Our checkpoints a method needs (``imm:`` methods: none of ours; ``imm.require`` checks theirs)."""
     conf = resolve_method(name, profile)
     extractor_checkpoints = conf["extractor"]["checkpoints"] if conf["extractor"] else []
     return list(dict.fromkeys(extractor_checkpoints + conf["matcher"]["checkpoints"]))
@@ -180,6 +199,13 @@ def method_table() -> list[dict[str, Any]]:
     return rows
 
 
+def require(name: str, profile: str = "paper") -> None:
+    """Fail before any work when a method's weights (or, for ``imm:``, vismatch) are missing."""
+    weights.require(*required_checkpoints(name, profile))
+    if imm.is_imm(name):
+        imm.require(name)
+
+
 def available_methods() -> list[str]:
     return [row["method"] for row in method_table() if row["available"]]
 
@@ -196,6 +222,9 @@ def expand_methods(names: list[str] | str) -> list[str]:
             expanded.extend(available_methods())
         elif name in METHODS:
             expanded.append(name)
+        elif imm.is_imm(name):
+            imm.check_name(name)
+            expanded.append(name)
         else:
-            raise _unknown("method", name, list(METHODS) + ["all", "all-available"])
+            raise _unknown("method", name, list(METHODS) + ["all", "all-available", "imm:<vismatch name>"])
     return list(dict.fromkeys(expanded))

@@ -499,11 +499,15 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
             image0, scale0, image1, scale1 = loaded
             start = time.perf_counter()
             points0, points1, match_scores = matcher(image0, image1)
-            points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
+            original0, original1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
             match_seconds = time.perf_counter() - start
             identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+            # The store holds original pixels; a verifier may fit on the resized images' pixels
+            # (the GV-Bench repository's RANSAC runs on its 512x288 images).
+            if conf["verifier"].get("coordinates", "original") != "resized":
+                points0, points1 = original0, original1
             _verify_and_store(writer, pair, keys[pair], conf, seed, points0, points1, identity, match_scores,
-                              {"points0": points0, "points1": points1}, match_seconds)
+                              {"points0": original0, "points1": original1}, match_seconds)
             bar.update()
     bar.close()
 
@@ -591,7 +595,7 @@ def run_method(
     reused, so an interrupted run resumes.
     """
     conf = method_registry.resolve_method(method, profile)
-    weights.require(*method_registry.required_checkpoints(method, profile))
+    method_registry.require(method, profile)
     resolved_device = resolve_device(device)
     configure_threads(threads)
     folder = method_dir(output_dir, method)

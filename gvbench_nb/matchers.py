@@ -211,6 +211,16 @@ class LightGlueMatcher:
         # The per-image part of LightGlue can be computed once per image (models/lightglue_prepared.py);
         # that split reproduces the CPU path only.
         self.can_prepare = device.type == "cpu" and lightglue_prepared.supports_prepared(self.model)
+        # 'kornia' (default): kornia's CPU cross-attention, bit-identical to LightGlue.forward.
+        # 'sdpa': torch's fused attention kernel on that path, equal up to float rounding.
+        # On CUDA kornia's own forward already attends through scaled_dot_product_attention.
+        self.cross_attention = conf.get("cross_attention", "kornia")
+        if self.cross_attention not in lightglue_prepared.CROSS_ATTENTIONS:
+            raise ValueError(f"matcher {conf.get('name', conf['type'])!r}: unknown cross_attention "
+                             f"{self.cross_attention!r}; use one of {', '.join(lightglue_prepared.CROSS_ATTENTIONS)}")
+        if self.cross_attention == "sdpa" and device.type == "cpu" and not self.can_prepare:
+            raise ValueError(f"matcher {conf.get('name', conf['type'])!r}: cross_attention 'sdpa' needs the prepared "
+                             "CPU path (no mixed precision, scale/orientation or LAF inputs); drop the option")
 
     def _side(self, features: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         return {
@@ -243,7 +253,7 @@ class LightGlueMatcher:
         """The same matches and scores as ``self(features0, features1)``, from ``prepare``'s states."""
         if prepared0 is None or prepared1 is None:
             return _empty_matches()
-        pair_matches, scores = self._prepared.match_prepared(self.model, prepared0, prepared1)
+        pair_matches, scores = self._prepared.match_prepared(self.model, prepared0, prepared1, self.cross_attention)
         return pair_matches.cpu().numpy().astype(np.int64), scores.cpu().numpy().astype(np.float32)
 
 

@@ -18,25 +18,27 @@ from collections import Counter, OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, TypeVar
 
 import cv2
 import numpy as np
 import pandas as pd
-import torch
 from tqdm import tqdm
 
 from . import methods as method_registry
 from . import weights
-from .extractors import build_extractor, resolve_device
 from .images import ImageReadError, load_for_extraction, to_original_pixels
 from .io_utils import atomic_write_csv, atomic_write_json
-from .matchers import build_matcher
 from .metrics import evaluate_scores
 from .sequences import Sequence
 from .store import ShardedStore
 from .verify import verify_matches
 
+if TYPE_CHECKING:
+    import torch
+
+# torch and the model modules (extractors, matchers) are imported by the functions that
+# run models: a notebook or command that only reads results never pays for them.
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -51,6 +53,8 @@ def configure_threads(n_threads: int | None = None) -> int:
     """Set torch's and OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else
     every core. On a machine shared with other work, fewer threads than cores can be
     much faster (small matrix products then wait on busy cores); scores do not change."""
+    import torch
+
     n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
@@ -148,6 +152,8 @@ def extract_features(
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:
         return counts
+    from .extractors import build_extractor, resolve_device
+
     extractor = build_extractor(extractor_conf, resolve_device(device))
 
     def load(key: str) -> tuple[np.ndarray, float]:
@@ -273,6 +279,9 @@ def match_and_verify(
     counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
     if not todo:
         return counts
+    from .extractors import resolve_device
+    from .matchers import build_matcher
+
     matcher = build_matcher(conf["matcher"], resolve_device(device))
     if conf["extractor"] is None:
         _match_dense_pairs(sequence, todo, conf, matcher, matches, seed, progress, flush_every)
@@ -447,6 +456,7 @@ def cpu_name() -> str:
 
 def environment_info(device: torch.device) -> dict[str, Any]:
     import kornia
+    import torch
 
     info = {
         "device": str(device),
@@ -478,6 +488,8 @@ def run_method(
     """
     conf = method_registry.resolve_method(method, profile)
     weights.require(*method_registry.required_checkpoints(method, profile))
+    from .extractors import resolve_device
+
     resolved_device = resolve_device(device)
     configure_threads(threads)
     folder = method_dir(output_dir, method)

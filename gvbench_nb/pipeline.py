@@ -16,7 +16,6 @@ import time
 import zlib
 from collections import Counter, OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
-from functools import lru_cache
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, TypeVar
 
@@ -241,6 +240,31 @@ class PreparedCache:
         return len(self._states)
 
 
+class FeatureCache:
+    """Feature dicts by image name, read on first use; least recently used first out once
+    they hold more than ``max_bytes`` (the newest always stays). Not thread-safe: callers lock."""
+
+    def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
+        self.read, self.max_bytes = read, max_bytes
+        self._entries: OrderedDict[str, tuple[dict[str, np.ndarray], int]] = OrderedDict()
+        self.nbytes = 0
+
+    def get(self, name: str) -> dict[str, np.ndarray]:
+        if name in self._entries:
+            self._entries.move_to_end(name)
+            return self._entries[name][0]
+        entry = self.read(name)
+        size = sum(value.nbytes for value in entry.values() if isinstance(value, np.ndarray))
+        self._entries[name] = (entry, size)
+        self.nbytes += size
+        while self.nbytes > self.max_bytes and len(self._entries) > 1:
+            self.nbytes -= self._entries.popitem(last=False)[1][1]
+        return entry
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
 def pair_key(query: str, reference: str) -> str:
     return f"{query}\t{reference}"
 
@@ -290,13 +314,19 @@ def match_and_verify(
     features = feature_store(cache_dir, conf["extractor"])
     reading = threading.Lock()  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
 
-    @lru_cache(maxsize=256)  # a query's candidates are consecutive; references recur
-    def load(name: str) -> dict[str, np.ndarray]:
+    def read(name: str) -> dict[str, np.ndarray]:
         key = image_key(sequence.image_root, name)
+        if key not in features:
+            raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
+        return features.read(key)
+
+    # A query's candidates are consecutive and references recur: recently read features are
+    # kept, up to a memory bound that does not grow with the sequence.
+    recent = FeatureCache(read)
+
+    def load(name: str) -> dict[str, np.ndarray]:
         with reading:
-            if key not in features:
-                raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
-            return features.read(key)
+            return recent.get(name)
 
     # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
     # models/lightglue_prepared.py) gets each image's state from a memory-bounded cache;

@@ -28,6 +28,7 @@ def modules_after(code: str, env: dict[str, str] | None = None) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
+@pytest.mark.slow
 def test_help_imports_no_model_library():
     found = modules_after(
         "import runpy, sys\nsys.argv = ['gvbench_nb', '--help']\nOUT = None\n"
@@ -37,6 +38,7 @@ def test_help_imports_no_model_library():
     assert found["imported"] == []
 
 
+@pytest.mark.slow
 def test_stage_notebook_setup_imports_no_torch_kornia_sklearn_or_seaborn():
     # The setup cell every stage notebook runs; only 02_verify's run then imports the models.
     found = modules_after("import matplotlib.pyplot\nfrom gvbench_nb import config, pipeline, plots, sequences\nOUT = None")

@@ -32,7 +32,6 @@ import pandas as pd
 
 from . import methods as method_registry
 from . import pipeline
-from .extractors import resolve_device
 from .io_utils import atomic_write_csv, atomic_write_json
 from .sequences import Pair, Sequence
 
@@ -68,6 +67,8 @@ def default_threads(workers_on_this_machine: int) -> int:
 def extract_shard(sequence: Sequence, extractor_conf: dict[str, Any], cache_dir: str, index: int, count: int,
                   device: str = "auto", threads: int | None = None) -> dict[str, int]:
     """Phase 1 task: extract image slice ``index::count`` of ``sequence`` into the cache."""
+    from .extractors import resolve_device  # imports torch: only where a device is resolved
+
     pipeline.configure_threads(threads)
     return pipeline.extract_features(sequence, extractor_conf, Path(cache_dir), resolve_device(device),
                                      progress=False, images=sequence.images[index::count])
@@ -80,6 +81,8 @@ def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output
 
     ``after`` only orders the task after its extraction shards (Dask passes their results).
     """
+    from .extractors import resolve_device  # imports torch: only where a device is resolved
+
     pipeline.configure_threads(threads)
     shard = pair_shard(sequence, index, count)
     resolved = resolve_device(device)
@@ -107,6 +110,8 @@ def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path,
 def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int = 0,
                  device: str = "auto", shards: list[dict[str, Any]] | None = None) -> pd.DataFrame:
     """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
+    from .extractors import resolve_device  # imports torch: only where a device is resolved
+
     missing = unfinished_pairs(sequence, conf, output_dir, seed)
     if missing:
         first = sequence.pairs.index(missing[0])

@@ -92,11 +92,98 @@ def nearest_neighbour_matches(
     return matches.cpu(), to_score(best_similarity[keep]).float().cpu()
 
 
+def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
+    """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors, by popcount.
+
+    The bytes are read as 64-bit words (zero-padded: padding adds no differing bits) and
+    ``np.bitwise_count`` counts the bits of their XOR; rows go in blocks so that the temporary
+    word matrix stays at ``rows_per_block * N1`` words (cache-sized) whatever the number of descriptors.
+    """
+    n_bytes = descriptors0.shape[1]
+    padded = -n_bytes % 8
+
+    def words(descriptors: np.ndarray) -> np.ndarray:
+        descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
+        if padded:
+            descriptors = np.pad(descriptors, ((0, 0), (0, padded)))
+        return descriptors.view(np.uint64)
+
+    words0, words1 = words(descriptors0), words(descriptors1)
+    distance = np.empty((len(words0), len(words1)), np.uint16)
+    for start in range(0, len(words0), rows_per_block):
+        block = distance[start:start + rows_per_block]
+        block[:] = 0
+        for word in range(words0.shape[1]):
+            block += np.bitwise_count(words0[start:start + rows_per_block, word, None] ^ words1[None, :, word])
+    return distance
+
+
+def _two_nearest(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's nearest column (the first of equal distances), its distance and the
+    second-smallest distance in the row (equal to the first on a tie; +inf with one column)."""
+    rows = np.arange(len(distance))
+    nearest = distance.argmin(axis=1)
+    first = distance[rows, nearest].astype(np.float64)
+    if distance.shape[1] < 2:
+        return nearest, first, np.full(len(distance), np.inf)
+    others = distance.copy()
+    others[rows, nearest] = np.iinfo(distance.dtype).max
+    return nearest, first, others.min(axis=1).astype(np.float64)
+
+
+def _passes(first: np.ndarray, second: np.ndarray, ratio_threshold: float | None,
+            distance_threshold: float | None) -> np.ndarray:
+    """hloc's tests on one direction's two nearest distances (squared, as hloc compares them)."""
+    keep = np.ones(len(first), bool)
+    if ratio_threshold:
+        keep &= first**2 <= ratio_threshold**2 * second**2
+    if distance_threshold:
+        keep &= first**2 <= distance_threshold**2
+    return keep
+
+
+def hamming_nearest_neighbour_matches(
+    descriptors0: np.ndarray,
+    descriptors1: np.ndarray,
+    mutual: bool = True,
+    ratio_threshold: float | None = None,
+    distance_threshold: float | None = None,
+) -> Matches:
+    """Nearest-neighbour matches of binary descriptors (uint8 (N, B), 8B bits) by Hamming distance,
+    with hloc's rule (``hloc/matchers/nearest_neighbor.py``): each row's nearest column must pass
+    the Lowe ratio (d1 <= ratio * d2) and the distance threshold; with ``mutual``, that column's
+    nearest row, under the same tests, must be the row itself. The ratio test is skipped when
+    either side has a single descriptor. Ties go to the lower index: the nearest is the first
+    minimum, and a tie at the nearest distance fails the ratio test unless both are 0 bits.
+    Returns matches (M, 2) int64 and scores (M,) float32 = 1 - distance / bits.
+    """
+    if len(descriptors0) == 0 or len(descriptors1) == 0:
+        return _empty_matches()
+    if min(len(descriptors0), len(descriptors1)) == 1:
+        ratio_threshold = None
+    distance = hamming_distances(descriptors0, descriptors1)
+    nearest1, first, second = _two_nearest(distance)
+    keep = _passes(first, second, ratio_threshold, distance_threshold)
+    if mutual:
+        nearest0, first_back, second_back = _two_nearest(distance.T)
+        back = np.where(_passes(first_back, second_back, ratio_threshold, distance_threshold), nearest0, -1)
+        keep &= back[nearest1] == np.arange(len(descriptors0))
+    index0 = np.flatnonzero(keep)
+    matches = np.stack([index0, nearest1[index0]], axis=1).astype(np.int64)
+    n_bits = 8 * descriptors0.shape[1]
+    return matches, (1 - first[index0] / n_bits).astype(np.float32)
+
+
 class NearestNeighbourMatcher:
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.conf, self.device = conf, device
 
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
+        if self.conf.get("metric", "l2") == "hamming":
+            return hamming_nearest_neighbour_matches(
+                features0["descriptors"], features1["descriptors"], mutual=self.conf.get("mutual", True),
+                ratio_threshold=self.conf.get("ratio_threshold"), distance_threshold=self.conf.get("distance_threshold"),
+            )
         matches, scores = nearest_neighbour_matches(
             torch.from_numpy(features0["descriptors"]).to(self.device),
             torch.from_numpy(features1["descriptors"]).to(self.device),
@@ -124,6 +211,16 @@ class LightGlueMatcher:
         # The per-image part of LightGlue can be computed once per image (models/lightglue_prepared.py);
         # that split reproduces the CPU path only.
         self.can_prepare = device.type == "cpu" and lightglue_prepared.supports_prepared(self.model)
+        # 'kornia' (default): kornia's CPU cross-attention, bit-identical to LightGlue.forward.
+        # 'sdpa': torch's fused attention kernel on that path, equal up to float rounding.
+        # On CUDA kornia's own forward already attends through scaled_dot_product_attention.
+        self.cross_attention = conf.get("cross_attention", "kornia")
+        if self.cross_attention not in lightglue_prepared.CROSS_ATTENTIONS:
+            raise ValueError(f"matcher {conf.get('name', conf['type'])!r}: unknown cross_attention "
+                             f"{self.cross_attention!r}; use one of {', '.join(lightglue_prepared.CROSS_ATTENTIONS)}")
+        if self.cross_attention == "sdpa" and device.type == "cpu" and not self.can_prepare:
+            raise ValueError(f"matcher {conf.get('name', conf['type'])!r}: cross_attention 'sdpa' needs the prepared "
+                             "CPU path (no mixed precision, scale/orientation or LAF inputs); drop the option")
 
     def _side(self, features: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         return {
@@ -156,7 +253,7 @@ class LightGlueMatcher:
         """The same matches and scores as ``self(features0, features1)``, from ``prepare``'s states."""
         if prepared0 is None or prepared1 is None:
             return _empty_matches()
-        pair_matches, scores = self._prepared.match_prepared(self.model, prepared0, prepared1)
+        pair_matches, scores = self._prepared.match_prepared(self.model, prepared0, prepared1, self.cross_attention)
         return pair_matches.cpu().numpy().astype(np.int64), scores.cpu().numpy().astype(np.float32)
 
 

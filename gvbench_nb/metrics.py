@@ -5,7 +5,9 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
-from sklearn.metrics import average_precision_score, precision_recall_curve
+
+# scikit-learn is imported by the functions that use it: importing it takes longer than
+# a small run's evaluation, and the modules that import this one do not all evaluate.
 
 
 class MetricsUndefinedError(ValueError):
@@ -32,6 +34,8 @@ def _check(labels: np.ndarray, scores: np.ndarray, where: str) -> tuple[np.ndarr
 
 
 def average_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
+    from sklearn.metrics import average_precision_score
+
     labels, scores = _check(labels, scores, where)
     return float(average_precision_score(labels, scores))
 
@@ -42,12 +46,16 @@ def max_recall_at_full_precision(labels: np.ndarray, scores: np.ndarray, where: 
     Ties count as the curve counts them: a false pair tied with the best true pair
     lowers precision at that threshold, so MR can be 0.
     """
+    from sklearn.metrics import precision_recall_curve
+
     labels, scores = _check(labels, scores, where)
     precision, recall, _ = precision_recall_curve(labels, scores)
     return float(recall[precision == 1.0].max())
 
 
 def pr_curve(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> dict[str, np.ndarray]:
+    from sklearn.metrics import precision_recall_curve
+
     labels, scores = _check(labels, scores, where)
     precision, recall, thresholds = precision_recall_curve(labels, scores)
     return {"precision": precision, "recall": recall, "thresholds": thresholds}

@@ -17,27 +17,27 @@ import time
 import zlib
 from collections import Counter, OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
-from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, TypeVar
+from typing import TYPE_CHECKING, Any, Callable, Iterable, Iterator, TypeVar
 
 import cv2
 import numpy as np
 import pandas as pd
-import torch
 from tqdm import tqdm
 
 from . import methods as method_registry
-from . import weights
-from .extractors import build_extractor, resolve_device
 from .images import ImageReadError, load_for_extraction, to_original_pixels
 from .io_utils import atomic_write_csv, atomic_write_json
-from .matchers import build_matcher
 from .metrics import evaluate_scores
 from .sequences import Sequence
 from .store import ShardedStore
 from .verify import verify_matches
 
+if TYPE_CHECKING:
+    import torch
+
+# torch and the model modules (extractors, matchers) are imported by the functions that
+# run models: a notebook or command that only reads results never pays for them.
 T = TypeVar("T")
 R = TypeVar("R")
 
@@ -52,6 +52,8 @@ def configure_threads(n_threads: int | None = None) -> int:
     """Set torch's and OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else
     every core. On a machine shared with other work, fewer threads than cores can be
     much faster (small matrix products then wait on busy cores); scores do not change."""
+    import torch
+
     n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
@@ -191,6 +193,8 @@ def extract_features(
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:
         return counts
+    from .extractors import build_extractor, resolve_device
+
     extractor = build_extractor(extractor_conf, resolve_device(device))
 
     def load(key: str) -> tuple[np.ndarray, float]:
@@ -276,6 +280,31 @@ class PreparedCache:
 
     def __len__(self) -> int:
         return len(self._states)
+
+
+class FeatureCache:
+    """Feature dicts by image name, read on first use; least recently used first out once
+    they hold more than ``max_bytes`` (the newest always stays). Not thread-safe: callers lock."""
+
+    def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
+        self.read, self.max_bytes = read, max_bytes
+        self._entries: OrderedDict[str, tuple[dict[str, np.ndarray], int]] = OrderedDict()
+        self.nbytes = 0
+
+    def get(self, name: str) -> dict[str, np.ndarray]:
+        if name in self._entries:
+            self._entries.move_to_end(name)
+            return self._entries[name][0]
+        entry = self.read(name)
+        size = sum(value.nbytes for value in entry.values() if isinstance(value, np.ndarray))
+        self._entries[name] = (entry, size)
+        self.nbytes += size
+        while self.nbytes > self.max_bytes and len(self._entries) > 1:
+            self.nbytes -= self._entries.popitem(last=False)[1][1]
+        return entry
+
+    def __len__(self) -> int:
+        return len(self._entries)
 
 
 def pair_key(image_root: Path, query: str, reference: str, seed: int) -> str:
@@ -385,6 +414,9 @@ def match_and_verify(
     counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
     if not todo:
         return counts
+    from .extractors import resolve_device
+    from .matchers import build_matcher
+
     matcher = build_matcher(conf["matcher"], resolve_device(device))
     if conf["extractor"] is None:
         _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every)
@@ -393,13 +425,19 @@ def match_and_verify(
     features = feature_store(cache_dir, conf["extractor"])
     reading = threading.Lock()  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
 
-    @lru_cache(maxsize=256)  # a query's candidates are consecutive; references recur
-    def load(name: str) -> dict[str, np.ndarray]:
+    def read(name: str) -> dict[str, np.ndarray]:
         key = image_key(sequence.image_root, name)
+        if key not in features:
+            raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
+        return features.read(key)
+
+    # A query's candidates are consecutive and references recur: recently read features are
+    # kept, up to a memory bound that does not grow with the sequence.
+    recent = FeatureCache(read)
+
+    def load(name: str) -> dict[str, np.ndarray]:
         with reading:
-            if key not in features:
-                raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
-            return features.read(key)
+            return recent.get(name)
 
     # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
     # models/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
@@ -565,6 +603,7 @@ def cpu_name() -> str:
 
 def environment_info(device: torch.device) -> dict[str, Any]:
     import kornia
+    import torch
 
     info = {
         "device": str(device),
@@ -596,6 +635,8 @@ def run_method(
     """
     conf = method_registry.resolve_method(method, profile)
     method_registry.require(method, profile)
+    from .extractors import resolve_device
+
     resolved_device = resolve_device(device)
     configure_threads(threads)
     folder = method_dir(output_dir, method)

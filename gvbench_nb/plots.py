@@ -7,7 +7,6 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-import seaborn as sns
 
 from .images import read_image
 from .metrics import max_recall_at_full_precision, pr_curve
@@ -37,6 +36,8 @@ def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:
 
 def inlier_histogram(table: pd.DataFrame, title: str = "") -> plt.Figure:
     """Inlier counts of true vs false pairs: the overlap is what caps MR."""
+    import seaborn as sns  # here only: importing it costs more than the rest of this module
+
     figure, axis = plt.subplots(figsize=(6.5, 3.5))
     data = table.assign(pair=table["label"].map({1: "true loop closure", 0: "false"}))
     bins = np.histogram_bin_edges(data["num_inliers"], bins=min(40, max(5, data["num_inliers"].nunique())))

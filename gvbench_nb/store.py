@@ -14,6 +14,7 @@ import os
 import socket
 import uuid
 import zlib
+from collections import OrderedDict
 from pathlib import Path
 from typing import Iterable, Mapping
 from urllib.parse import quote, unquote
@@ -90,10 +91,13 @@ def _group_name(key: str) -> str:
 class ShardedStore:
     """A folder of HDF5 shards; every entry is a key with a few named arrays."""
 
-    def __init__(self, folder: str | os.PathLike[str]):
+    def __init__(self, folder: str | os.PathLike[str], max_open: int = 16):
         self.folder = Path(folder)
         self._index: dict[str, Path] | None = None
-        self._open: dict[Path, h5py.File] = {}
+        # Shards open for reading, least recently read first. Bounded: reading every pair of a
+        # long sequence would otherwise hold every shard open (a file handle and HDF5 caches each).
+        self.max_open = max_open
+        self._open: OrderedDict[Path, h5py.File] = OrderedDict()
 
     # -- reading -----------------------------------------------------------------
     def shards(self) -> list[Path]:
@@ -143,9 +147,11 @@ class ShardedStore:
         except KeyError:
             raise KeyError(f"{key!r} is not in the store {self.folder}") from None
         try:
-            handle = self._open.get(shard)
-            if handle is None:
-                handle = self._open[shard] = h5py.File(shard, "r")
+            # The most recently read shards stay open, at most max_open of them.
+            handle = self._open.pop(shard, None) or h5py.File(shard, "r")
+            self._open[shard] = handle
+            while len(self._open) > self.max_open:
+                self._open.popitem(last=False)[1].close()
             group = handle[_group_name(key)]
             wanted = [n for n in group.keys()] if fields is None else [n for n in fields if n in group]
             entry = {name: group[name][()] for name in wanted}

@@ -13,11 +13,13 @@ from __future__ import annotations
 import importlib.util
 import os
 import shutil
+import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import TYPE_CHECKING, Any, Mapping
 
-import torch
+if TYPE_CHECKING:  # torch is imported where checkpoints are loaded: listing and checking them stays light
+    import torch
 
 
 class MissingWeightsError(FileNotFoundError):
@@ -148,9 +150,19 @@ CHECKPOINTS: dict[str, Checkpoint] = {
 }
 
 
+def torch_hub_dir() -> Path:
+    """``torch.hub.get_dir()`` without importing torch: $TORCH_HOME/hub, else
+    $XDG_CACHE_HOME/torch/hub, else ~/.cache/torch/hub. Once torch is imported its own
+    answer is used, which also honours ``torch.hub.set_dir``."""
+    if "torch" in sys.modules:
+        return Path(sys.modules["torch"].hub.get_dir())
+    cache = os.getenv("XDG_CACHE_HOME", os.path.join("~", ".cache"))
+    return Path(os.path.expanduser(os.getenv("TORCH_HOME", os.path.join(cache, "torch")))) / "hub"
+
+
 def checkpoints_dir() -> Path:
     """The folder kornia and this package read checkpoints from."""
-    return Path(torch.hub.get_dir()) / "checkpoints"
+    return torch_hub_dir() / "checkpoints"
 
 
 def checkpoint_path(name: str) -> Path:
@@ -290,6 +302,8 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     A file that is not a checkpoint (truncated, an HTML error page, pickled code)
     raises ``CheckpointReadError`` naming it; nothing in it is executed.
     """
+    import torch
+
     path = Path(path)
     if not path.is_file():
         raise MissingWeightsError(f"checkpoint not found: {path}")

@@ -60,25 +60,66 @@ def prepare_image(model: LightGlue, keypoints: torch.Tensor, descriptors: torch.
     encoding = model.posenc(keypoints.to(model.posenc.Wr.weight.dtype))
     layer = model.transformers[0]
     descriptors = layer.self_attn(descriptors, encoding)
-    cross = layer.cross_attn
-    query_key, value = cross.to_qk(descriptors), cross.to_v(descriptors)
-    query_key, value = (t.unflatten(-1, (cross.heads, -1)).transpose(1, 2) for t in (query_key, value))
-    query_key = query_key * cross.scale**0.5
+    query_key, value = _projections(layer.cross_attn, descriptors)
     return PreparedImage(descriptors, encoding, query_key, value)
 
 
-def _first_cross_block(model: LightGlue, image0: PreparedImage,
-                       image1: PreparedImage) -> tuple[torch.Tensor, torch.Tensor]:
-    """kornia ``CrossBlock.forward`` of layer 0 (CPU path, no mask) from prepared projections."""
-    cross = model.transformers[0].cross_attn
-    sim = torch.einsum("bhid, bhjd -> bhij", image0.query_key, image1.query_key)
+CROSS_ATTENTIONS = ("kornia", "sdpa")
+
+
+def _cross_messages(query_key0: torch.Tensor, query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
+                    attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bidirectional cross-attention of pre-scaled query/keys (1, H, N, d), heads not yet merged.
+
+    ``kornia``: kornia's CPU path, one similarity matrix softmaxed both ways. ``sdpa``:
+    ``torch.nn.functional.scaled_dot_product_attention`` once per direction (its fused CPU
+    kernel never materialises the attention matrix); the inputs are already scaled, so its
+    own scale is 1. The two agree to float rounding, not bit for bit.
+    """
+    if attention == "sdpa":
+        message0 = F.scaled_dot_product_attention(query_key0, query_key1, value1, scale=1.0)
+        message1 = F.scaled_dot_product_attention(query_key1, query_key0, value0, scale=1.0)
+        return message0, message1
+    sim = torch.einsum("bhid, bhjd -> bhij", query_key0, query_key1)
     attn01 = F.softmax(sim, dim=-1)
     attn10 = F.softmax(sim.transpose(-2, -1).contiguous(), dim=-1)
-    message0 = torch.einsum("bhij, bhjd -> bhid", attn01, image1.value)
-    message1 = torch.einsum("bhji, bhjd -> bhid", attn10.transpose(-2, -1), image0.value)
+    message0 = torch.einsum("bhij, bhjd -> bhid", attn01, value1)
+    message1 = torch.einsum("bhji, bhjd -> bhid", attn10.transpose(-2, -1), value0)
+    return message0, message1
+
+
+def _cross_block(cross: torch.nn.Module, x0: torch.Tensor, x1: torch.Tensor, query_key0: torch.Tensor,
+                 query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
+                 attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rest of kornia's ``CrossBlock.forward`` (CPU path, no mask) from its projections."""
+    message0, message1 = _cross_messages(query_key0, query_key1, value0, value1, attention)
     message0, message1 = (cross.to_out(t.transpose(1, 2).flatten(start_dim=-2)) for t in (message0, message1))
-    x0, x1 = image0.descriptors, image1.descriptors
     return x0 + cross.ffn(torch.cat([x0, message0], -1)), x1 + cross.ffn(torch.cat([x1, message1], -1))
+
+
+def _projections(cross: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A cross block's query/key (scaled as kornia's CPU path scales it) and value, by head."""
+    query_key, value = cross.to_qk(x), cross.to_v(x)
+    query_key, value = (t.unflatten(-1, (cross.heads, -1)).transpose(1, 2) for t in (query_key, value))
+    return query_key * cross.scale**0.5, value
+
+
+def _first_cross_block(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
+                       attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """kornia ``CrossBlock.forward`` of layer 0 from prepared projections."""
+    return _cross_block(model.transformers[0].cross_attn, image0.descriptors, image1.descriptors,
+                        image0.query_key, image1.query_key, image0.value, image1.value, attention)
+
+
+def _layer(model: LightGlue, index: int, desc0: torch.Tensor, desc1: torch.Tensor, encoding0: torch.Tensor,
+           encoding1: torch.Tensor, attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """kornia ``TransformerLayer.forward`` (no masks); kornia's own module when attention is kornia's."""
+    layer = model.transformers[index]
+    if attention == "kornia":
+        return layer(desc0, desc1, encoding0, encoding1)
+    desc0, desc1 = layer.self_attn(desc0, encoding0), layer.self_attn(desc1, encoding1)
+    (query_key0, value0), (query_key1, value1) = (_projections(layer.cross_attn, d) for d in (desc0, desc1))
+    return _cross_block(layer.cross_attn, desc0, desc1, query_key0, query_key1, value0, value1, attention)
 
 
 def _prune(model: LightGlue, layer: int, confidence: torch.Tensor | None, descriptors: torch.Tensor,
@@ -90,10 +131,15 @@ def _prune(model: LightGlue, layer: int, confidence: torch.Tensor | None, descri
 
 
 @torch.inference_mode()
-def match_prepared(model: LightGlue, image0: PreparedImage,
-                   image1: PreparedImage) -> tuple[torch.Tensor, torch.Tensor]:
-    """Matches (K, 2) and their scores (K,) of one pair from its prepared images,
-    as ``model({"image0": ..., "image1": ...})["matches"][0]`` and ``["scores"][0]``."""
+def match_prepared(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
+                   cross_attention: str = "kornia") -> tuple[torch.Tensor, torch.Tensor]:
+    """Matches (K, 2) and their scores (K,) of one pair from its prepared images, as
+    ``model({"image0": ..., "image1": ...})["matches"][0]`` and ``["scores"][0]`` with
+    ``cross_attention="kornia"``; ``"sdpa"`` computes the cross-attention with torch's fused
+    kernel instead (see ``_cross_messages``), which can change a near-threshold match."""
+    if cross_attention not in CROSS_ATTENTIONS:
+        raise ValueError(f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "
+                         f"use one of {', '.join(CROSS_ATTENTIONS)}")
     if image0.descriptors.device.type == "cuda" and model.transformers[0].cross_attn.flash is not None:
         raise ValueError("match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA")
     m, n = image0.num_keypoints, image1.num_keypoints
@@ -108,9 +154,9 @@ def match_prepared(model: LightGlue, image0: PreparedImage,
     desc0 = desc1 = None
     for i in range(conf.n_layers):
         if i == 0:
-            desc0, desc1 = _first_cross_block(model, image0, image1)
+            desc0, desc1 = _first_cross_block(model, image0, image1, cross_attention)
         else:
-            desc0, desc1 = model.transformers[i](desc0, desc1, encoding0, encoding1)
+            desc0, desc1 = _layer(model, i, desc0, desc1, encoding0, encoding1, cross_attention)
         if i == conf.n_layers - 1:
             continue  # no early stopping or adaptive width at the last layer
         token0 = token1 = None

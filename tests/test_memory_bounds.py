@@ -64,6 +64,10 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
     cache_dir, output_dir = tmp_path / f"cache{references_per_query}", tmp_path / f"out{references_per_query}"
     rng = np.random.default_rng(0)
     base = rng.normal(size=(200, 32))
+    # Feature entries are keyed by image content: every image exists and differs.
+    sequence.image_root.mkdir(parents=True, exist_ok=True)
+    for index, name in enumerate(sequence.images):
+        (sequence.image_root / name).write_bytes(f"image {index}".encode())
     with pipeline.feature_store(cache_dir, conf["extractor"]).writer(flush_every=16) as writer:
         for name in sequence.images:  # noisy copies of one set: every pair has ~200 matches to hold or drop
             writer.put(pipeline.image_key(sequence.image_root, name), {
@@ -74,7 +78,7 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
             }, {"seconds": 0.01})
     tracemalloc.start()
     pipeline.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, workers=1)
-    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir)
+    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed=0)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert len(table) == len(sequence.pairs) and table["num_matches"].min() > 150

@@ -15,31 +15,43 @@ from typing import Any
 
 from . import weights
 
+# store_float16: the cache keeps float arrays as float16, as hloc stores them (as_half)
+# and matches them from there; it is part of the conf hash, so a profile can turn it off.
 EXTRACTORS: dict[str, dict[str, Any]] = {
+    # hloc's `sift` conf: its `dog` extractor, COLMAP's SIFT through pycolmap.
     "sift": {
         "type": "sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 8192, "peak_threshold": 0.01, "root_sift": True, "checkpoints": [],
+        "max_keypoints": 8192, "first_octave": 0, "peak_threshold": 0.01, "root_sift": True,
+        "store_float16": True, "checkpoints": [],
+    },
+    # OpenCV's SIFT, not the paper's: kept for comparison under its own name.
+    "sift-opencv": {
+        "type": "opencv_sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
+        "max_keypoints": 8192, "peak_threshold": 0.01, "root_sift": True, "store_float16": True, "checkpoints": [],
     },
     "orb": {
         "type": "orb", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 2000, "scale_factor": 1.2, "levels": 8, "fast_threshold": 20, "checkpoints": [],
+        "max_keypoints": 2000, "scale_factor": 1.2, "levels": 8, "fast_threshold": 20, "store_float16": True,
+        "checkpoints": [],
     },
     "disk": {
-        "type": "disk", "grayscale": False, "resize_max": None, "resize_force": False, "weights": "depth",
-        "max_keypoints": 5000, "nms_window": 5, "detection_threshold": 0.0, "checkpoints": ["disk_depth"],
+        "type": "disk", "grayscale": False, "resize_max": 1600, "resize_force": False, "weights": "depth",
+        "max_keypoints": 5000, "nms_window": 5, "detection_threshold": 0.0, "store_float16": True,
+        "checkpoints": ["disk_depth"],
     },
     "superpoint": {
         "type": "superpoint", "grayscale": True, "resize_max": 1600, "resize_force": True,
         "nms_radius": 3, "keypoint_threshold": 0.005, "max_keypoints": 4096, "remove_borders": 4,
-        "checkpoints": ["superpoint_v1"],
+        "store_float16": True, "checkpoints": ["superpoint_v1"],
     },
     "aliked": {
         "type": "aliked", "grayscale": False, "resize_max": 1024, "resize_force": False, "model_name": "aliked-n16",
-        "max_keypoints": 4096, "detection_threshold": 0.2, "nms_radius": 2, "checkpoints": ["aliked_n16"],
+        "max_keypoints": 4096, "detection_threshold": 0.2, "nms_radius": 2, "store_float16": True,
+        "checkpoints": ["aliked_n16"],
     },
     "xfeat": {
         "type": "xfeat", "grayscale": False, "resize_max": 1024, "resize_force": False,
-        "max_keypoints": 4096, "detection_threshold": 0.05, "checkpoints": ["xfeat"],
+        "max_keypoints": 4096, "detection_threshold": 0.05, "store_float16": True, "checkpoints": ["xfeat"],
     },
 }
 
@@ -75,6 +87,8 @@ MATCHERS: dict[str, dict[str, Any]] = {
 
 METHODS: dict[str, dict[str, Any]] = {
     "sift-nn": {"paper_name": "SIFT+NN", "extractor": "sift", "matcher": "nn-ratio", "in_paper": True},
+    "sift-opencv-nn": {"paper_name": "SIFT (OpenCV)+NN", "extractor": "sift-opencv", "matcher": "nn-ratio",
+                       "in_paper": False},
     "sp-nn": {"paper_name": "SP+NN", "extractor": "superpoint", "matcher": "nn-distance", "in_paper": True},
     "sp-sg": {"paper_name": "SP+SG", "extractor": "superpoint", "matcher": "superglue-outdoor", "in_paper": True},
     "disk-nn": {"paper_name": "DISK+NN", "extractor": "disk", "matcher": "nn-ratio", "in_paper": True},

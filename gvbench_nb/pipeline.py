@@ -117,15 +117,24 @@ def first_pair_using(sequence: Sequence, name: str) -> str:
     return f"pair {index}: {pair.query} {pair.reference}"
 
 
-def stored_features(features: dict[str, np.ndarray], image: np.ndarray, scale: float) -> dict[str, np.ndarray]:
+def stored_features(features: dict[str, np.ndarray], image: np.ndarray, scale: np.ndarray,
+                    store_float16: bool = False) -> dict[str, np.ndarray]:
     """What the cache holds for one image: keypoints in original pixels, scores,
-    descriptors and the original (width, height)."""
-    return {
+    descriptors and the original (width, height).
+
+    ``store_float16`` (the extractor conf's key): float32 arrays are stored as float16, as
+    hloc's ``extract_features.main(as_half=True)`` stores them, so matching reads the
+    rounded values; integer arrays (binary descriptors, the size) stay as they are.
+    """
+    stored = {
         "keypoints": to_original_pixels(features["keypoints"], scale),
         "scores": features["scores"],
         "descriptors": features["descriptors"],
         "image_size": np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64),
     }
+    if store_float16:
+        stored = {k: v.astype(np.float16) if v.dtype == np.float32 else v for k, v in stored.items()}
+    return stored
 
 
 def extract_features(
@@ -162,7 +171,8 @@ def extract_features(
         image, scale = loaded
         start = time.perf_counter()
         features = extractor(image)
-        return stored_features(features, image, scale), time.perf_counter() - start
+        stored = stored_features(features, image, scale, extractor_conf.get("store_float16", False))
+        return stored, time.perf_counter() - start
 
     workers = worker_count(workers)
     # One worker: decoding runs ahead in threads while this thread extracts. Several:

@@ -75,9 +75,12 @@ MATCHERS: dict[str, dict[str, Any]] = {
     # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
     "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
     # Dense: matches an image pair directly; its image preparation lives in the matcher conf.
+    # merge_*: hloc's match_dense conf `loftr` (1-px cells, 1 px max error) with its default
+    # cap of 8192 keypoints an image (matchers.merge_dense_matches).
     "loftr-outdoor": {
         "type": "loftr", "dense": True, "weights": "outdoor", "grayscale": True, "resize_max": 1024,
-        "resize_force": False, "multiple_of": 8, "coarse_threshold": 0.2, "checkpoints": ["loftr_outdoor"],
+        "resize_force": False, "multiple_of": 8, "coarse_threshold": 0.2, "merge_cell_size": 1,
+        "merge_max_error": 1, "merge_max_keypoints": 8192, "checkpoints": ["loftr_outdoor"],
     },
     "superglue-outdoor": {
         "type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2,

@@ -90,8 +90,6 @@ MATCHERS: dict[str, dict[str, Any]] = {
 
 METHODS: dict[str, dict[str, Any]] = {
     "sift-nn": {"paper_name": "SIFT+NN", "extractor": "sift", "matcher": "nn-ratio", "in_paper": True},
-    "sift-opencv-nn": {"paper_name": "SIFT (OpenCV)+NN", "extractor": "sift-opencv", "matcher": "nn-ratio",
-                       "in_paper": False},
     "sp-nn": {"paper_name": "SP+NN", "extractor": "superpoint", "matcher": "nn-distance", "in_paper": True},
     "sp-sg": {"paper_name": "SP+SG", "extractor": "superpoint", "matcher": "superglue-outdoor", "in_paper": True},
     "disk-nn": {"paper_name": "DISK+NN", "extractor": "disk", "matcher": "nn-ratio", "in_paper": True},
@@ -104,6 +102,8 @@ METHODS: dict[str, dict[str, Any]] = {
     "xfeat-lg": {"paper_name": "XFeat+LighterGlue", "extractor": "xfeat", "matcher": "lighterglue-xfeat",
                  "in_paper": False},
     "orb-nn": {"paper_name": "ORB+NN", "extractor": "orb", "matcher": "nn-hamming", "in_paper": False},
+    "sift-opencv-nn": {"paper_name": "SIFT (OpenCV)+NN", "extractor": "sift-opencv", "matcher": "nn-ratio",
+                       "in_paper": False},
 }
 
 # Profile -> extractor (or dense matcher) type -> overrides. 'paper' is the protocol as

@@ -447,8 +447,9 @@ def match_lines(output_dir: str | os.PathLike[str], method: str, query: str, ref
     finally:
         features.close()
     pair_matches = entry["matches"].astype(int).reshape(-1, 2)
-    return {"points0": points0[pair_matches[:, 0]], "points1": points1[pair_matches[:, 1]],
-            "inlier_mask": inlier_mask}
+    # float32: the cache may hold float16 keypoints (as hloc stores them).
+    return {"points0": points0[pair_matches[:, 0]].astype(np.float32),
+            "points1": points1[pair_matches[:, 1]].astype(np.float32), "inlier_mask": inlier_mask}
 
 
 # ------------------------------------------------------------------ bootstrap --

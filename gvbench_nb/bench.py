@@ -117,7 +117,7 @@ def run_cached_pipeline(sequence: Sequence, conf: dict[str, Any], work_dir: Path
 def _extract_image(path: Path, extractor_conf: dict[str, Any], extractor: Callable) -> dict[str, np.ndarray]:
     """One image's features exactly as ``pipeline.extract_features`` stores them."""
     image, scale = load_for_extraction(path, extractor_conf)
-    return pipeline.stored_features(extractor(image), image, scale)
+    return pipeline.stored_features(extractor(image), image, scale, extractor_conf.get("store_float16", False))
 
 
 def _dense_pair(root: Path, pair: Any, matcher_conf: dict[str, Any], matcher: Callable

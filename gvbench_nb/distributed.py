@@ -84,6 +84,9 @@ def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output
     from .extractors import resolve_device  # imports torch: only where a device is resolved
 
     pipeline.configure_threads(threads)
+    if count > 1 and conf["extractor"] is None and pipeline.dense_merge_options(conf["matcher"]) is not None:
+        raise ValueError(f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
+                         "so its pairs cannot be matched in shards; run it with one matching shard")
     shard = pair_shard(sequence, index, count)
     resolved = resolve_device(device)
     started = time.perf_counter()

@@ -1,13 +1,14 @@
 """Local feature extractors, one small class a type, selected by ``conf['type']``.
 
 Every extractor takes an image already prepared by ``images.load_for_extraction``
-(grayscale uint8 (H, W) or RGB uint8 (H, W, 3)) and returns numpy arrays:
+(grayscale (H, W) or RGB (H, W, 3), float32 in 0..255) and returns numpy arrays:
 ``keypoints`` (N, 2) float32 (x, y) in that image's pixels, ``scores`` (N,) float32,
 ``descriptors`` (N, D) float32 (uint8 for binary descriptors).
 """
 
 from __future__ import annotations
 
+import threading
 from typing import Any, Callable
 
 import cv2
@@ -31,8 +32,69 @@ def _to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
     return tensor.to(device)
 
 
-class SiftExtractor:
-    """OpenCV SIFT with RootSIFT descriptors.
+def _to_uint8(image: np.ndarray) -> np.ndarray:
+    """The 8-bit image OpenCV's detectors need (the prepared image is float after resizing)."""
+    return image if image.dtype == np.uint8 else np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    """hloc's ``sift_to_rootsift`` (extractors/dog.py): L1-normalise, square root (clipped
+    at ``eps``), L2-normalise, each with ``eps`` added to the norm."""
+    descriptors = descriptors / (np.abs(descriptors).sum(axis=-1, keepdims=True) + eps)
+    descriptors = np.sqrt(np.maximum(descriptors, eps))
+    return descriptors / (np.linalg.norm(descriptors, axis=-1, keepdims=True) + eps)
+
+
+class ColmapSiftExtractor:
+    """COLMAP's SIFT through pycolmap, as hloc's ``dog`` extractor with its ``sift`` conf.
+
+    Options: first_octave, peak_threshold, RootSIFT normalisation (L1_ROOT), at most
+    ``max_keypoints`` features (pycolmap's max_num_features, 8192 by default). hloc passes
+    the float image scaled to [0, 1] and keeps x, y of each keypoint; its scores are zeros
+    (COLMAP gives none). hloc then applies its own RootSIFT step to pycolmap's descriptors,
+    which are RootSIFT already ("COLMAP does not normalize well"); so do we (``root_sift``).
+    CPU unless pycolmap was built with CUDA and the device is CUDA, as hloc chooses.
+    """
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        import warnings
+
+        import pycolmap
+
+        self.conf = conf
+        options = pycolmap.SiftExtractionOptions()
+        options.first_octave = conf["first_octave"]
+        options.peak_threshold = conf["peak_threshold"]
+        options.max_num_features = conf["max_keypoints"]
+        options.normalization = pycolmap.Normalization.L1_ROOT if conf.get("root_sift", True) \
+            else pycolmap.Normalization.L2
+        use_gpu = pycolmap.has_cuda and device.type == "cuda"
+        with warnings.catch_warnings():  # pycolmap 4 deprecates Sift, the class hloc uses
+            warnings.simplefilter("ignore", DeprecationWarning)
+            self.sift = pycolmap.Sift(options=pycolmap.FeatureExtractionOptions(sift=options),
+                                      device=pycolmap.Device.cuda if use_gpu else pycolmap.Device.cpu)
+        self._lock = threading.Lock()  # one extractor object, several workers: one image at a time
+
+    def __call__(self, image: np.ndarray) -> Features:
+        if image.ndim != 2:
+            raise ValueError(f"COLMAP SIFT needs a grayscale image, got shape {image.shape}; "
+                             "set 'grayscale': True in the extractor conf")
+        normalised = np.ascontiguousarray(image.astype(np.float32) / np.float32(255.0))
+        with self._lock:
+            keypoints, descriptors = self.sift.extract(normalised)
+        if len(keypoints) == 0:
+            return _empty(128)
+        if self.conf.get("root_sift", True):
+            descriptors = root_sift(descriptors)
+        return {
+            "keypoints": np.ascontiguousarray(keypoints[:, :2], dtype=np.float32),
+            "scores": np.zeros(len(keypoints), np.float32),
+            "descriptors": np.ascontiguousarray(descriptors, dtype=np.float32),
+        }
+
+
+class OpenCVSiftExtractor:
+    """OpenCV SIFT with RootSIFT descriptors (not the paper's SIFT: it upsamples first).
 
     The paper's DoG peak threshold 0.01 (COLMAP's definition) maps to OpenCV's
     contrastThreshold = peak_threshold * nOctaveLayers, since OpenCV divides by the
@@ -49,7 +111,7 @@ class SiftExtractor:
         )
 
     def __call__(self, image: np.ndarray) -> Features:
-        keypoints, descriptors = self.sift.detectAndCompute(image, None)
+        keypoints, descriptors = self.sift.detectAndCompute(_to_uint8(image), None)
         if descriptors is None or not keypoints:
             return _empty(128)
         points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
@@ -72,7 +134,7 @@ class OrbExtractor:
         )
 
     def __call__(self, image: np.ndarray) -> Features:
-        keypoints, descriptors = self.orb.detectAndCompute(image, None)
+        keypoints, descriptors = self.orb.detectAndCompute(_to_uint8(image), None)
         if descriptors is None or not keypoints:
             return {**_empty(32), "descriptors": np.zeros((0, 32), np.uint8)}
         points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
@@ -179,7 +241,8 @@ def _empty(dim: int) -> Features:
 
 
 EXTRACTOR_TYPES: dict[str, Callable[[dict[str, Any], torch.device], Callable[[np.ndarray], Features]]] = {
-    "sift": SiftExtractor,
+    "sift": ColmapSiftExtractor,
+    "opencv_sift": OpenCVSiftExtractor,
     "orb": OrbExtractor,
     "disk": DiskExtractor,
     "aliked": AlikedExtractor,

@@ -77,7 +77,13 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
         raise ImageReadError(f"image file is empty (0 bytes): {path}; {_REPLACE_HINT}")
     # OpenCV returns None for truncated JPEG and PNG data rather than a grey-filled image
     # (tests/test_reliability.py checks it); the first bytes show what the file really is.
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    # Grayscale is decoded as grayscale (hloc's cv2.IMREAD_GRAYSCALE: a JPEG's luma as
+    # libjpeg computes it, which a cvtColor of the colour image misses by up to 2 levels);
+    # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. Neither mode applies
+    # EXIF orientation, as hloc ignores it.
+    flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION if grayscale \
+        else cv2.IMREAD_UNCHANGED
+    image = cv2.imdecode(data, flags)
     if image is None or image.size == 0:
         raise ImageReadError(
             f"cannot decode image {path} ({data.size} bytes, starting {bytes(data[:8])!r}): "
@@ -118,25 +124,33 @@ def target_size(width: int, height: int, resize_max: int | None, resize_force: b
 
 
 def resize_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
-    """Resize to (width, height): INTER_AREA when shrinking, INTER_LINEAR when enlarging."""
+    """Resize to (width, height) as hloc's ``extract_features.resize_image`` with cv2_area:
+    INTER_AREA, or INTER_LINEAR when either side grows."""
     height, width = image.shape[:2]
     if (width, height) == tuple(size):
         return image
-    shrinking = size[0] * size[1] < width * height
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA if shrinking else cv2.INTER_LINEAR)
+    enlarging = size[0] > width or size[1] > height
+    return cv2.resize(image, tuple(size), interpolation=cv2.INTER_LINEAR if enlarging else cv2.INTER_AREA)
 
 
 def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Image prepared for an extractor conf, and the (sx, sy) scale back to original pixels."""
-    image = read_image(path, grayscale=conf.get("grayscale", False))
+    """Image prepared for an extractor conf, float32 in 0..255 (H, W) or (H, W, 3), and the
+    float32 (sx, sy) scale back to original pixels (original size / new size).
+
+    As hloc's ``ImageDataset``: the decoded image becomes float32 before resizing, so the
+    resized values are not rounded to integers.
+    """
+    image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
     height, width = image.shape[:2]
     size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False), conf.get("multiple_of"),
                        conf.get("resize_to"))
     resized = resize_image(image, size)
-    scale = np.array([width / size[0], height / size[1]], dtype=np.float64)
+    scale = (np.array([width, height]) / np.array(size)).astype(np.float32)
     return resized, scale
 
 
 def to_original_pixels(keypoints: np.ndarray, scale: np.ndarray) -> np.ndarray:
-    """Map keypoints of the resized image back with (k + 0.5) * scale - 0.5 (pixel centres)."""
-    return ((keypoints + 0.5) * scale - 0.5).astype(np.float32)
+    """Map keypoints of the resized image back with (k + 0.5) * scale - 0.5 (pixel centres),
+    in float32 as hloc computes it."""
+    keypoints = np.asarray(keypoints, dtype=np.float32)
+    return ((keypoints + np.float32(0.5)) * np.asarray(scale, dtype=np.float32) - np.float32(0.5)).astype(np.float32)

@@ -24,12 +24,6 @@ def _empty_matches() -> Matches:
     return np.zeros((0, 2), np.int64), np.zeros((0,), np.float32)
 
 
-def _unpack_bits(binary: torch.Tensor) -> torch.Tensor:
-    """uint8 (N, B) -> float (N, 8B) of +-1, so Hamming distance becomes a matrix product."""
-    bits = torch.from_numpy(np.unpackbits(binary.cpu().numpy(), axis=1)).to(binary.device)
-    return bits.float().mul_(2).sub_(1)
-
-
 def nearest_neighbour_matches(
     descriptors0: torch.Tensor,
     descriptors1: torch.Tensor,
@@ -38,58 +32,16 @@ def nearest_neighbour_matches(
     distance_threshold: float | None = None,
     metric: str = "l2",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Nearest-neighbour matches as hloc computes them.
-
-    ``l2``: descriptors are L2-normalised, squared distance = 2 - 2 * similarity; the
-    Lowe ratio is applied to distances (d1 <= ratio * d2) and the absolute threshold to
-    the distance (d1 <= threshold). Score = (similarity + 1) / 2.
-    ``hamming``: binary uint8 descriptors; distance in bits; score = 1 - distance / bits.
-    Returns (matches (M, 2) long, scores (M,) float).
-    """
-    if len(descriptors0) == 0 or len(descriptors1) == 0:
-        return torch.zeros((0, 2), dtype=torch.long), torch.zeros((0,))
+    """Nearest-neighbour matches with hloc's rule (``hloc/matchers/nearest_neighbor.py``):
+    ``l2`` through ``two_way_l2_matches``, ``hamming`` (binary uint8 descriptors) through
+    ``hamming_nearest_neighbour_matches``. Returns (matches (M, 2) long, scores (M,) float)."""
+    if metric == "l2":
+        return two_way_l2_matches(descriptors0, descriptors1, mutual, ratio_threshold, distance_threshold)
     if metric == "hamming":
-        unpacked0, unpacked1 = _unpack_bits(descriptors0), _unpack_bits(descriptors1)
-        n_bits = unpacked0.shape[1]
-        similarity = unpacked0 @ unpacked1.T  # = n_bits - 2 * hamming
-        to_distance_squared = lambda sim: ((n_bits - sim) / 2) ** 2  # noqa: E731
-        to_score = lambda sim: 1 - (n_bits - sim) / 2 / n_bits  # noqa: E731
-    elif metric == "l2":
-        descriptors0 = torch.nn.functional.normalize(descriptors0.float(), dim=1)
-        descriptors1 = torch.nn.functional.normalize(descriptors1.float(), dim=1)
-        similarity = descriptors0 @ descriptors1.T
-        to_distance_squared = lambda sim: (2 - 2 * sim).clamp(min=0)  # noqa: E731
-        to_score = lambda sim: (sim + 1) / 2  # noqa: E731
-    else:
-        raise ValueError(f"unknown metric {metric!r}; use 'l2' or 'hamming'")
-    # max/amax instead of topk and a transposed argmax: ~2x less time on CPU, where torch's
-    # argmax and topk are slow. max(dim) returns the first maximum on ties, as argmax does.
-    best_similarity, best_index = similarity.max(dim=1)
-    index0 = torch.arange(len(descriptors0), device=similarity.device)
-    keep = torch.ones(len(descriptors0), dtype=torch.bool, device=similarity.device)
-    if mutual:
-        if metric == "hamming":
-            # Integer similarities tie often: a true column argmax, on the transposed product
-            # (exact in float32 for bit counts, so it equals the transpose).
-            keep &= (unpacked1 @ unpacked0.T).max(dim=1).indices[best_index] == index0
-        else:
-            # The row's best is its column's best. Real-valued similarities tie only for
-            # identical descriptors, which then keep the first row, as a column argmax would.
-            keep &= best_similarity == similarity.amax(dim=0)[best_index]
-            kept = torch.nonzero(keep).squeeze(1)
-            if len(kept) and len(torch.unique(best_index[kept])) < len(kept):
-                _, first = np.unique(best_index[kept].cpu().numpy(), return_index=True)
-                keep[:] = False
-                keep[kept[torch.from_numpy(first).to(kept.device)]] = True
-    # Distances only of the two best: the full distance matrix would cost as much as the product.
-    best_distance_squared = to_distance_squared(best_similarity)
-    if ratio_threshold and similarity.shape[1] > 1:
-        similarity[index0, best_index] = -float("inf")  # the second best is then the row maximum
-        keep &= best_distance_squared <= ratio_threshold**2 * to_distance_squared(similarity.amax(dim=1))
-    if distance_threshold:
-        keep &= best_distance_squared <= distance_threshold**2
-    matches = torch.stack([index0[keep], best_index[keep]], dim=1)
-    return matches.cpu(), to_score(best_similarity[keep]).float().cpu()
+        matches, scores = hamming_nearest_neighbour_matches(
+            descriptors0.cpu().numpy(), descriptors1.cpu().numpy(), mutual, ratio_threshold, distance_threshold)
+        return torch.from_numpy(matches), torch.from_numpy(scores)
+    raise ValueError(f"unknown metric {metric!r}; use 'l2' or 'hamming'")
 
 
 def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
@@ -172,6 +124,70 @@ def hamming_nearest_neighbour_matches(
     matches = np.stack([index0, nearest1[index0]], axis=1).astype(np.int64)
     n_bits = 8 * descriptors0.shape[1]
     return matches, (1 - first[index0] / n_bits).astype(np.float32)
+
+
+def two_way_l2_matches(
+    descriptors0: torch.Tensor,
+    descriptors1: torch.Tensor,
+    mutual: bool = True,
+    ratio_threshold: float | None = None,
+    distance_threshold: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """hloc's nearest-neighbour rule (``hloc/matchers/nearest_neighbor.py``) on L2 descriptors.
+
+    Similarity = dot product of the L2-normalised descriptors, distance^2 = 2 (1 - similarity).
+    Each row (a descriptor of image 0) keeps its best column when it passes the Lowe ratio
+    (d1^2 <= ratio^2 d2^2, d1 and d2 its two best) and the distance test (d1 <= threshold);
+    with ``mutual`` each column (a descriptor of image 1) must pass the same tests against
+    its two best rows, and the row and column must be each other's best. The ratio test is
+    skipped when either image has a single descriptor. Score = (similarity + 1) / 2. Ties
+    go to the first index. Returns (matches (M, 2) long, scores (M,) float).
+    """
+    if len(descriptors0) == 0 or len(descriptors1) == 0:
+        return torch.zeros((0, 2), dtype=torch.long), torch.zeros((0,))
+    # hloc takes the product of the stored descriptors, which are unit vectors up to their
+    # float16 rounding; normalising here makes any extractor's descriptors directions.
+    descriptors0 = torch.nn.functional.normalize(descriptors0.float(), dim=1)
+    descriptors1 = torch.nn.functional.normalize(descriptors1.float(), dim=1)
+    similarity = descriptors0 @ descriptors1.T
+    if len(descriptors0) == 1 or len(descriptors1) == 1:
+        ratio_threshold = None
+
+    def passes(best: torch.Tensor, second: torch.Tensor | None) -> torch.Tensor:
+        distance_squared = 2 * (1 - best)
+        keep = torch.ones_like(best, dtype=torch.bool)
+        if ratio_threshold:
+            keep &= distance_squared <= ratio_threshold**2 * (2 * (1 - second))
+        if distance_threshold:
+            keep &= distance_squared <= distance_threshold**2
+        return keep
+
+    # max/amax rather than topk: several times less time on CPU. max(dim) returns the first
+    # maximum on ties, as argmax does.
+    best_similarity, best_index = similarity.max(dim=1)
+    index0 = torch.arange(len(descriptors0), device=similarity.device)
+    if mutual:
+        column_best_index = similarity.max(dim=0).indices
+        # A mutual pair's entry is the best of its row and of its column: masking it makes
+        # the row and the column maxima their second bests. Other rows are dropped anyway.
+        candidate = column_best_index[best_index] == index0
+        rows, columns = index0[candidate], best_index[candidate]
+        best = best_similarity[candidate]
+        row_second = column_second = None
+        if ratio_threshold:
+            similarity[rows, columns] = -float("inf")
+            row_second = similarity.amax(dim=1)[rows]
+            column_second = similarity.amax(dim=0)[columns]
+        keep = passes(best, row_second) & passes(best, column_second)
+    else:
+        rows, columns, best = index0, best_index, best_similarity
+        row_second = None
+        if ratio_threshold:
+            similarity[rows, columns] = -float("inf")
+            row_second = similarity.amax(dim=1)
+        keep = passes(best, row_second)
+    matches = torch.stack([rows[keep], columns[keep]], dim=1)
+    return matches.cpu(), ((best[keep] + 1) / 2).float().cpu()
 
 
 class NearestNeighbourMatcher:
@@ -286,12 +302,28 @@ class SuperGlueMatcher:
         return matches, scores0[valid].astype(np.float32)
 
 
+def swapped_dense_call(model: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]],
+                       image0: torch.Tensor, image1: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """LoFTR run as hloc runs it (``hloc/matchers/loftr.py``): the network sees image 1 as
+    its first image and image 0 as its second (its fine stage refines the second image's
+    points, so hloc's image 0 is the refined one); the points come back in our order.
+    Returns (points in image 0, points in image 1, confidences)."""
+    output = model({"image0": image1, "image1": image0})
+    return (
+        output["keypoints1"].cpu().numpy().astype(np.float32),
+        output["keypoints0"].cpu().numpy().astype(np.float32),
+        output["confidence"].cpu().numpy().astype(np.float32),
+    )
+
+
 class LoFTRMatcher:
     """kornia LoFTR run as a dense pair matcher (no per-image cache) with the paper's
     preprocessing: grayscale, longest side <= 1024, both sides floored to a multiple of 8.
 
-    Takes two prepared grayscale uint8 images; returns points in their pixels and
-    confidences. The official checkpoint is loaded here with ``weights_only=True``.
+    Takes two prepared grayscale images (float32, 0..255), runs them swapped as hloc does
+    (``swapped_dense_call``) and returns points in their pixels and confidences; the
+    pipeline merges them across pairs (``merge_dense_matches``). The official checkpoint
+    is loaded here with ``weights_only=True``.
     """
 
     dense = True
@@ -314,12 +346,106 @@ class LoFTRMatcher:
         def tensor(image: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(image).float().div(255.0)[None, None].to(self.device)
 
-        output = self.model({"image0": tensor(image0), "image1": tensor(image1)})
-        return (
-            output["keypoints0"].cpu().numpy().astype(np.float32),
-            output["keypoints1"].cpu().numpy().astype(np.float32),
-            output["confidence"].cpu().numpy().astype(np.float32),
-        )
+        return swapped_dense_call(self.model, tensor(image0), tensor(image1))
+
+
+def _cell_centres(points: np.ndarray, size: float) -> np.ndarray:
+    """hloc's quantisation (``match_dense.to_cpts``): the centre of each point's
+    ``size``-pixel cell, np.round (half to even) as hloc rounds; size 0 keeps the points."""
+    if size <= 0:
+        return points
+    return np.round(np.round((points + 0.5) / size) * size - 0.5, 2)
+
+
+def _one_to_one(matches: np.ndarray, scores: np.ndarray) -> np.ndarray:
+    """Indices of the matches kept when many-to-one matches are removed (hloc's
+    ``get_unique_matches``): a match stays when it has the highest score among the matches
+    of its keypoint in image 0 and among those of its keypoint in image 1 (ties: first)."""
+    winners = []
+    for side in (0, 1):
+        order = np.lexsort((np.arange(len(matches)), -scores, matches[:, side]))  # by keypoint, best first
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = matches[order[1:], side] != matches[order[:-1], side]
+        winners.append(order[first])
+    return np.sort(np.intersect1d(winners[0], winners[1]))
+
+
+def merge_dense_matches(
+    pairs: list[tuple[str, str]],
+    raw_matches: list[tuple[np.ndarray, np.ndarray, np.ndarray]],
+    max_keypoints: int | None = 8192,
+    cell_size: float = 1.0,
+    max_error: float = 1.0,
+) -> tuple[dict[str, np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
+    """Dense matches turned into per-image keypoints and per-pair matches as hloc's
+    ``match_dense.match_and_assign`` does (conf ``loftr``: 1-px cells, max error 1 px,
+    at most 8192 keypoints an image).
+
+    ``raw_matches[i]`` = (points0 (N, 2), points1 (N, 2), scores (N,)) of ``pairs[i]`` in
+    original pixels. Pairs are visited in hloc's order (by the fewer uses of their two
+    images, then by name); each point falls into the ``max(cell_size, max_error)``-pixel
+    cell of its image and adds its match score to its ``max_error``-pixel bin there. An
+    image's keypoints are the best-scored bin of each cell, its ``max_keypoints``
+    highest-summed ones first (hloc's argsort, reversed). Every raw match is then reassigned
+    to the nearest kept keypoint within ``max_error`` on both sides (not always its own
+    cell's), matches without one dropped, many-to-one removed (``_one_to_one``); scores
+    are float16-rounded as hloc stores them.
+
+    Returns (keypoints by image name, float32 (K, 2); per pair (matches (M, 2) int64 into
+    those keypoints, ordered by image-0 keypoint, scores (M,) float32)).
+    """
+    from collections import Counter
+
+    from scipy.spatial import KDTree
+
+    if len(pairs) != len(raw_matches):
+        raise ValueError(f"{len(pairs)} pairs but {len(raw_matches)} raw match sets; give one set a pair")
+    uses = Counter(name for pair in pairs for name in pair)
+    order = sorted(range(len(pairs)), key=lambda i: (min(uses[pairs[i][0]], uses[pairs[i][1]]), pairs[i]))
+    cell_pixels = max(cell_size, max_error)
+    cells: dict[str, dict[tuple[float, float], Counter]] = {}  # insertion order = first seen
+    remaining = Counter(uses)
+    keypoints: dict[str, np.ndarray] = {}
+    for index in order:
+        points0, points1, scores = raw_matches[index]
+        for name, points in zip(pairs[index], (points0, points1)):
+            image_cells = cells.setdefault(name, {})
+            points = np.asarray(points, dtype=np.float32)
+            # Scores summed in float32, as hloc's Counter sums its float32 scores.
+            for cell, bin_, score in zip(map(tuple, _cell_centres(points, cell_pixels).tolist()),
+                                         map(tuple, _cell_centres(points, int(max_error)).tolist()),
+                                         np.asarray(scores, dtype=np.float32)):
+                image_cells.setdefault(cell, Counter())[bin_] += score
+        for name in pairs[index]:
+            remaining[name] -= 1
+            if remaining[name] > 0:
+                continue
+            best = [counter.most_common(1)[0] for counter in cells.pop(name).values()]
+            points = np.array([position for position, _ in best], dtype=np.float32).reshape(-1, 2)
+            summed = np.array([score for _, score in best], dtype=np.float32)
+            if max_keypoints:
+                kept = np.argsort(summed)[::-1][:max_keypoints]
+                points = points[kept]
+            keypoints[name] = points
+
+    def nearest(points: np.ndarray, name: str) -> np.ndarray:
+        targets = keypoints[name]
+        if len(points) == 0 or len(targets) == 0:
+            return np.full(len(points), -1, dtype=np.int64)
+        distance, found = KDTree(targets).query(np.asarray(points, dtype=np.float32))
+        return np.where(distance <= max_error, found, -1).astype(np.int64)
+
+    merged = []
+    for (name0, name1), (points0, points1, scores) in zip(pairs, raw_matches):
+        ids0, ids1 = nearest(points0, name0), nearest(points1, name1)
+        valid = (ids0 >= 0) & (ids1 >= 0)
+        matches = np.stack([ids0[valid], ids1[valid]], axis=1).reshape(-1, 2)
+        pair_scores = np.asarray(scores, dtype=np.float32)[valid]
+        kept = _one_to_one(matches, pair_scores)
+        matches, pair_scores = matches[kept], pair_scores[kept]
+        by_keypoint0 = np.argsort(matches[:, 0], kind="stable")
+        merged.append((matches[by_keypoint0], pair_scores[by_keypoint0].astype(np.float16).astype(np.float32)))
+    return keypoints, merged
 
 
 MATCHER_TYPES: dict[str, Callable[[dict[str, Any], torch.device], Callable[..., Matches]]] = {

@@ -15,31 +15,43 @@ from typing import Any
 
 from . import imm, weights
 
+# store_float16: the cache keeps float arrays as float16, as hloc stores them (as_half)
+# and matches them from there; it is part of the conf hash, so a profile can turn it off.
 EXTRACTORS: dict[str, dict[str, Any]] = {
+    # hloc's `sift` conf: its `dog` extractor, COLMAP's SIFT through pycolmap.
     "sift": {
         "type": "sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 8192, "peak_threshold": 0.01, "root_sift": True, "checkpoints": [],
+        "max_keypoints": 8192, "first_octave": 0, "peak_threshold": 0.01, "root_sift": True,
+        "store_float16": True, "checkpoints": [],
+    },
+    # OpenCV's SIFT, not the paper's: kept for comparison under its own name.
+    "sift-opencv": {
+        "type": "opencv_sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
+        "max_keypoints": 8192, "peak_threshold": 0.01, "root_sift": True, "store_float16": True, "checkpoints": [],
     },
     "orb": {
         "type": "orb", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 2000, "scale_factor": 1.2, "levels": 8, "fast_threshold": 20, "checkpoints": [],
+        "max_keypoints": 2000, "scale_factor": 1.2, "levels": 8, "fast_threshold": 20, "store_float16": True,
+        "checkpoints": [],
     },
     "disk": {
-        "type": "disk", "grayscale": False, "resize_max": None, "resize_force": False, "weights": "depth",
-        "max_keypoints": 5000, "nms_window": 5, "detection_threshold": 0.0, "checkpoints": ["disk_depth"],
+        "type": "disk", "grayscale": False, "resize_max": 1600, "resize_force": False, "weights": "depth",
+        "max_keypoints": 5000, "nms_window": 5, "detection_threshold": 0.0, "store_float16": True,
+        "checkpoints": ["disk_depth"],
     },
     "superpoint": {
         "type": "superpoint", "grayscale": True, "resize_max": 1600, "resize_force": True,
         "nms_radius": 3, "keypoint_threshold": 0.005, "max_keypoints": 4096, "remove_borders": 4,
-        "checkpoints": ["superpoint_v1"],
+        "store_float16": True, "checkpoints": ["superpoint_v1"],
     },
     "aliked": {
         "type": "aliked", "grayscale": False, "resize_max": 1024, "resize_force": False, "model_name": "aliked-n16",
-        "max_keypoints": 4096, "detection_threshold": 0.2, "nms_radius": 2, "checkpoints": ["aliked_n16"],
+        "max_keypoints": 4096, "detection_threshold": 0.2, "nms_radius": 2, "store_float16": True,
+        "checkpoints": ["aliked_n16"],
     },
     "xfeat": {
         "type": "xfeat", "grayscale": False, "resize_max": 1024, "resize_force": False,
-        "max_keypoints": 4096, "detection_threshold": 0.05, "checkpoints": ["xfeat"],
+        "max_keypoints": 4096, "detection_threshold": 0.05, "store_float16": True, "checkpoints": ["xfeat"],
     },
 }
 
@@ -63,9 +75,12 @@ MATCHERS: dict[str, dict[str, Any]] = {
     # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
     "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
     # Dense: matches an image pair directly; its image preparation lives in the matcher conf.
+    # merge_*: hloc's match_dense conf `loftr` (1-px cells, 1 px max error) with its default
+    # cap of 8192 keypoints an image (matchers.merge_dense_matches).
     "loftr-outdoor": {
         "type": "loftr", "dense": True, "weights": "outdoor", "grayscale": True, "resize_max": 1024,
-        "resize_force": False, "multiple_of": 8, "coarse_threshold": 0.2, "checkpoints": ["loftr_outdoor"],
+        "resize_force": False, "multiple_of": 8, "coarse_threshold": 0.2, "merge_cell_size": 1,
+        "merge_max_error": 1, "merge_max_keypoints": 8192, "checkpoints": ["loftr_outdoor"],
     },
     "superglue-outdoor": {
         "type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2,
@@ -87,6 +102,8 @@ METHODS: dict[str, dict[str, Any]] = {
     "xfeat-lg": {"paper_name": "XFeat+LighterGlue", "extractor": "xfeat", "matcher": "lighterglue-xfeat",
                  "in_paper": False},
     "orb-nn": {"paper_name": "ORB+NN", "extractor": "orb", "matcher": "nn-hamming", "in_paper": False},
+    "sift-opencv-nn": {"paper_name": "SIFT (OpenCV)+NN", "extractor": "sift-opencv", "matcher": "nn-ratio",
+                       "in_paper": False},
 }
 
 # Profile -> extractor (or dense matcher) type -> overrides. 'paper' is the protocol as

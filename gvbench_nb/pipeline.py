@@ -156,15 +156,24 @@ def first_pair_using(sequence: Sequence, name: str) -> str:
     return f"pair {index}: {pair.query} {pair.reference}"
 
 
-def stored_features(features: dict[str, np.ndarray], image: np.ndarray, scale: float) -> dict[str, np.ndarray]:
+def stored_features(features: dict[str, np.ndarray], image: np.ndarray, scale: np.ndarray,
+                    store_float16: bool = False) -> dict[str, np.ndarray]:
     """What the cache holds for one image: keypoints in original pixels, scores,
-    descriptors and the original (width, height)."""
-    return {
+    descriptors and the original (width, height).
+
+    ``store_float16`` (the extractor conf's key): float32 arrays are stored as float16, as
+    hloc's ``extract_features.main(as_half=True)`` stores them, so matching reads the
+    rounded values; integer arrays (binary descriptors, the size) stay as they are.
+    """
+    stored = {
         "keypoints": to_original_pixels(features["keypoints"], scale),
         "scores": features["scores"],
         "descriptors": features["descriptors"],
         "image_size": np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64),
     }
+    if store_float16:
+        stored = {k: v.astype(np.float16) if v.dtype == np.float32 else v for k, v in stored.items()}
+    return stored
 
 
 def extract_features(
@@ -209,7 +218,8 @@ def extract_features(
         image, scale = loaded
         start = time.perf_counter()
         features = extractor(image)
-        return stored_features(features, image, scale), time.perf_counter() - start
+        stored = stored_features(features, image, scale, extractor_conf.get("store_float16", False))
+        return stored, time.perf_counter() - start
 
     workers = worker_count(workers)
     # One worker: decoding runs ahead in threads while this thread extracts. Several:
@@ -419,7 +429,7 @@ def match_and_verify(
 
     matcher = build_matcher(conf["matcher"], resolve_device(device))
     if conf["extractor"] is None:
-        _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every)
+        _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every, output_dir)
         counts["matched"] = len(todo)
         return counts
     features = feature_store(cache_dir, conf["extractor"])
@@ -510,44 +520,126 @@ def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndar
 
 def _store_verified(writer: Any, key: str, pair_matches: np.ndarray, match_scores: np.ndarray,
                     verified: dict[str, Any], arrays: dict[str, np.ndarray], match_seconds: float,
-                    verify_seconds: float) -> None:
+                    verify_seconds: float, extra_attrs: dict[str, Any] | None = None) -> None:
     """Commit one verified pair: its matches, inlier mask, counts and timings."""
     writer.put(
         key,
         {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
         {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
-         "num_inliers": verified["num_inliers"], "match_seconds": match_seconds, "verify_seconds": verify_seconds},
+         "num_inliers": verified["num_inliers"], "match_seconds": match_seconds, "verify_seconds": verify_seconds,
+         **(extra_attrs or {})},
     )
 
 
-def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], conf: dict[str, Any], matcher: Callable, matches: ShardedStore,
-                       seed: int, progress: bool, flush_every: int) -> None:
-    """Dense matchers (LoFTR) see both images of every pair: no per-image cache.
-    Decoding overlaps compute through the same prefetching loader."""
+def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
+    """The keypoint-merging options of a dense matcher conf (``merge_dense_matches``), or
+    None when its raw matches are verified pair by pair."""
+    if matcher_conf.get("merge_max_keypoints") is None:
+        return None
+    return {"max_keypoints": matcher_conf["merge_max_keypoints"], "cell_size": matcher_conf["merge_cell_size"],
+            "max_error": matcher_conf["merge_max_error"]}
+
+
+def pair_list_hash(keys: dict[Any, str]) -> str:
+    """Identity of a sequence's pair list (its pairs' keys in order): merged dense keypoints
+    depend on every pair."""
+    return hashlib.sha1("\n".join(keys.values()).encode()).hexdigest()[:10]
+
+
+def raw_dense_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
+    """A dense matcher's raw matches a pair (original pixels), before merging."""
+    return ShardedStore(method_dir(output_dir, conf["method"]) /
+                        f"raw-{method_registry.conf_hash(conf['matcher'])}")
+
+
+def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any, str], where: Path) -> None:
+    """Merged dense results hold for the pair list they were merged over only."""
+    merged_over = entry.get("attr:merged_over")
+    if merged_over is not None and str(merged_over) != pair_list_hash(keys):
+        raise ValueError(
+            f"the dense matches in {where} were merged over another pair list than sequence "
+            f"{sequence.name!r} has now ({len(sequence.pairs)} pairs); delete that folder or use another output_dir")
+
+
+def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], conf: dict[str, Any], matcher: Callable,
+                       matches: ShardedStore, seed: int, progress: bool, flush_every: int,
+                       output_dir: Path | None = None) -> None:
+    """Dense matchers (LoFTR, ``imm:`` methods) see both images of every pair: no per-image cache.
+    Decoding overlaps compute through the same prefetching loader.
+
+    With merging options (``dense_merge_options``), as hloc's ``match_dense``: every pair of
+    the sequence is matched first (its raw points kept in ``raw_dense_store``, so a rerun
+    resumes), then the keypoints of each image are merged across all pairs
+    (``matchers.merge_dense_matches``) and each pair is verified on its merged matches."""
     def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         image0, scale0 = load_for_extraction(sequence.image_root / pair.query, conf["matcher"])
         image1, scale1 = load_for_extraction(sequence.image_root / pair.reference, conf["matcher"])
         return image0, scale0, image1, scale1
 
-    bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
-    with matches.writer(flush_every) as writer:
-        for pair, loaded in prefetch(todo, load_pair):
+    def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                   np.ndarray, float]]:
+        """Each pair's points in original pixels, the points its verifier fits on, scores, seconds."""
+        bar = tqdm(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+        for pair, loaded in prefetch(pairs, load_pair):
             if isinstance(loaded, BaseException):
                 raise ImageReadError(f"{loaded} (pair {pair.query} {pair.reference} of {sequence.name!r})") from loaded
             image0, scale0, image1, scale1 = loaded
             start = time.perf_counter()
             points0, points1, match_scores = matcher(image0, image1)
             original0, original1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
-            match_seconds = time.perf_counter() - start
-            identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+            seconds = time.perf_counter() - start
             # The store holds original pixels; a verifier may fit on the resized images' pixels
             # (the GV-Bench repository's RANSAC runs on its 512x288 images).
             if conf["verifier"].get("coordinates", "original") != "resized":
                 points0, points1 = original0, original1
-            _verify_and_store(writer, pair, keys[pair], conf, seed, points0, points1, identity, match_scores,
-                              {"points0": original0, "points1": original1}, match_seconds)
+            yield pair, original0, original1, points0, points1, match_scores, seconds
             bar.update()
-    bar.close()
+        bar.close()
+
+    from .matchers import merge_dense_matches
+
+    merge = dense_merge_options(conf["matcher"])
+    if merge is None:
+        with matches.writer(flush_every) as writer:
+            for pair, original0, original1, points0, points1, match_scores, match_seconds in raw_matches(todo):
+                identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+                _verify_and_store(writer, pair, keys[pair], conf, seed, points0, points1, identity, match_scores,
+                                  {"points0": original0, "points1": original1}, match_seconds)
+        return
+
+    if output_dir is None:
+        raise ValueError("merging dense matches needs the output_dir holding the raw matches")
+    for key in matches.keys():
+        check_merged_over(matches.read(key, fields=()), sequence, keys, matches.folder)
+    raw = raw_dense_store(output_dir, conf)
+    raw.refresh()
+    with raw.writer(flush_every) as writer:
+        for pair, points0, points1, _, _, match_scores, match_seconds in raw_matches(
+                [p for p in sequence.pairs if keys[p] not in raw]):
+            writer.put(keys[pair], {"points0": points0, "points1": points1, "scores": match_scores.astype(np.float32)},
+                       {"match_seconds": match_seconds})
+    raw.refresh()
+    entries = [raw.read(keys[p]) for p in sequence.pairs]
+    raw.close()
+    start = time.perf_counter()
+    keypoints, merged = merge_dense_matches([(p.query, p.reference) for p in sequence.pairs],
+                                            [(e["points0"], e["points1"], e["scores"]) for e in entries], **merge)
+    merge_seconds = (time.perf_counter() - start) / max(len(sequence.pairs), 1)  # shared by every pair
+    merged_over = pair_list_hash(keys)
+    wanted = {keys[p] for p in todo}
+    with matches.writer(flush_every) as writer:
+        for pair, entry, (pair_matches, match_scores) in zip(sequence.pairs, entries, merged):
+            if keys[pair] not in wanted:
+                continue
+            points0 = keypoints[pair.query][pair_matches[:, 0]]
+            points1 = keypoints[pair.reference][pair_matches[:, 1]]
+            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1,
+                                                    np.repeat(np.arange(len(points0))[:, None], 2, axis=1),
+                                                    match_scores)
+            _store_verified(writer, keys[pair], pair_matches, match_scores, verified,
+                            {"points0": points0, "points1": points1},
+                            float(entry["attr:match_seconds"]) + merge_seconds, verify_seconds,
+                            {"merged_over": merged_over})
 
 
 def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int
@@ -569,6 +661,8 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
     rows = []
     for index, pair in enumerate(sequence.pairs):
         entry = matches.read(keys[pair], fields=())  # the counts and timers only
+        if dense:
+            check_merged_over(entry, sequence, keys, matches.folder)
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
             extract_seconds = 0.0

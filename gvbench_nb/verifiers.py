@@ -217,7 +217,9 @@ class CachedMatches:
             raise KeyError(f"features of {name!r} are not in {self.features.folder}; pass cache_dir= the run's "
                            "cache folder (its params' cache_dir)")
         entry = self.features.read(key)
-        return entry["keypoints"], (int(entry["image_size"][0]), int(entry["image_size"][1]))
+        # float32: the cache may hold float16 (as hloc stores it), whose squares overflow in statistics.
+        return (np.asarray(entry["keypoints"], dtype=np.float32),
+                (int(entry["image_size"][0]), int(entry["image_size"][1])))
 
     def _image_of(self, name: str) -> np.ndarray:
         path = self.image_root / name

@@ -1,4 +1,4 @@
-"""Nearest-neighbour matching against a brute-force reference (hloc's rules, argmax ties)."""
+"""Nearest-neighbour matching against brute-force references of hloc's rules (first index on ties)."""
 
 from __future__ import annotations
 
@@ -9,69 +9,116 @@ import torch
 from gvbench_nb.matchers import nearest_neighbour_matches
 
 
-def brute_force_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None
-                        ) -> np.ndarray:
-    """(M, 2) matches from a full distance matrix, one row at a time; ties go to the first index."""
+def _passes(distances: np.ndarray, ratio: float | None, threshold: float | None) -> tuple[int, bool]:
+    """Best index of one row of distances and whether it passes the ratio and distance tests."""
+    best = int(np.argmin(distances))
+    ok = True
+    if ratio is not None and len(distances) > 1:
+        ok &= bool(distances[best] ** 2 <= ratio**2 * np.sort(distances)[1] ** 2)
+    if threshold is not None:
+        ok &= bool(distances[best] ** 2 <= threshold**2)
+    return best, ok
+
+
+def hloc_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None) -> np.ndarray:
+    """hloc's rule (matchers/nearest_neighbor.py): every row of the distance matrix keeps its
+    nearest column if that passes the tests; with ``mutual`` every column does the same over
+    the rows, and a match needs the row's choice and the column's choice to point at each
+    other. The ratio test needs two descriptors on both sides."""
+    if min(distance.shape) == 1:
+        ratio = None
+    rows = [_passes(row, ratio, threshold) for row in distance]
+    columns = [_passes(column, ratio, threshold) for column in distance.T]
     matches = []
-    for i, row in enumerate(distance):
-        j = int(np.argmin(row))
-        if mutual and int(np.argmin(distance[:, j])) != i:
+    for i, (j, row_ok) in enumerate(rows):
+        if not row_ok:
             continue
-        if ratio is not None and len(row) > 1 and not row[j] ** 2 <= ratio**2 * np.sort(row)[1] ** 2:
-            continue
-        if threshold is not None and not row[j] ** 2 <= threshold**2:
+        if mutual and not (columns[j][1] and columns[j][0] == i):
             continue
         matches.append((i, j))
     return np.array(matches, dtype=np.int64).reshape(-1, 2)
 
 
-RULES = [(True, 0.8, None), (True, None, None), (False, 0.8, None), (True, 0.9, 0.7), (False, None, None)]
+def one_way_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None
+                    ) -> np.ndarray:
+    """The tests applied to rows only, then the mutual check (the Hamming path's rule)."""
+    matches = []
+    for i, row in enumerate(distance):
+        j, ok = _passes(row, ratio, threshold)
+        if ok and (not mutual or int(np.argmin(distance[:, j])) == i):
+            matches.append((i, j))
+    return np.array(matches, dtype=np.int64).reshape(-1, 2)
+
+
+def _unit(array: np.ndarray) -> np.ndarray:
+    return array / np.linalg.norm(array, axis=1, keepdims=True)
+
+
+def _l2_distance(descriptors0: np.ndarray, descriptors1: np.ndarray) -> np.ndarray:
+    similarity = _unit(descriptors0.astype(np.float64)) @ _unit(descriptors1.astype(np.float64)).T
+    return np.sqrt(np.clip(2 - 2 * similarity, 0, None))
+
+
+def test_ratio_applies_to_columns_too_minimal_case():
+    # Row a0 passes its ratio test against b0/b1, and a0-b0 is mutual; but column b0 has two
+    # rows almost equally near (a0, a1), so its ratio test fails and hloc keeps no match.
+    rows = np.array([[1, 0.04, 0], [1, -0.045, 0]], np.float32)
+    columns = np.array([[1, 0, 0], [0, 0, 1]], np.float32)
+    distance = _l2_distance(rows, columns)
+    assert one_way_matches(distance, True, 0.8, None).tolist() == [[0, 0]]
+    assert hloc_matches(distance, True, 0.8, None).shape == (0, 2)
+
+    matches, scores = nearest_neighbour_matches(torch.from_numpy(rows), torch.from_numpy(columns),
+                                                ratio_threshold=0.8)
+    assert matches.shape == (0, 2) and scores.shape == (0,)
+
+
+RULES = [(True, 0.8, None), (True, None, None), (False, 0.8, None), (True, 0.9, 0.7), (False, None, None),
+         (True, None, 0.9)]
 
 
 @pytest.mark.parametrize("mutual, ratio, threshold", RULES)
-def test_l2_matches_equal_brute_force_with_duplicated_descriptors(mutual, ratio, threshold):
+def test_l2_matches_equal_hloc_rule_with_duplicated_descriptors(mutual, ratio, threshold):
     rng = np.random.default_rng(1)
     descriptors0 = rng.normal(size=(300, 32)).astype(np.float32)
     descriptors1 = np.concatenate([descriptors0[:120] + 0.3 * rng.normal(size=(120, 32)),
                                    rng.normal(size=(100, 32))]).astype(np.float32)
     descriptors0[50] = descriptors0[10]  # identical descriptors tie on every column
     descriptors1[7] = descriptors1[3]
-    normalised0 = descriptors0 / np.linalg.norm(descriptors0, axis=1, keepdims=True)
-    normalised1 = descriptors1 / np.linalg.norm(descriptors1, axis=1, keepdims=True)
-    distance = np.sqrt(np.clip(2 - 2 * normalised0 @ normalised1.T, 0, None))
-    expected = brute_force_matches(distance, mutual, ratio, threshold)
+    distance = _l2_distance(descriptors0, descriptors1)
+    expected = hloc_matches(distance, mutual, ratio, threshold)
 
     matches, scores = nearest_neighbour_matches(torch.from_numpy(descriptors0), torch.from_numpy(descriptors1),
                                                 mutual=mutual, ratio_threshold=ratio, distance_threshold=threshold)
 
     assert len(expected) > 20  # the case is not vacuous
     np.testing.assert_array_equal(matches.numpy(), expected)
-    similarity = (normalised0 @ normalised1.T)[expected[:, 0], expected[:, 1]]
+    similarity = 1 - distance[expected[:, 0], expected[:, 1]] ** 2 / 2
     np.testing.assert_allclose(scores.numpy(), (similarity + 1) / 2, atol=1e-5)
     if mutual:
         assert len(np.unique(matches[:, 1].numpy())) == len(matches)  # one-to-one despite the duplicates
 
 
-@pytest.mark.parametrize("mutual, ratio, threshold", [(True, 0.8, None), (True, None, None), (True, None, 20.0),
-                                                       (False, None, None)])
-def test_hamming_matches_equal_brute_force_under_frequent_ties(mutual, ratio, threshold):
-    rng = np.random.default_rng(2)
-    # 64-bit descriptors: integer distances tie often, which is where tie rules show.
-    binary0 = rng.integers(0, 256, (200, 8), dtype=np.uint8)
-    bits0 = np.unpackbits(binary0, axis=1)
-    noisy = bits0[:100] ^ (rng.random((100, 64)) < 0.08)  # near copies: the ratio test passes some
-    bits1 = np.concatenate([noisy, rng.integers(0, 2, (50, 64))]).astype(np.uint8)
-    binary1 = np.packbits(bits1, axis=1)
-    distance = (bits0[:, None, :] != bits1[None, :, :]).sum(-1).astype(np.float64)
-    expected = brute_force_matches(distance, mutual, ratio, threshold)
+@pytest.mark.parametrize("seed", range(4))
+def test_l2_two_way_ratio_differs_from_one_way_on_random_cases(seed):
+    # Many rows crowd near few columns: columns then often fail their own ratio test.
+    rng = np.random.default_rng(10 + seed)
+    descriptors1 = rng.normal(size=(60, 16)).astype(np.float32)
+    parents = rng.integers(0, 60, 200)
+    descriptors0 = (descriptors1[parents] + 0.35 * rng.normal(size=(200, 16))).astype(np.float32)
+    distance = _l2_distance(descriptors0, descriptors1)
+    expected = hloc_matches(distance, True, 0.8, None)
+    one_way = one_way_matches(distance, True, 0.8, None)
+    assert len(expected) > 5 and len(one_way) > len(expected)  # the rules differ here
 
-    matches, scores = nearest_neighbour_matches(torch.from_numpy(binary0), torch.from_numpy(binary1),
-                                                mutual=mutual, ratio_threshold=ratio, distance_threshold=threshold,
-                                                metric="hamming")
-
-    assert len(expected) > 10
+    matches, _ = nearest_neighbour_matches(torch.from_numpy(descriptors0), torch.from_numpy(descriptors1),
+                                           ratio_threshold=0.8)
     np.testing.assert_array_equal(matches.numpy(), expected)
-    np.testing.assert_allclose(scores.numpy(), 1 - distance[expected[:, 0], expected[:, 1]] / 64, atol=1e-6)
+    # And the other way round: image 1's descriptors as rows.
+    matches_swapped, _ = nearest_neighbour_matches(torch.from_numpy(descriptors1), torch.from_numpy(descriptors0),
+                                                   ratio_threshold=0.8)
+    np.testing.assert_array_equal(matches_swapped.numpy(), hloc_matches(distance.T, True, 0.8, None))
+    np.testing.assert_array_equal(np.sort(matches_swapped.numpy()[:, ::-1], axis=0), np.sort(expected, axis=0))
 
 
 def test_empty_and_single_column_inputs():
@@ -80,6 +127,12 @@ def test_empty_and_single_column_inputs():
     # One reference descriptor: the ratio test has no second neighbour and is skipped.
     matches, _ = nearest_neighbour_matches(torch.eye(3), torch.eye(3)[:1], ratio_threshold=0.8)
     np.testing.assert_array_equal(matches.numpy(), [[0, 0]])
+    # hloc skips it when either image has one descriptor, even where image 1 has two near ones.
+    near_pair = torch.tensor([[1.0, 0.0, 0.0], [0.99, 0.14, 0.0]])
+    matches, _ = nearest_neighbour_matches(torch.eye(3)[:1], near_pair, ratio_threshold=0.8)
+    np.testing.assert_array_equal(matches.numpy(), [[0, 0]])
+    distance = _l2_distance(np.eye(3)[:1], near_pair.numpy())
+    np.testing.assert_array_equal(hloc_matches(distance, True, 0.8, None), [[0, 0]])
 
 
 def test_unknown_metric_is_named():

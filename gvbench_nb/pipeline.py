@@ -307,7 +307,7 @@ def match_and_verify(
     def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
         features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
         verified, verify_seconds = _verify_pair(pair, conf, seed, features0["keypoints"], features1["keypoints"],
-                                                pair_matches, match_scores)
+                                                pair_matches, match_scores, image_sizes(features0, features1))
         return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
     workers = worker_count(workers)
@@ -323,7 +323,7 @@ def match_and_verify(
                 features0, features1, pair_matches, match_scores, match_seconds = matched
                 _verify_and_store(writer, pair, conf, seed, features0["keypoints"], features1["keypoints"],
                                   pair_matches, match_scores, {"matches": pair_matches.astype(np.int32)},
-                                  match_seconds)
+                                  match_seconds, image_sizes(features0, features1))
                 counts["matched"] += 1
                 bar.update()
         else:
@@ -341,20 +341,28 @@ def match_and_verify(
     return counts
 
 
+def image_sizes(features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> tuple[Any, Any]:
+    """Original (width, height) of both images of a pair, from their cached features."""
+    return features0.get("image_size"), features1.get("image_size")
+
+
 def _verify_and_store(writer: Any, pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray,
                       keypoints1: np.ndarray, pair_matches: np.ndarray, match_scores: np.ndarray,
-                      arrays: dict[str, np.ndarray], match_seconds: float) -> None:
+                      arrays: dict[str, np.ndarray], match_seconds: float,
+                      sizes: tuple[Any, Any] = (None, None)) -> None:
     """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
-    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores)
+    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores,
+                                            sizes)
     _store_verified(writer, pair, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
 
 
 def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray, keypoints1: np.ndarray,
-                 pair_matches: np.ndarray, match_scores: np.ndarray) -> tuple[dict[str, Any], float]:
+                 pair_matches: np.ndarray, match_scores: np.ndarray,
+                 sizes: tuple[Any, Any] = (None, None)) -> tuple[dict[str, Any], float]:
     """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
     start = time.perf_counter()
     verified = verify_matches(keypoints0, keypoints1, pair_matches, match_scores, conf["verifier"],
-                              seed=pair_seed(seed, pair.query, pair.reference))
+                              seed=pair_seed(seed, pair.query, pair.reference), image_sizes=sizes)
     return verified, time.perf_counter() - start
 
 
@@ -390,8 +398,9 @@ def _match_dense_pairs(sequence: Sequence, todo: list, conf: dict[str, Any], mat
             points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
             match_seconds = time.perf_counter() - start
             identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+            sizes = (np.round(np.array(image0.shape[1::-1]) * scale0), np.round(np.array(image1.shape[1::-1]) * scale1))
             _verify_and_store(writer, pair, conf, seed, points0, points1, identity, match_scores,
-                              {"points0": points0, "points1": points1}, match_seconds)
+                              {"points0": points0, "points1": points1}, match_seconds, sizes)
             bar.update()
     bar.close()
 

@@ -221,7 +221,7 @@ def write_fake_run(output_dir, method="sift-nn", sequence="toy"):
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
     (folder / "run.json").write_text(json.dumps({
-        "sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": "fast"},
+        "sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
         "environment": {"device": "cpu"}}))
 
 
@@ -230,7 +230,7 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
     write_fake_run(output_dir)
     (tmp_path / "pairs.txt").write_text("q0 r0 1\n")
     params = tmp_path / "toy.yaml"
-    params.write_text(f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\n"
+    params.write_text(f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: repository\n"
                       f"output_dir: {output_dir}\n")
 
     def refuse(*args, **kwargs):

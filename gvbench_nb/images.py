@@ -106,8 +106,9 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     Rounded to 8 bits once, at the end. Returns the image and the original (width, height)."""
     rgb = read_image(path, grayscale=False).astype(np.float32)
     height, width = rgb.shape[:2]
-    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False), None,
-                       conf.get("resize_to"))
+    fixed = conf.get("resize_to")
+    size = (int(fixed[0]), int(fixed[1])) if fixed else target_size(width, height, conf.get("resize_max"),
+                                                                    conf.get("resize_force", False))
     image = resize_bilinear_antialias(rgb, size)
     if conf.get("grayscale", False):
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)

@@ -7,8 +7,9 @@ feature cache - and never recomputes features. The analysis notebooks
 these functions; the figures live in ``analysis_plots.py``.
 
 Units: ``ap`` and ``max_recall`` are fractions in [0, 1] everywhere, ours and the
-paper's alike (the paper's table, in %, is divided by 100 when read); tables meant
-for people format them as %.
+published ones alike (the paper's table, in %, is divided by 100 when read); tables meant
+for people format them as %. Rows are keyed and labelled by (sequence, profile, method):
+two protocols' numbers never share a row or a line.
 """
 
 from __future__ import annotations
@@ -22,13 +23,15 @@ from typing import Any, Iterable, Sequence as SequenceType
 import numpy as np
 import pandas as pd
 
-from . import config, pipeline
+from . import config, pipeline, reference_values
 from . import methods as method_registry
 from .sequences import frame_index
 
 METRICS = ("ap", "max_recall")
-PAPER_LABEL = "paper"  # how the paper's numbers are named in every table and figure
+PAPER_LABEL = reference_values.PAPER_LABEL  # how the paper's numbers are named in every table and figure
+REPOSITORY_LABEL = reference_values.REPOSITORY_LABEL  # and the GV-Bench repository's
 OURS_LABEL = "ours"
+RUN_KEY = ["sequence", "profile", "method"]  # what identifies a run in every table and figure
 TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair")
 
 
@@ -123,27 +126,19 @@ def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool
     return marks
 
 
-def paper_table_path() -> Path | None:
-    """The paper's table: ``$GVBENCH_REFERENCE/paper_table.csv``, else ``<project>/../shared/reference``."""
-    candidates = []
-    if os.environ.get("GVBENCH_REFERENCE"):
-        candidates.append(Path(os.environ["GVBENCH_REFERENCE"]) / "paper_table.csv")
-    data = config.data_dir()
-    if data is not None:
-        candidates.append(data.parent / "reference" / "paper_table.csv")
-    candidates.append(config.PROJECT_ROOT.parent / "shared" / "reference" / "paper_table.csv")
-    return next((c for c in candidates if c.is_file()), None)
-
-
 def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame:
     """The paper's AP/MR (published in %) as fractions, with our method names where we have them.
 
+    Default: the table shipped in ``gvbench_nb/reference_values``; ``path``: a file in the
+    same format (``method,sequence,ap,max_recall`` in %), empty when it does not exist.
     Columns: paper_name, method (ours, or None for methods we do not implement),
-    sequence, ap, max_recall. An empty table when no file is found.
+    sequence, ap, max_recall.
     """
-    path = Path(path) if path else paper_table_path()
     columns = ["paper_name", "method", "sequence", *METRICS]
-    if path is None or not path.is_file():
+    if path is None:
+        return reference_values.paper_table().rename(columns={"reference_name": "paper_name"})[columns]
+    path = Path(path)
+    if not path.is_file():
         return pd.DataFrame(columns=columns)
     raw = pd.read_csv(path)
     expected = {"method", "sequence", *METRICS}
@@ -157,51 +152,91 @@ def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame
     return table[columns]
 
 
-def join_paper_table(results: pd.DataFrame, paper: pd.DataFrame) -> pd.DataFrame:
-    """Long table of ours and the paper's values, one row a (method, sequence, source).
+def load_repository_table() -> pd.DataFrame:
+    """The GV-Bench repository's published AP/MR (fractions), its matcher names as ``paper_name``
+    and ours as ``method`` where they are the same method (``reference_values.REPOSITORY_METHODS``)."""
+    return reference_values.repository_table().rename(columns={"reference_name": "paper_name"})
 
-    ``source`` is ``ours`` or ``paper``; the paper's rows are kept only for methods
-    we ran (matched via ``methods.METHODS[m]['paper_name']``) and sequences we ran.
+
+def source_label(source: str, profile: str | None = None) -> str:
+    """How a row's values are named in tables and figures: ours always with the profile."""
+    return f"{OURS_LABEL} ({profile} profile)" if source == OURS_LABEL else source
+
+
+def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
+    """Rows of ``results`` sharing (sequence, profile, method) with another row."""
+    return results[results.duplicated(RUN_KEY, keep=False)]
+
+
+def join_paper_table(results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
+                     ) -> pd.DataFrame:
+    """Long table of ours and the published values, one row a (method, profile, sequence, source).
+
+    ``source`` is ``ours``, ``paper`` or ``GV-Bench repository``; ``profile`` is the
+    protocol the values come from: ours, the run's profile; the paper's table, ``paper``
+    (the hloc chain); the repository's, ``repository``. Published values are kept only
+    beside a run of the same method, sequence and profile, so no row sets one protocol's
+    numbers next to another's. ``label`` names the source for figures ("ours (paper profile)").
+    Two runs with the same (sequence, profile, method) are an error, not a silent choice.
     """
-    ours = results[["method", "sequence", *METRICS]].copy()
+    if "profile" not in results:
+        raise ValueError("the results have no profile column: evaluate the runs again "
+                         "(python -m gvbench_nb run PARAMS) so results.csv records each run's profile")
+    twice = duplicated_runs(results)
+    if not twice.empty:
+        where = twice.get("output_dir", pd.Series(["?"] * len(twice), index=twice.index))
+        runs = "; ".join(f"{r.sequence}/{r.profile}/{r.method} in {w}" for r, w in zip(twice.itertuples(), where))
+        raise ValueError(f"the same (sequence, profile, method) appears more than once: {runs}; "
+                         "pass only one output folder for each")
+    ours = results[["method", "profile", "sequence", *METRICS]].copy()
     ours["paper_name"] = ours["method"].map(method_registry.paper_name)
     ours["source"] = OURS_LABEL
-    ran = set(zip(ours["method"], ours["sequence"]))
-    # A boolean array, not a list: an empty list would select no columns instead of no rows.
-    theirs = paper[np.array([(m, s) in ran for m, s in zip(paper["method"], paper["sequence"])], dtype=bool)].copy()
-    theirs["source"] = PAPER_LABEL
-    columns = ["method", "paper_name", "sequence", "source", *METRICS]
-    return pd.concat([ours[columns], theirs[columns]], ignore_index=True)
+    ran = set(zip(ours["method"], ours["sequence"], ours["profile"]))
+    frames = [ours]
+    for table, source, profile in ((paper, PAPER_LABEL, "paper"), (repository, REPOSITORY_LABEL, "repository")):
+        if table is None or table.empty:
+            continue
+        # A boolean array, not a list: an empty list would select no columns instead of no rows.
+        keep = np.array([(m, s, profile) in ran for m, s in zip(table["method"], table["sequence"])], dtype=bool)
+        frames.append(table[keep].assign(source=source, profile=profile))
+    columns = ["method", "paper_name", "profile", "sequence", "source", *METRICS]
+    joined = pd.concat([f[columns] for f in frames], ignore_index=True)
+    joined["label"] = [source_label(src, prof) for src, prof in zip(joined["source"], joined["profile"])]
+    return joined
 
 
 def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = METRICS) -> pd.DataFrame:
-    """Wide table: one row a method; columns (sequence, metric, source), sources side by side.
+    """Wide table: one row a (method, profile); columns (sequence, metric, source), ours beside
+    the published values of the same protocol.
 
-    Sequences keep first-seen order; the paper's columns exist only where it has values.
+    Rows, sequences keep first-seen order; a published column exists only where it has values.
     """
-    wide = joined.pivot_table(index="method", columns=["sequence", "source"], values=list(metrics),
+    wide = joined.pivot_table(index=["method", "profile"], columns=["sequence", "source"], values=list(metrics),
                               aggfunc="first")
     wide = wide.reorder_levels([1, 0, 2], axis=1)
     sequence_order = list(dict.fromkeys(joined["sequence"]))
-    method_order = [m for m in dict.fromkeys(joined["method"]) if m in wide.index]
-    source_order = [OURS_LABEL, PAPER_LABEL]
+    row_order = [r for r in dict.fromkeys(zip(joined["method"], joined["profile"])) if r in wide.index]
+    source_order = [OURS_LABEL, PAPER_LABEL, REPOSITORY_LABEL]
     keys = [(s, m, src) for s in sequence_order for m in metrics for src in source_order if (s, m, src) in wide.columns]
-    wide = wide.loc[method_order, keys]
+    wide = wide.loc[row_order, keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
-    wide.index = pd.Index([f"{m} ({method_registry.paper_name(m)})" for m in wide.index], name="method")
+    wide.index = pd.MultiIndex.from_tuples(
+        [(f"{m} ({method_registry.paper_name(m)})", p) for m, p in wide.index],
+        names=["method", "profile"])
     return wide
 
 
-def paper_reference_table(paper: pd.DataFrame, methods: Iterable[str] | None = None) -> pd.DataFrame:
-    """The paper's own table (all its sequences) for ``methods`` (paper names kept for the
-    methods we do not implement when ``methods`` is None), columns (sequence, metric, 'paper')."""
+def paper_reference_table(paper: pd.DataFrame, methods: Iterable[str] | None = None,
+                          source: str = PAPER_LABEL) -> pd.DataFrame:
+    """A published table (all its sequences) for ``methods`` (its own names kept for the
+    methods we do not implement when ``methods`` is None), columns (sequence, metric, source)."""
     if methods is not None:
         paper = paper[paper["method"].isin(list(methods))]
-    wide = paper.assign(source=PAPER_LABEL).pivot_table(
+    wide = paper.assign(source=source).pivot_table(
         index="paper_name", columns=["sequence", "source"], values=list(METRICS), aggfunc="first")
     wide = wide.reorder_levels([1, 0, 2], axis=1)
-    keys = [(s, m, PAPER_LABEL) for s in dict.fromkeys(paper["sequence"]) for m in METRICS
-            if (s, m, PAPER_LABEL) in wide.columns]
+    keys = [(s, m, source) for s in dict.fromkeys(paper["sequence"]) for m in METRICS
+            if (s, m, source) in wide.columns]
     wide = wide.loc[list(dict.fromkeys(paper["paper_name"])), keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     return wide
@@ -209,13 +244,13 @@ def paper_reference_table(paper: pd.DataFrame, methods: Iterable[str] | None = N
 
 def style_results_table(wide: pd.DataFrame) -> Any:
     """The wide table as a pandas Styler: values in %, each column's best in bold,
-    the paper's columns in grey italics."""
+    the published columns (paper, GV-Bench repository) in grey italics."""
     best = best_per_column(wide)
 
     def css(_: pd.DataFrame) -> pd.DataFrame:
         styles = pd.DataFrame("", index=wide.index, columns=wide.columns)
         for column in wide.columns:
-            paper = column[-1] == PAPER_LABEL
+            paper = column[-1] in (PAPER_LABEL, REPOSITORY_LABEL)
             base = "color: #666; font-style: italic;" if paper else ""
             styles[column] = [base + ("font-weight: bold;" if b else "") for b in best[column]]
         return styles

@@ -24,7 +24,22 @@ STAGE_LABELS = {
     "verify_seconds_per_pair": "verification (RANSAC)",
 }
 SOURCE_STYLE = {analysis.OURS_LABEL: {"linestyle": "-", "alpha": 0.9},
-                analysis.PAPER_LABEL: {"linestyle": "--", "alpha": 0.6}}
+                analysis.PAPER_LABEL: {"linestyle": "--", "alpha": 0.6},
+                analysis.REPOSITORY_LABEL: {"linestyle": ":", "alpha": 0.6}}
+# Ours under a second profile is told apart from the first by its line, as the label says.
+OURS_PROFILE_STYLE = {"paper": "-", "repository": "-."}
+
+
+def _line_style(source: str, profile: str) -> dict:
+    style = dict(SOURCE_STYLE[source])
+    if source == analysis.OURS_LABEL:
+        style["linestyle"] = OURS_PROFILE_STYLE.get(profile, "-")
+    return style
+
+
+def run_label(method: str, profile: str, sequence: str | None = None) -> str:
+    """'method [profile]' (and the sequence when given): how a run is named in figures."""
+    return f"{method} [{profile}]" + (f" ({sequence})" if sequence else "")
 
 
 def _method_colours(methods: SequenceType[str]) -> dict[str, tuple]:
@@ -33,7 +48,9 @@ def _method_colours(methods: SequenceType[str]) -> dict[str, tuple]:
 
 
 def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
-    """MR of every method across sequences (the paper's Fig. 1): ours solid, the paper's dashed.
+    """MR of every (method, profile) across sequences (the paper's Fig. 1): ours solid (the
+    repository profile dash-dotted), the paper's dashed, the GV-Bench repository's dotted;
+    every line's label names its source and profile.
 
     A radar needs three sequences or more; with fewer the same values are drawn as bars.
     """
@@ -44,13 +61,13 @@ def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
         return _max_recall_bars(joined, sequences, methods, colours, title)
     angles = np.linspace(0, 2 * np.pi, len(sequences), endpoint=False)
     figure, axis = plt.subplots(figsize=(6.5, 6.5), subplot_kw={"projection": "polar"})
-    for (method, source), group in joined.groupby(["method", "source"], sort=False):
+    for (method, profile, source), group in joined.groupby(["method", "profile", "source"], sort=False):
         values = group.set_index("sequence")["max_recall"].reindex(sequences).to_numpy(dtype=float)
         if np.isnan(values).all():
             continue
         closed = np.r_[values, values[:1]]
         axis.plot(np.r_[angles, angles[:1]], closed, color=colours[method], marker="o", markersize=3,
-                  label=f"{method} ({source})", **SOURCE_STYLE[source])
+                  label=f"{method} ({analysis.source_label(source, profile)})", **_line_style(source, profile))
     axis.set_xticks(angles, sequences)
     axis.set_ylim(0, max(0.05, float(np.nanmax(joined["max_recall"])) * 1.1))
     axis.set_title(title or "max recall at 100% precision across sequences", pad=20)
@@ -60,32 +77,35 @@ def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
 
 def _max_recall_bars(joined: pd.DataFrame, sequences: list[str], methods: list[str], colours: dict,
                      title: str) -> plt.Figure:
-    figure, axes = plt.subplots(1, len(sequences), figsize=(4.5 * len(sequences), 0.6 * len(methods) + 2),
+    """One bar a (method, profile, source) and sequence, each labelled with its source and profile."""
+    rows = list(dict.fromkeys(zip(joined["method"], joined["profile"], joined["source"])))
+    figure, axes = plt.subplots(1, len(sequences), figsize=(4.5 * len(sequences), 0.4 * len(rows) + 2),
                                 squeeze=False, sharex=True)
     for axis, sequence in zip(axes[0], sequences):
         data = joined[joined["sequence"] == sequence]
-        for row, method in enumerate(methods):
-            for offset, source in ((-0.2, analysis.OURS_LABEL), (0.2, analysis.PAPER_LABEL)):
-                value = data[(data.method == method) & (data.source == source)]["max_recall"]
-                if value.empty:
-                    continue
-                axis.barh(row + offset, value.iloc[0], height=0.38, color=colours[method],
-                          hatch="//" if source == analysis.PAPER_LABEL else None,
-                          alpha=SOURCE_STYLE[source]["alpha"], edgecolor="black", linewidth=0.4)
-                axis.text(value.iloc[0], row + offset, f" {100 * value.iloc[0]:.1f}% ({source})",
-                          va="center", fontsize=7)
-        axis.set_yticks(range(len(methods)), methods)
+        for row, (method, profile, source) in enumerate(rows):
+            value = data[(data.method == method) & (data.profile == profile) & (data.source == source)]["max_recall"]
+            if value.empty:
+                continue
+            axis.barh(row, value.iloc[0], height=0.8, color=colours[method],
+                      hatch=None if source == analysis.OURS_LABEL else "//",
+                      alpha=SOURCE_STYLE[source]["alpha"], edgecolor="black", linewidth=0.4)
+            axis.text(value.iloc[0], row, f" {100 * value.iloc[0]:.1f}%", va="center", fontsize=7)
+        axis.set_yticks(range(len(rows)), [f"{m} ({analysis.source_label(src, p)})" for m, p, src in rows],
+                        fontsize=7)
         axis.invert_yaxis()
         axis.set(title=sequence, xlabel="max recall at 100% precision", xlim=(0, 1.15))
-    figure.suptitle((title + "\n" if title else "") + "(a radar needs 3+ sequences: bars; hatched: paper)", fontsize=10)
+    figure.suptitle((title + "\n" if title else "") + "(a radar needs 3+ sequences: bars; hatched: published)",
+                    fontsize=10)
     figure.tight_layout()
     return figure
 
 
 def seconds_per_pair_stacked(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
-    """Seconds per pair by stage, stacked, one bar a (sequence, method)."""
-    labels = [f"{m} ({s})" if runtime["sequence"].nunique() > 1 else m
-              for s, m in zip(runtime["sequence"], runtime["method"])]
+    """Seconds per pair by stage, stacked, one bar a (sequence, profile, method)."""
+    several = runtime["sequence"].nunique() > 1
+    labels = [run_label(m, p, s if several else None)
+              for s, p, m in zip(runtime["sequence"], runtime["profile"], runtime["method"])]
     figure, axis = plt.subplots(figsize=(7, 0.45 * len(runtime) + 1.8))
     left = np.zeros(len(runtime))
     for column, label in STAGE_LABELS.items():
@@ -105,14 +125,16 @@ def seconds_per_pair_stacked(runtime: pd.DataFrame, caption: str = "") -> plt.Fi
 
 
 def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
-    """FPS (pairs verified a second, 1 / seconds per pair) against MR (the paper's Fig. 7)."""
+    """FPS (pairs verified a second, 1 / seconds per pair) against MR (the paper's Fig. 7),
+    one point a (sequence, profile, method), labelled with its profile."""
     figure, axis = plt.subplots(figsize=(6.5, 4.5))
     colours = _method_colours(list(dict.fromkeys(runtime["method"])))
     markers = dict(zip(dict.fromkeys(runtime["sequence"]), "osD^vP*X"))
     for row in runtime.itertuples():
         axis.scatter(row.fps, row.max_recall, color=colours[row.method], marker=markers[row.sequence], s=60,
                      edgecolor="black", linewidth=0.5)
-        axis.annotate(row.method if runtime["sequence"].nunique() == 1 else f"{row.method} ({row.sequence})",
+        sequence = row.sequence if runtime["sequence"].nunique() > 1 else None
+        axis.annotate(run_label(row.method, row.profile, sequence),
                       (row.fps, row.max_recall), textcoords="offset points", xytext=(5, 4), fontsize=8)
     axis.set_xscale("log")
     # At least a decade shown, so a log axis keeps readable ticks.
@@ -133,7 +155,8 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
 
 
 def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "", bins: int = 30) -> plt.Figure:
-    """Normalised inlier counts of true vs false pairs, one panel a method (Figs. 6, 8, 9).
+    """Normalised inlier counts of true vs false pairs, one panel a run (Figs. 6, 8, 9), titled
+    with its method and profile (from the table's ``profile`` column).
 
     Shaded: above the top false pair's score, where every true pair counts towards MR;
     annotated: the share of true pairs with zero inliers (unreachable at any threshold).
@@ -156,7 +179,12 @@ def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "
                               f"true pairs with 0 inliers: {summary['true_zero_inliers']:.1%}",
                   transform=axis.transAxes, ha="right", va="top", fontsize=7,
                   bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"})
-        axis.set(title=method, xlabel="inliers / method's max inliers", ylabel="density")
+        profiles = table["profile"].unique() if "profile" in table else []
+        if len(profiles) > 1:
+            raise ValueError(f"the pairs table of {method!r} mixes profiles {sorted(profiles)}; "
+                             "give each profile's table its own key")
+        panel = run_label(method, profiles[0]) if len(profiles) else method
+        axis.set(title=panel, xlabel="inliers / method's max inliers", ylabel="density")
         axis.legend(fontsize=7, loc="center right")
     for axis in axes.ravel()[n:]:
         axis.axis("off")

@@ -121,11 +121,13 @@ def _extract_image(path: Path, extractor_conf: dict[str, Any], extractor: Callab
 
 
 def _dense_pair(root: Path, pair: Any, matcher_conf: dict[str, Any], matcher: Callable
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Matched points in original pixels, their scores and both images' original (width, height)."""
     image0, scale0 = load_for_extraction(root / pair.query, matcher_conf)
     image1, scale1 = load_for_extraction(root / pair.reference, matcher_conf)
     points0, points1, scores = matcher(image0, image1)
-    return to_original_pixels(points0, scale0), to_original_pixels(points1, scale1), scores
+    sizes = (np.round(np.array(image0.shape[1::-1]) * scale0), np.round(np.array(image1.shape[1::-1]) * scale1))
+    return to_original_pixels(points0, scale0), to_original_pixels(points1, scale1), scores, sizes
 
 
 def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torch.device, seed: int = 0,
@@ -148,7 +150,7 @@ def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torc
     for pair in tqdm(sequence.pairs, desc=f"per-pair {conf['method']}", disable=not progress, unit="pair"):
         began = time.perf_counter()
         if dense:
-            points0, points1, match_scores = _dense_pair(sequence.image_root, pair, conf["matcher"], matcher)
+            points0, points1, match_scores, sizes = _dense_pair(sequence.image_root, pair, conf["matcher"], matcher)
             matches = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
             extracted = began  # a dense matcher's whole cost is matching
         else:
@@ -157,9 +159,10 @@ def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torc
             extracted = time.perf_counter()
             matches, match_scores = matcher(features0, features1)
             points0, points1 = features0["keypoints"], features1["keypoints"]
+            sizes = pipeline.image_sizes(features0, features1)
         matched = time.perf_counter()
         verified = verify_matches(points0, points1, matches, match_scores, conf["verifier"],
-                                  seed=pipeline.pair_seed(seed, pair.query, pair.reference))
+                                  seed=pipeline.pair_seed(seed, pair.query, pair.reference), image_sizes=sizes)
         done = time.perf_counter()
         seconds["extract"] += extracted - began
         seconds["match"] += matched - extracted
@@ -579,7 +582,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     bench.add_argument("--methods", help="comma-separated method names (default: the params')")
     bench.add_argument("--limit", type=int, help="only the first N pairs, as in `run` (default: every pair)")
     bench.add_argument("--repeats", type=int, default=3, help="repeats per method; medians reported (default 3)")
-    bench.add_argument("--profile", help="'paper' or 'fast' (default: the params')")
+    bench.add_argument("--profile", help="'paper' or 'repository' (default: the params')")
     bench.add_argument("--device", help="override the params' device")
     bench.add_argument("--threads", type=int,
                        help="torch and OpenCV threads for both pipelines (default: every core; on a loaded "

@@ -22,7 +22,7 @@ examples:
   python -m gvbench_nb data fetch gardens_point gvbench-lists
   python -m gvbench_nb data check params/night.yaml --image-root /data/gvbench/images
   python -m gvbench_nb run params/gardens_point.yaml --methods sift-nn,disk-lg --limit 200
-  python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile fast
+  python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile repository
   python -m gvbench_nb results outputs/sample --markdown
   python -m gvbench_nb build params/gardens_point_retrieval.yaml
   python -m gvbench_nb methods
@@ -236,7 +236,8 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--methods", help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "
                                        "(needs `make setup-imm`) (default: the params')")
     run.add_argument("--limit", type=positive_int, help="only the first N pairs")
-    run.add_argument("--profile", help="'paper' (the published protocol) or 'fast' (reduced resolution for CPUs)")
+    run.add_argument("--profile", help="'paper' (the paper's protocol, hloc's chain) or 'repository' (the GV-Bench "
+                                       "repository's current code: 512x288, 2048 keypoints)")
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
     run.set_defaults(handler=command_run)

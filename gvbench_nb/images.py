@@ -133,18 +133,70 @@ def resize_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return cv2.resize(image, tuple(size), interpolation=cv2.INTER_LINEAR if enlarging else cv2.INTER_AREA)
 
 
+def resize_bilinear_antialias(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize a float image to (width, height) as torchvision's ``Resize(antialias=True)`` does
+    on a tensor (bilinear, half-pixel centres, antialiased when shrinking); stays float32."""
+    import torch
+
+    height, width = image.shape[:2]
+    if (width, height) == tuple(size):
+        return image.astype(np.float32)
+    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
+    tensor = tensor[None, None] if tensor.ndim == 2 else tensor.permute(2, 0, 1)[None]
+    resized = torch.nn.functional.interpolate(tensor, size=(int(size[1]), int(size[0])), mode="bilinear",
+                                              align_corners=False, antialias=True)[0]
+    return (resized[0] if image.ndim == 2 else resized.permute(1, 2, 0)).numpy()
+
+
+def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, tuple[int, int]]:
+    """The GV-Bench repository's image chain: RGB in [0, 1], resized as a float image, then
+    grey (its OpenCV and LoFTR matchers convert after resizing), min-max stretched to 0-255
+    where its OpenCV matchers do, and resized again when the model resizes its input
+    (LightGlue's extractors: longest side ``model_input_long_side``, also enlarging).
+    Rounded to 8 bits once, at the end. Returns the image and the original (width, height)."""
+    rgb = read_image(path, grayscale=False).astype(np.float32)
+    height, width = rgb.shape[:2]
+    fixed = conf.get("resize_to")
+    size = (int(fixed[0]), int(fixed[1])) if fixed else target_size(width, height, conf.get("resize_max"),
+                                                                    conf.get("resize_force", False))
+    image = resize_bilinear_antialias(rgb, size)
+    if conf.get("grayscale", False):
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    if conf.get("normalize_minmax", False):
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+    long_side = conf.get("model_input_long_side")
+    if long_side:
+        scale = long_side / max(image.shape[:2])
+        image = resize_bilinear_antialias(image, (int(image.shape[1] * scale), int(image.shape[0] * scale)))
+    multiple_of = conf.get("multiple_of")
+    if multiple_of:
+        h, w = image.shape[:2]
+        image = resize_bilinear_antialias(image, (w // multiple_of * multiple_of, h // multiple_of * multiple_of))
+    return np.clip(np.round(image), 0, 255).astype(np.uint8), (width, height)
+
+
 def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:
     """Image prepared for an extractor conf, float32 in 0..255 (H, W) or (H, W, 3), and the
     float32 (sx, sy) scale back to original pixels (original size / new size).
 
-    As hloc's ``ImageDataset``: the decoded image becomes float32 before resizing, so the
-    resized values are not rounded to integers.
+    ``interpolation``: "area_or_linear" (default; hloc's ``ImageDataset``: the decoded image
+    becomes float32 before resizing, so resized values are not rounded to integers) or
+    "bilinear_antialias" (the GV-Bench repository's torchvision chain, ``_prepare_as_repository``).
     """
-    image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
-    height, width = image.shape[:2]
-    size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False), conf.get("multiple_of"),
-                       conf.get("resize_to"))
-    resized = resize_image(image, size)
+    interpolation = conf.get("interpolation", "area_or_linear")
+    if interpolation == "bilinear_antialias":
+        resized8, (width, height) = _prepare_as_repository(path, conf)
+        resized = resized8.astype(np.float32)
+        size = resized.shape[1::-1]
+    elif interpolation == "area_or_linear":
+        image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
+        height, width = image.shape[:2]
+        size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False),
+                           conf.get("multiple_of"), conf.get("resize_to"))
+        resized = resize_image(image, size)
+    else:
+        raise ValueError(f"unknown interpolation {interpolation!r} in the conf of {conf.get('name', '?')!r}; "
+                         "use 'area_or_linear' or 'bilinear_antialias'")
     scale = (np.array([width, height]) / np.array(size)).astype(np.float32)
     return resized, scale
 

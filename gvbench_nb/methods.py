@@ -2,8 +2,8 @@
 
 Adding a matcher is one entry in ``METHODS`` (and, if new, one in ``EXTRACTORS`` or
 ``MATCHERS``). Confs follow the paper's protocol (``../shared/reference/MODELS.md``
-section 1); the ``fast`` profile trades resolution for CPU speed and is recorded in
-every output it produces.
+section 1); the ``repository`` profile is the GV-Bench repository's current protocol
+(fixed 512x288 images, 2048 keypoints) and is recorded in every output it produces.
 """
 
 from __future__ import annotations
@@ -106,26 +106,75 @@ METHODS: dict[str, dict[str, Any]] = {
                        "in_paper": False},
 }
 
-# Profile -> extractor (or dense matcher) type -> overrides. 'paper' is the protocol as
-# published. 'fast' runs at 512 px on the longest side (the resolution of the benchmark's
-# later code) with at most 1024 learned keypoints, so a CPU gets through a real sequence.
+# The GV-Bench repository's current evaluation (main.py, config/*.yaml and its fork of
+# image-matching-models, branch gvbench): every image read as RGB with PIL and resized to a
+# fixed 512x288 (width x height) by torchvision's antialiased bilinear Resize, then each
+# matcher with the fork's own defaults (2048 keypoints for the sparse ones).
+REPOSITORY_IMAGE_SIZE = (512, 288)
+_REPOSITORY_IMAGE = {
+    "resize_to": list(REPOSITORY_IMAGE_SIZE), "resize_max": None, "resize_force": False,
+    "interpolation": "bilinear_antialias", "store_float16": False,
+}
+# The fork's sift-nn is OpenCV SIFT with its own defaults (contrastThreshold 0.04 = peak
+# 0.04 / 3 layers), plain SIFT descriptors, on the min-max stretched grey image it makes; so
+# under this profile the `sift` extractor is OpenCV's, not COLMAP's.
+_REPOSITORY_SIFT = {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "peak_threshold": 0.04 / 3, "root_sift": False,
+                    "normalize_minmax": True}
+# LightGlue's extractors (cvg/lightglue, which the fork calls) resize their input again,
+# longest side to 1024 (so 512x288 runs at 1024x576), and map keypoints back.
+_LIGHTGLUE_INPUT = {"model_input_long_side": 1024}
+
+# Profile -> overrides, keyed by extractor or matcher type, then by conf name (the more
+# specific, applied last). 'paper' is the protocol as published (the hloc chain, MODELS.md
+# section 1); 'repository' is the GV-Bench repository's current code, the cheap profile whose
+# numbers compare with that repository's published table (reference_values).
 PROFILES: dict[str, dict[str, dict[str, Any]]] = {
     "paper": {},
-    "fast": {
-        "sift": {"resize_max": 512, "max_keypoints": 4096},
-        "orb": {"resize_max": 512},
-        "disk": {"resize_max": 512, "max_keypoints": 1024},
-        "superpoint": {"resize_max": 512, "max_keypoints": 1024},
-        "aliked": {"resize_max": 512, "max_keypoints": 1024},
-        "xfeat": {"resize_max": 512, "max_keypoints": 1024},
-        "loftr": {"resize_max": 512},
+    "repository": {
+        "sift": {**_REPOSITORY_SIFT, "type": "opencv_sift"},
+        "opencv_sift": _REPOSITORY_SIFT,
+        "orb": {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "normalize_minmax": True},
+        "disk": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
+        # LightGlue's SuperPoint defaults: NMS 4, detection threshold 0.0005, borders 4.
+        "superpoint": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048, "resize_force": False,
+                       "nms_radius": 4, "keypoint_threshold": 0.0005},
+        "aliked": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
+        # The fork's 'xfeat' is XFeat sparse, mutual nearest neighbour (min_cossim -1): xfeat-nn.
+        "xfeat": {**_REPOSITORY_IMAGE, "max_keypoints": 2048},
+        # The fork's LoFTR verifies each pair's raw matches: no merging across pairs.
+        "loftr": {**{k: v for k, v in _REPOSITORY_IMAGE.items() if k != "store_float16"}, "merge_max_keypoints": None},
+        # The fork's sift-nn / orb-nn: OpenCV BFMatcher k=2, Lowe ratio 0.75, no mutual check
+        # (disk-nn, which the repository does not run, shares sift-nn's matcher conf).
+        "nn-ratio": {"ratio_threshold": 0.75, "mutual": False},
+        "nn-hamming": {"ratio_threshold": 0.75, "mutual": False},
+        # The fork's LightGlue runs without adaptive depth or width (both -1); its xfeat-lg
+        # is XFeat's own LighterGlue call, with that model's settings.
+        **{name: {"depth_confidence": -1, "width_confidence": -1}
+           for name in ("lightglue-disk", "lightglue-superpoint", "lightglue-aliked")},
     },
 }
+# Profiles this package used to have, and what replaced them.
+REPLACED_PROFILES: dict[str, str] = {"fast": "repository"}
 
-# The score > 0.5 filter applies to every match before RANSAC (it matters for SG, LG, LoFTR).
+# Verification after the score filter (which matters for SG, LG, LoFTR). ``few_matches`` is
+# what a pair scores when it has fewer than ``min_matches`` matches or RANSAC finds no model:
+# "zero" (no inliers) is the rule of the benchmark's released evaluation code (May 2024 on);
+# "all" (every match counted as an inlier) is that of the code of the paper's submission
+# period (Jan-Mar 2024). Which one produced the published table is not stated; the paper
+# profile keeps the released code's rule, the one anyone rerunning the benchmark gets, and
+# because a pair too poor to verify should not score by its raw match count.
+# ``coordinates``: "original" fits F on keypoints in original pixels (hloc stores them so);
+# "resize_to" maps them first into the fixed ``resize_to`` frame the repository's code fits in.
 VERIFIER: dict[str, Any] = {
     "type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.99, "max_iters": 1000,
-    "min_matches": 8, "min_match_score": 0.5,
+    "min_matches": 8, "few_matches": "zero", "min_match_score": 0.5, "coordinates": "original",
+}
+VERIFIER_PROFILES: dict[str, dict[str, Any]] = {
+    "paper": {},
+    # main.py's ransac_kwargs; the fork's BaseMatcher.process_matches counts every match when
+    # fewer than 8 (4 before its commit of 2025-01-11) and applies no score filter.
+    "repository": {"confidence": 0.95, "max_iters": 2000, "few_matches": "all", "min_match_score": None,
+                   "coordinates": "resize_to", "resize_to": list(REPOSITORY_IMAGE_SIZE)},
 }
 
 
@@ -143,8 +192,18 @@ def _unknown(kind: str, name: str, known: list[str]) -> UnknownNameError:
 
 
 def check_profile(profile: str) -> None:
+    if profile in REPLACED_PROFILES and profile not in PROFILES:
+        raise UnknownNameError(
+            f"profile {profile!r} was replaced by {REPLACED_PROFILES[profile]!r} (the GV-Bench repository's "
+            f"current protocol); set profile: {REPLACED_PROFILES[profile]} or paper")
     if profile not in PROFILES:
         raise _unknown("profile", profile, list(PROFILES))
+
+
+def profile_overrides(profile: str, conf: dict[str, Any], name: str) -> dict[str, Any]:
+    """The overrides a profile makes to one extractor or matcher conf: by type, then by name."""
+    overrides = PROFILES[profile]
+    return {**overrides.get(conf["type"], {}), **(overrides.get(name, {}) if name != conf["type"] else {})}
 
 
 def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
@@ -166,10 +225,10 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
         extractor = None  # dense matchers (LoFTR) have none: they cannot use the per-image cache
         if method["extractor"] is not None:
             extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
-            extractor.update(PROFILES[profile].get(extractor["type"], {}))
+            extractor.update(profile_overrides(profile, extractor, method["extractor"]))
             extractor["name"] = method["extractor"]
         matcher = copy.deepcopy(MATCHERS[method["matcher"]])
-        matcher.update(PROFILES[profile].get(matcher["type"], {}))
+        matcher.update(profile_overrides(profile, matcher, method["matcher"]))
         matcher["name"] = method["matcher"]
     return {
         "method": name,
@@ -177,7 +236,7 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
         "profile": profile,
         "extractor": extractor,
         "matcher": matcher,
-        "verifier": copy.deepcopy(VERIFIER),
+        "verifier": {**copy.deepcopy(VERIFIER), **copy.deepcopy(VERIFIER_PROFILES[profile])},
     }
 
 

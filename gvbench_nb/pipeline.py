@@ -467,7 +467,7 @@ def match_and_verify(
     def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
         features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
         verified, verify_seconds = _verify_pair(pair, conf, seed, features0["keypoints"], features1["keypoints"],
-                                                pair_matches, match_scores)
+                                                pair_matches, match_scores, image_sizes(features0, features1))
         return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
     workers = worker_count(workers)
@@ -483,7 +483,7 @@ def match_and_verify(
                 features0, features1, pair_matches, match_scores, match_seconds = matched
                 _verify_and_store(writer, pair, keys[pair], conf, seed, features0["keypoints"], features1["keypoints"],
                                   pair_matches, match_scores, {"matches": pair_matches.astype(np.int32)},
-                                  match_seconds)
+                                  match_seconds, image_sizes(features0, features1))
                 counts["matched"] += 1
                 bar.update()
         else:
@@ -501,20 +501,28 @@ def match_and_verify(
     return counts
 
 
+def image_sizes(features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> tuple[Any, Any]:
+    """Original (width, height) of both images of a pair, from their cached features."""
+    return features0.get("image_size"), features1.get("image_size")
+
+
 def _verify_and_store(writer: Any, pair: Any, key: str, conf: dict[str, Any], seed: int, keypoints0: np.ndarray,
                       keypoints1: np.ndarray, pair_matches: np.ndarray, match_scores: np.ndarray,
-                      arrays: dict[str, np.ndarray], match_seconds: float) -> None:
+                      arrays: dict[str, np.ndarray], match_seconds: float,
+                      sizes: tuple[Any, Any] = (None, None)) -> None:
     """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
-    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores)
+    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores,
+                                            sizes)
     _store_verified(writer, key, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
 
 
 def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray, keypoints1: np.ndarray,
-                 pair_matches: np.ndarray, match_scores: np.ndarray) -> tuple[dict[str, Any], float]:
+                 pair_matches: np.ndarray, match_scores: np.ndarray,
+                 sizes: tuple[Any, Any] = (None, None)) -> tuple[dict[str, Any], float]:
     """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
     start = time.perf_counter()
     verified = verify_matches(keypoints0, keypoints1, pair_matches, match_scores, conf["verifier"],
-                              seed=pair_seed(seed, pair.query, pair.reference))
+                              seed=pair_seed(seed, pair.query, pair.reference), image_sizes=sizes)
     return verified, time.perf_counter() - start
 
 
@@ -576,9 +584,8 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
         image1, scale1 = load_for_extraction(sequence.image_root / pair.reference, conf["matcher"])
         return image0, scale0, image1, scale1
 
-    def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, np.ndarray, np.ndarray,
-                                                   np.ndarray, float]]:
-        """Each pair's points in original pixels, the points its verifier fits on, scores, seconds."""
+    def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:
+        """Each pair's points in original pixels, both images' original sizes, scores, seconds."""
         bar = tqdm(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
         for pair, loaded in prefetch(pairs, load_pair):
             if isinstance(loaded, BaseException):
@@ -586,13 +593,10 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
             image0, scale0, image1, scale1 = loaded
             start = time.perf_counter()
             points0, points1, match_scores = matcher(image0, image1)
-            original0, original1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
+            points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
             seconds = time.perf_counter() - start
-            # The store holds original pixels; a verifier may fit on the resized images' pixels
-            # (the GV-Bench repository's RANSAC runs on its 512x288 images).
-            if conf["verifier"].get("coordinates", "original") != "resized":
-                points0, points1 = original0, original1
-            yield pair, original0, original1, points0, points1, match_scores, seconds
+            sizes = (np.round(np.array(image0.shape[1::-1]) * scale0), np.round(np.array(image1.shape[1::-1]) * scale1))
+            yield pair, points0, points1, sizes, match_scores, seconds
             bar.update()
         bar.close()
 
@@ -601,10 +605,10 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
     merge = dense_merge_options(conf["matcher"])
     if merge is None:
         with matches.writer(flush_every) as writer:
-            for pair, original0, original1, points0, points1, match_scores, match_seconds in raw_matches(todo):
+            for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(todo):
                 identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
                 _verify_and_store(writer, pair, keys[pair], conf, seed, points0, points1, identity, match_scores,
-                                  {"points0": original0, "points1": original1}, match_seconds)
+                                  {"points0": points0, "points1": points1}, match_seconds, sizes)
         return
 
     if output_dir is None:
@@ -614,9 +618,10 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
     raw = raw_dense_store(output_dir, conf)
     raw.refresh()
     with raw.writer(flush_every) as writer:
-        for pair, points0, points1, _, _, match_scores, match_seconds in raw_matches(
+        for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(
                 [p for p in sequence.pairs if keys[p] not in raw]):
-            writer.put(keys[pair], {"points0": points0, "points1": points1, "scores": match_scores.astype(np.float32)},
+            writer.put(keys[pair], {"points0": points0, "points1": points1, "scores": match_scores.astype(np.float32),
+                                    "image_size0": np.asarray(sizes[0]), "image_size1": np.asarray(sizes[1])},
                        {"match_seconds": match_seconds})
     raw.refresh()
     entries = [raw.read(keys[p]) for p in sequence.pairs]
@@ -635,7 +640,7 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
             points1 = keypoints[pair.reference][pair_matches[:, 1]]
             verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1,
                                                     np.repeat(np.arange(len(points0))[:, None], 2, axis=1),
-                                                    match_scores)
+                                                    match_scores, (entry["image_size0"], entry["image_size1"]))
             _store_verified(writer, keys[pair], pair_matches, match_scores, verified,
                             {"points0": points0, "points1": points1},
                             float(entry["attr:match_seconds"]) + merge_seconds, verify_seconds,

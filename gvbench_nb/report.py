@@ -90,10 +90,13 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
 
     results = analysis.load_results(output_dirs)
     paper = analysis.load_paper_table()
-    wide = analysis.results_table(analysis.join_paper_table(results, paper))
+    repository = analysis.load_repository_table()
+    wide = analysis.results_table(analysis.join_paper_table(results, paper, repository))
     table_html = analysis.style_results_table(wide).to_html()
-    paper_note = ("Columns labelled <b>paper</b> (grey italics) are the GV-Bench paper's published values, "
-                  "shown where the paper has that method and sequence."
+    paper_note = ("One row a (method, profile). Columns labelled <b>paper</b> (grey italics) are the GV-Bench "
+                  "paper's published values, beside our paper-profile runs; <b>GV-Bench repository</b> columns "
+                  "are that repository's published values, beside our repository-profile runs; each where it "
+                  "has that method and sequence."
                   if len(paper) else "The paper's table was not found: showing ours only.")
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>gvbench-nb report</title>",

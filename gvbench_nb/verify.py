@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Sequence as SequenceType
 
 import cv2
 import numpy as np
@@ -25,6 +25,9 @@ def as_point_arrays(points0: np.ndarray, points1: np.ndarray) -> tuple[np.ndarra
     return points0, points1
 
 
+FEW_MATCHES_RULES = ("zero", "all")
+
+
 def fundamental_inliers(
     points0: np.ndarray,
     points1: np.ndarray,
@@ -34,20 +37,26 @@ def fundamental_inliers(
     method: str = "FM_RANSAC",
     min_matches: int = 8,
     seed: int = 0,
+    few_matches: str = "zero",
 ) -> np.ndarray:
     """Inlier mask of a fundamental matrix fitted robustly to matched points.
 
-    Fewer than ``min_matches`` matches, or no model found, gives no inliers (the
-    benchmark's later code counted every match as an inlier then: a bug we avoid).
+    Fewer than ``min_matches`` matches (at least the 8 a fit needs), or no model found:
+    ``few_matches`` = "zero" gives no inliers (the benchmark's released evaluation code,
+    May 2024 on); "all" counts every match as an inlier (the code of the paper's
+    submission period, Jan-Mar 2024, and the GV-Bench repository's current code).
     OpenCV's RANSAC and USAC estimators sample from a fixed internal seed, so the
     result depends only on the pair, not on the order or shard pairs run in
     (tests/test_reliability.py checks it); ``seed`` is kept for estimators that
     honour ``cv2.setRNGSeed``.
     """
+    if few_matches not in FEW_MATCHES_RULES:
+        raise ValueError(f"unknown few_matches rule {few_matches!r} in the verifier conf; "
+                         f"use one of {', '.join(FEW_MATCHES_RULES)}")
     points0, points1 = as_point_arrays(points0, points1)
-    no_inliers = np.zeros(len(points0), dtype=bool)
+    unverifiable = np.full(len(points0), few_matches == "all", dtype=bool)
     if len(points0) < max(min_matches, 8):
-        return no_inliers
+        return unverifiable
     try:
         flag = ESTIMATORS[method]
     except KeyError:
@@ -55,8 +64,29 @@ def fundamental_inliers(
     cv2.setRNGSeed(int(seed))
     F, mask = cv2.findFundamentalMat(points0, points1, flag, threshold_px, confidence, max_iters)
     if F is None or mask is None or F.shape != (3, 3):
-        return no_inliers
+        return unverifiable
     return mask.ravel().astype(bool)
+
+
+def to_verifier_frame(keypoints: np.ndarray, image_size: np.ndarray | SequenceType[int] | None,
+                      conf: dict[str, Any]) -> np.ndarray:
+    """Keypoints (original pixels) in the frame the verifier fits in.
+
+    ``coordinates`` = "original" leaves them; "resize_to" maps them into the fixed
+    ``resize_to`` (width, height) image, pixel centres kept: (k + 0.5) * new / old - 0.5
+    (the GV-Bench repository fits F on its 512x288 coordinates, so its 3 px threshold
+    is 3 px of that image).
+    """
+    coordinates = conf.get("coordinates", "original")
+    if coordinates == "original":
+        return keypoints
+    if coordinates != "resize_to":
+        raise ValueError(f"unknown verifier coordinates {coordinates!r}; use 'original' or 'resize_to'")
+    if image_size is None:
+        raise ValueError("the verifier conf fits in resized coordinates but no original image size was given; "
+                         "rerun extraction so the feature cache records each image's image_size")
+    scale = np.asarray(conf["resize_to"], dtype=np.float64) / np.asarray(image_size, dtype=np.float64)
+    return (np.asarray(keypoints, dtype=np.float64) + 0.5) * scale - 0.5
 
 
 def verify_matches(
@@ -66,14 +96,23 @@ def verify_matches(
     match_scores: np.ndarray,
     conf: dict[str, Any],
     seed: int = 0,
+    image_sizes: tuple[Any, Any] = (None, None),
 ) -> dict[str, Any]:
-    """Apply the score filter then the robust fit; returns counts and the inlier mask over ``matches``."""
-    keep = match_scores > conf.get("min_match_score", 0.0)
+    """Apply the score filter then the robust fit; returns counts and the inlier mask over ``matches``.
+
+    ``image_sizes``: the original (width, height) of both images, needed when the verifier
+    fits in resized coordinates. ``min_match_score`` None keeps every match.
+    """
+    min_score = conf.get("min_match_score", 0.0)
+    keep = np.ones(len(matches), dtype=bool) if min_score is None else match_scores > min_score
     kept = matches[keep]
+    points0 = to_verifier_frame(keypoints0[kept[:, 0]], image_sizes[0], conf)
+    points1 = to_verifier_frame(keypoints1[kept[:, 1]], image_sizes[1], conf)
     inliers_of_kept = fundamental_inliers(
-        keypoints0[kept[:, 0]], keypoints1[kept[:, 1]],
+        points0, points1,
         threshold_px=conf["threshold_px"], confidence=conf["confidence"], max_iters=conf["max_iters"],
         method=conf["method"], min_matches=conf["min_matches"], seed=seed,
+        few_matches=conf.get("few_matches", "zero"),
     )
     inlier_mask = np.zeros(len(matches), dtype=bool)
     inlier_mask[np.nonzero(keep)[0][inliers_of_kept]] = True

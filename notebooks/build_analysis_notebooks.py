@@ -40,32 +40,41 @@ print(f"{len(results)} results of {results['sequence'].nunique()} sequence(s): "
 
 NOTEBOOKS: dict[str, list[tuple[str, str]]] = {
     "analysis_results_table.ipynb": [
-        ("md", "# Results across sequences\nAP and max recall at 100% precision (MR) of every method and sequence, "
-               "in %. **Bold**: the best of its column. Columns labelled *paper* hold the GV-Bench paper's "
-               "published values (grey italics), beside ours where the paper has that method and sequence. "
-               "Then MR across sequences (the paper's Fig. 1)."),
+        ("md", "# Results across sequences\nAP and max recall at 100% precision (MR) of every method, profile "
+               "and sequence, in %: one row a (method, profile). **Bold**: the best of its column. Published "
+               "values (grey italics) stand only beside ours of the same protocol: *paper* (the GV-Bench "
+               "paper's table) in the rows of the paper profile, *GV-Bench repository* (its README's table) "
+               "in those of the repository profile. Then MR across sequences (the paper's Fig. 1)."),
         ("params", PARAMETERS + """
-paper_table = None  # the paper's paper_table.csv; None: $GVBENCH_REFERENCE or ../shared/reference"""),
+paper_table = None  # a paper_table.csv of your own; None: the one shipped in gvbench_nb/reference_values"""),
         ("code", SETUP),
         ("code", """\
 paper = analysis.load_paper_table(paper_table)
-print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found: showing ours only")
-joined = analysis.join_paper_table(results, paper)
+repository = analysis.load_repository_table()
+print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found: no paper values")
+joined = analysis.join_paper_table(results, paper, repository)
 wide = analysis.results_table(joined)
 joined.to_csv(figures / "results_with_paper.csv", index=False)
 analysis.style_results_table(wide)"""),
-        ("md", "For context, the paper's own table (GV-Bench official sequences, RobotCar-based; values as "
-               "published) for the methods we ran. Comparable with ours only on the same sequence and pairs."),
+        ("md", "For context, the published tables (GV-Bench official sequences; values as published) for the "
+               "methods we ran: the paper's (hloc chain) and the GV-Bench repository's (its current code). "
+               "Each is comparable with ours only under its own profile, on the same sequence and pairs, "
+               "and not with the other."),
         ("code", """\
-if len(paper) and paper["method"].isin(results["method"]).any():
-    display(analysis.style_results_table(analysis.paper_reference_table(paper, results["method"].unique())))
-else:
-    print("no paper values for these methods")"""),
+for table, source in ((paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)):
+    if len(table) and table["method"].isin(results["method"]).any():
+        display(Markdown(f"**{source}**"))
+        display(analysis.style_results_table(analysis.paper_reference_table(table, results["method"].unique(),
+                                                                            source=source)))
+    else:
+        print(f"no {source} values for these methods")"""),
         ("code", """\
 runtime = analysis.runtime_table(results)
-runtime[["sequence", "method", "profile", "device", "seconds_per_pair", "fps"]]"""),
+runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]"""),
         ("code", """\
-figure = analysis_plots.max_recall_radar(joined, title="max recall at 100% precision (solid: ours, dashed: paper)")
+figure = analysis_plots.max_recall_radar(
+    joined, title="max recall at 100% precision (ours: solid, paper profile / dash-dot, repository profile; "
+                  "published: dashed, paper / dotted, GV-Bench repository)")
 plots.save(figure, figures / "max_recall_radar.png"); plt.show()"""),
     ],
     "analysis_runtime_vs_mr.ipynb": [

@@ -84,7 +84,7 @@ plots.save(figure, figures / "sequence_examples.png"); plt.show()"""),
         ("params", """\
 params_file = "../params/sample.yaml"
 method = "sift-nn"  # a name from `python -m gvbench_nb methods`
-profile = None  # 'paper' or 'fast'; default: the params file's
+profile = None  # 'paper' or 'repository'; default: the params file's
 limit = None
 output_dir = None"""),
         ("code", SETUP),

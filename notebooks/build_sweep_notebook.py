@@ -30,7 +30,7 @@ condition's doing. The reference drive is extracted once and shared by every cel
   (the look-alikes' share of all false pairs)."""),
     ("params", """\
 methods = ["sift-nn"]  # names from `python -m gvbench_nb methods`
-profile = "paper"  # 'paper' or 'fast' for all, or a mapping method -> profile
+profile = "paper"  # 'paper' or 'repository' for all, or a mapping method -> profile
 conditions = ["illumination", "season", "weather"]
 strengths = [0.0, 0.5, 1.0]  # 0 (clear) is always included
 n_frames = 20  # route length; from ~20 frames the repeated façade block (look-alike pairs) is in the route

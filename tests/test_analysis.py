@@ -56,7 +56,7 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
     assert paper.loc[paper.paper_name == "SIFT+NN", "method"].unique().tolist() == ["sift-nn"]
     assert paper.loc[paper.paper_name == "NotOurs+XX", "method"].isna().all()  # not one of ours
     results = pd.DataFrame({"method": ["sift-nn", "disk-nn"], "sequence": ["night", "night"],
-                            "ap": [0.7, 0.5], "max_recall": [0.1, 0.2]})
+                            "profile": ["paper", "paper"], "ap": [0.7, 0.5], "max_recall": [0.1, 0.2]})
     joined = analysis.join_paper_table(results, paper)
     assert set(joined["source"]) == {"ours", "paper"}
     theirs = joined[joined.source == "paper"]
@@ -66,11 +66,11 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
     assert theirs["max_recall"].iloc[0] == pytest.approx(0.087)
     wide = analysis.results_table(joined)
     assert ("night", "ap", "paper") in wide.columns and ("night", "ap", "ours") in wide.columns
-    assert wide.loc["sift-nn (SIFT+NN)", ("night", "max_recall", "paper")] == pytest.approx(0.087)
-    assert np.isnan(wide.loc["disk-nn (DISK+NN)", ("night", "ap", "paper")])
+    assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "max_recall", "paper")] == pytest.approx(0.087)
+    assert np.isnan(wide.loc[("disk-nn (DISK+NN)", "paper"), ("night", "ap", "paper")])
     text = analysis.text_results_table(wide)
-    assert text.loc["disk-nn (DISK+NN)", ("night", "max_recall", "ours")] == "20.0*"
-    assert text.loc["disk-nn (DISK+NN)", ("night", "ap", "paper")] == "-"
+    assert text.loc[("disk-nn (DISK+NN)", "paper"), ("night", "max_recall", "ours")] == "20.0*"
+    assert text.loc[("disk-nn (DISK+NN)", "paper"), ("night", "ap", "paper")] == "-"
 
 
 def test_missing_paper_table_is_empty_not_an_error(tmp_path):
@@ -214,14 +214,14 @@ def test_bootstrap_refuses_methods_on_different_pairs():
 
 
 # ---------------------------------------------------------------- results I/O --
-def write_fake_run(output_dir, method="sift-nn", sequence="toy"):
+def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="repository"):
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     table = table.assign(extract_seconds=0.1, match_seconds=0.2, verify_seconds=0.05)
     folder = pipeline.method_dir(output_dir, method)
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
     (folder / "run.json").write_text(json.dumps({
-        "sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": "fast"},
+        "sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": profile},
         "environment": {"device": "cpu"}}))
 
 
@@ -230,7 +230,7 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
     write_fake_run(output_dir)
     (tmp_path / "pairs.txt").write_text("q0 r0 1\n")
     params = tmp_path / "toy.yaml"
-    params.write_text(f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\n"
+    params.write_text(f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: repository\n"
                       f"output_dir: {output_dir}\n")
 
     def refuse(*args, **kwargs):
@@ -253,12 +253,13 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     from gvbench_nb import report
 
     output_dir = tmp_path / "outputs" / "toy"
-    write_fake_run(output_dir)
+    write_fake_run(output_dir, profile="paper")
     pipeline.evaluate(output_dir)
-    reference = tmp_path / "reference"
-    reference.mkdir()
-    (reference / "paper_table.csv").write_text("method,sequence,ap,max_recall\nSIFT+NN,toy,50.0,12.5\n")
-    monkeypatch.setenv("GVBENCH_REFERENCE", str(reference))
+    from gvbench_nb import reference_values
+
+    toy_paper = pd.DataFrame({"reference_name": ["SIFT+NN"], "method": ["sift-nn"], "sequence": ["toy"],
+                              "ap": [0.5], "max_recall": [0.125]})
+    monkeypatch.setattr(reference_values, "paper_table", lambda: toy_paper)
     report_dir = tmp_path / "report"
     (report_dir / "toy").mkdir(parents=True)
     (report_dir / "toy" / "analysis_failures.html").write_text("<html></html>")
@@ -280,8 +281,104 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
 
 
 def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
-    results = pd.DataFrame({"method": ["sift-nn"], "sequence": ["sample"], "ap": [0.8], "max_recall": [0.1]})
+    results = pd.DataFrame({"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8],
+                            "max_recall": [0.1]})
     paper = analysis.load_paper_table(tmp_path / "absent.csv")
     joined = analysis.join_paper_table(results, paper)
     assert joined["source"].tolist() == [analysis.OURS_LABEL]
     assert analysis.results_table(joined).shape == (1, 2)
+
+
+# ------------------------------------------------------- profiles never mix --
+def two_profile_results() -> pd.DataFrame:
+    """sift-nn under both profiles on one sequence, plus disk-lg under the repository's."""
+    return pd.DataFrame({
+        "sequence": ["night", "night", "night"], "method": ["sift-nn", "sift-nn", "disk-lg"],
+        "profile": ["paper", "repository", "repository"], "ap": [0.60, 0.55, 0.90],
+        "max_recall": [0.08, 0.05, 0.40], "device": "cpu", "extract_seconds_per_pair": [0.1, 0.02, 0.3],
+        "match_seconds_per_pair": 0.01, "verify_seconds_per_pair": 0.01, "seconds_per_pair": [0.12, 0.04, 0.32]})
+
+
+def test_results_table_keeps_one_row_a_method_and_profile():
+    joined = analysis.join_paper_table(two_profile_results(), analysis.load_paper_table(),
+                                       analysis.load_repository_table())
+    wide = analysis.results_table(joined)
+    assert list(wide.index) == [("sift-nn (SIFT+NN)", "paper"), ("sift-nn (SIFT+NN)", "repository"),
+                                ("disk-lg (DISK+LG)", "repository")]
+    assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "ours")] == pytest.approx(0.60)
+    assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "ours")] == pytest.approx(0.55)
+    # Published values only beside the same protocol: the paper's 62.1 % in the paper row,
+    # the repository's 0.6136 in the repository row, never the other way round.
+    assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "paper")] == pytest.approx(0.621)
+    assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", analysis.REPOSITORY_LABEL)])
+    assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", analysis.REPOSITORY_LABEL)] == \
+        pytest.approx(0.6136)
+    assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "paper")])
+    assert np.isnan(wide.loc[("disk-lg (DISK+LG)", "repository"), ("night", "ap", "paper")])
+    assert set(joined["label"]) == {"ours (paper profile)", "ours (repository profile)", "paper",
+                                    analysis.REPOSITORY_LABEL}
+
+
+def test_the_same_run_twice_in_one_table_is_an_error():
+    results = pd.concat([two_profile_results(), two_profile_results().iloc[[1]]], ignore_index=True)
+    results["output_dir"] = ["a", "a", "a", "b"]
+    with pytest.raises(ValueError, match=r"night/repository/sift-nn in a; night/repository/sift-nn in b"):
+        analysis.join_paper_table(results, analysis.load_paper_table())
+
+
+def test_results_without_profile_say_what_to_do():
+    with pytest.raises(ValueError, match="no profile column"):
+        analysis.join_paper_table(two_profile_results().drop(columns="profile"), analysis.load_paper_table())
+
+
+def test_radar_and_bars_label_every_line_with_its_profile():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from gvbench_nb import analysis_plots
+
+    results = pd.concat([two_profile_results().assign(sequence=s) for s in ("day", "night", "season")],
+                        ignore_index=True)
+    joined = analysis.join_paper_table(results, analysis.load_paper_table(), analysis.load_repository_table())
+    labels = analysis_plots.max_recall_radar(joined).axes[0].get_legend_handles_labels()[1]
+    assert "sift-nn (ours (paper profile))" in labels and "sift-nn (ours (repository profile))" in labels
+    assert "sift-nn (paper)" in labels and f"sift-nn ({analysis.REPOSITORY_LABEL})" in labels
+    assert not any(label.endswith("(ours)") for label in labels)
+    bars = analysis_plots.max_recall_radar(joined[joined.sequence == "night"])
+    ticks = [t.get_text() for t in bars.axes[0].get_yticklabels()]
+    assert ticks[:2] == ["sift-nn (ours (paper profile))", "sift-nn (ours (repository profile))"]
+
+
+def test_runtime_figures_and_histograms_name_the_profile():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from gvbench_nb import analysis_plots
+
+    runtime = analysis.runtime_table(two_profile_results())
+    stacked = analysis_plots.seconds_per_pair_stacked(runtime)
+    assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == [
+        "sift-nn [paper]", "sift-nn [repository]", "disk-lg [repository]"]
+    scatter = analysis_plots.fps_vs_max_recall(runtime)
+    assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
+    table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
+    tables = {"sift-nn (paper)": table.assign(profile="paper"),
+              "sift-nn (repository)": table.assign(profile="repository")}
+    figure = analysis_plots.normalised_inlier_histograms(tables)
+    assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper) [paper]", "sift-nn (repository) [repository]"]
+    with pytest.raises(ValueError, match="mixes profiles"):
+        analysis_plots.normalised_inlier_histograms({"sift-nn": pd.concat([tables["sift-nn (paper)"],
+                                                                           tables["sift-nn (repository)"]])})
+
+
+def test_reference_tables_ship_with_the_package_and_map_names():
+    paper = analysis.load_paper_table()
+    assert paper.set_index(["paper_name", "sequence"]).loc[("SIFT+NN", "day"), "ap"] == pytest.approx(0.981)
+    assert paper.loc[paper.paper_name == "Doppelgangers", "method"].isna().all()
+    repository = analysis.load_repository_table()
+    by_name = repository.drop_duplicates("paper_name").set_index("paper_name")["method"]
+    assert by_name["superpoint-lg"] == "sp-lg" and by_name["xfeat"] == "xfeat-nn" and by_name["disk-lg"] == "disk-lg"
+    assert pd.isna(by_name["master"]) and pd.isna(by_name["sift-lg"])
+    night = repository.set_index(["paper_name", "sequence"])
+    assert night.loc[("disk-lg", "night"), "ap"] == pytest.approx(0.9661)  # fractions, as published
+    assert night.loc[("sift-nn", "day"), "max_recall"] == pytest.approx(0.3534)

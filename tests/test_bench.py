@@ -37,7 +37,7 @@ def day_pairs(shared_data: Path) -> Sequence:
 @pytest.mark.parametrize("method", ["sift-nn", "disk-lg"])  # disk-lg: ours prepares LightGlue once per image
 def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path, method):
     sequence = day_pairs(shared_data) if method == "sift-nn" else few_pairs(shared_data)
-    conf = methods.resolve_method(method, "fast")
+    conf = methods.resolve_method(method, "repository")
     ours, our_seconds = bench.run_cached_pipeline(sequence, conf, tmp_path, torch.device("cpu"), seed=3)
     reference, reference_seconds = bench.run_per_pair_pipeline(sequence, conf, torch.device("cpu"), seed=3)
     bench.check_same_scores(ours, reference, "test")  # raises on any difference
@@ -51,7 +51,7 @@ def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path,
 
 @pytest.mark.real_data
 def test_the_bench_runs_ours_with_two_workers_and_the_reference_with_one(shared_data):
-    rows = bench.bench_method(few_pairs(shared_data), "sift-nn", "fast", repeats=1, device="cpu", progress=False)
+    rows = bench.bench_method(few_pairs(shared_data), "sift-nn", "repository", repeats=1, device="cpu", progress=False)
     assert dict(zip(rows["pipeline"], rows["workers"])) == {bench.CACHED: 2, bench.PER_PAIR: 1}
     summary = bench.summarize_bench(rows).iloc[0]
     assert summary["cached_workers"] == 2 and summary["scores_identical"]
@@ -75,7 +75,7 @@ def timing_rows(cached_rates, per_pair_rates) -> pd.DataFrame:
     rows = []
     for repeat, (fast, slow) in enumerate(zip(cached_rates, per_pair_rates)):
         for which, rate in ((bench.CACHED, fast), (bench.PER_PAIR, slow)):
-            rows.append({"sequence": "s", "method": "sift-nn", "profile": "fast", "n_pairs": 100, "n_images": 40,
+            rows.append({"sequence": "s", "method": "sift-nn", "profile": "repository", "n_pairs": 100, "n_images": 40,
                          "repeat": repeat, "pipeline": which, "wall_seconds": 100 / rate, "pairs_per_second": rate,
                          "extract_seconds_per_pair": 0.5 / rate, "match_seconds_per_pair": 0.3 / rate,
                          "verify_seconds_per_pair": 0.2 / rate, "other_seconds_per_pair": 0.0,
@@ -109,8 +109,8 @@ def test_bench_csvs_keep_other_runs_and_replace_the_same_run(tmp_path):
     paper = first.assign(profile="paper")
     bench._merge_csv(path, paper, keys)
     again = bench._merge_csv(path, first.assign(speedup=7.0), keys)
-    assert sorted(again["profile"]) == ["fast", "paper"]
-    assert again.set_index("profile").loc["fast", "speedup"] == 7.0
+    assert sorted(again["profile"]) == ["paper", "repository"]
+    assert again.set_index("profile").loc["repository", "speedup"] == 7.0
 
 
 def test_estimate_scales_measured_costs_by_images_and_pairs():
@@ -127,7 +127,7 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
 
     # Two queries x two references; each image extracted once in 0.4 s, its time shared by its 2 pairs.
     table = pd.DataFrame({"query": ["q0", "q0", "q1", "q1"], "reference": ["r0", "r1", "r0", "r1"],
-                          "profile": "fast", "extract_seconds": 0.4, "match_seconds": [0.1, 0.2, 0.3, 0.2],
+                          "profile": "repository", "extract_seconds": 0.4, "match_seconds": [0.1, 0.2, 0.3, 0.2],
                           "verify_seconds": 0.05})
     for method in ("xfeat-nn", "sift-nn"):
         (tmp_path / method).mkdir()
@@ -156,7 +156,7 @@ def test_official_sizes_count_unique_images(shared_data):
 @pytest.mark.real_data
 def test_scaling_table_sums_the_measured_stage_costs(shared_data):
     sequence = few_pairs(shared_data)
-    table = bench.scaling_table(sequence, "sift-nn", "fast", limits=(2, 5, 50), device="cpu").set_index("n_pairs")
+    table = bench.scaling_table(sequence, "sift-nn", "repository", limits=(2, 5, 50), device="cpu").set_index("n_pairs")
     assert list(table.index) == [2, 5]  # 50 is capped at the sequence's length
     assert table.loc[5, "n_images"] == len(sequence.images) == 6
     assert table.loc[2, "n_images"] == 3
@@ -171,7 +171,7 @@ def test_add_command_registers_bench():
     parser = argparse.ArgumentParser()
     bench.add_command(parser.add_subparsers(dest="command"))
     args = parser.parse_args(["bench", "p.yaml", "--methods", "sift-nn,disk-lg", "--limit", "50", "--repeats", "2",
-                              "--profile", "fast"])
+                              "--profile", "repository"])
     assert (args.params, args.methods, args.limit, args.repeats, args.profile) == ("p.yaml", "sift-nn,disk-lg", 50, 2,
-                                                                                   "fast")
+                                                                                   "repository")
     assert args.handler is bench.command_bench

@@ -41,7 +41,7 @@ def place_descriptors(frame: int, rng: np.random.Generator, design: str, count: 
     return (rows + 0.02 * rng.normal(size=rows.shape)).astype(np.float32)
 
 
-def make_traversals(root: Path, cache_dir: Path, folders: list[str], design: str = "vlad", profile: str = "fast") -> None:
+def make_traversals(root: Path, cache_dir: Path, folders: list[str], design: str = "vlad", profile: str = "repository") -> None:
     """Image files (tiny placeholders) and their cached local descriptors."""
     options = build.parse_options({"query_folder": "x", "reference_folders": ["y"]})
     store = pipeline.feature_store(cache_dir, build.local_feature_conf(options, profile))
@@ -66,7 +66,7 @@ def write_params(tmp_path: Path, **options: object) -> Path:
                        "label_params": {"k": 1}, **options}
     params = {"sequence": "tiny", "pairs_builder": "retrieval", "builder_options": builder_options,
               "image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "out" / "pairs.txt"),
-              "methods": ["sift-nn"], "profile": "fast", "output_dir": str(tmp_path / "out"),
+              "methods": ["sift-nn"], "profile": "repository", "output_dir": str(tmp_path / "out"),
               "cache_dir": str(tmp_path / "cache"), "seed": 0}
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
@@ -179,7 +179,7 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
         "label_params_file": "generator.json",
         "metadata": {"csv": "poses.csv", "name": "image", "position": ["x", "y", "z"], "heading": "yaw_deg", "frame": "frame"},
     })
-    inputs = build.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "fast"}, options)
+    inputs = build.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "repository"}, options)
     assert inputs.rule_params == {"max_distance_m": 8.0, "max_heading_deg": 40.0}
     truth = build.ground_truth(inputs)
     night, day = inputs.query.names, inputs.experiences["day"].names

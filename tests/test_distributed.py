@@ -9,7 +9,7 @@ import yaml
 from gvbench_nb import config, distributed, pipeline
 from gvbench_nb.sequences import Pair, write_pairs
 
-METHOD, PROFILE = "sift-nn", "fast"
+METHOD, PROFILE = "sift-nn", "repository"
 
 
 def twelve_pairs() -> list[Pair]:

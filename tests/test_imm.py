@@ -31,7 +31,7 @@ needs_vismatch = pytest.mark.skipif(
 # gvbench, BaseMatcher.process_matches): fundamental matrix, FM_RANSAC, 3 px, 0.95, 2000
 # iterations, on the matched points in the 512x288 images the matcher saw.
 FORK_VERIFIER = {"method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.95, "max_iters": 2000,
-                 "coordinates": "resized"}
+                 "coordinates": "resize_to", "resize_to": [512, 288]}
 
 
 @pytest.fixture
@@ -236,7 +236,7 @@ def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(share
 
     monkeypatch.setenv("GVBENCH_DATA", str(shared_data))
     params = config.load_params(Path(__file__).resolve().parent.parent / "params" / "gardens_point.yaml", limit=7,
-                                profile="fast", output_dir=str(tmp_path / "out"))
+                                profile="repository", output_dir=str(tmp_path / "out"))
     params["pairs"] = str(tmp_path / "pairs.txt")
     sequence = config.prepare_sequence(params)
     assert peer_vismatch.peer_image_size(params, "sift-nn", sequence) == (288, 512)  # 960x540, longest side 512

@@ -19,7 +19,7 @@ IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image
 
 
 def features_of(shared_data: Path, method: str) -> tuple[dict, list[dict]]:
-    conf = methods.resolve_method(method, "fast")
+    conf = methods.resolve_method(method, "repository")
     extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
     features = []
     for name in IMAGES:

@@ -16,7 +16,7 @@ IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image
 
 @pytest.fixture(scope="module")
 def xfeat_features(shared_data):
-    conf = methods.resolve_method("xfeat-lg", "fast")
+    conf = methods.resolve_method("xfeat-lg", "repository")
     extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
     features = []
     for name in IMAGES:
@@ -60,6 +60,6 @@ def test_sdpa_matches_agree_with_kornia_on_real_pairs(xfeat_features):
 
 
 def test_unknown_cross_attention_is_named():
-    conf = methods.resolve_method("disk-lg", "fast")["matcher"]
+    conf = methods.resolve_method("disk-lg", "repository")["matcher"]
     with pytest.raises(ValueError, match="unknown cross_attention 'flash'.*kornia, sdpa"):
         matchers.build_matcher({**conf, "cross_attention": "flash"}, torch.device("cpu"))

@@ -26,10 +26,12 @@ def test_the_paper_methods_and_the_modern_ones_are_registered():
     assert {"sp-lg", "aliked-nn", "aliked-lg", "xfeat-nn", "xfeat-lg", "orb-nn"} <= set(methods.METHODS)
 
 
-def test_fast_profile_changes_the_cache_identity():
-    paper = methods.resolve_method("disk-lg", "paper")["extractor"]
-    fast = methods.resolve_method("disk-lg", "fast")["extractor"]
-    assert fast["resize_max"] == 512 and methods.conf_hash(paper) != methods.conf_hash(fast)
+def test_repository_profile_changes_the_cache_identity():
+    paper = methods.resolve_method("disk-lg", "paper")
+    repository = methods.resolve_method("disk-lg", "repository")
+    assert repository["extractor"]["resize_to"] == [512, 288]
+    assert methods.conf_hash(paper["extractor"]) != methods.conf_hash(repository["extractor"])
+    assert methods.conf_hash(paper["verifier"]) != methods.conf_hash(repository["verifier"])
 
 
 def test_unknown_method_lists_the_valid_names():
@@ -89,7 +91,7 @@ def test_available_methods_score_true_pairs_above_far_false_pairs(shared_data, s
         for r, label in ((q, 1), (q + 1, 1), ((q + 60) % 200, 0)):
             pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
     sequence = Sequence("gp_test", shared_data / "gardens_point", pairs)
-    profile = "paper" if method in ("sift-nn", "orb-nn") else "fast"  # learned models at 512 px keep CI short
+    profile = "paper" if method in ("sift-nn", "orb-nn") else "repository"  # learned models at 512x288 keep CI short
     table = pipeline.run_method(sequence, method, profile, tmp_path / "out", shared_cache, progress=False)
     true_mean = table.loc[table.label == 1, "score"].mean()
     false_mean = table.loc[table.label == 0, "score"].mean()

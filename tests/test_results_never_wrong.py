@@ -195,15 +195,15 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
                      "profile": loaded["profile"], "output_dir": loaded["output_dir"]})
         if name == "03_evaluate.ipynb":
             output_path.parent.mkdir(parents=True, exist_ok=True)
-            pd.DataFrame([{"method": METHOD, "profile": "fast", "n_pairs": 3, "n_positives": 2, "ap": 1.0,
+            pd.DataFrame([{"method": METHOD, "profile": "repository", "n_pairs": 3, "n_positives": 2, "ap": 1.0,
                            "max_recall": 1.0, "seconds_per_pair": 0.0}]).to_csv(output_path.parent / "results.csv")
 
     monkeypatch.setattr(cli, "execute_notebook", fake_execute)
     out = tmp_path / "elsewhere"
-    assert cli.main(["run", str(params_path), "--image-root", str(root), "--limit", "3", "--profile", "fast",
+    assert cli.main(["run", str(params_path), "--image-root", str(root), "--limit", "3", "--profile", "repository",
                      "--output-dir", str(out)]) == 0
     assert [s["notebook"] for s in seen] == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
-    assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "fast", "output_dir": str(out)}
+    assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "repository", "output_dir": str(out)}
                for s in seen)
     assert yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())["image_root"] == str(root)
 

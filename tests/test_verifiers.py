@@ -174,14 +174,15 @@ def test_logistic_combination_fits_predicts_and_is_deterministic():
 # ------------------------------------------------------------- cached matches --
 @pytest.fixture(scope="module")
 def cached_run(shared_data: Path, tmp_path_factory) -> Path:
-    """sift-nn (fast) on 4 Gardens Point queries, 3 candidates each, in a temporary folder."""
+    """sift-nn on 4 Gardens Point queries, 3 candidates each, in a temporary folder; the paper
+    profile, whose verifier is the one PAPER_VERIFIER rescores with."""
     root = tmp_path_factory.mktemp("verifiers")
     pairs = []
     for q in (20, 40, 150, 170):  # the false reference stays on the query's side of the split
         for r, label in ((q, 1), (q + 1, 1), (q + 40 if q < 100 else q - 40, 0)):
             pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
     sequence = Sequence("gp_verifiers", shared_data / "gardens_point", pairs)
-    pipeline.run_method(sequence, "sift-nn", "fast", root / "out", root / "cache", progress=False)
+    pipeline.run_method(sequence, "sift-nn", "paper", root / "out", root / "cache", progress=False)
     return root
 
 

@@ -1,0 +1,57 @@
+"""Published reference values, shipped with the package, never labelled as ours.
+
+* ``paper_table.csv``: the GV-Bench paper's table (IROS 2024), AP and MR in percent, by the
+  paper's method names; produced with the hloc chain (our ``paper`` profile).
+* ``gvbench_repo_table.csv``: the table of the GV-Bench repository's README, AP and MR as
+  fractions, by its matcher names (image-matching-models); produced by its current code
+  (our ``repository`` profile). The two are not comparable with each other.
+
+Both loaders return fractions, with our method name where one of ours is the same method.
+"""
+
+from __future__ import annotations
+
+from importlib import resources
+
+import pandas as pd
+
+PAPER_LABEL = "paper"
+REPOSITORY_LABEL = "GV-Bench repository"
+METRICS = ("ap", "max_recall")
+COLUMNS = ["reference_name", "method", "sequence", *METRICS]
+
+# The repository's matcher names (image-matching-models) -> ours, where the method is the same:
+# its 'xfeat' is XFeat sparse with mutual nearest neighbours (our xfeat-nn); 'superpoint-lg' is
+# SuperPoint + LightGlue. master (MASt3R), roma, duster (DUSt3R) and sift-lg have no method here.
+REPOSITORY_METHODS: dict[str, str] = {
+    "sift-nn": "sift-nn", "disk-lg": "disk-lg", "superpoint-lg": "sp-lg", "xfeat": "xfeat-nn", "loftr": "loftr",
+}
+
+
+def _read(name: str) -> pd.DataFrame:
+    with resources.files(__name__).joinpath(name).open("r", encoding="utf-8") as handle:
+        table = pd.read_csv(handle)
+    expected = {"sequence", *METRICS}
+    if not expected <= set(table.columns):
+        raise ValueError(f"{name}: expected columns {sorted(expected)}, got {list(table.columns)}")
+    return table
+
+
+def paper_table() -> pd.DataFrame:
+    """The paper's AP/MR as fractions. ``reference_name`` is the paper's (e.g. SIFT+NN)."""
+    from .. import methods as method_registry
+
+    raw = _read("paper_table.csv").rename(columns={"method": "reference_name"})
+    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.METHODS.items()
+                     if conf["in_paper"]}
+    raw["method"] = raw["reference_name"].map(by_paper_name)
+    for metric in METRICS:
+        raw[metric] = raw[metric] / 100.0
+    return raw[COLUMNS]
+
+
+def repository_table() -> pd.DataFrame:
+    """The GV-Bench repository's AP/MR (already fractions). ``reference_name`` is its matcher name."""
+    raw = _read("gvbench_repo_table.csv").rename(columns={"matcher": "reference_name"})
+    raw["method"] = raw["reference_name"].map(REPOSITORY_METHODS)
+    return raw[COLUMNS]

@@ -1,0 +1,170 @@
+"""The protocol profiles: the few-matches rule, the repository profile's image chain and
+its verification in resized coordinates."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from gvbench_nb import config, images, methods, verify
+
+
+# ------------------------------------------------------------ few-matches rule --
+def five_matches() -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(0)
+    points = rng.uniform(0, 500, (5, 2))
+    return points, points + 3.0
+
+
+def test_few_matches_zero_scores_no_inliers_below_the_minimum():
+    points0, points1 = five_matches()
+    assert verify.fundamental_inliers(points0, points1, few_matches="zero").sum() == 0
+
+
+def test_few_matches_all_counts_every_match_below_the_minimum():
+    points0, points1 = five_matches()
+    assert verify.fundamental_inliers(points0, points1, few_matches="all").sum() == 5
+
+
+def test_min_matches_above_eight_applies_the_rule_to_fittable_pairs():
+    rng = np.random.default_rng(1)
+    points0 = rng.uniform(0, 500, (12, 2))
+    assert verify.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="all").sum() == 12
+    assert verify.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="zero").sum() == 0
+
+
+@pytest.mark.parametrize("rule, expected", [("zero", 0), ("all", 10)])
+def test_no_model_found_follows_the_rule(rule, expected):
+    # Ten copies of one point: OpenCV's RANSAC finds no fundamental matrix (F is None).
+    points = np.zeros((10, 2))
+    assert verify.fundamental_inliers(points, points + 1, few_matches=rule).sum() == expected
+
+
+def test_unknown_few_matches_rule_is_one_sentence():
+    points0, points1 = five_matches()
+    with pytest.raises(ValueError, match="unknown few_matches rule 'some'.*use one of zero, all"):
+        verify.fundamental_inliers(points0, points1, few_matches="some")
+
+
+def test_paper_profile_keeps_the_released_rule_and_repository_counts_all():
+    paper = methods.resolve_method("sift-nn", "paper")["verifier"]
+    repository = methods.resolve_method("sift-nn", "repository")["verifier"]
+    assert (paper["few_matches"], paper["min_matches"]) == ("zero", 8)
+    assert (repository["few_matches"], repository["min_matches"]) == ("all", 8)
+
+
+def test_verify_matches_without_score_filter_keeps_low_scores():
+    points0, points1 = five_matches()
+    matches = np.repeat(np.arange(5)[:, None], 2, axis=1)
+    conf = {**methods.resolve_method("sift-nn", "repository")["verifier"], "coordinates": "original"}
+    result = verify.verify_matches(points0, points1, matches, np.full(5, 0.1), conf)
+    assert (result["num_matches_filtered"], result["num_inliers"]) == (5, 5)
+    paper = methods.resolve_method("sift-nn", "paper")["verifier"]
+    result = verify.verify_matches(points0, points1, matches, np.full(5, 0.1), paper)
+    assert (result["num_matches_filtered"], result["num_inliers"]) == (0, 0)
+
+
+# ------------------------------------------------- resized-coordinate verifying --
+def two_view_points(n: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Exact projections of random 3-D points into two 1280x960 cameras a metre apart."""
+    rng = np.random.default_rng(seed)
+    world = np.column_stack([rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), rng.uniform(6, 20, n)])
+    K = np.array([[800.0, 0, 640], [0, 800, 480], [0, 0, 1]])
+    angle = np.deg2rad(5)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    t = np.array([1.0, 0.0, 0.2])
+
+    def project(points: np.ndarray) -> np.ndarray:
+        pixels = points @ K.T
+        return pixels[:, :2] / pixels[:, 2:]
+
+    return project(world), project(world @ R.T + t)
+
+
+def test_to_verifier_frame_maps_pixel_centres():
+    conf = {"coordinates": "resize_to", "resize_to": [512, 288]}
+    corners = np.array([[-0.5, -0.5], [1279.5, 959.5]])
+    mapped = verify.to_verifier_frame(corners, np.array([1280, 960]), conf)
+    np.testing.assert_allclose(mapped, [[-0.5, -0.5], [511.5, 287.5]])
+    assert verify.to_verifier_frame(corners, None, {"coordinates": "original"}) is corners
+
+
+def test_resized_coordinates_change_which_matches_are_inliers():
+    """Errors of 5 px along y in a 960-px-high image are 1.5 px at 288 px high: outliers at the
+    paper's 3 px threshold in original pixels, inliers in the repository's 512x288 frame."""
+    points0, points1 = two_view_points()
+    noisy = points1.copy()
+    noisy[:40, 1] += np.where(np.arange(40) % 2, 5.0, -5.0)
+    matches = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+    scores = np.ones(len(points0))
+    sizes = (np.array([1280, 960]), np.array([1280, 960]))
+    base = {"type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.999,
+            "max_iters": 5000, "min_matches": 8, "few_matches": "zero", "min_match_score": None}
+    original = verify.verify_matches(points0, noisy, matches, scores, {**base, "coordinates": "original"},
+                                     image_sizes=sizes)
+    resized = verify.verify_matches(points0, noisy, matches, scores,
+                                    {**base, "coordinates": "resize_to", "resize_to": [512, 288]}, image_sizes=sizes)
+    assert original["inlier_mask"][40:].mean() > 0.95 and original["inlier_mask"][:40].mean() < 0.2
+    assert resized["inlier_mask"].mean() > 0.95
+
+
+def test_resized_coordinates_without_image_size_say_what_to_do():
+    points0, points1 = five_matches()
+    with pytest.raises(ValueError, match="no original image size"):
+        verify.to_verifier_frame(points0, None, {"coordinates": "resize_to", "resize_to": [512, 288]})
+
+
+# --------------------------------------------------------- the repository profile --
+def test_repository_profile_is_the_benchmark_repository_protocol():
+    conf = methods.resolve_method("disk-lg", "repository")
+    assert conf["profile"] == "repository"
+    extractor, matcher, verifier = conf["extractor"], conf["matcher"], conf["verifier"]
+    assert extractor["resize_to"] == [512, 288] and extractor["max_keypoints"] == 2048
+    assert extractor["store_float16"] is False and extractor["model_input_long_side"] == 1024
+    assert (matcher["depth_confidence"], matcher["width_confidence"]) == (-1, -1)
+    assert (verifier["threshold_px"], verifier["confidence"], verifier["max_iters"]) == (3.0, 0.95, 2000)
+    assert verifier["coordinates"] == "resize_to" and verifier["resize_to"] == [512, 288]
+    sift = methods.resolve_method("sift-nn", "repository")
+    assert sift["extractor"]["max_keypoints"] == 2048 and sift["extractor"]["root_sift"] is False
+    assert (sift["matcher"]["ratio_threshold"], sift["matcher"]["mutual"]) == (0.75, False)
+    for name in methods.METHODS:
+        extractor = methods.resolve_method(name, "repository")["extractor"]
+        if extractor is not None:
+            assert extractor["store_float16"] is False, name
+
+
+def test_the_fast_profile_is_gone_with_a_pointer_to_repository(tmp_path):
+    with pytest.raises(KeyError, match="profile 'fast' was replaced by 'repository'"):
+        methods.resolve_method("sift-nn", "fast")
+    params = tmp_path / "p.yaml"
+    params.write_text("sequence: s\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\n"
+                      "output_dir: out\n")
+    with pytest.raises(config.ParamsError, match="p.yaml: profile 'fast' was replaced by 'repository'"):
+        config.load_params(params)
+
+
+def test_bilinear_antialias_resize_equals_pil_bilinear():
+    """torchvision's antialiased bilinear Resize (the fork's) and PIL's BILINEAR share one
+    algorithm; PIL serves as the independent reference, shrinking and enlarging."""
+    rng = np.random.default_rng(0)
+    image = (rng.random((96, 128)) * 255).astype(np.float32)
+    for size in ((52, 29), (256, 192)):
+        ours = images.resize_bilinear_antialias(image, size)
+        theirs = np.asarray(Image.fromarray(image, mode="F").resize(size, Image.BILINEAR))
+        np.testing.assert_allclose(ours, theirs, atol=1e-3)
+
+
+def test_repository_image_chain_sizes_and_scale(tmp_path):
+    rng = np.random.default_rng(0)
+    path = tmp_path / "frame.png"
+    Image.fromarray((rng.random((960, 1280, 3)) * 255).astype(np.uint8)).save(path)
+    sift = methods.resolve_method("sift-nn", "repository")["extractor"]
+    image, scale = images.load_for_extraction(path, sift)
+    assert image.shape == (288, 512) and image.dtype == np.uint8
+    assert (image.min(), image.max()) == (0, 255)  # min-max stretched, as the fork's OpenCV matchers do
+    np.testing.assert_allclose(scale, [1280 / 512, 960 / 288])
+    disk = methods.resolve_method("disk-lg", "repository")["extractor"]
+    image, scale = images.load_for_extraction(path, disk)
+    assert image.shape == (576, 1024, 3)  # 512x288, then LightGlue's extractor input at 1024 on the long side
+    np.testing.assert_allclose(scale, [1280 / 1024, 960 / 576])

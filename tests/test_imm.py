@@ -170,7 +170,7 @@ def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
 
     assert "resized to 512x288" in analysis.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
     joined = analysis.join_paper_table(results, analysis.load_paper_table(Path("/nonexistent.csv")))
-    assert analysis.results_table(joined).index.tolist() == ["imm:fake-nn (vismatch fake-nn)"]
+    assert analysis.results_table(joined).index.tolist() == [("imm:fake-nn (vismatch fake-nn)", "paper")]
     lines = analysis.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
     assert lines["points0"].shape == (60, 2) and lines["inlier_mask"].sum() == table["num_inliers"].iloc[0]
 

@@ -161,10 +161,11 @@ def test_repository_image_chain_sizes_and_scale(tmp_path):
     Image.fromarray((rng.random((960, 1280, 3)) * 255).astype(np.uint8)).save(path)
     sift = methods.resolve_method("sift-nn", "repository")["extractor"]
     image, scale = images.load_for_extraction(path, sift)
-    assert image.shape == (288, 512) and image.dtype == np.uint8
+    # Rounded to 8 bits once, at the end of the chain, and handed on as float32 like every image.
+    assert image.shape == (288, 512) and image.dtype == np.float32 and np.array_equal(image, np.round(image))
     assert (image.min(), image.max()) == (0, 255)  # min-max stretched, as the fork's OpenCV matchers do
-    np.testing.assert_allclose(scale, [1280 / 512, 960 / 288])
+    np.testing.assert_allclose(scale, [1280 / 512, 960 / 288], rtol=1e-6)
     disk = methods.resolve_method("disk-lg", "repository")["extractor"]
     image, scale = images.load_for_extraction(path, disk)
     assert image.shape == (576, 1024, 3)  # 512x288, then LightGlue's extractor input at 1024 on the long side
-    np.testing.assert_allclose(scale, [1280 / 1024, 960 / 576])
+    np.testing.assert_allclose(scale, [1280 / 1024, 960 / 576], rtol=1e-6)

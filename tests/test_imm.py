@@ -209,7 +209,7 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
     conf = methods.resolve_method("imm:sift-nn", "paper")
     conf["verifier"].update(FORK_VERIFIER)
     pipeline.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
-    ours = pipeline.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out")
+    ours = pipeline.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
 
     theirs = get_matcher("sift-nn", device="cpu", max_num_keypoints=2048)
     theirs.compute_ransac = fork_ransac

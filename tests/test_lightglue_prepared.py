@@ -18,11 +18,11 @@ IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image
           "day_right/Image140.jpg", "night_right/Image140.jpg"]
 
 
-def features_of(shared_data: Path, method: str) -> tuple[dict, list[dict]]:
+def features_of(shared_data: Path, method: str, names: list[str] = IMAGES) -> tuple[dict, list[dict]]:
     conf = methods.resolve_method(method, "repository")
     extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
     features = []
-    for name in IMAGES:
+    for name in names:
         image, _ = images.load_for_extraction(shared_data / "gardens_point" / name, conf["extractor"])
         found = extractor(image)
         found["image_size"] = np.array(image.shape[:2][::-1], np.float32)

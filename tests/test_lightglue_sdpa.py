@@ -2,13 +2,13 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 import torch
 import torch.nn.functional as F
 
-from gvbench_nb import extractors, images, matchers, methods
+from gvbench_nb import matchers, methods
 from gvbench_nb.models import lightglue_prepared
+from test_lightglue_prepared import features_of  # the shared real-image feature helper
 
 # A true pair (LightGlue runs deep and prunes), a near one and a false one (it stops early).
 IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image063.jpg", "day_right/Image140.jpg"]
@@ -16,15 +16,7 @@ IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image
 
 @pytest.fixture(scope="module")
 def xfeat_features(shared_data):
-    conf = methods.resolve_method("xfeat-lg", "repository")
-    extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
-    features = []
-    for name in IMAGES:
-        image, _ = images.load_for_extraction(shared_data / "gardens_point" / name, conf["extractor"])
-        found = extractor(image)
-        found["image_size"] = np.array(image.shape[:2][::-1], np.float32)
-        features.append(found)
-    return conf, features
+    return features_of(shared_data, "xfeat-lg", IMAGES)
 
 
 def reference_messages(query_key0, query_key1, value0, value1):

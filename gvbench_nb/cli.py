@@ -5,9 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Any, Sequence as SequenceType
+from typing import Any
+from typing import Sequence as SequenceType
 
-NOTEBOOKS_DIR = Path(__file__).resolve().parent.parent / "notebooks"
+from gvbench_nb.reporting.execute import execute_notebook
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -47,21 +48,11 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
         print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
 
 
-def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
-    import papermill
-
-    output_path.parent.mkdir(parents=True, exist_ok=True)
-    # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
-    papermill.execute_notebook(
-        str(NOTEBOOKS_DIR / name), str(output_path), parameters=parameters, cwd=str(NOTEBOOKS_DIR),
-        progress_bar=False, stderr_file=sys.stderr, kernel_name="python3",
-    )
-
-
 def command_run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
-    from . import config, distributed, methods, pipeline, weights
+    from gvbench_nb import config, methods, pipeline, weights
+    from gvbench_nb.speed import distributed
 
     # Paths typed on the command line are relative to the current folder, not the params file.
     absolute = lambda path: str(Path(path).resolve()) if path else None  # noqa: E731
@@ -79,7 +70,7 @@ def command_run(args: argparse.Namespace) -> int:
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
             + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
         )
-    from . import imm
+    from gvbench_nb.matching import imm
 
     for method in params["methods"]:  # vismatch and its weights, for imm: methods
         if imm.is_imm(method):
@@ -125,7 +116,7 @@ def markdown_table(frame: "Any") -> str:
 def command_results(args: argparse.Namespace) -> int:
     import json
 
-    from . import pipeline
+    from gvbench_nb import pipeline
 
     for folder in args.output_dirs:
         folder = Path(folder)
@@ -154,7 +145,7 @@ def not_run_table(ran: set[str]) -> "Any":
     """Registered methods that have no results: why, and the files a user needs to run them."""
     import pandas as pd
 
-    from . import methods, weights
+    from gvbench_nb import methods, weights
 
     rows = []
     for row in methods.method_table():
@@ -168,9 +159,8 @@ def not_run_table(ran: set[str]) -> "Any":
 
 
 def command_methods(args: argparse.Namespace) -> int:
-    from . import methods
-
-    from . import imm
+    from gvbench_nb import methods
+    from gvbench_nb.matching import imm
 
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
     print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
@@ -184,12 +174,12 @@ def command_methods(args: argparse.Namespace) -> int:
 
 
 def command_weights(args: argparse.Namespace) -> int:
-    from . import weights
+    from gvbench_nb import weights
 
     if args.link:
         for name, what in weights.link_carried_weights().items():
             print(f"{name}: {what}")
-        from . import imm
+        from gvbench_nb.matching import imm
 
         if imm.vismatch_installed():  # the same LightGlue files under the names vismatch loads
             for name, what in imm.link_local_weights().items():
@@ -215,8 +205,119 @@ def positive_int(text: str) -> int:
     return value
 
 
+def command_build(args: argparse.Namespace) -> int:
+    import sys
+
+    from gvbench_nb import config
+    from gvbench_nb.data import builders
+
+    try:
+        params = config.load_build_params(args.params, descriptor=args.descriptor, top_n=args.top_n,
+                                   pairs=str(Path(args.pairs).resolve()) if args.pairs else None)
+        card = builders.build_sequence(params)
+    except (builders.BuildError, config.ParamsError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    print(builders.card_markdown(card))
+    print(f"pairs: {card['files']['pairs']}\ncard: {card['files']['card_json']}")
+    return 0
+
+
+def add_build_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
+    """Register ``python -m gvbench_nb build PARAMS [--descriptor D] [--top-n N] [--pairs P]``."""
+    from gvbench_nb.data import retrieval
+
+    parser = subparsers.add_parser(
+        "build", help="build a sequence's pair file by retrieval + a label rule, and print its card",
+        description="Retrieve the top-N references of every query by a global descriptor, label the pairs by the "
+                    "params' rule, write the GV-Bench pair file and a card (<stem>.card.json, .card.md, "
+                    ".candidates.csv) beside it. Needs pairs_builder: retrieval in the params file.",
+    )
+    parser.add_argument("params", help="params YAML with pairs_builder: retrieval, e.g. params/gardens_point_retrieval.yaml")
+    parser.add_argument("--descriptor", choices=list(retrieval.GLOBAL_DESCRIPTORS), help="override builder_options.descriptor")
+    parser.add_argument("--top-n", type=int, help="override builder_options.top_n (candidates a query)")
+    parser.add_argument("--pairs", help="write the pair file (and card) here instead of the params' pairs")
+    parser.set_defaults(handler=command_build)
+    return parser
+
+
+def command_data(args: argparse.Namespace) -> int:
+    from gvbench_nb import config
+    from gvbench_nb.data import fetch
+
+    if args.data_command == "list":
+        print(fetch.list_text(), end="")
+        return 0
+    if args.data_command == "fetch":
+        root = Path(args.to).expanduser().resolve() if args.to else fetch.data_dir()
+        print(f"data folder: {root}", file=sys.stderr)
+        placed = fetch.fetch(args.names, to=root, mirror=args.mirror, progress=not args.quiet)
+        for name, count in placed.items():
+            dataset = fetch.get_dataset(name)
+            print(f"{name}: {len(dataset.files)} files verified in {root / dataset.folder} "
+                  f"({count} placed now, {len(dataset.files) - count} already there)")
+        return 0
+    image_root = str(Path(args.image_root).resolve()) if args.image_root else None
+    try:
+        params = config.load_params(args.params, image_root=image_root)
+    except config.ParamsError as error:
+        raise fetch.DataError(str(error)) from None
+    ok, report = fetch.check_params(params, progress=not args.quiet)
+    print(report)
+    return 0 if ok else 1
+
+
+def configure_data_parser(parser: argparse.ArgumentParser) -> None:
+    sub = parser.add_subparsers(dest="data_command", required=True, metavar="SUBCOMMAND")
+    fetch_parser = sub.add_parser(
+        "fetch", help="download datasets into the data folder, SHA-256 checked",
+        description="Download datasets from their public sources (or a mirror) into the data folder "
+                    "($GVBENCH_DATA, else the per-user cache folder). Partial downloads resume; every file is "
+                    "checked against the package's manifest and only then put in place. Files already there "
+                    "and verified are kept.",
+    )
+    fetch_parser.add_argument("names", nargs="+", metavar="NAME", help="dataset names (see `data list`)")
+    fetch_parser.add_argument("--to", help="the data folder to fill (default: $GVBENCH_DATA, else the per-user cache)")
+    fetch_parser.add_argument("--mirror", help="a local folder or base URL with the data folder's layout "
+                                               "(e.g. a folder holding gardens_point/ and gvbench_gt/)")
+    fetch_parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    sub.add_parser("list", help="known datasets: size, licence, citation, where to get them, whether present")
+    check = sub.add_parser(
+        "check", help="check that every image a sequence names exists and decodes",
+        description="Before a run: every image the params' sequence names (its pair list, or the builder's "
+                    "folders) exists under the image root and decodes. Exit status 1 when any is missing.",
+    )
+    check.add_argument("params", help="params YAML, e.g. params/night.yaml")
+    check.add_argument("--image-root", help="override the params' image_root (the GV-Bench images folder)")
+    check.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.set_defaults(handler=command_data)
+
+
+def add_data_command(commands: Any) -> None:
+    parser = commands.add_parser(
+        "data", help="fetch, list and check datasets (Gardens Point, the GV-Bench pair lists)",
+        description="Datasets: `data list` shows them, `data fetch NAME...` downloads and verifies them, "
+                    "`data check PARAMS` verifies a sequence's images before a run.",
+    )
+    configure_data_parser(parser)
+
+
+def data_main(argv: SequenceType[str]) -> int:
+    """``python -m gvbench_nb data ...`` without building the whole CLI (which imports torch)."""
+    from gvbench_nb.data import fetch
+
+    parser = argparse.ArgumentParser(prog="python -m gvbench_nb data")
+    configure_data_parser(parser)
+    args = parser.parse_args(argv)
+    try:
+        return args.handler(args)
+    except fetch.DataError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+
+
 def build_parser() -> argparse.ArgumentParser:
-    from . import distributed
+    from gvbench_nb.speed import distributed
 
     parser = argparse.ArgumentParser(
         prog="python -m gvbench_nb", description=DESCRIPTION, epilog=EPILOG,
@@ -264,10 +365,11 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
-    from . import bench, build, data, report
+    from gvbench_nb.reporting import report
+    from gvbench_nb.speed import bench
 
-    data.add_command(commands)
-    build.add_command(commands)
+    add_data_command(commands)
+    add_build_command(commands)
     report.add_command(commands)
     bench.add_command(commands)
     return parser
@@ -276,9 +378,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: SequenceType[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
-        from . import data
-
-        return data.main(argv[1:])
+        return data_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
@@ -297,11 +397,14 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
     images, weights, caches or paths); None for any other error."""
     from papermill.exceptions import PapermillExecutionError
 
-    from . import config, data, distributed, metrics, pipeline, weights
-    from .images import ImageReadError
-    from .imm import ImmUnavailableError
-    from .sequences import PairFileError
-    from .store import StoreCorruptError
+    from gvbench_nb import config, pipeline, weights
+    from gvbench_nb.data import fetch as data
+    from gvbench_nb.data.images import ImageReadError
+    from gvbench_nb.data.sequences import PairFileError
+    from gvbench_nb.evaluation import metrics
+    from gvbench_nb.matching.imm import ImmUnavailableError
+    from gvbench_nb.speed import distributed
+    from gvbench_nb.store import StoreCorruptError
 
     if isinstance(error, PapermillExecutionError):
         # The failing cell's own error, without the notebook machinery around it.

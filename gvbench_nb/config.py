@@ -8,7 +8,6 @@ expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.d
 
 from __future__ import annotations
 
-import difflib
 import hashlib
 import json
 import os
@@ -19,9 +18,16 @@ from typing import Any, Callable
 
 import yaml
 
-from . import methods as method_registry
-from .io_utils import atomic_write_json, atomic_write_text
-from .sequences import Sequence, frame_tolerance_pairs, read_pairs, write_pairs
+from gvbench_nb import methods as method_registry
+from gvbench_nb import registry
+from gvbench_nb.data import builders, fetch
+from gvbench_nb.data.sequences import (
+    Sequence,
+    frame_tolerance_pairs,
+    read_pairs,
+    write_pairs,
+)
+from gvbench_nb.io_utils import atomic_write_json, atomic_write_text
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -44,9 +50,7 @@ class ParamsError(ValueError):
 
 def data_dir() -> Path:
     """The data folder: $GVBENCH_DATA, else the per-user cache folder (see ``data.data_dir``)."""
-    from . import data
-
-    return data.data_dir()
+    return fetch.data_dir()
 
 
 def _expand(value: str, source: str, key: str) -> str:
@@ -59,15 +63,6 @@ def _expand(value: str, source: str, key: str) -> str:
         return os.environ[name]
 
     return re.sub(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}", replace, value)
-
-
-def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
-    """``'limt' (did you mean 'limit'?), 'x'``: each unknown key with its closest valid one."""
-    hints = []
-    for key in unknown:
-        close = difflib.get_close_matches(key, valid, n=1)
-        hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
-    return ", ".join(hints)
 
 
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
@@ -90,7 +85,7 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     unknown = [k for k in raw if k not in valid]
     if unknown:
-        raise ParamsError(f"{path}: unknown key(s) {unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
+        raise ParamsError(f"{path}: unknown key(s) {registry.unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
     missing = [k for k in REQUIRED_KEYS if k not in raw]
     if missing:
         raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
@@ -104,10 +99,11 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         raise ParamsError(f"{path}: {error}") from None
     if not params["methods"]:
         raise ParamsError(f"{path}: methods is empty; name at least one (python -m gvbench_nb methods lists them)")
-    if params["pairs_builder"] is not None and params["pairs_builder"] not in PAIR_BUILDERS:
-        raise ParamsError(
-            f"{path}: unknown pairs_builder {params['pairs_builder']!r}; valid: {', '.join(PAIR_BUILDERS)}"
-        )
+    if params["pairs_builder"] is not None:
+        try:
+            registry.lookup("pairs_builder", params["pairs_builder"], PAIR_BUILDERS)
+        except registry.UnknownNameError as error:
+            raise ParamsError(f"{path}: {error}") from None
     if params["limit"] is not None and params["limit"] < 1:
         raise ParamsError(f"{path}: limit must be a positive integer or null, got {params['limit']!r}")
     for key in PATH_KEYS:
@@ -118,6 +114,20 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
     if params["cache_dir"] is None:
         params["cache_dir"] = str(Path(params["output_dir"]).parent / "cache")
+    return params
+
+
+def load_build_params(params_file: str | Path, descriptor: str | None = None, top_n: int | None = None,
+                      pairs: str | None = None, **overrides: Any) -> dict[str, Any]:
+    """``load_params`` of a ``pairs_builder: retrieval`` file, with build overrides."""
+    params = load_params(params_file, pairs=pairs, **overrides)
+    if params["pairs_builder"] != builders.BUILDER_NAME:
+        raise builders.BuildError(f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
+                         f"building needs pairs_builder: {builders.BUILDER_NAME} with its builder_options")
+    options = dict(params["builder_options"])
+    options.update({k: v for k, v in (("descriptor", descriptor), ("top_n", top_n)) if v is not None})
+    builders.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
+    params["builder_options"] = options
     return params
 
 
@@ -165,7 +175,7 @@ def _check_types(params: dict[str, Any], source: Path) -> None:
 # ------------------------------------------------------------------ builders --
 def build_sample(params: dict[str, Any]) -> None:
     """The embedded default: a synthetic route rendered by the package (seconds, no download)."""
-    from . import synthetic
+    from gvbench_nb.data import synthetic
 
     options = dict(params["builder_options"])
     synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
@@ -182,11 +192,9 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
     def names(folder: str) -> list[str]:
         directory = root / folder
         if not directory.is_dir():
-            from .data import fetch_hint
-
             raise ParamsError(
                 f"{params['params_file']}: image folder {directory} not found (image_root {root}, folder {folder!r})"
-                + (fetch_hint(directory) or "; set image_root to the folder holding it")
+                + (fetch.fetch_hint(directory) or "; set image_root to the folder holding it")
             )
         return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in extensions)
 
@@ -202,9 +210,7 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
 
 def build_retrieval(params: dict[str, Any]) -> None:
     """GV-Bench's way: top-N retrieval by a global descriptor, labelled by a rule (``build.py``)."""
-    from . import build
-
-    build.build_retrieval_pairs(params)
+    builders.build_retrieval_pairs(params)
 
 
 PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
@@ -273,11 +279,9 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
     root = Path(params["image_root"])
     builder = params["pairs_builder"]
     if builder != "sample" and not root.is_dir():  # the sample builder renders its images into the root
-        from .data import fetch_hint
-
         what = "is a file, not a folder" if root.exists() else "does not exist"
         raise ParamsError(f"{source}: image_root {root} {what}"
-                          + (fetch_hint(root) or "; set image_root (or pass --image-root) to the folder "
+                          + (fetch.fetch_hint(root) or "; set image_root (or pass --image-root) to the folder "
                              "holding the images that the pair file's paths are relative to"))
     if builder and (builder == "sample" or not _stamp_matches(params)):
         builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds

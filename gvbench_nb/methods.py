@@ -1,8 +1,9 @@
 """The method registry: a method is an extractor conf + a matcher conf, plain dicts.
 
-Adding a matcher is one entry in ``METHODS`` (and, if new, one in ``EXTRACTORS`` or
-``MATCHERS``). Confs follow the paper's protocol (``../shared/reference/MODELS.md``
-section 1); the ``repository`` profile is the GV-Bench repository's current protocol
+Adding a method is one entry in ``METHODS``: its extractor and matcher are conf names from
+``EXTRACTORS`` / ``MATCHERS`` or conf dicts written in the entry; a new model is one file in
+``features/`` or ``matching/`` whose class the conf's ``type`` names (``docs/extending.md``).
+Confs follow the paper's protocol (``docs/protocol.md``); the ``repository`` profile is the GV-Bench repository's current protocol
 (fixed 512x288 images, 2048 keypoints) and is recorded in every output it produces.
 """
 
@@ -13,7 +14,8 @@ import hashlib
 import json
 from typing import Any
 
-from . import imm, weights
+from gvbench_nb import registry, weights
+from gvbench_nb.matching import imm
 
 # store_float16: the cache keeps float arrays as float16, as hloc stores them (as_half)
 # and matches them from there; it is part of the conf hash, so a profile can turn it off.
@@ -178,17 +180,11 @@ VERIFIER_PROFILES: dict[str, dict[str, Any]] = {
 }
 
 
-class UnknownNameError(KeyError):
-    def __str__(self) -> str:  # KeyError quotes its message; ours reads as a sentence
-        return str(self.args[0])
+UnknownNameError = registry.UnknownNameError
 
 
 def _unknown(kind: str, name: str, known: list[str]) -> UnknownNameError:
-    import difflib
-
-    close = difflib.get_close_matches(name, known, n=1)
-    hint = f" Did you mean {close[0]!r}?" if close else ""
-    return UnknownNameError(f"unknown {kind} {name!r}.{hint} Valid {kind}s: {', '.join(known)}")
+    return UnknownNameError(registry.unknown_name_message(kind, name, known))
 
 
 def check_profile(profile: str) -> None:
@@ -204,6 +200,41 @@ def profile_overrides(profile: str, conf: dict[str, Any], name: str) -> dict[str
     """The overrides a profile makes to one extractor or matcher conf: by type, then by name."""
     overrides = PROFILES[profile]
     return {**overrides.get(conf["type"], {}), **(overrides.get(name, {}) if name != conf["type"] else {})}
+
+
+def _component(kind: str, entry: str | dict[str, Any], table: dict[str, dict[str, Any]], profile: str,
+               method: str) -> dict[str, Any]:
+    """An extractor or matcher conf under a profile: a conf name from ``table``, or a conf dict
+    written in the method entry itself (named after the method unless it has a ``name``)."""
+    if isinstance(entry, dict):
+        conf, name = copy.deepcopy(entry), str(entry.get("name", method))
+    else:
+        conf, name = copy.deepcopy(registry.lookup(kind, entry, table, f"method {method!r}")), entry
+    conf.setdefault("checkpoints", [])
+    conf.update(profile_overrides(profile, conf, name))
+    conf["name"] = name
+    return conf
+
+
+def component_name(entry: str | dict[str, Any] | None) -> str:
+    """How ``methods`` lists a method's extractor or matcher."""
+    if entry is None:
+        return "(dense)"
+    return entry if isinstance(entry, str) else str(entry.get("name", entry["type"]))
+
+
+def register_method(name: str, extractor: str | dict[str, Any] | None, matcher: str | dict[str, Any],
+                    paper_name: str | None = None, in_paper: bool = False) -> None:
+    """Add a method: ``extractor`` and ``matcher`` are conf names (``EXTRACTORS``, ``MATCHERS``) or
+    conf dicts whose ``type`` is a registered type or a ``"package.module:Class"`` reference.
+    A method of the package is one entry in ``METHODS``; this is the same entry made from code."""
+    if name in METHODS or imm.is_imm(name) or name in ("all", "all-available"):
+        raise ValueError(f"method name {name!r} is taken; choose another name")
+    for kind, entry in (("extractor", extractor), ("matcher", matcher)):
+        if isinstance(entry, dict) and "type" not in entry:
+            raise ValueError(f"method {name!r}: the {kind} conf needs a 'type' (a registered type or 'module:Class')")
+    METHODS[name] = {"paper_name": paper_name or name, "extractor": extractor, "matcher": matcher,
+                     "in_paper": in_paper}
 
 
 def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
@@ -224,12 +255,8 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
         paper_name = method["paper_name"]
         extractor = None  # dense matchers (LoFTR) have none: they cannot use the per-image cache
         if method["extractor"] is not None:
-            extractor = copy.deepcopy(EXTRACTORS[method["extractor"]])
-            extractor.update(profile_overrides(profile, extractor, method["extractor"]))
-            extractor["name"] = method["extractor"]
-        matcher = copy.deepcopy(MATCHERS[method["matcher"]])
-        matcher.update(profile_overrides(profile, matcher, method["matcher"]))
-        matcher["name"] = method["matcher"]
+            extractor = _component("extractor", method["extractor"], EXTRACTORS, profile, name)
+        matcher = _component("matcher", method["matcher"], MATCHERS, profile, name)
     return {
         "method": name,
         "paper_name": paper_name,
@@ -238,6 +265,12 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
         "matcher": matcher,
         "verifier": {**copy.deepcopy(VERIFIER), **copy.deepcopy(VERIFIER_PROFILES[profile])},
     }
+
+
+def is_dense(conf: dict[str, Any]) -> bool:
+    """A resolved method whose matcher takes two images (LoFTR, vismatch's pair matchers):
+    it has no extractor, so nothing is cached per image and its matcher prepares the images."""
+    return conf["extractor"] is None
 
 
 def paper_name(name: str) -> str:
@@ -268,7 +301,7 @@ def method_table() -> list[dict[str, Any]]:
         missing = [c for c in needed if not weights.is_present(c)]
         rows.append({
             "method": name, "paper_name": method["paper_name"], "in_paper": method["in_paper"],
-            "extractor": method["extractor"] or "(dense)", "matcher": method["matcher"],
+            "extractor": component_name(method["extractor"]), "matcher": component_name(method["matcher"]),
             "weights": ", ".join(needed) or "-", "available": not missing,
             "missing": ", ".join(weights.get(c).file for c in missing),
         })

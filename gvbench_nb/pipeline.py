@@ -25,13 +25,17 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from . import methods as method_registry
-from .images import ImageReadError, load_for_extraction, to_original_pixels
-from .io_utils import atomic_write_csv, atomic_write_json
-from .metrics import evaluate_scores
-from .sequences import Sequence
-from .store import ShardedStore
-from .verify import verify_matches
+from gvbench_nb import methods as method_registry
+from gvbench_nb.data.images import (
+    ImageReadError,
+    load_for_extraction,
+    to_original_pixels,
+)
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.evaluation.metrics import evaluate_scores
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.store import ShardedStore
+from gvbench_nb.verification.ransac import verify_matches
 
 if TYPE_CHECKING:
     import torch
@@ -202,7 +206,8 @@ def extract_features(
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:
         return counts
-    from .extractors import build_extractor, resolve_device
+    from gvbench_nb.features import build_extractor
+    from gvbench_nb.features.base import resolve_device
 
     extractor = build_extractor(extractor_conf, resolve_device(device))
 
@@ -424,11 +429,11 @@ def match_and_verify(
     counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
     if not todo:
         return counts
-    from .extractors import resolve_device
-    from .matchers import build_matcher
+    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.matching import build_matcher
 
     matcher = build_matcher(conf["matcher"], resolve_device(device))
-    if conf["extractor"] is None:
+    if method_registry.is_dense(conf):
         _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every, output_dir)
         counts["matched"] = len(todo)
         return counts
@@ -450,7 +455,7 @@ def match_and_verify(
             return recent.get(name)
 
     # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
-    # models/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
+    # matching/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
     # the first pair using an image is charged for preparing it.
     prepared = PreparedCache(matcher.prepare) if getattr(matcher, "can_prepare", False) else None
 
@@ -600,7 +605,7 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
             bar.update()
         bar.close()
 
-    from .matchers import merge_dense_matches
+    from gvbench_nb.matching.loftr import merge_dense_matches
 
     merge = dense_merge_options(conf["matcher"])
     if merge is None:
@@ -652,7 +657,7 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
     """The per-pair table of a finished run, built only from the stores."""
     matches = match_store(output_dir, conf)
     matches.refresh()
-    dense = conf["extractor"] is None
+    dense = method_registry.is_dense(conf)
     uses = Counter(name for pair in sequence.pairs for name in (pair.query, pair.reference))
     image_info: dict[str, tuple[int, float]] = {}
     if not dense:
@@ -734,7 +739,7 @@ def run_method(
     """
     conf = method_registry.resolve_method(method, profile)
     method_registry.require(method, profile)
-    from .extractors import resolve_device
+    from gvbench_nb.features.base import resolve_device
 
     resolved_device = resolve_device(device)
     configure_threads(threads)

@@ -22,7 +22,7 @@ from urllib.parse import quote, unquote
 import h5py
 import numpy as np
 
-from .io_utils import fsync_folder
+from gvbench_nb.io_utils import fsync_folder
 
 SHARD_SUFFIX = ".h5"
 

@@ -18,6 +18,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Mapping
 
+from gvbench_nb import registry
+
 if TYPE_CHECKING:  # torch is imported where checkpoints are loaded: listing and checking them stays light
     import torch
 
@@ -112,14 +114,14 @@ CHECKPOINTS: dict[str, Checkpoint] = {
                 "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/superpoint_v1.pth",
             ),
             "Magic Leap, non-commercial research only",
-            "gvbench_nb.models.superpoint.SuperPoint",
+            "gvbench_nb.features.superpoint.SuperPoint",
         ),
         Checkpoint(
             "superglue_outdoor",
             "superglue_outdoor.pth",
             ("https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth",),
             "Magic Leap, non-commercial research only",
-            "gvbench_nb.models.superglue.SuperGlue",
+            "gvbench_nb.matching.superglue.SuperGlue",
         ),
         Checkpoint(
             "loftr_outdoor",
@@ -136,14 +138,14 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             "Pitts30K_struct.mat",
             ("https://cvg-data.inf.ethz.ch/hloc/netvlad/Pitts30K_struct.mat",),
             "MIT (NetVLAD)",
-            "gvbench_nb.models.netvlad.NetVLAD",
+            "gvbench_nb.data.netvlad.NetVLAD",
         ),
         Checkpoint(
             "doppelgangers_classifier_loftr",
             "doppelgangers_classifier_loftr.pt",
             ("https://doppelgangers.cs.cornell.edu/dataset/checkpoint.tar.gz",),
             "Apache-2.0 (Doppelgangers)",
-            "gvbench_nb.models.doppelgangers.DoppelgangersClassifier",
+            "gvbench_nb.verification.doppelgangers.DoppelgangersClassifier",
             notes="extract doppelgangers/checkpoints/doppelgangers_classifier_loftr.pt from the archive",
         ),
     ]
@@ -170,10 +172,7 @@ def checkpoint_path(name: str) -> Path:
 
 
 def get(name: str) -> Checkpoint:
-    try:
-        return CHECKPOINTS[name]
-    except KeyError:
-        raise KeyError(f"unknown checkpoint {name!r}; known: {', '.join(sorted(CHECKPOINTS))}") from None
+    return registry.lookup("checkpoint", name, CHECKPOINTS)
 
 
 def carrier_file(name: str) -> Path | None:

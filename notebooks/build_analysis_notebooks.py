@@ -1,7 +1,7 @@
 """Write the analysis notebooks (the paper's tables and figures) from the cells below.
 
 Thin like the stage notebooks: a ``parameters`` cell, then calls into
-``gvbench_nb.analysis`` and ``gvbench_nb.analysis_plots``. They read only written
+``gvbench_nb.evaluation.analysis`` and ``gvbench_nb.reporting.analysis_plots``. They read only written
 results; with their defaults they first run what is missing on the sample
 (``analysis.ensure_results``), so they work on a fresh clone. Rewrite them with:
     python notebooks/build_analysis_notebooks.py

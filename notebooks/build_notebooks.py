@@ -39,7 +39,7 @@ import pandas as pd
 from IPython.display import Markdown, display
 from gvbench_nb import build, plots"""),
         ("code", """\
-params = build.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
+params = config.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
 figures = Path(params["output_dir"])
 card = build.build_sequence(params)
 build.check_card(card["files"]["pairs"])  # the card's counts are the pair file's

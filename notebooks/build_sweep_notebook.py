@@ -2,7 +2,7 @@
     python notebooks/build_sweep_notebook.py
 
 Thin like the stage notebooks: a ``parameters`` cell, then calls into
-``gvbench_nb.condition_sweep``. Defaults are a short, small route so nbmake runs it
+``gvbench_nb.analyses.condition_sweep``. Defaults are a short, small route so nbmake runs it
 in about a minute; the real sweep injects its parameters with papermill.
 """
 

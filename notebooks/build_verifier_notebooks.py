@@ -1,6 +1,6 @@
 """Write the verifier notebooks (GV vs Doppelgangers; every verifier side by side).
 
-Thin like the others: a ``parameters`` cell, then calls into ``gvbench_nb.verifiers``.
+Thin like the others: a ``parameters`` cell, then calls into ``gvbench_nb.verification.verifiers``.
 Every score comes from a finished run's CACHED matches (nothing is re-matched); with
 the defaults the notebooks first run sift-nn on the embedded sample when its
 ``pairs.csv`` is missing, and train a tiny classifier, so they work on a fresh clone.

@@ -7,7 +7,6 @@ per-user cache): tests that need it skip with the ``data fetch`` command that fi
 
 from __future__ import annotations
 
-import json
 import os
 from pathlib import Path
 
@@ -26,7 +25,7 @@ REAL_DATASETS = ("gvbench-lists", "gardens_point")
 @pytest.fixture(scope="session")
 def shared_data() -> Path:
     """The data folder, holding every file of gardens_point/ and gvbench_gt/ (sizes checked)."""
-    from gvbench_nb import data
+    from gvbench_nb.data import fetch as data
 
     root = data.data_dir()
     datasets, _ = data.load_manifest()
@@ -60,37 +59,3 @@ def empty_hub(tmp_path, monkeypatch) -> Path:
     torch.hub.set_dir(old)
 
 
-def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:
-    """An official checkpoint's layout: tensor name -> shape ([] for scalars)."""
-    path = reference_dir / "layouts" / f"{name}.layout.json"
-    if not path.is_file():
-        pytest.skip(f"missing {path}")
-    return json.loads(path.read_text())
-
-
-def random_state_dict(layout: dict[str, list[int]]) -> dict:
-    """Random tensors in a layout, BatchNorm buffers valid (so a strict load can run)."""
-    import torch
-
-    generator = torch.Generator().manual_seed(0)
-    state = {}
-    for name, shape in layout.items():
-        if name.endswith("num_batches_tracked"):
-            state[name] = torch.tensor(7, dtype=torch.long)
-        elif name.endswith("running_var"):
-            state[name] = torch.rand(shape, generator=generator) + 0.5
-        else:
-            state[name] = torch.randn(shape, generator=generator)
-    return state
-
-
-def with_outlier_matches(rng, p0, p1, n_outliers: int):
-    """Planted inlier matches (p0, p1) mixed with uniform random outlier matches in a
-    640x480 image, shuffled. Returns points0, points1 and the true inlier mask."""
-    import numpy as np
-
-    o0 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
-    o1 = rng.uniform([0, 0], [640, 480], (n_outliers, 2))
-    order = rng.permutation(len(p0) + n_outliers)
-    truth = np.r_[np.ones(len(p0), bool), np.zeros(n_outliers, bool)][order]
-    return np.r_[p0, o0][order], np.r_[p1, o1][order], truth

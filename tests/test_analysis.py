@@ -10,7 +10,8 @@ import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb import analysis, metrics, pipeline
+from gvbench_nb.evaluation import analysis, metrics
+from gvbench_nb import pipeline
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
@@ -250,7 +251,7 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
 def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypatch):
     import argparse
 
-    from gvbench_nb import report
+    from gvbench_nb.reporting import report
 
     output_dir = tmp_path / "outputs" / "toy"
     write_fake_run(output_dir, profile="paper")
@@ -335,7 +336,7 @@ def test_radar_and_bars_label_every_line_with_its_profile():
     import matplotlib
 
     matplotlib.use("Agg")
-    from gvbench_nb import analysis_plots
+    from gvbench_nb.reporting import analysis_plots
 
     results = pd.concat([two_profile_results().assign(sequence=s) for s in ("day", "night", "season")],
                         ignore_index=True)
@@ -353,7 +354,7 @@ def test_runtime_figures_and_histograms_name_the_profile():
     import matplotlib
 
     matplotlib.use("Agg")
-    from gvbench_nb import analysis_plots
+    from gvbench_nb.reporting import analysis_plots
 
     runtime = analysis.runtime_table(two_profile_results())
     stacked = analysis_plots.seconds_per_pair_stacked(runtime)

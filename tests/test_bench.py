@@ -9,8 +9,9 @@ import pandas as pd
 import pytest
 import torch
 
-from gvbench_nb import bench, methods
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb.speed import bench
+from gvbench_nb import methods
+from gvbench_nb.data.sequences import Pair, Sequence
 
 
 def few_pairs(shared_data: Path) -> Sequence:

@@ -1,4 +1,4 @@
-"""Building sequences by retrieval + a label rule (gvbench_nb.build) on tiny made-up traversals.
+"""Building sequences by retrieval + a label rule (gvbench_nb.data.builders) on tiny made-up traversals.
 
 Local descriptors are written straight into the feature cache, so no image is
 extracted: place p's images share descriptors drawn around place p's own centres,
@@ -16,7 +16,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import build, pipeline, sequences
+from gvbench_nb.data import builders as build, sequences
+from gvbench_nb import config, pipeline
 
 NUM_FRAMES = 8
 DIM = 16
@@ -80,7 +81,7 @@ def tiny(tmp_path: Path) -> Path:
 
 
 def built(tmp_path: Path, **options: object) -> dict:
-    return build.build_sequence(build.load_build_params(write_params(tmp_path, **options)), progress=False)
+    return build.build_sequence(config.load_build_params(write_params(tmp_path, **options)), progress=False)
 
 
 # ------------------------------------------------------------------ files and card
@@ -130,7 +131,7 @@ def test_same_seed_same_sequence_other_seed_other_queries(tiny: Path) -> None:
     assert Path(second["files"]["pairs"]).read_text() == text
     assert {k: v for k, v in first.items() if k != "seconds"} == {k: v for k, v in second.items() if k != "seconds"}
     assert first["counts"]["n_queries"] == 4
-    params = build.load_build_params(write_params(tiny, num_queries=4))
+    params = config.load_build_params(write_params(tiny, num_queries=4))
     params["seed"] = 1
     other = build.build_sequence(params, progress=False)
     assert len(queries(other)) == 4 and queries(other) != first_queries
@@ -170,7 +171,7 @@ def test_best_experience_table_keeps_each_query_best_pair() -> None:
 def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Path) -> None:
     """The sample's own pair file was labelled by its generator; our pose rule on its
     poses.csv (thresholds from generator.json) must give every one of those labels."""
-    from gvbench_nb import synthetic
+    from gvbench_nb.data import synthetic
 
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(80, 60))
@@ -221,8 +222,10 @@ def test_bad_options_say_what_is_wrong(options: dict, message: str) -> None:
 def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
     import argparse
 
+    from gvbench_nb import cli
+
     parser = argparse.ArgumentParser()
-    build.add_command(parser.add_subparsers(dest="command", required=True))
+    cli.add_build_command(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(["build", str(write_params(tiny)), "--top-n", "2", "--descriptor", "bow"])
     assert args.handler(args) == 0
     printed = capsys.readouterr().out
@@ -234,7 +237,7 @@ def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytes
 
 
 def test_recall_curves_are_monotone_and_reach_the_card(tiny: Path) -> None:
-    params = build.load_build_params(write_params(tiny))
+    params = config.load_build_params(write_params(tiny))
     card = build.build_sequence(params, progress=False)
     curves = build.recall_curves(params, ["vlad", "bow"], progress=False)
     assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3

@@ -1,4 +1,4 @@
-"""Tests for the controlled condition sweep (gvbench_nb.condition_sweep)."""
+"""Tests for the controlled condition sweep (gvbench_nb.analyses.condition_sweep)."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gvbench_nb import condition_sweep as cs
-from gvbench_nb import pipeline, synthetic
+from gvbench_nb.analyses import condition_sweep as cs
+from gvbench_nb import pipeline
+from gvbench_nb.data import synthetic
 
 TINY = {"n_frames": 6, "image_size": (240, 180), "seed": 0}  # 6 queries x 6 pairs: seconds
 
@@ -203,7 +204,7 @@ def test_breaking_strength_exactly_at_half_is_not_below() -> None:
 
 
 def test_render_timing_covers_clear_each_condition_and_all_three(tmp_path):
-    from gvbench_nb import bench
+    from gvbench_nb.speed import bench
 
     table = bench.print_render_time(tmp_path, n_frames=2, repeats=1, workers=1)
     assert table["setting"].tolist() == ["clear", "illumination", "season", "weather", "all three"]

@@ -14,7 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import cli, config, data
+from gvbench_nb import cli, config
+from gvbench_nb.data import fetch as data
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -222,7 +223,7 @@ def test_a_corrupted_file_in_the_data_folder_is_fetched_again(server, tmp_path):
 
 
 def test_unknown_and_external_names_say_what_to_do():
-    with pytest.raises(data.DataError, match="unknown dataset 'gardens'; known: gvbench-lists, gardens_point"):
+    with pytest.raises(data.DataError, match="unknown dataset 'gardens'.*Known: gvbench-lists, gardens_point"):
         data.fetch(["gardens"], progress=False)
     with pytest.raises(data.DataError, match="gvbench-images cannot be fetched .*1drv.ms.*data check"):
         data.fetch(["gvbench-images"], progress=False)

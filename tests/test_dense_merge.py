@@ -8,9 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import matchers, methods, pipeline
-from gvbench_nb.matchers import merge_dense_matches, swapped_dense_call
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb import matching as matchers
+from gvbench_nb import methods, pipeline
+from gvbench_nb import registry
+from gvbench_nb.matching.loftr import LoFTRMatcher, merge_dense_matches, swapped_dense_call
+from gvbench_nb.data.sequences import Pair, Sequence
 
 
 def hloc_merge_reference(pairs, raw, max_keypoints):
@@ -194,4 +196,4 @@ def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkey
 def test_loftr_conf_merges_as_hloc_conf_loftr():
     options = pipeline.dense_merge_options(methods.resolve_method("loftr", "paper")["matcher"])
     assert options == {"max_keypoints": 8192, "cell_size": 1, "max_error": 1}
-    assert matchers.MATCHER_TYPES["loftr"] is matchers.LoFTRMatcher
+    assert registry.resolve_type("matcher type", "loftr", matchers.MATCHER_TYPES) is LoFTRMatcher

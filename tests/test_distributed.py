@@ -6,8 +6,9 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import config, distributed, pipeline
-from gvbench_nb.sequences import Pair, write_pairs
+from gvbench_nb import config, pipeline
+from gvbench_nb.speed import distributed
+from gvbench_nb.data.sequences import Pair, write_pairs
 
 METHOD, PROFILE = "sift-nn", "repository"
 
@@ -88,7 +89,7 @@ def test_merge_with_a_missing_shard_names_the_missing_pairs(shared_data, tmp_pat
 
 
 def test_pair_shards_partition_the_pairs():
-    from gvbench_nb.sequences import Sequence
+    from gvbench_nb.data.sequences import Sequence
 
     sequence = Sequence("s", Path("/images"), twelve_pairs())
     shards = [distributed.pair_shard(sequence, i, 5) for i in range(5)]

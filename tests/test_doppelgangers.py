@@ -9,19 +9,8 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb.models.doppelgangers import (
-    DoppelgangersClassifier,
-    build_input,
-    estimate_warp,
-    focal_loss,
-    input_from_matcher,
-    load_doppelgangers,
-    match_mask,
-    resized_size,
-    to_resized_frame,
-    train_classifier,
-)
-from conftest import random_state_dict, read_layout
+from gvbench_nb.verification.doppelgangers import DoppelgangersClassifier, build_input, estimate_warp, focal_loss, input_from_matcher, load_doppelgangers, match_mask, resized_size, to_resized_frame, train_classifier
+from helpers import random_state_dict, read_layout
 from gvbench_nb.weights import MissingWeightsError, WeightsLayoutError
 
 

@@ -14,8 +14,9 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import extractors, images, methods, pipeline
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb import features as extractors, methods, pipeline
+from gvbench_nb.data import images
+from gvbench_nb.data.sequences import Pair, Sequence
 
 GARDENS_POINT_IMAGES = ["night_right/Image050.jpg", "day_right/Image050.jpg", "day_right/Image120.jpg",
                         "night_right/Image180.jpg"]

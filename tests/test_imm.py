@@ -17,9 +17,10 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import imm, methods, pipeline
-from gvbench_nb.images import load_for_extraction
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb.matching import imm
+from gvbench_nb import methods, pipeline
+from gvbench_nb.data.images import load_for_extraction
+from gvbench_nb.data.sequences import Pair, Sequence
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
     sys.modules.get("vismatch"), types.SimpleNamespace)
@@ -166,7 +167,7 @@ def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
     results = pipeline.evaluate(tmp_path / "out")
     assert results["method"].tolist() == ["imm:fake-nn"]
     assert results["paper_name"].tolist() == ["vismatch fake-nn"]
-    from gvbench_nb import analysis
+    from gvbench_nb.evaluation import analysis
 
     assert "resized to 512x288" in analysis.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
     joined = analysis.join_paper_table(results, analysis.load_paper_table(Path("/nonexistent.csv")))

@@ -41,7 +41,7 @@ def test_help_imports_no_model_library():
 @pytest.mark.slow
 def test_stage_notebook_setup_imports_no_torch_kornia_sklearn_or_seaborn():
     # The setup cell every stage notebook runs; only 02_verify's run then imports the models.
-    found = modules_after("import matplotlib.pyplot\nfrom gvbench_nb import config, pipeline, plots, sequences\nOUT = None")
+    found = modules_after("import matplotlib.pyplot\nfrom gvbench_nb import config, pipeline\nfrom gvbench_nb.data import sequences\nfrom gvbench_nb.reporting import plots\nOUT = None")
     assert [m for m in found["imported"] if m != "matplotlib"] == []
 
 

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import extractors, images, matchers, methods
+from gvbench_nb import features as extractors, matching as matchers, methods
+from gvbench_nb.data import images
 from gvbench_nb.pipeline import PreparedCache
 
 # Two true pairs (many matches: LightGlue runs deep and prunes) and false pairs (it stops early).
@@ -82,7 +83,7 @@ def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):
     conf, features = disk_features
     matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
     matcher.model.conf.mp = True
-    from gvbench_nb.models.lightglue_prepared import supports_prepared
+    from gvbench_nb.matching.lightglue_prepared import supports_prepared
 
     assert not supports_prepared(matcher.model)
 

@@ -6,8 +6,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from gvbench_nb import matchers, methods
-from gvbench_nb.models import lightglue_prepared
+from gvbench_nb import matching as matchers, methods
+from gvbench_nb.matching import lightglue_prepared
 from test_lightglue_prepared import features_of  # the shared real-image feature helper
 
 # A true pair (LightGlue runs deep and prunes), a near one and a false one (it stops early).

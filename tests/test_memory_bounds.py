@@ -11,7 +11,7 @@ import pytest
 
 from gvbench_nb import pipeline
 from gvbench_nb.pipeline import FeatureCache
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.store import ShardedStore
 
 

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from gvbench_nb import config, methods, pipeline
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.store import ShardedStore
 
 PAIRS_COLUMNS = {"query", "reference", "label", "num_matches", "num_inliers", "score",

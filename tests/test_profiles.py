@@ -7,7 +7,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gvbench_nb import config, images, methods, verify
+from gvbench_nb import config, methods
+from gvbench_nb.data import images
+from gvbench_nb.verification import ransac as verify
 
 
 # ------------------------------------------------------------ few-matches rule --
@@ -58,10 +60,10 @@ def test_verify_matches_without_score_filter_keeps_low_scores():
     points0, points1 = five_matches()
     matches = np.repeat(np.arange(5)[:, None], 2, axis=1)
     conf = {**methods.resolve_method("sift-nn", "repository")["verifier"], "coordinates": "original"}
-    result = verify.verify_matches(points0, points1, matches, np.full(5, 0.1), conf)
+    result = ransac.verify_matches(points0, points1, matches, np.full(5, 0.1), conf)
     assert (result["num_matches_filtered"], result["num_inliers"]) == (5, 5)
     paper = methods.resolve_method("sift-nn", "paper")["verifier"]
-    result = verify.verify_matches(points0, points1, matches, np.full(5, 0.1), paper)
+    result = ransac.verify_matches(points0, points1, matches, np.full(5, 0.1), paper)
     assert (result["num_matches_filtered"], result["num_inliers"]) == (0, 0)
 
 
@@ -101,9 +103,9 @@ def test_resized_coordinates_change_which_matches_are_inliers():
     sizes = (np.array([1280, 960]), np.array([1280, 960]))
     base = {"type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.999,
             "max_iters": 5000, "min_matches": 8, "few_matches": "zero", "min_match_score": None}
-    original = verify.verify_matches(points0, noisy, matches, scores, {**base, "coordinates": "original"},
+    original = ransac.verify_matches(points0, noisy, matches, scores, {**base, "coordinates": "original"},
                                      image_sizes=sizes)
-    resized = verify.verify_matches(points0, noisy, matches, scores,
+    resized = ransac.verify_matches(points0, noisy, matches, scores,
                                     {**base, "coordinates": "resize_to", "resize_to": [512, 288]}, image_sizes=sizes)
     assert original["inlier_mask"][40:].mean() > 0.95 and original["inlier_mask"][:40].mean() < 0.2
     assert resized["inlier_mask"].mean() > 0.95

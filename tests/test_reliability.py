@@ -30,9 +30,9 @@ import pytest
 import torch
 
 from gvbench_nb import config, methods, pipeline, weights
-from gvbench_nb.images import ImageReadError, read_image
-from gvbench_nb.metrics import MetricsUndefinedError
-from gvbench_nb.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
+from gvbench_nb.data.images import ImageReadError, read_image
+from gvbench_nb.evaluation.metrics import MetricsUndefinedError
+from gvbench_nb.data.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
 from gvbench_nb.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
@@ -421,9 +421,9 @@ def _params_file(tmp_path: Path, **changes) -> Path:
     [
         ({"seeed": 1}, ["unknown key(s) 'seeed' (did you mean 'seed'?)", "Valid keys: sequence, pairs"]),
         ({"output_dir": None}, ["missing key(s) output_dir", "Required keys: sequence, pairs, image_root"]),
-        ({"methods": ["sift-nn", "sift_nn2"]}, ["unknown method 'sift_nn2'", "Valid methods: sift-nn, sp-nn"]),
+        ({"methods": ["sift-nn", "sift_nn2"]}, ["unknown method 'sift_nn2'", "Known: sift-nn, sp-nn"]),
         ({"methods": "sift-nn,disk-lgg"}, ["unknown method 'disk-lgg'. Did you mean 'disk-lg'?"]),
-        ({"profile": "fastest"}, ["unknown profile 'fastest'", "Valid profiles: paper, repository"]),
+        ({"profile": "fastest"}, ["unknown profile 'fastest'", "Known: paper, repository"]),
         ({"profile": "fast"}, ["profile 'fast' was replaced by 'repository'", "set profile: repository or paper"]),
         ({"methods": []}, ["methods is empty"]),
         ({"seed": "zero"}, ["seed must be an integer, got 'zero'"]),
@@ -431,7 +431,7 @@ def _params_file(tmp_path: Path, **changes) -> Path:
         ({"limit": 0}, ["limit must be a positive integer or null, got 0"]),
         ({"device": "gpu"}, ["device must be 'auto', 'cpu', 'cuda', 'cuda:N' or 'mps', got 'gpu'"]),
         ({"builder_options": [1, 2]}, ["builder_options must be a mapping"]),
-        ({"pairs_builder": "magic"}, ["unknown pairs_builder 'magic'; valid: sample, frame_tolerance"]),
+        ({"pairs_builder": "magic"}, ["unknown pairs_builder 'magic'.", "Known: sample, frame_tolerance"]),
     ],
 )
 def test_bad_params_name_the_file_and_the_valid_choices(tmp_path, changes, expected):

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gvbench_nb import retrieval as rt
+from gvbench_nb.data import retrieval as rt
 
 # ----------------------------------------------------------------------------- labels
 
@@ -179,5 +179,5 @@ def test_bow_on_binary_descriptors() -> None:
 
 
 def test_unknown_global_descriptor() -> None:
-    with pytest.raises(KeyError, match="known: netvlad, vlad, bow"):
+    with pytest.raises(KeyError, match="Known: netvlad, vlad, bow"):
         rt.compute_global_descriptors("cosplace", {}, {})

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gvbench_nb.sue import SLOPE, sue, sue_confidence, sue_weights
+from gvbench_nb.verification.sue import SLOPE, sue, sue_confidence, sue_weights
 
 
 def test_clustered_more_confident_than_scattered():

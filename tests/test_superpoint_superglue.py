@@ -10,10 +10,10 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from conftest import random_state_dict, read_layout
+from helpers import random_state_dict, read_layout
 from gvbench_nb import weights
-from gvbench_nb.models import superglue as sg
-from gvbench_nb.models import superpoint as sp
+from gvbench_nb.matching import superglue as sg
+from gvbench_nb.features import superpoint as sp
 
 
 

@@ -1,4 +1,4 @@
-"""Tests for the synthetic street-route generator (gvbench_nb.synthetic)."""
+"""Tests for the synthetic street-route generator (gvbench_nb.data.synthetic)."""
 
 from __future__ import annotations
 
@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import synthetic as syn
+from gvbench_nb.data import synthetic as syn
 
 SMALL_SIZE = (320, 240)  # small renders keep the suite fast
 

@@ -39,7 +39,7 @@ def _read(name: str) -> pd.DataFrame:
 
 def paper_table() -> pd.DataFrame:
     """The paper's AP/MR as fractions. ``reference_name`` is the paper's (e.g. SIFT+NN)."""
-    from .. import methods as method_registry
+    from gvbench_nb import methods as method_registry
 
     raw = _read("paper_table.csv").rename(columns={"method": "reference_name"})
     by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.METHODS.items()

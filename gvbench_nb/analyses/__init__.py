@@ -1,0 +1,1 @@
+"""Analyses that run their own experiments (the synthetic condition sweep)."""

@@ -1,0 +1,1 @@
+"""Sequences and their data: pair lists, images, pair builders, retrieval, synthetic routes, fetching."""

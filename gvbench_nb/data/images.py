@@ -1,0 +1,211 @@
+"""Reading images of any common kind and resizing them as the paper's protocol says."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from gvbench_nb import registry
+
+
+class ImageReadError(OSError):
+    """An image is missing, empty, truncated or not an image."""
+
+
+_REPLACE_HINT = "copy the file again from its source, or remove the pairs that use it from the pair file"
+
+# Images above this many pixels are refused before decoding (a 20000 x 20000 PNG of 1 MB
+# decodes to gigabytes). 64 MP is over 50 times a GV-Bench frame and above most cameras;
+# $GVBENCH_MAX_PIXELS raises or lowers it.
+DEFAULT_MAX_PIXELS = 64_000_000
+
+
+def max_pixels() -> int:
+    """The pixel bound: $GVBENCH_MAX_PIXELS, else ``DEFAULT_MAX_PIXELS``."""
+    value = os.environ.get("GVBENCH_MAX_PIXELS")
+    if not value:
+        return DEFAULT_MAX_PIXELS
+    if not value.isdigit() or int(value) < 1:
+        raise ImageReadError(f"GVBENCH_MAX_PIXELS must be a positive whole number of pixels, got {value!r}; "
+                             "fix or unset it")
+    return int(value)
+
+
+def check_pixel_bound(path: str | os.PathLike[str]) -> None:
+    """Refuse an image whose header says it is larger than ``max_pixels()``, without decoding it.
+
+    Pillow reads only the header here; a file it cannot identify is left to the decoder.
+    """
+    import re
+
+    from PIL import Image
+
+    bound = max_pixels()
+    try:
+        with Image.open(path) as image:  # lazy: the pixels are not read
+            width, height = image.size
+            size, pixels = f"is {width} x {height} = {width * height:,} pixels", width * height
+    except Image.DecompressionBombError as error:  # Pillow's own limit, far above ours; it says the count
+        found = re.search(r"\((\d+) pixels\)", str(error))
+        pixels = int(found.group(1)) if found else bound + 1
+        size = f"has {pixels:,} pixels" if found else "is larger than Pillow opens"
+    except Exception:  # not a format Pillow knows (or damaged): the decoder reports it
+        return
+    if pixels > bound:
+        raise ImageReadError(
+            f"image {path} {size}, above the bound of {bound:,} pixels (refused before decoding); "
+            "shrink it, or raise the bound with GVBENCH_MAX_PIXELS")
+
+
+def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
+    """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
+
+    16-bit, RGBA, palette and grayscale files are converted rather than rejected;
+    missing, empty and undecodable files raise ``ImageReadError`` naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        what = "is a folder, not an image file" if path.is_dir() else "not found"
+        raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
+    check_pixel_bound(path)
+    try:
+        data = np.fromfile(path, dtype=np.uint8)
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
+    if data.size == 0:
+        raise ImageReadError(f"image file is empty (0 bytes): {path}; {_REPLACE_HINT}")
+    # OpenCV returns None for truncated JPEG and PNG data rather than a grey-filled image
+    # (tests/test_reliability.py checks it); the first bytes show what the file really is.
+    # Grayscale is decoded as grayscale (hloc's cv2.IMREAD_GRAYSCALE: a JPEG's luma as
+    # libjpeg computes it, which a cvtColor of the colour image misses by up to 2 levels);
+    # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. Neither mode applies
+    # EXIF orientation, as hloc ignores it.
+    flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION if grayscale \
+        else cv2.IMREAD_UNCHANGED
+    image = cv2.imdecode(data, flags)
+    if image is None or image.size == 0:
+        raise ImageReadError(
+            f"cannot decode image {path} ({data.size} bytes, starting {bytes(data[:8])!r}): "
+            f"not an image, or truncated; {_REPLACE_HINT}"
+        )
+    if image.dtype == np.uint16:
+        image = (image.astype(np.float32) / 257.0).round().astype(np.uint8)
+    elif image.dtype != np.uint8:
+        scale = 255.0 if image.dtype.kind == "f" and image.max() <= 1.0 else 1.0
+        image = np.clip(image.astype(np.float32) * scale, 0, 255).astype(np.uint8)
+    if image.ndim == 2:
+        return image if grayscale else cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
+    if image.shape[2] == 4:
+        image = cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    if grayscale:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
+
+
+def target_size(width: int, height: int, resize_max: int | None, resize_force: bool = False,
+                multiple_of: int | None = None, resize_to: tuple[int, int] | None = None) -> tuple[int, int]:
+    """(width, height) after resizing the longest side to ``resize_max``.
+
+    Without ``resize_force`` images are only shrunk (hloc's convention); with it they
+    are also enlarged (the paper's SuperPoint at 1600). ``multiple_of`` floors both
+    sides (LoFTR's multiple of 8). ``resize_to`` = (width, height) is a fixed size
+    whatever the aspect ratio (the GV-Bench repository's 512x288); it replaces ``resize_max``.
+    """
+    new_w, new_h = width, height
+    if resize_to:
+        new_w, new_h = int(resize_to[0]), int(resize_to[1])
+    elif resize_max and (resize_force or max(width, height) > resize_max):
+        scale = resize_max / max(width, height)
+        new_w, new_h = int(round(width * scale)), int(round(height * scale))
+    if multiple_of:
+        new_w, new_h = new_w // multiple_of * multiple_of, new_h // multiple_of * multiple_of
+    return new_w, new_h
+
+
+def resize_image(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize to (width, height) as hloc's ``extract_features.resize_image`` with cv2_area:
+    INTER_AREA, or INTER_LINEAR when either side grows."""
+    height, width = image.shape[:2]
+    if (width, height) == tuple(size):
+        return image
+    enlarging = size[0] > width or size[1] > height
+    return cv2.resize(image, tuple(size), interpolation=cv2.INTER_LINEAR if enlarging else cv2.INTER_AREA)
+
+
+def resize_bilinear_antialias(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Resize a float image to (width, height) as torchvision's ``Resize(antialias=True)`` does
+    on a tensor (bilinear, half-pixel centres, antialiased when shrinking); stays float32."""
+    import torch
+
+    height, width = image.shape[:2]
+    if (width, height) == tuple(size):
+        return image.astype(np.float32)
+    tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
+    tensor = tensor[None, None] if tensor.ndim == 2 else tensor.permute(2, 0, 1)[None]
+    resized = torch.nn.functional.interpolate(tensor, size=(int(size[1]), int(size[0])), mode="bilinear",
+                                              align_corners=False, antialias=True)[0]
+    return (resized[0] if image.ndim == 2 else resized.permute(1, 2, 0)).numpy()
+
+
+def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, tuple[int, int]]:
+    """The GV-Bench repository's image chain: RGB in [0, 1], resized as a float image, then
+    grey (its OpenCV and LoFTR matchers convert after resizing), min-max stretched to 0-255
+    where its OpenCV matchers do, and resized again when the model resizes its input
+    (LightGlue's extractors: longest side ``model_input_long_side``, also enlarging).
+    Rounded to 8 bits once, at the end. Returns the image and the original (width, height)."""
+    rgb = read_image(path, grayscale=False).astype(np.float32)
+    height, width = rgb.shape[:2]
+    fixed = conf.get("resize_to")
+    size = (int(fixed[0]), int(fixed[1])) if fixed else target_size(width, height, conf.get("resize_max"),
+                                                                    conf.get("resize_force", False))
+    image = resize_bilinear_antialias(rgb, size)
+    if conf.get("grayscale", False):
+        image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
+    if conf.get("normalize_minmax", False):
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+    long_side = conf.get("model_input_long_side")
+    if long_side:
+        scale = long_side / max(image.shape[:2])
+        image = resize_bilinear_antialias(image, (int(image.shape[1] * scale), int(image.shape[0] * scale)))
+    multiple_of = conf.get("multiple_of")
+    if multiple_of:
+        h, w = image.shape[:2]
+        image = resize_bilinear_antialias(image, (w // multiple_of * multiple_of, h // multiple_of * multiple_of))
+    return np.clip(np.round(image), 0, 255).astype(np.uint8), (width, height)
+
+
+def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:
+    """Image prepared for an extractor conf, float32 in 0..255 (H, W) or (H, W, 3), and the
+    float32 (sx, sy) scale back to original pixels (original size / new size).
+
+    ``interpolation``: "area_or_linear" (default; hloc's ``ImageDataset``: the decoded image
+    becomes float32 before resizing, so resized values are not rounded to integers) or
+    "bilinear_antialias" (the GV-Bench repository's torchvision chain, ``_prepare_as_repository``).
+    """
+    interpolation = conf.get("interpolation", "area_or_linear")
+    if interpolation == "bilinear_antialias":
+        resized8, (width, height) = _prepare_as_repository(path, conf)
+        resized = resized8.astype(np.float32)
+        size = resized.shape[1::-1]
+    elif interpolation == "area_or_linear":
+        image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
+        height, width = image.shape[:2]
+        size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False),
+                           conf.get("multiple_of"), conf.get("resize_to"))
+        resized = resize_image(image, size)
+    else:
+        registry.check_choice("interpolation", interpolation, ("area_or_linear", "bilinear_antialias"),
+                              f"the conf of {conf.get('name', '?')!r}")
+        raise AssertionError("unreachable")
+    scale = (np.array([width, height]) / np.array(size)).astype(np.float32)
+    return resized, scale
+
+
+def to_original_pixels(keypoints: np.ndarray, scale: np.ndarray) -> np.ndarray:
+    """Map keypoints of the resized image back with (k + 0.5) * scale - 0.5 (pixel centres),
+    in float32 as hloc computes it."""
+    keypoints = np.asarray(keypoints, dtype=np.float32)
+    return ((keypoints + np.float32(0.5)) * np.asarray(scale, dtype=np.float32) - np.float32(0.5)).astype(np.float32)

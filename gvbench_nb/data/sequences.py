@@ -1,0 +1,317 @@
+"""Sequences: an image root plus labelled (query, reference, label) pairs.
+
+Pair files use GV-Bench's format, one pair a line: ``query_path reference_path label``
+with paths relative to the image root and label 1 (true loop closure) or 0. Loading
+pairs never touches the images, so the official lists load without them.
+
+A path holding spaces is written in double or single quotes (``"day 1/a b.jpg"``); on
+a line with quotes a backslash escapes the next character, as in a POSIX shell. Paths
+are normalised (``night/./a.jpg`` and ``night//a.jpg`` are ``night/a.jpg``) before the
+checks for duplicates and self-pairs. Symlinks inside the image root are followed,
+wherever they point: the caches key images by their content, so a link is the file it
+names (see docs/reliability.md).
+"""
+
+from __future__ import annotations
+
+import os
+import posixpath
+import random
+import shlex
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path, PurePosixPath
+from typing import Iterable
+from typing import Sequence as SequenceType
+
+import pandas as pd
+
+from gvbench_nb.io_utils import atomic_write_text
+
+
+class PairFileError(ValueError):
+    """A pair file line is malformed, duplicated or points outside the image root."""
+
+
+class MissingImagesError(PairFileError):
+    """Images the pairs name are not under the image root."""
+
+
+@dataclass(frozen=True)
+class Pair:
+    query: str
+    reference: str
+    label: int
+
+
+MAX_PATH_CHARS = 4096  # PATH_MAX of Linux; longer names cannot be opened anyway
+MAX_NAME_BYTES = 255  # NAME_MAX: the longest file or folder name most file systems take
+
+
+def shorten(text: str, limit: int = 80) -> str:
+    """``text`` cut to ``limit`` characters with how long it was (for error messages)."""
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def _check_length(path_text: str, where: str) -> None:
+    if len(path_text) > MAX_PATH_CHARS:
+        raise PairFileError(f"{where}: path {shorten(path_text)!r} is longer than {MAX_PATH_CHARS} characters; "
+                            "is this line a pair? Write 'query_path reference_path label'")
+    longest = max(path_text.replace("\\", "/").split("/"), key=lambda part: len(part.encode()))
+    if len(longest.encode()) > MAX_NAME_BYTES:
+        raise PairFileError(f"{where}: the name {shorten(longest)!r} in a path is longer than {MAX_NAME_BYTES} bytes, "
+                            "which file systems do not allow; fix the path")
+
+
+def normalise_path(path_text: str) -> str:
+    """``night/./a.jpg``, ``night//a.jpg`` -> ``night/a.jpg``: one spelling a file."""
+    return posixpath.normpath(path_text)
+
+
+def _split_fields(line: str, where: str) -> list[str]:
+    if '"' not in line and "'" not in line:
+        return line.split()
+    try:
+        return shlex.split(line, comments=False, posix=True)
+    except ValueError as error:  # an unclosed quote
+        raise PairFileError(f"{where}: {error} in {shorten(line)!r}; close the quote around the path "
+                            "(paths with spaces are written \"like this.jpg\")") from None
+
+
+def _check_relative(path_text: str, where: str) -> None:
+    # Backslashes count as separators too: a list written on Windows must not escape
+    # the root when it is read there ('..\\x', 'C:\\x', '\\\\server\\share').
+    path = PurePosixPath(path_text.replace("\\", "/"))
+    if path.is_absolute() or (len(path_text) > 1 and path_text[1] == ":"):
+        raise PairFileError(f"{where}: absolute path {path_text!r}; paths must be relative to the image root")
+    if ".." in path.parts:
+        raise PairFileError(f"{where}: path {path_text!r} escapes the image root ('..'); paths must stay inside it")
+
+
+def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
+    """Parse pair-file lines, rejecting anything that is not exactly a valid pair.
+
+    Blank lines and lines starting with ``#`` are skipped. Errors name the source and
+    line number and say what to do.
+    """
+    pairs: list[Pair] = []
+    seen: dict[tuple[str, str], tuple[int, int]] = {}  # (query, reference) -> (line, label)
+    for line_number, raw in enumerate(lines, start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        where = f"{source}:{line_number}"
+        fields = _split_fields(line, where)
+        if len(fields) != 3:
+            hint = ("; write a path holding spaces in quotes, e.g. \"day 1/a.jpg\""
+                    if len(fields) > 3 and fields[-1] in ("0", "1") else "")
+            raise PairFileError(
+                f"{where}: expected 3 fields 'query_path reference_path label', got {len(fields)}: "
+                f"{shorten(line)!r}{hint}"
+            )
+        query, reference, label_text = fields
+        if label_text not in ("0", "1"):
+            raise PairFileError(f"{where}: label must be 0 or 1, got {shorten(label_text)!r}")
+        for path_text in (query, reference):
+            _check_length(path_text, where)
+            _check_relative(path_text, where)
+        query, reference = normalise_path(query), normalise_path(reference)
+        label = int(label_text)
+        if query == reference:
+            raise PairFileError(f"{where}: self-pair: query and reference are both {query}; "
+                                "a pair needs two different images, remove this line")
+        for key, order in (((query, reference), ""), ((reference, query), ", in the other order")):
+            if key in seen:
+                first_line, first_label = seen[key]
+                labels = (f", with the opposite label: {first_label} there, {label} here"
+                          if first_label != label else "")
+                raise PairFileError(
+                    f"{where}: duplicate pair {query} {reference} (first on line {first_line}{order}{labels}); "
+                    "remove one of them"
+                )
+        seen[(query, reference)] = (line_number, label)
+        pairs.append(Pair(query, reference, label))
+    return pairs
+
+
+def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
+    path = Path(path)
+    if not path.is_file():
+        what = "is a folder, not a pair file" if path.is_dir() else "not found"
+        raise PairFileError(f"pair file {what}: {path}; set the params' pairs to a file of "
+                            "'query_path reference_path label' lines (or a pairs_builder that makes it)")
+    data = path.read_bytes()
+    try:
+        # utf-8-sig drops the byte-order mark some Windows editors write.
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line_number = data[: error.start].count(b"\n") + 1
+        raise PairFileError(
+            f"{path}:{line_number}: not UTF-8 text ({data[error.start:error.start + 4]!r}); "
+            "is this a pair file? Save it as UTF-8 text"
+        ) from None
+    # splitlines() and strip() make CRLF (and lone CR) line endings read like LF.
+    pairs = parse_pairs(text.splitlines(), source=str(path))
+    if not pairs:
+        raise PairFileError(f"{path}: holds no pairs")
+    return pairs
+
+
+def quote_path(path_text: str) -> str:
+    """A path as a pair file writes it: in quotes when it holds spaces or quotes."""
+    if path_text and not any(ch.isspace() or ch in "'\"" for ch in path_text):
+        return path_text
+    return shlex.quote(path_text)
+
+
+def format_pairs(pairs: Iterable[Pair | tuple[str, str, int]]) -> str:
+    lines = []
+    for pair in pairs:
+        query, reference, label = (pair.query, pair.reference, pair.label) if isinstance(pair, Pair) else pair
+        lines.append(f"{quote_path(query)} {quote_path(reference)} {int(label)}")
+    return "\n".join(lines) + "\n"
+
+
+def write_pairs(path: str | os.PathLike[str], pairs: Iterable[Pair | tuple[str, str, int]]) -> Path:
+    """Write a GV-Bench pair file atomically (a crash leaves the old file or none)."""
+    pairs = [p if isinstance(p, Pair) else Pair(str(p[0]), str(p[1]), int(p[2])) for p in pairs]
+    for pair in pairs:
+        if pair.label not in (0, 1):
+            raise PairFileError(f"label must be 0 or 1, got {pair.label!r} for {pair}")
+        if any(not part.strip() or "\n" in part or "\r" in part for part in (pair.query, pair.reference)):
+            raise PairFileError(f"paths may not be empty or hold line breaks: {pair}")
+    return atomic_write_text(Path(path), format_pairs(pairs))
+
+
+@dataclass
+class Sequence:
+    """A named benchmark sequence: labelled pairs over images under ``image_root``."""
+
+    name: str
+    image_root: Path
+    pairs: list[Pair]
+    # Where the pairs came from (pair file and its SHA-256, builder and options), for run.json.
+    origin: dict[str, object] = field(default_factory=dict, compare=False)
+
+    @property
+    def images(self) -> list[str]:
+        """Unique image paths (relative to the root), in first-seen order."""
+        return list(dict.fromkeys(p for pair in self.pairs for p in (pair.query, pair.reference)))
+
+    @property
+    def queries(self) -> list[str]:
+        return list(dict.fromkeys(pair.query for pair in self.pairs))
+
+    def to_frame(self) -> pd.DataFrame:
+        return pd.DataFrame(
+            {
+                "pair_index": range(len(self.pairs)),
+                "query": [p.query for p in self.pairs],
+                "reference": [p.reference for p in self.pairs],
+                "label": [p.label for p in self.pairs],
+            }
+        )
+
+    def limited(self, limit: int | None) -> "Sequence":
+        """The first ``limit`` pairs (the same prefix every time, so runs are comparable)."""
+        if limit is None or limit >= len(self.pairs):
+            return self
+        if limit < 1:
+            raise ValueError(f"limit must be a positive number of pairs, got {limit}")
+        return Sequence(self.name, self.image_root, self.pairs[:limit], {**self.origin, "limit": limit})
+
+    def missing_images(self) -> list[str]:
+        return [name for name in self.images if not (self.image_root / name).is_file()]
+
+    def check_images(self) -> None:
+        """Raise ``MissingImagesError`` naming how many images are missing, the first one
+        and the pair that uses it, when any image of the pairs is not a file."""
+        if not Path(self.image_root).is_dir():
+            raise MissingImagesError(
+                f"image_root {self.image_root} of sequence {self.name!r} does not exist or is not a folder; "
+                "set image_root (or --image-root) to the folder the pair file's paths are relative to")
+        missing = self.missing_images()
+        if missing:
+            index, pair = next((i, p) for i, p in enumerate(self.pairs) if missing[0] in (p.query, p.reference))
+            raise MissingImagesError(
+                f"{len(missing)} of {len(self.images)} images of sequence {self.name!r} are missing under "
+                f"{self.image_root}, first {missing[0]} (pair {index}: {pair.query} {pair.reference}"
+                f"{', ' + str(self.origin['pairs_file']) if self.origin.get('pairs_file') else ''}); "
+                "restore them, or remove the pairs that use them")
+
+
+def summarize(sequence: Sequence) -> dict[str, object]:
+    """Counts a user checks first: pairs, queries, images, positives, positives a query."""
+    positives_per_query = Counter(p.query for p in sequence.pairs if p.label == 1)
+    candidates_per_query = Counter(p.query for p in sequence.pairs)
+    queries = sequence.queries
+    n_positives = sum(p.label for p in sequence.pairs)
+    return {
+        "sequence": sequence.name,
+        "n_pairs": len(sequence.pairs),
+        "n_positives": n_positives,
+        "n_negatives": len(sequence.pairs) - n_positives,
+        "n_queries": len(queries),
+        "n_images": len(sequence.images),
+        "candidates_per_query": len(sequence.pairs) / max(len(queries), 1),
+        "positives_per_query": n_positives / max(len(queries), 1),
+        "queries_without_positive": sum(1 for q in queries if positives_per_query[q] == 0),
+        "max_candidates_per_query": max(candidates_per_query.values()) if queries else 0,
+    }
+
+
+def frame_index(name: str) -> int:
+    """Frame number from a name such as ``night_right/Image042.jpg`` -> 42."""
+    stem = PurePosixPath(name).stem
+    digits = "".join(ch for ch in stem if ch.isdigit())
+    if not digits:
+        raise ValueError(f"no frame number in {name!r}")
+    return int(digits)
+
+
+def frame_tolerance_pairs(
+    query_names: SequenceType[str],
+    reference_names: SequenceType[str],
+    tolerance: int = 2,
+    candidates_per_query: int = 10,
+    near_negatives: int = 2,
+    near_window: int = 8,
+    seed: int = 0,
+    negative_margin: int | None = None,
+) -> list[Pair]:
+    """Rule-built candidates for a frame-aligned sequence, before retrieval exists.
+
+    For query frame i: every reference j with |i - j| <= tolerance (true), then
+    ``near_negatives`` seeded picks from the near band (hard negatives), then seeded far
+    negatives (|i - j| > 4 * near_window) up to ``candidates_per_query``.
+
+    Without ``negative_margin`` the near band is tolerance < |i - j| <= near_window: views
+    that still overlap the query, labelled false. With it, no negative is closer than
+    ``negative_margin`` frames: the band becomes negative_margin <= |i - j| <= near_window and
+    the frames between tolerance and the margin are left out (neither true nor false), as
+    place-recognition benchmarks leave out views too close to call.
+    """
+    low = tolerance + 1 if negative_margin is None else negative_margin
+    if negative_margin is not None and negative_margin <= tolerance:
+        raise ValueError(f"negative_margin {negative_margin} must exceed tolerance {tolerance} "
+                         "(a negative cannot be as close as a true neighbour); raise it or drop it")
+    if near_negatives and near_window < low:
+        raise ValueError(f"near_window {near_window} is below the smallest negative gap {low}: "
+                         f"no near negative can be drawn; set near_window to at least {low}")
+    rng = random.Random(seed)
+    references = {frame_index(r): r for r in reference_names}
+    frames = sorted(references)
+    pairs: list[Pair] = []
+    for query in query_names:
+        i = frame_index(query)
+        positives = [j for j in frames if abs(i - j) <= tolerance]
+        near = [j for j in frames if low <= abs(i - j) <= near_window]
+        far = [j for j in frames if abs(i - j) > 4 * near_window]
+        chosen_near = rng.sample(near, min(near_negatives, len(near)))
+        n_far = max(candidates_per_query - len(positives) - len(chosen_near), 0)
+        chosen_far = rng.sample(far, min(n_far, len(far)))
+        for j in positives:
+            pairs.append(Pair(query, references[j], 1))
+        for j in chosen_near + chosen_far:
+            pairs.append(Pair(query, references[j], 0))
+    return pairs

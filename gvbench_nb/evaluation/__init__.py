@@ -1,0 +1,1 @@
+"""Evaluation: AP and max recall, results tables and the bootstrap, read from written results."""

@@ -1,0 +1,32 @@
+"""Local feature extractors: one file a family, chosen by ``conf['type']``.
+
+Every extractor is built as ``Class(conf, device)`` and called on one prepared image; it
+returns the feature dict described in ``features/base.py``. Adding an extractor is one file
+here and one line in ``EXTRACTOR_TYPES`` (or a ``"module:Class"`` type in its conf).
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any, Callable
+
+from gvbench_nb import registry
+
+if TYPE_CHECKING:
+    import numpy as np
+    import torch
+
+EXTRACTOR_TYPES: dict[str, str] = {
+    "sift": "gvbench_nb.features.sift:ColmapSiftExtractor",
+    "opencv_sift": "gvbench_nb.features.sift:OpenCVSiftExtractor",
+    "orb": "gvbench_nb.features.orb:OrbExtractor",
+    "disk": "gvbench_nb.features.disk:DiskExtractor",
+    "aliked": "gvbench_nb.features.aliked:AlikedExtractor",
+    "xfeat": "gvbench_nb.features.xfeat:XFeatExtractor",
+    "superpoint": "gvbench_nb.features.superpoint:SuperPointExtractor",
+}
+
+
+def build_extractor(conf: dict[str, Any], device: torch.device) -> Callable[[np.ndarray], dict[str, np.ndarray]]:
+    kind = registry.resolve_type("extractor type", conf["type"], EXTRACTOR_TYPES, f"extractor conf {conf.get('name', '?')!r}")
+    extractor: Callable[[np.ndarray], dict[str, np.ndarray]] = kind(conf, device)
+    return extractor

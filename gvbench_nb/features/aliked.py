@@ -1,0 +1,35 @@
+"""ALIKED through kornia.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from gvbench_nb import weights
+from gvbench_nb.features.base import Features, to_tensor
+
+
+class AlikedExtractor:
+    """kornia ALIKED."""
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        from kornia.feature import ALIKED
+
+        weights.require(*conf["checkpoints"])
+        self.device = device
+        self.model = ALIKED.from_pretrained(
+            conf["model_name"], max_num_keypoints=conf["max_keypoints"],
+            detection_threshold=conf["detection_threshold"], nms_radius=conf["nms_radius"], device=device,
+        ).eval()
+
+    @torch.inference_mode()
+    def __call__(self, image: np.ndarray) -> Features:
+        features = self.model(to_tensor(image, self.device))[0]
+        return {
+            "keypoints": features.keypoints.cpu().numpy().astype(np.float32),
+            "scores": features.keypoint_scores.cpu().numpy().astype(np.float32),
+            "descriptors": features.descriptors.cpu().numpy().astype(np.float32),
+        }

@@ -1,0 +1,43 @@
+"""What every extractor shares: the feature dict it returns, the device, image tensors.
+
+An extractor takes an image prepared by ``data.images.load_for_extraction`` (grayscale
+(H, W) or RGB (H, W, 3), float32 in 0..255) and returns numpy arrays: ``keypoints`` (N, 2)
+float32 (x, y) in that image's pixels, ``scores`` (N,) float32, ``descriptors`` (N, D)
+float32 (uint8 for binary descriptors).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import torch
+
+Features = dict[str, np.ndarray]
+
+
+
+def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
+    if device in (None, "auto"):
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    return torch.device(device)
+
+
+
+def to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
+    tensor = torch.from_numpy(np.ascontiguousarray(image)).float().div_(255.0)
+    tensor = tensor[None, None] if tensor.ndim == 2 else tensor.permute(2, 0, 1)[None]
+    return tensor.to(device)
+
+
+
+def to_uint8(image: np.ndarray) -> np.ndarray:
+    """The 8-bit image OpenCV's detectors need (the prepared image is float after resizing)."""
+    return image if image.dtype == np.uint8 else np.clip(np.rint(image), 0, 255).astype(np.uint8)
+
+
+
+def empty_features(dim: int) -> Features:
+    return {
+        "keypoints": np.zeros((0, 2), np.float32),
+        "scores": np.zeros((0,), np.float32),
+        "descriptors": np.zeros((0, dim), np.float32),
+    }

@@ -1,0 +1,38 @@
+"""DISK through kornia.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from gvbench_nb import weights
+from gvbench_nb.features.base import Features, to_tensor
+
+
+class DiskExtractor:
+    """kornia DISK (``depth`` weights), RGB, padded to a multiple of 16."""
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        from kornia.feature import DISK
+
+        weights.require("disk_depth")
+        self.conf, self.device = conf, device
+        self.model = DISK.from_pretrained(conf.get("weights", "depth"), device=device).eval()
+
+    @torch.inference_mode()
+    def __call__(self, image: np.ndarray) -> Features:
+        features = self.model(
+            to_tensor(image, self.device),
+            n=self.conf["max_keypoints"],
+            window_size=self.conf["nms_window"],
+            score_threshold=self.conf["detection_threshold"],
+            pad_if_not_divisible=True,
+        )[0]
+        return {
+            "keypoints": features.keypoints.cpu().numpy().astype(np.float32),
+            "scores": features.detection_scores.cpu().numpy().astype(np.float32),
+            "descriptors": features.descriptors.cpu().numpy().astype(np.float32),
+        }

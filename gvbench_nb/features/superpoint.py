@@ -1,0 +1,263 @@
+"""SuperPoint keypoint detector and descriptor (DeTone, Malisiewicz, Rabinovich, CVPRW 2018).
+
+A readable re-implementation whose ``state_dict`` has exactly the names and shapes
+of Magic Leap's released ``superpoint_v1.pth`` (24 tensors), so the official
+checkpoint loads with ``strict=True``. Post-processing follows the Magic Leap
+release step by step, because GV-Bench extracted its features with it (through
+hloc):
+
+1. softmax over the 65 channels of the detector head, drop the "no keypoint" bin;
+2. depth-to-space: each 8x8 cell's 64 channels become an 8x8 pixel patch;
+3. non-maximum suppression by max pooling, with two extra suppression passes;
+4. keep scores above ``keypoint_threshold``, drop keypoints near the border,
+   keep the ``max_keypoints`` best;
+5. L2-normalise the dense descriptor map, sample it bilinearly at the keypoints
+   (Magic Leap's pixel -> [-1, 1] mapping on the stride-8 grid), L2-normalise again.
+
+Licence of the weights: Magic Leap, non-commercial research only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import Tensor, nn
+
+from gvbench_nb import weights
+from gvbench_nb.features.base import Features, to_tensor
+
+CHECKPOINT = "superpoint_v1"
+
+
+def cells_to_pixels(probs: Tensor, cell: int = 8) -> Tensor:
+    """Depth to space: (B, cell*cell, h, w) -> (B, h*cell, w*cell).
+
+    Channel k of cell (i, j) becomes pixel (cell*i + k // cell, cell*j + k % cell),
+    i.e. the 64 channels are an 8x8 patch in row-major order.
+    """
+    b, c, h, w = probs.shape
+    if c != cell * cell:
+        raise ValueError(f"expected {cell * cell} channels, got {c}")
+    probs = probs.permute(0, 2, 3, 1).reshape(b, h, w, cell, cell)
+    return probs.permute(0, 1, 3, 2, 4).reshape(b, h * cell, w * cell)
+
+
+def simple_nms(scores: Tensor, nms_radius: int) -> Tensor:
+    """Zero every score that is not the maximum of its (2r+1)x(2r+1) window.
+
+    ``scores``: (B, H, W). After the first pass, points suppressed only by a
+    neighbour that is itself a maximum get a second chance: scores within the
+    radius of a kept maximum are zeroed and local maxima of what remains are
+    added (twice, as in the Magic Leap code).
+    """
+    if nms_radius < 0:
+        raise ValueError(f"nms_radius must be >= 0, got {nms_radius}")
+
+    def max_pool(x: Tensor) -> Tensor:
+        return F.max_pool2d(x, kernel_size=2 * nms_radius + 1, stride=1, padding=nms_radius)
+
+    zeros = torch.zeros_like(scores)
+    max_mask = scores == max_pool(scores)
+    for _ in range(2):
+        # Everything within the radius of a kept maximum is suppressed ...
+        suppressed = max_pool(max_mask.float()) > 0
+        remaining = torch.where(suppressed, zeros, scores)
+        # ... and the maxima of what is left, outside that zone, are kept too.
+        new_max_mask = remaining == max_pool(remaining)
+        max_mask = max_mask | (new_max_mask & ~suppressed)
+    return torch.where(max_mask, scores, zeros)
+
+
+def remove_borders(
+    keypoints: Tensor, scores: Tensor, border: int, height: int, width: int
+) -> tuple[Tensor, Tensor]:
+    """Drop keypoints closer than ``border`` pixels to the image edge.
+
+    ``keypoints``: (N, 2) integer (row, col) = (y, x), the order of ``nonzero``
+    on the score map (the Magic Leap code removes borders before flipping to x, y).
+    """
+    inside_y = (keypoints[:, 0] >= border) & (keypoints[:, 0] < height - border)
+    inside_x = (keypoints[:, 1] >= border) & (keypoints[:, 1] < width - border)
+    keep = inside_y & inside_x
+    return keypoints[keep], scores[keep]
+
+
+def top_k_keypoints(keypoints: Tensor, scores: Tensor, k: int) -> tuple[Tensor, Tensor]:
+    """Keep the ``k`` keypoints with the highest scores (all of them if there are fewer).
+
+    When it cuts, the result is sorted by decreasing score (``torch.topk``);
+    otherwise the input order is kept, as in the original.
+    """
+    if k >= len(keypoints):
+        return keypoints, scores
+    scores, indices = torch.topk(scores, k, dim=0)
+    return keypoints[indices], scores
+
+
+def sample_descriptors(keypoints: Tensor, descriptors: Tensor, s: int = 8) -> Tensor:
+    """Bilinearly interpolate a dense descriptor map at keypoint positions.
+
+    ``keypoints``: (B, N, 2) float (x, y) in pixels of the input image.
+    ``descriptors``: (B, C, h, w) map on the stride-``s`` grid.
+    Returns (B, C, N), L2-normalised along C.
+
+    The pixel -> [-1, 1] mapping is Magic Leap's (kept on purpose, to reproduce
+    the released model's matches, although hloc calls it slightly off): shift by
+    s/2 - 0.5 (pixel centre of cell 0), divide by ``w*s - s/2 - 0.5`` and use
+    ``align_corners=True``. So x = 3.5 (the centre of cell 0) lands on cell 0 but
+    the last pixel, x = w*s - 1, on the last cell ``w - 1`` (for s = 8), a slight
+    stretch of the grid. The release means ``align_corners=True`` (its string
+    comparison ``torch.__version__ >= '1.3'`` does pass it for torch 2.x, but
+    silently dropped it, i.e. used False, under torch 1.10-1.13).
+    """
+    b, c, h, w = descriptors.shape
+    keypoints = keypoints - s / 2 + 0.5
+    keypoints = keypoints / keypoints.new_tensor([w * s - s / 2 - 0.5, h * s - s / 2 - 0.5])
+    grid = keypoints * 2 - 1  # to (-1, 1)
+    sampled = F.grid_sample(descriptors, grid.view(b, 1, -1, 2), mode="bilinear", align_corners=True)
+    return F.normalize(sampled.reshape(b, c, -1), p=2, dim=1)
+
+
+class SuperPoint(nn.Module):
+    """SuperPoint with the official checkpoint's layout.
+
+    ``forward(image)`` takes a grayscale batch (B, 1, H, W) in [0, 1] (or a dict
+    with key ``"image"``) and returns a dict of per-image lists:
+
+    - ``keypoints``: (N, 2) float (x, y) in pixels of the input,
+    - ``scores``: (N,) detection scores,
+    - ``descriptors``: (N, 256) L2-normalised.
+
+    Only the top-left ``8*floor(H/8) x 8*floor(W/8)`` part can hold keypoints
+    (the encoder floors at each pooling, as in the release).
+    """
+
+    default_conf: dict[str, Any] = {
+        "descriptor_dim": 256,
+        "nms_radius": 4,
+        "keypoint_threshold": 0.005,
+        "max_keypoints": -1,
+        "remove_borders": 4,
+    }
+
+    def __init__(self, conf: Mapping[str, Any] | None = None) -> None:
+        super().__init__()
+        self.conf = {**self.default_conf, **(conf or {})}
+        mk = self.conf["max_keypoints"]
+        if mk == 0 or mk < -1:
+            raise ValueError(f'"max_keypoints" must be positive or -1, got {mk}')
+
+        self.relu = nn.ReLU(inplace=True)
+        self.pool = nn.MaxPool2d(kernel_size=2, stride=2)
+        c1, c2, c3, c4, c5 = 64, 64, 128, 128, 256
+
+        # Shared VGG-style encoder: four blocks of two 3x3 convs, pooling after 1-3.
+        self.conv1a = nn.Conv2d(1, c1, kernel_size=3, stride=1, padding=1)
+        self.conv1b = nn.Conv2d(c1, c1, kernel_size=3, stride=1, padding=1)
+        self.conv2a = nn.Conv2d(c1, c2, kernel_size=3, stride=1, padding=1)
+        self.conv2b = nn.Conv2d(c2, c2, kernel_size=3, stride=1, padding=1)
+        self.conv3a = nn.Conv2d(c2, c3, kernel_size=3, stride=1, padding=1)
+        self.conv3b = nn.Conv2d(c3, c3, kernel_size=3, stride=1, padding=1)
+        self.conv4a = nn.Conv2d(c3, c4, kernel_size=3, stride=1, padding=1)
+        self.conv4b = nn.Conv2d(c4, c4, kernel_size=3, stride=1, padding=1)
+
+        # Detector head: 64 pixel positions of an 8x8 cell + 1 "no keypoint" bin.
+        self.convPa = nn.Conv2d(c4, c5, kernel_size=3, stride=1, padding=1)
+        self.convPb = nn.Conv2d(c5, 65, kernel_size=1, stride=1, padding=0)
+
+        # Descriptor head: a semi-dense map at stride 8.
+        self.convDa = nn.Conv2d(c4, c5, kernel_size=3, stride=1, padding=1)
+        self.convDb = nn.Conv2d(c5, self.conf["descriptor_dim"], kernel_size=1, stride=1, padding=0)
+
+    def encode(self, image: Tensor) -> Tensor:
+        """Shared encoder: (B, 1, H, W) -> (B, 128, H/8, W/8)."""
+        x = self.relu(self.conv1a(image))
+        x = self.pool(self.relu(self.conv1b(x)))
+        x = self.relu(self.conv2a(x))
+        x = self.pool(self.relu(self.conv2b(x)))
+        x = self.relu(self.conv3a(x))
+        x = self.pool(self.relu(self.conv3b(x)))
+        x = self.relu(self.conv4a(x))
+        return self.relu(self.conv4b(x))
+
+    def dense_scores(self, features: Tensor) -> Tensor:
+        """Detector head -> full-resolution keypoint probabilities (B, 8h, 8w), before NMS."""
+        logits = self.convPb(self.relu(self.convPa(features)))
+        probs = F.softmax(logits, dim=1)[:, :-1]  # drop the no-keypoint bin
+        return cells_to_pixels(probs)
+
+    def dense_descriptors(self, features: Tensor) -> Tensor:
+        """Descriptor head -> L2-normalised (B, 256, h, w) map at stride 8."""
+        desc = self.convDb(self.relu(self.convDa(features)))
+        return F.normalize(desc, p=2, dim=1)
+
+    def forward(self, image: Tensor | Mapping[str, Tensor]) -> dict[str, list[Tensor]]:
+        if isinstance(image, Mapping):
+            image = image["image"]
+        if image.dim() != 4 or image.shape[1] != 1:
+            raise ValueError(f"expected a grayscale batch (B, 1, H, W), got {tuple(image.shape)}")
+        conf = self.conf
+
+        features = self.encode(image)
+        scores = simple_nms(self.dense_scores(features), conf["nms_radius"])
+        height, width = scores.shape[-2:]
+
+        keypoints_all: list[Tensor] = []
+        scores_all: list[Tensor] = []
+        for s in scores:
+            kpts = torch.nonzero(s > conf["keypoint_threshold"])  # (N, 2) as (y, x)
+            kpt_scores = s[kpts[:, 0], kpts[:, 1]]
+            kpts, kpt_scores = remove_borders(kpts, kpt_scores, conf["remove_borders"], height, width)
+            if conf["max_keypoints"] >= 0:
+                kpts, kpt_scores = top_k_keypoints(kpts, kpt_scores, conf["max_keypoints"])
+            keypoints_all.append(torch.flip(kpts, [1]).float())  # (y, x) -> (x, y)
+            scores_all.append(kpt_scores)
+
+        dense = self.dense_descriptors(features)
+        descriptors_all = [
+            sample_descriptors(k[None], d[None], 8)[0].t() for k, d in zip(keypoints_all, dense)
+        ]
+        return {"keypoints": keypoints_all, "scores": scores_all, "descriptors": descriptors_all}
+
+    @classmethod
+    def from_pretrained(
+        cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu"
+    ) -> "SuperPoint":
+        """Same as :func:`load_superpoint`."""
+        return load_superpoint(conf, device)
+
+
+def load_superpoint(conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperPoint:
+    """SuperPoint with the official ``superpoint_v1.pth`` weights, in eval mode.
+
+    Raises ``weights.MissingWeightsError`` (naming file, URL and target path) when
+    the checkpoint is not in the torch hub cache, and ``weights.WeightsLayoutError``
+    when its tensors do not fit.
+    """
+    (path,) = weights.require(CHECKPOINT)
+    model = SuperPoint(conf)
+    # Magic Leap ships a bare state dict.
+    weights.load_state_dict_strict(model, weights.load_checkpoint(path), str(path))
+    return model.eval().to(device)
+
+
+class SuperPointExtractor:
+    """The SuperPoint above on the official Magic Leap weights."""
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        self.device = device
+        model_conf = {k: conf[k] for k in ("nms_radius", "keypoint_threshold", "max_keypoints", "remove_borders")}
+        self.model = load_superpoint(model_conf, device=device).eval()
+
+    @torch.inference_mode()
+    def __call__(self, image: np.ndarray) -> Features:
+        output = self.model(to_tensor(image, self.device))
+        return {
+            "keypoints": output["keypoints"][0].cpu().numpy().astype(np.float32),
+            "scores": output["scores"][0].cpu().numpy().astype(np.float32),
+            "descriptors": output["descriptors"][0].cpu().numpy().astype(np.float32),
+        }

@@ -1,0 +1,33 @@
+"""XFeat through kornia.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import torch
+
+from gvbench_nb import weights
+from gvbench_nb.features.base import Features, to_tensor
+
+
+class XFeatExtractor:
+    """kornia XFeat (sparse keypoints, 64-d descriptors)."""
+
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        from kornia.feature import XFeat
+
+        weights.require(*conf["checkpoints"])
+        self.conf, self.device = conf, device
+        self.model = XFeat.from_pretrained(top_k=conf["max_keypoints"], detection_threshold=conf["detection_threshold"])
+        self.model = self.model.to(device).eval()
+
+    @torch.inference_mode()
+    def __call__(self, image: np.ndarray) -> Features:
+        output = self.model.detectAndCompute(to_tensor(image, self.device))[0]
+        return {
+            "keypoints": output["keypoints"].cpu().numpy().astype(np.float32),
+            "scores": output["scores"].cpu().numpy().astype(np.float32),
+            "descriptors": output["descriptors"].cpu().numpy().astype(np.float32),
+        }

@@ -1,0 +1,184 @@
+"""kornia's LightGlue forward, split so that the work that sees one image only is done
+once per image instead of once per pair.
+
+In LightGlue the two images first meet in the cross-attention of layer 0. Everything
+before it depends on one image alone: the input projection of the descriptors, the
+positional encoding of the keypoints, the layer-0 self-attention block, and the
+layer-0 cross block's query/key and value projections. ``prepare_image`` computes
+those for one image; ``match_prepared`` runs the rest for a pair. Both call kornia's
+own modules with the same tensors, in the same order, as ``kornia.feature.LightGlue``
+does for one pair (``_forward`` with a batch of one, kornia 0.9), so the matches and
+scores are bit-identical to ``LightGlue.forward`` (tests/test_lightglue_prepared.py
+checks this on real images, with early stopping and point pruning).
+
+GV-Bench's sequences use each image in ~10-20 pairs, so that share of LightGlue's work is
+done once instead of ~10-20 times (the README's bench gives the measured effect). Only the configuration the paper
+uses is supported: one pair, no mixed precision, no compiled static lengths, no
+scale/orientation or LAF inputs; ``supports_prepared`` says whether a model qualifies.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from kornia.feature.lightglue import (
+    LightGlue,
+    _check_keypoints_normalized,
+    filter_matches,
+    normalize_keypoints,
+)
+
+
+@dataclass(frozen=True)
+class PreparedImage:
+    """One image's LightGlue state up to its first meeting with another image."""
+
+    descriptors: torch.Tensor  # (1, N, D): after the layer-0 self-attention block
+    encoding: torch.Tensor  # (2, 1, 1, N, head_dim): rotary positional encoding
+    query_key: torch.Tensor  # (1, H, N, head_dim): layer-0 cross block, scaled as kornia scales it
+    value: torch.Tensor  # (1, H, N, head_dim): layer-0 cross block
+
+    @property
+    def num_keypoints(self) -> int:
+        return int(self.descriptors.shape[1])
+
+    def nbytes(self) -> int:
+        return sum(t.numel() * t.element_size() for t in (self.descriptors, self.encoding, self.query_key, self.value))
+
+
+def supports_prepared(model: LightGlue) -> bool:
+    """Whether ``model`` runs the plain single-pair path that this module reproduces."""
+    conf = model.conf
+    return not (conf.mp or conf.add_scale_ori or conf.add_laf or model.static_lengths)
+
+
+@torch.inference_mode()
+def prepare_image(model: LightGlue, keypoints: torch.Tensor, descriptors: torch.Tensor,
+                  image_size: torch.Tensor) -> PreparedImage:
+    """The per-image part of LightGlue for ``keypoints`` (1, N, 2) in pixels,
+    ``descriptors`` (1, N, input_dim) and ``image_size`` (1, 2) as (width, height); N > 0."""
+    keypoints = normalize_keypoints(keypoints, image_size).clone()
+    _check_keypoints_normalized(keypoints)
+    descriptors = model.input_proj(descriptors.detach().contiguous())
+    encoding = model.posenc(keypoints.to(model.posenc.Wr.weight.dtype))
+    layer = model.transformers[0]
+    descriptors = layer.self_attn(descriptors, encoding)
+    query_key, value = _projections(layer.cross_attn, descriptors)
+    return PreparedImage(descriptors, encoding, query_key, value)
+
+
+CROSS_ATTENTIONS = ("kornia", "sdpa")
+
+
+def _cross_messages(query_key0: torch.Tensor, query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
+                    attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """Bidirectional cross-attention of pre-scaled query/keys (1, H, N, d), heads not yet merged.
+
+    ``kornia``: kornia's CPU path, one similarity matrix softmaxed both ways. ``sdpa``:
+    ``torch.nn.functional.scaled_dot_product_attention`` once per direction (its fused CPU
+    kernel never materialises the attention matrix); the inputs are already scaled, so its
+    own scale is 1. The two agree to float rounding, not bit for bit.
+    """
+    if attention == "sdpa":
+        message0 = F.scaled_dot_product_attention(query_key0, query_key1, value1, scale=1.0)
+        message1 = F.scaled_dot_product_attention(query_key1, query_key0, value0, scale=1.0)
+        return message0, message1
+    sim = torch.einsum("bhid, bhjd -> bhij", query_key0, query_key1)
+    attn01 = F.softmax(sim, dim=-1)
+    attn10 = F.softmax(sim.transpose(-2, -1).contiguous(), dim=-1)
+    message0 = torch.einsum("bhij, bhjd -> bhid", attn01, value1)
+    message1 = torch.einsum("bhji, bhjd -> bhid", attn10.transpose(-2, -1), value0)
+    return message0, message1
+
+
+def _cross_block(cross: torch.nn.Module, x0: torch.Tensor, x1: torch.Tensor, query_key0: torch.Tensor,
+                 query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
+                 attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """The rest of kornia's ``CrossBlock.forward`` (CPU path, no mask) from its projections."""
+    message0, message1 = _cross_messages(query_key0, query_key1, value0, value1, attention)
+    message0, message1 = (cross.to_out(t.transpose(1, 2).flatten(start_dim=-2)) for t in (message0, message1))
+    return x0 + cross.ffn(torch.cat([x0, message0], -1)), x1 + cross.ffn(torch.cat([x1, message1], -1))
+
+
+def _projections(cross: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A cross block's query/key (scaled as kornia's CPU path scales it) and value, by head."""
+    query_key, value = cross.to_qk(x), cross.to_v(x)
+    query_key, value = (t.unflatten(-1, (cross.heads, -1)).transpose(1, 2) for t in (query_key, value))
+    return query_key * cross.scale**0.5, value
+
+
+def _first_cross_block(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
+                       attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """kornia ``CrossBlock.forward`` of layer 0 from prepared projections."""
+    return _cross_block(model.transformers[0].cross_attn, image0.descriptors, image1.descriptors,
+                        image0.query_key, image1.query_key, image0.value, image1.value, attention)
+
+
+def _layer(model: LightGlue, index: int, desc0: torch.Tensor, desc1: torch.Tensor, encoding0: torch.Tensor,
+           encoding1: torch.Tensor, attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+    """kornia ``TransformerLayer.forward`` (no masks); kornia's own module when attention is kornia's."""
+    layer = model.transformers[index]
+    if attention == "kornia":
+        return layer(desc0, desc1, encoding0, encoding1)
+    desc0, desc1 = layer.self_attn(desc0, encoding0), layer.self_attn(desc1, encoding1)
+    (query_key0, value0), (query_key1, value1) = (_projections(layer.cross_attn, d) for d in (desc0, desc1))
+    return _cross_block(layer.cross_attn, desc0, desc1, query_key0, query_key1, value0, value1, attention)
+
+
+def _prune(model: LightGlue, layer: int, confidence: torch.Tensor | None, descriptors: torch.Tensor,
+           encoding: torch.Tensor, indices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """One image's point pruning after ``layer``: the points LightGlue keeps, as kornia keeps them."""
+    matchability = model.log_assignment[layer].get_matchability(descriptors)
+    keep = torch.where(model.get_pruning_mask(confidence, matchability, layer))[1]
+    return descriptors.index_select(1, keep), encoding.index_select(-2, keep), indices.index_select(1, keep)
+
+
+@torch.inference_mode()
+def match_prepared(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
+                   cross_attention: str = "kornia") -> tuple[torch.Tensor, torch.Tensor]:
+    """Matches (K, 2) and their scores (K,) of one pair from its prepared images, as
+    ``model({"image0": ..., "image1": ...})["matches"][0]`` and ``["scores"][0]`` with
+    ``cross_attention="kornia"``; ``"sdpa"`` computes the cross-attention with torch's fused
+    kernel instead (see ``_cross_messages``), which can change a near-threshold match."""
+    if cross_attention not in CROSS_ATTENTIONS:
+        raise ValueError(f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "
+                         f"use one of {', '.join(CROSS_ATTENTIONS)}")
+    if image0.descriptors.device.type == "cuda" and model.transformers[0].cross_attn.flash is not None:
+        raise ValueError("match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA")
+    m, n = image0.num_keypoints, image1.num_keypoints
+    device = image0.descriptors.device
+    conf = model.conf
+    do_early_stop = conf.depth_confidence > 0
+    do_point_pruning = conf.width_confidence > 0
+    pruning_th = model.pruning_min_kpts(device)
+    ind0 = torch.arange(0, m, device=device)[None]
+    ind1 = torch.arange(0, n, device=device)[None]
+    encoding0, encoding1 = image0.encoding, image1.encoding
+    desc0 = desc1 = None
+    for i in range(conf.n_layers):
+        if i == 0:
+            desc0, desc1 = _first_cross_block(model, image0, image1, cross_attention)
+        else:
+            desc0, desc1 = _layer(model, i, desc0, desc1, encoding0, encoding1, cross_attention)
+        if i == conf.n_layers - 1:
+            continue  # no early stopping or adaptive width at the last layer
+        token0 = token1 = None
+        if do_early_stop:
+            token0, token1 = model.token_confidence[i](desc0, desc1)
+            if model.check_if_stop(token0, token1, i, m + n):
+                break
+        if do_point_pruning and desc0.shape[-2] > pruning_th:
+            desc0, encoding0, ind0 = _prune(model, i, token0, desc0, encoding0, ind0)
+        if do_point_pruning and desc1.shape[-2] > pruning_th:
+            desc1, encoding1, ind1 = _prune(model, i, token1, desc1, encoding1, ind1)
+    if desc0.shape[-2] == 0 or desc1.shape[-2] == 0:  # pruning removed every point of one image
+        return torch.zeros((0, 2), dtype=torch.long, device=device), torch.zeros(0, device=device)
+    scores, _ = model.log_assignment[i](desc0, desc1)
+    matches0, _, match_scores0, _ = filter_matches(scores, conf.filter_threshold)
+    valid = matches0[0] > -1
+    indices0 = torch.where(valid)[0]
+    indices1 = matches0[0][valid]
+    matches = torch.stack([ind0[0, indices0], ind1[0, indices1]], -1)
+    return matches, match_scores0[0][valid]

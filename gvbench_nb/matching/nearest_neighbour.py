@@ -1,0 +1,209 @@
+"""Nearest-neighbour matching with hloc's rule, for float (L2) and binary (Hamming) descriptors.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+import torch
+
+from gvbench_nb import registry
+from gvbench_nb.matching.base import Matches, empty_matches
+
+if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
+    pass
+
+
+def nearest_neighbour_matches(
+    descriptors0: torch.Tensor,
+    descriptors1: torch.Tensor,
+    mutual: bool = True,
+    ratio_threshold: float | None = None,
+    distance_threshold: float | None = None,
+    metric: str = "l2",
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Nearest-neighbour matches with hloc's rule (``hloc/matchers/nearest_neighbor.py``):
+    ``l2`` through ``two_way_l2_matches``, ``hamming`` (binary uint8 descriptors) through
+    ``hamming_nearest_neighbour_matches``. Returns (matches (M, 2) long, scores (M,) float)."""
+    if metric == "l2":
+        return two_way_l2_matches(descriptors0, descriptors1, mutual, ratio_threshold, distance_threshold)
+    if metric == "hamming":
+        matches, scores = hamming_nearest_neighbour_matches(
+            descriptors0.cpu().numpy(), descriptors1.cpu().numpy(), mutual, ratio_threshold, distance_threshold)
+        return torch.from_numpy(matches), torch.from_numpy(scores)
+    registry.check_choice("metric", metric, ("l2", "hamming"))
+    raise AssertionError("unreachable")
+
+
+
+def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
+    """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors, by popcount.
+
+    The bytes are read as 64-bit words (zero-padded: padding adds no differing bits) and
+    ``np.bitwise_count`` counts the bits of their XOR; rows go in blocks so that the temporary
+    word matrix stays at ``rows_per_block * N1`` words (cache-sized) whatever the number of descriptors.
+    """
+    n_bytes = descriptors0.shape[1]
+    padded = -n_bytes % 8
+
+    def words(descriptors: np.ndarray) -> np.ndarray:
+        descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
+        if padded:
+            descriptors = np.pad(descriptors, ((0, 0), (0, padded)))
+        return descriptors.view(np.uint64)
+
+    words0, words1 = words(descriptors0), words(descriptors1)
+    distance = np.empty((len(words0), len(words1)), np.uint16)
+    for start in range(0, len(words0), rows_per_block):
+        block = distance[start:start + rows_per_block]
+        block[:] = 0
+        for word in range(words0.shape[1]):
+            block += np.bitwise_count(words0[start:start + rows_per_block, word, None] ^ words1[None, :, word])
+    return distance
+
+
+
+def _two_nearest(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's nearest column (the first of equal distances), its distance and the
+    second-smallest distance in the row (equal to the first on a tie; +inf with one column)."""
+    rows = np.arange(len(distance))
+    nearest = distance.argmin(axis=1)
+    first = distance[rows, nearest].astype(np.float64)
+    if distance.shape[1] < 2:
+        return nearest, first, np.full(len(distance), np.inf)
+    others = distance.copy()
+    others[rows, nearest] = np.iinfo(distance.dtype).max
+    return nearest, first, others.min(axis=1).astype(np.float64)
+
+
+
+def _passes(first: np.ndarray, second: np.ndarray, ratio_threshold: float | None,
+            distance_threshold: float | None) -> np.ndarray:
+    """hloc's tests on one direction's two nearest distances (squared, as hloc compares them)."""
+    keep = np.ones(len(first), bool)
+    if ratio_threshold:
+        keep &= first**2 <= ratio_threshold**2 * second**2
+    if distance_threshold:
+        keep &= first**2 <= distance_threshold**2
+    return keep
+
+
+
+def hamming_nearest_neighbour_matches(
+    descriptors0: np.ndarray,
+    descriptors1: np.ndarray,
+    mutual: bool = True,
+    ratio_threshold: float | None = None,
+    distance_threshold: float | None = None,
+) -> Matches:
+    """Nearest-neighbour matches of binary descriptors (uint8 (N, B), 8B bits) by Hamming distance,
+    with hloc's rule (``hloc/matchers/nearest_neighbor.py``): each row's nearest column must pass
+    the Lowe ratio (d1 <= ratio * d2) and the distance threshold; with ``mutual``, that column's
+    nearest row, under the same tests, must be the row itself. The ratio test is skipped when
+    either side has a single descriptor. Ties go to the lower index: the nearest is the first
+    minimum, and a tie at the nearest distance fails the ratio test unless both are 0 bits.
+    Returns matches (M, 2) int64 and scores (M,) float32 = 1 - distance / bits.
+    """
+    if len(descriptors0) == 0 or len(descriptors1) == 0:
+        return empty_matches()
+    if min(len(descriptors0), len(descriptors1)) == 1:
+        ratio_threshold = None
+    distance = hamming_distances(descriptors0, descriptors1)
+    nearest1, first, second = _two_nearest(distance)
+    keep = _passes(first, second, ratio_threshold, distance_threshold)
+    if mutual:
+        nearest0, first_back, second_back = _two_nearest(distance.T)
+        back = np.where(_passes(first_back, second_back, ratio_threshold, distance_threshold), nearest0, -1)
+        keep &= back[nearest1] == np.arange(len(descriptors0))
+    index0 = np.flatnonzero(keep)
+    matches = np.stack([index0, nearest1[index0]], axis=1).astype(np.int64)
+    n_bits = 8 * descriptors0.shape[1]
+    return matches, (1 - first[index0] / n_bits).astype(np.float32)
+
+
+
+def two_way_l2_matches(
+    descriptors0: torch.Tensor,
+    descriptors1: torch.Tensor,
+    mutual: bool = True,
+    ratio_threshold: float | None = None,
+    distance_threshold: float | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """hloc's nearest-neighbour rule (``hloc/matchers/nearest_neighbor.py``) on L2 descriptors.
+
+    Similarity = dot product of the L2-normalised descriptors, distance^2 = 2 (1 - similarity).
+    Each row (a descriptor of image 0) keeps its best column when it passes the Lowe ratio
+    (d1^2 <= ratio^2 d2^2, d1 and d2 its two best) and the distance test (d1 <= threshold);
+    with ``mutual`` each column (a descriptor of image 1) must pass the same tests against
+    its two best rows, and the row and column must be each other's best. The ratio test is
+    skipped when either image has a single descriptor. Score = (similarity + 1) / 2. Ties
+    go to the first index. Returns (matches (M, 2) long, scores (M,) float).
+    """
+    if len(descriptors0) == 0 or len(descriptors1) == 0:
+        return torch.zeros((0, 2), dtype=torch.long), torch.zeros((0,))
+    # hloc takes the product of the stored descriptors, which are unit vectors up to their
+    # float16 rounding; normalising here makes any extractor's descriptors directions.
+    descriptors0 = torch.nn.functional.normalize(descriptors0.float(), dim=1)
+    descriptors1 = torch.nn.functional.normalize(descriptors1.float(), dim=1)
+    similarity = descriptors0 @ descriptors1.T
+    if len(descriptors0) == 1 or len(descriptors1) == 1:
+        ratio_threshold = None
+
+    def passes(best: torch.Tensor, second: torch.Tensor | None) -> torch.Tensor:
+        distance_squared = 2 * (1 - best)
+        keep = torch.ones_like(best, dtype=torch.bool)
+        if ratio_threshold:
+            keep &= distance_squared <= ratio_threshold**2 * (2 * (1 - second))
+        if distance_threshold:
+            keep &= distance_squared <= distance_threshold**2
+        return keep
+
+    # max/amax rather than topk: several times less time on CPU. max(dim) returns the first
+    # maximum on ties, as argmax does.
+    best_similarity, best_index = similarity.max(dim=1)
+    index0 = torch.arange(len(descriptors0), device=similarity.device)
+    if mutual:
+        column_best_index = similarity.max(dim=0).indices
+        # A mutual pair's entry is the best of its row and of its column: masking it makes
+        # the row and the column maxima their second bests. Other rows are dropped anyway.
+        candidate = column_best_index[best_index] == index0
+        rows, columns = index0[candidate], best_index[candidate]
+        best = best_similarity[candidate]
+        row_second = column_second = None
+        if ratio_threshold:
+            similarity[rows, columns] = -float("inf")
+            row_second = similarity.amax(dim=1)[rows]
+            column_second = similarity.amax(dim=0)[columns]
+        keep = passes(best, row_second) & passes(best, column_second)
+    else:
+        rows, columns, best = index0, best_index, best_similarity
+        row_second = None
+        if ratio_threshold:
+            similarity[rows, columns] = -float("inf")
+            row_second = similarity.amax(dim=1)
+        keep = passes(best, row_second)
+    matches = torch.stack([rows[keep], columns[keep]], dim=1)
+    return matches.cpu(), ((best[keep] + 1) / 2).float().cpu()
+
+
+
+class NearestNeighbourMatcher:
+    def __init__(self, conf: dict[str, Any], device: torch.device):
+        self.conf, self.device = conf, device
+
+    def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
+        if self.conf.get("metric", "l2") == "hamming":
+            return hamming_nearest_neighbour_matches(
+                features0["descriptors"], features1["descriptors"], mutual=self.conf.get("mutual", True),
+                ratio_threshold=self.conf.get("ratio_threshold"), distance_threshold=self.conf.get("distance_threshold"),
+            )
+        matches, scores = nearest_neighbour_matches(
+            torch.from_numpy(features0["descriptors"]).to(self.device),
+            torch.from_numpy(features1["descriptors"]).to(self.device),
+            mutual=self.conf.get("mutual", True),
+            ratio_threshold=self.conf.get("ratio_threshold"),
+            distance_threshold=self.conf.get("distance_threshold"),
+            metric=self.conf.get("metric", "l2"),
+        )
+        return matches.numpy().astype(np.int64), scores.numpy().astype(np.float32)

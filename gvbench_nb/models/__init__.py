@@ -1,1 +1,0 @@
-"""Readable PyTorch models written for gvbench_nb (one file a model)."""

@@ -1,0 +1,1 @@
+"""Reporting: figures, the analysis notebooks and the HTML report."""

@@ -1,0 +1,20 @@
+"""Executing a notebook with papermill: how `run` and `report` keep each notebook as the record of its step."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+from typing import Any
+
+NOTEBOOKS_DIR = Path(__file__).resolve().parents[2] / "notebooks"
+
+
+def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
+    import papermill
+
+    output_path.parent.mkdir(parents=True, exist_ok=True)
+    # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
+    papermill.execute_notebook(
+        str(NOTEBOOKS_DIR / name), str(output_path), parameters=parameters, cwd=str(NOTEBOOKS_DIR),
+        progress_bar=False, stderr_file=sys.stderr, kernel_name="python3",
+    )

@@ -1,0 +1,217 @@
+"""``python -m gvbench_nb report``: the analysis notebooks over every finished sequence,
+as HTML, behind one summary page.
+
+For each sequence output folder with a ``results.csv`` the per-sequence analysis
+notebooks run with papermill (reading only written results), the results table runs
+once across all of them, nbconvert turns every executed notebook into HTML, and
+``index.html`` shows the combined table (ours beside the paper's, labelled), the key
+figures and links to each notebook.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import html
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+from gvbench_nb import config
+from gvbench_nb.io_utils import atomic_write_text
+from gvbench_nb.reporting.execute import execute_notebook
+
+# `analysis` (torch, OpenCV) is imported inside the functions: `--help` stays instant.
+
+PER_SEQUENCE_NOTEBOOKS = (
+    "analysis_runtime_vs_mr.ipynb",
+    "analysis_inlier_histograms.ipynb",
+    "analysis_failures.ipynb",
+    "analysis_uncertainty.ipynb",
+)
+ACROSS_SEQUENCES_NOTEBOOK = "analysis_results_table.ipynb"
+# Figures shown on the summary page, per sequence ({sequence} filled in).
+KEY_FIGURES = ("fps_vs_max_recall_{sequence}.png", "seconds_per_pair_{sequence}.png",
+               "normalised_inliers_{sequence}.png", "bootstrap_intervals_{sequence}.png")
+
+HELP = "run the analysis notebooks over finished sequences and write an HTML report"
+DESCRIPTION = """\
+Finds every sequence output folder with a results.csv under --outputs-root (or the ones named
+by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
+histograms, failures, bootstrap uncertainty; the results table once across all sequences),
+converts them to HTML and writes <output-dir>/index.html: the combined results table (ours
+beside the paper's published values, labelled 'paper'), the key figures and links to every
+notebook. Reads only written results: nothing is re-extracted or re-matched.
+"""
+EPILOG = """\
+examples:
+  python -m gvbench_nb report
+  python -m gvbench_nb report --sequences sample,gardens_point --output-dir outputs/report
+"""
+
+
+@dataclass
+class ExecutedNotebook:
+    sequence: str  # '' for the across-sequences notebook
+    notebook: Path
+    html: Path | None
+    error: str | None = None
+
+
+def execute_and_convert(source: str, target: Path, parameters: dict, sequence: str = "") -> ExecutedNotebook:
+    """Execute one analysis notebook with papermill, then write its HTML beside it.
+
+    A failing notebook is still converted (its traceback is the useful part) and its
+    error is returned rather than raised, so one sequence cannot sink the report.
+    """
+    from nbconvert import HTMLExporter
+    from papermill.exceptions import PapermillExecutionError
+
+
+    error = None
+    try:
+        execute_notebook(source, target, parameters)
+    except PapermillExecutionError as failure:
+        error = f"{failure.ename}: {failure.evalue}"
+    html_path = None
+    if target.is_file():
+        body, _ = HTMLExporter().from_filename(str(target))
+        html_path = atomic_write_text(target.with_suffix(".html"), body)
+    return ExecutedNotebook(sequence, target, html_path, error)
+
+
+def _relative(path: Path, start: Path) -> str:
+    return path.resolve().relative_to(start.resolve()).as_posix()
+
+
+def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[ExecutedNotebook]) -> str:
+    """The index page: combined results table, key figures, links (all relative)."""
+    from gvbench_nb.evaluation import analysis
+
+    results = analysis.load_results(output_dirs)
+    paper = analysis.load_paper_table()
+    repository = analysis.load_repository_table()
+    wide = analysis.results_table(analysis.join_paper_table(results, paper, repository))
+    table_html = analysis.style_results_table(wide).to_html()
+    paper_note = ("One row a (method, profile). Columns labelled <b>paper</b> (grey italics) are the GV-Bench "
+                  "paper's published values, beside our paper-profile runs; <b>GV-Bench repository</b> columns "
+                  "are that repository's published values, beside our repository-profile runs; each where it "
+                  "has that method and sequence."
+                  if len(paper) else "The paper's table was not found: showing ours only.")
+    parts = [
+        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>gvbench-nb report</title>",
+        "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
+        "table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
+        "img{max-width:100%;border:1px solid #eee;margin:6px 0}.error{color:#b00}</style></head><body>",
+        "<h1>gvbench-nb: geometric verification report</h1>",
+        f"<p>Generated {html.escape(_dt.datetime.now().isoformat(timespec='seconds'))} from "
+        f"{len(output_dirs)} sequence folder(s): "
+        + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
+        "<h2>AP and max recall at 100% precision (%)</h2>",
+        f"<p>Bold: the best of its column. {paper_note}</p>",
+        table_html,
+    ]
+    radar = report_dir / "max_recall_radar.png"
+    if radar.is_file():
+        parts.append(f"<h3>Max recall across sequences</h3><img src='{_relative(radar, report_dir)}'>")
+    parts.append("<h2>Notebooks</h2><ul>")
+    for item in executed:
+        label = f"{item.sequence or 'all sequences'}: {item.notebook.stem}"
+        link = (f"<a href='{_relative(item.html, report_dir)}'>{html.escape(label)}</a>" if item.html
+                else html.escape(label))
+        error = f" <span class='error'>failed: {html.escape(item.error)}</span>" if item.error else ""
+        parts.append(f"<li>{link}{error}</li>")
+    parts.append("</ul>")
+    for folder in output_dirs:
+        sequence = folder.name
+        figures = [report_dir / sequence / name.format(sequence=_sequence_name(folder)) for name in KEY_FIGURES]
+        shown = [f for f in figures if f.is_file()]
+        intervals = report_dir / sequence / "bootstrap_intervals.csv"
+        if shown or intervals.is_file():
+            parts.append(f"<h2>{html.escape(_sequence_name(folder))}</h2>")
+        if intervals.is_file():
+            parts.append("<h3>95% bootstrap intervals (queries resampled)</h3>")
+            parts.append(_intervals_html(intervals))
+        parts.extend(f"<img src='{_relative(f, report_dir)}'>" for f in shown)
+    parts.append("</body></html>")
+    return "\n".join(parts)
+
+
+def _intervals_html(path: Path) -> str:
+    import pandas as pd
+
+    table = pd.read_csv(path)
+    cells = table.assign(**{c: table[c].map(lambda v: f"{100 * v:.1f}") for c in ("estimate", "low", "high")})
+    return cells[["method", "metric", "estimate", "low", "high", "n_valid"]].to_html(index=False)
+
+
+def _sequence_name(output_dir: Path) -> str:
+    """The sequence name the runs recorded (figures are named by it), else the folder name."""
+    import pandas as pd
+
+    names = pd.read_csv(output_dir / "results.csv")["sequence"].unique()
+    return str(names[0]) if len(names) else output_dir.name
+
+
+def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
+    """Execute every analysis notebook, convert to HTML, write ``index.html``."""
+    from tqdm import tqdm
+
+    report_dir = report_dir.resolve()
+    report_dir.mkdir(parents=True, exist_ok=True)
+    output_dirs = [d.resolve() for d in output_dirs]
+    # params_files=[]: the report runs nothing, it only reads what runs wrote.
+    jobs: list[tuple[str, Path, dict, str]] = [(ACROSS_SEQUENCES_NOTEBOOK, report_dir / ACROSS_SEQUENCES_NOTEBOOK, {
+        "output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}, "")]
+    for folder in output_dirs:
+        target_dir = report_dir / folder.name
+        for name in PER_SEQUENCE_NOTEBOOKS:
+            jobs.append((name, target_dir / name, {"output_dirs": [str(folder)], "params_files": [],
+                                                   "output_dir": str(target_dir)}, _sequence_name(folder)))
+    executed = []
+    for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
+        tqdm.write(f"executing {source} -> {target}")
+        item = execute_and_convert(source, target, parameters, sequence)
+        if item.error:
+            tqdm.write(f"  failed: {item.error} (see {target})")
+        executed.append(item)
+    index = atomic_write_text(report_dir / "index.html", summary_page(report_dir, output_dirs, executed))
+    return index, executed
+
+
+def command_report(args: argparse.Namespace) -> int:
+    from gvbench_nb.evaluation import analysis
+
+    root = Path(args.outputs_root)
+    sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
+    try:
+        output_dirs = analysis.find_output_dirs(root, sequences)
+    except FileNotFoundError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    report_dir = Path(args.output_dir)
+    output_dirs = [d for d in output_dirs if d.resolve() != report_dir.resolve()]
+    if not output_dirs:
+        print(f"error: no sequence folder with a results.csv under {root}; run one first, e.g. "
+              "python -m gvbench_nb run params/sample.yaml", file=sys.stderr)
+        return 2
+    print(f"report over {len(output_dirs)} sequence(s): {', '.join(d.name for d in output_dirs)} -> {report_dir}")
+    index, executed = write_report(report_dir, output_dirs)
+    failed = [item for item in executed if item.error]
+    print(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
+    return 1 if failed else 0
+
+
+def add_command(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``report`` on the CLI's subcommands."""
+    parser = subparsers.add_parser("report", help=HELP, description=DESCRIPTION, epilog=EPILOG,
+                                   formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--output-dir", default=str(config.PROJECT_ROOT / "outputs" / "report"),
+                        help="where the executed notebooks, their HTML, figures and index.html go "
+                             "(default: outputs/report)")
+    parser.add_argument("--sequences",
+                        help="comma-separated sequence folder names under --outputs-root (default: every folder "
+                             "with a results.csv), e.g. sample,gardens_point")
+    parser.add_argument("--outputs-root", default=str(config.PROJECT_ROOT / "outputs"),
+                        help="the folder holding the sequence output folders (default: outputs)")
+    parser.set_defaults(handler=command_report)

@@ -1,0 +1,324 @@
+"""Scale out: (sequence x method) jobs split into shards, run through Dask or by hand.
+
+A run is split in three phases, all through the pipeline's public functions and
+its crash- and concurrency-safe stores (every writer commits its own HDF5 shard
+files, so any number of processes may fill the same cache and match store):
+
+1. extraction shards: slice ``i::n`` of the sequence's unique images, once per
+   extractor conf (methods sharing an extractor share these tasks);
+2. matching shards: ``Sequence(pairs[i::n])`` (same image root) through
+   ``extract_features`` (a no-op once phase 1 is done; fills in anything missing
+   when shards run on their own) and ``match_and_verify``;
+3. merge: ``pairs_table`` of the FULL sequence, ``run.json`` and ``pairs.csv``, then
+   ``evaluate``. RANSAC is seeded per pair (``pipeline.pair_seed``), so the merged
+   table equals an unsharded run's, timing columns aside.
+
+``run_sharded`` drives all three on a Dask ``LocalCluster`` (default) or an existing
+scheduler; ``run_shard`` + ``merge_runs`` do one shard on this machine and the merge
+(``python -m gvbench_nb run PARAMS --shard i/n`` then ``--merge``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import datetime as _dt
+import os
+import time
+from pathlib import Path
+from typing import Any, Iterator
+
+import pandas as pd
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb import pipeline
+from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+
+
+class ShardError(RuntimeError):
+    """A shard failed, or the merge found pairs that no shard has finished."""
+
+
+# ------------------------------------------------------------------------ shards --
+def parse_shard(text: str) -> tuple[int, int]:
+    """'i/n' -> (i, n) with 0 <= i < n; the error says what a valid value looks like."""
+    try:
+        index_text, count_text = text.split("/")
+        index, count = int(index_text), int(count_text)
+    except ValueError:
+        raise ValueError(f"--shard must look like I/N (e.g. 0/4 for the first of four shards), got {text!r}") from None
+    if count < 1 or not 0 <= index < count:
+        raise ValueError(f"--shard {text}: need N >= 1 and 0 <= I < N (shards are numbered from 0)")
+    return index, count
+
+
+def pair_shard(sequence: Sequence, index: int, count: int) -> Sequence:
+    """Shard ``index`` of ``count``: every ``count``-th pair from ``index``, same image root."""
+    return Sequence(sequence.name, sequence.image_root, sequence.pairs[index::count])
+
+
+def default_threads(workers_on_this_machine: int) -> int:
+    """torch/OpenCV threads per task so the tasks together use each core once (more
+    threads than cores makes torch spin-wait: measured 2-5x slower under load)."""
+    return max(1, (os.cpu_count() or 1) // max(1, workers_on_this_machine))
+
+
+def extract_shard(sequence: Sequence, extractor_conf: dict[str, Any], cache_dir: str, index: int, count: int,
+                  device: str = "auto", threads: int | None = None) -> dict[str, int]:
+    """Phase 1 task: extract image slice ``index::count`` of ``sequence`` into the cache."""
+    from gvbench_nb.features.base import (
+        resolve_device,  # imports torch: only where a device is resolved
+    )
+
+    pipeline.configure_threads(threads)
+    return pipeline.extract_features(sequence, extractor_conf, Path(cache_dir), resolve_device(device),
+                                     progress=False, images=sequence.images[index::count])
+
+
+def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output_dir: str, index: int, count: int,
+                device: str = "auto", seed: int = 0, threads: int | None = None,
+                after: list[Any] | None = None) -> dict[str, Any]:
+    """Phase 2 task: extract what is still missing, then match and verify pair shard ``index::count``.
+
+    ``after`` only orders the task after its extraction shards (Dask passes their results).
+    """
+    from gvbench_nb.features.base import (
+        resolve_device,  # imports torch: only where a device is resolved
+    )
+
+    pipeline.configure_threads(threads)
+    if count > 1 and method_registry.is_dense(conf) and pipeline.dense_merge_options(conf["matcher"]) is not None:
+        raise ValueError(f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
+                         "so its pairs cannot be matched in shards; run it with one matching shard")
+    shard = pair_shard(sequence, index, count)
+    resolved = resolve_device(device)
+    started = time.perf_counter()
+    extraction = (pipeline.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
+                  if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
+    extracted = time.perf_counter()
+    matching = pipeline.match_and_verify(shard, conf, Path(cache_dir), Path(output_dir), resolved, seed,
+                                         progress=False)
+    return {"shard": f"{index}/{count}", "extraction": extraction, "matching": matching,
+            "extract_wall_seconds": extracted - started,
+            "match_verify_wall_seconds": time.perf_counter() - extracted}
+
+
+# ------------------------------------------------------------------------- merge --
+def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Pair]:
+    store = pipeline.match_store(output_dir, conf)
+    store.refresh()
+    missing = [p for p in sequence.pairs
+               if pipeline.pair_key(sequence.image_root, p.query, p.reference, seed) not in store]
+    store.close()
+    return missing
+
+
+def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int = 0,
+                 device: str = "auto", shards: list[dict[str, Any]] | None = None) -> pd.DataFrame:
+    """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
+    from gvbench_nb.features.base import (
+        resolve_device,  # imports torch: only where a device is resolved
+    )
+
+    missing = unfinished_pairs(sequence, conf, output_dir, seed)
+    if missing:
+        first = sequence.pairs.index(missing[0])
+        raise ShardError(
+            f"cannot merge {conf['method']} on {sequence.name}: {len(missing)} of {len(sequence.pairs)} pairs have "
+            f"no result in {pipeline.match_store(output_dir, conf).folder} (first: pair {first}, "
+            f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
+            "finished pairs are skipped), then merge.")
+    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
+    folder = pipeline.method_dir(output_dir, conf["method"])
+    atomic_write_json(folder / "run.json", {
+        "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
+        "pairs": sequence.origin, "conf": conf, "seed": seed,
+        "environment": pipeline.environment_info(resolve_device(device)),
+        "this_run": {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
+        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    })
+    atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
+    (folder / pipeline.UNFINISHED_MARKER).unlink(missing_ok=True)
+    return table
+
+
+def _remove_stale_results(output_dir: Path, method: str) -> None:
+    # As run_method does: a failed run must not leave an old pairs.csv looking like its result.
+    for stale in ("pairs.csv", "run.json"):
+        (pipeline.method_dir(output_dir, method) / stale).unlink(missing_ok=True)
+
+
+def _require_weights(params: dict[str, Any]) -> None:
+    for method in params["methods"]:
+        method_registry.require(method, params["profile"])
+
+
+# --------------------------------------------------------------- one machine ----
+def run_shard(params: dict[str, Any], index: int, count: int, threads: int | None = None,
+              progress: bool = True) -> list[dict[str, Any]]:
+    """Shard ``index`` of ``count`` of every method of a params file, here (``run --shard i/n``).
+
+    Shards may run at the same time on machines sharing the cache and output folders,
+    or one after another; ``merge_runs`` then writes the results.
+    """
+    from gvbench_nb.config import prepare_sequence
+
+    _require_weights(params)
+    sequence = prepare_sequence(params)
+    done = []
+    for method in params["methods"]:
+        conf = method_registry.resolve_method(method, params["profile"])
+        _remove_stale_results(Path(params["output_dir"]), method)
+        if conf["extractor"]:
+            extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
+        result = match_shard(sequence, conf, params["cache_dir"], params["output_dir"], index, count,
+                             params["device"], params["seed"], threads)
+        if progress:
+            print(f"{sequence.name} {method}: shard {index}/{count} done "
+                  f"({result['matching']['matched']} pairs matched, "
+                  f"{result['extraction']['extracted']} images extracted)")
+        done.append({"method": method, **result})
+    return done
+
+
+def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] | None = None) -> pd.DataFrame:
+    """Merge every method of a params file, then evaluate (``run --merge``)."""
+    from gvbench_nb.config import prepare_sequence
+
+    sequence = prepare_sequence(params)
+    output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
+    for method in params["methods"]:
+        conf = method_registry.resolve_method(method, params["profile"])
+        merge_method(sequence, conf, cache_dir, output_dir, params["seed"], params["device"],
+                     (shards or {}).get(method))
+    return pipeline.evaluate(output_dir, params["methods"])
+
+
+# -------------------------------------------------------------------------- Dask --
+@contextlib.contextmanager
+def dask_client(scheduler: str | None = None, n_workers: int | None = None, processes: bool = True
+                ) -> Iterator[Any]:
+    """A client of ``scheduler`` (an address such as tcp://host:8786), else of a new LocalCluster
+    with one single-threaded worker per core (torch threads are set per task instead)."""
+    from distributed import Client, LocalCluster
+
+    if scheduler:
+        with Client(scheduler) as client:
+            yield client
+        return
+    workers = n_workers or os.cpu_count() or 1
+    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
+                      dashboard_address=None) as cluster, Client(cluster) as client:
+        yield client
+
+
+def run_many(params_list: list[dict[str, Any]], n_shards: int, scheduler: str | None = None,
+             n_workers: int | None = None, processes: bool = True, threads: int | None = None,
+             progress: bool = True) -> dict[str, pd.DataFrame]:
+    """Every (sequence x method) of ``params_list`` in ``n_shards`` shards on one Dask cluster.
+
+    All tasks are submitted at once (extraction shards first, matching shards after their
+    extractor's), so the cluster stays busy across sequences and methods. Returns each
+    sequence's results table (``evaluate``), keyed by output folder.
+    """
+    from distributed import wait
+    from tqdm import tqdm
+
+    from gvbench_nb.config import prepare_sequence
+
+    if n_shards < 1:
+        raise ValueError(f"n_shards must be at least 1, got {n_shards}")
+    for params in params_list:
+        _require_weights(params)
+    sequences = [prepare_sequence(params) for params in params_list]
+    if threads is None and scheduler is None:
+        threads = default_threads(n_workers or os.cpu_count() or 1)
+    results: dict[str, pd.DataFrame] = {}
+    with dask_client(scheduler, n_workers, processes) as client:
+        extraction: dict[tuple[str, str], list[Any]] = {}
+        matching: dict[tuple[int, str], list[Any]] = {}
+        for job, (params, sequence) in enumerate(zip(params_list, sequences)):
+            output_dir, cache_dir = params["output_dir"], params["cache_dir"]
+            for method in params["methods"]:
+                conf = method_registry.resolve_method(method, params["profile"])
+                _remove_stale_results(Path(output_dir), method)
+                after: list[Any] = []
+                if conf["extractor"]:
+                    key = (f"{cache_dir}\t{sequence.image_root}\t{sequence.name}",
+                           method_registry.conf_hash(conf["extractor"]))
+                    if key not in extraction:  # methods sharing an extractor share its shards
+                        name = f"extract-{sequence.name}-{conf['extractor']['name']}"
+                        extraction[key] = [
+                            client.submit(extract_shard, sequence, conf["extractor"], cache_dir, i, n_shards,
+                                          params["device"], threads, pure=False, key=f"{name}-{i}of{n_shards}-{job}")
+                            for i in range(n_shards)]
+                    after = extraction[key]
+                matching[(job, method)] = [
+                    client.submit(match_shard, sequence, conf, cache_dir, output_dir, i, n_shards, params["device"],
+                                  params["seed"], threads, after, pure=False,
+                                  key=f"match-{sequence.name}-{method}-{i}of{n_shards}-{job}")
+                    for i in range(n_shards)]
+        all_futures = [f for futures in matching.values() for f in futures]
+        bar = tqdm(total=len(all_futures), desc="shards", unit="shard", disable=not progress)
+        for job, (params, sequence) in enumerate(zip(params_list, sequences)):
+            shards: dict[str, list[dict[str, Any]]] = {}
+            for method in params["methods"]:
+                futures = matching[(job, method)]
+                wait(futures)
+                shards[method] = []
+                for i, future in enumerate(futures):
+                    try:
+                        shards[method].append(future.result())
+                    except Exception as error:
+                        raise ShardError(f"shard {i}/{n_shards} of {method} on {sequence.name} failed: "
+                                         f"{type(error).__name__}: {error}") from error
+                    bar.update()
+            results[params["output_dir"]] = merge_runs(params, shards)
+        bar.close()
+    return results
+
+
+def run_sharded(params: dict[str, Any], n_shards: int, scheduler: str | None = None, n_workers: int | None = None,
+                processes: bool = True, threads: int | None = None, progress: bool = True) -> pd.DataFrame:
+    """One params file's methods in ``n_shards`` shards on Dask; returns its results table."""
+    return run_many([params], n_shards, scheduler, n_workers, processes, threads, progress)[params["output_dir"]]
+
+
+# -------------------------------------------------------------------------- CLI --
+def add_run_arguments(run: argparse.ArgumentParser) -> None:
+    """The ``run`` command's scale-out options (cli.py calls this on its ``run`` parser)."""
+    group = run.add_argument_group("scale-out (no notebooks; results as `run` writes them)")
+    group.add_argument("--shard", metavar="I/N", help="run only shard I of N (0-based) here; then --merge")
+    group.add_argument("--merge", action="store_true", help="merge finished shards: pairs.csv, run.json, results.csv")
+    group.add_argument("--dask", action="store_true", help="run all shards on Dask and merge")
+    group.add_argument("--scheduler", metavar="ADDR", help="Dask scheduler address (default: a LocalCluster here)")
+    group.add_argument("--shards", type=int, help="number of shards with --dask (default: 2 per worker)")
+    group.add_argument("--workers", type=int, help="LocalCluster workers (default: one per core)")
+
+
+def wants_scale_out(args: argparse.Namespace) -> bool:
+    return bool(getattr(args, "shard", None) or getattr(args, "merge", False) or getattr(args, "dask", False))
+
+
+def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
+    """``run --shard I/N`` | ``run --merge`` | ``run --dask [--scheduler ADDR] [--shards N]``."""
+    chosen = [flag for flag, on in (("--shard", args.shard), ("--merge", args.merge), ("--dask", args.dask)) if on]
+    if len(chosen) > 1:
+        raise ValueError(f"choose one of --shard, --merge and --dask, not {' and '.join(chosen)}")
+    if args.shard:
+        index, count = parse_shard(args.shard)
+        run_shard(params, index, count)
+        print(f"shard {index}/{count} finished; when all {count} are: python -m gvbench_nb run "
+              f"{params['params_file']} --merge (with the same --methods/--limit/--profile)")
+        return 0
+    if args.merge:
+        results = merge_runs(params)
+    else:
+        workers = args.workers or os.cpu_count() or 1
+        n_shards = args.shards or 2 * workers
+        results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else workers)
+    print(results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]]
+          .to_string(index=False))
+    print(f"results table: {Path(params['output_dir']) / 'results.csv'}")
+    return 0

@@ -1,0 +1,524 @@
+"""Doppelgangers classifier (Cai et al., ICCV 2023) as a loop-closure verifier.
+
+The network decides whether two images show the same place from a 10-channel
+image that stacks the pair and where their matches fall (MODELS.md section 6):
+
+====  ==========================================================================
+ch.   content (all in image 1's resized frame, zero-padded to a square S x S)
+====  ==========================================================================
+0     keypoints of image 0, value = match confidence          (warped)
+1     matches of image 0, binary                              (warped)
+2     keypoints of image 1, value = match confidence
+3     matches of image 1, binary
+4-6   image 1 / 255, BGR
+7-9   image 0 / 255, BGR                                      (warped)
+====  ==========================================================================
+
+"Keypoints" are every matched point the matcher returned; "matches" are the ones
+with confidence > 0.8 that survive ``cv2.findFundamentalMat(FM_RANSAC, 3, 0.99)``.
+The warp is ``cv2.estimateAffinePartial2D`` (RANSAC, 20 px) fitted on the matches,
+so the classifier sees image 0 aligned onto image 1.
+
+One way through
+---------------
+``build_input`` takes the matcher's output in *original* pixel coordinates and does
+everything else itself: the resize to the classifier's frame, the F-RANSAC that
+selects the "matches" (in that frame, as the original ran it on LoFTR's 1024-px
+output), the affine warp and the rasterisation. ``inlier_mask`` exists only to
+override that selection (tests, ablations); leave it ``None`` in the pipeline.
+The match source is free: ``input_from_matcher`` accepts any callable returning
+``(points0, points1, scores)``; ``loftr_matcher`` is the original's choice.
+
+Departures from the released code (all only where it crashes or is undefined):
+- a warp that cannot be fitted (fewer than 2 matches, a cv2 error, ``None``) falls
+  back to the identity, i.e. image 0 placed unwarped in its own resized frame, which
+  is what the original does when there are no matches at all;
+- the square side is the largest side of *both* resized images (the original used
+  image 1's only, and indexes out of bounds when an unwarped image 0 is larger);
+- unwarped pixel indices are clipped to the image at both ends (the original clips
+  only the upper end, so a coordinate of -0.1 wrapped to the last row).
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import time
+from typing import Any, Callable, Mapping, Sequence
+
+import cv2
+import numpy as np
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from gvbench_nb.weights import (
+    MissingWeightsError,
+    load_checkpoint,
+    load_state_dict_strict,
+    missing_message,
+    require,
+)
+
+CHECKPOINT_NAME = "doppelgangers_classifier_loftr"
+INPUT_CHANNELS = 10
+DIVISOR = 8  # LoFTR's stride: both sides are floored to a multiple of it
+MATCH_CONFIDENCE = 0.8  # matches above this enter the F-RANSAC (original value)
+F_RANSAC_THRESHOLD = 3.0
+F_RANSAC_CONFIDENCE = 0.99
+AFFINE_RANSAC_THRESHOLD = 20.0
+
+# The released trainer builds ``FocalLoss()`` whose defaults are gamma=1, alpha=None
+# (trainers/utils/utils.py), with Adam at lr 5e-4 for 20 epochs.
+PUBLISHED_GAMMA = 1.0
+PUBLISHED_ALPHA: float | None = None
+PUBLISHED_LR = 5e-4
+PUBLISHED_EPOCHS = 20
+
+Matcher = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
+
+
+# --------------------------------------------------------------------------- network
+
+
+def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
+    return nn.Conv2d(cin, cout, kernel_size=3, stride=stride, padding=1, bias=False)
+
+
+class BasicBlock(nn.Module):
+    """ResNet basic block as in LoFTR's backbone (which the classifier derives from).
+
+    The attribute order (conv1, conv2, bn1, bn2, downsample) reproduces the order of
+    the checkpoint's tensors; the shortcut is a 1x1 conv + BN whenever stride != 1.
+    """
+
+    def __init__(self, cin: int, cout: int, stride: int = 1) -> None:
+        super().__init__()
+        self.conv1 = _conv3x3(cin, cout, stride)
+        self.conv2 = _conv3x3(cout, cout)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.relu = nn.ReLU(inplace=True)
+        self.downsample: nn.Module | None = None
+        if stride != 1 or cin != cout:
+            self.downsample = nn.Sequential(
+                nn.Conv2d(cin, cout, kernel_size=1, stride=stride, bias=False), nn.BatchNorm2d(cout)
+            )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        y = self.relu(self.bn1(self.conv1(x)))
+        y = self.bn2(self.conv2(y))
+        if self.downsample is not None:
+            x = self.downsample(x)
+        return self.relu(x + y)
+
+
+class DoppelgangersClassifier(nn.Module):
+    """conv 7x7/2 (10 -> 128) + BN + ReLU, three stages of two BasicBlocks at
+    128/256/512 channels (first block of each stride 2), global average pool,
+    linear 512 -> 2. Total stride 16; logits[:, 1] is "same place".
+    """
+
+    def __init__(
+        self, in_channels: int = INPUT_CHANNELS, initial_dim: int = 128, block_dims: Sequence[int] = (128, 256, 512)
+    ) -> None:
+        super().__init__()
+        self.conv1 = nn.Conv2d(in_channels, initial_dim, kernel_size=7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(initial_dim)
+        self.relu = nn.ReLU(inplace=True)
+        dims = [initial_dim, *block_dims]
+        self.layer1 = self._stage(dims[0], dims[1])
+        self.layer2 = self._stage(dims[1], dims[2])
+        self.layer3 = self._stage(dims[2], dims[3])
+        self.fc = nn.Linear(dims[3], 2)
+        self._init_weights()
+
+    @staticmethod
+    def _stage(cin: int, cout: int) -> nn.Sequential:
+        return nn.Sequential(BasicBlock(cin, cout, stride=2), BasicBlock(cout, cout, stride=1))
+
+    def _init_weights(self) -> None:
+        # LoFTR's backbone initialisation: He (fan_out) for convs, BN as identity.
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """(B, 10, H, W) -> logits (B, 2)."""
+        x = self.relu(self.bn1(self.conv1(x)))
+        x = self.layer3(self.layer2(self.layer1(x)))
+        return self.fc(x.mean(dim=(2, 3)))  # global average pool (padding included)
+
+    @torch.no_grad()
+    def probability(self, x: torch.Tensor) -> torch.Tensor:
+        """P(same place) = softmax(logits)[:, 1], shape (B,)."""
+        return F.softmax(self(x), dim=1)[:, 1]
+
+
+def load_doppelgangers(
+    path: str | os.PathLike[str] | None = None, device: str | torch.device = "cpu"
+) -> DoppelgangersClassifier:
+    """The classifier with the official weights, in eval mode.
+
+    ``path`` defaults to ``<torch hub dir>/checkpoints/doppelgangers_classifier_loftr.pt``;
+    without it ``require`` raises ``MissingWeightsError`` naming the file and its URL.
+    The file is the trainer's dict whose ``dec`` entry is the state dict, saved from
+    a ``DataParallel`` model in the multi-GPU trainer (hence the ``module.`` prefix).
+    """
+    if path is None:
+        path = require(CHECKPOINT_NAME)[0]
+    elif not os.path.isfile(path):
+        raise MissingWeightsError(f"{path} does not exist.\n" + missing_message(CHECKPOINT_NAME))
+    checkpoint = load_checkpoint(path, map_location="cpu")
+    state = checkpoint["dec"] if isinstance(checkpoint, Mapping) and "dec" in checkpoint else checkpoint
+    state = {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state.items()}
+    model = DoppelgangersClassifier()
+    load_state_dict_strict(model, state, str(path))
+    return model.eval().to(device)
+
+
+# --------------------------------------------------------------------------- input
+
+
+def resized_size(width: int, height: int, size: int = 1024, divisor: int = DIVISOR) -> tuple[int, int]:
+    """(w, h) after scaling the longest side to ``size`` (rounded) and flooring both
+    sides to a multiple of ``divisor`` (at least ``divisor``), as the original does."""
+    scale = size / max(width, height)
+    w, h = int(round(width * scale)), int(round(height * scale))
+    return max(w // divisor * divisor, divisor), max(h // divisor * divisor, divisor)
+
+
+def to_resized_frame(points: np.ndarray, original_wh: tuple[int, int], new_wh: tuple[int, int]) -> np.ndarray:
+    """Map (N, 2) pixel coordinates (x, y) from the original image to the resized one.
+
+    Pixel centres are aligned (k' = (k + 0.5) * s - 0.5 per axis), the inverse of the
+    hloc convention the rest of the package uses to map matches back to originals, so
+    a matcher run at this very frame and mapped back round-trips exactly.
+    """
+    s = np.array([new_wh[0] / original_wh[0], new_wh[1] / original_wh[1]], dtype=np.float64)
+    return (np.asarray(points, dtype=np.float64).reshape(-1, 2) + 0.5) * s - 0.5
+
+
+def match_mask(
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    confidence: np.ndarray,
+    threshold: float = MATCH_CONFIDENCE,
+) -> np.ndarray:
+    """(M,) bool: confidence > ``threshold`` and inlier of the F-RANSAC
+    (``cv2.findFundamentalMat(FM_RANSAC, 3, 0.99)``), as the original selects its
+    "matches". Points must be in the frame the threshold of 3 px refers to (the
+    classifier's resized frame). No model (too few points, degenerate) -> all False.
+    """
+    kp0 = np.asarray(keypoints0, dtype=np.float32).reshape(-1, 2)
+    kp1 = np.asarray(keypoints1, dtype=np.float32).reshape(-1, 2)
+    keep = np.asarray(confidence, dtype=np.float64).reshape(-1) > threshold
+    out = np.zeros(len(kp0), dtype=bool)
+    if keep.sum() == 0:
+        return out
+    try:
+        fmat, inliers = cv2.findFundamentalMat(
+            kp0[keep], kp1[keep], cv2.FM_RANSAC, F_RANSAC_THRESHOLD, F_RANSAC_CONFIDENCE
+        )
+    except cv2.error:
+        return out
+    if fmat is None or inliers is None:
+        return out
+    out[np.flatnonzero(keep)[inliers.ravel() == 1]] = True
+    return out
+
+
+def estimate_warp(keypoints0: np.ndarray, keypoints1: np.ndarray) -> np.ndarray | None:
+    """2x3 similarity mapping image 0's resized frame onto image 1's, fitted by
+    ``cv2.estimateAffinePartial2D`` (RANSAC, 20 px) on the given matched points;
+    ``None`` when it cannot be fitted (the caller then uses the identity)."""
+    src = np.asarray(keypoints0, dtype=np.float32).reshape(-1, 1, 2)
+    dst = np.asarray(keypoints1, dtype=np.float32).reshape(-1, 1, 2)
+    if len(src) < 2:
+        return None
+    try:
+        warp, _ = cv2.estimateAffinePartial2D(
+            src, dst, method=cv2.RANSAC, ransacReprojThreshold=AFFINE_RANSAC_THRESHOLD
+        )
+    except cv2.error:
+        return None
+    if warp is None or not np.all(np.isfinite(warp)):
+        return None
+    return warp
+
+
+def _pixel_index(values: np.ndarray, limit: int) -> np.ndarray:
+    """floor(v) clipped to [0, limit - 1]: the pixel a coordinate falls in."""
+    return np.clip(np.floor(values), 0, limit - 1).astype(np.int64)
+
+
+def _as_bgr(image: np.ndarray) -> np.ndarray:
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[:, :, None]
+    if image.shape[2] == 1:
+        image = np.repeat(image, 3, axis=2)
+    if image.shape[2] != 3:
+        raise ValueError(f"expected an (H, W, 3) BGR image, got shape {image.shape}")
+    return image.astype(np.float32)
+
+
+def build_input(
+    image0_bgr: np.ndarray,
+    image1_bgr: np.ndarray,
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    confidence: np.ndarray,
+    inlier_mask: np.ndarray | None = None,
+    size: int = 1024,
+) -> np.ndarray:
+    """The classifier's (10, S, S) float32 input for one pair.
+
+    Args:
+        image0_bgr, image1_bgr: (H, W, 3) BGR images in 0..255 (as ``cv2.imread``);
+            grayscale (H, W) is replicated to three channels.
+        keypoints0, keypoints1: (M, 2) matched points (x, y) in *original* pixel
+            coordinates, row i of one matched to row i of the other (every match the
+            matcher returned, before any threshold).
+        confidence: (M,) match scores; they are the values of channels 0 and 2.
+        inlier_mask: (M,) bool override of the "matches" (channels 1 and 3 and the
+            warp). ``None`` (default, the pipeline's way): ``match_mask`` computed here
+            in the resized frame (confidence > 0.8, then F-RANSAC 3 px / 0.99).
+        size: longest side of the classifier's frame (1024 in the paper).
+
+    Returns:
+        (10, S, S) float32 with S = max resized side (a multiple of 8); the area
+        beyond each resized image is zero.
+
+    Image 0 and its keypoints are warped into image 1's frame by the affinity fitted
+    on the matches; when there are no matches, the affinity cannot be fitted, or no
+    warped keypoint lands inside image 1, the identity is used instead (image 0 and
+    its keypoints stay in image 0's own resized frame).
+    """
+    img0, img1 = _as_bgr(image0_bgr), _as_bgr(image1_bgr)
+    h0, w0 = img0.shape[:2]
+    h1, w1 = img1.shape[:2]
+    nw0, nh0 = resized_size(w0, h0, size)
+    nw1, nh1 = resized_size(w1, h1, size)
+    side = max(nw0, nh0, nw1, nh1)
+
+    kp0 = to_resized_frame(keypoints0, (w0, h0), (nw0, nh0))
+    kp1 = to_resized_frame(keypoints1, (w1, h1), (nw1, nh1))
+    conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
+    if not (len(kp0) == len(kp1) == len(conf)):
+        raise ValueError(f"keypoints0 {len(kp0)}, keypoints1 {len(kp1)} and confidence {len(conf)} differ in length")
+    matched = match_mask(kp0, kp1, conf) if inlier_mask is None else np.asarray(inlier_mask, dtype=bool).reshape(-1)
+    if len(matched) != len(conf):
+        raise ValueError(f"inlier_mask has {len(matched)} entries for {len(conf)} matches")
+
+    # Warp image 0's keypoints into image 1's frame; keep those that land inside it.
+    warp = estimate_warp(kp0[matched], kp1[matched]) if matched.any() else None
+    if warp is not None:
+        kp0_w = kp0 @ warp[:, :2].T + warp[:, 2]
+        frame0 = (nw1, nh1)
+        inside = (kp0_w[:, 0] >= 0) & (kp0_w[:, 0] < nw1) & (kp0_w[:, 1] >= 0) & (kp0_w[:, 1] < nh1)
+        if not inside.any():
+            warp = None  # nothing of image 0 would be visible: do not align (original)
+    if warp is None:
+        kp0_w, frame0 = kp0, (nw0, nh0)
+        inside = (kp0[:, 0] >= 0) & (kp0[:, 0] < nw0) & (kp0[:, 1] >= 0) & (kp0[:, 1] < nh0)
+
+    out = np.zeros((INPUT_CHANNELS, side, side), dtype=np.float32)
+    # Channels 0/1: image 0's keypoints (confidence) and matches (1), warped.
+    # Plain assignment: where several points share a pixel the last one wins, as in
+    # the original.
+    x0, y0 = _pixel_index(kp0_w[:, 0], frame0[0]), _pixel_index(kp0_w[:, 1], frame0[1])
+    out[0, y0[inside], x0[inside]] = conf[inside]
+    both = inside & matched
+    out[1, y0[both], x0[both]] = 1.0
+    # Channels 2/3: image 1's keypoints and matches, in its own frame.
+    x1, y1 = _pixel_index(kp1[:, 0], nw1), _pixel_index(kp1[:, 1], nh1)
+    out[2, y1, x1] = conf
+    out[3, y1[matched], x1[matched]] = 1.0
+    # Channels 4-6: image 1; 7-9: image 0 warped (bilinear; the original asked
+    # warpAffine for INTER_AREA, which OpenCV treats as INTER_LINEAR).
+    out[4:7, :nh1, :nw1] = cv2.resize(img1, (nw1, nh1)).transpose(2, 0, 1) / 255.0
+    small0 = cv2.resize(img0, (nw0, nh0))
+    if warp is not None:
+        warped0 = cv2.warpAffine(small0, warp, (nw1, nh1), flags=cv2.INTER_LINEAR)
+        out[7:10, :nh1, :nw1] = warped0.transpose(2, 0, 1) / 255.0
+    else:
+        out[7:10, :nh0, :nw0] = small0.transpose(2, 0, 1) / 255.0
+    return out
+
+
+def input_from_matcher(
+    image0_bgr: np.ndarray,
+    image1_bgr: np.ndarray,
+    matcher: Matcher | Mapping[str, Any],
+    size: int = 1024,
+) -> np.ndarray:
+    """``build_input`` from any matcher, so the match source is configurable.
+
+    ``matcher`` is either a callable ``(image0_bgr, image1_bgr) -> (points0 (M,2),
+    points1 (M,2), scores (M,))`` in original pixels, or an already computed result:
+    a mapping with ``keypoints0``/``keypoints1``/``confidence`` (kornia's LoFTR
+    names) or ``points0``/``points1``/``scores``. The 0.8 threshold of the
+    "matches" was chosen for LoFTR's confidences; other matchers' scores live on
+    other scales, so their inputs differ from what the released weights saw.
+    """
+    if callable(matcher):
+        p0, p1, scores = matcher(image0_bgr, image1_bgr)
+    else:
+        kornia_names = "keypoints0" in matcher
+        keys = ("keypoints0", "keypoints1", "confidence") if kornia_names else ("points0", "points1", "scores")
+        p0, p1, scores = (matcher[k] for k in keys)
+    to_np = lambda a: a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)  # noqa: E731
+    return build_input(image0_bgr, image1_bgr, to_np(p0), to_np(p1), to_np(scores), None, size)
+
+
+def loftr_matcher(size: int = 1024, device: str | torch.device = "cpu") -> Matcher:
+    """The original's match source: kornia's LoFTR (outdoor weights) on grayscale
+    images at the classifier's frame (longest side ``size``, sides floored to 8),
+    matches mapped back to original pixels. Needs ``loftr_outdoor.ckpt``.
+
+    The original ran LoFTR on the zero-padded square with masks; here it runs on
+    the unpadded resized images (kornia's LoFTR, coarse threshold 0.2).
+    """
+    require("loftr_outdoor")
+    from kornia.feature import LoFTR
+
+    net = LoFTR(pretrained="outdoor").eval().to(device)
+
+    def gray(image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int], tuple[int, int]]:
+        image = np.asarray(image)
+        g = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
+        h, w = g.shape
+        nw, nh = resized_size(w, h, size)
+        small = cv2.resize(g, (nw, nh), interpolation=cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR)
+        return torch.from_numpy(small).float()[None, None].div(255.0).to(device), (w, h), (nw, nh)
+
+    def back(points: np.ndarray, orig: tuple[int, int], new: tuple[int, int]) -> np.ndarray:
+        s = np.array([orig[0] / new[0], orig[1] / new[1]])
+        return (points + 0.5) * s - 0.5
+
+    @torch.no_grad()
+    def match(image0_bgr: np.ndarray, image1_bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        t0, o0, n0 = gray(image0_bgr)
+        t1, o1, n1 = gray(image1_bgr)
+        res = net({"image0": t0, "image1": t1})
+        return (
+            back(res["keypoints0"].cpu().numpy(), o0, n0),
+            back(res["keypoints1"].cpu().numpy(), o1, n1),
+            res["confidence"].cpu().numpy(),
+        )
+
+    return match
+
+
+# --------------------------------------------------------------------------- training
+
+
+def focal_loss(
+    logits: torch.Tensor,
+    targets: torch.Tensor,
+    gamma: float = PUBLISHED_GAMMA,
+    alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
+) -> torch.Tensor:
+    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t over a batch (Lin et al.).
+
+    Defaults are the released trainer's (gamma 1, no class weights). ``alpha``: a
+    float a gives weights (a, 1 - a) to classes (0, 1); a sequence gives one weight
+    a class. As in the original, (1 - p_t) is not differentiated through.
+    """
+    targets = targets.long().view(-1)
+    logpt = F.log_softmax(logits, dim=1).gather(1, targets[:, None]).squeeze(1)
+    pt = logpt.detach().exp()
+    if alpha is not None:
+        weights = torch.tensor([alpha, 1 - alpha] if isinstance(alpha, (int, float)) else list(alpha),
+                               dtype=logits.dtype, device=logits.device)
+        logpt = logpt * weights[targets]
+    return (-((1 - pt) ** gamma) * logpt).mean()
+
+
+def train_classifier(
+    model: nn.Module,
+    inputs: np.ndarray | torch.Tensor,
+    labels: np.ndarray | torch.Tensor,
+    epochs: int = PUBLISHED_EPOCHS,
+    lr: float = PUBLISHED_LR,
+    batch_size: int = 8,
+    seed: int = 0,
+    progress: bool = True,
+    gamma: float = PUBLISHED_GAMMA,
+    alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
+) -> dict[str, list[float]]:
+    """Train ``model`` in place with the published recipe: Adam (lr 5e-4, default
+    betas, no weight decay) on the focal loss, shuffled mini-batches.
+
+    ``inputs`` (N, 10, S, S), ``labels`` (N,) in {0, 1}. ``seed`` fixes the batch
+    order (the model's initialisation is the caller's: seed it before building it),
+    so on one machine the same seed gives the same history.
+
+    Returns ``{'loss': [...], 'accuracy': [...], 'seconds': [...]}``, one entry an
+    epoch (mean training loss, training accuracy, wall time).
+    """
+    x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
+    y = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels).long().view(-1)
+    if len(x) != len(y):
+        raise ValueError(f"{len(x)} inputs but {len(y)} labels")
+    device = next(model.parameters()).device
+    optimiser = torch.optim.Adam(model.parameters(), lr=lr)
+    generator = torch.Generator().manual_seed(seed)
+    history: dict[str, list[float]] = {"loss": [], "accuracy": [], "seconds": []}
+    model.train()
+    for epoch in range(epochs):
+        start = time.perf_counter()
+        order = torch.randperm(len(x), generator=generator)
+        total, correct = 0.0, 0
+        for i in range(0, len(x), batch_size):
+            idx = order[i : i + batch_size]
+            xb, yb = x[idx].to(device), y[idx].to(device)
+            optimiser.zero_grad()
+            logits = model(xb)
+            loss = focal_loss(logits, yb, gamma, alpha)
+            loss.backward()
+            optimiser.step()
+            total += loss.item() * len(idx)
+            correct += int((logits.argmax(1) == yb).sum())
+        history["loss"].append(total / len(x))
+        history["accuracy"].append(correct / len(x))
+        history["seconds"].append(time.perf_counter() - start)
+        if progress:
+            print(
+                f"epoch {epoch + 1}/{epochs}: loss {history['loss'][-1]:.4f} "
+                f"acc {history['accuracy'][-1]:.3f} ({history['seconds'][-1]:.1f} s)",
+                file=sys.stderr,
+            )
+    model.eval()
+    return history
+
+
+@torch.no_grad()
+def predict(model: nn.Module, inputs: np.ndarray | torch.Tensor, batch_size: int = 4) -> np.ndarray:
+    """P(same place) for (N, 10, S, S) inputs, in eval mode, batch by batch."""
+    model.eval()
+    device = next(model.parameters()).device
+    x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
+    out = [F.softmax(model(x[i : i + batch_size].to(device)), dim=1)[:, 1].cpu() for i in range(0, len(x), batch_size)]
+    return torch.cat(out).numpy() if out else np.zeros(0, dtype=np.float32)
+
+
+__all__ = [
+    "BasicBlock",
+    "DoppelgangersClassifier",
+    "build_input",
+    "estimate_warp",
+    "focal_loss",
+    "input_from_matcher",
+    "load_doppelgangers",
+    "loftr_matcher",
+    "match_mask",
+    "predict",
+    "resized_size",
+    "to_resized_frame",
+    "train_classifier",
+]

@@ -1,0 +1,70 @@
+"""Adding a matcher is one file and one method entry: the example in example_matcher.py,
+registered here, runs end to end and gives what the built-in matcher of the same rule gives."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+from gvbench_nb import methods, pipeline, registry
+from gvbench_nb.data import synthetic
+from gvbench_nb.data.sequences import Sequence, read_pairs
+
+HERE = Path(__file__).resolve().parent
+
+
+@pytest.fixture
+def example_method(monkeypatch: pytest.MonkeyPatch) -> str:
+    monkeypatch.syspath_prepend(str(HERE))  # where example_matcher.py lives, as a user's own folder would
+    monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))  # the registration ends with the test
+    # The one entry: the sift-opencv extractor conf and the example file's class as the matcher type.
+    methods.register_method("sift-example", extractor="sift-opencv",
+                            matcher={"type": "example_matcher:MutualNearestNeighbourMatcher"})
+    # The built-in matcher with the same rule (mutual nearest neighbour, no ratio test), to compare.
+    methods.register_method("sift-mutual", extractor="sift-opencv", matcher="nn-mutual")
+    return "sift-example"
+
+
+@pytest.fixture(scope="module")
+def tiny_sample(tmp_path_factory: pytest.TempPathFactory) -> Sequence:
+    root = tmp_path_factory.mktemp("sample")
+    synthetic.generate_sample(root, n_frames=8, image_size=(160, 120))
+    return Sequence("tiny", root, read_pairs(root / "pairs.txt")).limited(12)
+
+
+def test_a_matcher_from_one_file_runs_end_to_end(example_method: str, tiny_sample: Sequence, tmp_path: Path) -> None:
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    table = pipeline.run_method(tiny_sample, example_method, "repository", out, cache, device="cpu", progress=False)
+    built_in = pipeline.run_method(tiny_sample, "sift-mutual", "repository", out, cache, device="cpu", progress=False)
+    assert len(table) == len(tiny_sample.pairs)
+    assert table["num_matches"].sum() > 0
+    pd.testing.assert_series_equal(table["num_matches"], built_in["num_matches"])
+    pd.testing.assert_series_equal(table["num_inliers"], built_in["num_inliers"])
+    results = pipeline.evaluate(out, [example_method, "sift-mutual"])
+    assert list(results["method"]) == [example_method, "sift-mutual"]
+    assert results["ap"].nunique() == 1
+    assert (out / example_method / "pairs.csv").is_file()
+
+
+def test_the_conf_records_the_example_type(example_method: str) -> None:
+    conf = methods.resolve_method(example_method, "repository")
+    assert conf["matcher"]["type"] == "example_matcher:MutualNearestNeighbourMatcher"
+    assert conf["matcher"]["name"] == example_method
+    assert not methods.is_dense(conf)
+
+
+def test_a_misspelled_type_gets_one_did_you_mean(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))
+    methods.register_method("orb-typo", extractor="orb", matcher={"type": "nn-hamming-typo"})
+    with pytest.raises(registry.UnknownNameError, match="unknown matcher type 'nn-hamming-typo'.*Known: nn, lightglue"):
+        from gvbench_nb.matching import build_matcher
+
+        build_matcher(methods.resolve_method("orb-typo")["matcher"], "cpu")  # type: ignore[arg-type]
+
+
+def test_a_taken_name_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))
+    with pytest.raises(ValueError, match="method name 'sift-nn' is taken"):
+        methods.register_method("sift-nn", extractor="sift", matcher="nn-ratio")

@@ -16,10 +16,14 @@ import html
 import sys
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from gvbench_nb import config
 from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.reporting.execute import execute_notebook
+
+if TYPE_CHECKING:
+    from nbconvert import HTMLExporter
 
 # `analysis` (torch, OpenCV) is imported inside the functions: `--help` stays instant.
 
@@ -64,7 +68,6 @@ def execute_and_convert(source: str, target: Path, parameters: dict, sequence: s
     A failing notebook is still converted (its traceback is the useful part) and its
     error is returned rather than raised, so one sequence cannot sink the report.
     """
-    from nbconvert import HTMLExporter
     from papermill.exceptions import PapermillExecutionError
 
 
@@ -75,9 +78,25 @@ def execute_and_convert(source: str, target: Path, parameters: dict, sequence: s
         error = f"{failure.ename}: {failure.evalue}"
     html_path = None
     if target.is_file():
-        body, _ = HTMLExporter().from_filename(str(target))
+        body, _ = _offline_exporter().from_filename(str(target))
         html_path = atomic_write_text(target.with_suffix(".html"), body)
     return ExecutedNotebook(sequence, target, html_path, error)
+
+
+# nbconvert's lab template, less require.js and MathJax: both come from a CDN, so offline the page
+# logs load errors, and the analysis notebooks have no widgets or LaTeX that need them.
+OFFLINE_TEMPLATE = """{%- extends 'lab/index.html.j2' -%}
+{%- block html_head_js -%}{%- endblock html_head_js -%}
+{%- block html_head_js_mathjax -%}{%- endblock html_head_js_mathjax -%}
+"""
+
+
+def _offline_exporter() -> "HTMLExporter":
+    import jinja2
+    from nbconvert import HTMLExporter
+
+    return HTMLExporter(extra_loaders=[jinja2.DictLoader({"offline.html.j2": OFFLINE_TEMPLATE})],
+                        template_file="offline.html.j2")
 
 
 def _relative(path: Path, start: Path) -> str:
@@ -131,18 +150,21 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
             parts.append(f"<h2>{html.escape(_sequence_name(folder))}</h2>")
         if intervals.is_file():
             parts.append("<h3>95% bootstrap intervals (queries resampled)</h3>")
-            parts.append(_intervals_html(intervals))
+            parts.append(_intervals_html(intervals, folder))
         parts.extend(f"<img src='{_relative(f, report_dir)}'>" for f in shown)
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
-def _intervals_html(path: Path) -> str:
+def _intervals_html(path: Path, output_dir: Path) -> str:
     import pandas as pd
 
     table = pd.read_csv(path)
+    # The intervals are keyed by method; a folder holds one profile a method, which results.csv names.
+    profiles = pd.read_csv(output_dir / "results.csv").drop_duplicates("method").set_index("method")["profile"]
+    table["profile"] = table["method"].map(profiles).fillna("")
     cells = table.assign(**{c: table[c].map(lambda v: f"{100 * v:.1f}") for c in ("estimate", "low", "high")})
-    return cells[["method", "metric", "estimate", "low", "high", "n_valid"]].to_html(index=False)
+    return cells[["method", "profile", "metric", "estimate", "low", "high", "n_valid"]].to_html(index=False)
 
 
 def _sequence_name(output_dir: Path) -> str:

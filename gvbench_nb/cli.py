@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
-from typing import Sequence as SequenceType
 
 from gvbench_nb.reporting.execute import execute_notebook
 
@@ -55,7 +55,7 @@ def command_run(args: argparse.Namespace) -> int:
     from gvbench_nb.speed import distributed
 
     # Paths typed on the command line are relative to the current folder, not the params file.
-    absolute = lambda path: str(Path(path).resolve()) if path else None  # noqa: E731
+    absolute = lambda path: str(Path(path).resolve()) if path else None
     params = config.load_params(
         args.params, methods=args.methods, limit=args.limit, profile=args.profile,
         output_dir=absolute(args.output_dir), image_root=absolute(args.image_root),
@@ -104,11 +104,11 @@ def command_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def markdown_table(frame: "Any") -> str:
+def markdown_table(frame: Any) -> str:
     """A pandas frame as a GitHub markdown table (floats to 3 decimals)."""
     header = "| " + " | ".join(map(str, frame.columns)) + " |"
     rule = "|" + "|".join("---" for _ in frame.columns) + "|"
-    cell = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)  # noqa: E731
+    cell = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)
     rows = ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
     return "\n".join([header, rule, *rows])
 
@@ -141,7 +141,7 @@ def command_results(args: argparse.Namespace) -> int:
     return 0
 
 
-def not_run_table(ran: set[str]) -> "Any":
+def not_run_table(ran: set[str]) -> Any:
     """Registered methods that have no results: why, and the files a user needs to run them."""
     import pandas as pd
 

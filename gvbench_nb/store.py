@@ -10,13 +10,14 @@ the same host. hloc keeps one HDF5 file a conf; we keep one folder a conf.
 
 from __future__ import annotations
 
+import contextlib
 import os
 import socket
 import uuid
 import zlib
 from collections import OrderedDict
+from collections.abc import Iterable, Mapping
 from pathlib import Path
-from typing import Iterable, Mapping
 from urllib.parse import quote, unquote
 
 import h5py
@@ -153,7 +154,7 @@ class ShardedStore:
             while len(self._open) > self.max_open:
                 self._open.popitem(last=False)[1].close()
             group = handle[_group_name(key)]
-            wanted = [n for n in group.keys()] if fields is None else [n for n in fields if n in group]
+            wanted = list(group) if fields is None else [n for n in fields if n in group]
             entry = {name: group[name][()] for name in wanted}
             stored = dict(group.attrs.items())
         except (OSError, KeyError, ValueError, RuntimeError) as error:
@@ -175,13 +176,11 @@ class ShardedStore:
         self._open.clear()
 
     def __del__(self) -> None:  # pragma: no cover - best effort
-        try:
+        with contextlib.suppress(Exception):
             self.close()
-        except Exception:
-            pass
 
     # -- writing -----------------------------------------------------------------
-    def writer(self, flush_every: int = 32) -> "ShardWriter":
+    def writer(self, flush_every: int = 32) -> ShardWriter:
         self.remove_dead_temporaries()
         return ShardWriter(self, flush_every)
 
@@ -250,7 +249,7 @@ class ShardWriter:
         self._buffer.clear()
         return final
 
-    def __enter__(self) -> "ShardWriter":
+    def __enter__(self) -> ShardWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

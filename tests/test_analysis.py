@@ -10,8 +10,8 @@ import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb.evaluation import analysis, metrics
 from gvbench_nb import pipeline
+from gvbench_nb.evaluation import analysis, metrics
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
@@ -137,11 +137,11 @@ def test_weighted_metrics_equal_sklearn_on_repeated_pairs():
         ap, max_recall = analysis.weighted_ap_max_recall(labels, scores, weights)
         for row in range(4):
             repeated = np.repeat(np.arange(n), weights[row])
-            l, s = labels[repeated], scores[repeated]
-            if l.sum() in (0, len(l)):
+            lab, s = labels[repeated], scores[repeated]
+            if lab.sum() in (0, len(lab)):
                 continue
-            assert ap[row] == pytest.approx(average_precision_score(l, s))
-            assert max_recall[row] == pytest.approx(metrics.max_recall_at_full_precision(l, s))
+            assert ap[row] == pytest.approx(average_precision_score(lab, s))
+            assert max_recall[row] == pytest.approx(metrics.max_recall_at_full_precision(lab, s))
             checked += 1
     assert checked > 200
 

@@ -9,9 +9,9 @@ import pandas as pd
 import pytest
 import torch
 
-from gvbench_nb.speed import bench
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.speed import bench
 
 
 def few_pairs(shared_data: Path) -> Sequence:
@@ -149,8 +149,8 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
 def test_official_sizes_count_unique_images(shared_data):
     sizes = bench.official_sequence_sizes(shared_data / "gvbench_gt").set_index("sequence")
     assert list(sizes.index) == list(bench.OFFICIAL_SEQUENCES)
-    assert sizes.loc["uacampus", "n_pairs"] == sum(1 for line in open(shared_data / "gvbench_gt" / "uacampus.txt")
-                                                  if line.strip())
+    assert sizes.loc["uacampus", "n_pairs"] == sum(
+        1 for line in (shared_data / "gvbench_gt" / "uacampus.txt").read_text().splitlines() if line.strip())
     assert (sizes["n_images"] < sizes["n_pairs"]).all()
 
 

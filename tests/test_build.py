@@ -16,8 +16,9 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb.data import builders as build, sequences
 from gvbench_nb import config, pipeline
+from gvbench_nb.data import builders as build
+from gvbench_nb.data import sequences
 
 NUM_FRAMES = 8
 DIM = 16
@@ -124,7 +125,7 @@ def test_retrieval_finds_the_known_place_first(tmp_path: Path, descriptor: str, 
 
 
 def test_same_seed_same_sequence_other_seed_other_queries(tiny: Path) -> None:
-    queries = lambda card: {p.query for p in sequences.read_pairs(card["files"]["pairs"])}  # noqa: E731
+    queries = lambda card: {p.query for p in sequences.read_pairs(card["files"]["pairs"])}
     first = built(tiny, num_queries=4)
     text, first_queries = Path(first["files"]["pairs"]).read_text(), queries(first)
     second = built(tiny, num_queries=4)

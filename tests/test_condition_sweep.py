@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gvbench_nb.analyses import condition_sweep as cs
 from gvbench_nb import pipeline
+from gvbench_nb.analyses import condition_sweep as cs
 from gvbench_nb.data import synthetic
 
 TINY = {"n_frames": 6, "image_size": (240, 180), "seed": 0}  # 6 queries x 6 pairs: seconds

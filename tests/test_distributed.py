@@ -7,8 +7,8 @@ import pytest
 import yaml
 
 from gvbench_nb import config, pipeline
-from gvbench_nb.speed import distributed
 from gvbench_nb.data.sequences import Pair, write_pairs
+from gvbench_nb.speed import distributed
 
 METHOD, PROFILE = "sift-nn", "repository"
 

@@ -8,11 +8,21 @@ import cv2
 import numpy as np
 import pytest
 import torch
-
-from gvbench_nb.verification.doppelgangers import DoppelgangersClassifier, build_input, estimate_warp, focal_loss, input_from_matcher, load_doppelgangers, match_mask, resized_size, to_resized_frame, train_classifier
 from helpers import random_state_dict, read_layout
-from gvbench_nb.weights import MissingWeightsError, WeightsLayoutError
 
+from gvbench_nb.verification.doppelgangers import (
+    DoppelgangersClassifier,
+    build_input,
+    estimate_warp,
+    focal_loss,
+    input_from_matcher,
+    load_doppelgangers,
+    match_mask,
+    resized_size,
+    to_resized_frame,
+    train_classifier,
+)
+from gvbench_nb.weights import MissingWeightsError, WeightsLayoutError
 
 
 @pytest.fixture(scope="module")
@@ -181,7 +191,7 @@ def test_match_mask_rejects_weak_and_outliers():
     X = np.c_[rng.uniform(-5, 5, (80, 2)), rng.uniform(8, 20, 80)]  # 3-D points
     K = np.array([[300.0, 0, 320], [0, 300, 240], [0, 0, 1]])
     R, _ = cv2.Rodrigues(np.array([0.0, 0.15, 0.02]))
-    project = lambda P: (P @ K.T)[:, :2] / (P @ K.T)[:, 2:]  # noqa: E731
+    project = lambda P: (P @ K.T)[:, :2] / (P @ K.T)[:, 2:]
     p0, p1 = project(X), project(X @ R.T + [1.0, 0.1, 0.2])
     p1[:10] = rng.uniform(0, 640, (10, 2))  # gross outliers
     conf = np.full(80, 0.95)

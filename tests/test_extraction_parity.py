@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import features as extractors, methods, pipeline
+from gvbench_nb import features as extractors
+from gvbench_nb import methods, pipeline
 from gvbench_nb.data import images
 from gvbench_nb.data.sequences import Pair, Sequence
 

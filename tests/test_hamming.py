@@ -11,7 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb.matching.nearest_neighbour import NearestNeighbourMatcher, hamming_distances, hamming_nearest_neighbour_matches
+from gvbench_nb.matching.nearest_neighbour import (
+    NearestNeighbourMatcher,
+    hamming_distances,
+    hamming_nearest_neighbour_matches,
+)
 
 
 def bit_distances(binary0: np.ndarray, binary1: np.ndarray) -> np.ndarray:

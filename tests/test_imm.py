@@ -17,10 +17,10 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb.matching import imm
 from gvbench_nb import methods, pipeline
 from gvbench_nb.data.images import load_for_extraction
 from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.matching import imm
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
     sys.modules.get("vismatch"), types.SimpleNamespace)
@@ -233,6 +233,7 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
 def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(shared_data, tmp_path, monkeypatch):
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import peer_vismatch
+
     from gvbench_nb import config
 
     monkeypatch.setenv("GVBENCH_DATA", str(shared_data))

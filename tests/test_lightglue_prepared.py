@@ -10,7 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import features as extractors, matching as matchers, methods
+from gvbench_nb import features as extractors
+from gvbench_nb import matching as matchers
+from gvbench_nb import methods
 from gvbench_nb.data import images
 from gvbench_nb.pipeline import PreparedCache
 

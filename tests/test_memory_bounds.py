@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from gvbench_nb import pipeline
-from gvbench_nb.pipeline import FeatureCache
 from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.pipeline import FeatureCache
 from gvbench_nb.store import ShardedStore
 
 

@@ -2,7 +2,13 @@ import numpy as np
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb.evaluation.metrics import MetricsUndefinedError, average_precision, evaluate_scores, max_recall_at_full_precision, pr_curve
+from gvbench_nb.evaluation.metrics import (
+    MetricsUndefinedError,
+    average_precision,
+    evaluate_scores,
+    max_recall_at_full_precision,
+    pr_curve,
+)
 
 
 def test_average_precision_equals_scikit_learn_on_random_scores():

@@ -9,7 +9,7 @@ from PIL import Image
 
 from gvbench_nb import config, methods
 from gvbench_nb.data import images
-from gvbench_nb.verification import ransac as verify
+from gvbench_nb.verification import ransac
 
 
 # ------------------------------------------------------------ few-matches rule --
@@ -21,32 +21,32 @@ def five_matches() -> tuple[np.ndarray, np.ndarray]:
 
 def test_few_matches_zero_scores_no_inliers_below_the_minimum():
     points0, points1 = five_matches()
-    assert verify.fundamental_inliers(points0, points1, few_matches="zero").sum() == 0
+    assert ransac.fundamental_inliers(points0, points1, few_matches="zero").sum() == 0
 
 
 def test_few_matches_all_counts_every_match_below_the_minimum():
     points0, points1 = five_matches()
-    assert verify.fundamental_inliers(points0, points1, few_matches="all").sum() == 5
+    assert ransac.fundamental_inliers(points0, points1, few_matches="all").sum() == 5
 
 
 def test_min_matches_above_eight_applies_the_rule_to_fittable_pairs():
     rng = np.random.default_rng(1)
     points0 = rng.uniform(0, 500, (12, 2))
-    assert verify.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="all").sum() == 12
-    assert verify.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="zero").sum() == 0
+    assert ransac.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="all").sum() == 12
+    assert ransac.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="zero").sum() == 0
 
 
 @pytest.mark.parametrize("rule, expected", [("zero", 0), ("all", 10)])
 def test_no_model_found_follows_the_rule(rule, expected):
     # Ten copies of one point: OpenCV's RANSAC finds no fundamental matrix (F is None).
     points = np.zeros((10, 2))
-    assert verify.fundamental_inliers(points, points + 1, few_matches=rule).sum() == expected
+    assert ransac.fundamental_inliers(points, points + 1, few_matches=rule).sum() == expected
 
 
 def test_unknown_few_matches_rule_is_one_sentence():
     points0, points1 = five_matches()
-    with pytest.raises(ValueError, match="unknown few_matches rule 'some'.*use one of zero, all"):
-        verify.fundamental_inliers(points0, points1, few_matches="some")
+    with pytest.raises(ValueError, match="unknown few_matches rule 'some'.*Known: zero, all"):
+        ransac.fundamental_inliers(points0, points1, few_matches="some")
 
 
 def test_paper_profile_keeps_the_released_rule_and_repository_counts_all():
@@ -87,9 +87,9 @@ def two_view_points(n: int = 200, seed: int = 0) -> tuple[np.ndarray, np.ndarray
 def test_to_verifier_frame_maps_pixel_centres():
     conf = {"coordinates": "resize_to", "resize_to": [512, 288]}
     corners = np.array([[-0.5, -0.5], [1279.5, 959.5]])
-    mapped = verify.to_verifier_frame(corners, np.array([1280, 960]), conf)
+    mapped = ransac.to_verifier_frame(corners, np.array([1280, 960]), conf)
     np.testing.assert_allclose(mapped, [[-0.5, -0.5], [511.5, 287.5]])
-    assert verify.to_verifier_frame(corners, None, {"coordinates": "original"}) is corners
+    assert ransac.to_verifier_frame(corners, None, {"coordinates": "original"}) is corners
 
 
 def test_resized_coordinates_change_which_matches_are_inliers():
@@ -114,7 +114,7 @@ def test_resized_coordinates_change_which_matches_are_inliers():
 def test_resized_coordinates_without_image_size_say_what_to_do():
     points0, points1 = five_matches()
     with pytest.raises(ValueError, match="no original image size"):
-        verify.to_verifier_frame(points0, None, {"coordinates": "resize_to", "resize_to": [512, 288]})
+        ransac.to_verifier_frame(points0, None, {"coordinates": "resize_to", "resize_to": [512, 288]})
 
 
 # --------------------------------------------------------- the repository profile --

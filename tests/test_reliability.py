@@ -31,8 +31,8 @@ import torch
 
 from gvbench_nb import config, methods, pipeline, weights
 from gvbench_nb.data.images import ImageReadError, read_image
-from gvbench_nb.evaluation.metrics import MetricsUndefinedError
 from gvbench_nb.data.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
+from gvbench_nb.evaluation.metrics import MetricsUndefinedError
 from gvbench_nb.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
@@ -221,8 +221,9 @@ def assert_same_pairs(output_dir: Path, baseline_out: Path) -> None:
 
 def store_entries(store: ShardedStore) -> dict[str, list[dict[str, np.ndarray]]]:
     """Every copy of every entry, read shard by shard (duplicates from concurrent writers too)."""
-    import h5py
     from urllib.parse import unquote
+
+    import h5py
 
     entries: dict[str, list[dict[str, np.ndarray]]] = {}
     for shard in store.shards():

@@ -24,7 +24,16 @@ import yaml
 
 from gvbench_nb import cli, config, pipeline, weights
 from gvbench_nb.data.images import ImageReadError, read_image
-from gvbench_nb.data.sequences import Pair, PairFileError, Sequence, format_pairs, frame_tolerance_pairs, parse_pairs, read_pairs, write_pairs
+from gvbench_nb.data.sequences import (
+    Pair,
+    PairFileError,
+    Sequence,
+    format_pairs,
+    frame_tolerance_pairs,
+    parse_pairs,
+    read_pairs,
+    write_pairs,
+)
 from gvbench_nb.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability

@@ -3,7 +3,17 @@ from pathlib import Path
 import pytest
 
 from gvbench_nb import config
-from gvbench_nb.data.sequences import Pair, PairFileError, Sequence, frame_index, frame_tolerance_pairs, parse_pairs, read_pairs, summarize, write_pairs
+from gvbench_nb.data.sequences import (
+    Pair,
+    PairFileError,
+    Sequence,
+    frame_index,
+    frame_tolerance_pairs,
+    parse_pairs,
+    read_pairs,
+    summarize,
+    write_pairs,
+)
 
 # Pairs, positives and queries as the GV-Bench README states them.
 OFFICIAL = {

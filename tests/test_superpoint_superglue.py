@@ -9,13 +9,11 @@ import math
 import pytest
 import torch
 import torch.nn.functional as F
-
 from helpers import random_state_dict, read_layout
+
 from gvbench_nb import weights
-from gvbench_nb.matching import superglue as sg
 from gvbench_nb.features import superpoint as sp
-
-
+from gvbench_nb.matching import superglue as sg
 
 # ----------------------------------------------------------------------------- fixtures
 

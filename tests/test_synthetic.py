@@ -208,7 +208,7 @@ def test_generate_sample_skips_when_parameters_match(sample_dir: Path) -> None:
 
 
 def test_same_seed_same_bytes_other_seed_differs(tmp_path: Path) -> None:
-    kwargs = dict(n_frames=5, image_size=(160, 120))
+    kwargs: dict = {"n_frames": 5, "image_size": (160, 120)}
     syn.generate_sample(tmp_path / "a", seed=3, **kwargs)
     syn.generate_sample(tmp_path / "b", seed=3, **kwargs)
     syn.generate_sample(tmp_path / "c", seed=4, **kwargs)
@@ -246,7 +246,7 @@ def _apply(frame: syn.RenderedFrame, conditions: dict[str, float], seed: int = 0
 
 def test_zero_strength_leaves_image_byte_identical(small_frame: syn.RenderedFrame) -> None:
     assert np.array_equal(_apply(small_frame, {}), small_frame.image)
-    assert np.array_equal(_apply(small_frame, {name: 0.0 for name in syn.CONDITIONS}),
+    assert np.array_equal(_apply(small_frame, dict.fromkeys(syn.CONDITIONS, 0.0)),
                           small_frame.image)
     for name in syn.CONDITIONS:
         out = _apply(small_frame, {name: 0.0})
@@ -274,7 +274,7 @@ def test_conditions_compose(small_frame: syn.RenderedFrame) -> None:
     combos = [("illumination", "season"), ("illumination", "weather"), ("season", "weather"),
               syn.CONDITIONS]
     for combo in combos:
-        out = _apply(small_frame, {name: 0.6 for name in combo})
+        out = _apply(small_frame, dict.fromkeys(combo, 0.6))
         assert out.shape == small_frame.image.shape and out.dtype == np.uint8
         for name in combo:  # the combination is not just one of its parts
             assert np.abs(out.astype(np.int16) - singles[name].astype(np.int16)).mean() > 0.5

@@ -1,9 +1,9 @@
 import numpy as np
 import pytest
-
-from gvbench_nb.verification.ransac import ESTIMATORS, fundamental_inliers, verify_matches
-from gvbench_nb.methods import VERIFIER
 from helpers import with_outlier_matches
+
+from gvbench_nb.methods import VERIFIER
+from gvbench_nb.verification.ransac import ESTIMATORS, fundamental_inliers, verify_matches
 
 
 def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
@@ -14,7 +14,7 @@ def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
     angle = np.deg2rad(8)
     R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
     t = np.array([1.0, 0.1, 0.3])
-    project = lambda X: (X @ K.T)[:, :2] / (X @ K.T)[:, 2:]  # noqa: E731
+    project = lambda X: (X @ K.T)[:, :2] / (X @ K.T)[:, 2:]
     p0, p1 = project(points), project(points @ R.T + t)
     p0 = p0 + rng.normal(0, 0.3, p0.shape)
     p1 = p1 + rng.normal(0, 0.3, p1.shape)

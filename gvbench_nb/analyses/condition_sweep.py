@@ -26,10 +26,11 @@ from __future__ import annotations
 import json
 import math
 import shutil
+from collections.abc import Iterable, Mapping
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable, Mapping
-from typing import Sequence as SequenceType
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -206,7 +207,7 @@ def method_profiles(methods: Iterable[str] | str, profile: str | Mapping[str, st
     try:
         names = method_registry.expand_methods(methods if isinstance(methods, str) else list(methods))
         if isinstance(profile, str):
-            profiles = {name: profile for name in names}
+            profiles = dict.fromkeys(names, profile)
         else:
             missing = [name for name in names if name not in profile]
             if missing:
@@ -251,7 +252,7 @@ def _typed(table: pd.DataFrame) -> pd.DataFrame:
     """Column types independent of where rows came from (a CSV reads 0.0 back as int)."""
     floats = ["strength", "ap", "max_recall", "aliasing_share", "aliasing_chance"]
     integers = ["n_pairs", "n_positives", "n_look_alike"]
-    return table.astype({**{c: "float64" for c in floats}, **{c: "int64" for c in integers},
+    return table.astype({**dict.fromkeys(floats, "float64"), **dict.fromkeys(integers, "int64"),
                          "condition": str, "method": str, "profile": str})
 
 
@@ -410,7 +411,7 @@ def plot_examples(out_dir: str | Path, conditions: SequenceType[str], strengths:
     params = json.loads((image_root / "route.json").read_text())
     width = max(3, len(str(params["n_frames"] - 1)))
     frame = params["n_frames"] // 2 if frame is None else frame
-    strengths = sorted(set(float(s) for s in strengths) | {0.0})
+    strengths = sorted({float(s) for s in strengths} | {0.0})
     figure, axes = plt.subplots(len(conditions), len(strengths),
                                 figsize=(2.6 * len(strengths), 2.1 * len(conditions)), squeeze=False)
     for axis_row, condition in zip(axes, conditions):
@@ -453,7 +454,7 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
 RENDER_SETTINGS: dict[str, dict[str, float]] = {
     "clear": {},
     **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
-    "all three": {condition: 1.0 for condition in synthetic.CONDITIONS},
+    "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0),
 }
 
 

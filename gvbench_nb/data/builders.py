@@ -50,10 +50,11 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Mapping
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
-from typing import Sequence as SequenceType
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -208,7 +209,7 @@ class Traversal:
     names: list[str]
     table: dict[str, np.ndarray]
 
-    def rows(self, rows: np.ndarray) -> "Traversal":
+    def rows(self, rows: np.ndarray) -> Traversal:
         """The traversal restricted to ``rows`` (in that order)."""
         return Traversal(self.folder, [self.names[i] for i in rows], {k: v[rows] for k, v in self.table.items()})
 
@@ -374,7 +375,7 @@ def global_descriptors(inputs: BuildInputs, descriptor: str, descriptor_options:
         from gvbench_nb.features.base import resolve_device
 
         device = str(resolve_device(inputs.params.get("device", "auto")))
-        paths = lambda names: {n: str(inputs.image_root / n) for n in names}  # noqa: E731
+        paths = lambda names: {n: str(inputs.image_root / n) for n in names}
         return retrieval.compute_global_descriptors(descriptor, paths(references), paths(queries), device=device, **options)
     local = load_local_descriptors(inputs, list(references) + list(queries), progress)
     return retrieval.compute_global_descriptors(
@@ -461,7 +462,7 @@ def make_card(inputs: BuildInputs, frame: pd.DataFrame, truth: np.ndarray, recal
     from gvbench_nb.methods import conf_hash
 
     options = inputs.options
-    pairs = [Pair(q, r, int(l)) for q, r, l in zip(frame["query"], frame["reference"], frame["label"])]
+    pairs = [Pair(q, r, int(label)) for q, r, label in zip(frame["query"], frame["reference"], frame["label"])]
     counts = summarize(Sequence(inputs.params.get("sequence", "build"), inputs.image_root, pairs))
     per_experience = {
         e: {"n_pairs": int((frame["experience"] == e).sum()),

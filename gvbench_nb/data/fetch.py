@@ -18,10 +18,11 @@ import sys
 import urllib.error
 import urllib.parse
 import urllib.request
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
-from typing import Sequence as SequenceType
+from typing import Any
 
 from gvbench_nb import registry
 

@@ -20,8 +20,9 @@ Descriptors are rows; similarity is the dot product (cosine for L2-normalised ro
 
 from __future__ import annotations
 
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 import numpy as np
 
@@ -270,7 +271,7 @@ class VladEncoder:
     power: float = 0.5
 
     @classmethod
-    def fit(cls, reference_local: LocalDescriptors, num_words: int = 64, seed: int = 0, **vocabulary: Any) -> "VladEncoder":
+    def fit(cls, reference_local: LocalDescriptors, num_words: int = 64, seed: int = 0, **vocabulary: Any) -> VladEncoder:
         return cls(fit_vocabulary(reference_local, num_words, seed, **vocabulary))
 
     @property
@@ -303,7 +304,7 @@ class BowEncoder:
     idf: np.ndarray  # (K,)
 
     @classmethod
-    def fit(cls, reference_local: LocalDescriptors, num_words: int = 1000, seed: int = 0, **vocabulary: Any) -> "BowEncoder":
+    def fit(cls, reference_local: LocalDescriptors, num_words: int = 1000, seed: int = 0, **vocabulary: Any) -> BowEncoder:
         centres = fit_vocabulary(reference_local, num_words, seed, **vocabulary)
         counts = np.zeros(num_words, dtype=np.int64)
         for descriptors in reference_local.values():

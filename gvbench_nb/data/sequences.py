@@ -19,10 +19,10 @@ import posixpath
 import random
 import shlex
 from collections import Counter
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
-from typing import Iterable
-from typing import Sequence as SequenceType
 
 import pandas as pd
 
@@ -212,7 +212,7 @@ class Sequence:
             }
         )
 
-    def limited(self, limit: int | None) -> "Sequence":
+    def limited(self, limit: int | None) -> Sequence:
         """The first ``limit`` pairs (the same prefix every time, so runs are comparable)."""
         if limit is None or limit >= len(self.pairs):
             return self

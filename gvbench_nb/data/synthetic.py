@@ -31,10 +31,10 @@ import functools
 import json
 import math
 import os
+from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -116,7 +116,7 @@ ALIAS_BLOCK_BUILDINGS = 2  # adjacent buildings repeated verbatim elsewhere on t
 # Textures
 # ----------------------------------------------------------------------------
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _texture_pyramid(key: str) -> tuple[np.ndarray, ...]:
     """Load a scikit-image photograph as an RGB uint8 mip pyramid.
 

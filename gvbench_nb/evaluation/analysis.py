@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import json
 import os
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Iterable
-from typing import Sequence as SequenceType
+from typing import Any
 
 import numpy as np
 import pandas as pd

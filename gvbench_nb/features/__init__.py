@@ -7,7 +7,8 @@ here and one line in ``EXTRACTOR_TYPES`` (or a ``"module:Class"`` type in its co
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from gvbench_nb import registry
 

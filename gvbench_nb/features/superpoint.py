@@ -226,7 +226,7 @@ class SuperPoint(nn.Module):
     @classmethod
     def from_pretrained(
         cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu"
-    ) -> "SuperPoint":
+    ) -> SuperPoint:
         """Same as :func:`load_superpoint`."""
         return load_superpoint(conf, device)
 

@@ -8,7 +8,8 @@ here and one line in ``MATCHER_TYPES`` (or a ``"module:Class"`` type in its conf
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any, Callable
+from collections.abc import Callable
+from typing import TYPE_CHECKING, Any
 
 from gvbench_nb import registry
 

@@ -270,7 +270,7 @@ class SuperGlue(nn.Module):
     @classmethod
     def from_pretrained(
         cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu"
-    ) -> "SuperGlue":
+    ) -> SuperGlue:
         """Same as :func:`load_superglue`."""
         return load_superglue(conf, device)
 

@@ -7,8 +7,8 @@ the paper's numbers, where shown, are labelled "paper".
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence as SequenceType
 from pathlib import Path
-from typing import Sequence as SequenceType
 
 import matplotlib.pyplot as plt
 import numpy as np

@@ -91,7 +91,7 @@ OFFLINE_TEMPLATE = """{%- extends 'lab/index.html.j2' -%}
 """
 
 
-def _offline_exporter() -> "HTMLExporter":
+def _offline_exporter() -> HTMLExporter:
     import jinja2
     from nbconvert import HTMLExporter
 

@@ -29,8 +29,9 @@ import os
 import pstats
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
@@ -339,7 +340,7 @@ def scaling_table(sequence: Sequence, method: str, profile: str, limits: tuple[i
         table, seconds = run_cached_pipeline(largest, conf, Path(work_dir), resolved, seed, workers=1)
         wall = time.perf_counter() - started
         image_seconds = (_image_seconds(largest, conf, Path(work_dir) / "cache") if conf["extractor"]
-                         else {name: 0.0 for name in largest.images})
+                         else dict.fromkeys(largest.images, 0.0))
         full = pipeline.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out", seed)
     environment = environment_row(resolved)
     rows = []

@@ -25,8 +25,9 @@ import contextlib
 import datetime as _dt
 import os
 import time
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any
 
 import pandas as pd
 

@@ -44,7 +44,8 @@ from __future__ import annotations
 import os
 import sys
 import time
-from typing import Any, Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
+from typing import Any
 
 import cv2
 import numpy as np
@@ -371,7 +372,7 @@ def input_from_matcher(
         kornia_names = "keypoints0" in matcher
         keys = ("keypoints0", "keypoints1", "confidence") if kornia_names else ("points0", "points1", "scores")
         p0, p1, scores = (matcher[k] for k in keys)
-    to_np = lambda a: a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)  # noqa: E731
+    to_np = lambda a: a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
     return build_input(image0_bgr, image1_bgr, to_np(p0), to_np(p1), to_np(scores), None, size)
 
 

@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence as SequenceType
 from typing import Any
-from typing import Sequence as SequenceType
 
 import cv2
 import numpy as np

@@ -37,11 +37,12 @@ from __future__ import annotations
 import json
 import os
 import time
+from collections.abc import Callable, Iterable
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any, Callable, Iterable
-from typing import Sequence as SequenceType
+from typing import Any
 
 import cv2
 import numpy as np

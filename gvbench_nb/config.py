@@ -41,6 +41,7 @@ OPTIONAL_KEYS: dict[str, Any] = {
     "seed": 0,  # RANSAC and every random choice
     "device": "auto",  # auto = cuda when available, else cpu
     "cache_dir": None,  # default: <output_dir>/../cache (shared by sequences)
+    "verifier": {},  # overrides of the profile's verifier conf, e.g. {method: USAC_MAGSAC} (methods.VERIFIER)
 }
 PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
 
@@ -105,6 +106,10 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
             registry.lookup("pairs_builder", params["pairs_builder"], PAIR_BUILDERS)
         except registry.UnknownNameError as error:
             raise ParamsError(f"{path}: {error}") from None
+    try:
+        method_registry.check_verifier_overrides(params["verifier"])
+    except (KeyError, ValueError) as error:
+        raise ParamsError(f"{path}: verifier: {error}") from None
     if params["limit"] is not None and params["limit"] < 1:
         raise ParamsError(f"{path}: limit must be a positive integer or null, got {params['limit']!r}")
     for key in PATH_KEYS:
@@ -157,6 +162,7 @@ TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "builder_options": (lambda v: isinstance(v, dict), "a mapping of option names to values"),
     "limit": (lambda v: v is None or _is_integer(v), "a positive integer or null"),
     "seed": (_is_integer, "an integer"),
+    "verifier": (lambda v: isinstance(v, dict), "a mapping of verifier conf keys to values"),
     "device": (lambda v: isinstance(v, str) and DEVICE_PATTERN.fullmatch(v) is not None,
                "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'"),
 }

@@ -237,8 +237,28 @@ def register_method(name: str, extractor: str | dict[str, Any] | None, matcher: 
                      "in_paper": in_paper}
 
 
-def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
+def check_verifier_overrides(overrides: dict[str, Any]) -> None:
+    """Overrides of the run's verifier name its keys; the model and estimator are known ones."""
+    from gvbench_nb.verification import ransac
+
+    unknown = [key for key in overrides if key not in VERIFIER and key != "resize_to"]
+    if unknown:
+        raise ValueError(f"unknown key(s) {registry.unknown_keys_hint(unknown, list(VERIFIER))}; "
+                         f"valid: {', '.join(VERIFIER)}")
+    if "type" in overrides:
+        registry.check_choice("verifier model", overrides["type"], ransac.MODELS)
+    if "method" in overrides:
+        registry.check_choice("estimator", overrides["method"], ransac.ESTIMATORS)
+    if "few_matches" in overrides:
+        registry.check_choice("few_matches rule", overrides["few_matches"], ransac.FEW_MATCHES_RULES)
+
+
+def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] | None = None) -> dict[str, Any]:
     """The full conf of a method under a profile: name, extractor, matcher, verifier.
+
+    ``verifier``: overrides of the profile's verifier conf (the params' ``verifier`` key), so a
+    stronger verifier than the paper's reaches ``pairs.csv`` and ``results.csv``; the verifier
+    conf is part of the match folder's hash, so its results never mix with the default's.
 
     ``imm:<name>`` is vismatch's matcher ``<name>`` run as a pair matcher (``imm.py``); a
     profile's ``imm`` entry overrides its image preparation."""
@@ -263,7 +283,8 @@ def resolve_method(name: str, profile: str = "paper") -> dict[str, Any]:
         "profile": profile,
         "extractor": extractor,
         "matcher": matcher,
-        "verifier": {**copy.deepcopy(VERIFIER), **copy.deepcopy(VERIFIER_PROFILES[profile])},
+        "verifier": {**copy.deepcopy(VERIFIER), **copy.deepcopy(VERIFIER_PROFILES[profile]),
+                     **copy.deepcopy(verifier or {})},
     }
 
 

@@ -731,14 +731,16 @@ def run_method(
     progress: bool = True,
     threads: int | None = None,
     workers: int | None = None,
+    verifier: dict[str, Any] | None = None,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
+    ``verifier``: overrides of the profile's verifier conf (``methods.resolve_method``).
     ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_WORKERS or 1).
 
     Missing weights fail here, before any work. Finished work found in the caches is
     reused, so an interrupted run resumes.
     """
-    conf = method_registry.resolve_method(method, profile)
+    conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     from gvbench_nb.features.base import resolve_device
 
@@ -769,6 +771,14 @@ def run_method(
 
 
 # ------------------------------------------------------------------- evaluation --
+def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
+    """``run_method`` with what a loaded params file sets: profile, output and cache folders,
+    device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
+    return run_method(sequence, method, params["profile"], Path(params["output_dir"]), Path(params["cache_dir"]),
+                      device=params["device"], seed=params["seed"], verifier=params.get("verifier") or None,
+                      **options)
+
+
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     path = method_dir(output_dir, method) / "pairs.csv"
     if not path.is_file():

@@ -68,3 +68,32 @@ def test_a_taken_name_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))
     with pytest.raises(ValueError, match="method name 'sift-nn' is taken"):
         methods.register_method("sift-nn", extractor="sift", matcher="nn-ratio")
+
+
+def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, tmp_path: Path) -> None:
+    import json
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    params = {"profile": "repository", "output_dir": str(out), "cache_dir": str(cache), "device": "cpu", "seed": 0,
+              "verifier": {"method": "USAC_MAGSAC"}}
+    table = pipeline.run_method_of_params(params, tiny_sample, "orb-nn", progress=False)
+    run = json.loads((out / "orb-nn" / "run.json").read_text())
+    assert run["conf"]["verifier"]["method"] == "USAC_MAGSAC"
+    default = pipeline.run_method(tiny_sample, "orb-nn", "repository", tmp_path / "default", cache, device="cpu",
+                                  progress=False)
+    assert (table["num_matches"] == default["num_matches"]).all()  # same matches, another fit
+    default_run = json.loads((tmp_path / "default" / "orb-nn" / "run.json").read_text())
+    assert default_run["conf"]["verifier"]["method"] == "FM_RANSAC"
+
+
+def test_verifier_overrides_are_checked_with_a_did_you_mean(tmp_path: Path) -> None:
+    from gvbench_nb import config
+
+    path = tmp_path / "p.yaml"
+    path.write_text("sequence: s\npairs: p.txt\nimage_root: .\nmethods: [orb-nn]\nprofile: paper\noutput_dir: out\n"
+                    "verifier: {threshold: 2.0}\n")
+    with pytest.raises(config.ParamsError, match=r"verifier: unknown key\(s\) 'threshold' \(did you mean 'threshold_px'\?\)"):
+        config.load_params(path)
+    path.write_text(path.read_text().replace("{threshold: 2.0}", "{method: MAGSAC}"))
+    with pytest.raises(config.ParamsError, match="unknown estimator 'MAGSAC'.*Did you mean 'USAC_MAGSAC'"):
+        config.load_params(path)

@@ -53,8 +53,7 @@ def ensure_results(params_file: str | os.PathLike[str], methods: SequenceType[st
     if missing:
         sequence = config.prepare_sequence(params)
         for method in missing:
-            pipeline.run_method(sequence, method, params["profile"], output_dir, Path(params["cache_dir"]),
-                                device=params["device"], seed=params["seed"])
+            pipeline.run_method_of_params(params, sequence, method)
     results_path = output_dir / "results.csv"
     have = set(pipeline.methods_with_results(output_dir))
     evaluated = set(pd.read_csv(results_path)["method"]) if results_path.is_file() else set()

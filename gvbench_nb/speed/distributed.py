@@ -169,7 +169,7 @@ def run_shard(params: dict[str, Any], index: int, count: int, threads: int | Non
     sequence = prepare_sequence(params)
     done = []
     for method in params["methods"]:
-        conf = method_registry.resolve_method(method, params["profile"])
+        conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
         _remove_stale_results(Path(params["output_dir"]), method)
         if conf["extractor"]:
             extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
@@ -190,7 +190,7 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
     sequence = prepare_sequence(params)
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
     for method in params["methods"]:
-        conf = method_registry.resolve_method(method, params["profile"])
+        conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
         merge_method(sequence, conf, cache_dir, output_dir, params["seed"], params["device"],
                      (shards or {}).get(method))
     return pipeline.evaluate(output_dir, params["methods"])
@@ -242,7 +242,7 @@ def run_many(params_list: list[dict[str, Any]], n_shards: int, scheduler: str | 
         for job, (params, sequence) in enumerate(zip(params_list, sequences)):
             output_dir, cache_dir = params["output_dir"], params["cache_dir"]
             for method in params["methods"]:
-                conf = method_registry.resolve_method(method, params["profile"])
+                conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
                 _remove_stale_results(Path(output_dir), method)
                 after: list[Any] = []
                 if conf["extractor"]:

@@ -86,6 +86,62 @@ def to_verifier_frame(keypoints: np.ndarray, image_size: np.ndarray | SequenceTy
     return (np.asarray(keypoints, dtype=np.float64) + 0.5) * scale - 0.5
 
 
+def homography_inliers(points0: np.ndarray, points1: np.ndarray, threshold_px: float = 3.0, confidence: float = 0.99,
+                       max_iters: int = 1000, method: str = "FM_RANSAC", min_matches: int = 4, seed: int = 0,
+                       few_matches: str = "zero") -> np.ndarray:
+    """Inlier mask of a homography fitted robustly (``cv2.findHomography``).
+
+    ``method`` takes the fundamental estimators' names; FM_RANSAC means plain
+    ``cv2.RANSAC``. Fewer than ``min_matches`` (>= 4) matches or no model: ``few_matches``
+    decides, as for ``fundamental_inliers``.
+    """
+    registry.check_choice("few_matches rule", few_matches, FEW_MATCHES_RULES, "the verifier conf")
+    points0, points1 = as_point_arrays(points0, points1)
+    no_inliers = np.full(len(points0), few_matches == "all", dtype=bool)
+    if len(points0) < max(min_matches, 4):
+        return no_inliers
+    flag = registry.lookup("estimator", method, ESTIMATORS)
+    flag = cv2.RANSAC if method == "FM_RANSAC" else flag
+    cv2.setRNGSeed(int(seed))  # as fundamental_inliers: the result depends on the pair and seed only
+    try:
+        H, mask = cv2.findHomography(points0, points1, flag, threshold_px, maxIters=max_iters, confidence=confidence)
+    except cv2.error:
+        return no_inliers
+    if H is None or mask is None:
+        return no_inliers
+    return mask.ravel().astype(bool)
+
+
+MODELS = ("fundamental", "homography")
+
+
+def filter_and_fit(
+    points0: np.ndarray,
+    points1: np.ndarray,
+    match_scores: np.ndarray,
+    model: str = "fundamental",
+    method: str = "FM_RANSAC",
+    threshold_px: float = 3.0,
+    confidence: float = 0.99,
+    max_iters: int = 1000,
+    min_matches: int = 8,
+    min_match_score: float | None = None,
+    few_matches: str = "zero",
+    seed: int = 0,
+) -> tuple[np.ndarray, int]:
+    """The one verification step, used by the run and by every verifier after it: drop the
+    matches scoring ``min_match_score`` or less (None keeps all), then fit ``model`` robustly.
+    Returns (inlier mask over all the given matches, number of matches that entered the fit)."""
+    keep = np.ones(len(points0), dtype=bool) if min_match_score is None else np.asarray(match_scores) > min_match_score
+    fit = registry.lookup("verifier model", model, {"fundamental": fundamental_inliers, "homography": homography_inliers})
+    inliers_of_kept = fit(np.asarray(points0)[keep], np.asarray(points1)[keep], threshold_px=threshold_px,
+                          confidence=confidence, max_iters=max_iters, method=method, min_matches=min_matches,
+                          seed=seed, few_matches=few_matches)
+    mask = np.zeros(len(keep), dtype=bool)
+    mask[np.flatnonzero(keep)[inliers_of_kept]] = True
+    return mask, int(keep.sum())
+
+
 def verify_matches(
     keypoints0: np.ndarray,
     keypoints1: np.ndarray,
@@ -100,22 +156,16 @@ def verify_matches(
     ``image_sizes``: the original (width, height) of both images, needed when the verifier
     fits in resized coordinates. ``min_match_score`` None keeps every match.
     """
-    min_score = conf.get("min_match_score", 0.0)
-    keep = np.ones(len(matches), dtype=bool) if min_score is None else match_scores > min_score
-    kept = matches[keep]
-    points0 = to_verifier_frame(keypoints0[kept[:, 0]], image_sizes[0], conf)
-    points1 = to_verifier_frame(keypoints1[kept[:, 1]], image_sizes[1], conf)
-    inliers_of_kept = fundamental_inliers(
-        points0, points1,
-        threshold_px=conf["threshold_px"], confidence=conf["confidence"], max_iters=conf["max_iters"],
-        method=conf["method"], min_matches=conf["min_matches"], seed=seed,
-        few_matches=conf.get("few_matches", "zero"),
+    points0 = to_verifier_frame(keypoints0[matches[:, 0]], image_sizes[0], conf)
+    points1 = to_verifier_frame(keypoints1[matches[:, 1]], image_sizes[1], conf)
+    inlier_mask, num_filtered = filter_and_fit(
+        points0, points1, match_scores, model=conf["type"], method=conf["method"], threshold_px=conf["threshold_px"],
+        confidence=conf["confidence"], max_iters=conf["max_iters"], min_matches=conf["min_matches"],
+        min_match_score=conf.get("min_match_score", 0.0), few_matches=conf.get("few_matches", "zero"), seed=seed,
     )
-    inlier_mask = np.zeros(len(matches), dtype=bool)
-    inlier_mask[np.nonzero(keep)[0][inliers_of_kept]] = True
     return {
         "num_matches": int(len(matches)),
-        "num_matches_filtered": int(keep.sum()),
+        "num_matches_filtered": num_filtered,
         "num_inliers": int(inlier_mask.sum()),
         "inlier_mask": inlier_mask,
     }

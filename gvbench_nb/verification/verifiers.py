@@ -56,11 +56,7 @@ from gvbench_nb.data.sequences import frame_index
 from gvbench_nb.evaluation import analysis
 from gvbench_nb.evaluation.metrics import evaluate_scores
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
-from gvbench_nb.verification.ransac import (
-    ESTIMATORS,
-    as_point_arrays,
-    fundamental_inliers,
-)
+from gvbench_nb.verification.ransac import ESTIMATORS, filter_and_fit, homography_inliers
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
 from gvbench_nb.weights import MissingWeightsError
 
@@ -269,45 +265,19 @@ class CachedMatches:
 
 
 # ----------------------------------------------------------------- GV scores --
-def homography_inliers(points0: np.ndarray, points1: np.ndarray, threshold_px: float = 3.0, confidence: float = 0.99,
-                       max_iters: int = 1000, method: str = "FM_RANSAC", min_matches: int = 4, seed: int = 0
-                       ) -> np.ndarray:
-    """Inlier mask of a homography fitted robustly (``cv2.findHomography``).
-
-    ``method`` takes the fundamental estimators' names; FM_RANSAC means plain
-    ``cv2.RANSAC``. Fewer than ``min_matches`` (>= 4) matches or no model: no inliers.
-    """
-    points0, points1 = as_point_arrays(points0, points1)
-    no_inliers = np.zeros(len(points0), dtype=bool)
-    if len(points0) < max(min_matches, 4):
-        return no_inliers
-    if method not in ESTIMATORS:
-        raise KeyError(f"unknown estimator {method!r}; known: {', '.join(ESTIMATORS)}")
-    flag = cv2.RANSAC if method == "FM_RANSAC" else ESTIMATORS[method]
-    cv2.setRNGSeed(int(seed))  # as fundamental_inliers: the result depends on the pair and seed only
-    try:
-        H, mask = cv2.findHomography(points0, points1, flag, threshold_px, maxIters=max_iters, confidence=confidence)
-    except cv2.error:
-        return no_inliers
-    if H is None or mask is None:
-        return no_inliers
-    return mask.ravel().astype(bool)
 
 
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
     """(inlier mask over all the pair's matches, number of matches that entered the fit).
 
-    The run's score filter (``min_match_score``) comes first, exactly as
-    ``ransac.verify_matches``, so FM_RANSAC with the run's seed gives the stored mask.
+    ``ransac.filter_and_fit``, the run's own step, so FM_RANSAC with the run's seed gives the
+    stored mask.
     """
-    keep = pair.match_scores > conf["min_match_score"]
-    fit = fundamental_inliers if conf["model"] == "fundamental" else homography_inliers
-    inliers_of_kept = fit(pair.points0[keep], pair.points1[keep], threshold_px=conf["threshold_px"],
-                          confidence=conf["confidence"], max_iters=conf["max_iters"], method=conf["estimator"],
-                          min_matches=conf["min_matches"], seed=seed)
-    mask = np.zeros(len(keep), dtype=bool)
-    mask[np.flatnonzero(keep)[inliers_of_kept]] = True
-    return mask, int(keep.sum())
+    return filter_and_fit(pair.points0, pair.points1, pair.match_scores, model=conf["model"],
+                          method=conf["estimator"], threshold_px=conf["threshold_px"], confidence=conf["confidence"],
+                          max_iters=conf["max_iters"], min_matches=conf["min_matches"],
+                          min_match_score=conf["min_match_score"], few_matches=conf.get("few_matches", "zero"),
+                          seed=seed)
 
 
 def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:
@@ -625,8 +595,7 @@ def ensure_method_results(params_file: str | os.PathLike[str], method: str, **ov
     output_dir = Path(params["output_dir"])
     if not (pipeline.method_dir(output_dir, method) / "pairs.csv").is_file():
         sequence = config.prepare_sequence(params)
-        pipeline.run_method(sequence, method, params["profile"], output_dir, Path(params["cache_dir"]),
-                            device=params["device"], seed=params["seed"])
+        pipeline.run_method_of_params(params, sequence, method)
     return output_dir
 
 
@@ -684,8 +653,6 @@ def best_by(results: pd.DataFrame, boot: analysis.Bootstrap, metric: str = "max_
     return {"metric": metric, "winner": winner, "baseline": baseline, "difference": estimate,
             "difference_ci_low": float(low), "difference_ci_high": float(high),
             "winner_beats_baseline_share": float((difference > 0).mean()) if len(difference) else float("nan")}
-
-
 
 
 # ------------------------------------------------------- paper comparison --

@@ -16,7 +16,7 @@ from urllib.parse import unquote, urldefrag, urljoin, urlparse
 
 import pytest
 
-from gvbench_nb import report
+from gvbench_nb.reporting import report
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 METHODS = "sift-nn,orb-nn"

@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
 DATA_MIRROR := ../shared/data
 
-.PHONY: setup demo test notebooks clean setup-imm
+.PHONY: setup demo test test-fast lint notebooks clean setup-imm
 
 setup: $(STAMP)
 
@@ -47,6 +47,16 @@ demo: setup
 test: setup
 	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi
 	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q tests --nbmake notebooks
+
+# The fast tier: every test not marked slow (no notebook execution), under a minute.
+test-fast: setup
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q -m "not slow" tests
+
+# Lint and format check (ruff) on the package, tests, benchmarks and the notebooks' cells; types (mypy).
+lint: setup
+	$(PY) -m ruff check gvbench_nb tests benchmarks notebooks
+	$(PY) -m ruff format --check gvbench_nb tests benchmarks notebooks
+	$(PY) -m mypy
 
 notebooks: setup
 	$(PY) notebooks/build_notebooks.py

@@ -48,8 +48,10 @@ test: setup
 	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi
 	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q tests --nbmake notebooks
 
+# Each notebook is a pair, NAME.ipynb + its percent-format twin NAME.py (jupytext); JupyterLab
+# saves both. After editing one of them elsewhere, bring its twin up to date:
 notebooks: setup
-	$(PY) notebooks/build_notebooks.py
+	$(VENV)/bin/jupytext --sync notebooks/*.ipynb
 
 clean:
 	rm -rf outputs/sample outputs/cache

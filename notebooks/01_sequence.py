@@ -17,32 +17,56 @@
 # # 01 - What a sequence holds
 # Counts, positives a query and example pairs of one sequence.
 
+# %%
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import pandas as pd
+
+from gvbench_nb import notebook, plots, sequences
+
 # %% tags=["parameters"]
-params_file = "../params/sample.yaml"  # a params YAML (paths inside are relative to it); a run passes its params.resolved.yaml
+# a params YAML (paths inside are relative to it); a run passes its params.resolved.yaml
+params_file = "../params/sample.yaml"
 limit = None  # first N pairs only
 output_dir = None  # default: the params file's output_dir
 
-# %%
-from pathlib import Path
-import matplotlib.pyplot as plt
-import pandas as pd
-from IPython.display import display
-from gvbench_nb import config, pipeline, plots, sequences
+# %% [markdown]
+# The sequence's counts: pairs, true pairs (positives) and false ones, queries and
+# images. Check that every query has candidates and most have a positive: a query
+# without one contributes only false pairs.
 
 # %%
-params = config.load_params(params_file, limit=limit, output_dir=output_dir)
-sequence = config.prepare_sequence(params)
+params, sequence = notebook.load_sequence(
+    params_file, limit=limit, output_dir=output_dir
+)
 figures = Path(params["output_dir"])
-summary = sequences.summarize(sequence)
-pd.Series(summary, name=sequence.name).to_frame()
+pd.Series(sequences.summarize(sequence), name=sequence.name).to_frame()
+
+# %% [markdown]
+# How many true references each query has. A bar at 0 counts the queries whose
+# candidates are all false: any pair of theirs a verifier accepts is a false loop
+# closure.
 
 # %%
 pairs = sequence.to_frame()
 sequence.check_images()  # names the first missing image and its pair
-figure = plots.positives_per_query(pairs, title=f"{sequence.name}: true references a query")
-plots.save(figure, figures / "sequence_positives_per_query.png"); plt.show()
+figure = plots.positives_per_query(
+    pairs, title=f"{sequence.name}: true references a query"
+)
+plots.save(figure, figures / "sequence_positives_per_query.png")
+plt.show()
+
+# %% [markdown]
+# Two true pairs (the first ones) and two false pairs (the last ones), query left,
+# reference right. True pairs show the same place under the query's conditions; false
+# pairs are what verification must reject.
 
 # %%
 examples = pd.concat([pairs[pairs.label == 1].head(2), pairs[pairs.label == 0].tail(2)])
-figure = plots.example_pairs(sequence.image_root, examples, title=f"{sequence.name}: example pairs (query | reference)")
-plots.save(figure, figures / "sequence_examples.png"); plt.show()
+figure = plots.example_pairs(
+    sequence.image_root, examples,
+    title=f"{sequence.name}: example pairs (query | reference)",
+)
+plots.save(figure, figures / "sequence_examples.png")
+plt.show()

@@ -17,6 +17,13 @@
 # # 02 - Verify: one method on one sequence
 # Extract (cached), match, fit F with RANSAC; writes `<output_dir>/<method>/pairs.csv`.
 
+# %%
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+
+from gvbench_nb import notebook, pipeline, plots
+
 # %% tags=["parameters"]
 params_file = "../params/sample.yaml"
 method = "sift-nn"  # a name from `python -m gvbench_nb methods`
@@ -24,24 +31,38 @@ profile = None  # 'paper' or 'repository'; default: the params file's
 limit = None
 output_dir = None
 
-# %%
-from pathlib import Path
-import matplotlib.pyplot as plt
-import pandas as pd
-from IPython.display import display
-from gvbench_nb import config, pipeline, plots, sequences
+# %% [markdown]
+# Run the method on every pair and write its table; the first rows follow. Each row is
+# one pair: its label, the matches found, the RANSAC inliers (the score) and the seconds
+# each stage took.
 
 # %%
-params = config.load_params(params_file, limit=limit, output_dir=output_dir, profile=profile)
-sequence = config.prepare_sequence(params)
-table = pipeline.run_method(sequence, method, params["profile"], Path(params["output_dir"]), Path(params["cache_dir"]),
-                            device=params["device"], seed=params["seed"])
-print(f"{method} ({params['profile']}) on {sequence.name}: {len(table)} pairs -> {pipeline.method_dir(params['output_dir'], method) / 'pairs.csv'}")
+params, sequence = notebook.load_sequence(
+    params_file, limit=limit, output_dir=output_dir, profile=profile
+)
+out = Path(params["output_dir"])
+table = pipeline.run_method(
+    sequence, method, params["profile"], out, Path(params["cache_dir"]),
+    device=params["device"], seed=params["seed"],
+)
+written = pipeline.method_dir(out, method) / "pairs.csv"
+run = f"{method} ({params['profile']}) on {sequence.name}"
+print(f"{run}: {len(table)} pairs -> {written}")
 table.head()
+
+# %% [markdown]
+# Matches and inliers of false (label 0) and true (label 1) pairs. Verification works
+# when true pairs have many more inliers than false ones: compare the two columns'
+# quartiles.
 
 # %%
 table.groupby("label")[["num_matches", "num_inliers"]].describe().T
 
+# %% [markdown]
+# The inlier counts of true and false pairs as histograms. Where the two overlap no
+# threshold separates them; MR counts the true pairs that score above every false pair.
+
 # %%
 figure = plots.inlier_histogram(table, title=f"{method} on {sequence.name}")
-plots.save(figure, Path(params["output_dir"]) / f"inliers_{method}.png"); plt.show()
+plots.save(figure, out / f"inliers_{method}.png")
+plt.show()

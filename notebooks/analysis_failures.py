@@ -15,12 +15,27 @@
 
 # %% [markdown]
 # # Failures: top false positives and false negatives
-# False positives: the highest-scoring false pairs; false negatives: the lowest-scoring true pairs, drawn with inlier matches green and outliers red (from the match store and the feature cache). Offsets are the ground-truth distance of a pair: frames |i - j|, and metres/degrees where the sequence has `poses.csv`. False positives just outside the ground-truth threshold are the label ambiguity the paper discusses.
+# False positives: the highest-scoring false pairs; false negatives: the lowest-scoring
+# true pairs, drawn with inlier matches green and outliers red (from the match store and
+# the feature cache). Offsets are the ground-truth distance of a pair: frames |i - j|,
+# and metres/degrees where the sequence has `poses.csv`. False positives just outside
+# the ground-truth threshold are the label ambiguity the paper discusses.
+
+# %%
+import matplotlib.pyplot as plt
+import pandas as pd
+from IPython.display import Markdown, display
+
+from gvbench_nb import analysis, analysis_plots, notebook, plots
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
-params_files = ["../params/sample.yaml"]  # run these first where results are missing ([]: run nothing)
-ensure_methods = ["sift-nn"]  # the methods ensure_results runs when their pairs.csv is missing
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
 output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 k = 3  # pairs drawn a method and kind
 near_low = 3  # false positives this many frames from the query or more ...
@@ -29,42 +44,60 @@ near_top_k = 20  # how many top false positives are checked for near misses
 cache_dir = None  # feature cache; None: <output_dir>/../cache
 
 # %%
-from pathlib import Path
-import matplotlib.pyplot as plt
-import pandas as pd
-from IPython.display import Markdown, display
-from gvbench_nb import analysis, analysis_plots, plots
-
-# A single path given on the command line (papermill -p) arrives as a string.
-output_dirs = [output_dirs] if isinstance(output_dirs, str) else list(output_dirs)
-params_files = [params_files] if isinstance(params_files, str) else list(params_files or [])
-for params_file in params_files:
-    analysis.ensure_results(params_file, ensure_methods)
-figures = Path(output_dir)
-figures.mkdir(parents=True, exist_ok=True)
-results = analysis.load_results(output_dirs)
-print(f"{len(results)} results of {results['sequence'].nunique()} sequence(s): "
-      f"{', '.join(results['sequence'].unique())}")
+output_dirs, results, figures = notebook.load_results(
+    output_dirs, output_dir, params_files, ensure_methods,
+    compute_missing=compute_missing,
+)
+print(notebook.describe(results))
 
 # %%
-near_misses = []
+runs, near_misses = [], []
 for folder in output_dirs:
     tables = analysis.load_pairs_tables(folder)
     run = analysis.load_run(folder, next(iter(tables)))
     sequence, image_root = run["sequence"], run["image_root"]
     failures = analysis.failures_table(tables, k, image_root)
-    display(Markdown(f"## {sequence}"), failures)
+    runs.append((folder, sequence, image_root, failures))
     for method, table in tables.items():
         offsets = analysis.ground_truth_offsets(table, image_root)
-        near = analysis.near_miss_false_positives(table, offsets, near_top_k, low=near_low, high=near_high)
+        near = analysis.near_miss_false_positives(
+            table, offsets, near_top_k, low=near_low, high=near_high
+        )
         near_misses.append({"sequence": sequence, "method": method, **near})
-        for kind in ("false_positive", "false_negative"):
-            rows = failures[(failures["method"] == method) & (failures["kind"] == kind)]
-            figure = analysis_plots.failure_pairs(rows, folder, method, image_root, cache_dir,
-                                                  title=f"{sequence} / {method}: top {kind.replace('_', ' ')}s")
-            plots.save(figure, figures / f"{kind}s_{sequence}_{method}.png"); plt.show()
 near_misses = pd.DataFrame(near_misses)
 near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
-display(Markdown(f"## False positives {near_low}-{near_high} frames from the query "
-                 f"(among each method's top {near_top_k}, vs all false pairs)"))
+
+# %% [markdown]
+# Each sequence's failures, `k` a method and kind, ranked: the pair, its label and
+# score, its matches and its ground-truth offset. A false positive with a small offset
+# is a near miss of the labels rather than of the verifier.
+
+# %%
+for folder, sequence, image_root, failures in runs:
+    display(Markdown(f"## {sequence}"), failures)
+
+# %% [markdown]
+# The same pairs drawn query left, reference right, inlier matches green and outliers
+# red. Green lines on a false positive are matches that fit one epipolar geometry
+# although the places differ; a false negative with few green lines is a true pair whose
+# images the method found little to match in.
+
+# %%
+for folder, sequence, image_root, failures in runs:
+    for (method, kind), rows in failures.groupby(["method", "kind"], sort=False):
+        what = kind.replace("_", " ")
+        figure = analysis_plots.failure_pairs(
+            rows, folder, method, image_root, cache_dir,
+            title=f"{sequence} / {method}: top {what}s",
+        )
+        plots.save(figure, figures / f"{kind}s_{sequence}_{method}.png")
+        plt.show()
+
+# %% [markdown]
+# False positives `near_low` to `near_high` frames from the query among each method's
+# top `near_top_k` (`near_share_in_top`), against their share among all false pairs
+# (`near_share_all_false`): a share at the top well above the share among all false
+# pairs means near misses crowd the top of the ranking.
+
+# %%
 near_misses

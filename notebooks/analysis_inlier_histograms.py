@@ -15,37 +15,61 @@
 
 # %% [markdown]
 # # Inlier distributions of true and false pairs
-# Inliers divided by each method's largest count (as the paper's Figs. 6, 8, 9). The dashed line is the top false pair's score: only true pairs right of it count towards MR; true pairs with zero inliers are out of reach at any threshold.
+# Inliers divided by each method's largest count (as the paper's Figs. 6, 8, 9). The
+# dashed line is the top false pair's score: only true pairs right of it count towards
+# MR; true pairs with zero inliers are out of reach at any threshold.
+
+# %%
+import matplotlib.pyplot as plt
+import pandas as pd
+
+from gvbench_nb import analysis, analysis_plots, notebook, plots
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
-params_files = ["../params/sample.yaml"]  # run these first where results are missing ([]: run nothing)
-ensure_methods = ["sift-nn"]  # the methods ensure_results runs when their pairs.csv is missing
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
 output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 
 # %%
-from pathlib import Path
-import matplotlib.pyplot as plt
-import pandas as pd
-from IPython.display import Markdown, display
-from gvbench_nb import analysis, analysis_plots, plots
-
-# A single path given on the command line (papermill -p) arrives as a string.
-output_dirs = [output_dirs] if isinstance(output_dirs, str) else list(output_dirs)
-params_files = [params_files] if isinstance(params_files, str) else list(params_files or [])
-for params_file in params_files:
-    analysis.ensure_results(params_file, ensure_methods)
-figures = Path(output_dir)
-figures.mkdir(parents=True, exist_ok=True)
-results = analysis.load_results(output_dirs)
-print(f"{len(results)} results of {results['sequence'].nunique()} sequence(s): "
-      f"{', '.join(results['sequence'].unique())}")
+output_dirs, results, figures = notebook.load_results(
+    output_dirs, output_dir, params_files, ensure_methods,
+    compute_missing=compute_missing,
+)
+print(notebook.describe(results))
 
 # %%
-for folder in output_dirs:
-    tables = analysis.load_pairs_tables(folder)
-    sequence = results.loc[results["output_dir"] == str(Path(folder)), "sequence"].iloc[0]
-    display(Markdown(f"## {sequence}"))
-    display(analysis.inlier_overlap_table(tables))
-    figure = analysis_plots.normalised_inlier_histograms(tables, title=f"{sequence}: normalised inliers, true vs false")
-    plots.save(figure, figures / f"normalised_inliers_{sequence}.png"); plt.show()
+# (sequence, {method: pairs table}) of every output folder
+tables = [
+    (notebook.sequence_of(results, folder), analysis.load_pairs_tables(folder))
+    for folder in output_dirs
+]
+
+# %% [markdown]
+# One row a run: true and false pairs, the share of each with zero inliers, the top
+# false pair's score (raw and normalised), and the share of true pairs above it
+# (`true_above_top_false`, which is MR) or not (`true_in_overlap`).
+
+# %%
+pd.concat(
+    [analysis.inlier_overlap_table(runs).assign(sequence=sequence)
+     for sequence, runs in tables],
+    ignore_index=True,
+)
+
+# %% [markdown]
+# Normalised inliers of true and false pairs, one panel a run. The shaded part right of
+# the dashed line is where true pairs count towards MR; the wider the false pairs reach,
+# the fewer true pairs are left there.
+
+# %%
+for sequence, runs in tables:
+    figure = analysis_plots.normalised_inlier_histograms(
+        runs, title=f"{sequence}: normalised inliers, true vs false"
+    )
+    plots.save(figure, figures / f"normalised_inliers_{sequence}.png")
+    plt.show()

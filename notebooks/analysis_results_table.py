@@ -15,60 +15,89 @@
 
 # %% [markdown]
 # # Results across sequences
-# AP and max recall at 100% precision (MR) of every method, profile and sequence, in %: one row a (method, profile). **Bold**: the best of its column. Published values (grey italics) stand only beside ours of the same protocol: *paper* (the GV-Bench paper's table) in the rows of the paper profile, *GV-Bench repository* (its README's table) in those of the repository profile. Then MR across sequences (the paper's Fig. 1).
+# AP and max recall at 100% precision (MR) of every method, profile and sequence, in %:
+# one row a (method, profile). **Bold**: the best of its column. Published values (grey
+# italics) stand only beside ours of the same protocol: *paper* (the GV-Bench paper's
+# table) in the rows of the paper profile, *GV-Bench repository* (its README's table) in
+# those of the repository profile. Then MR across sequences (the paper's Fig. 1).
+
+# %%
+import matplotlib.pyplot as plt
+from IPython.display import Markdown, display
+
+from gvbench_nb import analysis, analysis_plots, notebook, plots
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
-params_files = ["../params/sample.yaml"]  # run these first where results are missing ([]: run nothing)
-ensure_methods = ["sift-nn"]  # the methods ensure_results runs when their pairs.csv is missing
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
 output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
-paper_table = None  # a paper_table.csv of your own; None: the one shipped in gvbench_nb/reference_values
+# a paper_table.csv of your own; None: the one shipped in gvbench_nb/reference_values
+paper_table = None
 
 # %%
-from pathlib import Path
-import matplotlib.pyplot as plt
-import pandas as pd
-from IPython.display import Markdown, display
-from gvbench_nb import analysis, analysis_plots, plots
+output_dirs, results, figures = notebook.load_results(
+    output_dirs, output_dir, params_files, ensure_methods,
+    compute_missing=compute_missing,
+)
+print(notebook.describe(results))
 
-# A single path given on the command line (papermill -p) arrives as a string.
-output_dirs = [output_dirs] if isinstance(output_dirs, str) else list(output_dirs)
-params_files = [params_files] if isinstance(params_files, str) else list(params_files or [])
-for params_file in params_files:
-    analysis.ensure_results(params_file, ensure_methods)
-figures = Path(output_dir)
-figures.mkdir(parents=True, exist_ok=True)
-results = analysis.load_results(output_dirs)
-print(f"{len(results)} results of {results['sequence'].nunique()} sequence(s): "
-      f"{', '.join(results['sequence'].unique())}")
+# %% [markdown]
+# Ours beside the published values of the same protocol, in %, also written to
+# `results_with_paper.csv`. Read across a row for one method on every sequence, down a
+# column for the best method of a sequence and metric.
 
 # %%
 paper = analysis.load_paper_table(paper_table)
 repository = analysis.load_repository_table()
-print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found: no paper values")
+print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found")
 joined = analysis.join_paper_table(results, paper, repository)
 wide = analysis.results_table(joined)
 joined.to_csv(figures / "results_with_paper.csv", index=False)
 analysis.style_results_table(wide)
 
 # %% [markdown]
-# For context, the published tables (GV-Bench official sequences; values as published) for the methods we ran: the paper's (hloc chain) and the GV-Bench repository's (its current code). Each is comparable with ours only under its own profile, on the same sequence and pairs, and not with the other.
+# For context, the published tables (GV-Bench official sequences; values as published)
+# for the methods we ran: the paper's (hloc chain) and the GV-Bench repository's (its
+# current code). Each is comparable with ours only under its own profile, on the same
+# sequence and pairs, and not with the other.
 
 # %%
-for table, source in ((paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)):
-    if len(table) and table["method"].isin(results["method"]).any():
+ran = results["method"].unique()
+for table, source in (
+    (paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)
+):
+    if len(table) and table["method"].isin(ran).any():
         display(Markdown(f"**{source}**"))
-        display(analysis.style_results_table(analysis.paper_reference_table(table, results["method"].unique(),
-                                                                            source=source)))
+        published = analysis.paper_reference_table(table, ran, source=source)
+        display(analysis.style_results_table(published))
     else:
         print(f"no {source} values for these methods")
+
+# %% [markdown]
+# Seconds per pair (extraction, matching and verification together) and FPS = 1 /
+# seconds per pair of every run, with the device it ran on: compare speeds only between
+# runs on the same device.
 
 # %%
 runtime = analysis.runtime_table(results)
 runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]
 
+# %% [markdown]
+# MR of every (method, profile) on each sequence: ours, and the published value where
+# the paper or the GV-Bench repository reports that method, sequence and profile (a
+# radar with three sequences or more, bars otherwise). Look for the methods whose MR
+# changes most from one sequence to another.
+
 # %%
 figure = analysis_plots.max_recall_radar(
-    joined, title="max recall at 100% precision (ours: solid, paper profile / dash-dot, repository profile; "
-                  "published: dashed, paper / dotted, GV-Bench repository)")
-plots.save(figure, figures / "max_recall_radar.png"); plt.show()
+    joined,
+    title="max recall at 100% precision (ours: solid, paper profile / dash-dot, "
+    "repository profile; published: dashed, paper / dotted, GV-Bench repository)",
+)
+plots.save(figure, figures / "max_recall_radar.png")
+plt.show()

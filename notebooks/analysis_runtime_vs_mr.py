@@ -15,43 +15,71 @@
 
 # %% [markdown]
 # # Runtime vs max recall
-# Seconds per pair split by stage (extraction amortised over the pairs that share an image, matching, RANSAC verification) and FPS = 1 / seconds per pair against MR (the paper's Fig. 7). The device, profile and image size come from each run's `run.json`.
+# Seconds per pair split by stage (extraction amortised over the pairs that share an
+# image, matching, RANSAC verification) and FPS = 1 / seconds per pair against MR (the
+# paper's Fig. 7). The device, profile and image size come from each run's `run.json`.
+
+# %%
+import matplotlib.pyplot as plt
+
+from gvbench_nb import analysis, analysis_plots, notebook, plots
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
-params_files = ["../params/sample.yaml"]  # run these first where results are missing ([]: run nothing)
-ensure_methods = ["sift-nn"]  # the methods ensure_results runs when their pairs.csv is missing
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
 output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 cache_dir = None  # feature cache (for image sizes); None: <output_dir>/../cache
 
 # %%
-from pathlib import Path
-import matplotlib.pyplot as plt
-import pandas as pd
-from IPython.display import Markdown, display
-from gvbench_nb import analysis, analysis_plots, plots
+output_dirs, results, figures = notebook.load_results(
+    output_dirs, output_dir, params_files, ensure_methods,
+    compute_missing=compute_missing,
+)
+print(notebook.describe(results))
 
-# A single path given on the command line (papermill -p) arrives as a string.
-output_dirs = [output_dirs] if isinstance(output_dirs, str) else list(output_dirs)
-params_files = [params_files] if isinstance(params_files, str) else list(params_files or [])
-for params_file in params_files:
-    analysis.ensure_results(params_file, ensure_methods)
-figures = Path(output_dir)
-figures.mkdir(parents=True, exist_ok=True)
-results = analysis.load_results(output_dirs)
-print(f"{len(results)} results of {results['sequence'].nunique()} sequence(s): "
-      f"{', '.join(results['sequence'].unique())}")
+# %% [markdown]
+# One row a run: seconds per pair by stage and in total, FPS, and its MR and AP. The
+# stage columns add up to `seconds_per_pair`.
 
 # %%
 runtime = analysis.runtime_table(results)
 runtime
 
+# %% [markdown]
+# Each sequence's runs described for the captions below: device, profile and the image
+# size each method extracted at.
+
 # %%
+captions = {}
 for sequence, group in runtime.groupby("sequence", sort=False):
     folder = results.loc[results["sequence"] == sequence, "output_dir"].iloc[0]
-    caption = f"{sequence}: " + analysis.run_description(folder, list(group["method"]), cache_dir)
-    print(caption)
-    figure = analysis_plots.seconds_per_pair_stacked(group, caption=caption)
-    plots.save(figure, figures / f"seconds_per_pair_{sequence}.png"); plt.show()
-    figure = analysis_plots.fps_vs_max_recall(group, caption=caption)
-    plots.save(figure, figures / f"fps_vs_max_recall_{sequence}.png"); plt.show()
+    methods = list(group["method"])
+    description = analysis.run_description(folder, methods, cache_dir)
+    captions[sequence] = f"{sequence}: {description}"
+    print(captions[sequence])
+
+# %% [markdown]
+# Seconds per pair of each run, one stacked bar a run split into extraction, matching
+# and verification, total at its end. The longest segment is where a method spends its
+# time.
+
+# %%
+for sequence, group in runtime.groupby("sequence", sort=False):
+    figure = analysis_plots.seconds_per_pair_stacked(group, caption=captions[sequence])
+    plots.save(figure, figures / f"seconds_per_pair_{sequence}.png")
+    plt.show()
+
+# %% [markdown]
+# FPS (log scale) against MR, one point a run: right is faster, up has the higher MR; a
+# point above and right of another beats it on both.
+
+# %%
+for sequence, group in runtime.groupby("sequence", sort=False):
+    figure = analysis_plots.fps_vs_max_recall(group, caption=captions[sequence])
+    plots.save(figure, figures / f"fps_vs_max_recall_{sequence}.png")
+    plt.show()

@@ -4,6 +4,7 @@ notebook is committed with outputs, or when papermill would find no ``parameters
 
 from __future__ import annotations
 
+import ast
 import json
 from pathlib import Path
 
@@ -56,9 +57,14 @@ def test_notebook_is_committed_without_outputs(path):
 
 
 @pytest.mark.parametrize("path", IPYNB, ids=lambda p: p.name)
-def test_notebook_has_one_parameters_cell_first_among_code_cells(path):
+def test_notebook_has_one_parameters_cell_and_only_imports_above_it(path):
     code = [c for c in jupytext.read(path).cells if c.cell_type == "code"]
     tagged = [i for i, c in enumerate(code) if "parameters" in c.metadata.get("tags", [])]
-    # papermill injects its values right after this cell: code above it would run on the defaults.
-    assert tagged == [0], (f"{path.name}: parameters-tagged code cells at {tagged}, want exactly the first code cell "
-                           "(`# %% tags=[\"parameters\"]` in the .py)")
+    assert len(tagged) == 1, (f"{path.name}: {len(tagged)} parameters-tagged code cells, want one "
+                              "(`# %% tags=[\"parameters\"]` in the .py): papermill injects its values after it")
+    # Code above the parameters cell runs before papermill's values arrive: imports only.
+    for index, cell in enumerate(code[: tagged[0]]):
+        statements = ast.parse(cell.source).body
+        assert all(isinstance(s, (ast.Import, ast.ImportFrom)) for s in statements), (
+            f"{path.name}: code cell {index}, above the parameters cell, does more than import; "
+            "move that code below the parameters cell")

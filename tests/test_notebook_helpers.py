@@ -29,6 +29,7 @@ def toy(tmp_path: Path, monkeypatch) -> tuple[Path, Path]:
     return params, output_dir
 
 
+@pytest.mark.reliability
 def test_missing_results_raise_one_sentence_naming_the_command_and_run_nothing(toy):
     params, output_dir = toy
     with pytest.raises(notebook.ResultsMissingError) as error:

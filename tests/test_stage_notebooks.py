@@ -101,6 +101,7 @@ def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path
 
 
 @pytest.mark.slow
+@pytest.mark.reliability
 def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_nothing(sample_params, tmp_path):
     from papermill.exceptions import PapermillExecutionError
 

@@ -10,8 +10,10 @@ from __future__ import annotations
 
 import os
 import shlex
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Iterable, NamedTuple, Sequence as SequenceType
+from typing import TYPE_CHECKING, Any, NamedTuple
 
 import pandas as pd
 

@@ -56,7 +56,7 @@ table.head()
 # quartiles.
 
 # %%
-table.groupby("label")[["num_matches", "num_inliers"]].describe().T
+table.groupby("label")[["num_matches", "num_inliers"]].describe().transpose()
 
 # %% [markdown]
 # The inlier counts of true and false pairs as histograms. Where the two overlap no

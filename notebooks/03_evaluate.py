@@ -21,6 +21,7 @@
 from pathlib import Path
 
 import matplotlib.pyplot as plt
+from IPython.display import display
 
 from gvbench_nb import config, pipeline, plots
 
@@ -39,7 +40,7 @@ params = config.load_params(params_file, output_dir=output_dir)
 out = Path(params["output_dir"])
 results = pipeline.evaluate(out, methods)
 print(f"results table: {out / 'results.csv'}")
-results
+display(results)
 
 # %% [markdown]
 # Precision against recall as the acceptance threshold on the score falls, one curve a

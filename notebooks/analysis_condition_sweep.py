@@ -63,7 +63,7 @@ sweep = condition_sweep.run_sweep(
     n_frames=n_frames, profile=profile, image_size=image_size, threads=threads,
 )
 print(f"{len(sweep)} cells -> {out / 'sweep.csv'}")
-sweep
+display(sweep)
 
 # %% [markdown]
 # ## AP, MR and aliasing share against strength, one figure a condition

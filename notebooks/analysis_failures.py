@@ -73,7 +73,7 @@ near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
 # is a near miss of the labels rather than of the verifier.
 
 # %%
-for folder, sequence, image_root, failures in runs:
+for _, sequence, _, failures in runs:
     display(Markdown(f"## {sequence}"), failures)
 
 # %% [markdown]
@@ -100,4 +100,4 @@ for folder, sequence, image_root, failures in runs:
 # pairs means near misses crowd the top of the ranking.
 
 # %%
-near_misses
+display(near_misses)

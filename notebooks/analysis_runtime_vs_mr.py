@@ -21,6 +21,7 @@
 
 # %%
 import matplotlib.pyplot as plt
+from IPython.display import display
 
 from gvbench_nb import analysis, analysis_plots, notebook, plots
 
@@ -48,7 +49,7 @@ print(notebook.describe(results))
 
 # %%
 runtime = analysis.runtime_table(results)
-runtime
+display(runtime)
 
 # %% [markdown]
 # Each sequence's runs described for the captions below: device, profile and the image

@@ -67,14 +67,14 @@ intervals = pd.concat(
     ignore_index=True,
 )
 intervals.to_csv(figures / "bootstrap_intervals.csv", index=False)
-intervals
+display(intervals)
 
 # %% [markdown]
 # The same intervals drawn, one row a method: the dot is the estimate on all queries,
 # the bar its 95% interval.
 
 # %%
-for sequence, boot in boots:
+for sequence, _ in boots:
     figure = analysis_plots.bootstrap_intervals(
         intervals[intervals["sequence"] == sequence],
         title=f"{sequence}: 95% bootstrap intervals",

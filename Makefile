@@ -58,8 +58,10 @@ lint: setup
 	$(PY) -m ruff format --check gvbench_nb tests benchmarks notebooks
 	$(PY) -m mypy
 
+# Each notebook is a pair, NAME.ipynb + its percent-format twin NAME.py (jupytext); JupyterLab
+# saves both. After editing one of them elsewhere, bring its twin up to date:
 notebooks: setup
-	$(PY) notebooks/build_notebooks.py
+	$(VENV)/bin/jupytext --sync notebooks/*.ipynb
 
 clean:
 	rm -rf outputs/sample outputs/cache

@@ -6,7 +6,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pandas as pd
 import pytest
+
+from gvbench_nb import pipeline
+from gvbench_nb.evaluation import metrics
 
 
 def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:
@@ -42,3 +46,23 @@ def with_outlier_matches(rng, p0, p1, n_outliers: int):
     order = rng.permutation(len(p0) + n_outliers)
     truth = np.r_[np.ones(len(p0), bool), np.zeros(n_outliers, bool)][order]
     return np.r_[p0, o0][order], np.r_[p1, o1][order], truth
+
+
+def check_stage_outputs(output_dir: Path, method: str, sequence_pairs: list) -> pd.DataFrame:
+    """What 02_verify and 03_evaluate wrote for ``method``, against the sequence's pairs
+    (``sequences.Pair``, in order); returns results.csv's row of the method."""
+    pairs = pd.read_csv(pipeline.method_dir(output_dir, method) / "pairs.csv")
+    assert len(pairs) == len(sequence_pairs)
+    assert list(zip(pairs["query"], pairs["reference"], pairs["label"])) == [
+        (p.query, p.reference, p.label) for p in sequence_pairs]
+    assert ((pairs["num_inliers"] >= 0) & (pairs["num_inliers"] <= pairs["num_matches"])).all()
+    row = pd.read_csv(output_dir / "results.csv").set_index("method").loc[method]
+    assert row["n_pairs"] == len(pairs) and row["n_positives"] == pairs["label"].sum()
+    assert 0 <= row["ap"] <= 1 and 0 <= row["max_recall"] <= 1
+    # results.csv keeps 6 significant digits (io_utils.atomic_write_csv)
+    expected = metrics.evaluate_scores(pairs["label"].to_numpy(), pairs["score"].to_numpy())
+    assert row["ap"] == pytest.approx(expected["ap"], rel=1e-5)
+    assert row["max_recall"] == pytest.approx(expected["max_recall"], rel=1e-5)
+    stages = pairs["extract_seconds"] + pairs["match_seconds"] + pairs["verify_seconds"]
+    assert row["seconds_per_pair"] == pytest.approx(stages.mean(), rel=1e-5)
+    return row

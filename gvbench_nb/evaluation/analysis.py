@@ -42,8 +42,9 @@ def ensure_results(params_file: str | os.PathLike[str], methods: SequenceType[st
                    **overrides: Any) -> Path:
     """Run only the ``methods`` whose ``pairs.csv`` is missing, then make ``results.csv`` current.
 
-    Lets an analysis notebook work on a fresh clone: with everything present it does
-    nothing but (when needed) re-evaluate. ``overrides`` go to ``config.load_params``
+    What an analysis notebook runs when it asks (``notebook.load_results(...,
+    compute_missing=True)``): with everything present it does nothing but (when needed)
+    re-evaluate. ``overrides`` go to ``config.load_params``
     (e.g. ``output_dir``, ``limit``). Returns the output folder.
     """
     params = config.load_params(params_file, **overrides)

@@ -1,0 +1,179 @@
+"""What the notebooks share before they plot: loading a sequence, the written results or a
+verifier bench, from the notebooks' parameters.
+
+Reading never runs the pipeline behind a reader's back: when results a notebook needs are
+missing, ``ResultsMissingError`` says which and names the command that makes them, unless
+the notebook asks with ``compute_missing=True`` (then only what is missing is run).
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, NamedTuple
+
+import pandas as pd
+
+from gvbench_nb import config, pipeline
+from gvbench_nb import methods as method_registry
+from gvbench_nb.data.sequences import Sequence
+
+if TYPE_CHECKING:
+    from gvbench_nb.verification.verifiers import VerifierBench
+
+# `analysis` and `verifiers` pull in OpenCV and scikit-learn: imported where they are used,
+# so a stage notebook that only loads a sequence stays light.
+
+PathLike = str | os.PathLike[str]
+# load_params keys a notebook may override -> the `run` option that does the same.
+RUN_OPTIONS = {"output_dir": "--output-dir", "profile": "--profile", "limit": "--limit"}
+
+
+class ResultsMissingError(FileNotFoundError):
+    """Results a notebook reads are not there (and it did not ask to compute them)."""
+
+
+class AnalysisInputs(NamedTuple):
+    output_dirs: list[str]  # the sequence output folders, as given
+    results: pd.DataFrame  # their results.csv, one table with an output_dir column
+    figures: Path  # where the notebook writes its figures and tables (created)
+
+
+def as_list(value: PathLike | Iterable[PathLike] | None) -> list[str]:
+    """A papermill parameter that may be one path (``-p name path`` passes a string) or a list."""
+    if value is None:
+        return []
+    if isinstance(value, (str, os.PathLike)):
+        return [os.fspath(value)]
+    return [os.fspath(v) for v in value]
+
+
+def run_command(params_file: PathLike, methods: SequenceType[str], **overrides: Any) -> str:
+    """The shell command that runs ``methods`` with the params file, with an option for each
+    override that changes what the file says."""
+    as_written = config.load_params(params_file)
+    words = ["python", "-m", "gvbench_nb", "run", as_written["params_file"], "--methods", ",".join(methods)]
+    for key, value in overrides.items():
+        if value is None:
+            continue
+        value = str(Path(value).resolve()) if key == "output_dir" else str(value)
+        if value != str(as_written[key]):
+            words += [RUN_OPTIONS[key], value]
+    return shlex.join(words)
+
+
+def missing_methods(output_dir: PathLike, methods: SequenceType[str]) -> list[str]:
+    """The ``methods`` (names or ``all``/``all-available``) without a ``pairs.csv`` in ``output_dir``."""
+    return [m for m in method_registry.expand_methods(list(methods))
+            if not (pipeline.method_dir(Path(output_dir), m) / "pairs.csv").is_file()]
+
+
+def stale_results(output_dir: PathLike) -> bool:
+    """True when ``results.csv`` is missing or does not list exactly the methods with a ``pairs.csv``."""
+    path = Path(output_dir) / "results.csv"
+    evaluated = set(pd.read_csv(path)["method"]) if path.is_file() else set()
+    return evaluated != set(pipeline.methods_with_results(Path(output_dir)))
+
+
+def load_sequence(params_file: PathLike, **overrides: Any) -> tuple[dict[str, Any], Sequence]:
+    """The params file (``overrides`` that are not None replace its keys) and its sequence;
+    the pair file is made first when the params build it (``config.prepare_sequence``)."""
+    params = config.load_params(params_file, **overrides)
+    return params, config.prepare_sequence(params)
+
+
+def require_results(params_file: PathLike, methods: SequenceType[str] = ("sift-nn",), compute_missing: bool = False,
+                    evaluate: bool = True, **overrides: Any) -> Path:
+    """Check that the params' output folder holds ``methods``' results; return the folder.
+
+    ``compute_missing=True`` runs only the missing methods (and, with ``evaluate``, makes
+    ``results.csv`` current); otherwise a gap raises ``ResultsMissingError`` naming the command.
+    ``overrides`` go to ``config.load_params`` (``output_dir``, ``profile``, ``limit``).
+    """
+    params = config.load_params(params_file, **overrides)
+    output_dir = Path(params["output_dir"])
+    missing = missing_methods(output_dir, methods)
+    stale = evaluate and not missing and stale_results(output_dir)
+    if not (missing or stale):
+        return output_dir
+    if compute_missing:
+        if evaluate:
+            from gvbench_nb.evaluation import analysis
+
+            return analysis.ensure_results(params_file, methods, **overrides)
+        from gvbench_nb.verification import verifiers
+
+        for method in missing:
+            verifiers.ensure_method_results(params_file, method, **overrides)
+        return output_dir
+    if missing:
+        raise ResultsMissingError(
+            f"{output_dir} has no results of {', '.join(missing)}: make them with "
+            f"`{run_command(params_file, missing, **overrides)}`, or pass compute_missing=True to run them here.")
+    raise ResultsMissingError(
+        f"{output_dir / 'results.csv'} does not list exactly the methods with a pairs.csv there "
+        f"({', '.join(pipeline.methods_with_results(output_dir))}): pass compute_missing=True to evaluate them "
+        "here (reads only pairs.csv), or run them again with "
+        f"`{run_command(params_file, pipeline.methods_with_results(output_dir), **overrides)}`.")
+
+
+def load_results(output_dirs: PathLike | Iterable[PathLike], figures_dir: PathLike,
+                 params_files: PathLike | Iterable[PathLike] | None = (), methods: SequenceType[str] = ("sift-nn",),
+                 compute_missing: bool = False) -> AnalysisInputs:
+    """What an analysis notebook reads: the ``results.csv`` of ``output_dirs``.
+
+    Each of ``params_files`` is first checked to hold ``methods``' results
+    (``require_results``; ``compute_missing=True`` runs what is missing); ``[]`` checks
+    nothing, as the report does, which reads only finished runs.
+    """
+    from gvbench_nb.evaluation import analysis
+
+    folders = as_list(output_dirs)
+    for params_file in as_list(params_files):
+        require_results(params_file, methods, compute_missing=compute_missing)
+    figures = Path(figures_dir)
+    figures.mkdir(parents=True, exist_ok=True)
+    return AnalysisInputs(folders, analysis.load_results(folders), figures)
+
+
+def describe(results: pd.DataFrame) -> str:
+    """One line: how many results of which sequences a notebook is looking at."""
+    sequences = list(dict.fromkeys(results["sequence"]))
+    return f"{len(results)} results of {len(sequences)} sequence(s): {', '.join(sequences)}"
+
+
+def sequence_of(results: pd.DataFrame, output_dir: PathLike) -> str:
+    """The sequence name the runs in ``output_dir`` recorded (a row of ``load_results``)."""
+    names = results.loc[results["output_dir"] == str(Path(output_dir)), "sequence"]
+    if names.empty:
+        raise ResultsMissingError(f"{output_dir} is not among the loaded output folders "
+                                  f"({', '.join(results['output_dir'].unique())}); add it to output_dirs")
+    return str(names.iloc[0])
+
+
+def open_verifier_bench(results_dir: PathLike, method: str, output_dir: PathLike, *,
+                        params_file: PathLike | None = None, profile: str | None = None,
+                        cache_dir: PathLike | None = None, compute_missing: bool = False,
+                        classifier: dict[str, Any] | None = None, **split_options: Any) -> VerifierBench:
+    """A ``verifiers.VerifierBench`` on ``results_dir/method``'s cached matches.
+
+    ``results_dir`` is taken relative to the current folder (the notebook's), not the params
+    file. When its ``pairs.csv`` is missing: with ``params_file`` and ``compute_missing=True``
+    the method is run (``profile`` overriding the params'), else ``ResultsMissingError``
+    names the command. ``classifier`` overrides the in-domain Doppelgangers training
+    (``size``, ``epochs``, ``max_train_pairs``); ``split_options`` go to ``place_disjoint_split``.
+    """
+    from gvbench_nb.verification import verifiers
+
+    results_dir = Path(results_dir).resolve()
+    if params_file:
+        require_results(params_file, [method], compute_missing=compute_missing, evaluate=False,
+                        output_dir=str(results_dir), profile=profile)
+    elif missing_methods(results_dir, [method]):
+        raise ResultsMissingError(f"{results_dir} has no results of {method}: run it on that sequence first "
+                                  f"(python -m gvbench_nb run PARAMS --methods {method} --output-dir {results_dir})")
+    overrides = {"doppelgangers-in-domain": dict(classifier)} if classifier else None
+    return verifiers.open_bench(results_dir, method, output_dir, cache_dir, overrides=overrides, **split_options)

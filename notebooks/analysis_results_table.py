@@ -1,0 +1,105 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # Results across sequences
+# AP and max recall at 100% precision (MR) of every method, profile and sequence, in %:
+# one row a (method, profile). **Bold**: the best of its column. Published values (grey
+# italics) stand only beside ours of the same protocol: *paper* (the GV-Bench paper's
+# table) in the rows of the paper profile, *GV-Bench repository* (its README's table) in
+# those of the repository profile. Then MR across sequences (the paper's Fig. 1).
+
+# %%
+import matplotlib.pyplot as plt
+from IPython.display import Markdown, display
+
+from gvbench_nb import notebook
+from gvbench_nb.evaluation import analysis
+from gvbench_nb.reporting import analysis_plots, plots
+
+# %% tags=["parameters"]
+output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
+output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+# a paper_table.csv of your own; None: the one shipped in gvbench_nb/reference_values
+paper_table = None
+
+# %%
+output_dirs, results, figures = notebook.load_results(
+    output_dirs, output_dir, params_files, ensure_methods,
+    compute_missing=compute_missing,
+)
+print(notebook.describe(results))
+
+# %% [markdown]
+# Ours beside the published values of the same protocol, in %, also written to
+# `results_with_paper.csv`. Read across a row for one method on every sequence, down a
+# column for the best method of a sequence and metric.
+
+# %%
+paper = analysis.load_paper_table(paper_table)
+repository = analysis.load_repository_table()
+print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found")
+joined = analysis.join_paper_table(results, paper, repository)
+wide = analysis.results_table(joined)
+joined.to_csv(figures / "results_with_paper.csv", index=False)
+analysis.style_results_table(wide)
+
+# %% [markdown]
+# For context, the published tables (GV-Bench official sequences; values as published)
+# for the methods we ran: the paper's (hloc chain) and the GV-Bench repository's (its
+# current code). Each is comparable with ours only under its own profile, on the same
+# sequence and pairs, and not with the other.
+
+# %%
+ran = results["method"].unique()
+for table, source in (
+    (paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)
+):
+    if len(table) and table["method"].isin(ran).any():
+        display(Markdown(f"**{source}**"))
+        published = analysis.paper_reference_table(table, ran, source=source)
+        display(analysis.style_results_table(published))
+    else:
+        print(f"no {source} values for these methods")
+
+# %% [markdown]
+# Seconds per pair (extraction, matching and verification together) and FPS = 1 /
+# seconds per pair of every run, with the device it ran on: compare speeds only between
+# runs on the same device.
+
+# %%
+runtime = analysis.runtime_table(results)
+runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]
+
+# %% [markdown]
+# MR of every (method, profile) on each sequence: ours, and the published value where
+# the paper or the GV-Bench repository reports that method, sequence and profile (a
+# radar with three sequences or more, bars otherwise). Look for the methods whose MR
+# changes most from one sequence to another.
+
+# %%
+figure = analysis_plots.max_recall_radar(
+    joined,
+    title="max recall at 100% precision (ours: solid, paper profile / dash-dot, "
+    "repository profile; published: dashed, paper / dotted, GV-Bench repository)",
+)
+plots.save(figure, figures / "max_recall_radar.png")
+plt.show()

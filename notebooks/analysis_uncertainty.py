@@ -1,0 +1,99 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # How sure are the rankings? A query bootstrap
+# Queries are resampled with replacement (a pair goes with its query), the same
+# resamples for every method, and AP and MR recomputed: 95% percentile intervals, and
+# for every two methods the share of resamples where one beats the other. '>' marks a
+# row method better than the column's in more than 97.5% of resamples.
+
+# %%
+import matplotlib.pyplot as plt
+import pandas as pd
+from IPython.display import Markdown, display
+
+from gvbench_nb import notebook
+from gvbench_nb.evaluation import analysis
+from gvbench_nb.reporting import analysis_plots, plots
+
+# %% tags=["parameters"]
+output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
+output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+n_resamples = 1000
+seed = 0
+
+# %%
+output_dirs, results, figures = notebook.load_results(
+    output_dirs, output_dir, params_files, ensure_methods,
+    compute_missing=compute_missing,
+)
+print(notebook.describe(results))
+
+# %%
+boots = []  # (sequence, bootstrap) of every output folder
+for folder in output_dirs:
+    tables = analysis.load_pairs_tables(folder)
+    boots.append((notebook.sequence_of(results, folder),
+                  analysis.bootstrap(tables, n_resamples, seed)))
+for sequence, boot in boots:
+    print(f"{sequence}: {boot.n_queries} queries, {boot.n_pairs} pairs, "
+          f"{n_resamples} resamples")
+
+# %% [markdown]
+# AP and MR of every method with its 95% interval (`low`, `high`) over the resamples
+# (`n_valid`: those that drew a true pair), also written to `bootstrap_intervals.csv`.
+# Two methods whose intervals overlap widely are not told apart by these queries.
+
+# %%
+intervals = pd.concat(
+    [boot.intervals().assign(sequence=sequence) for sequence, boot in boots],
+    ignore_index=True,
+)
+intervals.to_csv(figures / "bootstrap_intervals.csv", index=False)
+display(intervals)
+
+# %% [markdown]
+# The same intervals drawn, one row a method: the dot is the estimate on all queries,
+# the bar its 95% interval.
+
+# %%
+for sequence, _ in boots:
+    figure = analysis_plots.bootstrap_intervals(
+        intervals[intervals["sequence"] == sequence],
+        title=f"{sequence}: 95% bootstrap intervals",
+    )
+    plots.save(figure, figures / f"bootstrap_intervals_{sequence}.png")
+    plt.show()
+
+# %% [markdown]
+# For each metric, row method against column method: '>' it is better in more than 97.5%
+# of resamples, '<' worse, '~' neither; then the shares of resamples behind each mark
+# (`a_beats_b`, `tied`).
+
+# %%
+for sequence, boot in boots:
+    if len(boot.methods) < 2:
+        print(f"{sequence}: one method, no ranking to test")
+        continue
+    for metric in ("max_recall", "ap"):
+        display(Markdown(f"**{sequence}, {metric}**: row vs column"),
+                boot.ranking_matrix(metric), boot.pairwise(metric))

@@ -1,0 +1,101 @@
+"""The notebooks, executed with papermill as `run` and `report` execute them, write the
+right values: pairs.csv has one row a pair of the sequence, results.csv holds the metrics
+those rows give, and the analyses agree with results.csv. An analysis notebook whose
+results are missing stops with the command that makes them instead of running it."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from helpers import check_stage_outputs
+
+from gvbench_nb import cli, config
+
+LIMIT = 24  # pairs of the sample; its first 24 hold true and false ones
+METHOD = "sift-nn"
+
+
+def errors_in(executed: Path) -> list[str]:
+    """The error outputs an executed notebook holds."""
+    cells = json.loads(executed.read_text())["cells"]
+    return [f"{o['ename']}: {o['evalue']}" for c in cells for o in c.get("outputs", []) if o["output_type"] == "error"]
+
+
+@pytest.fixture(scope="module")
+def sample_params(tmp_path_factory) -> Path:
+    """params/sample.yaml with sift-nn only and every path (render, pairs, outputs) in a temporary folder."""
+    folder = tmp_path_factory.mktemp("sample")
+    raw = yaml.safe_load((config.PROJECT_ROOT / "params" / "sample.yaml").read_text())
+    raw.update(image_root="data", pairs="data/pairs.txt", output_dir="out", methods=[METHOD])
+    path = folder / "sample.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return path
+
+
+@pytest.fixture(scope="module")
+def stage_run(sample_params) -> Path:
+    """01_sequence, 02_verify and 03_evaluate executed on LIMIT sample pairs; the output folder."""
+    out = sample_params.parent / "out"
+    common = {"params_file": str(sample_params), "limit": LIMIT}
+    cli.execute_notebook("01_sequence.ipynb", out / "01_sequence.ipynb", common)
+    cli.execute_notebook("02_verify.ipynb", out / "02_verify.ipynb", {**common, "method": METHOD})
+    cli.execute_notebook("03_evaluate.ipynb", out / "03_evaluate.ipynb", {"params_file": str(sample_params)})
+    return out
+
+
+@pytest.mark.slow
+def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sample_params, stage_run):
+    sequence = config.prepare_sequence(config.load_params(sample_params, limit=LIMIT))
+    assert len(sequence.pairs) == LIMIT and 0 < sum(p.label for p in sequence.pairs) < LIMIT
+    row = check_stage_outputs(stage_run, METHOD, sequence.pairs)
+    assert row["sequence"] == "sample" and row["profile"] == "repository"
+    for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
+        assert errors_in(stage_run / name) == [], name
+    for figure in ("sequence_positives_per_query.png", "sequence_examples.png", f"inliers_{METHOD}.png",
+                   "pr_curves.png"):
+        assert (stage_run / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", figure
+
+
+@pytest.mark.slow
+def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path):
+    results = pd.read_csv(stage_run / "results.csv").set_index("method")
+    read_only = {"output_dirs": [str(stage_run)], "params_files": [], "output_dir": str(tmp_path)}
+    cli.execute_notebook("analysis_uncertainty.ipynb", tmp_path / "uncertainty.ipynb",
+                         {**read_only, "n_resamples": 50})
+    intervals = pd.read_csv(tmp_path / "bootstrap_intervals.csv").set_index(["method", "metric"])
+    for metric in ("ap", "max_recall"):
+        low, estimate, high = intervals.loc[(METHOD, metric), ["low", "estimate", "high"]]
+        assert estimate == pytest.approx(results.loc[METHOD, metric], rel=1e-5)
+        assert 0 <= low <= high <= 1
+    cli.execute_notebook("analysis_results_table.ipynb", tmp_path / "results_table.ipynb", read_only)
+    joined = pd.read_csv(tmp_path / "results_with_paper.csv")
+    ours = joined[joined["source"] == "ours"].set_index("method")
+    assert list(ours.index) == [METHOD]
+    assert np.allclose(ours.loc[[METHOD], ["ap", "max_recall"]], results.loc[[METHOD], ["ap", "max_recall"]],
+                       rtol=1e-5)
+    assert (tmp_path / "max_recall_radar.png").is_file()
+
+
+@pytest.mark.slow
+@pytest.mark.reliability
+def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_nothing(sample_params, tmp_path):
+    from papermill.exceptions import PapermillExecutionError
+
+    empty = tmp_path / "empty"
+    raw = yaml.safe_load(sample_params.read_text())
+    raw.update(image_root=str(sample_params.parent / "data"), pairs=str(sample_params.parent / "data" / "pairs.txt"),
+               output_dir=str(empty))
+    params = tmp_path / "empty.yaml"
+    params.write_text(yaml.safe_dump(raw))
+    with pytest.raises(PapermillExecutionError) as failure:
+        cli.execute_notebook("analysis_inlier_histograms.ipynb", tmp_path / "histograms.ipynb",
+                             {"output_dirs": [str(empty)], "params_files": [str(params)],
+                              "output_dir": str(tmp_path / "figures")})
+    assert failure.value.ename == "ResultsMissingError"
+    assert f"python -m gvbench_nb run {params} --methods {METHOD}" in failure.value.evalue
+    assert not (empty / METHOD).exists()

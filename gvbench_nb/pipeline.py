@@ -19,7 +19,7 @@ from collections import Counter, OrderedDict
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, TypeVar, cast
 
 import cv2
 import numpy as np
@@ -40,6 +40,8 @@ from gvbench_nb.verification.ransac import verify_matches
 
 if TYPE_CHECKING:
     import torch
+
+    from gvbench_nb.matching.base import PreparedMatcher
 
 # torch and the model modules (extractors, matchers) are imported by the functions that
 # run models: a notebook or command that only reads results never pays for them.
@@ -212,7 +214,7 @@ def extract_features(
 
     extractor = build_extractor(extractor_conf, resolve_device(device))
 
-    def load(key: str) -> tuple[np.ndarray, float]:
+    def load(key: str) -> tuple[np.ndarray, np.ndarray]:
         try:
             return load_for_extraction(Path(sequence.image_root) / wanted[key], extractor_conf)
         except Exception as error:  # whatever decoding raised, it is this image's fault
@@ -220,7 +222,7 @@ def extract_features(
                 raise
             raise ImageReadError(str(error)) from error
 
-    def extract(loaded: tuple[np.ndarray, float]) -> tuple[dict[str, np.ndarray], float]:
+    def extract(loaded: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, np.ndarray], float]:
         image, scale = loaded
         start = time.perf_counter()
         features = extractor(image)
@@ -458,14 +460,15 @@ def match_and_verify(
     # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
     # matching/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
     # the first pair using an image is charged for preparing it.
-    prepared = PreparedCache(matcher.prepare) if getattr(matcher, "can_prepare", False) else None
+    prepared = (PreparedCache(cast("PreparedMatcher", matcher).prepare)
+                if getattr(matcher, "can_prepare", False) else None)
 
     def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
         features0, features1 = load(pair.query), load(pair.reference)
         start = time.perf_counter()
         if prepared is not None:
-            pair_matches, match_scores = matcher.match_prepared(prepared.get(pair.query, features0),
-                                                                prepared.get(pair.reference, features1))
+            pair_matches, match_scores = cast("PreparedMatcher", matcher).match_prepared(
+                prepared.get(pair.query, features0), prepared.get(pair.reference, features1))
         else:
             pair_matches, match_scores = matcher(features0, features1)
         return features0, features1, pair_matches, match_scores, time.perf_counter() - start

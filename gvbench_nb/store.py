@@ -61,7 +61,7 @@ _ATTRS_DIGEST = "_digest_attrs"
 def _crc(array: np.ndarray, crc: int) -> int:
     array = np.ascontiguousarray(array)
     crc = zlib.crc32(f"{array.dtype.str}{array.shape}".encode(), crc)
-    return zlib.crc32(memoryview(array).cast("B") if array.nbytes else b"", crc)
+    return zlib.crc32(array.data.cast("B") if array.nbytes else b"", crc)
 
 
 def array_digest(array: np.ndarray) -> str:
@@ -190,7 +190,7 @@ class ShardedStore:
         Only files of this host whose writing process is gone: on a shared folder a
         live writer elsewhere, or here, keeps its file.
         """
-        removed = []
+        removed: list[Path] = []
         if not self.folder.is_dir():
             return removed
         for path in self.folder.glob(f".shard-*.{_HOST}.tmp"):

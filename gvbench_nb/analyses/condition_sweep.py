@@ -98,6 +98,11 @@ def cell_name(condition: str, strength: float) -> str:
     return "clear" if float(strength) == 0.0 else f"{condition}_{strength_text(strength)}"
 
 
+def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
+    width, height = image_size  # anything but two numbers fails here, as make_route's unpacking would
+    return width, height
+
+
 def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> dict[str, Any]:
     return {"generator_version": synthetic.GENERATOR_VERSION, "seed": int(seed),
             "n_frames": int(n_frames), "image_size": [int(image_size[0]), int(image_size[1])],
@@ -126,7 +131,7 @@ def prepare_route(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
                 "Use another out_dir, or delete this one to start afresh.")
     if n_frames < 6:
         raise SweepError(f"n_frames={n_frames}: a route needs at least 6 frames to have true and false pairs")
-    route = synthetic.make_route(seed, n_frames, tuple(image_size))
+    route = synthetic.make_route(seed, n_frames, _width_height(image_size))
     atomic_write_json(params_path, params)
     _render_folder(image_root / REFERENCE_FOLDER, route.render_reference, route.name_width)
 
@@ -471,7 +476,7 @@ def time_render(n_frames: int = 100, image_size: SequenceType[int] = (640, 480),
     import time
 
     started = time.perf_counter()
-    route = synthetic.make_route(seed=seed, n_frames=n_frames, image_size=tuple(image_size))
+    route = synthetic.make_route(seed=seed, n_frames=n_frames, image_size=_width_height(image_size))
     scene_seconds = time.perf_counter() - started
     rows = []
     for name, conditions in (settings or RENDER_SETTINGS).items():

@@ -182,10 +182,10 @@ def parse_options(raw: Mapping[str, Any], where: str = "builder_options") -> Ret
     values["metadata"] = _metadata_spec(values.get("metadata"), where)
     options = RetrievalOptions(**values)
     registry.lookup("descriptor", options.descriptor, retrieval.GLOBAL_DESCRIPTORS, where, error=BuildError)
-    for name, values in options.descriptor_options.items():
-        if name not in retrieval.GLOBAL_DESCRIPTORS or not isinstance(values, Mapping):
+    for name, descriptor_conf in options.descriptor_options.items():
+        if name not in retrieval.GLOBAL_DESCRIPTORS or not isinstance(descriptor_conf, Mapping):
             raise BuildError(f"{where}: descriptor_options maps descriptor names ({', '.join(retrieval.GLOBAL_DESCRIPTORS)}) "
-                             f"to their options, e.g. {{vlad: {{num_words: 64}}}}; got {name!r}: {values!r}")
+                             f"to their options, e.g. {{vlad: {{num_words: 64}}}}; got {name!r}: {descriptor_conf!r}")
     if options.local_features not in LOCAL_FEATURE_METHODS:
         raise BuildError(f"{where}: local_features must be one of {', '.join(LOCAL_FEATURE_METHODS)}, got {options.local_features!r}")
     registry.lookup("label_rule", options.label_rule, retrieval.LABEL_RULES, where, error=BuildError)

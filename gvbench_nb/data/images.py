@@ -165,7 +165,8 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     if conf.get("grayscale", False):
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     if conf.get("normalize_minmax", False):
-        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)
+        # OpenCV's stubs omit that dst may be None (a new array of src's type).
+        image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)  # type: ignore[call-overload]
     long_side = conf.get("model_input_long_side")
     if long_side:
         scale = long_side / max(image.shape[:2])

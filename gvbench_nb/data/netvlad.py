@@ -131,6 +131,8 @@ class NetVLADLayer(nn.Module):
 class NetVLAD(nn.Module):
     """VGG16-NetVLAD with optional whitening: image (B, 3, H, W) RGB 0..255 -> descriptor."""
 
+    average_rgb: torch.Tensor  # a buffer (register_buffer below)
+
     def __init__(
         self,
         num_clusters: int = NUM_CLUSTERS,

@@ -36,9 +36,9 @@ LocalDescriptors = Mapping[str, np.ndarray]
 
 def frame_table(
     names: Sequence[str],
-    frames: Sequence[int] | None = None,
+    frames: Sequence[int] | np.ndarray | None = None,
     positions: Sequence[Sequence[float]] | np.ndarray | None = None,
-    headings: Sequence[float] | None = None,
+    headings: Sequence[float] | np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """A frame table; ``frames`` defaults to the row index (frame-aligned traversals)."""
     table: dict[str, np.ndarray] = {
@@ -566,7 +566,7 @@ def retrieval_recall_at(
         if not 1 <= k <= ranked.shape[1]:
             raise ValueError(f"recall@{k} needs 1 <= k <= {ranked.shape[1]} ranked references")
         found = hits[answerable, :k].any(axis=1)
-        result[f"recall@{k}"] = float(found.mean()) if len(found) else float("nan")
+        result[f"recall@{k}"] = float(found.mean()) if found.size else float("nan")
     result["queries_evaluated"] = int(answerable.sum())
     result["queries_excluded"] = int((~answerable).sum())
     return result

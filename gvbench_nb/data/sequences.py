@@ -174,13 +174,13 @@ def format_pairs(pairs: Iterable[Pair | tuple[str, str, int]]) -> str:
 
 def write_pairs(path: str | os.PathLike[str], pairs: Iterable[Pair | tuple[str, str, int]]) -> Path:
     """Write a GV-Bench pair file atomically (a crash leaves the old file or none)."""
-    pairs = [p if isinstance(p, Pair) else Pair(str(p[0]), str(p[1]), int(p[2])) for p in pairs]
-    for pair in pairs:
+    checked = [p if isinstance(p, Pair) else Pair(str(p[0]), str(p[1]), int(p[2])) for p in pairs]
+    for pair in checked:
         if pair.label not in (0, 1):
             raise PairFileError(f"label must be 0 or 1, got {pair.label!r} for {pair}")
         if any(not part.strip() or "\n" in part or "\r" in part for part in (pair.query, pair.reference)):
             raise PairFileError(f"paths may not be empty or hold line breaks: {pair}")
-    return atomic_write_text(Path(path), format_pairs(pairs))
+    return atomic_write_text(Path(path), format_pairs(checked))
 
 
 @dataclass

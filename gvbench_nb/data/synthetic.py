@@ -35,6 +35,7 @@ from collections.abc import Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field, replace
 from pathlib import Path
+from typing import cast
 
 import cv2
 import numpy as np
@@ -256,7 +257,8 @@ def _random_building(rng: np.random.Generator) -> _Lot:
         texture=str(rng.choice(FACADE_TEXTURES)),
         metres_per_texture=float(rng.uniform(5.0, 9.0)),
         offset=(float(rng.uniform()), float(rng.uniform())),
-        tint=tuple(float(c) for c in rng.uniform(0.85, 1.05) * rng.uniform(0.9, 1.05, size=3)),
+        tint=cast(tuple[float, float, float],  # size=3: one factor per RGB channel
+                  tuple(float(c) for c in rng.uniform(0.85, 1.05) * rng.uniform(0.9, 1.05, size=3))),
         hedge=bool(rng.uniform() < 0.3),
     )
 
@@ -651,7 +653,7 @@ def render_frame(scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np
         rect_id[r0:r1, c0:c1][hit] = k
 
     # Pass 2: texture each visible rectangle (pixels grouped by rectangle).
-    image = np.empty((height * width, 3), dtype=np.float32)
+    image: np.ndarray = np.empty((height * width, 3), dtype=np.float32)
     normals = np.zeros((height * width, 3), dtype=np.float32)
     flat_id = rect_id.ravel()
     order = np.argsort(flat_id, kind="stable")
@@ -662,7 +664,7 @@ def render_frame(scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np
                        + ((rows[:, None] - K[1, 2]) / K[1, 1]) ** 2 + 1.0).ravel()
     world_normal = scene.normal.astype(np.float32)
     focal = float(K[0, 0])
-    for k in ids:
+    for k in ids.tolist():
         pixels = order[bounds[k + 1]:bounds[k + 2]]
         rr, cc = np.divmod(pixels, width)
         if k < 0:
@@ -826,7 +828,7 @@ def _apply_weather(image: np.ndarray, depth: np.ndarray, strength: float,
     image = image * (1 - 0.12 * strength) * transmission + airlight * (1 - transmission)
 
     height, width = depth.shape
-    streaks = np.zeros((height, width), dtype=np.float32)
+    streaks: np.ndarray = np.zeros((height, width), dtype=np.float32)
     slant = rng.uniform(-0.25, 0.25)
     n_streaks = int(1800 * strength)
     starts = rng.uniform([0, -30], [width, height], size=(n_streaks, 2))

@@ -396,6 +396,7 @@ def ground_truth_offsets(table: pd.DataFrame, image_root: str | os.PathLike[str]
     out["frame_offset"] = [_frame_offset(q, r) for q, r in zip(table["query"], table["reference"])]
     poses = read_poses(image_root) if image_root is not None else None
     if poses is not None:
+        assert image_root is not None, "poses are read from an image_root"
         missing = sorted(set(table["query"]).union(table["reference"]) - set(poses.index))
         if missing:
             raise KeyError(f"{Path(image_root) / 'poses.csv'} has no pose for {len(missing)} images, "

@@ -16,7 +16,8 @@ class OrbExtractor:
     """OpenCV ORB (the features ORB-SLAM verifies loop closures with); binary descriptors."""
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
-        self.orb = cv2.ORB_create(
+        # ORB.create is ORB_create; OpenCV's stubs type only the class method.
+        self.orb = cv2.ORB.create(
             nfeatures=conf["max_keypoints"], scaleFactor=conf.get("scale_factor", 1.2), nlevels=conf.get("levels", 8),
             fastThreshold=conf.get("fast_threshold", 20),
         )

@@ -82,7 +82,8 @@ class OpenCVSiftExtractor:
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.conf = conf
         layers = 3
-        self.sift = cv2.SIFT_create(
+        # SIFT.create is SIFT_create; OpenCV's stubs type only the class method.
+        self.sift = cv2.SIFT.create(
             nfeatures=conf["max_keypoints"],
             nOctaveLayers=layers,
             contrastThreshold=conf["peak_threshold"] * layers,
@@ -94,9 +95,9 @@ class OpenCVSiftExtractor:
             return empty_features(128)
         points = np.array([kp.pt for kp in keypoints], dtype=np.float32)
         scores = np.array([kp.response for kp in keypoints], dtype=np.float32)
-        descriptors = descriptors.astype(np.float32)
+        values = descriptors.astype(np.float32)
         if self.conf.get("root_sift", True):
             # RootSIFT: L1-normalise, then square root (Arandjelovic & Zisserman 2012); unit L2 after.
-            descriptors /= np.maximum(np.abs(descriptors).sum(axis=1, keepdims=True), 1e-8)
-            descriptors = np.sqrt(descriptors)
-        return {"keypoints": points, "scores": scores, "descriptors": descriptors}
+            values /= np.maximum(np.abs(values).sum(axis=1, keepdims=True), 1e-8)
+            values = np.sqrt(values)
+        return {"keypoints": points, "scores": scores, "descriptors": values}

@@ -8,9 +8,22 @@ attribute ``dense = True``) takes two prepared images and returns points and sco
 
 from __future__ import annotations
 
+from typing import Any, Protocol
+
 import numpy as np
 
 Matches = tuple[np.ndarray, np.ndarray]
+
+
+class PreparedMatcher(Protocol):
+    """A sparse matcher that, when ``can_prepare``, does its per-image work once per image:
+    ``prepare`` makes one image's state and ``match_prepared`` matches two such states."""
+
+    can_prepare: bool
+
+    def prepare(self, features: dict[str, np.ndarray]) -> Any: ...
+
+    def match_prepared(self, prepared0: Any, prepared1: Any) -> Matches: ...
 
 
 

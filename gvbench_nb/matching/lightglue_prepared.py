@@ -20,11 +20,15 @@ scale/orientation or LAF inputs; ``supports_prepared`` says whether a model qual
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import cast
 
 import torch
 import torch.nn.functional as F
 from kornia.feature.lightglue import (
+    CrossBlock,
     LightGlue,
+    MatchAssignment,
+    TransformerLayer,
     _check_keypoints_normalized,
     filter_matches,
     normalize_keypoints,
@@ -63,13 +67,18 @@ def prepare_image(model: LightGlue, keypoints: torch.Tensor, descriptors: torch.
     _check_keypoints_normalized(keypoints)
     descriptors = model.input_proj(descriptors.detach().contiguous())
     encoding = model.posenc(keypoints.to(model.posenc.Wr.weight.dtype))
-    layer = model.transformers[0]
+    layer = _transformer(model, 0)
     descriptors = layer.self_attn(descriptors, encoding)
     query_key, value = _projections(layer.cross_attn, descriptors)
     return PreparedImage(descriptors, encoding, query_key, value)
 
 
 CROSS_ATTENTIONS = ("kornia", "sdpa")
+
+
+def _transformer(model: LightGlue, index: int) -> TransformerLayer:
+    # kornia fills model.transformers with TransformerLayers; ModuleList types its items Module.
+    return cast(TransformerLayer, model.transformers[index])
 
 
 def _cross_messages(query_key0: torch.Tensor, query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
@@ -93,7 +102,7 @@ def _cross_messages(query_key0: torch.Tensor, query_key1: torch.Tensor, value0: 
     return message0, message1
 
 
-def _cross_block(cross: torch.nn.Module, x0: torch.Tensor, x1: torch.Tensor, query_key0: torch.Tensor,
+def _cross_block(cross: CrossBlock, x0: torch.Tensor, x1: torch.Tensor, query_key0: torch.Tensor,
                  query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
                  attention: str) -> tuple[torch.Tensor, torch.Tensor]:
     """The rest of kornia's ``CrossBlock.forward`` (CPU path, no mask) from its projections."""
@@ -102,7 +111,7 @@ def _cross_block(cross: torch.nn.Module, x0: torch.Tensor, x1: torch.Tensor, que
     return x0 + cross.ffn(torch.cat([x0, message0], -1)), x1 + cross.ffn(torch.cat([x1, message1], -1))
 
 
-def _projections(cross: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def _projections(cross: CrossBlock, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """A cross block's query/key (scaled as kornia's CPU path scales it) and value, by head."""
     query_key, value = cross.to_qk(x), cross.to_v(x)
     query_key, value = (t.unflatten(-1, (cross.heads, -1)).transpose(1, 2) for t in (query_key, value))
@@ -112,14 +121,14 @@ def _projections(cross: torch.nn.Module, x: torch.Tensor) -> tuple[torch.Tensor,
 def _first_cross_block(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
                        attention: str) -> tuple[torch.Tensor, torch.Tensor]:
     """kornia ``CrossBlock.forward`` of layer 0 from prepared projections."""
-    return _cross_block(model.transformers[0].cross_attn, image0.descriptors, image1.descriptors,
+    return _cross_block(_transformer(model, 0).cross_attn, image0.descriptors, image1.descriptors,
                         image0.query_key, image1.query_key, image0.value, image1.value, attention)
 
 
 def _layer(model: LightGlue, index: int, desc0: torch.Tensor, desc1: torch.Tensor, encoding0: torch.Tensor,
            encoding1: torch.Tensor, attention: str) -> tuple[torch.Tensor, torch.Tensor]:
     """kornia ``TransformerLayer.forward`` (no masks); kornia's own module when attention is kornia's."""
-    layer = model.transformers[index]
+    layer = _transformer(model, index)
     if attention == "kornia":
         return layer(desc0, desc1, encoding0, encoding1)
     desc0, desc1 = layer.self_attn(desc0, encoding0), layer.self_attn(desc1, encoding1)
@@ -130,8 +139,10 @@ def _layer(model: LightGlue, index: int, desc0: torch.Tensor, desc1: torch.Tenso
 def _prune(model: LightGlue, layer: int, confidence: torch.Tensor | None, descriptors: torch.Tensor,
            encoding: torch.Tensor, indices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One image's point pruning after ``layer``: the points LightGlue keeps, as kornia keeps them."""
-    matchability = model.log_assignment[layer].get_matchability(descriptors)
-    keep = torch.where(model.get_pruning_mask(confidence, matchability, layer))[1]
+    # kornia fills model.log_assignment with MatchAssignments; ModuleList types its items Module.
+    matchability = cast(MatchAssignment, model.log_assignment[layer]).get_matchability(descriptors)
+    # kornia hints confidences as a Tensor but takes None (no early stopping): prune on matchability alone.
+    keep = torch.where(model.get_pruning_mask(confidence, matchability, layer))[1]  # type: ignore[arg-type]
     return descriptors.index_select(1, keep), encoding.index_select(-2, keep), indices.index_select(1, keep)
 
 
@@ -145,7 +156,7 @@ def match_prepared(model: LightGlue, image0: PreparedImage, image1: PreparedImag
     if cross_attention not in CROSS_ATTENTIONS:
         raise ValueError(f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "
                          f"use one of {', '.join(CROSS_ATTENTIONS)}")
-    if image0.descriptors.device.type == "cuda" and model.transformers[0].cross_attn.flash is not None:
+    if image0.descriptors.device.type == "cuda" and _transformer(model, 0).cross_attn.flash is not None:
         raise ValueError("match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA")
     m, n = image0.num_keypoints, image1.num_keypoints
     device = image0.descriptors.device
@@ -161,6 +172,7 @@ def match_prepared(model: LightGlue, image0: PreparedImage, image1: PreparedImag
         if i == 0:
             desc0, desc1 = _first_cross_block(model, image0, image1, cross_attention)
         else:
+            assert desc0 is not None and desc1 is not None, "layer 0 sets the descriptors"
             desc0, desc1 = _layer(model, i, desc0, desc1, encoding0, encoding1, cross_attention)
         if i == conf.n_layers - 1:
             continue  # no early stopping or adaptive width at the last layer
@@ -173,6 +185,7 @@ def match_prepared(model: LightGlue, image0: PreparedImage, image1: PreparedImag
             desc0, encoding0, ind0 = _prune(model, i, token0, desc0, encoding0, ind0)
         if do_point_pruning and desc1.shape[-2] > pruning_th:
             desc1, encoding1, ind1 = _prune(model, i, token1, desc1, encoding1, ind1)
+    assert desc0 is not None and desc1 is not None, "LightGlue has at least one layer"
     if desc0.shape[-2] == 0 or desc1.shape[-2] == 0:  # pruning removed every point of one image
         return torch.zeros((0, 2), dtype=torch.long, device=device), torch.zeros(0, device=device)
     scores, _ = model.log_assignment[i](desc0, desc1)

@@ -154,6 +154,7 @@ def two_way_l2_matches(
         distance_squared = 2 * (1 - best)
         keep = torch.ones_like(best, dtype=torch.bool)
         if ratio_threshold:
+            assert second is not None, "second bests are computed whenever ratio_threshold is set"
             keep &= distance_squared <= ratio_threshold**2 * (2 * (1 - second))
         if distance_threshold:
             keep &= distance_squared <= distance_threshold**2

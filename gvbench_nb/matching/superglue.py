@@ -21,7 +21,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
 from copy import deepcopy
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import torch
@@ -78,7 +78,8 @@ class KeypointEncoder(nn.Module):
     def __init__(self, feature_dim: int, layers: Sequence[int]) -> None:
         super().__init__()
         self.encoder = mlp([3, *layers, feature_dim])
-        nn.init.constant_(self.encoder[-1].bias, 0.0)
+        # The last layer is a Conv1d with a bias; Module.__getattr__ types it Tensor | Module.
+        nn.init.constant_(cast(Tensor, self.encoder[-1].bias), 0.0)
 
     def forward(self, kpts: Tensor, scores: Tensor) -> Tensor:
         """``kpts`` (B, N, 2) normalised, ``scores`` (B, N) -> (B, D, N)."""
@@ -129,7 +130,8 @@ class AttentionalPropagation(nn.Module):
         super().__init__()
         self.attn = MultiHeadedAttention(num_heads, feature_dim)
         self.mlp = mlp([feature_dim * 2, feature_dim * 2, feature_dim])
-        nn.init.constant_(self.mlp[-1].bias, 0.0)
+        # The last layer is a Conv1d with a bias; Module.__getattr__ types it Tensor | Module.
+        nn.init.constant_(cast(Tensor, self.mlp[-1].bias), 0.0)
 
     def forward(self, x: Tensor, source: Tensor) -> Tensor:
         message = self.attn(x, source, source)
@@ -323,14 +325,14 @@ class SuperGlueMatcher:
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device
-        model_conf = {k: conf[k] for k in ("sinkhorn_iterations", "match_threshold") if k in conf}
+        model_conf: dict[str, Any] = {k: conf[k] for k in ("sinkhorn_iterations", "match_threshold") if k in conf}
         self.model = load_superglue(model_conf, device=device).eval()
 
     @torch.inference_mode()
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
         if len(features0["keypoints"]) == 0 or len(features1["keypoints"]) == 0:
             return empty_matches()
-        data = {}
+        data: dict[str, Tensor | tuple[int, int]] = {}
         for i, features in enumerate((features0, features1)):
             width, height = (int(v) for v in features["image_size"])
             data[f"keypoints{i}"] = torch.from_numpy(features["keypoints"]).float()[None].to(self.device)

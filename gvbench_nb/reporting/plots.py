@@ -67,7 +67,8 @@ def example_pairs(image_root: Path, pairs: pd.DataFrame, n: int = 4, title: str 
 def positives_per_query(pairs: pd.DataFrame, title: str = "") -> plt.Figure:
     counts = pairs.groupby("query")["label"].sum()
     figure, axis = plt.subplots(figsize=(5, 3))
-    axis.hist(counts, bins=np.arange(counts.max() + 2) - 0.5, color="tab:blue")
+    # As a list: matplotlib's stubs take a Sequence of edges, not an array.
+    axis.hist(counts, bins=(np.arange(counts.max() + 2) - 0.5).tolist(), color="tab:blue")
     axis.set(xlabel="true references a query", ylabel="queries", title=title)
     return figure
 

@@ -155,6 +155,7 @@ def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torc
             matches = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
             extracted = began  # a dense matcher's whole cost is matching
         else:
+            assert extractor is not None, "a sparse method has an extractor"
             features0 = _extract_image(sequence.image_root / pair.query, conf["extractor"], extractor)
             features1 = _extract_image(sequence.image_root / pair.reference, conf["extractor"], extractor)
             extracted = time.perf_counter()
@@ -350,7 +351,7 @@ def scaling_table(sequence: Sequence, method: str, profile: str, limits: tuple[i
         extract = sum(image_seconds[name] for name in prefix.images)
         extract_per_pair = sum(image_seconds[p.query] + image_seconds[p.reference] for p in prefix.pairs)
         match, verify = float(pairs["match_seconds"].sum()), float(pairs["verify_seconds"].sum())
-        row = {
+        row: dict[str, Any] = {
             "sequence": sequence.name, "method": method, "profile": profile, "n_pairs": limit,
             "n_images": len(prefix.images), "uses_per_image": 2 * limit / len(prefix.images),
             "extract_seconds": extract, "match_seconds": match, "verify_seconds": verify,

@@ -104,7 +104,7 @@ from pathlib import Path
 
 spec = json.loads(Path(sys.argv[1]).read_text())
 from gvbench_nb import pipeline, store
-from gvbench_nb.sequences import Pair, Sequence
+from gvbench_nb.data.sequences import Pair, Sequence
 
 def one_thread(n_threads=None):  # as the tests' in-process runs (speed only)
     import cv2, torch

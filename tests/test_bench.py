@@ -34,6 +34,7 @@ def day_pairs(shared_data: Path) -> Sequence:
     return Sequence("gp_bench_day", shared_data / "gardens_point", pairs)
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize("method", ["sift-nn", "disk-lg"])  # disk-lg: ours prepares LightGlue once per image
 def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path, method):
@@ -145,6 +146,7 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
     assert row["source"] == "run" and row["cached_hours"] == pytest.approx((720 * 0.4 + 3600 * 0.25) / 3600)
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_official_sizes_count_unique_images(shared_data):
     sizes = bench.official_sequence_sizes(shared_data / "gvbench_gt").set_index("sequence")

@@ -203,6 +203,7 @@ def test_breaking_strength_exactly_at_half_is_not_below() -> None:
     assert result.loc[0, "breaking_strength"] == pytest.approx(0.5)
 
 
+@pytest.mark.slow
 def test_render_timing_covers_clear_each_condition_and_all_three(tmp_path):
     from gvbench_nb.speed import bench
 

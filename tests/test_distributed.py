@@ -49,6 +49,7 @@ def unsharded(shared_data, tmp_path_factory) -> pd.DataFrame:
     return pipeline.load_pairs_table(Path(params["output_dir"]), METHOD)
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_shards_run_by_hand_then_merged_equal_the_unsharded_run(shared_data, unsharded, tmp_path):
     params = make_params(shared_data, tmp_path / "sharded")
@@ -63,6 +64,7 @@ def test_shards_run_by_hand_then_merged_equal_the_unsharded_run(shared_data, uns
     assert run["n_pairs"] == 12 and run["this_run"]["sharded"]
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_dask_local_cluster_run_equals_the_unsharded_run(shared_data, unsharded, tmp_path):
     params = make_params(shared_data, tmp_path / "dask")

@@ -249,6 +249,7 @@ def one_thread():
     torch.set_num_threads(old)
 
 
+@pytest.mark.slow
 def test_training_lowers_loss_and_is_deterministic(one_thread):
     x, y = toy_set()
 

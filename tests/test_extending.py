@@ -34,6 +34,7 @@ def tiny_sample(tmp_path_factory: pytest.TempPathFactory) -> Sequence:
     return Sequence("tiny", root, read_pairs(root / "pairs.txt")).limited(12)
 
 
+@pytest.mark.slow
 def test_a_matcher_from_one_file_runs_end_to_end(example_method: str, tiny_sample: Sequence, tmp_path: Path) -> None:
     out, cache = tmp_path / "out", tmp_path / "cache"
     table = pipeline.run_method(tiny_sample, example_method, "repository", out, cache, device="cpu", progress=False)

@@ -215,6 +215,7 @@ def test_matching_reads_the_float16_cache(tmp_path):
 
 
 # ---------------------------------------------------------- real-data parity --
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_paper_sift_keypoint_counts_equal_pycolmap_with_hloc_settings_on_gardens_point(shared_data, tmp_path):
     root = shared_data / "gardens_point"

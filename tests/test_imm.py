@@ -95,6 +95,7 @@ def test_missing_vismatch_fails_before_any_work_saying_what_to_install(no_vismat
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.slow
 def test_methods_command_says_how_to_enable_imm_without_vismatch():
     if HAVE_VISMATCH:
         pytest.skip("vismatch is installed here; the listing is checked by test_methods_command_lists_vismatch_matchers")

@@ -59,6 +59,7 @@ def test_stage_notebook_setup_imports_no_torch_kornia_sklearn_or_seaborn():
     assert [m for m in found["imported"] if m != "matplotlib"] == []
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("env", [
     {"TORCH_HOME": "/tmp/a torch home"},
     {"XDG_CACHE_HOME": "/tmp/xdg cache"},

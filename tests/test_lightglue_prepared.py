@@ -38,6 +38,7 @@ def disk_features(shared_data):
     return features_of(shared_data, "disk-lg")
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize("options", [{}, {"depth_confidence": -1, "width_confidence": -1}],
                          ids=["paper-early-stop-and-pruning", "all-layers-no-pruning"])
@@ -57,6 +58,7 @@ def test_prepared_matches_equal_kornia_bit_for_bit(disk_features, options):
     assert max(counts) > 100 and min(counts) < max(counts) / 2  # true and false pairs, not all alike
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize("method", ["aliked-lg", "xfeat-lg"])  # other weights, widths and depths
 def test_prepared_matches_equal_kornia_for_other_lightglue_weights(shared_data, method):

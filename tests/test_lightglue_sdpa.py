@@ -37,6 +37,7 @@ def test_cross_messages_equal_written_out_attention(attention):
         torch.testing.assert_close(message, reference, rtol=1e-5, atol=1e-5)
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_sdpa_matches_agree_with_kornia_on_real_pairs(xfeat_features):
     conf, features = xfeat_features

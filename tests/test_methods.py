@@ -82,6 +82,7 @@ def shared_cache(tmp_path_factory) -> Path:
     return tmp_path_factory.mktemp("cache")
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize("method", [m for m in methods.METHODS if not methods.required_checkpoints(m)
                                     or all(weights.is_present(c) for c in methods.required_checkpoints(m))])

@@ -88,6 +88,7 @@ def test_prefetch_preserves_order_and_surfaces_errors_in_place():
     assert isinstance(results[3][1], OSError)
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
     output = tmp_path / "gp"

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from collections.abc import Callable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
@@ -48,9 +50,54 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
         print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
 
 
-def command_run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+def execute_run_notebooks(jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path,
+                          compute: Callable[[str], None]) -> None:
+    """Execute a run's notebooks: 01_sequence at once; each method's 02_verify once
+    ``compute(method)`` has filled its caches here (torch is imported once for all
+    methods; the notebook's own run then finds every image and pair cached), beside the
+    other notebooks; 03_evaluate after all of them.
 
+    A method whose computation fails here is left to its notebook, which resumes from the
+    caches and, failing the same way, keeps the traceback; the methods after it wait.
+    """
+    from concurrent.futures import Future, ThreadPoolExecutor
+
+    *independent, evaluate = jobs
+
+    def execute(job: tuple[str, str, dict[str, Any]]) -> None:
+        # Lines, not a bar: notebooks overlap each other and the stages' own progress bars.
+        source, target, parameters = job
+        print(f"executing {source} -> {output_dir / target}", flush=True)
+        execute_notebook(source, output_dir / target, parameters)
+
+    def finish(futures: list[Future]) -> None:
+        for future in futures:  # in job order: the first failing notebook's error is raised
+            future.result()
+        futures.clear()
+
+    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
+        futures = []
+        try:
+            for job in independent:
+                method = job[2].get("method")
+                if any(f.done() and f.exception() is not None for f in futures):
+                    finish(futures)  # a notebook failed: raise its error before more work
+                if method is not None:
+                    try:
+                        compute(method)
+                    except Exception:
+                        finish(futures)  # earlier notebooks' errors first, as when run one by one
+                        execute(job)  # raises this method's error from its notebook
+                        continue
+                futures.append(pool.submit(execute, job))
+            finish(futures)
+        finally:
+            for future in futures:
+                future.cancel()
+    execute(evaluate)
+
+
+def command_run(args: argparse.Namespace) -> int:
     from gvbench_nb import config, methods, pipeline, weights
     from gvbench_nb.speed import distributed
 
@@ -92,9 +139,14 @@ def command_run(args: argparse.Namespace) -> int:
     print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
           f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir} "
           f"(params as run: {resolved})")
-    for source, target, extra in tqdm(jobs, desc="notebooks", unit="nb"):
-        tqdm.write(f"executing {source} -> {output_dir / target}")
-        execute_notebook(source, output_dir / target, extra)
+    # The notebooks' params (the resolved file) make the sequence they run, so the caches are filled for it.
+    run_params = config.load_params(resolved)
+    run_sequence = config.prepare_sequence(run_params)
+
+    def compute(method: str) -> None:
+        pipeline.compute_method_of_params(run_params, run_sequence, method)
+
+    execute_run_notebooks(jobs, output_dir, compute)
     import pandas as pd
 
     results = pd.read_csv(output_dir / "results.csv")

@@ -14,7 +14,10 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
 
     output_path.parent.mkdir(parents=True, exist_ok=True)
     # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
+    # The kernel starts in notebooks/ through nbclient's resources rather than papermill's
+    # cwd, which changes this whole process's folder and is unsafe for notebooks run in threads.
     papermill.execute_notebook(
-        str(NOTEBOOKS_DIR / name), str(output_path), parameters=parameters, cwd=str(NOTEBOOKS_DIR),
+        str(NOTEBOOKS_DIR / name), str(output_path), parameters=parameters,
+        resources={"metadata": {"path": str(NOTEBOOKS_DIR)}},
         progress_bar=False, stderr_file=sys.stderr, kernel_name="python3",
     )

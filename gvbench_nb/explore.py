@@ -51,7 +51,8 @@ def choose_pair(tables: dict[str, pd.DataFrame], pick: str = "index", pair_index
         return int(pair_index)
     method = pick_method or next(iter(tables))
     if method not in tables:
-        raise ValueError(f"pick_method {method!r} is not among the methods shown ({', '.join(tables)}); add it to methods")
+        raise ValueError(f"pick_method {method!r} is not among the methods shown ({', '.join(tables)}); "
+                         "add it to methods")
     ranked = (analysis.top_false_positives if pick == "false_positive" else analysis.top_false_negatives)(
         tables[method], int(pick_rank))
     if len(ranked) < int(pick_rank):
@@ -67,7 +68,8 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
     rows = []
     for method, table in tables.items():
         if not 0 <= pair_index < len(table):
-            raise ValueError(f"pair_index {pair_index} is outside {method}'s {len(table)} pairs; pick 0 to {len(table) - 1}")
+            raise ValueError(f"pair_index {pair_index} is outside {method}'s {len(table)} pairs; "
+                             f"pick 0 to {len(table) - 1}")
         row = table.iloc[pair_index]
         false_scores = table.loc[table["label"] == 0, "score"]
         max_false = float(false_scores.max()) if len(false_scores) else float("-inf")

@@ -24,8 +24,9 @@ def expected_rank(table: pd.DataFrame, index: int) -> int:
 def tiny_run(tmp_path_factory) -> Path:
     """sift-nn and orb-nn on the synthetic route, 6 frames of 160x120 (36 pairs, 4 false)."""
     folder = tmp_path_factory.mktemp("explore")
-    params = {"sequence": "tiny", "pairs_builder": "sample", "builder_options": {"n_frames": 6, "image_size": [160, 120]},
-              "image_root": str(folder / "data"), "pairs": str(folder / "data" / "pairs.txt"), "methods": METHODS,
+    params = {"sequence": "tiny", "pairs_builder": "sample",
+              "builder_options": {"n_frames": 6, "image_size": [160, 120]}, "image_root": str(folder / "data"),
+              "pairs": str(folder / "data" / "pairs.txt"), "methods": METHODS,
               "profile": "repository", "output_dir": str(folder / "out"), "seed": 0}
     path = folder / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))

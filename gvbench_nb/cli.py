@@ -381,9 +381,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = commands.add_parser(
         "run", help="run methods on a sequence through the notebooks (papermill) and evaluate",
-        description="Execute notebooks/01_sequence, 02_verify (once a method) and 03_evaluate with papermill "
-                    "into the params' output_dir. Features are extracted once per unique image into the cache; "
-                    "an interrupted run resumes where it stopped.",
+        description="Extract and match every method, then execute notebooks/01_sequence, 02_verify (once a "
+                    "method, finding its work cached) and 03_evaluate with papermill into the params' output_dir. "
+                    "Features are extracted once per unique image into the cache; an interrupted run resumes "
+                    "where it stopped.",
     )
     run.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
     run.add_argument("--methods", help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "

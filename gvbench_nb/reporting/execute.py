@@ -10,6 +10,10 @@ NOTEBOOKS_DIR = Path(__file__).resolve().parents[2] / "notebooks"
 
 
 def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
+    # jsonschema (under papermill's nbformat) compiles an IRI grammar at import when
+    # rfc3987-syntax is installed: more CPU than the rest of papermill's import, for a
+    # format no notebook schema uses. Without it jsonschema simply lacks that checker.
+    sys.modules.setdefault("rfc3987_syntax", None)  # type: ignore[arg-type]
     import papermill
 
     output_path.parent.mkdir(parents=True, exist_ok=True)

@@ -791,7 +791,8 @@ def compute_method(
     extracted = time.perf_counter()
     matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers)
     finished = time.perf_counter()
-    work = {"identity": _work_identity(sequence, conf, seed, device), "environment": environment_info(resolved_device),
+    work = {"identity": _work_identity(sequence, conf, seed, device), "pid": os.getpid(),
+            "environment": environment_info(resolved_device),
             "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
                          "extract_wall_seconds": extracted - started,
                          "match_verify_wall_seconds": finished - extracted}}
@@ -800,11 +801,16 @@ def compute_method(
 
 
 def _read_work_record(folder: Path, identity: dict[str, Any]) -> dict[str, Any] | None:
+    """The work record of this sequence, conf, seed and device request, written by this
+    process or its parent (the ``run`` whose notebook this is); a record left by a run that
+    stopped before its notebook is not this run's work."""
     try:
         work = json.loads((folder / WORK_RECORD).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
-    return work if work.get("identity") == identity else None
+    if work.get("identity") != identity or work.get("pid") not in (os.getpid(), os.getppid()):
+        return None
+    return work
 
 
 def run_method(

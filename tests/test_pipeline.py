@@ -160,10 +160,19 @@ def test_run_method_after_compute_method_records_that_work_without_torch(tmp_pat
     assert len(again) == 6
 
 
-def test_a_work_record_of_another_device_request_is_not_used(tmp_path):
+def test_a_work_record_of_another_device_request_or_process_is_not_used(tmp_path):
     sequence = tiny_sequence(tmp_path / "data")
     out, cache = tmp_path / "out", tmp_path / "cache"
+    record = out / "orb-nn" / pipeline.WORK_RECORD
     pipeline.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
     pipeline.run_method(sequence, "orb-nn", "repository", out, cache, device="auto", progress=False)
-    run = pd.read_json(out / "orb-nn" / "run.json", typ="series")
+    run = json.loads((out / "orb-nn" / "run.json").read_text())
     assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}  # its own (cached) pass
+
+    # Left by a run that stopped before its notebook: not this run's work.
+    work = pipeline.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    record.write_text(json.dumps({**json.loads(record.read_text()), "pid": -1, "this_run": {"stale": True}}))
+    pipeline.run_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    run = json.loads((out / "orb-nn" / "run.json").read_text())
+    assert run["this_run"]["extraction"] == work["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
+    assert "stale" not in run["this_run"]

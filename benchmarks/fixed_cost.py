@@ -78,7 +78,7 @@ def main() -> None:
               f"after {run['after_notebooks']:.1f}s\n  {parts}", flush=True)
         if run["rc"] != 0:
             print(run["stderr"])
-    median = lambda key: statistics.median(r[key] for r in runs)  # noqa: E731
+    median = lambda key: statistics.median(r[key] for r in runs)
     print(f"median of {len(runs)}: wall {median('wall'):.1f}s, cpu {median('cpu'):.1f}s, "
           f"before notebooks {median('before_notebooks'):.1f}s, notebooks {median('notebooks_wall'):.1f}s, "
           f"after {median('after_notebooks'):.1f}s (load average at the end {os.getloadavg()[0]:.1f} "

@@ -76,7 +76,7 @@ def execute_run_notebooks(jobs: list[tuple[str, str, dict[str, Any]]], output_di
         futures.clear()
 
     with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
-        futures = []
+        futures: list[Future] = []
         try:
             for job in independent:
                 method = job[2].get("method")

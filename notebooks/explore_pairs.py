@@ -5,6 +5,8 @@
 #     text_representation:
 #       extension: .py
 #       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
 #   kernelspec:
 #     display_name: Python 3
 #     language: python
@@ -39,10 +41,12 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
-from IPython.display import Markdown, display
+from IPython.display import display
 
-from gvbench_nb import analysis, config, explore, plots
-from gvbench_nb.images import read_image
+from gvbench_nb import config
+from gvbench_nb.data.images import read_image
+from gvbench_nb.evaluation import analysis, explore
+from gvbench_nb.reporting import plots
 
 overrides = {"output_dir": output_dir} if output_dir else {}
 if ensure_methods:  # a fresh clone has no results yet: run what is missing, as the analysis notebooks do

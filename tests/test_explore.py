@@ -9,7 +9,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import config, explore, pipeline
+from gvbench_nb import config, pipeline
+from gvbench_nb.evaluation import explore
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 METHODS = ["sift-nn", "orb-nn"]

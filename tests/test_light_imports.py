@@ -54,7 +54,7 @@ def stage_notebook_imports() -> str:
 
 @pytest.mark.slow
 def test_stage_notebook_setup_imports_no_torch_kornia_sklearn_or_seaborn():
-    # What every stage notebook imports before its work; only 02_verify's run then imports the models.
+    # What every stage notebook imports before its work; only a 02_verify with work to do then imports the models.
     imports = stage_notebook_imports()
     assert "gvbench_nb" in imports
     found = modules_after(f"{imports}\nOUT = None")

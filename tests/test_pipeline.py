@@ -13,7 +13,7 @@ import pytest
 from helpers import check_stage_outputs
 
 from gvbench_nb import config, methods, pipeline
-from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.data.sequences import Pair, Sequence, read_pairs
 from gvbench_nb.store import ShardedStore
 
 PAIRS_COLUMNS = {"query", "reference", "label", "num_matches", "num_inliers", "score",
@@ -123,10 +123,10 @@ def test_cli_reports_bad_params_clearly(tmp_path):
 
 
 def tiny_sequence(root: Path) -> Sequence:
-    from gvbench_nb import synthetic
+    from gvbench_nb.data import synthetic
 
     synthetic.generate_sample(root, n_frames=6, image_size=(160, 120))
-    return Sequence("tiny", root, config.read_pairs(root / "pairs.txt")[:6])
+    return Sequence("tiny", root, read_pairs(root / "pairs.txt")[:6])
 
 
 def test_run_method_after_compute_method_records_that_work_without_torch(tmp_path):
@@ -137,9 +137,9 @@ def test_run_method_after_compute_method_records_that_work_without_torch(tmp_pat
     assert work["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
     assert not (out / "sift-nn" / "pairs.csv").exists()  # only run_method writes results
     code = ("import sys, json; from pathlib import Path\n"
-            "from gvbench_nb import config, pipeline\nfrom gvbench_nb.sequences import Sequence\n"
+            "from gvbench_nb import pipeline\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
             f"root = Path({str(tmp_path / 'data')!r})\n"
-            "sequence = Sequence('tiny', root, config.read_pairs(root / 'pairs.txt')[:6])\n"
+            "sequence = Sequence('tiny', root, read_pairs(root / 'pairs.txt')[:6])\n"
             f"pipeline.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
             "device='cpu', progress=False)\n"
             "print(json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))")

@@ -239,7 +239,9 @@ def test_image_root_given_on_the_command_line_reaches_the_real_notebooks(root, t
 
 
 def test_the_stage_notebooks_load_the_params_file_they_are_given():
-    notebooks = Path(cli.NOTEBOOKS_DIR)
+    from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
+
+    notebooks = Path(NOTEBOOKS_DIR)
     for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
         source = "\n".join("".join(cell["source"]) for cell in json.loads((notebooks / name).read_text())["cells"])
         assert re.search(r"\b(config\.load_params|notebook\.load_sequence)\(\s*params_file\b", source), name

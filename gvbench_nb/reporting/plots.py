@@ -6,8 +6,8 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 import numpy as np
-from matplotlib.colors import to_rgba
 import pandas as pd
+from matplotlib.colors import to_rgba
 
 from gvbench_nb.data.images import read_image
 from gvbench_nb.evaluation.metrics import max_recall_at_full_precision, pr_curve
@@ -44,8 +44,8 @@ def inlier_histogram(table: pd.DataFrame, title: str = "") -> plt.Figure:
     for label, name, colour in ((1, "true loop closure", "tab:blue"), (0, "false", "tab:orange")):
         inliers = table.loc[table["label"] == label, "num_inliers"]
         if len(inliers):
-            axis.hist(inliers, bins=bins, histtype="stepfilled", facecolor=to_rgba(colour, 0.25), edgecolor=colour,
-                      label=name)
+            axis.hist(inliers, bins=bins.tolist(), histtype="stepfilled", facecolor=to_rgba(colour, 0.25),
+                      edgecolor=colour, label=name)
     axis.set(xlabel="RANSAC inliers (score)", ylabel="Count", title=title)
     axis.legend(title="pair")
     return figure

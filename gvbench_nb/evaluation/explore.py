@@ -8,12 +8,13 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
+from collections.abc import Sequence as SequenceType
 from pathlib import Path
-from typing import Sequence as SequenceType
 
 import pandas as pd
 
-from . import analysis, pipeline
+from gvbench_nb import pipeline
+from gvbench_nb.evaluation import analysis
 
 PICKS = ("index", "false_positive", "false_negative")
 VIEW_COLUMNS = ["method", "pair_index", "query", "reference", "label", "num_matches", "num_inliers", "score",

@@ -52,17 +52,17 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
 
 def execute_run_notebooks(jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path,
                           compute: Callable[[str], None]) -> None:
-    """Execute a run's notebooks: 01_sequence at once; each method's 02_verify once
-    ``compute(method)`` has filled its caches here (torch is imported once for all
-    methods; the notebook's own run then finds every image and pair cached), beside the
-    other notebooks; 03_evaluate after all of them.
+    """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
+    01_sequence at once; each method's 02_verify once ``compute(method)`` has filled its
+    caches here (torch is imported once for all methods; the notebook's own run then finds
+    every image and pair cached); 03_evaluate once every 02_verify has finished (it reads
+    their pairs.csv only), while 01_sequence may still run.
 
-    A method whose computation fails here is left to its notebook, which resumes from the
-    caches and, failing the same way, keeps the traceback; the methods after it wait.
+    Errors are raised in job order, as when the notebooks ran one after another. A method
+    whose computation fails here is left to its notebook, which resumes from the caches and,
+    failing the same way, keeps the traceback; the methods after it are not started.
     """
-    from concurrent.futures import Future, ThreadPoolExecutor
-
-    *independent, evaluate = jobs
+    from concurrent.futures import Future, ThreadPoolExecutor, wait
 
     def execute(job: tuple[str, str, dict[str, Any]]) -> None:
         # Lines, not a bar: notebooks overlap each other and the stages' own progress bars.
@@ -70,31 +70,39 @@ def execute_run_notebooks(jobs: list[tuple[str, str, dict[str, Any]]], output_di
         print(f"executing {source} -> {output_dir / target}", flush=True)
         execute_notebook(source, output_dir / target, parameters)
 
+    def failed(futures: list[Future]) -> bool:
+        return any(future.done() and future.exception() is not None for future in futures)
+
     def finish(futures: list[Future]) -> None:
         for future in futures:  # in job order: the first failing notebook's error is raised
             future.result()
-        futures.clear()
 
     with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
-        futures: list[Future] = []
+        started: list[Future] = []
+        verifying: list[Future] = []
         try:
-            for job in independent:
+            for job in jobs[:-1]:
+                if failed(started):
+                    finish(started)  # a notebook failed: raise its error before more work
                 method = job[2].get("method")
-                if any(f.done() and f.exception() is not None for f in futures):
-                    finish(futures)  # a notebook failed: raise its error before more work
                 if method is not None:
                     try:
                         compute(method)
                     except Exception:
-                        finish(futures)  # earlier notebooks' errors first, as when run one by one
+                        finish(started)  # earlier notebooks' errors first
                         execute(job)  # raises this method's error from its notebook
                         continue
-                futures.append(pool.submit(execute, job))
-            finish(futures)
+                started.append(pool.submit(execute, job))
+                if method is not None:
+                    verifying.append(started[-1])
+            wait(verifying)
+            if failed(started):
+                finish(started)
+            started.append(pool.submit(execute, jobs[-1]))
+            finish(started)
         finally:
-            for future in futures:
+            for future in started:
                 future.cancel()
-    execute(evaluate)
 
 
 def command_run(args: argparse.Namespace) -> int:

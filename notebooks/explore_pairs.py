@@ -19,22 +19,10 @@
 # false negative) and the methods to compare; see each method's matches and RANSAC inliers on
 # that pair, its score (`num_inliers`) and the rank of that score among the method's scores.
 # Everything is read from what the runs wrote: `<output_dir>/<method>/pairs.csv`, the match
-# stores and the feature cache; nothing is matched again. With a live kernel and ipywidgets
-# installed, controls at the end re-draw everything for another pair; otherwise (papermill,
-# nbmake) set the parameters below.
-
-# %% tags=["parameters"]
-params_file = "../params/sample.yaml"  # the sequence: a params YAML whose output_dir holds the runs
-methods = ["sift-nn", "orb-nn"]  # methods to compare (None: every method with results)
-pick = "false_positive"  # 'index' (pair_index below), 'false_positive' or 'false_negative' (of pick_method)
-pair_index = 0  # the pair shown when pick is 'index' (row of pairs.csv)
-pick_method = None  # whose false positives / negatives are ranked (None: the first of methods)
-pick_rank = 1  # 1: the top one, 2: the next, ...
-ensure_methods = ["sift-nn", "orb-nn"]  # run these first where their pairs.csv is missing ([]: run nothing)
-output_dir = None  # the runs' folder; default: the params file's output_dir
-cache_dir = None  # feature cache; default: <output_dir>/../cache
-figures_dir = None  # where the table and figures are written; default: <output_dir>/explore
-controls = "auto"  # 'auto' (widgets in a live kernel with ipywidgets), 'widgets' or 'none'
+# stores and the feature cache; nothing is matched again (unless `compute_missing` runs a
+# method that has no results yet). With a live kernel and ipywidgets installed, controls at
+# the end re-draw everything for another pair; otherwise (papermill, nbmake) set the
+# parameters below.
 
 # %%
 from pathlib import Path
@@ -43,16 +31,28 @@ import matplotlib.pyplot as plt
 import numpy as np
 from IPython.display import display
 
-from gvbench_nb import config
+from gvbench_nb import notebook
 from gvbench_nb.data.images import read_image
 from gvbench_nb.evaluation import analysis, explore
 from gvbench_nb.reporting import plots
 
-overrides = {"output_dir": output_dir} if output_dir else {}
-if ensure_methods:  # a fresh clone has no results yet: run what is missing, as the analysis notebooks do
-    analysis.ensure_results(params_file, ensure_methods, **overrides)
-params = config.load_params(params_file, **overrides)
-out = Path(params["output_dir"])
+# %% tags=["parameters"]
+params_file = "../params/sample.yaml"  # the sequence: a params YAML whose output_dir holds the runs
+methods = ["sift-nn", "orb-nn"]  # methods to compare
+pick = "false_positive"  # 'index' (pair_index below), 'false_positive' or 'false_negative' (of pick_method)
+pair_index = 0  # the pair shown when pick is 'index' (row of pairs.csv)
+pick_method = None  # whose false positives / negatives are ranked (None: the first of methods)
+pick_rank = 1  # 1: the top one, 2: the next, ...
+# True: run the methods whose pairs.csv is missing; False: an error naming the command that makes them
+compute_missing = False
+output_dir = None  # the runs' folder; default: the params file's output_dir
+cache_dir = None  # feature cache; default: <output_dir>/../cache
+figures_dir = None  # where the table and figures are written; default: <output_dir>/explore
+controls = "auto"  # 'auto' (widgets in a live kernel with ipywidgets), 'widgets' or 'none'
+
+# %%
+out = notebook.require_results(params_file, methods, compute_missing=compute_missing, evaluate=False,
+                               output_dir=output_dir)
 figures = Path(figures_dir) if figures_dir else out / "explore"
 figures.mkdir(parents=True, exist_ok=True)
 tables = explore.load_tables(out, methods)

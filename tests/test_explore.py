@@ -75,7 +75,7 @@ def test_explore_notebook_shows_the_scores_and_ranks_of_pairs_csv(tiny_run, tmp_
     papermill.execute_notebook(
         str(NOTEBOOKS / "explore_pairs.ipynb"), str(executed), cwd=str(NOTEBOOKS), kernel_name="python3",
         progress_bar=False, parameters={"params_file": str(tiny_run), "methods": METHODS, "pick": "false_positive",
-                                        "pick_method": "orb-nn", "ensure_methods": [], "figures_dir": str(figures)})
+                                        "pick_method": "orb-nn", "figures_dir": str(figures)})
     shown = pd.read_csv(figures / "explore_pair.csv")
     out = tiny_run.parent / "out"
     tables = {m: pd.read_csv(out / m / "pairs.csv") for m in METHODS}

@@ -54,7 +54,7 @@ def one_run(params: str, methods: str, limit: int, keep: Path | None) -> dict[st
     notebooks = {p.stem: notebook_times(p) for p in sorted(out.glob("0*.ipynb"))}
     first = min(n["start"] for n in notebooks.values()) if notebooks else ended
     last = max(n["end"] for n in notebooks.values()) if notebooks else ended
-    return {"wall": ended - started, "cpu": cpu, "rc": done.returncode, "before_notebooks": first - started,
+    return {"started": started, "wall": ended - started, "cpu": cpu, "rc": done.returncode, "before_notebooks": first - started,
             "notebooks_wall": last - first, "after_notebooks": ended - last, "notebooks": notebooks,
             "stderr": done.stderr[-2000:]}
 
@@ -71,8 +71,10 @@ def main() -> None:
     for repeat in range(args.repeats):
         run = one_run(args.params, args.methods, args.limit, args.keep)
         runs.append(run)
-        parts = "  ".join(f"{name} {n['duration']:.1f}s (kernel+papermill {n['duration'] - n['cells']:.1f}, "
-                          f"setup cell {n['setup']:.1f})" for name, n in run["notebooks"].items())
+        # Each notebook's seconds, its kernel and papermill's share, and when it ran (from the command's start).
+        parts = "\n  ".join(f"{name} {n['duration']:.1f}s (kernel+papermill {n['duration'] - n['cells']:.1f}, "
+                             f"setup cell {n['setup']:.1f}; from {n['start'] - run['started']:.1f} "
+                             f"to {n['end'] - run['started']:.1f})" for name, n in run["notebooks"].items())
         print(f"run {repeat + 1}: wall {run['wall']:.1f}s cpu {run['cpu']:.1f}s rc {run['rc']}  "
               f"before notebooks {run['before_notebooks']:.1f}s  notebooks {run['notebooks_wall']:.1f}s  "
               f"after {run['after_notebooks']:.1f}s\n  {parts}", flush=True)

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from collections.abc import Callable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
@@ -48,9 +50,62 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
         print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
 
 
-def command_run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
+def execute_run_notebooks(jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path,
+                          compute: Callable[[str], None]) -> None:
+    """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
+    01_sequence at once; each method's 02_verify once ``compute(method)`` has filled its
+    caches here (torch is imported once for all methods; the notebook's own run then finds
+    every image and pair cached); 03_evaluate once every 02_verify has finished (it reads
+    their pairs.csv only), while 01_sequence may still run.
 
+    Errors are raised in job order, as when the notebooks ran one after another. A method
+    whose computation fails here is left to its notebook, which resumes from the caches and,
+    failing the same way, keeps the traceback; the methods after it are not started.
+    """
+    from concurrent.futures import Future, ThreadPoolExecutor, wait
+
+    def execute(job: tuple[str, str, dict[str, Any]]) -> None:
+        # Lines, not a bar: notebooks overlap each other and the stages' own progress bars.
+        source, target, parameters = job
+        print(f"executing {source} -> {output_dir / target}", flush=True)
+        execute_notebook(source, output_dir / target, parameters)
+
+    def failed(futures: list[Future]) -> bool:
+        return any(future.done() and future.exception() is not None for future in futures)
+
+    def finish(futures: list[Future]) -> None:
+        for future in futures:  # in job order: the first failing notebook's error is raised
+            future.result()
+
+    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
+        started: list[Future] = []
+        verifying: list[Future] = []
+        try:
+            for job in jobs[:-1]:
+                if failed(started):
+                    finish(started)  # a notebook failed: raise its error before more work
+                method = job[2].get("method")
+                if method is not None:
+                    try:
+                        compute(method)
+                    except Exception:
+                        finish(started)  # earlier notebooks' errors first
+                        execute(job)  # raises this method's error from its notebook
+                        continue
+                started.append(pool.submit(execute, job))
+                if method is not None:
+                    verifying.append(started[-1])
+            wait(verifying)
+            if failed(started):
+                finish(started)
+            started.append(pool.submit(execute, jobs[-1]))
+            finish(started)
+        finally:
+            for future in started:
+                future.cancel()
+
+
+def command_run(args: argparse.Namespace) -> int:
     from gvbench_nb import config, methods, pipeline, weights
     from gvbench_nb.speed import distributed
 
@@ -92,9 +147,14 @@ def command_run(args: argparse.Namespace) -> int:
     print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
           f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir} "
           f"(params as run: {resolved})")
-    for source, target, extra in tqdm(jobs, desc="notebooks", unit="nb"):
-        tqdm.write(f"executing {source} -> {output_dir / target}")
-        execute_notebook(source, output_dir / target, extra)
+    # The notebooks' params (the resolved file) make the sequence they run, so the caches are filled for it.
+    run_params = config.load_params(resolved)
+    run_sequence = config.prepare_sequence(run_params)
+
+    def compute(method: str) -> None:
+        pipeline.compute_method_of_params(run_params, run_sequence, method)
+
+    execute_run_notebooks(jobs, output_dir, compute)
     import pandas as pd
 
     results = pd.read_csv(output_dir / "results.csv")
@@ -329,9 +389,10 @@ def build_parser() -> argparse.ArgumentParser:
 
     run = commands.add_parser(
         "run", help="run methods on a sequence through the notebooks (papermill) and evaluate",
-        description="Execute notebooks/01_sequence, 02_verify (once a method) and 03_evaluate with papermill "
-                    "into the params' output_dir. Features are extracted once per unique image into the cache; "
-                    "an interrupted run resumes where it stopped.",
+        description="Extract and match every method, then execute notebooks/01_sequence, 02_verify (once a "
+                    "method, finding its work cached) and 03_evaluate with papermill into the params' output_dir. "
+                    "Features are extracted once per unique image into the cache; an interrupted run resumes "
+                    "where it stopped.",
     )
     run.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
     run.add_argument("--methods", help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "

@@ -12,6 +12,7 @@ import hashlib
 import json
 import os
 import platform
+import sys
 import threading
 import time
 import zlib
@@ -709,18 +710,107 @@ def cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
+def _version(module: str) -> str:
+    """A module's ``__version__``, without importing it when it is not loaded yet (importing
+    kornia only to read its version takes longer than a small run's work)."""
+    if module in sys.modules:
+        return sys.modules[module].__version__
+    from importlib.metadata import version
+
+    return version(module)
+
+
 def environment_info(device: torch.device) -> dict[str, Any]:
-    import kornia
     import torch
 
     info = {
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
         "cpu_count": os.cpu_count(),
-        "torch": torch.__version__, "kornia": kornia.__version__, "opencv": cv2.__version__,
+        "torch": torch.__version__, "kornia": _version("kornia"), "opencv": cv2.__version__,
         "numpy": np.__version__, "python": platform.python_version(), "platform": platform.platform(),
     }
     return info
+
+
+def has_pending_work(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> bool:
+    """Whether some image of ``sequence`` lacks its features or some pair its verified
+    matches, for the method ``conf`` (without building any model)."""
+    try:
+        if not method_registry.is_dense(conf):
+            features = feature_store(cache_dir, conf["extractor"])
+            features.refresh()
+            if any(image_key(sequence.image_root, name) not in features for name in sequence.images):
+                return True
+        matches = match_store(output_dir, conf)
+        matches.refresh()
+        keys = pair_keys(sequence, seed)
+        return any(keys[pair] not in matches for pair in sequence.pairs)
+    except ImageReadError:  # the computing stages name the image and its pair
+        return True
+
+
+WORK_RECORD = ".computed.json"  # in a method folder: what ``compute_method`` did, until ``run_method`` records it
+
+
+def _work_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
+    """What a work record must match to stand for a run: the same sequence, pairs, conf, seed and device request."""
+    identity = {"sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
+                "pairs": sequence.origin, "conf": conf, "seed": seed, "device": str(device)}
+    return json.loads(json.dumps(identity, sort_keys=True, default=str))  # as it reads back from JSON
+
+
+def compute_method(
+    sequence: Sequence,
+    method: str,
+    profile: str,
+    output_dir: Path,
+    cache_dir: Path,
+    device: str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    threads: int | None = None,
+    workers: int | None = None,
+    verifier: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Extract and match what the caches lack for one method on a sequence (``run_method``'s
+    work, without writing ``pairs.csv`` or ``run.json``). Returns the run record's
+    ``environment`` and ``this_run`` and keeps them in the method folder (``WORK_RECORD``),
+    so the ``run_method`` that follows (the 02_verify notebook of a ``run``) records this
+    work and needs neither torch nor any model."""
+    conf = method_registry.resolve_method(method, profile, verifier)
+    method_registry.require(method, profile)
+    from gvbench_nb.features.base import resolve_device
+
+    resolved_device = resolve_device(device)
+    configure_threads(threads)
+    started = time.perf_counter()
+    workers = worker_count(workers)
+    extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
+                  if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
+    extracted = time.perf_counter()
+    matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers)
+    finished = time.perf_counter()
+    work = {"identity": _work_identity(sequence, conf, seed, device), "pid": os.getpid(),
+            "environment": environment_info(resolved_device),
+            "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
+                         "extract_wall_seconds": extracted - started,
+                         "match_verify_wall_seconds": finished - extracted}}
+    atomic_write_json(method_dir(output_dir, method) / WORK_RECORD, work)
+    return work
+
+
+def _read_work_record(folder: Path, identity: dict[str, Any]) -> dict[str, Any] | None:
+    """The work record of this sequence, conf, seed and device request, written by this
+    process or its parent (the ``run`` whose notebook this is); a record left by a run that
+    stopped before its notebook is not this run's work."""
+    try:
+        work = json.loads((folder / WORK_RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if work.get("identity") != identity or work.get("pid") not in (os.getpid(), os.getppid()):
+        return None
+    return work
 
 
 def run_method(
@@ -741,34 +831,30 @@ def run_method(
     ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_WORKERS or 1).
 
     Missing weights fail here, before any work. Finished work found in the caches is
-    reused, so an interrupted run resumes.
+    reused, so an interrupted run resumes. When every image and pair is cached and
+    ``compute_method`` recorded that work for this sequence, conf, seed and device, that
+    record is used and neither torch nor a model is loaded.
     """
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
-    from gvbench_nb.features.base import resolve_device
-
-    resolved_device = resolve_device(device)
-    configure_threads(threads)
     folder = method_dir(output_dir, method)
     # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
     claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
-    started = time.perf_counter()
-    workers = worker_count(workers)
-    extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
-                  if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
-    extracted = time.perf_counter()
-    matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers)
-    finished = time.perf_counter()
+    work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
+    if work is None or has_pending_work(sequence, conf, cache_dir, output_dir, seed):
+        work = compute_method(sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads,
+                              workers, verifier)
     table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
     # pairs.csv is written last: its presence marks a finished run (methods_with_results).
     atomic_write_json(folder / "run.json", {
         "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "pairs": sequence.origin, "conf": conf, "seed": seed, "environment": environment_info(resolved_device),
-        "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
-                     "extract_wall_seconds": extracted - started, "match_verify_wall_seconds": finished - extracted},
+        "pairs": sequence.origin, "conf": conf, "seed": seed, "environment": work["environment"],
+        "this_run": work["this_run"],
         "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
     })
     atomic_write_csv(folder / "pairs.csv", table)
+    # The record is used once: a later run that finds everything cached records that.
+    (folder / WORK_RECORD).unlink(missing_ok=True)
     (folder / UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
 
@@ -780,6 +866,13 @@ def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str
     return run_method(sequence, method, params["profile"], Path(params["output_dir"]), Path(params["cache_dir"]),
                       device=params["device"], seed=params["seed"], verifier=params.get("verifier") or None,
                       **options)
+
+
+def compute_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> dict[str, Any]:
+    """``compute_method`` with what a loaded params file sets, as ``run_method_of_params`` runs it."""
+    return compute_method(sequence, method, params["profile"], Path(params["output_dir"]), Path(params["cache_dir"]),
+                          device=params["device"], seed=params["seed"], verifier=params.get("verifier") or None,
+                          **options)
 
 
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:

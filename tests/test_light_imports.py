@@ -10,7 +10,9 @@ import os
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
+import pandas as pd
 import pytest
 
 PROJECT = Path(__file__).resolve().parent.parent
@@ -52,7 +54,7 @@ def stage_notebook_imports() -> str:
 
 @pytest.mark.slow
 def test_stage_notebook_setup_imports_no_torch_kornia_sklearn_or_seaborn():
-    # What every stage notebook imports before its work; only 02_verify's run then imports the models.
+    # What every stage notebook imports before its work; only a 02_verify with work to do then imports the models.
     imports = stage_notebook_imports()
     assert "gvbench_nb" in imports
     found = modules_after(f"{imports}\nOUT = None")
@@ -76,3 +78,80 @@ def test_checkpoint_folder_without_torch_is_torch_hubs(env):
     found = modules_after(code, env)
     without_torch, torch_answer, with_torch = found["out"]
     assert without_torch == torch_answer == with_torch
+
+
+# Put first on PYTHONPATH, this records in $GVBENCH_IMPORT_PROBE each process that starts
+# (its command line) and each model library it imports, however deep the import.
+IMPORT_PROBE = '''\
+import json, os, sys
+_folder = os.environ.get("GVBENCH_IMPORT_PROBE")
+if _folder:
+    _seen = set()
+
+    def _mark(name):
+        with open(os.path.join(_folder, f"{os.getpid()}.{name}"), "w") as handle:
+            json.dump(sys.orig_argv, handle)
+
+    def _hook(event, args):
+        if event == "import":
+            top = str(args[0]).partition(".")[0]
+            if top in ("torch", "kornia") and top not in _seen:
+                _seen.add(top)
+                _mark(top)
+
+    _mark("started")
+    sys.addaudithook(_hook)
+'''
+
+
+def tiny_sample_params(tmp_path: Path, methods: list[str]) -> Path:
+    """A params file of the synthetic route, 6 frames of 160x120, first 6 pairs (one false)."""
+    import yaml
+
+    params = {"sequence": "tiny", "pairs_builder": "sample",
+              "builder_options": {"n_frames": 6, "image_size": [160, 120]}, "image_root": str(tmp_path / "data"),
+              "pairs": str(tmp_path / "data" / "pairs.txt"), "methods": methods,
+              "profile": "repository", "output_dir": str(tmp_path / "out"), "limit": 6, "seed": 0}
+    path = tmp_path / "tiny.yaml"
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+@pytest.mark.slow
+def test_a_run_imports_torch_once_and_its_notebooks_find_every_pair_cached(tmp_path):
+    """``run`` computes every method in its own process; the notebooks it then executes
+    (the record of the run) find every image and pair cached and import no model library."""
+    probe, marks = tmp_path / "probe", tmp_path / "marks"
+    probe.mkdir()
+    marks.mkdir()
+    (probe / "sitecustomize.py").write_text(IMPORT_PROBE)
+    methods = ["sift-nn", "orb-nn"]
+    environment = {**os.environ, "PYTHONPATH": f"{probe}{os.pathsep}{PROJECT}", "GVBENCH_IMPORT_PROBE": str(marks),
+                   "GVBENCH_THREADS": "1"}
+    done = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(tiny_sample_params(tmp_path, methods))],
+                          capture_output=True, text=True, cwd=tmp_path, env=environment, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "results table:" in done.stdout
+
+    processes: dict[str, dict[str, Any]] = {}
+    for mark in marks.iterdir():
+        pid, name = mark.name.split(".", 1)
+        processes.setdefault(pid, {"argv": json.loads(mark.read_text()), "imported": set()})
+        if name != "started":
+            processes[pid]["imported"].add(name)
+    kernels = [p for p in processes.values() if "ipykernel_launcher" in " ".join(p["argv"])]
+    command = [p for p in processes.values() if "gvbench_nb" in p["argv"] and "run" in p["argv"]]
+    assert len(kernels) == 2 + len(methods)  # 01_sequence, 02_verify a method, 03_evaluate
+    assert [k["imported"] for k in kernels] == [set()] * len(kernels)
+    assert len(command) == 1 and "torch" in command[0]["imported"]
+
+    out = tmp_path / "out"
+    for method in methods:
+        run = json.loads((out / method / "run.json").read_text())
+        # run.json records the work this run did (in the command), not the notebook's cached pass.
+        assert run["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
+        assert run["this_run"]["matching"] == {"pairs": 6, "cached": 0, "matched": 6}
+        assert run["environment"]["torch"]
+        assert not (out / method / ".computed.json").exists()  # the work record is used once
+        assert (out / f"02_verify_{method}.ipynb").is_file()
+    assert list(pd.read_csv(out / "results.csv")["method"]) == methods

@@ -1,5 +1,7 @@
 """The pipeline on real pairs: cache reuse, resumable stores, the results contract."""
 
+import json
+import os
 import subprocess
 import sys
 import time
@@ -11,7 +13,7 @@ import pytest
 from helpers import check_stage_outputs
 
 from gvbench_nb import config, methods, pipeline
-from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.data.sequences import Pair, Sequence, read_pairs
 from gvbench_nb.store import ShardedStore
 
 PAIRS_COLUMNS = {"query", "reference", "label", "num_matches", "num_inliers", "score",
@@ -119,3 +121,59 @@ def test_cli_reports_bad_params_clearly(tmp_path):
     completed = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(bad)], capture_output=True, text=True)
     assert completed.returncode == 2
     assert "unknown key(s) 'limt' (did you mean 'limit'?)" in completed.stderr
+
+
+def tiny_sequence(root: Path) -> Sequence:
+    from gvbench_nb.data import synthetic
+
+    synthetic.generate_sample(root, n_frames=6, image_size=(160, 120))
+    return Sequence("tiny", root, read_pairs(root / "pairs.txt")[:6])
+
+
+def test_run_method_after_compute_method_records_that_work_without_torch(tmp_path):
+    """What ``run`` does: the work in one process, then each notebook's run_method finds it cached."""
+    sequence = tiny_sequence(tmp_path / "data")
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    work = pipeline.compute_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
+    assert work["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
+    assert not (out / "sift-nn" / "pairs.csv").exists()  # only run_method writes results
+    code = ("import sys, json; from pathlib import Path\n"
+            "from gvbench_nb import pipeline\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
+            f"root = Path({str(tmp_path / 'data')!r})\n"
+            "sequence = Sequence('tiny', root, read_pairs(root / 'pairs.txt')[:6])\n"
+            f"pipeline.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
+            "device='cpu', progress=False)\n"
+            "print(json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))")
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
+                          env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)})
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.strip().splitlines()[-1] == "[]"
+    run = json.loads((out / "sift-nn" / "run.json").read_text())
+    assert run["this_run"] == work["this_run"] and run["environment"] == work["environment"]
+    assert not (out / "sift-nn" / pipeline.WORK_RECORD).exists()
+    first = pipeline.load_pairs_table(out, "sift-nn")
+
+    # Used once: the next run records that it found everything cached, as any rerun does.
+    again = pipeline.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
+    run = pd.read_json(out / "sift-nn" / "run.json", typ="series")
+    assert run["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
+    pd.testing.assert_frame_equal(first, pipeline.load_pairs_table(out, "sift-nn"))
+    assert len(again) == 6
+
+
+def test_a_work_record_of_another_device_request_or_process_is_not_used(tmp_path):
+    sequence = tiny_sequence(tmp_path / "data")
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    record = out / "orb-nn" / pipeline.WORK_RECORD
+    pipeline.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    pipeline.run_method(sequence, "orb-nn", "repository", out, cache, device="auto", progress=False)
+    run = json.loads((out / "orb-nn" / "run.json").read_text())
+    assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}  # its own (cached) pass
+
+    # Left by a run that stopped before its notebook: not this run's work.
+    work = pipeline.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    record.write_text(json.dumps({**json.loads(record.read_text()), "pid": -1, "this_run": {"stale": True}}))
+    pipeline.run_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    run = json.loads((out / "orb-nn" / "run.json").read_text())
+    assert run["this_run"]["extraction"] == work["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
+    assert "stale" not in run["this_run"]

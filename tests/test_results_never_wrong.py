@@ -212,7 +212,10 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
     out = tmp_path / "elsewhere"
     assert cli.main(["run", str(params_path), "--image-root", str(root), "--limit", "3", "--profile", "repository",
                      "--output-dir", str(out)]) == 0
-    assert [s["notebook"] for s in seen] == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
+    # 01_sequence runs beside the others; 03_evaluate comes after 02_verify.
+    order = [s["notebook"] for s in seen]
+    assert sorted(order) == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
+    assert order.index("03_evaluate.ipynb") > order.index("02_verify.ipynb")
     assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "repository", "output_dir": str(out)}
                for s in seen)
     assert yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())["image_root"] == str(root)
@@ -237,10 +240,58 @@ def test_image_root_given_on_the_command_line_reaches_the_real_notebooks(root, t
 
 
 def test_the_stage_notebooks_load_the_params_file_they_are_given():
-    notebooks = Path(cli.NOTEBOOKS_DIR)
+    from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
+
+    notebooks = Path(NOTEBOOKS_DIR)
     for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
         source = "\n".join("".join(cell["source"]) for cell in json.loads((notebooks / name).read_text())["cells"])
         assert re.search(r"\b(config\.load_params|notebook\.load_sequence)\(\s*params_file\b", source), name
+
+
+def test_a_method_that_fails_in_the_command_fails_in_its_notebook_and_stops_the_run(tmp_path, monkeypatch):
+    """The notebook of the method whose work failed runs it again (from the caches) and keeps
+    the traceback; the methods after it are not started and nothing is evaluated."""
+    executed, computed = [], []
+
+    def fake_execute(name, output_path, parameters):
+        executed.append(output_path.name)
+        if output_path.name == "02_verify_b.ipynb":
+            raise RuntimeError("b failed in its notebook too")
+
+    def compute(method):
+        computed.append(method)
+        if method == "b":
+            raise RuntimeError("b failed")
+
+    monkeypatch.setattr(cli, "execute_notebook", fake_execute)
+    jobs = [("01_sequence.ipynb", "01_sequence.ipynb", {})]
+    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in "abc"]
+    jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {}))
+    with pytest.raises(RuntimeError, match="in its notebook too"):
+        cli.execute_run_notebooks(jobs, tmp_path, compute)
+    assert computed == ["a", "b"]
+    assert sorted(executed) == ["01_sequence.ipynb", "02_verify_a.ipynb", "02_verify_b.ipynb"]
+
+
+def test_evaluate_waits_for_every_verify_notebook_but_not_for_the_sequence_notebook(tmp_path, monkeypatch):
+    import threading
+
+    sequence_may_finish, events = threading.Event(), []
+
+    def fake_execute(name, output_path, parameters):
+        if output_path.name == "01_sequence.ipynb":
+            assert sequence_may_finish.wait(30)
+        events.append(output_path.name)
+        if output_path.name == "03_evaluate.ipynb":
+            sequence_may_finish.set()
+
+    monkeypatch.setattr(cli, "execute_notebook", fake_execute)
+    jobs = [("01_sequence.ipynb", "01_sequence.ipynb", {})]
+    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in "ab"]
+    jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {}))
+    cli.execute_run_notebooks(jobs, tmp_path, lambda method: None)
+    assert events[-2:] == ["03_evaluate.ipynb", "01_sequence.ipynb"]
+    assert sorted(events[:2]) == ["02_verify_a.ipynb", "02_verify_b.ipynb"]
 
 
 def test_a_run_that_fails_before_a_method_starts_leaves_no_old_result_and_results_refuses(root, tmp_path,

@@ -47,7 +47,6 @@ from typing import Any
 import cv2
 import numpy as np
 import pandas as pd
-import torch
 from tqdm import tqdm
 
 from gvbench_nb import config, pipeline, registry
@@ -404,6 +403,8 @@ def train_in_domain(cached: CachedMatches, train_pairs: pd.DataFrame, conf: dict
     """Train the Doppelgangers architecture on ``train_pairs`` (published recipe: focal loss, Adam)
     and save ``{'dec': state_dict, 'info': ...}`` at ``path`` (loadable by ``load_doppelgangers``).
     Returns the info: pairs used, seconds to build inputs and to train, the history."""
+    import torch  # here only: reading cached matches and scoring them need no torch
+
     from gvbench_nb.verification.doppelgangers import (
         DoppelgangersClassifier,
         train_classifier,

@@ -29,8 +29,15 @@ from typing import Any
 REPO = Path(__file__).resolve().parent.parent
 
 # Our method -> the vismatch matcher that does the same thing.
-PEER_NAMES = {"sift-nn": "sift-nn", "orb-nn": "orb-nn", "disk-lg": "disk-lightglue", "aliked-lg": "aliked-lightglue",
-              "sp-lg": "superpoint-lightglue", "xfeat-lg": "xfeat-lightglue", "loftr": "loftr"}
+PEER_NAMES = {
+    "sift-nn": "sift-nn",
+    "orb-nn": "orb-nn",
+    "disk-lg": "disk-lightglue",
+    "aliked-lg": "aliked-lightglue",
+    "sp-lg": "superpoint-lightglue",
+    "xfeat-lg": "xfeat-lightglue",
+    "loftr": "loftr",
+}
 
 
 def run_process(command: list[str], log: Path, env: dict[str, str]) -> tuple[float, float, int]:
@@ -58,8 +65,14 @@ def peer_image_size(params: dict[str, Any], method: str, sequence: Any) -> tuple
     conf = methods.resolve_method(method, params["profile"])
     prepared = conf["extractor"] or conf["matcher"]
     height, width = read_image(sequence.image_root / sequence.pairs[0].query).shape[:2]
-    size = target_size(width, height, prepared.get("resize_max"), prepared.get("resize_force", False),
-                       prepared.get("multiple_of"), prepared.get("resize_to"))
+    size = target_size(
+        width,
+        height,
+        prepared.get("resize_max"),
+        prepared.get("resize_force", False),
+        prepared.get("multiple_of"),
+        prepared.get("resize_to"),
+    )
     return size[1], size[0]
 
 
@@ -76,11 +89,15 @@ def orchestrate(args: argparse.Namespace) -> int:
     ours_python, peer_python = Path(args.ours_python), Path(args.peer_python)
     for what, path, hint in (("ours", ours_python, "make setup"), ("peer", peer_python, "make setup-imm")):
         if not path.is_file():
-            print(f"error: the {what} Python {path} does not exist; create it with `{hint}` or pass --{what}-python",
-                  file=sys.stderr)
+            print(
+                f"error: the {what} Python {path} does not exist; create it with `{hint}` or pass --{what}-python",
+                file=sys.stderr,
+            )
             return 2
     if args.method not in PEER_NAMES:
-        print(f"error: no vismatch counterpart of {args.method!r}; choose one of {', '.join(PEER_NAMES)}", file=sys.stderr)
+        print(
+            f"error: no vismatch counterpart of {args.method!r}; choose one of {', '.join(PEER_NAMES)}", file=sys.stderr
+        )
         return 2
     params = config.load_params(args.params, limit=args.limit, profile=args.profile)
     sequence = config.prepare_sequence(params)
@@ -91,8 +108,10 @@ def orchestrate(args: argparse.Namespace) -> int:
     height, width = peer_image_size(params, args.method, sequence)
     peer_name = args.peer_matcher or PEER_NAMES[args.method]
     env = {**os.environ, "PYTHONPATH": str(REPO) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images; ours {args.method} "
-          f"(profile {params['profile']}) vs vismatch {peer_name} at {width}x{height}, {args.runs} runs each -> {out}")
+    print(
+        f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images; ours {args.method} "
+        f"(profile {params['profile']}) vs vismatch {peer_name} at {width}x{height}, {args.runs} runs each -> {out}"
+    )
 
     rows: list[dict[str, Any]] = []
     for run in range(args.runs):
@@ -101,18 +120,44 @@ def orchestrate(args: argparse.Namespace) -> int:
             shutil.rmtree(folder, ignore_errors=True)
             folder.mkdir()
             if side == "ours":  # a fresh output and cache folder: nothing is reused between runs
-                command = [str(ours_python), "-m", "gvbench_nb", "run", str(Path(args.params).resolve()),
-                           "--methods", args.method, "--output-dir", str(folder / "output")]
+                command = [
+                    str(ours_python),
+                    "-m",
+                    "gvbench_nb",
+                    "run",
+                    str(Path(args.params).resolve()),
+                    "--methods",
+                    args.method,
+                    "--output-dir",
+                    str(folder / "output"),
+                ]
                 command += ["--limit", str(args.limit)] if args.limit else []
                 command += ["--profile", args.profile] if args.profile else []
             else:
-                command = [str(peer_python), str(Path(__file__).resolve()), "--peer-loop", "--pairs", str(pair_file),
-                           "--image-root", str(sequence.image_root), "--matcher", peer_name,
-                           "--size", str(height), str(width), "--max-keypoints", str(args.peer_max_keypoints),
-                           "--scores", str(folder / "scores.csv")]
+                command = [
+                    str(peer_python),
+                    str(Path(__file__).resolve()),
+                    "--peer-loop",
+                    "--pairs",
+                    str(pair_file),
+                    "--image-root",
+                    str(sequence.image_root),
+                    "--matcher",
+                    peer_name,
+                    "--size",
+                    str(height),
+                    str(width),
+                    "--max-keypoints",
+                    str(args.peer_max_keypoints),
+                    "--scores",
+                    str(folder / "scores.csv"),
+                ]
             wall, peak, code = run_process(command, folder / "log.txt", env)
             if code != 0:
-                print(f"error: {side} run {run} exited with {code}; its output is in {folder / 'log.txt'}", file=sys.stderr)
+                print(
+                    f"error: {side} run {run} exited with {code}; its output is in {folder / 'log.txt'}",
+                    file=sys.stderr,
+                )
                 return 1
             if side == "ours":
                 import pandas as pd
@@ -123,11 +168,21 @@ def orchestrate(args: argparse.Namespace) -> int:
                 with open(folder / "scores.csv") as handle:
                     read = list(csv.DictReader(handle))
                 labels, scores = [int(r["label"]) for r in read], [float(r["num_inliers"]) for r in read]
-            rows.append({"run": run, "side": side, "method": args.method if side == "ours" else f"vismatch:{peer_name}",
-                         "n_pairs": len(labels), "wall_seconds": round(wall, 2), "peak_rss_mib": round(peak, 1),
-                         **score_pairs(labels, scores)})
-            print(f"  run {run} {side}: {wall:.1f} s, peak {peak:.0f} MiB, AP {rows[-1]['ap']:.3f}, "
-                  f"MR {rows[-1]['max_recall']:.3f}")
+            rows.append(
+                {
+                    "run": run,
+                    "side": side,
+                    "method": args.method if side == "ours" else f"vismatch:{peer_name}",
+                    "n_pairs": len(labels),
+                    "wall_seconds": round(wall, 2),
+                    "peak_rss_mib": round(peak, 1),
+                    **score_pairs(labels, scores),
+                }
+            )
+            print(
+                f"  run {run} {side}: {wall:.1f} s, peak {peak:.0f} MiB, AP {rows[-1]['ap']:.3f}, "
+                f"MR {rows[-1]['max_recall']:.3f}"
+            )
 
     with open(out / "peer_runs.csv", "w", newline="") as handle:
         writer = csv.DictWriter(handle, fieldnames=list(rows[0]))
@@ -136,10 +191,18 @@ def orchestrate(args: argparse.Namespace) -> int:
     summary = []
     for side in ("ours", "peer"):
         mine = [r for r in rows if r["side"] == side]
-        summary.append({"side": side, "method": mine[0]["method"], "n_pairs": mine[0]["n_pairs"], "runs": len(mine),
-                        "median_wall_seconds": statistics.median(r["wall_seconds"] for r in mine),
-                        "max_peak_rss_mib": max(r["peak_rss_mib"] for r in mine),
-                        "ap": mine[-1]["ap"], "max_recall": mine[-1]["max_recall"]})
+        summary.append(
+            {
+                "side": side,
+                "method": mine[0]["method"],
+                "n_pairs": mine[0]["n_pairs"],
+                "runs": len(mine),
+                "median_wall_seconds": statistics.median(r["wall_seconds"] for r in mine),
+                "max_peak_rss_mib": max(r["peak_rss_mib"] for r in mine),
+                "ap": mine[-1]["ap"],
+                "max_recall": mine[-1]["max_recall"],
+            }
+        )
     ratio = summary[1]["median_wall_seconds"] / summary[0]["median_wall_seconds"]
     for row in summary:
         row["peer_over_ours"] = round(ratio, 3)
@@ -148,10 +211,12 @@ def orchestrate(args: argparse.Namespace) -> int:
         writer.writeheader()
         writer.writerows(summary)
     ours, peer = summary
-    print(f"\nours {ours['method']}: median {ours['median_wall_seconds']:.1f} s, AP {ours['ap']:.3f}, "
-          f"MR {ours['max_recall']:.3f}\npeer {peer['method']}: median {peer['median_wall_seconds']:.1f} s, "
-          f"AP {peer['ap']:.3f}, MR {peer['max_recall']:.3f}\npeer / ours wall time {ratio:.2f}x "
-          f"({'ours' if ratio > 1 else 'the peer'} faster; ratio of medians, {args.runs} alternating runs each)\n{out / 'peer_runs.csv'}\n{out / 'peer_summary.csv'}")
+    print(
+        f"\nours {ours['method']}: median {ours['median_wall_seconds']:.1f} s, AP {ours['ap']:.3f}, "
+        f"MR {ours['max_recall']:.3f}\npeer {peer['method']}: median {peer['median_wall_seconds']:.1f} s, "
+        f"AP {peer['ap']:.3f}, MR {peer['max_recall']:.3f}\npeer / ours wall time {ratio:.2f}x "
+        f"({'ours' if ratio > 1 else 'the peer'} faster; ratio of medians, {args.runs} alternating runs each)\n{out / 'peer_runs.csv'}\n{out / 'peer_summary.csv'}"
+    )
     return 0
 
 
@@ -177,7 +242,9 @@ def peer_loop(args: argparse.Namespace) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("params", nargs="?", help="params YAML (the sequence and pairs), e.g. params/gardens_point.yaml")
+    parser.add_argument(
+        "params", nargs="?", help="params YAML (the sequence and pairs), e.g. params/gardens_point.yaml"
+    )
     parser.add_argument("--method", default="sift-nn", help=f"our method, one of {', '.join(PEER_NAMES)}")
     parser.add_argument("--profile", help="our profile (default: the params'); the peer runs at its image size")
     parser.add_argument("--limit", type=int, help="only the first N pairs")
@@ -186,7 +253,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--ours-python", default=str(REPO / ".venv" / "bin" / "python"))
     parser.add_argument("--peer-python", default=str(REPO / ".venv-imm" / "bin" / "python"))
     parser.add_argument("--peer-matcher", help="vismatch matcher name (default: the counterpart of --method)")
-    parser.add_argument("--peer-max-keypoints", type=int, default=2048, help="vismatch's keypoint budget (its default 2048)")
+    parser.add_argument(
+        "--peer-max-keypoints", type=int, default=2048, help="vismatch's keypoint budget (its default 2048)"
+    )
     # The peer process (run by the orchestrator in the vismatch venv).
     parser.add_argument("--peer-loop", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--pairs", help=argparse.SUPPRESS)

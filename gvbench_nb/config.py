@@ -72,8 +72,10 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     path = Path(path).resolve()
     if path.is_dir():
         examples = sorted(p.name for p in path.glob("*.yaml"))[:3]
-        raise ParamsError(f"params path {path} is a folder, not a params file; give a YAML file"
-                          + (f" such as {path / examples[0]}" if examples else ""))
+        raise ParamsError(
+            f"params path {path} is a folder, not a params file; give a YAML file"
+            + (f" such as {path / examples[0]}" if examples else "")
+        )
     if not path.is_file():
         raise ParamsError(f"params file not found: {path}; give the path of a params YAML (e.g. params/sample.yaml)")
     with open(path, encoding="utf-8") as handle:
@@ -87,7 +89,9 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     unknown = [k for k in raw if k not in valid]
     if unknown:
-        raise ParamsError(f"{path}: unknown key(s) {registry.unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
+        raise ParamsError(
+            f"{path}: unknown key(s) {registry.unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}"
+        )
     missing = [k for k in REQUIRED_KEYS if k not in raw]
     if missing:
         raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
@@ -123,13 +127,20 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     return params
 
 
-def load_build_params(params_file: str | Path, descriptor: str | None = None, top_n: int | None = None,
-                      pairs: str | None = None, **overrides: Any) -> dict[str, Any]:
+def load_build_params(
+    params_file: str | Path,
+    descriptor: str | None = None,
+    top_n: int | None = None,
+    pairs: str | None = None,
+    **overrides: Any,
+) -> dict[str, Any]:
     """``load_params`` of a ``pairs_builder: retrieval`` file, with build overrides."""
     params = load_params(params_file, pairs=pairs, **overrides)
     if params["pairs_builder"] != builders.BUILDER_NAME:
-        raise builders.BuildError(f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
-                         f"building needs pairs_builder: {builders.BUILDER_NAME} with its builder_options")
+        raise builders.BuildError(
+            f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
+            f"building needs pairs_builder: {builders.BUILDER_NAME} with its builder_options"
+        )
     options = dict(params["builder_options"])
     options.update({k: v for k, v in (("descriptor", descriptor), ("top_n", top_n)) if v is not None})
     builders.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
@@ -154,8 +165,10 @@ TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "image_root": (lambda v: v is None or _is_path(v), "a folder path"),
     "output_dir": (lambda v: _is_path(v), "a folder path"),
     "cache_dir": (lambda v: v is None or _is_path(v), "a folder path or null"),
-    "methods": (lambda v: isinstance(v, str) or (isinstance(v, list) and all(isinstance(m, str) for m in v)),
-                "a list of method names or a comma-separated string"),
+    "methods": (
+        lambda v: isinstance(v, str) or (isinstance(v, list) and all(isinstance(m, str) for m in v)),
+        "a list of method names or a comma-separated string",
+    ),
     "profile": (lambda v: isinstance(v, str), "a profile name"),
     "description": (lambda v: isinstance(v, str), "text"),
     "pairs_builder": (lambda v: v is None or isinstance(v, str), "a builder name or null"),
@@ -163,8 +176,10 @@ TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "limit": (lambda v: v is None or _is_integer(v), "a positive integer or null"),
     "seed": (_is_integer, "an integer"),
     "verifier": (lambda v: isinstance(v, dict), "a mapping of verifier conf keys to values"),
-    "device": (lambda v: isinstance(v, str) and DEVICE_PATTERN.fullmatch(v) is not None,
-               "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'"),
+    "device": (
+        lambda v: isinstance(v, str) and DEVICE_PATTERN.fullmatch(v) is not None,
+        "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'",
+    ),
 }
 
 
@@ -243,8 +258,12 @@ def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
 
 def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
     """What a builder's output depends on, as JSON would read it back."""
-    stamp = {"pairs_builder": params["pairs_builder"], "builder_options": params["builder_options"],
-             "seed": params["seed"], "image_root": params["image_root"]}
+    stamp = {
+        "pairs_builder": params["pairs_builder"],
+        "builder_options": params["builder_options"],
+        "seed": params["seed"],
+        "image_root": params["image_root"],
+    }
     return json.loads(json.dumps(stamp, sort_keys=True, default=str))
 
 
@@ -266,8 +285,10 @@ def _stamp_matches(params: dict[str, Any]) -> bool:
 def _missing_pairs_error(params: dict[str, Any]) -> ParamsError:
     pairs = Path(params["pairs"])
     what = "is a folder, not a pair file" if pairs.is_dir() else "does not exist"
-    return ParamsError(f"{params['params_file']}: the pair file {pairs} {what}; set pairs to a file of "
-                       "'query_path reference_path label' lines, or set pairs_builder to make it")
+    return ParamsError(
+        f"{params['params_file']}: the pair file {pairs} {what}; set pairs to a file of "
+        "'query_path reference_path label' lines, or set pairs_builder to make it"
+    )
 
 
 def prepare_sequence(params: dict[str, Any]) -> Sequence:
@@ -287,14 +308,20 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
     builder = params["pairs_builder"]
     if builder != "sample" and not root.is_dir():  # the sample builder renders its images into the root
         what = "is a file, not a folder" if root.exists() else "does not exist"
-        raise ParamsError(f"{source}: image_root {root} {what}"
-                          + (fetch.fetch_hint(root) or "; set image_root (or pass --image-root) to the folder "
-                             "holding the images that the pair file's paths are relative to"))
+        raise ParamsError(
+            f"{source}: image_root {root} {what}"
+            + (
+                fetch.fetch_hint(root)
+                or "; set image_root (or pass --image-root) to the folder "
+                "holding the images that the pair file's paths are relative to"
+            )
+        )
     if builder and (builder == "sample" or not _stamp_matches(params)):
         builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds
         PAIR_BUILDERS[builder](params)
-        atomic_write_json(builder_stamp_path(params["pairs"]),
-                          {**builder_stamp(params), "pairs_sha256": file_sha256(params["pairs"])})
+        atomic_write_json(
+            builder_stamp_path(params["pairs"]), {**builder_stamp(params), "pairs_sha256": file_sha256(params["pairs"])}
+        )
     if not Path(params["pairs"]).is_file():
         raise _missing_pairs_error(params)
     sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
@@ -303,10 +330,16 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
 
 def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
     """Where a sequence's pairs came from, as run.json records it."""
-    return {"params_file": params["params_file"], "pairs_file": params["pairs"],
-            "pairs_sha256": file_sha256(params["pairs"]), "image_root": params["image_root"],
-            "pairs_builder": params["pairs_builder"], "builder_options": params["builder_options"],
-            "seed": params["seed"], "limit": params["limit"]}
+    return {
+        "params_file": params["params_file"],
+        "pairs_file": params["pairs"],
+        "pairs_sha256": file_sha256(params["pairs"]),
+        "image_root": params["image_root"],
+        "pairs_builder": params["pairs_builder"],
+        "builder_options": params["builder_options"],
+        "seed": params["seed"],
+        "limit": params["limit"],
+    }
 
 
 def load_sequence_pairs_only(params: dict[str, Any]) -> Sequence:
@@ -322,16 +355,19 @@ def check_writable_folder(params: dict[str, Any], key: str) -> Path:
     folder = Path(params[key])
     flag = f"--{key.replace('_', '-')}"
     if folder.exists() and not folder.is_dir():
-        raise ParamsError(f"{params['params_file']}: {key} {folder} is a file, not a folder; "
-                          f"set {key} (or pass {flag}) to a folder")
+        raise ParamsError(
+            f"{params['params_file']}: {key} {folder} is a file, not a folder; set {key} (or pass {flag}) to a folder"
+        )
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
             pass
     except OSError as error:
-        raise ParamsError(f"{params['params_file']}: cannot write in {key} {folder} "
-                          f"({error.strerror or type(error).__name__}); set {key} (or pass {flag}) to a folder "
-                          "you can write in") from None
+        raise ParamsError(
+            f"{params['params_file']}: cannot write in {key} {folder} "
+            f"({error.strerror or type(error).__name__}); set {key} (or pass {flag}) to a folder "
+            "you can write in"
+        ) from None
     return folder
 
 
@@ -343,7 +379,9 @@ def write_resolved_params(params: dict[str, Any], folder: str | os.PathLike[str]
     YAML the notebooks load (``<output_dir>/params.resolved.yaml``)."""
     keys = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     values = {key: params[key] for key in keys if key in params}
-    header = (f"# The params this run used: {params['params_file']} with the command line's overrides.\n"
-              "# Written by `python -m gvbench_nb run`; every notebook of the run loads this file.\n")
+    header = (
+        f"# The params this run used: {params['params_file']} with the command line's overrides.\n"
+        "# Written by `python -m gvbench_nb run`; every notebook of the run loads this file.\n"
+    )
     text = header + yaml.safe_dump(values, sort_keys=False, allow_unicode=True)
     return atomic_write_text(Path(folder) / RESOLVED_PARAMS_NAME, text)

@@ -22,57 +22,123 @@ from gvbench_nb.matching import imm
 EXTRACTORS: dict[str, dict[str, Any]] = {
     # hloc's `sift` conf: its `dog` extractor, COLMAP's SIFT through pycolmap.
     "sift": {
-        "type": "sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 8192, "first_octave": 0, "peak_threshold": 0.01, "root_sift": True,
-        "store_float16": True, "checkpoints": [],
+        "type": "sift",
+        "grayscale": True,
+        "resize_max": 1600,
+        "resize_force": False,
+        "max_keypoints": 8192,
+        "first_octave": 0,
+        "peak_threshold": 0.01,
+        "root_sift": True,
+        "store_float16": True,
+        "checkpoints": [],
     },
     # OpenCV's SIFT, not the paper's: kept for comparison under its own name.
     "sift-opencv": {
-        "type": "opencv_sift", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 8192, "peak_threshold": 0.01, "root_sift": True, "store_float16": True, "checkpoints": [],
+        "type": "opencv_sift",
+        "grayscale": True,
+        "resize_max": 1600,
+        "resize_force": False,
+        "max_keypoints": 8192,
+        "peak_threshold": 0.01,
+        "root_sift": True,
+        "store_float16": True,
+        "checkpoints": [],
     },
     "orb": {
-        "type": "orb", "grayscale": True, "resize_max": 1600, "resize_force": False,
-        "max_keypoints": 2000, "scale_factor": 1.2, "levels": 8, "fast_threshold": 20, "store_float16": True,
+        "type": "orb",
+        "grayscale": True,
+        "resize_max": 1600,
+        "resize_force": False,
+        "max_keypoints": 2000,
+        "scale_factor": 1.2,
+        "levels": 8,
+        "fast_threshold": 20,
+        "store_float16": True,
         "checkpoints": [],
     },
     "disk": {
-        "type": "disk", "grayscale": False, "resize_max": 1600, "resize_force": False, "weights": "depth",
-        "max_keypoints": 5000, "nms_window": 5, "detection_threshold": 0.0, "store_float16": True,
+        "type": "disk",
+        "grayscale": False,
+        "resize_max": 1600,
+        "resize_force": False,
+        "weights": "depth",
+        "max_keypoints": 5000,
+        "nms_window": 5,
+        "detection_threshold": 0.0,
+        "store_float16": True,
         "checkpoints": ["disk_depth"],
     },
     "superpoint": {
-        "type": "superpoint", "grayscale": True, "resize_max": 1600, "resize_force": True,
-        "nms_radius": 3, "keypoint_threshold": 0.005, "max_keypoints": 4096, "remove_borders": 4,
-        "store_float16": True, "checkpoints": ["superpoint_v1"],
+        "type": "superpoint",
+        "grayscale": True,
+        "resize_max": 1600,
+        "resize_force": True,
+        "nms_radius": 3,
+        "keypoint_threshold": 0.005,
+        "max_keypoints": 4096,
+        "remove_borders": 4,
+        "store_float16": True,
+        "checkpoints": ["superpoint_v1"],
     },
     "aliked": {
-        "type": "aliked", "grayscale": False, "resize_max": 1024, "resize_force": False, "model_name": "aliked-n16",
-        "max_keypoints": 4096, "detection_threshold": 0.2, "nms_radius": 2, "store_float16": True,
+        "type": "aliked",
+        "grayscale": False,
+        "resize_max": 1024,
+        "resize_force": False,
+        "model_name": "aliked-n16",
+        "max_keypoints": 4096,
+        "detection_threshold": 0.2,
+        "nms_radius": 2,
+        "store_float16": True,
         "checkpoints": ["aliked_n16"],
     },
     "xfeat": {
-        "type": "xfeat", "grayscale": False, "resize_max": 1024, "resize_force": False,
-        "max_keypoints": 4096, "detection_threshold": 0.05, "store_float16": True, "checkpoints": ["xfeat"],
+        "type": "xfeat",
+        "grayscale": False,
+        "resize_max": 1024,
+        "resize_force": False,
+        "max_keypoints": 4096,
+        "detection_threshold": 0.05,
+        "store_float16": True,
+        "checkpoints": ["xfeat"],
     },
 }
 
 MATCHERS: dict[str, dict[str, Any]] = {
     "nn-ratio": {"type": "nn", "mutual": True, "ratio_threshold": 0.8, "distance_threshold": None, "checkpoints": []},
-    "nn-distance": {"type": "nn", "mutual": True, "ratio_threshold": None, "distance_threshold": 0.7, "checkpoints": []},
+    "nn-distance": {
+        "type": "nn",
+        "mutual": True,
+        "ratio_threshold": None,
+        "distance_threshold": 0.7,
+        "checkpoints": [],
+    },
     "nn-mutual": {"type": "nn", "mutual": True, "ratio_threshold": None, "distance_threshold": None, "checkpoints": []},
     "nn-hamming": {"type": "nn", "metric": "hamming", "mutual": True, "ratio_threshold": 0.8, "checkpoints": []},
     "lightglue-disk": {
-        "type": "lightglue", "features": "disk", "depth_confidence": 0.95, "width_confidence": 0.99,
-        "filter_threshold": 0.1, "checkpoints": ["lightglue_disk"],
+        "type": "lightglue",
+        "features": "disk",
+        "depth_confidence": 0.95,
+        "width_confidence": 0.99,
+        "filter_threshold": 0.1,
+        "checkpoints": ["lightglue_disk"],
     },
     "lightglue-superpoint": {
-        "type": "lightglue", "features": "superpoint", "depth_confidence": 0.95, "width_confidence": 0.99,
-        "filter_threshold": 0.1, "checkpoints": ["lightglue_superpoint"],
+        "type": "lightglue",
+        "features": "superpoint",
+        "depth_confidence": 0.95,
+        "width_confidence": 0.99,
+        "filter_threshold": 0.1,
+        "checkpoints": ["lightglue_superpoint"],
     },
     "lightglue-aliked": {
-        "type": "lightglue", "features": "aliked", "depth_confidence": 0.95, "width_confidence": 0.99,
-        "filter_threshold": 0.1, "checkpoints": ["lightglue_aliked"],
+        "type": "lightglue",
+        "features": "aliked",
+        "depth_confidence": 0.95,
+        "width_confidence": 0.99,
+        "filter_threshold": 0.1,
+        "checkpoints": ["lightglue_aliked"],
     },
     # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
     "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
@@ -80,12 +146,24 @@ MATCHERS: dict[str, dict[str, Any]] = {
     # merge_*: hloc's match_dense conf `loftr` (1-px cells, 1 px max error) with its default
     # cap of 8192 keypoints an image (matchers.merge_dense_matches).
     "loftr-outdoor": {
-        "type": "loftr", "dense": True, "weights": "outdoor", "grayscale": True, "resize_max": 1024,
-        "resize_force": False, "multiple_of": 8, "coarse_threshold": 0.2, "merge_cell_size": 1,
-        "merge_max_error": 1, "merge_max_keypoints": 8192, "checkpoints": ["loftr_outdoor"],
+        "type": "loftr",
+        "dense": True,
+        "weights": "outdoor",
+        "grayscale": True,
+        "resize_max": 1024,
+        "resize_force": False,
+        "multiple_of": 8,
+        "coarse_threshold": 0.2,
+        "merge_cell_size": 1,
+        "merge_max_error": 1,
+        "merge_max_keypoints": 8192,
+        "checkpoints": ["loftr_outdoor"],
     },
     "superglue-outdoor": {
-        "type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2,
+        "type": "superglue",
+        "weights": "outdoor",
+        "sinkhorn_iterations": 50,
+        "match_threshold": 0.2,
         "checkpoints": ["superglue_outdoor"],
     },
 }
@@ -101,11 +179,19 @@ METHODS: dict[str, dict[str, Any]] = {
     "aliked-nn": {"paper_name": "ALIKED+NN", "extractor": "aliked", "matcher": "nn-mutual", "in_paper": False},
     "aliked-lg": {"paper_name": "ALIKED+LG", "extractor": "aliked", "matcher": "lightglue-aliked", "in_paper": False},
     "xfeat-nn": {"paper_name": "XFeat+NN", "extractor": "xfeat", "matcher": "nn-mutual", "in_paper": False},
-    "xfeat-lg": {"paper_name": "XFeat+LighterGlue", "extractor": "xfeat", "matcher": "lighterglue-xfeat",
-                 "in_paper": False},
+    "xfeat-lg": {
+        "paper_name": "XFeat+LighterGlue",
+        "extractor": "xfeat",
+        "matcher": "lighterglue-xfeat",
+        "in_paper": False,
+    },
     "orb-nn": {"paper_name": "ORB+NN", "extractor": "orb", "matcher": "nn-hamming", "in_paper": False},
-    "sift-opencv-nn": {"paper_name": "SIFT (OpenCV)+NN", "extractor": "sift-opencv", "matcher": "nn-ratio",
-                       "in_paper": False},
+    "sift-opencv-nn": {
+        "paper_name": "SIFT (OpenCV)+NN",
+        "extractor": "sift-opencv",
+        "matcher": "nn-ratio",
+        "in_paper": False,
+    },
 }
 
 # The GV-Bench repository's current evaluation (main.py, config/*.yaml and its fork of
@@ -114,14 +200,22 @@ METHODS: dict[str, dict[str, Any]] = {
 # matcher with the fork's own defaults (2048 keypoints for the sparse ones).
 REPOSITORY_IMAGE_SIZE = (512, 288)
 _REPOSITORY_IMAGE = {
-    "resize_to": list(REPOSITORY_IMAGE_SIZE), "resize_max": None, "resize_force": False,
-    "interpolation": "bilinear_antialias", "store_float16": False,
+    "resize_to": list(REPOSITORY_IMAGE_SIZE),
+    "resize_max": None,
+    "resize_force": False,
+    "interpolation": "bilinear_antialias",
+    "store_float16": False,
 }
 # The fork's sift-nn is OpenCV SIFT with its own defaults (contrastThreshold 0.04 = peak
 # 0.04 / 3 layers), plain SIFT descriptors, on the min-max stretched grey image it makes; so
 # under this profile the `sift` extractor is OpenCV's, not COLMAP's.
-_REPOSITORY_SIFT = {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "peak_threshold": 0.04 / 3, "root_sift": False,
-                    "normalize_minmax": True}
+_REPOSITORY_SIFT = {
+    **_REPOSITORY_IMAGE,
+    "max_keypoints": 2048,
+    "peak_threshold": 0.04 / 3,
+    "root_sift": False,
+    "normalize_minmax": True,
+}
 # LightGlue's extractors (cvg/lightglue, which the fork calls) resize their input again,
 # longest side to 1024 (so 512x288 runs at 1024x576), and map keypoints back.
 _LIGHTGLUE_INPUT = {"model_input_long_side": 1024}
@@ -138,8 +232,14 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
         "orb": {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "normalize_minmax": True},
         "disk": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
         # LightGlue's SuperPoint defaults: NMS 4, detection threshold 0.0005, borders 4.
-        "superpoint": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048, "resize_force": False,
-                       "nms_radius": 4, "keypoint_threshold": 0.0005},
+        "superpoint": {
+            **_REPOSITORY_IMAGE,
+            **_LIGHTGLUE_INPUT,
+            "max_keypoints": 2048,
+            "resize_force": False,
+            "nms_radius": 4,
+            "keypoint_threshold": 0.0005,
+        },
         "aliked": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
         # The fork's 'xfeat' is XFeat sparse, mutual nearest neighbour (min_cossim -1): xfeat-nn.
         "xfeat": {**_REPOSITORY_IMAGE, "max_keypoints": 2048},
@@ -151,8 +251,10 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
         "nn-hamming": {"ratio_threshold": 0.75, "mutual": False},
         # The fork's LightGlue runs without adaptive depth or width (both -1); its xfeat-lg
         # is XFeat's own LighterGlue call, with that model's settings.
-        **{name: {"depth_confidence": -1, "width_confidence": -1}
-           for name in ("lightglue-disk", "lightglue-superpoint", "lightglue-aliked")},
+        **{
+            name: {"depth_confidence": -1, "width_confidence": -1}
+            for name in ("lightglue-disk", "lightglue-superpoint", "lightglue-aliked")
+        },
     },
 }
 # Profiles this package used to have, and what replaced them.
@@ -168,15 +270,28 @@ REPLACED_PROFILES: dict[str, str] = {"fast": "repository"}
 # ``coordinates``: "original" fits F on keypoints in original pixels (hloc stores them so);
 # "resize_to" maps them first into the fixed ``resize_to`` frame the repository's code fits in.
 VERIFIER: dict[str, Any] = {
-    "type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.99, "max_iters": 1000,
-    "min_matches": 8, "few_matches": "zero", "min_match_score": 0.5, "coordinates": "original",
+    "type": "fundamental",
+    "method": "FM_RANSAC",
+    "threshold_px": 3.0,
+    "confidence": 0.99,
+    "max_iters": 1000,
+    "min_matches": 8,
+    "few_matches": "zero",
+    "min_match_score": 0.5,
+    "coordinates": "original",
 }
 VERIFIER_PROFILES: dict[str, dict[str, Any]] = {
     "paper": {},
     # main.py's ransac_kwargs; the fork's BaseMatcher.process_matches counts every match when
     # fewer than 8 (4 before its commit of 2025-01-11) and applies no score filter.
-    "repository": {"confidence": 0.95, "max_iters": 2000, "few_matches": "all", "min_match_score": None,
-                   "coordinates": "resize_to", "resize_to": list(REPOSITORY_IMAGE_SIZE)},
+    "repository": {
+        "confidence": 0.95,
+        "max_iters": 2000,
+        "few_matches": "all",
+        "min_match_score": None,
+        "coordinates": "resize_to",
+        "resize_to": list(REPOSITORY_IMAGE_SIZE),
+    },
 }
 
 
@@ -191,7 +306,8 @@ def check_profile(profile: str) -> None:
     if profile in REPLACED_PROFILES and profile not in PROFILES:
         raise UnknownNameError(
             f"profile {profile!r} was replaced by {REPLACED_PROFILES[profile]!r} (the GV-Bench repository's "
-            f"current protocol); set profile: {REPLACED_PROFILES[profile]} or paper")
+            f"current protocol); set profile: {REPLACED_PROFILES[profile]} or paper"
+        )
     if profile not in PROFILES:
         raise _unknown("profile", profile, list(PROFILES))
 
@@ -202,8 +318,9 @@ def profile_overrides(profile: str, conf: dict[str, Any], name: str) -> dict[str
     return {**overrides.get(conf["type"], {}), **(overrides.get(name, {}) if name != conf["type"] else {})}
 
 
-def _component(kind: str, entry: str | dict[str, Any], table: dict[str, dict[str, Any]], profile: str,
-               method: str) -> dict[str, Any]:
+def _component(
+    kind: str, entry: str | dict[str, Any], table: dict[str, dict[str, Any]], profile: str, method: str
+) -> dict[str, Any]:
     """An extractor or matcher conf under a profile: a conf name from ``table``, or a conf dict
     written in the method entry itself (named after the method unless it has a ``name``)."""
     if isinstance(entry, dict):
@@ -223,8 +340,13 @@ def component_name(entry: str | dict[str, Any] | None) -> str:
     return entry if isinstance(entry, str) else str(entry.get("name", entry["type"]))
 
 
-def register_method(name: str, extractor: str | dict[str, Any] | None, matcher: str | dict[str, Any],
-                    paper_name: str | None = None, in_paper: bool = False) -> None:
+def register_method(
+    name: str,
+    extractor: str | dict[str, Any] | None,
+    matcher: str | dict[str, Any],
+    paper_name: str | None = None,
+    in_paper: bool = False,
+) -> None:
     """Add a method: ``extractor`` and ``matcher`` are conf names (``EXTRACTORS``, ``MATCHERS``) or
     conf dicts whose ``type`` is a registered type or a ``"package.module:Class"`` reference.
     A method of the package is one entry in ``METHODS``; this is the same entry made from code."""
@@ -233,8 +355,7 @@ def register_method(name: str, extractor: str | dict[str, Any] | None, matcher: 
     for kind, entry in (("extractor", extractor), ("matcher", matcher)):
         if isinstance(entry, dict) and "type" not in entry:
             raise ValueError(f"method {name!r}: the {kind} conf needs a 'type' (a registered type or 'module:Class')")
-    METHODS[name] = {"paper_name": paper_name or name, "extractor": extractor, "matcher": matcher,
-                     "in_paper": in_paper}
+    METHODS[name] = {"paper_name": paper_name or name, "extractor": extractor, "matcher": matcher, "in_paper": in_paper}
 
 
 def check_verifier_overrides(overrides: dict[str, Any]) -> None:
@@ -243,8 +364,9 @@ def check_verifier_overrides(overrides: dict[str, Any]) -> None:
 
     unknown = [key for key in overrides if key not in VERIFIER and key != "resize_to"]
     if unknown:
-        raise ValueError(f"unknown key(s) {registry.unknown_keys_hint(unknown, list(VERIFIER))}; "
-                         f"valid: {', '.join(VERIFIER)}")
+        raise ValueError(
+            f"unknown key(s) {registry.unknown_keys_hint(unknown, list(VERIFIER))}; valid: {', '.join(VERIFIER)}"
+        )
     if "type" in overrides:
         registry.check_choice("verifier model", overrides["type"], ransac.MODELS)
     if "method" in overrides:
@@ -283,8 +405,11 @@ def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] |
         "profile": profile,
         "extractor": extractor,
         "matcher": matcher,
-        "verifier": {**copy.deepcopy(VERIFIER), **copy.deepcopy(VERIFIER_PROFILES[profile]),
-                     **copy.deepcopy(verifier or {})},
+        "verifier": {
+            **copy.deepcopy(VERIFIER),
+            **copy.deepcopy(VERIFIER_PROFILES[profile]),
+            **copy.deepcopy(verifier or {}),
+        },
     }
 
 
@@ -320,12 +445,18 @@ def method_table() -> list[dict[str, Any]]:
     for name, method in METHODS.items():
         needed = required_checkpoints(name)
         missing = [c for c in needed if not weights.is_present(c)]
-        rows.append({
-            "method": name, "paper_name": method["paper_name"], "in_paper": method["in_paper"],
-            "extractor": component_name(method["extractor"]), "matcher": component_name(method["matcher"]),
-            "weights": ", ".join(needed) or "-", "available": not missing,
-            "missing": ", ".join(weights.get(c).file for c in missing),
-        })
+        rows.append(
+            {
+                "method": name,
+                "paper_name": method["paper_name"],
+                "in_paper": method["in_paper"],
+                "extractor": component_name(method["extractor"]),
+                "matcher": component_name(method["matcher"]),
+                "weights": ", ".join(needed) or "-",
+                "available": not missing,
+                "missing": ", ".join(weights.get(c).file for c in missing),
+            }
+        )
     return rows
 
 

@@ -67,8 +67,11 @@ def run_command(params_file: PathLike, methods: SequenceType[str], **overrides: 
 
 def missing_methods(output_dir: PathLike, methods: SequenceType[str]) -> list[str]:
     """The ``methods`` (names or ``all``/``all-available``) without a ``pairs.csv`` in ``output_dir``."""
-    return [m for m in method_registry.expand_methods(list(methods))
-            if not (pipeline.method_dir(Path(output_dir), m) / "pairs.csv").is_file()]
+    return [
+        m
+        for m in method_registry.expand_methods(list(methods))
+        if not (pipeline.method_dir(Path(output_dir), m) / "pairs.csv").is_file()
+    ]
 
 
 def stale_results(output_dir: PathLike) -> bool:
@@ -85,8 +88,13 @@ def load_sequence(params_file: PathLike, **overrides: Any) -> tuple[dict[str, An
     return params, config.prepare_sequence(params)
 
 
-def require_results(params_file: PathLike, methods: SequenceType[str] = ("sift-nn",), compute_missing: bool = False,
-                    evaluate: bool = True, **overrides: Any) -> Path:
+def require_results(
+    params_file: PathLike,
+    methods: SequenceType[str] = ("sift-nn",),
+    compute_missing: bool = False,
+    evaluate: bool = True,
+    **overrides: Any,
+) -> Path:
     """Check that the params' output folder holds ``methods``' results; return the folder.
 
     ``compute_missing=True`` runs only the missing methods (and, with ``evaluate``, makes
@@ -112,17 +120,23 @@ def require_results(params_file: PathLike, methods: SequenceType[str] = ("sift-n
     if missing:
         raise ResultsMissingError(
             f"{output_dir} has no results of {', '.join(missing)}: make them with "
-            f"`{run_command(params_file, missing, **overrides)}`, or pass compute_missing=True to run them here.")
+            f"`{run_command(params_file, missing, **overrides)}`, or pass compute_missing=True to run them here."
+        )
     raise ResultsMissingError(
         f"{output_dir / 'results.csv'} does not list exactly the methods with a pairs.csv there "
         f"({', '.join(pipeline.methods_with_results(output_dir))}): pass compute_missing=True to evaluate them "
         "here (reads only pairs.csv), or run them again with "
-        f"`{run_command(params_file, pipeline.methods_with_results(output_dir), **overrides)}`.")
+        f"`{run_command(params_file, pipeline.methods_with_results(output_dir), **overrides)}`."
+    )
 
 
-def load_results(output_dirs: PathLike | Iterable[PathLike], figures_dir: PathLike,
-                 params_files: PathLike | Iterable[PathLike] | None = (), methods: SequenceType[str] = ("sift-nn",),
-                 compute_missing: bool = False) -> AnalysisInputs:
+def load_results(
+    output_dirs: PathLike | Iterable[PathLike],
+    figures_dir: PathLike,
+    params_files: PathLike | Iterable[PathLike] | None = (),
+    methods: SequenceType[str] = ("sift-nn",),
+    compute_missing: bool = False,
+) -> AnalysisInputs:
     """What an analysis notebook reads: the ``results.csv`` of ``output_dirs``.
 
     Each of ``params_files`` is first checked to hold ``methods``' results
@@ -149,15 +163,25 @@ def sequence_of(results: pd.DataFrame, output_dir: PathLike) -> str:
     """The sequence name the runs in ``output_dir`` recorded (a row of ``load_results``)."""
     names = results.loc[results["output_dir"] == str(Path(output_dir)), "sequence"]
     if names.empty:
-        raise ResultsMissingError(f"{output_dir} is not among the loaded output folders "
-                                  f"({', '.join(results['output_dir'].unique())}); add it to output_dirs")
+        raise ResultsMissingError(
+            f"{output_dir} is not among the loaded output folders "
+            f"({', '.join(results['output_dir'].unique())}); add it to output_dirs"
+        )
     return str(names.iloc[0])
 
 
-def open_verifier_bench(results_dir: PathLike, method: str, output_dir: PathLike, *,
-                        params_file: PathLike | None = None, profile: str | None = None,
-                        cache_dir: PathLike | None = None, compute_missing: bool = False,
-                        classifier: dict[str, Any] | None = None, **split_options: Any) -> VerifierBench:
+def open_verifier_bench(
+    results_dir: PathLike,
+    method: str,
+    output_dir: PathLike,
+    *,
+    params_file: PathLike | None = None,
+    profile: str | None = None,
+    cache_dir: PathLike | None = None,
+    compute_missing: bool = False,
+    classifier: dict[str, Any] | None = None,
+    **split_options: Any,
+) -> VerifierBench:
     """A ``verifiers.VerifierBench`` on ``results_dir/method``'s cached matches.
 
     ``results_dir`` is taken relative to the current folder (the notebook's), not the params
@@ -170,10 +194,18 @@ def open_verifier_bench(results_dir: PathLike, method: str, output_dir: PathLike
 
     results_dir = Path(results_dir).resolve()
     if params_file:
-        require_results(params_file, [method], compute_missing=compute_missing, evaluate=False,
-                        output_dir=str(results_dir), profile=profile)
+        require_results(
+            params_file,
+            [method],
+            compute_missing=compute_missing,
+            evaluate=False,
+            output_dir=str(results_dir),
+            profile=profile,
+        )
     elif missing_methods(results_dir, [method]):
-        raise ResultsMissingError(f"{results_dir} has no results of {method}: run it on that sequence first "
-                                  f"(python -m gvbench_nb run PARAMS --methods {method} --output-dir {results_dir})")
+        raise ResultsMissingError(
+            f"{results_dir} has no results of {method}: run it on that sequence first "
+            f"(python -m gvbench_nb run PARAMS --methods {method} --output-dir {results_dir})"
+        )
     overrides = {"doppelgangers-in-domain": dict(classifier)} if classifier else None
     return verifiers.open_bench(results_dir, method, output_dir, cache_dir, overrides=overrides, **split_options)

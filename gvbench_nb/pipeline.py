@@ -50,9 +50,21 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 PAIRS_COLUMNS = [
-    "pair_index", "query", "reference", "label", "method", "profile",
-    "num_keypoints_query", "num_keypoints_reference", "num_matches", "num_matches_filtered",
-    "num_inliers", "score", "extract_seconds", "match_seconds", "verify_seconds",
+    "pair_index",
+    "query",
+    "reference",
+    "label",
+    "method",
+    "profile",
+    "num_keypoints_query",
+    "num_keypoints_reference",
+    "num_matches",
+    "num_matches_filtered",
+    "num_inliers",
+    "score",
+    "extract_seconds",
+    "match_seconds",
+    "verify_seconds",
 ]
 
 
@@ -84,8 +96,9 @@ def worker_count(workers: int | None = None) -> int:
     return n
 
 
-def prefetch(items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers: int = 2
-             ) -> Iterator[tuple[T, R | BaseException]]:
+def prefetch(
+    items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers: int = 2
+) -> Iterator[tuple[T, R | BaseException]]:
     """Yield (item, load(item)) in order while the next ``depth`` loads run in threads.
 
     Decoding and resizing (OpenCV releases the GIL) then overlap the model's compute.
@@ -114,7 +127,9 @@ def prefetch(items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers
 # ---------------------------------------------------------------- feature cache --
 def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedStore:
     """The cache folder of one extractor conf: ``<cache_dir>/features/<name>-<hash>``."""
-    return ShardedStore(Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}")
+    return ShardedStore(
+        Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}"
+    )
 
 
 # (resolved path, size, mtime_ns, inode, device) -> content key: a file is hashed again
@@ -164,8 +179,9 @@ def first_pair_using(sequence: Sequence, name: str) -> str:
     return f"pair {index}: {pair.query} {pair.reference}"
 
 
-def stored_features(features: dict[str, np.ndarray], image: np.ndarray, scale: np.ndarray,
-                    store_float16: bool = False) -> dict[str, np.ndarray]:
+def stored_features(
+    features: dict[str, np.ndarray], image: np.ndarray, scale: np.ndarray, store_float16: bool = False
+) -> dict[str, np.ndarray]:
     """What the cache holds for one image: keypoints in original pixels, scores,
     descriptors and the original (width, height).
 
@@ -204,8 +220,9 @@ def extract_features(
         try:
             wanted.setdefault(image_key(sequence.image_root, name), name)
         except ImageReadError as error:
-            raise ImageReadError(f"{error} (image {name!r} of sequence {sequence.name!r}, "
-                                 f"{first_pair_using(sequence, name)})") from None
+            raise ImageReadError(
+                f"{error} (image {name!r} of sequence {sequence.name!r}, {first_pair_using(sequence, name)})"
+            ) from None
     todo = [key for key in wanted if key not in store]
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:
@@ -237,15 +254,18 @@ def extract_features(
     if workers == 1:
         results: Iterable[tuple[str, Any]] = (
             (key, loaded if isinstance(loaded, BaseException) else extract(loaded))
-            for key, loaded in prefetch(todo, load))
+            for key, loaded in prefetch(todo, load)
+        )
     else:
         results = prefetch(todo, lambda key: extract(load(key)), depth=2 * workers, workers=workers)
     bar = tqdm(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
     with store.writer(flush_every) as writer:
         for key, extracted in results:
             if isinstance(extracted, ImageReadError):
-                raise ImageReadError(f"{extracted} (image {wanted[key]!r} of sequence {sequence.name!r}, "
-                                     f"{first_pair_using(sequence, wanted[key])})") from extracted
+                raise ImageReadError(
+                    f"{extracted} (image {wanted[key]!r} of sequence {sequence.name!r}, "
+                    f"{first_pair_using(sequence, wanted[key])})"
+                ) from extracted
             if isinstance(extracted, BaseException):
                 raise extracted
             features, seconds = extracted
@@ -341,8 +361,9 @@ def pair_keys(sequence: Sequence, seed: int) -> dict[Any, str]:
         try:
             keys[pair] = pair_key(sequence.image_root, pair.query, pair.reference, seed)
         except ImageReadError as error:
-            raise ImageReadError(f"{error} (pair {index}: {pair.query} {pair.reference} of sequence "
-                                 f"{sequence.name!r})") from None
+            raise ImageReadError(
+                f"{error} (pair {index}: {pair.query} {pair.reference} of sequence {sequence.name!r})"
+            ) from None
     return keys
 
 
@@ -371,9 +392,15 @@ def claim_method_outputs(output_dir: Path, methods: Iterable[str], params_file: 
     (output_dir / "results.csv").unlink(missing_ok=True)
     for method in methods:
         folder = method_dir(output_dir, method)
-        atomic_write_json(folder / UNFINISHED_MARKER, {
-            "started_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-            "pid": os.getpid(), "host": platform.node(), "params_file": params_file})
+        atomic_write_json(
+            folder / UNFINISHED_MARKER,
+            {
+                "started_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+                "pid": os.getpid(),
+                "host": platform.node(),
+                "params_file": params_file,
+            },
+        )
         for stale in FINISHED_OUTPUTS:
             (folder / stale).unlink(missing_ok=True)
 
@@ -404,7 +431,8 @@ def check_results_finished(output_dir: Path) -> None:
         lines = "; ".join(f"{method}: {why}" for method, why in problems.items())
         raise ResultsError(
             f"{output_dir} holds unfinished results ({lines}); run those methods again "
-            f"(python -m gvbench_nb run PARAMS --methods {','.join(problems)}) or delete their folders")
+            f"(python -m gvbench_nb run PARAMS --methods {','.join(problems)}) or delete their folders"
+        )
 
 
 def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
@@ -442,7 +470,9 @@ def match_and_verify(
         counts["matched"] = len(todo)
         return counts
     features = feature_store(cache_dir, conf["extractor"])
-    reading = threading.Lock()  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
+    reading = (
+        threading.Lock()
+    )  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
 
     def read(name: str) -> dict[str, np.ndarray]:
         key = image_key(sequence.image_root, name)
@@ -461,23 +491,33 @@ def match_and_verify(
     # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
     # matching/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
     # the first pair using an image is charged for preparing it.
-    prepared = (PreparedCache(cast("PreparedMatcher", matcher).prepare)
-                if getattr(matcher, "can_prepare", False) else None)
+    prepared = (
+        PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
+    )
 
     def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
         features0, features1 = load(pair.query), load(pair.reference)
         start = time.perf_counter()
         if prepared is not None:
             pair_matches, match_scores = cast("PreparedMatcher", matcher).match_prepared(
-                prepared.get(pair.query, features0), prepared.get(pair.reference, features1))
+                prepared.get(pair.query, features0), prepared.get(pair.reference, features1)
+            )
         else:
             pair_matches, match_scores = matcher(features0, features1)
         return features0, features1, pair_matches, match_scores, time.perf_counter() - start
 
     def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
         features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
-        verified, verify_seconds = _verify_pair(pair, conf, seed, features0["keypoints"], features1["keypoints"],
-                                                pair_matches, match_scores, image_sizes(features0, features1))
+        verified, verify_seconds = _verify_pair(
+            pair,
+            conf,
+            seed,
+            features0["keypoints"],
+            features1["keypoints"],
+            pair_matches,
+            match_scores,
+            image_sizes(features0, features1),
+        )
         return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
     workers = worker_count(workers)
@@ -491,9 +531,20 @@ def match_and_verify(
                 if isinstance(matched, BaseException):
                     raise matched
                 features0, features1, pair_matches, match_scores, match_seconds = matched
-                _verify_and_store(writer, pair, keys[pair], conf, seed, features0["keypoints"], features1["keypoints"],
-                                  pair_matches, match_scores, {"matches": pair_matches.astype(np.int32)},
-                                  match_seconds, image_sizes(features0, features1))
+                _verify_and_store(
+                    writer,
+                    pair,
+                    keys[pair],
+                    conf,
+                    seed,
+                    features0["keypoints"],
+                    features1["keypoints"],
+                    pair_matches,
+                    match_scores,
+                    {"matches": pair_matches.astype(np.int32)},
+                    match_seconds,
+                    image_sizes(features0, features1),
+                )
                 counts["matched"] += 1
                 bar.update()
         else:
@@ -503,8 +554,16 @@ def match_and_verify(
                 if isinstance(done, BaseException):
                     raise done
                 pair_matches, match_scores, verified, match_seconds, verify_seconds = done
-                _store_verified(writer, keys[pair], pair_matches, match_scores, verified,
-                                {"matches": pair_matches.astype(np.int32)}, match_seconds, verify_seconds)
+                _store_verified(
+                    writer,
+                    keys[pair],
+                    pair_matches,
+                    match_scores,
+                    verified,
+                    {"matches": pair_matches.astype(np.int32)},
+                    match_seconds,
+                    verify_seconds,
+                )
                 counts["matched"] += 1
                 bar.update()
     bar.close()
@@ -516,36 +575,72 @@ def image_sizes(features0: dict[str, np.ndarray], features1: dict[str, np.ndarra
     return features0.get("image_size"), features1.get("image_size")
 
 
-def _verify_and_store(writer: Any, pair: Any, key: str, conf: dict[str, Any], seed: int, keypoints0: np.ndarray,
-                      keypoints1: np.ndarray, pair_matches: np.ndarray, match_scores: np.ndarray,
-                      arrays: dict[str, np.ndarray], match_seconds: float,
-                      sizes: tuple[Any, Any] = (None, None)) -> None:
+def _verify_and_store(
+    writer: Any,
+    pair: Any,
+    key: str,
+    conf: dict[str, Any],
+    seed: int,
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    pair_matches: np.ndarray,
+    match_scores: np.ndarray,
+    arrays: dict[str, np.ndarray],
+    match_seconds: float,
+    sizes: tuple[Any, Any] = (None, None),
+) -> None:
     """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
-    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores,
-                                            sizes)
+    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores, sizes)
     _store_verified(writer, key, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
 
 
-def _verify_pair(pair: Any, conf: dict[str, Any], seed: int, keypoints0: np.ndarray, keypoints1: np.ndarray,
-                 pair_matches: np.ndarray, match_scores: np.ndarray,
-                 sizes: tuple[Any, Any] = (None, None)) -> tuple[dict[str, Any], float]:
+def _verify_pair(
+    pair: Any,
+    conf: dict[str, Any],
+    seed: int,
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    pair_matches: np.ndarray,
+    match_scores: np.ndarray,
+    sizes: tuple[Any, Any] = (None, None),
+) -> tuple[dict[str, Any], float]:
     """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
     start = time.perf_counter()
-    verified = verify_matches(keypoints0, keypoints1, pair_matches, match_scores, conf["verifier"],
-                              seed=pair_seed(seed, pair.query, pair.reference), image_sizes=sizes)
+    verified = verify_matches(
+        keypoints0,
+        keypoints1,
+        pair_matches,
+        match_scores,
+        conf["verifier"],
+        seed=pair_seed(seed, pair.query, pair.reference),
+        image_sizes=sizes,
+    )
     return verified, time.perf_counter() - start
 
 
-def _store_verified(writer: Any, key: str, pair_matches: np.ndarray, match_scores: np.ndarray,
-                    verified: dict[str, Any], arrays: dict[str, np.ndarray], match_seconds: float,
-                    verify_seconds: float, extra_attrs: dict[str, Any] | None = None) -> None:
+def _store_verified(
+    writer: Any,
+    key: str,
+    pair_matches: np.ndarray,
+    match_scores: np.ndarray,
+    verified: dict[str, Any],
+    arrays: dict[str, np.ndarray],
+    match_seconds: float,
+    verify_seconds: float,
+    extra_attrs: dict[str, Any] | None = None,
+) -> None:
     """Commit one verified pair: its matches, inlier mask, counts and timings."""
     writer.put(
         key,
         {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
-        {"num_matches": verified["num_matches"], "num_matches_filtered": verified["num_matches_filtered"],
-         "num_inliers": verified["num_inliers"], "match_seconds": match_seconds, "verify_seconds": verify_seconds,
-         **(extra_attrs or {})},
+        {
+            "num_matches": verified["num_matches"],
+            "num_matches_filtered": verified["num_matches_filtered"],
+            "num_inliers": verified["num_inliers"],
+            "match_seconds": match_seconds,
+            "verify_seconds": verify_seconds,
+            **(extra_attrs or {}),
+        },
     )
 
 
@@ -554,8 +649,11 @@ def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
     None when its raw matches are verified pair by pair."""
     if matcher_conf.get("merge_max_keypoints") is None:
         return None
-    return {"max_keypoints": matcher_conf["merge_max_keypoints"], "cell_size": matcher_conf["merge_cell_size"],
-            "max_error": matcher_conf["merge_max_error"]}
+    return {
+        "max_keypoints": matcher_conf["merge_max_keypoints"],
+        "cell_size": matcher_conf["merge_cell_size"],
+        "max_error": matcher_conf["merge_max_error"],
+    }
 
 
 def pair_list_hash(keys: dict[Any, str]) -> str:
@@ -566,8 +664,7 @@ def pair_list_hash(keys: dict[Any, str]) -> str:
 
 def raw_dense_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """A dense matcher's raw matches a pair (original pixels), before merging."""
-    return ShardedStore(method_dir(output_dir, conf["method"]) /
-                        f"raw-{method_registry.conf_hash(conf['matcher'])}")
+    return ShardedStore(method_dir(output_dir, conf["method"]) / f"raw-{method_registry.conf_hash(conf['matcher'])}")
 
 
 def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any, str], where: Path) -> None:
@@ -576,12 +673,22 @@ def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any,
     if merged_over is not None and str(merged_over) != pair_list_hash(keys):
         raise ValueError(
             f"the dense matches in {where} were merged over another pair list than sequence "
-            f"{sequence.name!r} has now ({len(sequence.pairs)} pairs); delete that folder or use another output_dir")
+            f"{sequence.name!r} has now ({len(sequence.pairs)} pairs); delete that folder or use another output_dir"
+        )
 
 
-def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], conf: dict[str, Any], matcher: Callable,
-                       matches: ShardedStore, seed: int, progress: bool, flush_every: int,
-                       output_dir: Path | None = None) -> None:
+def _match_dense_pairs(
+    sequence: Sequence,
+    todo: list,
+    keys: dict[Any, str],
+    conf: dict[str, Any],
+    matcher: Callable,
+    matches: ShardedStore,
+    seed: int,
+    progress: bool,
+    flush_every: int,
+    output_dir: Path | None = None,
+) -> None:
     """Dense matchers (LoFTR, ``imm:`` methods) see both images of every pair: no per-image cache.
     Decoding overlaps compute through the same prefetching loader.
 
@@ -589,6 +696,7 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
     the sequence is matched first (its raw points kept in ``raw_dense_store``, so a rerun
     resumes), then the keypoints of each image are merged across all pairs
     (``matchers.merge_dense_matches``) and each pair is verified on its merged matches."""
+
     def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         image0, scale0 = load_for_extraction(sequence.image_root / pair.query, conf["matcher"])
         image1, scale1 = load_for_extraction(sequence.image_root / pair.reference, conf["matcher"])
@@ -617,8 +725,20 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
         with matches.writer(flush_every) as writer:
             for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(todo):
                 identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
-                _verify_and_store(writer, pair, keys[pair], conf, seed, points0, points1, identity, match_scores,
-                                  {"points0": points0, "points1": points1}, match_seconds, sizes)
+                _verify_and_store(
+                    writer,
+                    pair,
+                    keys[pair],
+                    conf,
+                    seed,
+                    points0,
+                    points1,
+                    identity,
+                    match_scores,
+                    {"points0": points0, "points1": points1},
+                    match_seconds,
+                    sizes,
+                )
         return
 
     if output_dir is None:
@@ -629,16 +749,28 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
     raw.refresh()
     with raw.writer(flush_every) as writer:
         for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(
-                [p for p in sequence.pairs if keys[p] not in raw]):
-            writer.put(keys[pair], {"points0": points0, "points1": points1, "scores": match_scores.astype(np.float32),
-                                    "image_size0": np.asarray(sizes[0]), "image_size1": np.asarray(sizes[1])},
-                       {"match_seconds": match_seconds})
+            [p for p in sequence.pairs if keys[p] not in raw]
+        ):
+            writer.put(
+                keys[pair],
+                {
+                    "points0": points0,
+                    "points1": points1,
+                    "scores": match_scores.astype(np.float32),
+                    "image_size0": np.asarray(sizes[0]),
+                    "image_size1": np.asarray(sizes[1]),
+                },
+                {"match_seconds": match_seconds},
+            )
     raw.refresh()
     entries = [raw.read(keys[p]) for p in sequence.pairs]
     raw.close()
     start = time.perf_counter()
-    keypoints, merged = merge_dense_matches([(p.query, p.reference) for p in sequence.pairs],
-                                            [(e["points0"], e["points1"], e["scores"]) for e in entries], **merge)
+    keypoints, merged = merge_dense_matches(
+        [(p.query, p.reference) for p in sequence.pairs],
+        [(e["points0"], e["points1"], e["scores"]) for e in entries],
+        **merge,
+    )
     merge_seconds = (time.perf_counter() - start) / max(len(sequence.pairs), 1)  # shared by every pair
     merged_over = pair_list_hash(keys)
     wanted = {keys[p] for p in todo}
@@ -648,17 +780,30 @@ def _match_dense_pairs(sequence: Sequence, todo: list, keys: dict[Any, str], con
                 continue
             points0 = keypoints[pair.query][pair_matches[:, 0]]
             points1 = keypoints[pair.reference][pair_matches[:, 1]]
-            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1,
-                                                    np.repeat(np.arange(len(points0))[:, None], 2, axis=1),
-                                                    match_scores, (entry["image_size0"], entry["image_size1"]))
-            _store_verified(writer, keys[pair], pair_matches, match_scores, verified,
-                            {"points0": points0, "points1": points1},
-                            float(entry["attr:match_seconds"]) + merge_seconds, verify_seconds,
-                            {"merged_over": merged_over})
+            verified, verify_seconds = _verify_pair(
+                pair,
+                conf,
+                seed,
+                points0,
+                points1,
+                np.repeat(np.arange(len(points0))[:, None], 2, axis=1),
+                match_scores,
+                (entry["image_size0"], entry["image_size1"]),
+            )
+            _store_verified(
+                writer,
+                keys[pair],
+                pair_matches,
+                match_scores,
+                verified,
+                {"points0": points0, "points1": points1},
+                float(entry["attr:match_seconds"]) + merge_seconds,
+                verify_seconds,
+                {"merged_over": merged_over},
+            )
 
 
-def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int
-                ) -> pd.DataFrame:
+def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> pd.DataFrame:
     """The per-pair table of a finished run, built only from the stores."""
     matches = match_store(output_dir, conf)
     matches.refresh()
@@ -685,15 +830,25 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
             keypoints_query, keypoints_reference = image_info[pair.query][0], image_info[pair.reference][0]
             # Extraction is amortised: each image's time is shared among the pairs that use it.
             extract_seconds = sum(image_info[n][1] / uses[n] for n in (pair.query, pair.reference))
-        rows.append({
-            "pair_index": index, "query": pair.query, "reference": pair.reference, "label": pair.label,
-            "method": conf["method"], "profile": conf["profile"],
-            "num_keypoints_query": keypoints_query, "num_keypoints_reference": keypoints_reference,
-            "num_matches": int(entry["attr:num_matches"]), "num_matches_filtered": int(entry["attr:num_matches_filtered"]),
-            "num_inliers": int(entry["attr:num_inliers"]), "score": int(entry["attr:num_inliers"]),
-            "extract_seconds": extract_seconds, "match_seconds": float(entry["attr:match_seconds"]),
-            "verify_seconds": float(entry["attr:verify_seconds"]),
-        })
+        rows.append(
+            {
+                "pair_index": index,
+                "query": pair.query,
+                "reference": pair.reference,
+                "label": pair.label,
+                "method": conf["method"],
+                "profile": conf["profile"],
+                "num_keypoints_query": keypoints_query,
+                "num_keypoints_reference": keypoints_reference,
+                "num_matches": int(entry["attr:num_matches"]),
+                "num_matches_filtered": int(entry["attr:num_matches_filtered"]),
+                "num_inliers": int(entry["attr:num_inliers"]),
+                "score": int(entry["attr:num_inliers"]),
+                "extract_seconds": extract_seconds,
+                "match_seconds": float(entry["attr:match_seconds"]),
+                "verify_seconds": float(entry["attr:verify_seconds"]),
+            }
+        )
     matches.close()
     return pd.DataFrame(rows, columns=PAIRS_COLUMNS)
 
@@ -727,8 +882,12 @@ def environment_info(device: torch.device) -> dict[str, Any]:
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
         "cpu_count": os.cpu_count(),
-        "torch": torch.__version__, "kornia": _version("kornia"), "opencv": cv2.__version__,
-        "numpy": np.__version__, "python": platform.python_version(), "platform": platform.platform(),
+        "torch": torch.__version__,
+        "kornia": _version("kornia"),
+        "opencv": cv2.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
     }
     return info
 
@@ -755,8 +914,15 @@ WORK_RECORD = ".computed.json"  # in a method folder: what ``compute_method`` di
 
 def _work_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
     """What a work record must match to stand for a run: the same sequence, pairs, conf, seed and device request."""
-    identity = {"sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-                "pairs": sequence.origin, "conf": conf, "seed": seed, "device": str(device)}
+    identity = {
+        "sequence": sequence.name,
+        "image_root": str(sequence.image_root),
+        "n_pairs": len(sequence.pairs),
+        "pairs": sequence.origin,
+        "conf": conf,
+        "seed": seed,
+        "device": str(device),
+    }
     return json.loads(json.dumps(identity, sort_keys=True, default=str))  # as it reads back from JSON
 
 
@@ -786,16 +952,26 @@ def compute_method(
     configure_threads(threads)
     started = time.perf_counter()
     workers = worker_count(workers)
-    extraction = (extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
-                  if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
+    extraction = (
+        extract_features(sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers)
+        if conf["extractor"]
+        else {"images": 0, "cached": 0, "extracted": 0}
+    )
     extracted = time.perf_counter()
     matching = match_and_verify(sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers)
     finished = time.perf_counter()
-    work = {"identity": _work_identity(sequence, conf, seed, device), "pid": os.getpid(),
-            "environment": environment_info(resolved_device),
-            "this_run": {"extraction": extraction, "matching": matching, "workers": workers,
-                         "extract_wall_seconds": extracted - started,
-                         "match_verify_wall_seconds": finished - extracted}}
+    work = {
+        "identity": _work_identity(sequence, conf, seed, device),
+        "pid": os.getpid(),
+        "environment": environment_info(resolved_device),
+        "this_run": {
+            "extraction": extraction,
+            "matching": matching,
+            "workers": workers,
+            "extract_wall_seconds": extracted - started,
+            "match_verify_wall_seconds": finished - extracted,
+        },
+    }
     atomic_write_json(method_dir(output_dir, method) / WORK_RECORD, work)
     return work
 
@@ -842,16 +1018,25 @@ def run_method(
     claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
     work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
     if work is None or has_pending_work(sequence, conf, cache_dir, output_dir, seed):
-        work = compute_method(sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads,
-                              workers, verifier)
+        work = compute_method(
+            sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
+        )
     table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
     # pairs.csv is written last: its presence marks a finished run (methods_with_results).
-    atomic_write_json(folder / "run.json", {
-        "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "pairs": sequence.origin, "conf": conf, "seed": seed, "environment": work["environment"],
-        "this_run": work["this_run"],
-        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-    })
+    atomic_write_json(
+        folder / "run.json",
+        {
+            "sequence": sequence.name,
+            "image_root": str(sequence.image_root),
+            "n_pairs": len(sequence.pairs),
+            "pairs": sequence.origin,
+            "conf": conf,
+            "seed": seed,
+            "environment": work["environment"],
+            "this_run": work["this_run"],
+            "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        },
+    )
     atomic_write_csv(folder / "pairs.csv", table)
     # The record is used once: a later run that finds everything cached records that.
     (folder / WORK_RECORD).unlink(missing_ok=True)
@@ -863,16 +1048,32 @@ def run_method(
 def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
     """``run_method`` with what a loaded params file sets: profile, output and cache folders,
     device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
-    return run_method(sequence, method, params["profile"], Path(params["output_dir"]), Path(params["cache_dir"]),
-                      device=params["device"], seed=params["seed"], verifier=params.get("verifier") or None,
-                      **options)
+    return run_method(
+        sequence,
+        method,
+        params["profile"],
+        Path(params["output_dir"]),
+        Path(params["cache_dir"]),
+        device=params["device"],
+        seed=params["seed"],
+        verifier=params.get("verifier") or None,
+        **options,
+    )
 
 
 def compute_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> dict[str, Any]:
     """``compute_method`` with what a loaded params file sets, as ``run_method_of_params`` runs it."""
-    return compute_method(sequence, method, params["profile"], Path(params["output_dir"]), Path(params["cache_dir"]),
-                          device=params["device"], seed=params["seed"], verifier=params.get("verifier") or None,
-                          **options)
+    return compute_method(
+        sequence,
+        method,
+        params["profile"],
+        Path(params["output_dir"]),
+        Path(params["cache_dir"]),
+        device=params["device"],
+        seed=params["seed"],
+        verifier=params.get("verifier") or None,
+        **options,
+    )
 
 
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
@@ -895,25 +1096,37 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
     methods = methods or methods_with_results(output_dir)
     if not methods:
         what = "does not exist" if not output_dir.exists() else "holds no method results (<method>/pairs.csv)"
-        raise ResultsError(f"{output_dir} {what}; give the output_dir of a finished run, or run a method first "
-                           "(python -m gvbench_nb run PARAMS)")
+        raise ResultsError(
+            f"{output_dir} {what}; give the output_dir of a finished run, or run a method first "
+            "(python -m gvbench_nb run PARAMS)"
+        )
     rows = []
     for method in methods:
         table = load_pairs_table(output_dir, method)
         run = json.loads((method_dir(output_dir, method) / "run.json").read_text())
-        metrics = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy(),
-                                  where=f"{method_dir(output_dir, method) / 'pairs.csv'}")
-        rows.append({
-            "sequence": run["sequence"], "method": method, "paper_name": run["conf"]["paper_name"],
-            "profile": run["conf"]["profile"], **metrics,
-            "extract_seconds_per_pair": table["extract_seconds"].mean(),
-            "match_seconds_per_pair": table["match_seconds"].mean(),
-            "verify_seconds_per_pair": table["verify_seconds"].mean(),
-            "seconds_per_pair": (table["extract_seconds"] + table["match_seconds"] + table["verify_seconds"]).mean(),
-            "device": run["environment"]["device"],
-            # >1: the seconds above include waiting for cores shared by concurrent images/pairs
-            "workers": run.get("this_run", {}).get("workers", 1),  # runs written before workers existed: 1
-        })
+        metrics = evaluate_scores(
+            table["label"].to_numpy(),
+            table["score"].to_numpy(),
+            where=f"{method_dir(output_dir, method) / 'pairs.csv'}",
+        )
+        rows.append(
+            {
+                "sequence": run["sequence"],
+                "method": method,
+                "paper_name": run["conf"]["paper_name"],
+                "profile": run["conf"]["profile"],
+                **metrics,
+                "extract_seconds_per_pair": table["extract_seconds"].mean(),
+                "match_seconds_per_pair": table["match_seconds"].mean(),
+                "verify_seconds_per_pair": table["verify_seconds"].mean(),
+                "seconds_per_pair": (
+                    table["extract_seconds"] + table["match_seconds"] + table["verify_seconds"]
+                ).mean(),
+                "device": run["environment"]["device"],
+                # >1: the seconds above include waiting for cores shared by concurrent images/pairs
+                "workers": run.get("this_run", {}).get("workers", 1),  # runs written before workers existed: 1
+            }
+        )
     results = pd.DataFrame(rows)
     if write:
         atomic_write_csv(output_dir / "results.csv", results)

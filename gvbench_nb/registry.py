@@ -32,8 +32,14 @@ def unknown_name_message(kind: str, name: object, known: Iterable[str], where: s
     return f"unknown {kind} {name!r}{place}.{hint} Known: {', '.join(known)}"
 
 
-def lookup(kind: str, name: str, table: Mapping[str, T], where: str = "", also: Iterable[str] = (),
-           error: type[Exception] = UnknownNameError) -> T:
+def lookup(
+    kind: str,
+    name: str,
+    table: Mapping[str, T],
+    where: str = "",
+    also: Iterable[str] = (),
+    error: type[Exception] = UnknownNameError,
+) -> T:
     """``table[name]``, or ``error`` with the closest known name (``also``: further valid spellings)."""
     try:
         return table[name]
@@ -41,8 +47,9 @@ def lookup(kind: str, name: str, table: Mapping[str, T], where: str = "", also: 
         raise error(unknown_name_message(kind, name, [*table, *also], where)) from None
 
 
-def check_choice(kind: str, value: object, choices: Iterable[Any], where: str = "",
-                 error: type[Exception] = ValueError) -> None:
+def check_choice(
+    kind: str, value: object, choices: Iterable[Any], where: str = "", error: type[Exception] = ValueError
+) -> None:
     """Raise ``error`` unless ``value`` is one of ``choices`` (for option values, not table keys)."""
     choices = list(choices)
     if value not in choices:

@@ -233,7 +233,8 @@ class ShardWriter:
                     for attr_name, value in attrs.items():
                         group.attrs[attr_name] = value
                     group.attrs[_ATTRS_DIGEST] = attrs_digest(
-                        key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")})
+                        key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")}
+                    )
             with open(temporary, "rb") as stream:
                 os.fsync(stream.fileno())
             os.replace(temporary, final)

@@ -120,7 +120,9 @@ CHECKPOINTS: dict[str, Checkpoint] = {
         Checkpoint(
             "superglue_outdoor",
             "superglue_outdoor.pth",
-            ("https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth",),
+            (
+                "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth",
+            ),
             "Magic Leap, non-commercial research only",
             "gvbench_nb.matching.superglue.SuperGlue",
         ),
@@ -318,9 +320,7 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
         ) from None
 
 
-def load_state_dict_strict(
-    module: torch.nn.Module, state_dict: Mapping[str, torch.Tensor], source: str
-) -> None:
+def load_state_dict_strict(module: torch.nn.Module, state_dict: Mapping[str, torch.Tensor], source: str) -> None:
     """Load ``state_dict`` into ``module``, naming every missing, unexpected or
     mis-shaped tensor when it does not fit (torch's own message stops at the first)."""
     expected = module.state_dict()

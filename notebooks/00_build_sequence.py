@@ -46,9 +46,7 @@ output_dir = None  # figures go here; default: the params file's output_dir
 # them.
 
 # %%
-params = config.load_build_params(
-    params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir
-)
+params = config.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
 figures = Path(params["output_dir"])
 card = build.build_sequence(params)
 build.check_card(card["files"]["pairs"])  # the card's counts are the pair file's
@@ -64,9 +62,7 @@ display(Markdown(build.card_markdown(card)))
 curves = build.recall_curves(params, compare_descriptors)
 display(curves.pivot(index="k", columns="descriptor", values="recall").round(3).T)
 queries = curves.queries_evaluated.iloc[0]
-figure = build.plot_recall_curves(
-    curves, title=f"{card['sequence']}: retrieval recall@k ({queries} queries)"
-)
+figure = build.plot_recall_curves(curves, title=f"{card['sequence']}: retrieval recall@k ({queries} queries)")
 plots.save(figure, figures / "build_recall_at_k.png")
 plt.show()
 
@@ -79,9 +75,11 @@ plt.show()
 candidates = pd.read_csv(card["files"]["candidates"])
 shown = build.strip_queries(candidates, strip_count)
 figure = build.candidate_strips(
-    params["image_root"], candidates, shown, k=min(5, card["top_n"]),
-    title=f"{card['sequence']}: top candidates by {card['descriptor']} "
-    "(green true, red false)",
+    params["image_root"],
+    candidates,
+    shown,
+    k=min(5, card["top_n"]),
+    title=f"{card['sequence']}: top candidates by {card['descriptor']} (green true, red false)",
 )
 plots.save(figure, figures / "build_candidates.png")
 plt.show()

@@ -39,9 +39,7 @@ output_dir = None  # default: the params file's output_dir
 # without one contributes only false pairs.
 
 # %%
-params, sequence = notebook.load_sequence(
-    params_file, limit=limit, output_dir=output_dir
-)
+params, sequence = notebook.load_sequence(params_file, limit=limit, output_dir=output_dir)
 figures = Path(params["output_dir"])
 pd.Series(sequences.summarize(sequence), name=sequence.name).to_frame()
 
@@ -53,9 +51,7 @@ pd.Series(sequences.summarize(sequence), name=sequence.name).to_frame()
 # %%
 pairs = sequence.to_frame()
 sequence.check_images()  # names the first missing image and its pair
-figure = plots.positives_per_query(
-    pairs, title=f"{sequence.name}: true references a query"
-)
+figure = plots.positives_per_query(pairs, title=f"{sequence.name}: true references a query")
 plots.save(figure, figures / "sequence_positives_per_query.png")
 plt.show()
 
@@ -67,7 +63,8 @@ plt.show()
 # %%
 examples = pd.concat([pairs[pairs.label == 1].head(2), pairs[pairs.label == 0].tail(2)])
 figure = plots.example_pairs(
-    sequence.image_root, examples,
+    sequence.image_root,
+    examples,
     title=f"{sequence.name}: example pairs (query | reference)",
 )
 plots.save(figure, figures / "sequence_examples.png")

@@ -38,9 +38,7 @@ output_dir = None
 # each stage took.
 
 # %%
-params, sequence = notebook.load_sequence(
-    params_file, limit=limit, output_dir=output_dir, profile=profile
-)
+params, sequence = notebook.load_sequence(params_file, limit=limit, output_dir=output_dir, profile=profile)
 out = Path(params["output_dir"])
 table = pipeline.run_method_of_params(params, sequence, method)
 written = pipeline.method_dir(out, method) / "pairs.csv"

@@ -50,8 +50,6 @@ display(results)
 
 # %%
 tables = {m: pipeline.load_pairs_table(out, m) for m in results["method"]}
-figure = plots.pr_curves(
-    tables, title=f"{params['sequence']}: precision-recall (dot: MR)"
-)
+figure = plots.pr_curves(tables, title=f"{params['sequence']}: precision-recall (dot: MR)")
 plots.save(figure, out / "pr_curves.png")
 plt.show()

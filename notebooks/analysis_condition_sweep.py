@@ -60,8 +60,15 @@ output_dir = "../outputs/condition_sweep_nbmake"
 # %%
 out = Path(output_dir)
 sweep = condition_sweep.run_sweep(
-    out, methods, conditions=conditions, strengths=strengths, seed=seed,
-    n_frames=n_frames, profile=profile, image_size=image_size, threads=threads,
+    out,
+    methods,
+    conditions=conditions,
+    strengths=strengths,
+    seed=seed,
+    n_frames=n_frames,
+    profile=profile,
+    image_size=image_size,
+    threads=threads,
 )
 print(f"{len(sweep)} cells -> {out / 'sweep.csv'}")
 display(sweep)

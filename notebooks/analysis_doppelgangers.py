@@ -60,10 +60,17 @@ n_resamples = 1000  # query-bootstrap resamples for the 95% CIs
 
 # %%
 bench = notebook.open_verifier_bench(
-    results_dir, method, output_dir, params_file=params_file, profile=profile,
-    cache_dir=cache_dir, compute_missing=compute_missing,
+    results_dir,
+    method,
+    output_dir,
+    params_file=params_file,
+    profile=profile,
+    cache_dir=cache_dir,
+    compute_missing=compute_missing,
     classifier={"size": size, "epochs": epochs, "max_train_pairs": max_train_pairs},
-    train_fraction=train_fraction, gap_frames=gap_frames, tolerance=tolerance,
+    train_fraction=train_fraction,
+    gap_frames=gap_frames,
+    tolerance=tolerance,
 )
 figures = Path(output_dir)
 print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
@@ -86,14 +93,18 @@ names = [verifiers.PAPER_VERIFIER, "doppelgangers", "doppelgangers-in-domain"]
 results, tables, boot = bench.evaluate(names, "test", n_resamples)
 official = results.set_index("verifier").loc["doppelgangers"]
 if official["status"] != "ok":
-    print(f"OFFICIAL CHECKPOINT ABSENT - {official['status']}\n"
-          "Showing the in-domain-trained classifier instead (weights named below).")
+    print(
+        f"OFFICIAL CHECKPOINT ABSENT - {official['status']}\n"
+        "Showing the in-domain-trained classifier instead (weights named below)."
+    )
 info = bench.weights_info["doppelgangers-in-domain"]
 trained = "reused" if info.get("reused") else "trained now"
-print(f"in-domain weights: {info['weights']} ({trained}); "
-      f"{info['n_train_pairs']} train pairs ({info['n_train_positives']} true), "
-      f"training {info['train_seconds']:.0f} s on {info['torch_threads']} thread(s), "
-      f"inputs {info['input_seconds']:.0f} s")
+print(
+    f"in-domain weights: {info['weights']} ({trained}); "
+    f"{info['n_train_pairs']} train pairs ({info['n_train_positives']} true), "
+    f"training {info['train_seconds']:.0f} s on {info['torch_threads']} thread(s), "
+    f"inputs {info['input_seconds']:.0f} s"
+)
 epochs_run = pd.RangeIndex(1, len(info["history"]["loss"]) + 1, name="epoch")
 pd.DataFrame(info["history"], index=epochs_run)
 
@@ -107,13 +118,14 @@ pd.DataFrame(info["history"], index=epochs_run)
 paper = analysis.load_paper_table()
 comparison = verifiers.doppelgangers_comparison(results, paper, bench.cached.sequence)
 comparison.to_csv(figures / "doppelgangers_vs_gv.csv", index=False)
-print(f"AP / MR in % (ours: {bench.cached.label}, test split, 95% CI from "
-      f"{n_resamples} query resamples; paper: as published, other sequences)")
+print(
+    f"AP / MR in % (ours: {bench.cached.label}, test split, 95% CI from "
+    f"{n_resamples} query resamples; paper: as published, other sequences)"
+)
 shown = comparison.copy()
 for metric in ("ap", "max_recall"):
     shown[metric] = (100 * shown[metric]).round(1)
-shown.pivot_table(index=["source", "verifier"], columns="sequence",
-                  values=["ap", "max_recall"], sort=False)
+shown.pivot_table(index=["source", "verifier"], columns="sequence", values=["ap", "max_recall"], sort=False)
 
 # %% [markdown]
 # Ours again with the 95% intervals, the status of each verifier (why one could not run)
@@ -128,9 +140,7 @@ verifiers.verifier_table(results)
 # most loop closures without a false one.
 
 # %%
-figure = plots.pr_curves(
-    tables, title=f"{bench.cached.label}, test split: GV vs Doppelgangers"
-)
+figure = plots.pr_curves(tables, title=f"{bench.cached.label}, test split: GV vs Doppelgangers")
 plots.save(figure, figures / "doppelgangers_vs_gv_pr.png")
 plt.show()
 print("verifiers.csv:", verifiers.write_results(results, output_dir))

@@ -47,7 +47,10 @@ cache_dir = None  # feature cache; None: <output_dir>/../cache
 
 # %%
 output_dirs, results, figures = notebook.load_results(
-    output_dirs, output_dir, params_files, ensure_methods,
+    output_dirs,
+    output_dir,
+    params_files,
+    ensure_methods,
     compute_missing=compute_missing,
 )
 print(notebook.describe(results))
@@ -62,9 +65,7 @@ for folder in output_dirs:
     runs.append((folder, sequence, image_root, failures))
     for method, table in tables.items():
         offsets = analysis.ground_truth_offsets(table, image_root)
-        near = analysis.near_miss_false_positives(
-            table, offsets, near_top_k, low=near_low, high=near_high
-        )
+        near = analysis.near_miss_false_positives(table, offsets, near_top_k, low=near_low, high=near_high)
         near_misses.append({"sequence": sequence, "method": method, **near})
 near_misses = pd.DataFrame(near_misses)
 near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
@@ -89,7 +90,11 @@ for folder, sequence, image_root, failures in runs:
     for (method, kind), rows in failures.groupby(["method", "kind"], sort=False):
         what = kind.replace("_", " ")
         figure = analysis_plots.failure_pairs(
-            rows, folder, method, image_root, cache_dir,
+            rows,
+            folder,
+            method,
+            image_root,
+            cache_dir,
             title=f"{sequence} / {method}: top {what}s",
         )
         plots.save(figure, figures / f"{kind}s_{sequence}_{method}.png")

@@ -39,17 +39,17 @@ output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are writte
 
 # %%
 output_dirs, results, figures = notebook.load_results(
-    output_dirs, output_dir, params_files, ensure_methods,
+    output_dirs,
+    output_dir,
+    params_files,
+    ensure_methods,
     compute_missing=compute_missing,
 )
 print(notebook.describe(results))
 
 # %%
 # (sequence, {method: pairs table}) of every output folder
-tables = [
-    (notebook.sequence_of(results, folder), analysis.load_pairs_tables(folder))
-    for folder in output_dirs
-]
+tables = [(notebook.sequence_of(results, folder), analysis.load_pairs_tables(folder)) for folder in output_dirs]
 
 # %% [markdown]
 # One row a run: true and false pairs, the share of each with zero inliers, the top
@@ -58,8 +58,7 @@ tables = [
 
 # %%
 pd.concat(
-    [analysis.inlier_overlap_table(runs).assign(sequence=sequence)
-     for sequence, runs in tables],
+    [analysis.inlier_overlap_table(runs).assign(sequence=sequence) for sequence, runs in tables],
     ignore_index=True,
 )
 
@@ -70,8 +69,6 @@ pd.concat(
 
 # %%
 for sequence, runs in tables:
-    figure = analysis_plots.normalised_inlier_histograms(
-        runs, title=f"{sequence}: normalised inliers, true vs false"
-    )
+    figure = analysis_plots.normalised_inlier_histograms(runs, title=f"{sequence}: normalised inliers, true vs false")
     plots.save(figure, figures / f"normalised_inliers_{sequence}.png")
     plt.show()

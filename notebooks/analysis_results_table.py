@@ -43,7 +43,10 @@ paper_table = None
 
 # %%
 output_dirs, results, figures = notebook.load_results(
-    output_dirs, output_dir, params_files, ensure_methods,
+    output_dirs,
+    output_dir,
+    params_files,
+    ensure_methods,
     compute_missing=compute_missing,
 )
 print(notebook.describe(results))
@@ -70,9 +73,7 @@ analysis.style_results_table(wide)
 
 # %%
 ran = results["method"].unique()
-for table, source in (
-    (paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)
-):
+for table, source in ((paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)):
     if len(table) and table["method"].isin(ran).any():
         display(Markdown(f"**{source}**"))
         published = analysis.paper_reference_table(table, ran, source=source)

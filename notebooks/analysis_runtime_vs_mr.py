@@ -40,7 +40,10 @@ cache_dir = None  # feature cache (for image sizes); None: <output_dir>/../cache
 
 # %%
 output_dirs, results, figures = notebook.load_results(
-    output_dirs, output_dir, params_files, ensure_methods,
+    output_dirs,
+    output_dir,
+    params_files,
+    ensure_methods,
     compute_missing=compute_missing,
 )
 print(notebook.describe(results))

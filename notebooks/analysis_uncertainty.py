@@ -43,7 +43,10 @@ seed = 0
 
 # %%
 output_dirs, results, figures = notebook.load_results(
-    output_dirs, output_dir, params_files, ensure_methods,
+    output_dirs,
+    output_dir,
+    params_files,
+    ensure_methods,
     compute_missing=compute_missing,
 )
 print(notebook.describe(results))
@@ -52,11 +55,9 @@ print(notebook.describe(results))
 boots = []  # (sequence, bootstrap) of every output folder
 for folder in output_dirs:
     tables = analysis.load_pairs_tables(folder)
-    boots.append((notebook.sequence_of(results, folder),
-                  analysis.bootstrap(tables, n_resamples, seed)))
+    boots.append((notebook.sequence_of(results, folder), analysis.bootstrap(tables, n_resamples, seed)))
 for sequence, boot in boots:
-    print(f"{sequence}: {boot.n_queries} queries, {boot.n_pairs} pairs, "
-          f"{n_resamples} resamples")
+    print(f"{sequence}: {boot.n_queries} queries, {boot.n_pairs} pairs, {n_resamples} resamples")
 
 # %% [markdown]
 # AP and MR of every method with its 95% interval (`low`, `high`) over the resamples
@@ -95,5 +96,6 @@ for sequence, boot in boots:
         print(f"{sequence}: one method, no ranking to test")
         continue
     for metric in ("max_recall", "ap"):
-        display(Markdown(f"**{sequence}, {metric}**: row vs column"),
-                boot.ranking_matrix(metric), boot.pairwise(metric))
+        display(
+            Markdown(f"**{sequence}, {metric}**: row vs column"), boot.ranking_matrix(metric), boot.pairwise(metric)
+        )

@@ -60,10 +60,17 @@ verifier_names = None  # None: every verifier in verifiers.VERIFIERS
 
 # %%
 bench = notebook.open_verifier_bench(
-    results_dir, method, output_dir, params_file=params_file, profile=profile,
-    cache_dir=cache_dir, compute_missing=compute_missing,
+    results_dir,
+    method,
+    output_dir,
+    params_file=params_file,
+    profile=profile,
+    cache_dir=cache_dir,
+    compute_missing=compute_missing,
     classifier={"size": size, "epochs": epochs, "max_train_pairs": max_train_pairs},
-    train_fraction=train_fraction, gap_frames=gap_frames, tolerance=tolerance,
+    train_fraction=train_fraction,
+    gap_frames=gap_frames,
+    tolerance=tolerance,
 )
 figures = Path(output_dir)
 print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
@@ -95,9 +102,7 @@ verifiers.verifier_table(results)
 # %%
 ok = results[results["status"] == "ok"].sort_values("max_recall", ascending=False)
 intervals = boot.intervals().set_index("method").loc[ok["verifier"]].reset_index()
-figure = analysis_plots.bootstrap_intervals(
-    intervals, title=f"{bench.cached.label}, test split: verifiers (95% CI)"
-)
+figure = analysis_plots.bootstrap_intervals(intervals, title=f"{bench.cached.label}, test split: verifiers (95% CI)")
 plots.save(figure, figures / "verifiers_ci.png")
 plt.show()
 
@@ -108,17 +113,22 @@ plt.show()
 
 # %%
 best = verifiers.best_by(results, boot, "max_recall")
-display(Markdown(
-    f"**Best MR: `{best['winner']}`**, {100 * best['difference']:+.1f} points over "
-    f"`{best['baseline']}` (paired bootstrap 95% CI of the difference "
-    f"[{100 * best['difference_ci_low']:+.1f}, "
-    f"{100 * best['difference_ci_high']:+.1f}]; "
-    f"it beats the baseline in {best['winner_beats_baseline_share']:.0%} "
-    "of the resamples)."))
+display(
+    Markdown(
+        f"**Best MR: `{best['winner']}`**, {100 * best['difference']:+.1f} points over "
+        f"`{best['baseline']}` (paired bootstrap 95% CI of the difference "
+        f"[{100 * best['difference_ci_low']:+.1f}, "
+        f"{100 * best['difference_ci_high']:+.1f}]; "
+        f"it beats the baseline in {best['winner_beats_baseline_share']:.0%} "
+        "of the resamples)."
+    )
+)
 best_ap = verifiers.best_by(results, boot, "ap")
-print(f"best AP: {best_ap['winner']} ({100 * best_ap['difference']:+.1f} points over "
-      f"{best_ap['baseline']}, 95% CI [{100 * best_ap['difference_ci_low']:+.1f}, "
-      f"{100 * best_ap['difference_ci_high']:+.1f}])")
+print(
+    f"best AP: {best_ap['winner']} ({100 * best_ap['difference']:+.1f} points over "
+    f"{best_ap['baseline']}, 95% CI [{100 * best_ap['difference_ci_low']:+.1f}, "
+    f"{100 * best_ap['difference_ci_high']:+.1f}])"
+)
 
 # %% [markdown]
 # What the learned combination weighs: the logistic regression's coefficient of each

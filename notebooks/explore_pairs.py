@@ -51,8 +51,9 @@ figures_dir = None  # where the table and figures are written; default: <output_
 controls = "auto"  # 'auto' (widgets in a live kernel with ipywidgets), 'widgets' or 'none'
 
 # %%
-out = notebook.require_results(params_file, methods, compute_missing=compute_missing, evaluate=False,
-                               output_dir=output_dir)
+out = notebook.require_results(
+    params_file, methods, compute_missing=compute_missing, evaluate=False, output_dir=output_dir
+)
 figures = Path(figures_dir) if figures_dir else out / "explore"
 figures.mkdir(parents=True, exist_ok=True)
 tables = explore.load_tables(out, methods)
@@ -67,6 +68,7 @@ print(f"{run['sequence']}: {len(next(iter(tables.values())))} pairs; methods {',
 # precision only when it scores above every false pair (`above_all_false`); a false pair that
 # ranks near the top is what caps that recall. The table is written to
 # `<figures>/explore_pair.csv`.
+
 
 # %%
 def show_table(index: int):
@@ -87,6 +89,7 @@ view = show_table(chosen)
 # markings or a similar facade. Compare how many lines each method draws against its rank:
 # the same count can rank high for one method and low for another.
 
+
 # %%
 def show_matches(view):
     figure, axes = plt.subplots(len(view), 1, figsize=(10, 3.4 * len(view)), squeeze=False)
@@ -95,8 +98,11 @@ def show_matches(view):
     for axis, row in zip(axes[:, 0], view.itertuples()):
         lines = analysis.match_lines(out, row.method, row.query, row.reference, cache_dir)
         plots.draw_matches(image0, image1, lines["points0"], lines["points1"], lines["inlier_mask"], axis=axis)
-        axis.set_title(f"{row.method}: score {row.score} ({row.num_inliers} inliers of {row.num_matches} matches), "
-                       f"rank {row.rank} of {row.n_pairs}", fontsize=9)
+        axis.set_title(
+            f"{row.method}: score {row.score} ({row.num_inliers} inliers of {row.num_matches} matches), "
+            f"rank {row.rank} of {row.n_pairs}",
+            fontsize=9,
+        )
     kind = "true" if first["label"] == 1 else "false"
     figure.suptitle(f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}")
     figure.tight_layout()
@@ -112,6 +118,7 @@ show_matches(view)
 # pair's score. A false pair far right of the red mass is an outlier worth a look; a true pair
 # left of the highest red score is lost at 100 % precision whatever the threshold.
 
+
 # %%
 def show_scores(view):
     figure, axes = plt.subplots(1, len(view), figsize=(4 * len(view), 3), squeeze=False)
@@ -119,8 +126,13 @@ def show_scores(view):
         table = tables[row.method]
         bins = np.histogram_bin_edges(table["score"], bins=min(40, max(5, table["score"].nunique())))
         for label, colour, name in ((1, "tab:green", "true"), (0, "tab:red", "false")):
-            axis.hist(table.loc[table["label"] == label, "score"], bins=bins, histtype="step", color=colour,
-                      label=f"{name} pairs")
+            axis.hist(
+                table.loc[table["label"] == label, "score"],
+                bins=bins,
+                histtype="step",
+                color=colour,
+                label=f"{name} pairs",
+            )
         axis.axvline(row.score, color="black", linewidth=1.5, label=f"this pair (rank {row.rank})")
         axis.set(xlabel="score (RANSAC inliers)", ylabel="pairs", title=row.method)
         axis.legend(fontsize=7)
@@ -141,11 +153,13 @@ if explore.use_widgets(controls):
     import ipywidgets as widgets
 
     pick_box = widgets.Dropdown(options=list(explore.PICKS), value=pick, description="pick")
-    index_box = widgets.BoundedIntText(value=chosen, min=0, max=len(next(iter(tables.values()))) - 1,
-                                       description="pair_index")
+    index_box = widgets.BoundedIntText(
+        value=chosen, min=0, max=len(next(iter(tables.values()))) - 1, description="pair_index"
+    )
     rank_box = widgets.BoundedIntText(value=pick_rank, min=1, max=1000, description="pick_rank")
-    method_box = widgets.Dropdown(options=list(tables), value=pick_method or next(iter(tables)),
-                                  description="pick_method")
+    method_box = widgets.Dropdown(
+        options=list(tables), value=pick_method or next(iter(tables)), description="pick_method"
+    )
     shown_box = widgets.SelectMultiple(options=list(tables), value=tuple(tables), description="methods")
     area = widgets.Output()
 
@@ -155,8 +169,13 @@ if explore.use_widgets(controls):
             area.clear_output(wait=True)
             tables = explore.load_tables(out, list(shown_box.value) or None)
             try:
-                index = explore.choose_pair(tables, pick_box.value, index_box.value,
-                                            method_box.value if method_box.value in tables else None, rank_box.value)
+                index = explore.choose_pair(
+                    tables,
+                    pick_box.value,
+                    index_box.value,
+                    method_box.value if method_box.value in tables else None,
+                    rank_box.value,
+                )
             except ValueError as error:
                 print(error)
                 return
@@ -169,5 +188,7 @@ if explore.use_widgets(controls):
     display(widgets.VBox([widgets.HBox([pick_box, index_box, rank_box]), widgets.HBox([method_box, shown_box]), area]))
     redraw()
 else:
-    print(f"controls: none (controls={controls!r}; widgets need a live kernel and ipywidgets): "
-          "set the parameters cell and run again")
+    print(
+        f"controls: none (controls={controls!r}; widgets need a live kernel and ipywidgets): "
+        "set the parameters cell and run again"
+    )

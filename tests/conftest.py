@@ -31,8 +31,10 @@ def shared_data() -> Path:
     datasets, _ = data.load_manifest()
     incomplete = [name for name in REAL_DATASETS if data.presence(datasets[name], root)[0] != len(datasets[name].files)]
     if incomplete:
-        pytest.skip(f"real data not found in {root} ({', '.join(incomplete)}): run "
-                    f"`python -m gvbench_nb data fetch {' '.join(REAL_DATASETS)}` (offline: add --mirror DIR)")
+        pytest.skip(
+            f"real data not found in {root} ({', '.join(incomplete)}): run "
+            f"`python -m gvbench_nb data fetch {' '.join(REAL_DATASETS)}` (offline: add --mirror DIR)"
+        )
     return root
 
 
@@ -57,5 +59,3 @@ def empty_hub(tmp_path, monkeypatch) -> Path:
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "hub"))
     yield tmp_path / "hub" / "checkpoints"
     torch.hub.set_dir(old)
-
-

@@ -21,8 +21,9 @@ class MutualNearestNeighbourMatcher:
     def __init__(self, conf: dict[str, Any], device: Any) -> None:
         self.min_similarity = float(conf.get("min_similarity", -1.0))
 
-    def __call__(self, features0: dict[str, np.ndarray],
-                 features1: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(
+        self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
         descriptors0 = features0["descriptors"].astype(np.float32)
         descriptors1 = features1["descriptors"].astype(np.float32)
         if len(descriptors0) == 0 or len(descriptors1) == 0:

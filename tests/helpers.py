@@ -54,7 +54,8 @@ def check_stage_outputs(output_dir: Path, method: str, sequence_pairs: list) -> 
     pairs = pd.read_csv(pipeline.method_dir(output_dir, method) / "pairs.csv")
     assert len(pairs) == len(sequence_pairs)
     assert list(zip(pairs["query"], pairs["reference"], pairs["label"])) == [
-        (p.query, p.reference, p.label) for p in sequence_pairs]
+        (p.query, p.reference, p.label) for p in sequence_pairs
+    ]
     assert ((pairs["num_inliers"] >= 0) & (pairs["num_inliers"] <= pairs["num_matches"])).all()
     row = pd.read_csv(output_dir / "results.csv").set_index("method").loc[method]
     assert row["n_pairs"] == len(pairs) and row["n_positives"] == pairs["label"].sum()

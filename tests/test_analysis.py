@@ -15,13 +15,20 @@ from gvbench_nb.evaluation import analysis, metrics
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
-    return pd.DataFrame({"pair_index": range(len(labels)), "query": queries, "reference": references,
-                         "label": labels, "score": scores, "num_inliers": scores,
-                         "num_matches": np.asarray(scores) + 10})
+    return pd.DataFrame(
+        {
+            "pair_index": range(len(labels)),
+            "query": queries,
+            "reference": references,
+            "label": labels,
+            "score": scores,
+            "num_inliers": scores,
+            "num_matches": np.asarray(scores) + 10,
+        }
+    )
 
 
-def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, separation: float = 1.0
-                   ) -> pd.DataFrame:
+def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, separation: float = 1.0) -> pd.DataFrame:
     """Independent queries of ``per_query`` pairs: label ~ Bernoulli(0.4), score ~ N(separation * label, 1)."""
     n = n_queries * per_query
     labels = (rng.random(n) < 0.4).astype(int)
@@ -51,13 +58,22 @@ def test_best_per_column_lower_is_better_per_column():
 # ------------------------------------------------------------ the paper's table --
 def test_paper_table_join_labels_values_and_mapping(tmp_path):
     path = tmp_path / "paper_table.csv"
-    path.write_text("method,sequence,ap,max_recall\nSIFT+NN,night,62.1,8.7\nNotOurs+XX,night,97.9,18.2\n"
-                    "SIFT+NN,day,98.1,36.0\nDISK+LG,night,81.4,25.0\n")
+    path.write_text(
+        "method,sequence,ap,max_recall\nSIFT+NN,night,62.1,8.7\nNotOurs+XX,night,97.9,18.2\n"
+        "SIFT+NN,day,98.1,36.0\nDISK+LG,night,81.4,25.0\n"
+    )
     paper = analysis.load_paper_table(path)
     assert paper.loc[paper.paper_name == "SIFT+NN", "method"].unique().tolist() == ["sift-nn"]
     assert paper.loc[paper.paper_name == "NotOurs+XX", "method"].isna().all()  # not one of ours
-    results = pd.DataFrame({"method": ["sift-nn", "disk-nn"], "sequence": ["night", "night"],
-                            "profile": ["paper", "paper"], "ap": [0.7, 0.5], "max_recall": [0.1, 0.2]})
+    results = pd.DataFrame(
+        {
+            "method": ["sift-nn", "disk-nn"],
+            "sequence": ["night", "night"],
+            "profile": ["paper", "paper"],
+            "ap": [0.7, 0.5],
+            "max_recall": [0.1, 0.2],
+        }
+    )
     joined = analysis.join_paper_table(results, paper)
     assert set(joined["source"]) == {"ours", "paper"}
     theirs = joined[joined.source == "paper"]
@@ -100,8 +116,15 @@ def test_pose_offsets_from_poses_csv(tmp_path):
     for name, x, yaw in (("night/000.png", 0.0, 0.0), ("day/001.png", 3.0, 0.0), ("day/002.png", 0.0, 90.0)):
         c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
         rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # optical axis turned by yaw
-        rows.append({"image": name, "x": x, "y": 4.0, "z": 1.5,
-                     **{f"r{i}{j}": rotation[i, j] for i in range(3) for j in range(3)}})
+        rows.append(
+            {
+                "image": name,
+                "x": x,
+                "y": 4.0,
+                "z": 1.5,
+                **{f"r{i}{j}": rotation[i, j] for i in range(3) for j in range(3)},
+            }
+        )
     pd.DataFrame(rows).to_csv(tmp_path / "poses.csv", index=False)
     table = pairs_frame(["night/000.png"] * 2, ["day/001.png", "day/002.png"], [1, 0], [5, 1])
     offsets = analysis.ground_truth_offsets(table, tmp_path)
@@ -121,7 +144,8 @@ def test_normalised_inliers_and_overlap_summary():
     assert summary["top_false_score"] == 10 and summary["top_false_normalised"] == pytest.approx(0.25)
     # Strictly above the top false pair is exactly what MR can reach.
     assert summary["true_above_top_false"] == pytest.approx(
-        metrics.max_recall_at_full_precision(table["label"], table["score"]))
+        metrics.max_recall_at_full_precision(table["label"], table["score"])
+    )
     assert analysis.normalised_inliers(table.assign(num_inliers=0)).tolist() == [0] * 6
 
 
@@ -221,9 +245,15 @@ def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="reposi
     folder = pipeline.method_dir(output_dir, method)
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
-    (folder / "run.json").write_text(json.dumps({
-        "sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": profile},
-        "environment": {"device": "cpu"}}))
+    (folder / "run.json").write_text(
+        json.dumps(
+            {
+                "sequence": sequence,
+                "conf": {"paper_name": "SIFT+NN", "profile": profile},
+                "environment": {"device": "cpu"},
+            }
+        )
+    )
 
 
 def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
@@ -231,8 +261,10 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
     write_fake_run(output_dir)
     (tmp_path / "pairs.txt").write_text("q0 r0 1\n")
     params = tmp_path / "toy.yaml"
-    params.write_text(f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: repository\n"
-                      f"output_dir: {output_dir}\n")
+    params.write_text(
+        f"sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: repository\n"
+        f"output_dir: {output_dir}\n"
+    )
 
     def refuse(*args, **kwargs):
         raise AssertionError("run_method must not run when pairs.csv exists")
@@ -258,16 +290,19 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     pipeline.evaluate(output_dir)
     from gvbench_nb import reference_values
 
-    toy_paper = pd.DataFrame({"reference_name": ["SIFT+NN"], "method": ["sift-nn"], "sequence": ["toy"],
-                              "ap": [0.5], "max_recall": [0.125]})
+    toy_paper = pd.DataFrame(
+        {"reference_name": ["SIFT+NN"], "method": ["sift-nn"], "sequence": ["toy"], "ap": [0.5], "max_recall": [0.125]}
+    )
     monkeypatch.setattr(reference_values, "paper_table", lambda: toy_paper)
     report_dir = tmp_path / "report"
     (report_dir / "toy").mkdir(parents=True)
     (report_dir / "toy" / "analysis_failures.html").write_text("<html></html>")
-    executed = [report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_failures.ipynb",
-                                        report_dir / "toy" / "analysis_failures.html"),
-                report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_uncertainty.ipynb", None,
-                                        "ValueError: boom")]
+    executed = [
+        report.ExecutedNotebook(
+            "toy", report_dir / "toy" / "analysis_failures.ipynb", report_dir / "toy" / "analysis_failures.html"
+        ),
+        report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_uncertainty.ipynb", None, "ValueError: boom"),
+    ]
     page = report.summary_page(report_dir, [output_dir], executed)
     assert ">paper<" in page and ">ours<" in page
     assert ">12.5<" in page and ">50.0<" in page  # the paper's values, in %
@@ -276,14 +311,24 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
 
     parser = argparse.ArgumentParser()
     report.add_command(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["report", "--outputs-root", str(tmp_path / "outputs"), "--sequences", "absent",
-                              "--output-dir", str(report_dir)])
+    args = parser.parse_args(
+        [
+            "report",
+            "--outputs-root",
+            str(tmp_path / "outputs"),
+            "--sequences",
+            "absent",
+            "--output-dir",
+            str(report_dir),
+        ]
+    )
     assert args.handler(args) == 2  # a named sequence without results is refused, not a traceback
 
 
 def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
-    results = pd.DataFrame({"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8],
-                            "max_recall": [0.1]})
+    results = pd.DataFrame(
+        {"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8], "max_recall": [0.1]}
+    )
     paper = analysis.load_paper_table(tmp_path / "absent.csv")
     joined = analysis.join_paper_table(results, paper)
     assert joined["source"].tolist() == [analysis.OURS_LABEL]
@@ -293,31 +338,49 @@ def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
 # ------------------------------------------------------- profiles never mix --
 def two_profile_results() -> pd.DataFrame:
     """sift-nn under both profiles on one sequence, plus disk-lg under the repository's."""
-    return pd.DataFrame({
-        "sequence": ["night", "night", "night"], "method": ["sift-nn", "sift-nn", "disk-lg"],
-        "profile": ["paper", "repository", "repository"], "ap": [0.60, 0.55, 0.90],
-        "max_recall": [0.08, 0.05, 0.40], "device": "cpu", "extract_seconds_per_pair": [0.1, 0.02, 0.3],
-        "match_seconds_per_pair": 0.01, "verify_seconds_per_pair": 0.01, "seconds_per_pair": [0.12, 0.04, 0.32]})
+    return pd.DataFrame(
+        {
+            "sequence": ["night", "night", "night"],
+            "method": ["sift-nn", "sift-nn", "disk-lg"],
+            "profile": ["paper", "repository", "repository"],
+            "ap": [0.60, 0.55, 0.90],
+            "max_recall": [0.08, 0.05, 0.40],
+            "device": "cpu",
+            "extract_seconds_per_pair": [0.1, 0.02, 0.3],
+            "match_seconds_per_pair": 0.01,
+            "verify_seconds_per_pair": 0.01,
+            "seconds_per_pair": [0.12, 0.04, 0.32],
+        }
+    )
 
 
 def test_results_table_keeps_one_row_a_method_and_profile():
-    joined = analysis.join_paper_table(two_profile_results(), analysis.load_paper_table(),
-                                       analysis.load_repository_table())
+    joined = analysis.join_paper_table(
+        two_profile_results(), analysis.load_paper_table(), analysis.load_repository_table()
+    )
     wide = analysis.results_table(joined)
-    assert list(wide.index) == [("sift-nn (SIFT+NN)", "paper"), ("sift-nn (SIFT+NN)", "repository"),
-                                ("disk-lg (DISK+LG)", "repository")]
+    assert list(wide.index) == [
+        ("sift-nn (SIFT+NN)", "paper"),
+        ("sift-nn (SIFT+NN)", "repository"),
+        ("disk-lg (DISK+LG)", "repository"),
+    ]
     assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "ours")] == pytest.approx(0.60)
     assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "ours")] == pytest.approx(0.55)
     # Published values only beside the same protocol: the paper's 62.1 % in the paper row,
     # the repository's 0.6136 in the repository row, never the other way round.
     assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "paper")] == pytest.approx(0.621)
     assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", analysis.REPOSITORY_LABEL)])
-    assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", analysis.REPOSITORY_LABEL)] == \
-        pytest.approx(0.6136)
+    assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", analysis.REPOSITORY_LABEL)] == pytest.approx(
+        0.6136
+    )
     assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "paper")])
     assert np.isnan(wide.loc[("disk-lg (DISK+LG)", "repository"), ("night", "ap", "paper")])
-    assert set(joined["label"]) == {"ours (paper profile)", "ours (repository profile)", "paper",
-                                    analysis.REPOSITORY_LABEL}
+    assert set(joined["label"]) == {
+        "ours (paper profile)",
+        "ours (repository profile)",
+        "paper",
+        analysis.REPOSITORY_LABEL,
+    }
 
 
 def test_the_same_run_twice_in_one_table_is_an_error():
@@ -338,8 +401,9 @@ def test_radar_and_bars_label_every_line_with_its_profile():
     matplotlib.use("Agg")
     from gvbench_nb.reporting import analysis_plots
 
-    results = pd.concat([two_profile_results().assign(sequence=s) for s in ("day", "night", "season")],
-                        ignore_index=True)
+    results = pd.concat(
+        [two_profile_results().assign(sequence=s) for s in ("day", "night", "season")], ignore_index=True
+    )
     joined = analysis.join_paper_table(results, analysis.load_paper_table(), analysis.load_repository_table())
     labels = analysis_plots.max_recall_radar(joined).axes[0].get_legend_handles_labels()[1]
     assert "sift-nn (ours (paper profile))" in labels and "sift-nn (ours (repository profile))" in labels
@@ -359,17 +423,23 @@ def test_runtime_figures_and_histograms_name_the_profile():
     runtime = analysis.runtime_table(two_profile_results())
     stacked = analysis_plots.seconds_per_pair_stacked(runtime)
     assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == [
-        "sift-nn [paper]", "sift-nn [repository]", "disk-lg [repository]"]
+        "sift-nn [paper]",
+        "sift-nn [repository]",
+        "disk-lg [repository]",
+    ]
     scatter = analysis_plots.fps_vs_max_recall(runtime)
     assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
-    tables = {"sift-nn (paper)": table.assign(profile="paper"),
-              "sift-nn (repository)": table.assign(profile="repository")}
+    tables = {
+        "sift-nn (paper)": table.assign(profile="paper"),
+        "sift-nn (repository)": table.assign(profile="repository"),
+    }
     figure = analysis_plots.normalised_inlier_histograms(tables)
     assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper) [paper]", "sift-nn (repository) [repository]"]
     with pytest.raises(ValueError, match="mixes profiles"):
-        analysis_plots.normalised_inlier_histograms({"sift-nn": pd.concat([tables["sift-nn (paper)"],
-                                                                           tables["sift-nn (repository)"]])})
+        analysis_plots.normalised_inlier_histograms(
+            {"sift-nn": pd.concat([tables["sift-nn (paper)"], tables["sift-nn (repository)"]])}
+        )
 
 
 def test_reference_tables_ship_with_the_package_and_map_names():

@@ -16,21 +16,25 @@ from gvbench_nb.speed import bench
 
 def few_pairs(shared_data: Path) -> Sequence:
     """Two queries, each with a true and a false reference, plus one reused reference (5 pairs)."""
-    pairs = [Pair("night_right/Image060.jpg", "day_right/Image060.jpg", 1),
-             Pair("night_right/Image060.jpg", "day_right/Image140.jpg", 0),
-             Pair("night_right/Image140.jpg", "day_right/Image141.jpg", 1),
-             Pair("night_right/Image140.jpg", "day_right/Image060.jpg", 0),
-             Pair("night_right/Image061.jpg", "day_right/Image060.jpg", 1)]
+    pairs = [
+        Pair("night_right/Image060.jpg", "day_right/Image060.jpg", 1),
+        Pair("night_right/Image060.jpg", "day_right/Image140.jpg", 0),
+        Pair("night_right/Image140.jpg", "day_right/Image141.jpg", 1),
+        Pair("night_right/Image140.jpg", "day_right/Image060.jpg", 0),
+        Pair("night_right/Image061.jpg", "day_right/Image060.jpg", 1),
+    ]
     return Sequence("gp_bench", shared_data / "gardens_point", pairs)
 
 
 def day_pairs(shared_data: Path) -> Sequence:
     """Day frames: COLMAP SIFT finds too few night-to-day matches for scores to vary."""
-    pairs = [Pair("day_right/Image060.jpg", "day_right/Image061.jpg", 1),
-             Pair("day_right/Image060.jpg", "day_right/Image140.jpg", 0),
-             Pair("day_right/Image140.jpg", "day_right/Image141.jpg", 1),
-             Pair("day_right/Image140.jpg", "day_right/Image062.jpg", 0),
-             Pair("day_right/Image062.jpg", "day_right/Image061.jpg", 1)]
+    pairs = [
+        Pair("day_right/Image060.jpg", "day_right/Image061.jpg", 1),
+        Pair("day_right/Image060.jpg", "day_right/Image140.jpg", 0),
+        Pair("day_right/Image140.jpg", "day_right/Image141.jpg", 1),
+        Pair("day_right/Image140.jpg", "day_right/Image062.jpg", 0),
+        Pair("day_right/Image062.jpg", "day_right/Image061.jpg", 1),
+    ]
     return Sequence("gp_bench_day", shared_data / "gardens_point", pairs)
 
 
@@ -64,8 +68,9 @@ def test_the_bench_runs_ours_with_two_workers_and_the_reference_with_one(shared_
 
 
 def test_a_score_mismatch_fails_loudly_naming_the_pair():
-    ours = pd.DataFrame({"query": ["q0", "q1"], "reference": ["r0", "r1"], "num_matches": [50, 40],
-                         "num_inliers": [30, 12]})
+    ours = pd.DataFrame(
+        {"query": ["q0", "q1"], "reference": ["r0", "r1"], "num_matches": [50, 40], "num_inliers": [30, 12]}
+    )
     other = ours.copy()
     bench.check_same_scores(ours, other, "same")
     other.loc[1, "num_inliers"] = 13
@@ -77,14 +82,33 @@ def timing_rows(cached_rates, per_pair_rates) -> pd.DataFrame:
     rows = []
     for repeat, (fast, slow) in enumerate(zip(cached_rates, per_pair_rates)):
         for which, rate in ((bench.CACHED, fast), (bench.PER_PAIR, slow)):
-            rows.append({"sequence": "s", "method": "sift-nn", "profile": "repository", "n_pairs": 100, "n_images": 40,
-                         "repeat": repeat, "pipeline": which, "wall_seconds": 100 / rate, "pairs_per_second": rate,
-                         "extract_seconds_per_pair": 0.5 / rate, "match_seconds_per_pair": 0.3 / rate,
-                         "verify_seconds_per_pair": 0.2 / rate, "other_seconds_per_pair": 0.0,
-                         # ours overlaps matching with verification: less wall time than their sum
-                         "match_verify_wall_seconds_per_pair": (0.35 if which == bench.CACHED else 0.5) / rate,
-                         "device": "cpu", "device_name": "x86_64", "torch_threads": 1, "opencv_threads": 1,
-                         "cpu_count": 2, "loadavg_1m": 1.0 + repeat, "loadavg_5m": 1.0, "date": "2026-01-01"})
+            rows.append(
+                {
+                    "sequence": "s",
+                    "method": "sift-nn",
+                    "profile": "repository",
+                    "n_pairs": 100,
+                    "n_images": 40,
+                    "repeat": repeat,
+                    "pipeline": which,
+                    "wall_seconds": 100 / rate,
+                    "pairs_per_second": rate,
+                    "extract_seconds_per_pair": 0.5 / rate,
+                    "match_seconds_per_pair": 0.3 / rate,
+                    "verify_seconds_per_pair": 0.2 / rate,
+                    "other_seconds_per_pair": 0.0,
+                    # ours overlaps matching with verification: less wall time than their sum
+                    "match_verify_wall_seconds_per_pair": (0.35 if which == bench.CACHED else 0.5) / rate,
+                    "device": "cpu",
+                    "device_name": "x86_64",
+                    "torch_threads": 1,
+                    "opencv_threads": 1,
+                    "cpu_count": 2,
+                    "loadavg_1m": 1.0 + repeat,
+                    "loadavg_5m": 1.0,
+                    "date": "2026-01-01",
+                }
+            )
     return pd.DataFrame(rows)
 
 
@@ -128,14 +152,22 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
     import json
 
     # Two queries x two references; each image extracted once in 0.4 s, its time shared by its 2 pairs.
-    table = pd.DataFrame({"query": ["q0", "q0", "q1", "q1"], "reference": ["r0", "r1", "r0", "r1"],
-                          "profile": "repository", "extract_seconds": 0.4, "match_seconds": [0.1, 0.2, 0.3, 0.2],
-                          "verify_seconds": 0.05})
+    table = pd.DataFrame(
+        {
+            "query": ["q0", "q0", "q1", "q1"],
+            "reference": ["r0", "r1", "r0", "r1"],
+            "profile": "repository",
+            "extract_seconds": 0.4,
+            "match_seconds": [0.1, 0.2, 0.3, 0.2],
+            "verify_seconds": 0.05,
+        }
+    )
     for method in ("xfeat-nn", "sift-nn"):
         (tmp_path / method).mkdir()
         table.to_csv(tmp_path / method / "pairs.csv", index=False)
-        (tmp_path / method / "run.json").write_text(json.dumps(
-            {"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"}))
+        (tmp_path / method / "run.json").write_text(
+            json.dumps({"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"})
+        )
     costs = bench.costs_from_runs(tmp_path).set_index("method")
     assert list(costs.index) == ["sift-nn", "xfeat-nn"]  # registry order
     assert costs.loc["sift-nn", "extract_seconds_per_image"] == pytest.approx(4 * 0.4 / 4)
@@ -152,7 +184,8 @@ def test_official_sizes_count_unique_images(shared_data):
     sizes = bench.official_sequence_sizes(shared_data / "gvbench_gt").set_index("sequence")
     assert list(sizes.index) == list(bench.OFFICIAL_SEQUENCES)
     assert sizes.loc["uacampus", "n_pairs"] == sum(
-        1 for line in (shared_data / "gvbench_gt" / "uacampus.txt").read_text().splitlines() if line.strip())
+        1 for line in (shared_data / "gvbench_gt" / "uacampus.txt").read_text().splitlines() if line.strip()
+    )
     assert (sizes["n_images"] < sizes["n_pairs"]).all()
 
 
@@ -166,15 +199,33 @@ def test_scaling_table_sums_the_measured_stage_costs(shared_data):
     assert table.loc[5, "extract_seconds"] > table.loc[2, "extract_seconds"] > 0
     # The per-pair pipeline extracts each pair's two images: 10 extractions for 6 images here.
     assert table.loc[5, "per_pair_extract_seconds"] > table.loc[5, "extract_seconds"]
-    assert np.isclose(table.loc[5, "total_seconds"],
-                      table.loc[5, ["extract_seconds", "match_seconds", "verify_seconds"]].sum())
+    assert np.isclose(
+        table.loc[5, "total_seconds"], table.loc[5, ["extract_seconds", "match_seconds", "verify_seconds"]].sum()
+    )
 
 
 def test_add_command_registers_bench():
     parser = argparse.ArgumentParser()
     bench.add_command(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(["bench", "p.yaml", "--methods", "sift-nn,disk-lg", "--limit", "50", "--repeats", "2",
-                              "--profile", "repository"])
-    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == ("p.yaml", "sift-nn,disk-lg", 50, 2,
-                                                                                   "repository")
+    args = parser.parse_args(
+        [
+            "bench",
+            "p.yaml",
+            "--methods",
+            "sift-nn,disk-lg",
+            "--limit",
+            "50",
+            "--repeats",
+            "2",
+            "--profile",
+            "repository",
+        ]
+    )
+    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == (
+        "p.yaml",
+        "sift-nn,disk-lg",
+        50,
+        2,
+        "repository",
+    )
     assert args.handler is bench.command_bench

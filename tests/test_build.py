@@ -43,7 +43,9 @@ def place_descriptors(frame: int, rng: np.random.Generator, design: str, count: 
     return (rows + 0.02 * rng.normal(size=rows.shape)).astype(np.float32)
 
 
-def make_traversals(root: Path, cache_dir: Path, folders: list[str], design: str = "vlad", profile: str = "repository") -> None:
+def make_traversals(
+    root: Path, cache_dir: Path, folders: list[str], design: str = "vlad", profile: str = "repository"
+) -> None:
     """Image files (tiny placeholders) and their cached local descriptors."""
     options = build.parse_options({"query_folder": "x", "reference_folders": ["y"]})
     store = pipeline.feature_store(cache_dir, build.local_feature_conf(options, profile))
@@ -55,21 +57,41 @@ def make_traversals(root: Path, cache_dir: Path, folders: list[str], design: str
                 name = f"{folder}/Image{frame:03d}.png"
                 cv2.imwrite(str(root / name), np.full((8, 8), 40 * frame % 255, np.uint8))
                 descriptors = place_descriptors(frame, rng, design)
-                writer.put(pipeline.image_key(root, name),
-                           {"keypoints": np.zeros((len(descriptors), 2), np.float32),
-                            "scores": np.ones(len(descriptors), np.float32),
-                            "descriptors": descriptors, "image_size": np.array([8, 8])},
-                           {"seconds": 0.0})
+                writer.put(
+                    pipeline.image_key(root, name),
+                    {
+                        "keypoints": np.zeros((len(descriptors), 2), np.float32),
+                        "scores": np.ones(len(descriptors), np.float32),
+                        "descriptors": descriptors,
+                        "image_size": np.array([8, 8]),
+                    },
+                    {"seconds": 0.0},
+                )
 
 
 def write_params(tmp_path: Path, **options: object) -> Path:
-    builder_options = {"query_folder": "night", "reference_folders": ["day"], "descriptor": "vlad",
-                       "descriptor_options": {"vlad": {"num_words": 4}, "bow": {"num_words": 4}}, "top_n": 3, "label_rule": "frame_tolerance",
-                       "label_params": {"k": 1}, **options}
-    params = {"sequence": "tiny", "pairs_builder": "retrieval", "builder_options": builder_options,
-              "image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "out" / "pairs.txt"),
-              "methods": ["sift-nn"], "profile": "repository", "output_dir": str(tmp_path / "out"),
-              "cache_dir": str(tmp_path / "cache"), "seed": 0}
+    builder_options = {
+        "query_folder": "night",
+        "reference_folders": ["day"],
+        "descriptor": "vlad",
+        "descriptor_options": {"vlad": {"num_words": 4}, "bow": {"num_words": 4}},
+        "top_n": 3,
+        "label_rule": "frame_tolerance",
+        "label_params": {"k": 1},
+        **options,
+    }
+    params = {
+        "sequence": "tiny",
+        "pairs_builder": "retrieval",
+        "builder_options": builder_options,
+        "image_root": str(tmp_path / "images"),
+        "pairs": str(tmp_path / "out" / "pairs.txt"),
+        "methods": ["sift-nn"],
+        "profile": "repository",
+        "output_dir": str(tmp_path / "out"),
+        "cache_dir": str(tmp_path / "cache"),
+        "seed": 0,
+    }
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
@@ -94,7 +116,8 @@ def test_pair_file_round_trips_and_card_counts_match(tiny: Path) -> None:
     candidates = pd.read_csv(card["files"]["candidates"])
     assert len(pairs) == NUM_FRAMES * 3 == len(candidates)
     assert [(p.query, p.reference, p.label) for p in pairs] == list(
-        zip(candidates["query"], candidates["reference"], candidates["label"]))
+        zip(candidates["query"], candidates["reference"], candidates["label"])
+    )
     summary = sequences.summarize(sequences.Sequence("tiny", tiny / "images", pairs))
     assert card["counts"] == {k: v for k, v in summary.items() if k != "sequence"}
     assert json.loads(Path(card["files"]["card_json"]).read_text())["counts"] == card["counts"]
@@ -117,11 +140,15 @@ def test_retrieval_finds_the_known_place_first(tmp_path: Path, descriptor: str, 
     assert [sequences.frame_index(q) for q in first["query"]] == [sequences.frame_index(r) for r in first["reference"]]
     assert card["retrieval_recall"]["recall@1"] == 1.0
     # labels are the rule |i - j| <= 1, recomputed here from the names
-    expected = [int(abs(sequences.frame_index(q) - sequences.frame_index(r)) <= 1)
-                for q, r in zip(candidates["query"], candidates["reference"])]
+    expected = [
+        int(abs(sequences.frame_index(q) - sequences.frame_index(r)) <= 1)
+        for q, r in zip(candidates["query"], candidates["reference"])
+    ]
     assert candidates["label"].tolist() == expected
     # ground truth: 2 true references at the ends of the route, 3 elsewhere
-    assert card["ground_truth"]["true_references_per_query"] == pytest.approx((2 * 2 + 3 * (NUM_FRAMES - 2)) / NUM_FRAMES)
+    assert card["ground_truth"]["true_references_per_query"] == pytest.approx(
+        (2 * 2 + 3 * (NUM_FRAMES - 2)) / NUM_FRAMES
+    )
 
 
 def test_same_seed_same_sequence_other_seed_other_queries(tiny: Path) -> None:
@@ -153,12 +180,19 @@ def test_multi_experience_candidates_come_from_every_experience(tiny: Path) -> N
 
 
 def test_best_experience_table_keeps_each_query_best_pair() -> None:
-    candidates = pd.DataFrame({
-        "query": ["q0", "q0", "q1", "q1"], "experience": ["day", "dusk", "day", "dusk"],
-        "reference": ["day/a", "dusk/a", "day/b", "dusk/b"], "rank": [0, 1, 0, 1],
-        "similarity": [0.9, 0.8, 0.7, 0.6], "label": [0, 1, 1, 0],
-    })
-    scores = pd.DataFrame({"query": candidates["query"], "reference": candidates["reference"], "score": [5, 40, 12, 12]})
+    candidates = pd.DataFrame(
+        {
+            "query": ["q0", "q0", "q1", "q1"],
+            "experience": ["day", "dusk", "day", "dusk"],
+            "reference": ["day/a", "dusk/a", "day/b", "dusk/b"],
+            "rank": [0, 1, 0, 1],
+            "similarity": [0.9, 0.8, 0.7, 0.6],
+            "label": [0, 1, 1, 0],
+        }
+    )
+    scores = pd.DataFrame(
+        {"query": candidates["query"], "reference": candidates["reference"], "score": [5, 40, 12, 12]}
+    )
     best = build.best_experience_table(candidates, scores)
     assert best["experience"].tolist() == ["dusk", "day"]  # q1: a tie goes to the better rank
     assert best["label"].tolist() == [1, 1]
@@ -176,11 +210,21 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
 
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(80, 60))
-    options = build.parse_options({
-        "query_folder": "night", "reference_folders": ["day"], "label_rule": "pose",
-        "label_params_file": "generator.json",
-        "metadata": {"csv": "poses.csv", "name": "image", "position": ["x", "y", "z"], "heading": "yaw_deg", "frame": "frame"},
-    })
+    options = build.parse_options(
+        {
+            "query_folder": "night",
+            "reference_folders": ["day"],
+            "label_rule": "pose",
+            "label_params_file": "generator.json",
+            "metadata": {
+                "csv": "poses.csv",
+                "name": "image",
+                "position": ["x", "y", "z"],
+                "heading": "yaw_deg",
+                "frame": "frame",
+            },
+        }
+    )
     inputs = build.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "repository"}, options)
     assert inputs.rule_params == {"max_distance_m": 8.0, "max_heading_deg": 40.0}
     truth = build.ground_truth(inputs)
@@ -197,7 +241,9 @@ def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
     options = build.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": spec})
     with pytest.raises(build.BuildError, match=r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"):
         build.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
-    options = build.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": {"csv": "meta.csv"}})
+    options = build.parse_options(
+        {"query_folder": "night", "reference_folders": ["day"], "metadata": {"csv": "meta.csv"}}
+    )
     with pytest.raises(build.BuildError, match=r"missing column\(s\) \['heading'\]"):
         build.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
 
@@ -205,16 +251,24 @@ def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
 # ------------------------------------------------------------------ options and CLI
 
 
-@pytest.mark.parametrize("options, message", [
-    ({"query_folder": "night", "reference_folders": ["day"], "top_nn": 3}, "'top_nn' \\(did you mean 'top_n'\\?\\)"),
-    ({"query_folder": "night"}, "missing 'reference_folders'"),
-    ({"query_folder": "day", "reference_folders": ["day"]}, "also a reference folder"),
-    ({"query_folder": "night", "reference_folders": ["day"], "descriptor": "gem"}, "unknown descriptor 'gem'"),
-    ({"query_folder": "night", "reference_folders": ["day"], "top_n": 0}, "top_n must be a positive integer"),
-    ({"query_folder": "night", "reference_folders": ["day"], "descriptor_options": {"num_words": 8}},
-     "descriptor_options maps descriptor names"),
-    ({"query_folder": "night", "reference_folders": ["day"], "label_rule": "gps"}, "unknown label_rule 'gps'"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        (
+            {"query_folder": "night", "reference_folders": ["day"], "top_nn": 3},
+            "'top_nn' \\(did you mean 'top_n'\\?\\)",
+        ),
+        ({"query_folder": "night"}, "missing 'reference_folders'"),
+        ({"query_folder": "day", "reference_folders": ["day"]}, "also a reference folder"),
+        ({"query_folder": "night", "reference_folders": ["day"], "descriptor": "gem"}, "unknown descriptor 'gem'"),
+        ({"query_folder": "night", "reference_folders": ["day"], "top_n": 0}, "top_n must be a positive integer"),
+        (
+            {"query_folder": "night", "reference_folders": ["day"], "descriptor_options": {"num_words": 8}},
+            "descriptor_options maps descriptor names",
+        ),
+        ({"query_folder": "night", "reference_folders": ["day"], "label_rule": "gps"}, "unknown label_rule 'gps'"),
+    ],
+)
 def test_bad_options_say_what_is_wrong(options: dict, message: str) -> None:
     with pytest.raises(build.BuildError, match=message):
         build.parse_options(options)

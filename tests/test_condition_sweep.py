@@ -70,8 +70,7 @@ def test_reference_drive_is_extracted_once(sweep: pd.DataFrame, sweep_dir: Path)
 
 
 # ----------------------------------------------------------------- resuming --
-def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path,
-                                        monkeypatch: pytest.MonkeyPatch) -> None:
+def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     images = {p: p.stat().st_mtime_ns for p in (sweep_dir / "images").rglob("*.png")}
 
     def must_not_run(*args, **kwargs):
@@ -85,8 +84,9 @@ def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path,
 
 def test_a_new_strength_runs_only_its_cell(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     before = cs.read_sweep(sweep_dir)
-    table = cs.run_sweep(sweep_dir, ["sift-nn"], conditions=("weather",), strengths=(0.0, 0.5, 1.0),
-                         threads=1, progress=False, **TINY)
+    table = cs.run_sweep(
+        sweep_dir, ["sift-nn"], conditions=("weather",), strengths=(0.0, 0.5, 1.0), threads=1, progress=False, **TINY
+    )
     assert sorted(table["strength"]) == [0.0, 0.5, 1.0]
     run = json.loads((sweep_dir / "runs" / "paper" / "weather_0.50" / "sift-nn" / "run.json").read_text())
     n = TINY["n_frames"]
@@ -168,17 +168,22 @@ def test_aliasing_share_rejects_a_true_look_alike() -> None:
 
 # ------------------------------------------------------- breaking strength --
 def _hand_table(curves: dict[str, list[float]], strengths=(0.0, 0.25, 0.5, 0.75, 1.0)) -> pd.DataFrame:
-    rows = [{"condition": condition, "strength": s, "method": "m", "profile": "paper", "max_recall": mr}
-            for condition, values in curves.items() for s, mr in zip(strengths, values)]
+    rows = [
+        {"condition": condition, "strength": s, "method": "m", "profile": "paper", "max_recall": mr}
+        for condition, values in curves.items()
+        for s, mr in zip(strengths, values)
+    ]
     return pd.DataFrame(rows).sample(frac=1.0, random_state=0)  # row order must not matter
 
 
 def test_breaking_strength_interpolates_between_grid_points() -> None:
-    table = _hand_table({
-        "illumination": [0.8, 0.7, 0.6, 0.2, 0.0],  # half = 0.4: between 0.5 (0.6) and 0.75 (0.2)
-        "season": [0.8, 0.8, 0.7, 0.5, 0.45],       # never below 0.4
-        "weather": [0.6, 0.1, 0.5, 0.0, 0.0],       # first drop counts, not a later recovery
-    })
+    table = _hand_table(
+        {
+            "illumination": [0.8, 0.7, 0.6, 0.2, 0.0],  # half = 0.4: between 0.5 (0.6) and 0.75 (0.2)
+            "season": [0.8, 0.8, 0.7, 0.5, 0.45],  # never below 0.4
+            "weather": [0.6, 0.1, 0.5, 0.0, 0.0],  # first drop counts, not a later recovery
+        }
+    )
     result = cs.breaking_strength(table).set_index("condition")
     assert result.loc["illumination", "breaking_strength"] == pytest.approx(0.5 + 0.25 * 0.2 / 0.4)
     assert result.loc["illumination", "clear_max_recall"] == pytest.approx(0.8)

@@ -86,15 +86,29 @@ def payload(seed: int, size: int) -> bytes:
     return np.random.default_rng(seed).integers(0, 256, size, dtype=np.uint8).tobytes()
 
 
-def make_dataset(files: dict[str, bytes], base_url: str, folder: str = "toy", name: str = "toy",
-                 wrong_hash: str | None = None) -> data.Dataset:
+def make_dataset(
+    files: dict[str, bytes], base_url: str, folder: str = "toy", name: str = "toy", wrong_hash: str | None = None
+) -> data.Dataset:
     entries = tuple(
-        data.DataFile(path=path, source=f"src/{path}", bytes=len(body),
-                      sha256="0" * 64 if path == wrong_hash else hashlib.sha256(body).hexdigest())
+        data.DataFile(
+            path=path,
+            source=f"src/{path}",
+            bytes=len(body),
+            sha256="0" * 64 if path == wrong_hash else hashlib.sha256(body).hexdigest(),
+        )
         for path, body in files.items()
     )
-    return data.Dataset(name=name, folder=folder, title="toy", what="toy", licence="none", citation="none",
-                        homepage=base_url, base_url=base_url + "/", files=entries)
+    return data.Dataset(
+        name=name,
+        folder=folder,
+        title="toy",
+        what="toy",
+        licence="none",
+        citation="none",
+        homepage=base_url,
+        base_url=base_url + "/",
+        files=entries,
+    )
 
 
 TOY = {"a/one.bin": payload(1, 300_000), "b/two.bin": payload(2, 5_000), "three.txt": b"query reference 1\n"}
@@ -182,7 +196,9 @@ def test_a_missing_file_fails_naming_the_url_and_what_to_do(server, tmp_path):
 def test_an_unreachable_source_keeps_the_partial_file_and_says_rerun(tmp_path, monkeypatch):
     monkeypatch.setattr(data, "TIMEOUT_SECONDS", 2.0)
     closed = make_dataset({"x.bin": b"abc"}, "http://127.0.0.1:9")  # the discard port: nothing listens
-    with pytest.raises(data.DataError, match=r"toy: x\.bin: could not download http://127\.0\.0\.1:9/src/x\.bin .*rerun"):
+    with pytest.raises(
+        data.DataError, match=r"toy: x\.bin: could not download http://127\.0\.0\.1:9/src/x\.bin .*rerun"
+    ):
         data.fetch(["toy"], to=tmp_path, progress=False, datasets={"toy": closed})
 
 
@@ -197,7 +213,9 @@ def test_a_mirror_folder_with_the_data_layout_is_copied_and_checked(tmp_path):
         assert (tmp_path / "data" / "toy" / path).read_bytes() == body
     (mirror / "toy" / "three.txt").unlink()
     (tmp_path / "data" / "toy" / "three.txt").unlink()
-    with pytest.raises(data.DataError, match=r"three\.txt is missing in the mirror folder \(expected .*mirror/toy/three\.txt\)"):
+    with pytest.raises(
+        data.DataError, match=r"three\.txt is missing in the mirror folder \(expected .*mirror/toy/three\.txt\)"
+    ):
         data.fetch(["toy"], to=tmp_path / "data", mirror=str(mirror), progress=False, datasets={"toy": toy})
     (mirror / "toy" / "three.txt").write_bytes(b"changed\n")
     with pytest.raises(data.DataError, match="SHA-256"):
@@ -233,12 +251,17 @@ def test_unknown_and_external_names_say_what_to_do():
 def test_the_manifest_pins_both_sources_and_lists_every_file():
     datasets, external = data.load_manifest()
     lists, gardens = datasets["gvbench-lists"], datasets["gardens_point"]
-    assert lists.base_url == "https://raw.githubusercontent.com/jarvisyjw/GV-Bench/11554ccbdd73eb67df622e18f8f2af2be01bf028/"
+    assert (
+        lists.base_url
+        == "https://raw.githubusercontent.com/jarvisyjw/GV-Bench/11554ccbdd73eb67df622e18f8f2af2be01bf028/"
+    )
     assert sorted(f.path for f in lists.files) == sorted(
-        [f"{n}.txt" for n in ("day", "night", "season", "weather", "nordland", "uacampus")] + ["LICENSE"])
+        [f"{n}.txt" for n in ("day", "night", "season", "weather", "nordland", "uacampus")] + ["LICENSE"]
+    )
     assert lists.url(lists.files[0]).startswith(lists.base_url + "dataset/gt/")
-    assert gardens.base_url == ("https://raw.githubusercontent.com/aghagol/loop-detection/"
-                                "2efbb768787235a4a020d6b27ca0a1761beb515d/")
+    assert gardens.base_url == (
+        "https://raw.githubusercontent.com/aghagol/loop-detection/2efbb768787235a4a020d6b27ca0a1761beb515d/"
+    )
     for traversal in ("day_left", "day_right", "night_right"):
         frames = sorted(f.path for f in gardens.files if f.path.startswith(traversal + "/"))
         assert frames == [f"{traversal}/Image{i:03d}.jpg" for i in range(200)]
@@ -263,15 +286,28 @@ def test_the_data_folder_is_gvbench_data_else_a_user_cache(monkeypatch, tmp_path
 
 # ----------------------------------------------------------------------- CLI --
 def run_cli(*argv: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "gvbench_nb", *argv], capture_output=True, text=True,
-                          env={**os.environ, "PYTHONPATH": str(PROJECT_ROOT), **env}, cwd=PROJECT_ROOT, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "gvbench_nb", *argv],
+        capture_output=True,
+        text=True,
+        env={**os.environ, "PYTHONPATH": str(PROJECT_ROOT), **env},
+        cwd=PROJECT_ROOT,
+        timeout=120,
+    )
 
 
 def test_data_commands_run_without_importing_torch(tmp_path):
-    code = ("import sys; from gvbench_nb import cli; status = cli.main(['data', 'list']); "
-            "assert status == 0 and 'torch' not in sys.modules, sorted(m for m in sys.modules if 'torch' in m)")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
-                          env={**os.environ, "PYTHONPATH": str(PROJECT_ROOT), "GVBENCH_DATA": str(tmp_path)})
+    code = (
+        "import sys; from gvbench_nb import cli; status = cli.main(['data', 'list']); "
+        "assert status == 0 and 'torch' not in sys.modules, sorted(m for m in sys.modules if 'torch' in m)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env={**os.environ, "PYTHONPATH": str(PROJECT_ROOT), "GVBENCH_DATA": str(tmp_path)},
+    )
     assert done.returncode == 0, done.stderr
     assert f"data folder: {tmp_path.resolve()}" in done.stdout
     assert "gardens_point" in done.stdout and "absent" in done.stdout and "1drv.ms" in done.stdout
@@ -311,10 +347,19 @@ def test_check_reports_counts_and_first_missing_files_of_a_params(tmp_path, monk
     # An official list: the images come from the pair list under --image-root.
     lists = tmp_path / "data" / "gvbench_gt"
     lists.mkdir()
-    (lists / "night.txt").write_text("night_right/Image001.jpg day_right/Image001.jpg 1\n"
-                                     "night_right/Image099.jpg day_right/Image002.jpg 0\n")
-    status = cli.main(["data", "check", str(PROJECT_ROOT / "params" / "night.yaml"), "--quiet",
-                       "--image-root", str(tmp_path / "data" / "gardens_point")])
+    (lists / "night.txt").write_text(
+        "night_right/Image001.jpg day_right/Image001.jpg 1\nnight_right/Image099.jpg day_right/Image002.jpg 0\n"
+    )
+    status = cli.main(
+        [
+            "data",
+            "check",
+            str(PROJECT_ROOT / "params" / "night.yaml"),
+            "--quiet",
+            "--image-root",
+            str(tmp_path / "data" / "gardens_point"),
+        ]
+    )
     report = capsys.readouterr().out
     assert status == 1 and "4 images named by the pair list" in report
     assert "missing 1" in report and "first missing: night_right/Image099.jpg" in report
@@ -334,8 +379,9 @@ def test_check_without_data_names_the_fetch_command(tmp_path, monkeypatch, capsy
 
 def test_run_without_gardens_point_names_the_fetch_command(tmp_path, monkeypatch):
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
-    params = config.load_params(PROJECT_ROOT / "params" / "gardens_point.yaml", pairs=str(tmp_path / "p.txt"),
-                                output_dir=str(tmp_path / "out"))
+    params = config.load_params(
+        PROJECT_ROOT / "params" / "gardens_point.yaml", pairs=str(tmp_path / "p.txt"), output_dir=str(tmp_path / "out")
+    )
     with pytest.raises(config.ParamsError, match="data fetch gardens_point"):
         config.prepare_sequence(params)
 
@@ -358,7 +404,10 @@ def test_a_data_folder_that_cannot_be_written_says_where_to_write_instead(server
         return open(path, mode, *args, **kwargs)
 
     monkeypatch.setattr(data, "open", refusing_open, raising=False)
-    with pytest.raises(data.DataError, match=r"toy: cannot write .*one\.bin\.partial \(permission denied\); "
-                                             "set GVBENCH_DATA or pass --to a writable folder"):
+    with pytest.raises(
+        data.DataError,
+        match=r"toy: cannot write .*one\.bin\.partial \(permission denied\); "
+        "set GVBENCH_DATA or pass --to a writable folder",
+    ):
         data.fetch(["toy"], to=tmp_path, progress=False, datasets={"toy": toy})
     assert len(server.requests) == 1  # not retried

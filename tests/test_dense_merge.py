@@ -48,18 +48,28 @@ def hloc_merge_reference(pairs, raw, max_keypoints):
                 ids.append(int(np.argmin(distance)) if len(distance) and distance.min() <= 1 else -1)
             if min(ids) >= 0:
                 candidates.append((ids[0], ids[1], float(score)))
-        kept = [c for c in candidates
-                if c[2] == max(o[2] for o in candidates if o[0] == c[0])
-                and c[2] == max(o[2] for o in candidates if o[1] == c[1])]
+        kept = [
+            c
+            for c in candidates
+            if c[2] == max(o[2] for o in candidates if o[0] == c[0])
+            and c[2] == max(o[2] for o in candidates if o[1] == c[1])
+        ]
         kept.sort(key=lambda c: c[0])
-        merged.append((np.array([c[:2] for c in kept], np.int64).reshape(-1, 2),
-                       np.array([c[2] for c in kept], np.float32).astype(np.float16).astype(np.float32)))
+        merged.append(
+            (
+                np.array([c[:2] for c in kept], np.int64).reshape(-1, 2),
+                np.array([c[2] for c in kept], np.float32).astype(np.float16).astype(np.float32),
+            )
+        )
     return keypoints, merged
 
 
 def _raw(points0, points1, scores):
-    return (np.array(points0, np.float32).reshape(-1, 2), np.array(points1, np.float32).reshape(-1, 2),
-            np.array(scores, np.float32))
+    return (
+        np.array(points0, np.float32).reshape(-1, 2),
+        np.array(points1, np.float32).reshape(-1, 2),
+        np.array(scores, np.float32),
+    )
 
 
 def test_points_of_one_cell_across_pairs_become_one_keypoint():
@@ -79,10 +89,11 @@ def test_the_cap_keeps_the_best_cells_and_reassigns_to_a_neighbouring_kept_cell(
     # q (9.2, 9.2) has no kept keypoint within 1 px: it is dropped. Pair a-c gives a's cell
     # 20.5 the mass to survive a's own cap.
     pairs = [("q", "a"), ("q", "b"), ("a", "c")]
-    raw = [_raw([[1.1, 0.4], [5.2, 0.2], [9.2, 9.2]], [[20.2, 20.2], [30.2, 30.2], [70.2, 70.2]],
-                [0.3, 0.35, 0.25]),
-           _raw([[0.3, 0.3]], [[50.2, 50.2]], [0.8]),
-           _raw([[20.3, 20.3]], [[60.2, 60.2]], [0.95])]
+    raw = [
+        _raw([[1.1, 0.4], [5.2, 0.2], [9.2, 9.2]], [[20.2, 20.2], [30.2, 30.2], [70.2, 70.2]], [0.3, 0.35, 0.25]),
+        _raw([[0.3, 0.3]], [[50.2, 50.2]], [0.8]),
+        _raw([[20.3, 20.3]], [[60.2, 60.2]], [0.95]),
+    ]
     keypoints, merged = merge_dense_matches(pairs, raw, max_keypoints=2)
     np.testing.assert_array_equal(keypoints["q"], [[0.5, 0.5], [5.5, 0.5]])
     np.testing.assert_array_equal(keypoints["a"], [[20.5, 20.5], [30.5, 30.5]])
@@ -141,9 +152,11 @@ def test_loftr_runs_on_the_swapped_pair_and_returns_points_in_our_order():
     def model(data):
         seen.update(data)
         # A fake LoFTR: its first image's points at x = that image's mean, second's at 2x.
-        return {"keypoints0": data["image0"].mean().reshape(1, 1).repeat(1, 2),
-                "keypoints1": 2 * data["image1"].mean().reshape(1, 1).repeat(1, 2),
-                "confidence": torch.tensor([0.7])}
+        return {
+            "keypoints0": data["image0"].mean().reshape(1, 1).repeat(1, 2),
+            "keypoints1": 2 * data["image1"].mean().reshape(1, 1).repeat(1, 2),
+            "confidence": torch.tensor([0.7]),
+        }
 
     image0, image1 = torch.full((1, 1, 8, 8), 1.0), torch.full((1, 1, 8, 8), 3.0)
     points0, points1, confidence = swapped_dense_call(model, image0, image1)
@@ -180,8 +193,9 @@ def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkey
 
     raw = pipeline.raw_dense_store(out, conf)
     entries = [raw.read(pipeline.pair_key(root, p.query, p.reference, 0)) for p in pairs]
-    keypoints, merged = merge_dense_matches([(p.query, p.reference) for p in pairs],
-                                            [(e["points0"], e["points1"], e["scores"]) for e in entries])
+    keypoints, merged = merge_dense_matches(
+        [(p.query, p.reference) for p in pairs], [(e["points0"], e["points1"], e["scores"]) for e in entries]
+    )
     assert table["num_matches"].tolist() == [len(m) for m, _ in merged]
     stored = pipeline.match_store(out, conf).read(pipeline.pair_key(root, "q.png", "b.png", 0))
     np.testing.assert_array_equal(stored["points0"], keypoints["q.png"][merged[1][0][:, 0]])

@@ -30,10 +30,19 @@ def make_params(shared_data: Path, folder: Path) -> dict:
     if not pairs.is_file():
         write_pairs(pairs, twelve_pairs())
     path = folder / "params.yaml"
-    path.write_text(yaml.safe_dump({
-        "sequence": "gp_shards", "pairs": str(pairs), "image_root": str(shared_data / "gardens_point"),
-        "methods": [METHOD], "profile": PROFILE, "output_dir": str(folder / "out"), "cache_dir": str(folder / "cache"),
-    }))
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "sequence": "gp_shards",
+                "pairs": str(pairs),
+                "image_root": str(shared_data / "gardens_point"),
+                "methods": [METHOD],
+                "profile": PROFILE,
+                "output_dir": str(folder / "out"),
+                "cache_dir": str(folder / "cache"),
+            }
+        )
+    )
     return config.load_params(path)
 
 
@@ -44,8 +53,14 @@ def without_timings(table: pd.DataFrame) -> pd.DataFrame:
 @pytest.fixture(scope="module")
 def unsharded(shared_data, tmp_path_factory) -> pd.DataFrame:
     params = make_params(shared_data, tmp_path_factory.mktemp("runs") / "unsharded")
-    pipeline.run_method(config.prepare_sequence(params), METHOD, PROFILE, Path(params["output_dir"]),
-                        Path(params["cache_dir"]), progress=False)
+    pipeline.run_method(
+        config.prepare_sequence(params),
+        METHOD,
+        PROFILE,
+        Path(params["output_dir"]),
+        Path(params["cache_dir"]),
+        progress=False,
+    )
     return pipeline.load_pairs_table(Path(params["output_dir"]), METHOD)
 
 
@@ -72,12 +87,14 @@ def test_dask_local_cluster_run_equals_the_unsharded_run(shared_data, unsharded,
     merged = pipeline.load_pairs_table(Path(params["output_dir"]), METHOD)
     pd.testing.assert_frame_equal(without_timings(merged), without_timings(unsharded))
     assert results.set_index("method").loc[METHOD, "ap"] == pytest.approx(
-        pipeline.evaluate(Path(params["output_dir"]), [METHOD], write=False)["ap"].iat[0])
+        pipeline.evaluate(Path(params["output_dir"]), [METHOD], write=False)["ap"].iat[0]
+    )
     run = pd.read_json(Path(params["output_dir"]) / METHOD / "run.json", typ="series")
     assert [s["shard"] for s in run["this_run"]["shards"]] == ["0/3", "1/3", "2/3"]
     # Every image was extracted exactly once across the extraction shards.
-    store = pipeline.feature_store(Path(params["cache_dir"]),
-                                   pipeline.method_registry.resolve_method(METHOD, PROFILE)["extractor"])
+    store = pipeline.feature_store(
+        Path(params["cache_dir"]), pipeline.method_registry.resolve_method(METHOD, PROFILE)["extractor"]
+    )
     assert len(store) == len(config.prepare_sequence(params).images)
 
 

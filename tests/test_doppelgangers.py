@@ -209,7 +209,8 @@ def test_input_from_matcher_any_source():
     direct = build_input(image0, image1, kp, kp, conf, size=128)
     via_callable = input_from_matcher(image0, image1, lambda a, b: (kp, kp, conf), size=128)
     via_kornia_dict = input_from_matcher(
-        image0, image1,
+        image0,
+        image1,
         {"keypoints0": torch.from_numpy(kp), "keypoints1": torch.from_numpy(kp), "confidence": torch.from_numpy(conf)},
         size=128,
     )

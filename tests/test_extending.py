@@ -20,8 +20,9 @@ def example_method(monkeypatch: pytest.MonkeyPatch) -> str:
     monkeypatch.syspath_prepend(str(HERE))  # where example_matcher.py lives, as a user's own folder would
     monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))  # the registration ends with the test
     # The one entry: the sift-opencv extractor conf and the example file's class as the matcher type.
-    methods.register_method("sift-example", extractor="sift-opencv",
-                            matcher={"type": "example_matcher:MutualNearestNeighbourMatcher"})
+    methods.register_method(
+        "sift-example", extractor="sift-opencv", matcher={"type": "example_matcher:MutualNearestNeighbourMatcher"}
+    )
     # The built-in matcher with the same rule (mutual nearest neighbour, no ratio test), to compare.
     methods.register_method("sift-mutual", extractor="sift-opencv", matcher="nn-mutual")
     return "sift-example"
@@ -75,13 +76,20 @@ def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, 
     import json
 
     out, cache = tmp_path / "out", tmp_path / "cache"
-    params = {"profile": "repository", "output_dir": str(out), "cache_dir": str(cache), "device": "cpu", "seed": 0,
-              "verifier": {"method": "USAC_MAGSAC"}}
+    params = {
+        "profile": "repository",
+        "output_dir": str(out),
+        "cache_dir": str(cache),
+        "device": "cpu",
+        "seed": 0,
+        "verifier": {"method": "USAC_MAGSAC"},
+    }
     table = pipeline.run_method_of_params(params, tiny_sample, "orb-nn", progress=False)
     run = json.loads((out / "orb-nn" / "run.json").read_text())
     assert run["conf"]["verifier"]["method"] == "USAC_MAGSAC"
-    default = pipeline.run_method(tiny_sample, "orb-nn", "repository", tmp_path / "default", cache, device="cpu",
-                                  progress=False)
+    default = pipeline.run_method(
+        tiny_sample, "orb-nn", "repository", tmp_path / "default", cache, device="cpu", progress=False
+    )
     assert (table["num_matches"] == default["num_matches"]).all()  # same matches, another fit
     default_run = json.loads((tmp_path / "default" / "orb-nn" / "run.json").read_text())
     assert default_run["conf"]["verifier"]["method"] == "FM_RANSAC"
@@ -91,9 +99,13 @@ def test_verifier_overrides_are_checked_with_a_did_you_mean(tmp_path: Path) -> N
     from gvbench_nb import config
 
     path = tmp_path / "p.yaml"
-    path.write_text("sequence: s\npairs: p.txt\nimage_root: .\nmethods: [orb-nn]\nprofile: paper\noutput_dir: out\n"
-                    "verifier: {threshold: 2.0}\n")
-    with pytest.raises(config.ParamsError, match=r"verifier: unknown key\(s\) 'threshold' \(did you mean 'threshold_px'\?\)"):
+    path.write_text(
+        "sequence: s\npairs: p.txt\nimage_root: .\nmethods: [orb-nn]\nprofile: paper\noutput_dir: out\n"
+        "verifier: {threshold: 2.0}\n"
+    )
+    with pytest.raises(
+        config.ParamsError, match=r"verifier: unknown key\(s\) 'threshold' \(did you mean 'threshold_px'\?\)"
+    ):
         config.load_params(path)
     path.write_text(path.read_text().replace("{threshold: 2.0}", "{method: MAGSAC}"))
     with pytest.raises(config.ParamsError, match="unknown estimator 'MAGSAC'.*Did you mean 'USAC_MAGSAC'"):

@@ -19,8 +19,12 @@ from gvbench_nb import methods, pipeline
 from gvbench_nb.data import images
 from gvbench_nb.data.sequences import Pair, Sequence
 
-GARDENS_POINT_IMAGES = ["night_right/Image050.jpg", "day_right/Image050.jpg", "day_right/Image120.jpg",
-                        "night_right/Image180.jpg"]
+GARDENS_POINT_IMAGES = [
+    "night_right/Image050.jpg",
+    "day_right/Image050.jpg",
+    "day_right/Image120.jpg",
+    "night_right/Image180.jpg",
+]
 
 
 def _textured(height: int, width: int, seed: int = 0) -> np.ndarray:
@@ -34,8 +38,9 @@ def _textured(height: int, width: int, seed: int = 0) -> np.ndarray:
     return np.clip(image * 255, 0, 255).astype(np.uint8)
 
 
-def hloc_prepare(path: Path, grayscale: bool, resize_max: int | None, resize_force: bool = False
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def hloc_prepare(
+    path: Path, grayscale: bool, resize_max: int | None, resize_force: bool = False
+) -> tuple[np.ndarray, np.ndarray]:
     """hloc's ImageDataset: cv2.imread (grayscale or colour, EXIF orientation ignored),
     float32, and when the longest side exceeds resize_max (or always, forced) a resize to
     int(round(side * resize_max / longest)), cv2 INTER_AREA unless a side grows (then
@@ -51,8 +56,9 @@ def hloc_prepare(path: Path, grayscale: bool, resize_max: int | None, resize_for
         factor = resize_max / original.max()
         size = np.array([int(round(side * factor)) for side in original])
         grows = size[0] > original[0] or size[1] > original[1]
-        image = cv2.resize(image, (int(size[0]), int(size[1])),
-                           interpolation=cv2.INTER_LINEAR if grows else cv2.INTER_AREA)
+        image = cv2.resize(
+            image, (int(size[0]), int(size[1])), interpolation=cv2.INTER_LINEAR if grows else cv2.INTER_AREA
+        )
     return image, (original / size).astype(np.float32)
 
 
@@ -103,9 +109,10 @@ def test_150x50_from_100x100_is_linear_although_its_area_shrinks():
     np.testing.assert_array_equal(images.resize_image(image, (150, 50)), linear)
 
 
-@pytest.mark.parametrize("grayscale, resize_max, force", [(True, 1600, False), (False, 1600, False),
-                                                          (True, 333, False), (True, 1600, True),
-                                                          (False, 512, True)])
+@pytest.mark.parametrize(
+    "grayscale, resize_max, force",
+    [(True, 1600, False), (False, 1600, False), (True, 333, False), (True, 1600, True), (False, 512, True)],
+)
 def test_load_for_extraction_equals_hloc_preparation(tmp_path, grayscale, resize_max, force):
     path = tmp_path / "image.jpg"
     cv2.imwrite(str(path), _textured(375, 500), [cv2.IMWRITE_JPEG_QUALITY, 92])
@@ -161,8 +168,7 @@ def test_colmap_sift_passes_max_keypoints_to_pycolmap():
     # keeps a few dozen positions of the uncapped set.
     image = _textured(480, 640, seed=5)[..., 0].astype(np.float32)
     uncapped = extractors.build_extractor(methods.EXTRACTORS["sift"], torch.device("cpu"))(image)
-    capped = extractors.build_extractor({**methods.EXTRACTORS["sift"], "max_keypoints": 50},
-                                        torch.device("cpu"))(image)
+    capped = extractors.build_extractor({**methods.EXTRACTORS["sift"], "max_keypoints": 50}, torch.device("cpu"))(image)
     all_positions = {tuple(p) for p in uncapped["keypoints"].tolist()}
     positions = {tuple(p) for p in capped["keypoints"].tolist()}
     assert positions <= all_positions and 50 <= len(positions) < len(all_positions) / 10
@@ -177,16 +183,20 @@ def test_colmap_sift_refuses_a_colour_image_saying_what_to_set():
 # ---------------------------------------------------------- float16 storage --
 def test_float16_storage_rounds_float_arrays_and_keeps_integers():
     rng = np.random.default_rng(0)
-    features = {"keypoints": rng.random((20, 2), np.float32) * 1500, "scores": rng.random(20, np.float32),
-                "descriptors": rng.random((20, 128), np.float32)}
+    features = {
+        "keypoints": rng.random((20, 2), np.float32) * 1500,
+        "scores": rng.random(20, np.float32),
+        "descriptors": rng.random((20, 128), np.float32),
+    }
     image, scale = np.zeros((540, 960), np.float32), np.ones(2, np.float32)
     stored = pipeline.stored_features(features, image, scale, store_float16=True)
     for key in ("keypoints", "scores", "descriptors"):
         assert stored[key].dtype == np.float16
         np.testing.assert_array_equal(stored[key], features[key].astype(np.float16))
     assert stored["image_size"].dtype == np.int64
-    binary = pipeline.stored_features({**features, "descriptors": rng.integers(0, 256, (20, 32), dtype=np.uint8)},
-                                      image, scale, store_float16=True)
+    binary = pipeline.stored_features(
+        {**features, "descriptors": rng.integers(0, 256, (20, 32), dtype=np.uint8)}, image, scale, store_float16=True
+    )
     assert binary["descriptors"].dtype == np.uint8
     unrounded = pipeline.stored_features(features, image, scale, store_float16=False)
     assert unrounded["keypoints"].dtype == np.float32

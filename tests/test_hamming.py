@@ -39,8 +39,7 @@ def one_direction(distance: np.ndarray, ratio: float | None, threshold: float | 
     return result
 
 
-def reference_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None
-                      ) -> np.ndarray:
+def reference_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None) -> np.ndarray:
     if min(distance.shape) == 1:
         ratio = None  # no second neighbour on one side: hloc drops the ratio test
     forward = one_direction(distance, ratio, threshold)
@@ -51,8 +50,11 @@ def reference_matches(distance: np.ndarray, mutual: bool, ratio: float | None, t
 
 def row_only_matches(distance: np.ndarray, ratio: float) -> set[tuple[int, int]]:
     """The rule this replaced: ratio on rows only, then a plain column argmin for mutuality."""
-    return {(i, j) for i, j in enumerate(one_direction(distance, ratio, None))
-            if j >= 0 and int(np.argmin(distance[:, j])) == i}
+    return {
+        (i, j)
+        for i, j in enumerate(one_direction(distance, ratio, None))
+        if j >= 0 and int(np.argmin(distance[:, j])) == i
+    }
 
 
 def tie_heavy(rng: np.random.Generator, n0: int, n1: int, n_bytes: int) -> tuple[np.ndarray, np.ndarray]:
@@ -76,8 +78,14 @@ def near_copies(rng: np.random.Generator, n0: int, n1: int, n_bytes: int) -> tup
 
 
 # threshold as a fraction of the descriptor's bits
-RULES = [(True, 0.8, None), (True, None, None), (False, 0.8, None), (True, 0.9, 0.15), (False, None, None),
-         (True, None, 0.11)]
+RULES = [
+    (True, 0.8, None),
+    (True, None, None),
+    (False, 0.8, None),
+    (True, 0.9, 0.15),
+    (False, None, None),
+    (True, None, 0.11),
+]
 
 
 @pytest.mark.parametrize("mutual, ratio, threshold", RULES)
@@ -89,8 +97,9 @@ def test_matches_equal_brute_force(make, n_bytes, mutual, ratio, threshold):
     distance = bit_distances(binary0, binary1)
     expected = reference_matches(distance, mutual, ratio, threshold)
 
-    matches, scores = hamming_nearest_neighbour_matches(binary0, binary1, mutual=mutual, ratio_threshold=ratio,
-                                                        distance_threshold=threshold)
+    matches, scores = hamming_nearest_neighbour_matches(
+        binary0, binary1, mutual=mutual, ratio_threshold=ratio, distance_threshold=threshold
+    )
 
     assert len(expected) > 5  # the case is not vacuous
     np.testing.assert_array_equal(matches, expected)
@@ -158,8 +167,9 @@ def test_the_nn_matcher_dispatches_hamming_here():
     rng = np.random.default_rng(4)
     binary0, binary1 = near_copies(rng, 120, 100, 32)
     conf = {"type": "nn", "metric": "hamming", "mutual": True, "ratio_threshold": 0.8}
-    matches, scores = NearestNeighbourMatcher(conf, torch.device("cpu"))({"descriptors": binary0},
-                                                                         {"descriptors": binary1})
+    matches, scores = NearestNeighbourMatcher(conf, torch.device("cpu"))(
+        {"descriptors": binary0}, {"descriptors": binary1}
+    )
     expected = reference_matches(bit_distances(binary0, binary1), True, 0.8, None)
     assert len(expected) > 20
     np.testing.assert_array_equal(matches, expected)

@@ -23,16 +23,25 @@ from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.matching import imm
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
-    sys.modules.get("vismatch"), types.SimpleNamespace)
+    sys.modules.get("vismatch"), types.SimpleNamespace
+)
 needs_vismatch = pytest.mark.skipif(
-    not HAVE_VISMATCH, reason="vismatch is not installed: run these in the opt-in venv (make setup-imm; "
-                              ".venv-imm/bin/python -m pytest tests/test_imm.py)")
+    not HAVE_VISMATCH,
+    reason="vismatch is not installed: run these in the opt-in venv (make setup-imm; "
+    ".venv-imm/bin/python -m pytest tests/test_imm.py)",
+)
 
 # The benchmark fork's RANSAC (GV-Bench main.py's ransac_kwargs; image-matching-models branch
 # gvbench, BaseMatcher.process_matches): fundamental matrix, FM_RANSAC, 3 px, 0.95, 2000
 # iterations, on the matched points in the 512x288 images the matcher saw.
-FORK_VERIFIER = {"method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.95, "max_iters": 2000,
-                 "coordinates": "resize_to", "resize_to": [512, 288]}
+FORK_VERIFIER = {
+    "method": "FM_RANSAC",
+    "threshold_px": 3.0,
+    "confidence": 0.95,
+    "max_iters": 2000,
+    "coordinates": "resize_to",
+    "resize_to": [512, 288],
+}
 
 
 @pytest.fixture
@@ -98,9 +107,16 @@ def test_missing_vismatch_fails_before_any_work_saying_what_to_install(no_vismat
 @pytest.mark.slow
 def test_methods_command_says_how_to_enable_imm_without_vismatch():
     if HAVE_VISMATCH:
-        pytest.skip("vismatch is installed here; the listing is checked by test_methods_command_lists_vismatch_matchers")
-    out = subprocess.run([sys.executable, "-m", "gvbench_nb", "methods"], capture_output=True, text=True, check=True,
-                         cwd=Path(__file__).resolve().parent.parent).stdout
+        pytest.skip(
+            "vismatch is installed here; the listing is checked by test_methods_command_lists_vismatch_matchers"
+        )
+    out = subprocess.run(
+        [sys.executable, "-m", "gvbench_nb", "methods"],
+        capture_output=True,
+        text=True,
+        check=True,
+        cwd=Path(__file__).resolve().parent.parent,
+    ).stdout
     assert "imm:<name>" in out and "make setup-imm" in out
 
 
@@ -218,8 +234,13 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
     compared = 0
     for pair, (_, row) in zip(sequence.pairs, ours.iterrows()):
         # vismatch's own forward on the very images our pipeline loaded (512x288 RGB).
-        tensors = [torch.from_numpy(load_for_extraction(sequence.image_root / name, conf["matcher"])[0])
-                   .permute(2, 0, 1).float() / 255.0 for name in (pair.query, pair.reference)]
+        tensors = [
+            torch.from_numpy(load_for_extraction(sequence.image_root / name, conf["matcher"])[0])
+            .permute(2, 0, 1)
+            .float()
+            / 255.0
+            for name in (pair.query, pair.reference)
+        ]
         result = theirs(*tensors)
         assert row["num_matches"] == len(result["matched_kpts0"]), pair
         if len(result["matched_kpts0"]) < 8:
@@ -238,8 +259,12 @@ def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(share
     from gvbench_nb import config
 
     monkeypatch.setenv("GVBENCH_DATA", str(shared_data))
-    params = config.load_params(Path(__file__).resolve().parent.parent / "params" / "gardens_point.yaml", limit=7,
-                                profile="repository", output_dir=str(tmp_path / "out"))
+    params = config.load_params(
+        Path(__file__).resolve().parent.parent / "params" / "gardens_point.yaml",
+        limit=7,
+        profile="repository",
+        output_dir=str(tmp_path / "out"),
+    )
     params["pairs"] = str(tmp_path / "pairs.txt")
     sequence = config.prepare_sequence(params)
     assert peer_vismatch.peer_image_size(params, "sift-nn", sequence) == (288, 512)  # 960x540, longest side 512

@@ -21,11 +21,14 @@ HEAVY = ("torch", "kornia", "sklearn", "seaborn", "matplotlib")
 
 def modules_after(code: str, env: dict[str, str] | None = None) -> dict:
     """Run ``code`` in a new interpreter; return which HEAVY modules it imported and what it printed."""
-    probe = (f"{code}\nimport json, sys\n"
-             f"print(json.dumps({{'imported': [m for m in {HEAVY!r} if m in sys.modules], 'out': OUT}}))")
+    probe = (
+        f"{code}\nimport json, sys\n"
+        f"print(json.dumps({{'imported': [m for m in {HEAVY!r} if m in sys.modules], 'out': OUT}}))"
+    )
     environment = {**os.environ, "PYTHONPATH": str(PROJECT), **(env or {})}
-    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, cwd=PROJECT, env=environment,
-                          timeout=300)
+    done = subprocess.run(
+        [sys.executable, "-c", probe], capture_output=True, text=True, cwd=PROJECT, env=environment, timeout=300
+    )
     assert done.returncode == 0, done.stderr
     return json.loads(done.stdout.strip().splitlines()[-1])
 
@@ -62,19 +65,25 @@ def test_stage_notebook_setup_imports_no_torch_kornia_sklearn_or_seaborn():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("env", [
-    {"TORCH_HOME": "/tmp/a torch home"},
-    {"XDG_CACHE_HOME": "/tmp/xdg cache"},
-    {"TORCH_HOME": "~/th", "XDG_CACHE_HOME": "/tmp/ignored"},
-    {},
-])
+@pytest.mark.parametrize(
+    "env",
+    [
+        {"TORCH_HOME": "/tmp/a torch home"},
+        {"XDG_CACHE_HOME": "/tmp/xdg cache"},
+        {"TORCH_HOME": "~/th", "XDG_CACHE_HOME": "/tmp/ignored"},
+        {},
+    ],
+)
 def test_checkpoint_folder_without_torch_is_torch_hubs(env):
     clean = {k: "" for k in ("TORCH_HOME", "XDG_CACHE_HOME") if k not in env}
-    code = ("import os\n" + "".join(f"os.environ.pop({k!r}, None)\n" for k in clean) +
-            "from gvbench_nb import weights\nbefore = str(weights.checkpoints_dir())\n"
-            "assert 'torch' not in __import__('sys').modules\n"
-            "import torch\nOUT = [before, os.path.join(torch.hub.get_dir(), 'checkpoints'), "
-            "str(weights.checkpoints_dir())]")
+    code = (
+        "import os\n"
+        + "".join(f"os.environ.pop({k!r}, None)\n" for k in clean)
+        + "from gvbench_nb import weights\nbefore = str(weights.checkpoints_dir())\n"
+        "assert 'torch' not in __import__('sys').modules\n"
+        "import torch\nOUT = [before, os.path.join(torch.hub.get_dir(), 'checkpoints'), "
+        "str(weights.checkpoints_dir())]"
+    )
     found = modules_after(code, env)
     without_torch, torch_answer, with_torch = found["out"]
     assert without_torch == torch_answer == with_torch
@@ -82,7 +91,7 @@ def test_checkpoint_folder_without_torch_is_torch_hubs(env):
 
 # Put first on PYTHONPATH, this records in $GVBENCH_IMPORT_PROBE each process that starts
 # (its command line) and each model library it imports, however deep the import.
-IMPORT_PROBE = '''\
+IMPORT_PROBE = """\
 import json, os, sys
 _folder = os.environ.get("GVBENCH_IMPORT_PROBE")
 if _folder:
@@ -101,17 +110,25 @@ if _folder:
 
     _mark("started")
     sys.addaudithook(_hook)
-'''
+"""
 
 
 def tiny_sample_params(tmp_path: Path, methods: list[str]) -> Path:
     """A params file of the synthetic route, 6 frames of 160x120, first 6 pairs (one false)."""
     import yaml
 
-    params = {"sequence": "tiny", "pairs_builder": "sample",
-              "builder_options": {"n_frames": 6, "image_size": [160, 120]}, "image_root": str(tmp_path / "data"),
-              "pairs": str(tmp_path / "data" / "pairs.txt"), "methods": methods,
-              "profile": "repository", "output_dir": str(tmp_path / "out"), "limit": 6, "seed": 0}
+    params = {
+        "sequence": "tiny",
+        "pairs_builder": "sample",
+        "builder_options": {"n_frames": 6, "image_size": [160, 120]},
+        "image_root": str(tmp_path / "data"),
+        "pairs": str(tmp_path / "data" / "pairs.txt"),
+        "methods": methods,
+        "profile": "repository",
+        "output_dir": str(tmp_path / "out"),
+        "limit": 6,
+        "seed": 0,
+    }
     path = tmp_path / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
@@ -126,10 +143,20 @@ def test_a_run_imports_torch_once_and_its_notebooks_find_every_pair_cached(tmp_p
     marks.mkdir()
     (probe / "sitecustomize.py").write_text(IMPORT_PROBE)
     methods = ["sift-nn", "orb-nn"]
-    environment = {**os.environ, "PYTHONPATH": f"{probe}{os.pathsep}{PROJECT}", "GVBENCH_IMPORT_PROBE": str(marks),
-                   "GVBENCH_THREADS": "1"}
-    done = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(tiny_sample_params(tmp_path, methods))],
-                          capture_output=True, text=True, cwd=tmp_path, env=environment, timeout=600)
+    environment = {
+        **os.environ,
+        "PYTHONPATH": f"{probe}{os.pathsep}{PROJECT}",
+        "GVBENCH_IMPORT_PROBE": str(marks),
+        "GVBENCH_THREADS": "1",
+    }
+    done = subprocess.run(
+        [sys.executable, "-m", "gvbench_nb", "run", str(tiny_sample_params(tmp_path, methods))],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        env=environment,
+        timeout=600,
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     assert "results table:" in done.stdout
 

@@ -17,8 +17,13 @@ from gvbench_nb.data import images
 from gvbench_nb.pipeline import PreparedCache
 
 # Two true pairs (many matches: LightGlue runs deep and prunes) and false pairs (it stops early).
-IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image061.jpg",
-          "day_right/Image140.jpg", "night_right/Image140.jpg"]
+IMAGES = [
+    "night_right/Image060.jpg",
+    "day_right/Image060.jpg",
+    "day_right/Image061.jpg",
+    "day_right/Image140.jpg",
+    "night_right/Image140.jpg",
+]
 
 
 def features_of(shared_data: Path, method: str, names: list[str] = IMAGES) -> tuple[dict, list[dict]]:
@@ -40,8 +45,11 @@ def disk_features(shared_data):
 
 @pytest.mark.slow
 @pytest.mark.real_data
-@pytest.mark.parametrize("options", [{}, {"depth_confidence": -1, "width_confidence": -1}],
-                         ids=["paper-early-stop-and-pruning", "all-layers-no-pruning"])
+@pytest.mark.parametrize(
+    "options",
+    [{}, {"depth_confidence": -1, "width_confidence": -1}],
+    ids=["paper-early-stop-and-pruning", "all-layers-no-pruning"],
+)
 def test_prepared_matches_equal_kornia_bit_for_bit(disk_features, options):
     conf, features = disk_features
     matcher = matchers.build_matcher({**conf["matcher"], **options}, torch.device("cpu"))

@@ -39,8 +39,7 @@ def hloc_matches(distance: np.ndarray, mutual: bool, ratio: float | None, thresh
     return np.array(matches, dtype=np.int64).reshape(-1, 2)
 
 
-def one_way_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None
-                    ) -> np.ndarray:
+def one_way_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None) -> np.ndarray:
     """The tests applied to rows only, then the mutual check (the Hamming path's rule)."""
     matches = []
     for i, row in enumerate(distance):
@@ -68,28 +67,39 @@ def test_ratio_applies_to_columns_too_minimal_case():
     assert one_way_matches(distance, True, 0.8, None).tolist() == [[0, 0]]
     assert hloc_matches(distance, True, 0.8, None).shape == (0, 2)
 
-    matches, scores = nearest_neighbour_matches(torch.from_numpy(rows), torch.from_numpy(columns),
-                                                ratio_threshold=0.8)
+    matches, scores = nearest_neighbour_matches(torch.from_numpy(rows), torch.from_numpy(columns), ratio_threshold=0.8)
     assert matches.shape == (0, 2) and scores.shape == (0,)
 
 
-RULES = [(True, 0.8, None), (True, None, None), (False, 0.8, None), (True, 0.9, 0.7), (False, None, None),
-         (True, None, 0.9)]
+RULES = [
+    (True, 0.8, None),
+    (True, None, None),
+    (False, 0.8, None),
+    (True, 0.9, 0.7),
+    (False, None, None),
+    (True, None, 0.9),
+]
 
 
 @pytest.mark.parametrize("mutual, ratio, threshold", RULES)
 def test_l2_matches_equal_hloc_rule_with_duplicated_descriptors(mutual, ratio, threshold):
     rng = np.random.default_rng(1)
     descriptors0 = rng.normal(size=(300, 32)).astype(np.float32)
-    descriptors1 = np.concatenate([descriptors0[:120] + 0.3 * rng.normal(size=(120, 32)),
-                                   rng.normal(size=(100, 32))]).astype(np.float32)
+    descriptors1 = np.concatenate(
+        [descriptors0[:120] + 0.3 * rng.normal(size=(120, 32)), rng.normal(size=(100, 32))]
+    ).astype(np.float32)
     descriptors0[50] = descriptors0[10]  # identical descriptors tie on every column
     descriptors1[7] = descriptors1[3]
     distance = _l2_distance(descriptors0, descriptors1)
     expected = hloc_matches(distance, mutual, ratio, threshold)
 
-    matches, scores = nearest_neighbour_matches(torch.from_numpy(descriptors0), torch.from_numpy(descriptors1),
-                                                mutual=mutual, ratio_threshold=ratio, distance_threshold=threshold)
+    matches, scores = nearest_neighbour_matches(
+        torch.from_numpy(descriptors0),
+        torch.from_numpy(descriptors1),
+        mutual=mutual,
+        ratio_threshold=ratio,
+        distance_threshold=threshold,
+    )
 
     assert len(expected) > 20  # the case is not vacuous
     np.testing.assert_array_equal(matches.numpy(), expected)
@@ -111,12 +121,14 @@ def test_l2_two_way_ratio_differs_from_one_way_on_random_cases(seed):
     one_way = one_way_matches(distance, True, 0.8, None)
     assert len(expected) > 5 and len(one_way) > len(expected)  # the rules differ here
 
-    matches, _ = nearest_neighbour_matches(torch.from_numpy(descriptors0), torch.from_numpy(descriptors1),
-                                           ratio_threshold=0.8)
+    matches, _ = nearest_neighbour_matches(
+        torch.from_numpy(descriptors0), torch.from_numpy(descriptors1), ratio_threshold=0.8
+    )
     np.testing.assert_array_equal(matches.numpy(), expected)
     # And the other way round: image 1's descriptors as rows.
-    matches_swapped, _ = nearest_neighbour_matches(torch.from_numpy(descriptors1), torch.from_numpy(descriptors0),
-                                                   ratio_threshold=0.8)
+    matches_swapped, _ = nearest_neighbour_matches(
+        torch.from_numpy(descriptors1), torch.from_numpy(descriptors0), ratio_threshold=0.8
+    )
     np.testing.assert_array_equal(matches_swapped.numpy(), hloc_matches(distance.T, True, 0.8, None))
     np.testing.assert_array_equal(np.sort(matches_swapped.numpy()[:, ::-1], axis=0), np.sort(expected, axis=0))
 

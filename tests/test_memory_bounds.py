@@ -50,17 +50,31 @@ def test_feature_cache_holds_at_most_its_bytes_and_reads_each_hit_once():
 def _fake_sequence(root: Path, references_per_query: int) -> Sequence:
     """20 queries against 40 references; every reference is used whatever the pair count."""
     step = 40 // references_per_query
-    pairs = [Pair(f"q{q:02d}.jpg", f"r{(q + step * k) % 40:02d}.jpg", int(k == 0))
-             for q in range(20) for k in range(references_per_query)]
+    pairs = [
+        Pair(f"q{q:02d}.jpg", f"r{(q + step * k) % 40:02d}.jpg", int(k == 0))
+        for q in range(20)
+        for k in range(references_per_query)
+    ]
     return Sequence("fake", root, pairs)
 
 
 def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
     sequence = _fake_sequence(tmp_path / "images", references_per_query)
-    conf = {"method": "fake-nn", "profile": "test", "extractor": {"type": "sift", "name": "fake"},
-            "matcher": {"type": "nn", "metric": "l2", "mutual": True, "ratio_threshold": 0.8},
-            "verifier": {"type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.99,
-                         "max_iters": 20, "min_matches": 10**6, "min_match_score": 0.5}}
+    conf = {
+        "method": "fake-nn",
+        "profile": "test",
+        "extractor": {"type": "sift", "name": "fake"},
+        "matcher": {"type": "nn", "metric": "l2", "mutual": True, "ratio_threshold": 0.8},
+        "verifier": {
+            "type": "fundamental",
+            "method": "FM_RANSAC",
+            "threshold_px": 3.0,
+            "confidence": 0.99,
+            "max_iters": 20,
+            "min_matches": 10**6,
+            "min_match_score": 0.5,
+        },
+    }
     cache_dir, output_dir = tmp_path / f"cache{references_per_query}", tmp_path / f"out{references_per_query}"
     rng = np.random.default_rng(0)
     base = rng.normal(size=(200, 32))
@@ -70,12 +84,16 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
         (sequence.image_root / name).write_bytes(f"image {index}".encode())
     with pipeline.feature_store(cache_dir, conf["extractor"]).writer(flush_every=16) as writer:
         for name in sequence.images:  # noisy copies of one set: every pair has ~200 matches to hold or drop
-            writer.put(pipeline.image_key(sequence.image_root, name), {
-                "keypoints": rng.uniform(0, 500, (200, 2)).astype(np.float32),
-                "scores": np.ones(200, np.float32),
-                "descriptors": (base + 0.05 * rng.normal(size=base.shape)).astype(np.float32),
-                "image_size": np.array([500, 500]),
-            }, {"seconds": 0.01})
+            writer.put(
+                pipeline.image_key(sequence.image_root, name),
+                {
+                    "keypoints": rng.uniform(0, 500, (200, 2)).astype(np.float32),
+                    "scores": np.ones(200, np.float32),
+                    "descriptors": (base + 0.05 * rng.normal(size=base.shape)).astype(np.float32),
+                    "image_size": np.array([500, 500]),
+                },
+                {"seconds": 0.01},
+            )
     tracemalloc.start()
     pipeline.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, workers=1)
     table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed=0)

@@ -44,8 +44,12 @@ def test_missing_weights_fail_before_any_work(empty_hub, tmp_path):
     with pytest.raises(weights.MissingWeightsError) as error:
         pipeline.run_method(sequence, "sp-sg", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     message = str(error.value)
-    for expected in ("superpoint_v1.pth", "superglue_outdoor.pth", str(empty_hub / "superglue_outdoor.pth"),
-                     "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth"):
+    for expected in (
+        "superpoint_v1.pth",
+        "superglue_outdoor.pth",
+        str(empty_hub / "superglue_outdoor.pth"),
+        "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth",
+    ):
         assert expected in message
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
@@ -84,8 +88,14 @@ def shared_cache(tmp_path_factory) -> Path:
 
 @pytest.mark.slow
 @pytest.mark.real_data
-@pytest.mark.parametrize("method", [m for m in methods.METHODS if not methods.required_checkpoints(m)
-                                    or all(weights.is_present(c) for c in methods.required_checkpoints(m))])
+@pytest.mark.parametrize(
+    "method",
+    [
+        m
+        for m in methods.METHODS
+        if not methods.required_checkpoints(m) or all(weights.is_present(c) for c in methods.required_checkpoints(m))
+    ],
+)
 def test_available_methods_score_true_pairs_above_far_false_pairs(shared_data, shared_cache, tmp_path, method):
     pairs = []
     for q in (10, 45, 80, 115, 150, 185):  # two true references and one far-apart false one a query

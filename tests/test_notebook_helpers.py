@@ -21,8 +21,10 @@ def toy(tmp_path: Path, monkeypatch) -> tuple[Path, Path]:
     output_dir = tmp_path / "toy"
     (tmp_path / "pairs.txt").write_text("q0 r0 1\n")
     params = tmp_path / "toy.yaml"
-    params.write_text("sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: repository\n"
-                      f"output_dir: {output_dir}\n")
+    params.write_text(
+        "sequence: toy\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: repository\n"
+        f"output_dir: {output_dir}\n"
+    )
 
     def refuse(*args, **kwargs):
         raise AssertionError("the pipeline ran although the notebook did not ask")
@@ -39,8 +41,7 @@ def test_missing_results_raise_one_sentence_naming_the_command_and_run_nothing(t
     message = str(error.value)
     assert message.count(". ") == 0 and message.endswith(".") and "\n" not in message
     command = message.split("`")[1]
-    assert shlex.split(command) == ["python", "-m", "gvbench_nb", "run", str(params.resolve()),
-                                    "--methods", "sift-nn"]
+    assert shlex.split(command) == ["python", "-m", "gvbench_nb", "run", str(params.resolve()), "--methods", "sift-nn"]
     assert "compute_missing=True" in message and not (output_dir / "sift-nn").exists()
 
 
@@ -55,8 +56,9 @@ def test_compute_missing_runs_only_what_is_missing(toy, monkeypatch):
         return output_dir
 
     monkeypatch.setattr(analysis, "ensure_results", fake_ensure)
-    inputs = notebook.load_results(str(output_dir), output_dir / "analysis", str(params), ["sift-nn"],
-                                   compute_missing=True)
+    inputs = notebook.load_results(
+        str(output_dir), output_dir / "analysis", str(params), ["sift-nn"], compute_missing=True
+    )
     assert ran == [["sift-nn"]]
     assert inputs.output_dirs == [str(output_dir)] and inputs.figures.is_dir()
     assert inputs.results["method"].tolist() == ["sift-nn"]
@@ -103,8 +105,15 @@ def test_verifier_bench_names_the_run_with_its_output_folder_and_profile(toy, tm
     ran = []
     monkeypatch.setattr(verifiers, "ensure_method_results", lambda *a, **k: ran.append((a, k)))
     monkeypatch.setattr(verifiers, "open_bench", lambda *a, **k: ("bench", a, k))
-    bench = notebook.open_verifier_bench(elsewhere, "sift-nn", tmp_path / "v", params_file=params,
-                                         compute_missing=True, classifier={"epochs": 1}, gap_frames=8)
+    bench = notebook.open_verifier_bench(
+        elsewhere,
+        "sift-nn",
+        tmp_path / "v",
+        params_file=params,
+        compute_missing=True,
+        classifier={"epochs": 1},
+        gap_frames=8,
+    )
     assert ran == [((params, "sift-nn"), {"output_dir": str(elsewhere), "profile": None})]
     assert bench[2] == {"overrides": {"doppelgangers-in-domain": {"epochs": 1}}, "gap_frames": 8}
 

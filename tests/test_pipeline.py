@@ -16,8 +16,17 @@ from gvbench_nb import config, methods, pipeline
 from gvbench_nb.data.sequences import Pair, Sequence, read_pairs
 from gvbench_nb.store import ShardedStore
 
-PAIRS_COLUMNS = {"query", "reference", "label", "num_matches", "num_inliers", "score",
-                 "extract_seconds", "match_seconds", "verify_seconds"}
+PAIRS_COLUMNS = {
+    "query",
+    "reference",
+    "label",
+    "num_matches",
+    "num_inliers",
+    "score",
+    "extract_seconds",
+    "match_seconds",
+    "verify_seconds",
+}
 RESULTS_COLUMNS = {"method", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"}
 
 
@@ -95,9 +104,22 @@ def test_prefetch_preserves_order_and_surfaces_errors_in_place():
 def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
     output = tmp_path / "gp"
     completed = subprocess.run(
-        [sys.executable, "-m", "gvbench_nb", "run", str(config.PROJECT_ROOT / "params" / "gardens_point.yaml"),
-         "--methods", "sift-nn", "--limit", "24", "--output-dir", str(output)],
-        capture_output=True, text=True, timeout=600,
+        [
+            sys.executable,
+            "-m",
+            "gvbench_nb",
+            "run",
+            str(config.PROJECT_ROOT / "params" / "gardens_point.yaml"),
+            "--methods",
+            "sift-nn",
+            "--limit",
+            "24",
+            "--output-dir",
+            str(output),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=600,
     )
     assert completed.returncode == 0, completed.stderr[-3000:]
     assert f"results table: {output / 'results.csv'}" in completed.stdout
@@ -105,19 +127,27 @@ def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
     assert set(results.columns) >= RESULTS_COLUMNS
     pairs = pd.read_csv(output / "sift-nn" / "pairs.csv")
     assert set(pairs.columns) >= PAIRS_COLUMNS
-    sequence = config.prepare_sequence(config.load_params(config.PROJECT_ROOT / "params" / "gardens_point.yaml",
-                                                          limit=24))
+    sequence = config.prepare_sequence(
+        config.load_params(config.PROJECT_ROOT / "params" / "gardens_point.yaml", limit=24)
+    )
     assert len(sequence.pairs) == 24
     check_stage_outputs(output, "sift-nn", sequence.pairs)  # one row a pair, metrics recomputed from them
-    for name in ("01_sequence.ipynb", "02_verify_sift-nn.ipynb", "03_evaluate.ipynb", "pr_curves.png",
-                 "sequence_examples.png", "inliers_sift-nn.png"):
+    for name in (
+        "01_sequence.ipynb",
+        "02_verify_sift-nn.ipynb",
+        "03_evaluate.ipynb",
+        "pr_curves.png",
+        "sequence_examples.png",
+        "inliers_sift-nn.png",
+    ):
         assert (output / name).is_file(), name
 
 
 def test_cli_reports_bad_params_clearly(tmp_path):
     bad = tmp_path / "bad.yaml"
-    bad.write_text("sequence: x\npairs: p.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: paper\n"
-                   "output_dir: o\nlimt: 3\n")
+    bad.write_text(
+        "sequence: x\npairs: p.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: paper\noutput_dir: o\nlimt: 3\n"
+    )
     completed = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(bad)], capture_output=True, text=True)
     assert completed.returncode == 2
     assert "unknown key(s) 'limt' (did you mean 'limit'?)" in completed.stderr
@@ -137,15 +167,22 @@ def test_run_method_after_compute_method_records_that_work_without_torch(tmp_pat
     work = pipeline.compute_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
     assert work["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
     assert not (out / "sift-nn" / "pairs.csv").exists()  # only run_method writes results
-    code = ("import sys, json; from pathlib import Path\n"
-            "from gvbench_nb import pipeline\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
-            f"root = Path({str(tmp_path / 'data')!r})\n"
-            "sequence = Sequence('tiny', root, read_pairs(root / 'pairs.txt')[:6])\n"
-            f"pipeline.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
-            "device='cpu', progress=False)\n"
-            "print(json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))")
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300,
-                          env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)})
+    code = (
+        "import sys, json; from pathlib import Path\n"
+        "from gvbench_nb import pipeline\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
+        f"root = Path({str(tmp_path / 'data')!r})\n"
+        "sequence = Sequence('tiny', root, read_pairs(root / 'pairs.txt')[:6])\n"
+        f"pipeline.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
+        "device='cpu', progress=False)\n"
+        "print(json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)},
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "[]"
     run = json.loads((out / "sift-nn" / "run.json").read_text())

@@ -101,12 +101,27 @@ def test_resized_coordinates_change_which_matches_are_inliers():
     matches = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
     scores = np.ones(len(points0))
     sizes = (np.array([1280, 960]), np.array([1280, 960]))
-    base = {"type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.999,
-            "max_iters": 5000, "min_matches": 8, "few_matches": "zero", "min_match_score": None}
-    original = ransac.verify_matches(points0, noisy, matches, scores, {**base, "coordinates": "original"},
-                                     image_sizes=sizes)
-    resized = ransac.verify_matches(points0, noisy, matches, scores,
-                                    {**base, "coordinates": "resize_to", "resize_to": [512, 288]}, image_sizes=sizes)
+    base = {
+        "type": "fundamental",
+        "method": "FM_RANSAC",
+        "threshold_px": 3.0,
+        "confidence": 0.999,
+        "max_iters": 5000,
+        "min_matches": 8,
+        "few_matches": "zero",
+        "min_match_score": None,
+    }
+    original = ransac.verify_matches(
+        points0, noisy, matches, scores, {**base, "coordinates": "original"}, image_sizes=sizes
+    )
+    resized = ransac.verify_matches(
+        points0,
+        noisy,
+        matches,
+        scores,
+        {**base, "coordinates": "resize_to", "resize_to": [512, 288]},
+        image_sizes=sizes,
+    )
     assert original["inlier_mask"][40:].mean() > 0.95 and original["inlier_mask"][:40].mean() < 0.2
     assert resized["inlier_mask"].mean() > 0.95
 
@@ -140,8 +155,9 @@ def test_the_fast_profile_is_gone_with_a_pointer_to_repository(tmp_path):
     with pytest.raises(KeyError, match="profile 'fast' was replaced by 'repository'"):
         methods.resolve_method("sift-nn", "fast")
     params = tmp_path / "p.yaml"
-    params.write_text("sequence: s\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\n"
-                      "output_dir: out\n")
+    params.write_text(
+        "sequence: s\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\noutput_dir: out\n"
+    )
     with pytest.raises(config.ParamsError, match="p.yaml: profile 'fast' was replaced by 'repository'"):
         config.load_params(params)
 

@@ -178,19 +178,31 @@ def no_child_left_running():
             child.wait()
 
 
-def start_child(sequence: Sequence, work: Path, name: str, kill: str | None = None,
-                go_file: Path | None = None) -> subprocess.Popen:
+def start_child(
+    sequence: Sequence, work: Path, name: str, kill: str | None = None, go_file: Path | None = None
+) -> subprocess.Popen:
     spec = {
-        "name": sequence.name, "image_root": str(sequence.image_root),
+        "name": sequence.name,
+        "image_root": str(sequence.image_root),
         "pairs": [[p.query, p.reference, p.label] for p in sequence.pairs],
-        "method": METHOD, "profile": PROFILE, "output_dir": str(work / "out"), "cache_dir": str(work / "cache"),
-        "kill": kill, "go_file": str(go_file) if go_file else None, "ready_file": str(work / f"{name}.ready"),
+        "method": METHOD,
+        "profile": PROFILE,
+        "output_dir": str(work / "out"),
+        "cache_dir": str(work / "cache"),
+        "kill": kill,
+        "go_file": str(go_file) if go_file else None,
+        "ready_file": str(work / f"{name}.ready"),
     }
     spec_path = work / f"{name}.json"
     spec_path.write_text(json.dumps(spec))
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    child = subprocess.Popen([sys.executable, "-c", CHILD, str(spec_path)], stdout=subprocess.PIPE,
-                             stderr=subprocess.PIPE, text=True, env=env)
+    child = subprocess.Popen(
+        [sys.executable, "-c", CHILD, str(spec_path)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
     STARTED.append(child)
     return child
 
@@ -231,8 +243,13 @@ def store_entries(store: ShardedStore) -> dict[str, list[dict[str, np.ndarray]]]
             for name, group in handle.items():
                 arrays = {k: group[k][()] for k in group.keys()}
                 # Timers differ between runs, and so does the checksum that covers them.
-                arrays.update({f"attr:{k}": v for k, v in group.attrs.items()
-                               if not k.endswith("seconds") and k != "_digest_attrs"})
+                arrays.update(
+                    {
+                        f"attr:{k}": v
+                        for k, v in group.attrs.items()
+                        if not k.endswith("seconds") and k != "_digest_attrs"
+                    }
+                )
                 entries.setdefault(unquote(name), []).append(arrays)
     return entries
 
@@ -279,8 +296,14 @@ def test_unreadable_images_raise_an_error_naming_the_file(small_root, tmp_path, 
         read_image(path)
     message = str(error.value)
     assert str(path) in message
-    what = {"missing": "not found", "empty": "empty", "truncated_jpeg": "truncated", "truncated_png": "truncated",
-            "text_as_jpg": "<html>", "folder": "folder"}[kind]
+    what = {
+        "missing": "not found",
+        "empty": "empty",
+        "truncated_jpeg": "truncated",
+        "truncated_png": "truncated",
+        "text_as_jpg": "<html>",
+        "folder": "folder",
+    }[kind]
     assert what in message
     assert "image_root" in message or "remove the pairs" in message  # what to do
 
@@ -325,13 +348,16 @@ def test_uncommon_image_kinds_are_read_not_rejected(tmp_path):
 
 @pytest.mark.real_data
 @pytest.mark.parametrize("workers", ["1", "2"])
-def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(small_root, tmp_path,
-                                                                                     monkeypatch, workers):
+def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(
+    small_root, tmp_path, monkeypatch, workers
+):
     monkeypatch.setenv("GVBENCH_WORKERS", workers)  # the error surfaces from a worker thread as well
     root = tmp_path / "root"
     shutil.copytree(small_root, root)
-    good = [Pair("night_right/Image000.jpg", "day_right/Image000.jpg", 1),
-            Pair("night_right/Image010.jpg", "day_right/Image000.jpg", 0)]
+    good = [
+        Pair("night_right/Image000.jpg", "day_right/Image000.jpg", 1),
+        Pair("night_right/Image010.jpg", "day_right/Image000.jpg", 0),
+    ]
     out, cache = tmp_path / "out", tmp_path / "cache"
     pipeline.run_method(Sequence("s", root, good), METHOD, PROFILE, out, cache, device="cpu", progress=False)
     assert (pipeline.method_dir(out, METHOD) / "pairs.csv").is_file()
@@ -406,8 +432,14 @@ def test_a_sequence_without_positives_or_negatives_is_an_error_not_nan(baseline,
 
 
 def _params_file(tmp_path: Path, **changes) -> Path:
-    params = {"sequence": "x", "pairs": "p.txt", "image_root": ".", "methods": ["sift-nn"], "profile": "paper",
-              "output_dir": "o"}
+    params = {
+        "sequence": "x",
+        "pairs": "p.txt",
+        "image_root": ".",
+        "methods": ["sift-nn"],
+        "profile": "paper",
+        "output_dir": "o",
+    }
     params.update(changes)
     params = {k: v for k, v in params.items() if v is not None}
     path = tmp_path / "params.yaml"
@@ -500,8 +532,9 @@ def test_a_file_that_is_not_a_checkpoint_is_refused_naming_it(tmp_path, content)
         ("write:pairs.csv", 40, N_PAIRS, 0, 0),
     ],
 )
-def test_a_killed_run_resumes_and_ends_identical(sequence, baseline, tmp_path, kill, committed_features,
-                                                 committed_matches, extracted_again, matched_again):
+def test_a_killed_run_resumes_and_ends_identical(
+    sequence, baseline, tmp_path, kill, committed_features, committed_matches, extracted_again, matched_again
+):
     returncode, stdout, stderr = finish(start_child(sequence, tmp_path, "killed", kill=kill))
     assert returncode == -9, stderr[-2000:]  # SIGKILL, not a clean exit
     assert "finished" not in stdout
@@ -547,8 +580,9 @@ def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing
     children = [start_child(sequence, tmp_path, f"writer{i}", go_file=go) for i in range(2)]
     deadline = time.monotonic() + 120
     while not all((tmp_path / f"writer{i}.ready").exists() for i in range(2)):
-        assert time.monotonic() < deadline and all(c.poll() is None for c in children), \
-            [c.communicate()[1][-2000:] for c in children if c.poll() is not None]
+        assert time.monotonic() < deadline and all(c.poll() is None for c in children), [
+            c.communicate()[1][-2000:] for c in children if c.poll() is not None
+        ]
         time.sleep(0.01)
     go.touch()
     for child in children:
@@ -584,8 +618,12 @@ def test_two_runs_from_scratch_give_identical_pairs_and_results(sequence, baseli
 @pytest.mark.real_data
 def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_data, tmp_path):
     def build(seed: int, name: str) -> bytes:
-        params = config.load_params(config.PROJECT_ROOT / "params" / "gardens_point.yaml", seed=seed,
-                                    pairs=str(tmp_path / name), output_dir=str(tmp_path / "out"))
+        params = config.load_params(
+            config.PROJECT_ROOT / "params" / "gardens_point.yaml",
+            seed=seed,
+            pairs=str(tmp_path / name),
+            output_dir=str(tmp_path / "out"),
+        )
         config.prepare_sequence(params)
         return (tmp_path / name).read_bytes()
 
@@ -595,14 +633,17 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
 
 @pytest.mark.real_data
 def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
-    table = pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu",
-                                progress=False, workers=2)
+    table = pipeline.run_method(
+        sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False, workers=2
+    )
     assert run_json(tmp_path / "out")["this_run"]["workers"] == 2
     expected = pipeline.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
     pd.testing.assert_frame_equal(table[columns], expected[columns])
     conf = methods.resolve_method(METHOD, PROFILE)
-    ours, theirs = (pipeline.feature_store(cache, conf["extractor"]) for cache in (tmp_path / "cache", baseline["cache"]))
+    ours, theirs = (
+        pipeline.feature_store(cache, conf["extractor"]) for cache in (tmp_path / "cache", baseline["cache"])
+    )
     assert sorted(ours.keys()) == sorted(theirs.keys()) and len(ours) == 40
     for key in ours.keys():
         for name in ("keypoints", "descriptors", "scores", "image_size"):
@@ -626,8 +667,9 @@ def test_worker_count_comes_from_the_argument_then_the_environment(monkeypatch):
 @pytest.mark.real_data
 def test_scores_do_not_depend_on_the_order_pairs_run_in(sequence, baseline, tmp_path):
     reversed_sequence = Sequence(sequence.name, sequence.image_root, sequence.pairs[::-1])
-    table = pipeline.run_method(reversed_sequence, METHOD, PROFILE, tmp_path / "out", baseline["cache"],
-                                device="cpu", progress=False)
+    table = pipeline.run_method(
+        reversed_sequence, METHOD, PROFILE, tmp_path / "out", baseline["cache"], device="cpu", progress=False
+    )
     expected = pipeline.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
     pd.testing.assert_frame_equal(table[columns].iloc[::-1].reset_index(drop=True), expected[columns])
@@ -655,9 +697,23 @@ def test_a_malicious_checkpoint_is_refused_without_running_its_payload(tmp_path,
     assert not marker.exists()
 
 
-UNSAFE_CALLS = {"eval", "exec", "compile", "os.system", "os.popen", "yaml.load", "yaml.unsafe_load",
-                "pickle.load", "pickle.loads", "marshal.loads", "subprocess.run", "subprocess.call",
-                "subprocess.check_call", "subprocess.check_output", "subprocess.Popen"}
+UNSAFE_CALLS = {
+    "eval",
+    "exec",
+    "compile",
+    "os.system",
+    "os.popen",
+    "yaml.load",
+    "yaml.unsafe_load",
+    "pickle.load",
+    "pickle.loads",
+    "marshal.loads",
+    "subprocess.run",
+    "subprocess.call",
+    "subprocess.check_call",
+    "subprocess.check_output",
+    "subprocess.Popen",
+}
 UNSAFE_MODULES = {"pickle", "marshal", "shelve", "subprocess"}
 
 
@@ -684,8 +740,9 @@ def unsafe_code(source: str) -> list[str]:
                 found.append(f"{node.lineno}: {name}(")
             if any(k.arg == "shell" and not _is_constant(k.value, False) for k in node.keywords):
                 found.append(f"{node.lineno}: shell=True")
-            if name == "torch.load" and not any(k.arg == "weights_only" and _is_constant(k.value, True)
-                                                for k in node.keywords):
+            if name == "torch.load" and not any(
+                k.arg == "weights_only" and _is_constant(k.value, True) for k in node.keywords
+            ):
                 found.append(f"{node.lineno}: torch.load without weights_only=True")
         elif isinstance(node, (ast.Import, ast.ImportFrom)):
             modules = [a.name for a in node.names] if isinstance(node, ast.Import) else [node.module or ""]
@@ -696,17 +753,27 @@ def unsafe_code(source: str) -> list[str]:
 
 
 def test_the_package_has_no_code_execution_paths():
-    hits = [f"{source.relative_to(PACKAGE_DIR.parent)}:{hit}"
-            for source in sorted(PACKAGE_DIR.rglob("*.py"))
-            for hit in unsafe_code(source.read_text(encoding="utf-8"))]
+    hits = [
+        f"{source.relative_to(PACKAGE_DIR.parent)}:{hit}"
+        for source in sorted(PACKAGE_DIR.rglob("*.py"))
+        for hit in unsafe_code(source.read_text(encoding="utf-8"))
+    ]
     assert hits == []
     # A plain-text grep agrees (docstrings may mention eval() of modules, hence the lookbehind).
     for source in PACKAGE_DIR.rglob("*.py"):
         text = source.read_text(encoding="utf-8")
         assert not re.search(r"shell\s*=\s*True|os\.system|yaml\.load\(|(?<![\w.`])(eval|exec)\(", text), source
     # The checker finds what it looks for (so this test can fail).
-    bad = ("import subprocess\nfrom os import system\nx = eval(s)\nsubprocess.run(c, shell=True)\n"
-           "torch.load(p)\nyaml.load(f)\nmodel.eval()\n")
+    bad = (
+        "import subprocess\nfrom os import system\nx = eval(s)\nsubprocess.run(c, shell=True)\n"
+        "torch.load(p)\nyaml.load(f)\nmodel.eval()\n"
+    )
     assert [hit.split(": ", 1)[1] for hit in unsafe_code(bad)] == [
-        "import subprocess", "import os, os.system", "eval(", "subprocess.run(", "shell=True",
-        "torch.load without weights_only=True", "yaml.load("]
+        "import subprocess",
+        "import os, os.system",
+        "eval(",
+        "subprocess.run(",
+        "shell=True",
+        "torch.load without weights_only=True",
+        "yaml.load(",
+    ]

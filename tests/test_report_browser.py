@@ -39,7 +39,8 @@ def chromium():
     except ImportError:
         sync_playwright = None
     missing = ([] if path else ["Chromium (`apt-get install chromium`)"]) + (
-        [] if sync_playwright else [f"playwright (`pip install playwright=={pinned('playwright')}`)"])
+        [] if sync_playwright else [f"playwright (`pip install playwright=={pinned('playwright')}`)"]
+    )
     if missing:
         pytest.skip(f"the browser test needs {' and '.join(missing)}")
     return path, sync_playwright
@@ -55,7 +56,8 @@ def report_index(chromium, tmp_path_factory) -> Path:
     params.write_text(
         "sequence: sample\npairs_builder: sample\nbuilder_options: {}\n"
         f"image_root: {root / 'data'}\npairs: {root / 'data' / 'pairs.txt'}\n"
-        f"methods: [{METHODS}]\nprofile: {PROFILE}\noutput_dir: {root / 'outputs' / 'sample'}\nseed: 0\n")
+        f"methods: [{METHODS}]\nprofile: {PROFILE}\noutput_dir: {root / 'outputs' / 'sample'}\nseed: 0\n"
+    )
     # One shard and its merge write what a plain run writes, without the run's own notebooks,
     # which the report does not read.
     base = ["run", str(params), "--methods", METHODS, "--limit", LIMIT]
@@ -74,8 +76,9 @@ def check_page(browser, url: str) -> tuple[object, list[str]]:
     page.on("pageerror", lambda error: errors.append(str(error)))
     page.on("requestfailed", lambda request: errors.append(f"{request.url}: {request.failure}"))
     page.goto(url, wait_until="load")
-    images = page.evaluate("[...document.images].map(i => [i.getAttribute('src').slice(0, 80), "
-                           "i.complete && i.naturalWidth > 0])")
+    images = page.evaluate(
+        "[...document.images].map(i => [i.getAttribute('src').slice(0, 80), i.complete && i.naturalWidth > 0])"
+    )
     assert [src for src, loaded in images if not loaded] == [], f"{url}: images that did not load"
     targets = []
     for href in page.evaluate("[...document.querySelectorAll('a[href]')].map(a => a.getAttribute('href'))"):
@@ -86,8 +89,9 @@ def check_page(browser, url: str) -> tuple[object, list[str]]:
         assert path.is_file(), f"{url}: link {href!r} points to a missing file"
         if absolute == urldefrag(url)[0] and fragment:
             name = unquote(fragment)
-            assert page.evaluate("n => !!(document.getElementById(n) || document.getElementsByName(n).length)",
-                                 name), f"{url}: anchor {href!r} names no element of the page"
+            assert page.evaluate("n => !!(document.getElementById(n) || document.getElementsByName(n).length)", name), (
+                f"{url}: anchor {href!r} names no element of the page"
+            )
         elif path.suffix == ".html":
             targets.append(path)
     assert errors == [], f"{url}: console errors"

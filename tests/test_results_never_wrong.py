@@ -42,8 +42,16 @@ pytestmark = pytest.mark.reliability
 
 METHOD, PROFILE = "sift-nn", "paper"
 PHOTOS = ("astronaut", "coffee", "chelsea", "rocket", "camera")
-SCORE_COLUMNS = ["query", "reference", "label", "num_keypoints_query", "num_keypoints_reference",
-                 "num_matches", "num_inliers", "score"]
+SCORE_COLUMNS = [
+    "query",
+    "reference",
+    "label",
+    "num_keypoints_query",
+    "num_keypoints_reference",
+    "num_matches",
+    "num_inliers",
+    "score",
+]
 
 
 def _photo(name: str, warped: bool) -> np.ndarray:
@@ -67,14 +75,19 @@ def write_root(root: Path, photos: tuple[str, str] = ("astronaut", "coffee")) ->
     return root
 
 
-PAIRS = [Pair("query/a.png", "reference/a.png", 1), Pair("query/a.png", "reference/b.png", 0),
-         Pair("query/b.png", "reference/b.png", 1), Pair("query/b.png", "reference/a.png", 0)]
+PAIRS = [
+    Pair("query/a.png", "reference/a.png", 1),
+    Pair("query/a.png", "reference/b.png", 0),
+    Pair("query/b.png", "reference/b.png", 1),
+    Pair("query/b.png", "reference/a.png", 0),
+]
 
 
 def run(root: Path, work: Path, pairs: list[Pair] = PAIRS, seed: int = 0) -> pd.DataFrame:
     sequence = Sequence("photos", root, list(pairs))
-    return pipeline.run_method(sequence, METHOD, PROFILE, work / "out", work / "cache", device="cpu",
-                               seed=seed, progress=False, threads=1)
+    return pipeline.run_method(
+        sequence, METHOD, PROFILE, work / "out", work / "cache", device="cpu", seed=seed, progress=False, threads=1
+    )
 
 
 def this_run(work: Path) -> dict:
@@ -146,8 +159,15 @@ def _frame_root(root: Path) -> Path:
 
 
 def _params(tmp_path: Path, **changes) -> Path:
-    params = {"sequence": "s", "image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "pairs.txt"),
-              "methods": [METHOD], "profile": PROFILE, "output_dir": str(tmp_path / "out"), "seed": 0}
+    params = {
+        "sequence": "s",
+        "image_root": str(tmp_path / "images"),
+        "pairs": str(tmp_path / "pairs.txt"),
+        "methods": [METHOD],
+        "profile": PROFILE,
+        "output_dir": str(tmp_path / "out"),
+        "seed": 0,
+    }
     params.update(changes)
     path = tmp_path / "params.yaml"
     path.write_text(yaml.safe_dump(params))
@@ -159,14 +179,18 @@ def test_a_builder_pair_file_is_rebuilt_when_its_options_or_seed_change(tmp_path
     options = {"query_folder": "night", "reference_folder": "day", "candidates_per_query": 10}
 
     def build(seed: int = 0, **option_changes) -> Sequence:
-        path = _params(tmp_path, pairs_builder="frame_tolerance", builder_options={**options, **option_changes},
-                       seed=seed)
+        path = _params(
+            tmp_path, pairs_builder="frame_tolerance", builder_options={**options, **option_changes}, seed=seed
+        )
         return config.prepare_sequence(config.load_params(path))
 
     def expected(candidates_per_query: int) -> int:
         names = [f"Image{frame:03d}.png" for frame in range(60)]
-        return len(frame_tolerance_pairs([f"night/{n}" for n in names], [f"day/{n}" for n in names],
-                                         candidates_per_query=candidates_per_query))
+        return len(
+            frame_tolerance_pairs(
+                [f"night/{n}" for n in names], [f"day/{n}" for n in names], candidates_per_query=candidates_per_query
+            )
+        )
 
     assert len(build().pairs) == expected(10) > len(build(candidates_per_query=4).pairs) == expected(4)
     first_seed = build(seed=0).pairs
@@ -184,8 +208,16 @@ def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root
     pairs_file = write_pairs(tmp_path / "pairs.txt", PAIRS)
     params = config.load_params(_params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache")))
     sequence = config.prepare_sequence(params)
-    pipeline.run_method(sequence, METHOD, PROFILE, Path(params["output_dir"]), Path(params["cache_dir"]),
-                        device="cpu", progress=False, threads=1)
+    pipeline.run_method(
+        sequence,
+        METHOD,
+        PROFILE,
+        Path(params["output_dir"]),
+        Path(params["cache_dir"]),
+        device="cpu",
+        progress=False,
+        threads=1,
+    )
     recorded = json.loads((Path(params["output_dir"]) / METHOD / "run.json").read_text())
     assert recorded["pairs"]["pairs_sha256"] == hashlib.sha256(pairs_file.read_bytes()).hexdigest()
     assert recorded["pairs"]["pairs_file"] == str(pairs_file)
@@ -201,23 +233,57 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
 
     def fake_execute(name, output_path, parameters):  # what each notebook's first cell loads
         loaded = config.load_params(parameters["params_file"], profile=parameters.get("profile"))
-        seen.append({"notebook": name, "image_root": loaded["image_root"], "limit": loaded["limit"],
-                     "profile": loaded["profile"], "output_dir": loaded["output_dir"]})
+        seen.append(
+            {
+                "notebook": name,
+                "image_root": loaded["image_root"],
+                "limit": loaded["limit"],
+                "profile": loaded["profile"],
+                "output_dir": loaded["output_dir"],
+            }
+        )
         if name == "03_evaluate.ipynb":
             output_path.parent.mkdir(parents=True, exist_ok=True)
-            pd.DataFrame([{"method": METHOD, "profile": "repository", "n_pairs": 3, "n_positives": 2, "ap": 1.0,
-                           "max_recall": 1.0, "seconds_per_pair": 0.0}]).to_csv(output_path.parent / "results.csv")
+            pd.DataFrame(
+                [
+                    {
+                        "method": METHOD,
+                        "profile": "repository",
+                        "n_pairs": 3,
+                        "n_positives": 2,
+                        "ap": 1.0,
+                        "max_recall": 1.0,
+                        "seconds_per_pair": 0.0,
+                    }
+                ]
+            ).to_csv(output_path.parent / "results.csv")
 
     monkeypatch.setattr(cli, "execute_notebook", fake_execute)
     out = tmp_path / "elsewhere"
-    assert cli.main(["run", str(params_path), "--image-root", str(root), "--limit", "3", "--profile", "repository",
-                     "--output-dir", str(out)]) == 0
+    assert (
+        cli.main(
+            [
+                "run",
+                str(params_path),
+                "--image-root",
+                str(root),
+                "--limit",
+                "3",
+                "--profile",
+                "repository",
+                "--output-dir",
+                str(out),
+            ]
+        )
+        == 0
+    )
     # 01_sequence runs beside the others; 03_evaluate comes after 02_verify.
     order = [s["notebook"] for s in seen]
     assert sorted(order) == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
     assert order.index("03_evaluate.ipynb") > order.index("02_verify.ipynb")
-    assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "repository", "output_dir": str(out)}
-               for s in seen)
+    assert all(
+        s == {**s, "image_root": str(root), "limit": 3, "profile": "repository", "output_dir": str(out)} for s in seen
+    )
     assert yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())["image_root"] == str(root)
 
 
@@ -229,9 +295,14 @@ def test_image_root_given_on_the_command_line_reaches_the_real_notebooks(root, t
 
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     params_path = _params(tmp_path, image_root=None, cache_dir=str(tmp_path / "cache"))
-    done = subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(params_path), "--image-root", str(root)],
-                          capture_output=True, text=True, timeout=600, cwd=tmp_path,
-                          env={**os.environ, "GVBENCH_THREADS": "1"})
+    done = subprocess.run(
+        [sys.executable, "-m", "gvbench_nb", "run", str(params_path), "--image-root", str(root)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=tmp_path,
+        env={**os.environ, "GVBENCH_THREADS": "1"},
+    )
     assert done.returncode == 0, done.stderr[-2000:]
     results = pd.read_csv(tmp_path / "out" / "results.csv")
     assert list(results["method"]) == [METHOD]
@@ -294,8 +365,9 @@ def test_evaluate_waits_for_every_verify_notebook_but_not_for_the_sequence_noteb
     assert sorted(events[:2]) == ["02_verify_a.ipynb", "02_verify_b.ipynb"]
 
 
-def test_a_run_that_fails_before_a_method_starts_leaves_no_old_result_and_results_refuses(root, tmp_path,
-                                                                                           monkeypatch, capsys):
+def test_a_run_that_fails_before_a_method_starts_leaves_no_old_result_and_results_refuses(
+    root, tmp_path, monkeypatch, capsys
+):
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     params_path = _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache"))
     out = tmp_path / "out"
@@ -337,11 +409,13 @@ def _dataset_offset(shard: Path, name: str) -> tuple[int, int]:
 
 def test_bytes_overwritten_inside_a_feature_shard_raise_store_corrupt_naming_it(root, tmp_path):
     run(root, tmp_path / "work")
-    store = pipeline.feature_store(tmp_path / "work" / "cache", pipeline.method_registry.resolve_method(METHOD)["extractor"])
+    store = pipeline.feature_store(
+        tmp_path / "work" / "cache", pipeline.method_registry.resolve_method(METHOD)["extractor"]
+    )
     shard = store.shards()[0]
     offset, size = _dataset_offset(shard, "keypoints")
     data = bytearray(shard.read_bytes())
-    data[offset + size // 2: offset + size // 2 + 16] = bytes(16)  # same file size, keypoints changed
+    data[offset + size // 2 : offset + size // 2 + 16] = bytes(16)  # same file size, keypoints changed
     shard.write_bytes(bytes(data))
     with pytest.raises(StoreCorruptError) as error:
         run(root, tmp_path / "work")
@@ -363,8 +437,11 @@ def test_an_attribute_changed_inside_a_match_shard_is_detected(root, tmp_path):
 def test_every_dataset_and_attribute_of_an_entry_is_checked(tmp_path):
     store = ShardedStore(tmp_path / "s")
     with store.writer() as writer:
-        writer.put("k", {"x": np.arange(6, dtype=np.float32).reshape(3, 2), "empty": np.zeros((0, 2)),
-                         "scalar": np.int64(7)}, {"num_inliers": 13, "name": "a"})
+        writer.put(
+            "k",
+            {"x": np.arange(6, dtype=np.float32).reshape(3, 2), "empty": np.zeros((0, 2)), "scalar": np.int64(7)},
+            {"num_inliers": 13, "name": "a"},
+        )
     entry = ShardedStore(tmp_path / "s").read("k")
     assert entry["attr:num_inliers"] == 13 and entry["scalar"] == 7 and entry["empty"].shape == (0, 2)
     assert not any(name.startswith("attr:_digest") for name in entry)
@@ -376,12 +453,22 @@ def test_every_dataset_and_attribute_of_an_entry_is_checked(tmp_path):
 
 
 # ------------------------------------------------------ 7: pairs are identities --
-@pytest.mark.parametrize("first, second, message", [
-    ("night/./a.jpg day/b.jpg 1", "night//a.jpg day/b.jpg 0",
-     "duplicate pair night/a.jpg day/b.jpg (first on line 1, with the opposite label: 1 there, 0 here)"),
-    ("night/a.jpg day/b.jpg 1", "night/a.jpg day/./b.jpg 1", "duplicate pair night/a.jpg day/b.jpg (first on line 1)"),
-    ("night/a.jpg day/b.jpg 1", "day/b.jpg night/a.jpg 1", "(first on line 1, in the other order)"),
-])
+@pytest.mark.parametrize(
+    "first, second, message",
+    [
+        (
+            "night/./a.jpg day/b.jpg 1",
+            "night//a.jpg day/b.jpg 0",
+            "duplicate pair night/a.jpg day/b.jpg (first on line 1, with the opposite label: 1 there, 0 here)",
+        ),
+        (
+            "night/a.jpg day/b.jpg 1",
+            "night/a.jpg day/./b.jpg 1",
+            "duplicate pair night/a.jpg day/b.jpg (first on line 1)",
+        ),
+        ("night/a.jpg day/b.jpg 1", "day/b.jpg night/a.jpg 1", "(first on line 1, in the other order)"),
+    ],
+)
 def test_the_same_pair_spelled_twice_is_refused_with_file_and_line(first, second, message):
     with pytest.raises(PairFileError) as error:
         parse_pairs([first, second], source="pairs.txt")
@@ -403,8 +490,10 @@ def test_names_with_spaces_are_written_in_quotes_and_read_back(tmp_path):
     path = write_pairs(tmp_path / "pairs.txt", pairs)
     assert read_pairs(path) == pairs
     assert format_pairs([Pair("plain/a.jpg", "plain/b.jpg", 1)]) == "plain/a.jpg plain/b.jpg 1\n"
-    assert parse_pairs(['"day 1/a.jpg" \'day 2/b.jpg\' 1']) == [Pair("day 1/a.jpg", "day 2/b.jpg", 1)]
-    with pytest.raises(PairFileError, match=r'pairs.txt:1: expected 3 fields .* got 4: .*in quotes, e.g. "day 1/a.jpg"'):
+    assert parse_pairs(["\"day 1/a.jpg\" 'day 2/b.jpg' 1"]) == [Pair("day 1/a.jpg", "day 2/b.jpg", 1)]
+    with pytest.raises(
+        PairFileError, match=r'pairs.txt:1: expected 3 fields .* got 4: .*in quotes, e.g. "day 1/a.jpg"'
+    ):
         parse_pairs(["day 1/a.jpg day/b.jpg 1"], source="pairs.txt")
     with pytest.raises(PairFileError, match=r"pairs.txt:1: No closing quotation .*close the quote"):
         parse_pairs(['"day 1/a.jpg day/b.jpg 1'], source="pairs.txt")
@@ -412,8 +501,10 @@ def test_names_with_spaces_are_written_in_quotes_and_read_back(tmp_path):
 
 def test_a_name_with_spaces_runs_end_to_end(root, tmp_path):
     (root / "query" / "a.png").rename(root / "query" / "a copy.png")
-    path = write_pairs(tmp_path / "pairs.txt", [Pair("query/a copy.png", "reference/a.png", 1),
-                                                Pair("query/a copy.png", "reference/b.png", 0)])
+    path = write_pairs(
+        tmp_path / "pairs.txt",
+        [Pair("query/a copy.png", "reference/a.png", 1), Pair("query/a copy.png", "reference/b.png", 0)],
+    )
     table = run(root, tmp_path / "work", read_pairs(path))
     assert list(table["query"]) == ["query/a copy.png"] * 2 and table["num_inliers"].iloc[0] > 0
 
@@ -501,8 +592,9 @@ def _png_header_only(path: Path, width: int, height: int) -> Path:
         return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
 
     header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8-bit grayscale
-    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64))
-                     + chunk(b"IEND", b""))
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+    )
     return path
 
 

@@ -11,7 +11,9 @@ from gvbench_nb.data import retrieval as rt
 
 
 def test_heading_difference_wraps_at_360() -> None:
-    np.testing.assert_allclose(rt.heading_difference_deg([359.0, 10.0, 0.0, 90.0], [1.0, 350.0, 180.0, -270.0]), [2.0, 20.0, 180.0, 0.0])
+    np.testing.assert_allclose(
+        rt.heading_difference_deg([359.0, 10.0, 0.0, 90.0], [1.0, 350.0, 180.0, -270.0]), [2.0, 20.0, 180.0, 0.0]
+    )
 
 
 def pose_tables() -> tuple[dict, dict]:

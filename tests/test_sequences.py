@@ -17,8 +17,12 @@ from gvbench_nb.data.sequences import (
 
 # Pairs, positives and queries as the GV-Bench README states them.
 OFFICIAL = {
-    "day": (34400, 26480, 1720), "night": (34400, 12408, 1720), "season": (34400, 30532, 1720),
-    "weather": (34400, 32638, 1720), "nordland": (28124, 1776, 1407), "uacampus": (9600, 402, 640),
+    "day": (34400, 26480, 1720),
+    "night": (34400, 12408, 1720),
+    "season": (34400, 30532, 1720),
+    "weather": (34400, 32638, 1720),
+    "nordland": (28124, 1776, 1407),
+    "uacampus": (9600, 402, 640),
 }
 
 
@@ -108,29 +112,39 @@ def test_negative_margin_keeps_negatives_out_of_the_ambiguous_band():
 def test_a_margin_just_beyond_the_tolerance_is_the_rule_without_margin():
     queries = [f"q/Image{i:03d}.jpg" for i in range(0, 120, 3)]
     references = [f"r/Image{i:03d}.jpg" for i in range(120)]
-    assert frame_tolerance_pairs(queries, references, tolerance=2, negative_margin=3, seed=5) == \
-        frame_tolerance_pairs(queries, references, tolerance=2, seed=5)
+    assert frame_tolerance_pairs(queries, references, tolerance=2, negative_margin=3, seed=5) == frame_tolerance_pairs(
+        queries, references, tolerance=2, seed=5
+    )
 
 
-@pytest.mark.parametrize(("options", "message"), [
-    ({"negative_margin": 2}, "negative_margin 2 must exceed tolerance 2"),
-    ({"negative_margin": 9, "near_window": 8}, "near_window 8 is below the smallest negative gap 9"),
-])
+@pytest.mark.parametrize(
+    ("options", "message"),
+    [
+        ({"negative_margin": 2}, "negative_margin 2 must exceed tolerance 2"),
+        ({"negative_margin": 9, "near_window": 8}, "near_window 8 is below the smallest negative gap 9"),
+    ],
+)
 def test_a_margin_that_cannot_work_says_why(options, message):
     with pytest.raises(ValueError, match=message):
         frame_tolerance_pairs(["q/Image010.jpg"], ["r/Image010.jpg"], tolerance=2, **options)
 
 
 @pytest.mark.real_data
-@pytest.mark.parametrize(("name", "folders", "smallest_negative_gap", "near_band"), [
-    ("gardens_point", ("night_right", "day_right"), 6, (6, 10)),
-    ("gardens_point_viewpoint", ("day_left", "day_right"), 6, (6, 10)),
-    ("gardens_point_night_viewpoint", ("night_right", "day_left"), 6, (6, 10)),
-    ("gardens_point_no_margin", ("night_right", "day_right"), 3, (3, 8)),
-])
+@pytest.mark.parametrize(
+    ("name", "folders", "smallest_negative_gap", "near_band"),
+    [
+        ("gardens_point", ("night_right", "day_right"), 6, (6, 10)),
+        ("gardens_point_viewpoint", ("day_left", "day_right"), 6, (6, 10)),
+        ("gardens_point_night_viewpoint", ("night_right", "day_left"), 6, (6, 10)),
+        ("gardens_point_no_margin", ("night_right", "day_right"), 3, (3, 8)),
+    ],
+)
 def test_gardens_point_params_build_their_rule(shared_data, tmp_path, name, folders, smallest_negative_gap, near_band):
-    params = config.load_params(config.PROJECT_ROOT / "params" / f"{name}.yaml", pairs=str(tmp_path / "pairs.txt"),
-                                output_dir=str(tmp_path / "out"))
+    params = config.load_params(
+        config.PROJECT_ROOT / "params" / f"{name}.yaml",
+        pairs=str(tmp_path / "pairs.txt"),
+        output_dir=str(tmp_path / "out"),
+    )
     sequence = config.prepare_sequence(params)
     assert params["image_root"] == str(shared_data / "gardens_point")
     assert {p.query.split("/")[0] for p in sequence.pairs} == {folders[0]}

@@ -56,8 +56,12 @@ def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sa
     assert row["sequence"] == "sample" and row["profile"] == "repository"
     for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
         assert errors_in(stage_run / name) == [], name
-    for figure in ("sequence_positives_per_query.png", "sequence_examples.png", f"inliers_{METHOD}.png",
-                   "pr_curves.png"):
+    for figure in (
+        "sequence_positives_per_query.png",
+        "sequence_examples.png",
+        f"inliers_{METHOD}.png",
+        "pr_curves.png",
+    ):
         assert (stage_run / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", figure
 
 
@@ -65,8 +69,7 @@ def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sa
 def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path):
     results = pd.read_csv(stage_run / "results.csv").set_index("method")
     read_only = {"output_dirs": [str(stage_run)], "params_files": [], "output_dir": str(tmp_path)}
-    cli.execute_notebook("analysis_uncertainty.ipynb", tmp_path / "uncertainty.ipynb",
-                         {**read_only, "n_resamples": 50})
+    cli.execute_notebook("analysis_uncertainty.ipynb", tmp_path / "uncertainty.ipynb", {**read_only, "n_resamples": 50})
     intervals = pd.read_csv(tmp_path / "bootstrap_intervals.csv").set_index(["method", "metric"])
     for metric in ("ap", "max_recall"):
         low, estimate, high = intervals.loc[(METHOD, metric), ["low", "estimate", "high"]]
@@ -76,8 +79,7 @@ def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path
     joined = pd.read_csv(tmp_path / "results_with_paper.csv")
     ours = joined[joined["source"] == "ours"].set_index("method")
     assert list(ours.index) == [METHOD]
-    assert np.allclose(ours.loc[[METHOD], ["ap", "max_recall"]], results.loc[[METHOD], ["ap", "max_recall"]],
-                       rtol=1e-5)
+    assert np.allclose(ours.loc[[METHOD], ["ap", "max_recall"]], results.loc[[METHOD], ["ap", "max_recall"]], rtol=1e-5)
     assert (tmp_path / "max_recall_radar.png").is_file()
 
 
@@ -88,14 +90,19 @@ def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_no
 
     empty = tmp_path / "empty"
     raw = yaml.safe_load(sample_params.read_text())
-    raw.update(image_root=str(sample_params.parent / "data"), pairs=str(sample_params.parent / "data" / "pairs.txt"),
-               output_dir=str(empty))
+    raw.update(
+        image_root=str(sample_params.parent / "data"),
+        pairs=str(sample_params.parent / "data" / "pairs.txt"),
+        output_dir=str(empty),
+    )
     params = tmp_path / "empty.yaml"
     params.write_text(yaml.safe_dump(raw))
     with pytest.raises(PapermillExecutionError) as failure:
-        cli.execute_notebook("analysis_inlier_histograms.ipynb", tmp_path / "histograms.ipynb",
-                             {"output_dirs": [str(empty)], "params_files": [str(params)],
-                              "output_dir": str(tmp_path / "figures")})
+        cli.execute_notebook(
+            "analysis_inlier_histograms.ipynb",
+            tmp_path / "histograms.ipynb",
+            {"output_dirs": [str(empty)], "params_files": [str(params)], "output_dir": str(tmp_path / "figures")},
+        )
     assert failure.value.ename == "ResultsMissingError"
     assert f"python -m gvbench_nb run {params} --methods {METHOD}" in failure.value.evalue
     assert not (empty / METHOD).exists()

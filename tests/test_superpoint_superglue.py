@@ -170,8 +170,9 @@ def test_superpoint_rejects_bad_max_keypoints():
         sp.SuperPoint({"max_keypoints": 0})
 
 
-@pytest.mark.parametrize("load, checkpoint", [(sp.load_superpoint, "superpoint_v1"),
-                                              (sg.load_superglue, "superglue_outdoor")])
+@pytest.mark.parametrize(
+    "load, checkpoint", [(sp.load_superpoint, "superpoint_v1"), (sg.load_superglue, "superglue_outdoor")]
+)
 def test_loading_without_weights_names_file_url_and_place(empty_hub, load, checkpoint):
     with pytest.raises(weights.MissingWeightsError) as err:
         load()

@@ -20,6 +20,7 @@ SMALL_SIZE = (320, 240)  # small renders keep the suite fast
 # Fixtures
 # ----------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def scene() -> syn.Scene:
     return syn.build_scene(route_length_m=40.0, seed=0)
@@ -47,8 +48,10 @@ def _digest_tree(folder: Path) -> dict[str, str]:
 
 def _read_poses(folder: Path) -> dict[str, tuple[np.ndarray, float]]:
     with open(folder / "poses.csv", newline="", encoding="utf-8") as handle:
-        return {row["image"]: (np.array([float(row[c]) for c in "xyz"]), float(row["yaw_deg"]))
-                for row in csv.DictReader(handle)}
+        return {
+            row["image"]: (np.array([float(row[c]) for c in "xyz"]), float(row["yaw_deg"]))
+            for row in csv.DictReader(handle)
+        }
 
 
 def _sift_rootsift(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,13 +76,15 @@ def _symmetric_epipolar_distance(F: np.ndarray, x0: np.ndarray, x1: np.ndarray) 
     h1 = np.column_stack([x1, np.ones(len(x1))])
     line_in_1, line_in_0 = h0 @ F.T, h1 @ F
     residual = np.abs(np.sum(h1 * line_in_1, axis=1))
-    return 0.5 * (residual / np.hypot(line_in_1[:, 0], line_in_1[:, 1])
-                  + residual / np.hypot(line_in_0[:, 0], line_in_0[:, 1]))
+    return 0.5 * (
+        residual / np.hypot(line_in_1[:, 0], line_in_1[:, 1]) + residual / np.hypot(line_in_0[:, 0], line_in_0[:, 1])
+    )
 
 
 # ----------------------------------------------------------------------------
 # Pose rule
 # ----------------------------------------------------------------------------
+
 
 def test_heading_difference_wraps_around() -> None:
     assert syn.heading_difference_deg(359.0, 1.0) == pytest.approx(2.0)
@@ -91,33 +96,40 @@ def test_heading_difference_wraps_around() -> None:
 def test_pose_rule_labels_on_hand_made_poses() -> None:
     query_positions = np.array([[0.0, 0.0, 1.7]])
     query_headings = np.array([359.0])
-    reference_positions = np.array([
-        [3.0, 0.0, 1.7],    # close, heading 1 deg: 2 deg apart across the wrap -> true
-        [0.0, 7.9, 1.7],    # just inside 8 m -> true
-        [8.1, 0.0, 1.7],    # just outside 8 m -> false
-        [1.0, 0.0, 1.7],    # close but heading 45 deg away -> false
-        [1.0, 0.0, 1.7],    # close, heading 39 deg away (across the wrap) -> true
-        [1.0, 0.0, 1.7],    # close, opposite heading -> false
-    ])
+    reference_positions = np.array(
+        [
+            [3.0, 0.0, 1.7],  # close, heading 1 deg: 2 deg apart across the wrap -> true
+            [0.0, 7.9, 1.7],  # just inside 8 m -> true
+            [8.1, 0.0, 1.7],  # just outside 8 m -> false
+            [1.0, 0.0, 1.7],  # close but heading 45 deg away -> false
+            [1.0, 0.0, 1.7],  # close, heading 39 deg away (across the wrap) -> true
+            [1.0, 0.0, 1.7],  # close, opposite heading -> false
+        ]
+    )
     reference_headings = np.array([1.0, 0.0, 0.0, 44.0, 38.0, 179.0])
-    labels = syn.pose_rule_labels(query_positions, query_headings, reference_positions,
-                                  reference_headings, max_distance_m=8.0, max_heading_deg=40.0)
+    labels = syn.pose_rule_labels(
+        query_positions,
+        query_headings,
+        reference_positions,
+        reference_headings,
+        max_distance_m=8.0,
+        max_heading_deg=40.0,
+    )
     assert labels.shape == (1, 6)
     assert labels[0].tolist() == [True, True, False, False, True, False]
 
 
 def test_pose_rule_thresholds_are_parameters() -> None:
-    labels = syn.pose_rule_labels([[0, 0, 0]], [0.0], [[20, 0, 0]], [30.0],
-                                  max_distance_m=25.0, max_heading_deg=40.0)
+    labels = syn.pose_rule_labels([[0, 0, 0]], [0.0], [[20, 0, 0]], [30.0], max_distance_m=25.0, max_heading_deg=40.0)
     assert labels[0, 0]
-    labels = syn.pose_rule_labels([[0, 0, 0]], [0.0], [[20, 0, 0]], [30.0],
-                                  max_distance_m=25.0, max_heading_deg=20.0)
+    labels = syn.pose_rule_labels([[0, 0, 0]], [0.0], [[20, 0, 0]], [30.0], max_distance_m=25.0, max_heading_deg=20.0)
     assert not labels[0, 0]
 
 
 # ----------------------------------------------------------------------------
 # Sample on disk
 # ----------------------------------------------------------------------------
+
 
 def test_sample_layout_and_pair_counts(sample_dir: Path) -> None:
     assert len(list((sample_dir / "day").glob("*.png"))) == 16
@@ -128,8 +140,9 @@ def test_sample_layout_and_pair_counts(sample_dir: Path) -> None:
 
     lines = (sample_dir / "pairs.txt").read_text().splitlines()
     pairs = [line.split() for line in lines]
-    assert all(len(p) == 3 and p[0].startswith("night/") and p[1].startswith("day/")
-               and p[2] in {"0", "1"} for p in pairs)
+    assert all(
+        len(p) == 3 and p[0].startswith("night/") and p[1].startswith("day/") and p[2] in {"0", "1"} for p in pairs
+    )
     assert all((sample_dir / p[0]).exists() and (sample_dir / p[1]).exists() for p in pairs)
     per_query: dict[str, list[int]] = {}
     for query, _, label in pairs:
@@ -146,8 +159,9 @@ def test_pair_labels_agree_with_poses(sample_dir: Path) -> None:
     for line in (sample_dir / "pairs.txt").read_text().splitlines():
         query, reference, label = line.split()
         (q_pos, q_yaw), (r_pos, r_yaw) = poses[query], poses[reference]
-        expected = syn.pose_rule_labels(q_pos, [q_yaw], r_pos, [r_yaw],
-                                        params["max_distance_m"], params["max_heading_deg"])
+        expected = syn.pose_rule_labels(
+            q_pos, [q_yaw], r_pos, [r_yaw], params["max_distance_m"], params["max_heading_deg"]
+        )
         assert bool(expected[0, 0]) == (label == "1"), line
 
 
@@ -157,8 +171,7 @@ def test_poses_csv_rotation_matches_angles(sample_dir: Path) -> None:
     assert len(rows) == 32
     for row in rows[::5]:
         R = np.array([[float(row[f"r{i}{j}"]) for j in range(3)] for i in range(3)])
-        expected = syn.camera_rotation(float(row["yaw_deg"]), float(row["pitch_deg"]),
-                                       float(row["roll_deg"]))
+        expected = syn.camera_rotation(float(row["yaw_deg"]), float(row["pitch_deg"]), float(row["roll_deg"]))
         np.testing.assert_allclose(R, expected, atol=1e-8)
         np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-8)
 
@@ -167,11 +180,17 @@ def test_make_route_is_what_generate_sample_renders(sample_dir: Path) -> None:
     route = syn.make_route(seed=0, n_frames=16, image_size=SMALL_SIZE)
     frame = 7
     on_disk = cv2.cvtColor(cv2.imread(str(sample_dir / "night" / f"{frame:03d}.png")), cv2.COLOR_BGR2RGB)
-    night = syn.render_frame(route.scene, route.query.rotations[frame], route.query.positions[frame],
-                             route.K, SMALL_SIZE)
-    expected = syn.apply_conditions(night.image, night.depth, night.normals,
-                                    syn.DEFAULT_NIGHT_CONDITIONS, syn.frame_rng(0, 1, frame),
-                                    light_points=night.light_points)
+    night = syn.render_frame(
+        route.scene, route.query.rotations[frame], route.query.positions[frame], route.K, SMALL_SIZE
+    )
+    expected = syn.apply_conditions(
+        night.image,
+        night.depth,
+        night.normals,
+        syn.DEFAULT_NIGHT_CONDITIONS,
+        syn.frame_rng(0, 1, frame),
+        light_points=night.light_points,
+    )
     assert np.array_equal(on_disk, expected)
     poses = _read_poses(sample_dir)
     np.testing.assert_allclose(poses["day/003.png"][0], route.reference.positions[3], atol=1e-5)
@@ -180,12 +199,15 @@ def test_make_route_is_what_generate_sample_renders(sample_dir: Path) -> None:
 def test_look_alike_pairs_are_false_and_see_the_repeated_block() -> None:
     route = syn.make_route(seed=0, n_frames=30, image_size=SMALL_SIZE)
     look_alike = syn.look_alike_labels(route.scene, route.query, route.reference)
-    true_pairs = syn.pose_rule_labels(route.query.positions, syn.heading_from_rotation(route.query.rotations),
-                                      route.reference.positions,
-                                      syn.heading_from_rotation(route.reference.rotations))
+    true_pairs = syn.pose_rule_labels(
+        route.query.positions,
+        syn.heading_from_rotation(route.query.rotations),
+        route.reference.positions,
+        syn.heading_from_rotation(route.reference.rotations),
+    )
     assert look_alike.sum() > 20
     assert not (look_alike & true_pairs).any()
-    (source_x, copy_x, length), = route.scene.alias_blocks
+    ((source_x, copy_x, length),) = route.scene.alias_blocks
     shift = copy_x - source_x
     for q, r in zip(*np.nonzero(look_alike)):
         query_x, reference_x = route.query.positions[q, 0], route.reference.positions[r, 0]
@@ -221,8 +243,7 @@ def test_same_seed_same_bytes_other_seed_differs(tmp_path: Path) -> None:
 def test_changed_parameters_regenerate(tmp_path: Path) -> None:
     syn.generate_sample(tmp_path, seed=0, n_frames=4, image_size=(160, 120))
     night_clear = (tmp_path / "night" / "001.png").read_bytes()
-    syn.generate_sample(tmp_path, seed=0, n_frames=4, image_size=(160, 120),
-                        conditions={"illumination": 0.0})
+    syn.generate_sample(tmp_path, seed=0, n_frames=4, image_size=(160, 120), conditions={"illumination": 0.0})
     assert (tmp_path / "night" / "001.png").read_bytes() != night_clear
 
 
@@ -239,15 +260,21 @@ def test_render_does_not_depend_on_worker_count(scene: syn.Scene) -> None:
 # Conditions
 # ----------------------------------------------------------------------------
 
+
 def _apply(frame: syn.RenderedFrame, conditions: dict[str, float], seed: int = 0) -> np.ndarray:
-    return syn.apply_conditions(frame.image, frame.depth, frame.normals, conditions,
-                                np.random.default_rng(seed), light_points=frame.light_points)
+    return syn.apply_conditions(
+        frame.image,
+        frame.depth,
+        frame.normals,
+        conditions,
+        np.random.default_rng(seed),
+        light_points=frame.light_points,
+    )
 
 
 def test_zero_strength_leaves_image_byte_identical(small_frame: syn.RenderedFrame) -> None:
     assert np.array_equal(_apply(small_frame, {}), small_frame.image)
-    assert np.array_equal(_apply(small_frame, dict.fromkeys(syn.CONDITIONS, 0.0)),
-                          small_frame.image)
+    assert np.array_equal(_apply(small_frame, dict.fromkeys(syn.CONDITIONS, 0.0)), small_frame.image)
     for name in syn.CONDITIONS:
         out = _apply(small_frame, {name: 0.0})
         assert out.dtype == np.uint8 and out.tobytes() == small_frame.image.tobytes()
@@ -271,8 +298,7 @@ def test_conditions_are_seeded(small_frame: syn.RenderedFrame) -> None:
 
 def test_conditions_compose(small_frame: syn.RenderedFrame) -> None:
     singles = {name: _apply(small_frame, {name: 0.6}) for name in syn.CONDITIONS}
-    combos = [("illumination", "season"), ("illumination", "weather"), ("season", "weather"),
-              syn.CONDITIONS]
+    combos = [("illumination", "season"), ("illumination", "weather"), ("season", "weather"), syn.CONDITIONS]
     for combo in combos:
         out = _apply(small_frame, dict.fromkeys(combo, 0.6))
         assert out.shape == small_frame.image.shape and out.dtype == np.uint8
@@ -314,6 +340,7 @@ def test_unknown_condition_or_bad_strength_rejected(small_frame: syn.RenderedFra
 # Geometry
 # ----------------------------------------------------------------------------
 
+
 def test_fundamental_from_poses_on_projected_points() -> None:
     rng = np.random.default_rng(0)
     K = syn.default_intrinsics()
@@ -335,11 +362,13 @@ def test_ground_truth_F_agrees_with_sift_on_true_pair(scene: syn.Scene) -> None:
     size = (640, 480)
     K = syn.default_intrinsics(size)
     reference = syn.make_traversal(12, seed=0, traversal_index=0)
-    query = syn.make_traversal(12, lateral_offset_m=1.0, heading_offset_deg=4.0,
-                               along_offset_m=1.0, seed=0, traversal_index=1)
+    query = syn.make_traversal(
+        12, lateral_offset_m=1.0, heading_offset_deg=4.0, along_offset_m=1.0, seed=0, traversal_index=1
+    )
     q, r = 8, 9  # 1 m apart along the street, 1 m laterally, ~4 deg in heading
-    labels = syn.pose_rule_labels(query.positions[q], [query.yaw_deg[q]],
-                                  reference.positions[r], [reference.yaw_deg[r]])
+    labels = syn.pose_rule_labels(
+        query.positions[q], [query.yaw_deg[q]], reference.positions[r], [reference.yaw_deg[r]]
+    )
     assert labels[0, 0]
     image_r = syn.render_frame(scene, reference.rotations[r], reference.positions[r], K, size).image
     image_q = syn.render_frame(scene, query.rotations[q], query.positions[q], K, size).image
@@ -350,7 +379,8 @@ def test_ground_truth_F_agrees_with_sift_on_true_pair(scene: syn.Scene) -> None:
     _, mask = cv2.findFundamentalMat(x_r, x_q, cv2.FM_RANSAC, 3.0, 0.99, 1000)
     inliers = mask.ravel().astype(bool)
     assert inliers.sum() >= 50
-    F = syn.fundamental_from_poses(K, reference.rotations[r], reference.positions[r],
-                                   K, query.rotations[q], query.positions[q])
+    F = syn.fundamental_from_poses(
+        K, reference.rotations[r], reference.positions[r], K, query.rotations[q], query.positions[q]
+    )
     distance = _symmetric_epipolar_distance(F, x_r[inliers], x_q[inliers])
     assert np.median(distance) < 2.0

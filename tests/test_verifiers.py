@@ -19,8 +19,9 @@ from gvbench_nb.verification.ransac import ESTIMATORS
 
 def as_pair(points0: np.ndarray, points1: np.ndarray, n_keypoints: int = 1000) -> verifiers.PairMatches:
     scores = np.ones(len(points0))
-    return verifiers.PairMatches(points0, points1, scores, np.zeros(len(points0), bool), n_keypoints, n_keypoints,
-                                 (640, 480), (640, 480))
+    return verifiers.PairMatches(
+        points0, points1, scores, np.zeros(len(points0), bool), n_keypoints, n_keypoints, (640, 480), (640, 480)
+    )
 
 
 def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
@@ -83,12 +84,22 @@ def test_registry_has_every_combination_and_the_paper_verifier():
 # ----------------------------------------------------------------------- SUE --
 def test_sue_adapter_on_hand_made_positions():
     # Query a: its strong candidates agree on frames 10-12; query b's two best point 80 frames apart.
-    table = pd.DataFrame({
-        "query": ["a"] * 4 + ["b"] * 4,
-        "reference": ["r/010.png", "r/011.png", "r/012.png", "r/090.png", "r/020.png", "r/100.png", "r/021.png",
-                      "r/150.png"],
-        "score": [50, 50, 50, 0, 50, 50, 0, 0],
-    })
+    table = pd.DataFrame(
+        {
+            "query": ["a"] * 4 + ["b"] * 4,
+            "reference": [
+                "r/010.png",
+                "r/011.png",
+                "r/012.png",
+                "r/090.png",
+                "r/020.png",
+                "r/100.png",
+                "r/021.png",
+                "r/150.png",
+            ],
+            "score": [50, 50, 50, 0, 50, 50, 0, 0],
+        }
+    )
     out = verifiers.sue_pair_scores(table, slope=10.0, top_k=10)
     # a: weights 1, 1, 1, e^-10 (distance 1 at slope 10) on frames 10, 11, 12, 90, normalised.
     w = np.array([1, 1, 1, np.exp(-10.0)])
@@ -106,8 +117,9 @@ def test_sue_adapter_on_hand_made_positions():
 
 
 def test_sue_adapter_uses_only_the_top_k():
-    table = pd.DataFrame({"query": ["a"] * 3, "reference": ["r/000.png", "r/001.png", "r/199.png"],
-                          "score": [10, 10, 9]})
+    table = pd.DataFrame(
+        {"query": ["a"] * 3, "reference": ["r/000.png", "r/001.png", "r/199.png"], "score": [10, 10, 9]}
+    )
     near = verifiers.sue_pair_scores(table, slope=10.0, top_k=2)
     spread = verifiers.sue_pair_scores(table, slope=10.0, top_k=3)
     assert near.loc[0, "query_sue"] == pytest.approx(0.25)
@@ -157,8 +169,9 @@ def test_split_refuses_a_gap_narrower_than_a_place():
 def test_logistic_combination_fits_predicts_and_is_deterministic():
     rng = np.random.default_rng(0)
     labels = pd.Series(np.r_[np.ones(60), np.zeros(60)].astype(int))
-    features = pd.DataFrame({name: rng.normal(0, 1, 120) + 1.5 * labels * (i == 0)
-                             for i, name in enumerate(verifiers.FEATURES)})
+    features = pd.DataFrame(
+        {name: rng.normal(0, 1, 120) + 1.5 * labels * (i == 0) for i, name in enumerate(verifiers.FEATURES)}
+    )
     conf = verifiers.resolve_verifier("learned_combination")
     first = verifiers.fit_combination(features[:80], labels[:80], conf)
     second = verifiers.fit_combination(features[:80], labels[:80], conf)
@@ -204,10 +217,19 @@ def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
 
 @pytest.mark.real_data
 def test_bench_records_conf_and_reports_a_missing_official_checkpoint(cached_run, empty_hub):
-    bench = verifiers.open_bench(cached_run / "out", "sift-nn", cached_run / "verifiers", cached_run / "cache",
-                                 progress=False, train_fraction=0.45, gap_frames=20, tolerance=2)
-    results, tables, boot = bench.evaluate(["gv-F-ransac-inliers", "gv-H-magsac-inlier_ratio", "sue", "doppelgangers"],
-                                           n_resamples=50)
+    bench = verifiers.open_bench(
+        cached_run / "out",
+        "sift-nn",
+        cached_run / "verifiers",
+        cached_run / "cache",
+        progress=False,
+        train_fraction=0.45,
+        gap_frames=20,
+        tolerance=2,
+    )
+    results, tables, boot = bench.evaluate(
+        ["gv-F-ransac-inliers", "gv-H-magsac-inlier_ratio", "sue", "doppelgangers"], n_resamples=50
+    )
     assert list(results["verifier"]) == ["gv-F-ransac-inliers", "gv-H-magsac-inlier_ratio", "sue", "doppelgangers"]
     assert (results["conf_hash"].str.len() == 10).all()
     missing = results.set_index("verifier").loc["doppelgangers"]

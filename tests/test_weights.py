@@ -32,6 +32,10 @@ def test_missing_message_names_file_url_and_place(empty_hub):
     with pytest.raises(weights.MissingWeightsError) as error:
         weights.require("superglue_outdoor", "loftr_outdoor")
     message = str(error.value)
-    for expected in ("superglue_outdoor.pth", "loftr_outdoor.ckpt", str(empty_hub / "loftr_outdoor.ckpt"),
-                     "https://huggingface.co/kornia/loftr/resolve/main/loftr_outdoor.ckpt"):
+    for expected in (
+        "superglue_outdoor.pth",
+        "loftr_outdoor.ckpt",
+        str(empty_hub / "loftr_outdoor.ckpt"),
+        "https://huggingface.co/kornia/loftr/resolve/main/loftr_outdoor.ckpt",
+    ):
         assert expected in message

@@ -46,8 +46,17 @@ from gvbench_nb.evaluation.metrics import evaluate_scores
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
 
 SWEEP_COLUMNS = [
-    "condition", "strength", "method", "profile", "ap", "max_recall", "aliasing_share",
-    "aliasing_chance", "n_pairs", "n_positives", "n_look_alike",
+    "condition",
+    "strength",
+    "method",
+    "profile",
+    "ap",
+    "max_recall",
+    "aliasing_share",
+    "aliasing_chance",
+    "n_pairs",
+    "n_positives",
+    "n_look_alike",
 ]
 CELL_KEY = ["condition", "strength", "method", "profile"]
 DEFAULT_STRENGTHS: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
@@ -75,9 +84,14 @@ class SweepRoute:
     def sequence(self, condition: str, strength: float) -> Sequence:
         """The cell's pairs: its query folder against the shared reference folder."""
         folder = query_folder(condition, strength)
-        pairs = [Pair(self.frame_name(folder, int(row.query_frame)),
-                      self.frame_name(REFERENCE_FOLDER, int(row.reference_frame)), int(row.label))
-                 for row in self.pairs.itertuples()]
+        pairs = [
+            Pair(
+                self.frame_name(folder, int(row.query_frame)),
+                self.frame_name(REFERENCE_FOLDER, int(row.reference_frame)),
+                int(row.label),
+            )
+            for row in self.pairs.itertuples()
+        ]
         return Sequence(f"synthetic-{cell_name(condition, strength)}", self.image_root, pairs)
 
 
@@ -104,15 +118,20 @@ def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
 
 
 def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> dict[str, Any]:
-    return {"generator_version": synthetic.GENERATOR_VERSION, "seed": int(seed),
-            "n_frames": int(n_frames), "image_size": [int(image_size[0]), int(image_size[1])],
-            "max_distance_m": synthetic.DEFAULT_MAX_DISTANCE_M,
-            "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
-            "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M}
+    return {
+        "generator_version": synthetic.GENERATOR_VERSION,
+        "seed": int(seed),
+        "n_frames": int(n_frames),
+        "image_size": [int(image_size[0]), int(image_size[1])],
+        "max_distance_m": synthetic.DEFAULT_MAX_DISTANCE_M,
+        "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
+        "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M,
+    }
 
 
-def prepare_route(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
-                  image_size: SequenceType[int] = (640, 480)) -> SweepRoute:
+def prepare_route(
+    out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
+) -> SweepRoute:
     """Build the route, render the clear reference drive once and write the pair list.
 
     Refuses a folder that holds another route (other seed, length or image size): its
@@ -128,7 +147,8 @@ def prepare_route(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
             raise SweepError(
                 f"{params_path}: this folder holds a sweep of another route ({', '.join(changed)} differ: "
                 f"recorded {[recorded.get(k) for k in changed]}, asked {[params.get(k) for k in changed]}). "
-                "Use another out_dir, or delete this one to start afresh.")
+                "Use another out_dir, or delete this one to start afresh."
+            )
     if n_frames < 6:
         raise SweepError(f"n_frames={n_frames}: a route needs at least 6 frames to have true and false pairs")
     route = synthetic.make_route(seed, n_frames, _width_height(image_size))
@@ -143,7 +163,8 @@ def prepare_route(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
         look_alike = synthetic.look_alike_labels(route.scene, route.query, route.reference)
         pairs = pd.DataFrame(
             [(q, r, label, int(look_alike[q, r])) for q, r, label in chosen],
-            columns=["query_frame", "reference_frame", "label", "look_alike"])
+            columns=["query_frame", "reference_frame", "label", "look_alike"],
+        )
         atomic_write_csv(pairs_path, pairs)
     return SweepRoute(route, image_root, pairs)
 
@@ -167,8 +188,7 @@ def render_query(sweep_route: SweepRoute, condition: str, strength: float) -> Pa
     registry.check_choice("condition", condition, synthetic.CONDITIONS, error=SweepError)
     folder = sweep_route.image_root / query_folder(condition, strength)
     conditions = {} if float(strength) == 0.0 else {condition: float(strength)}
-    _render_folder(folder, lambda: sweep_route.route.render_query(conditions),
-                   sweep_route.route.name_width)
+    _render_folder(folder, lambda: sweep_route.route.render_query(conditions), sweep_route.route.name_width)
     return folder
 
 
@@ -176,8 +196,9 @@ def render_query(sweep_route: SweepRoute, condition: str, strength: float) -> Pa
 TOP_FALSE_FRACTION = 0.1
 
 
-def aliasing_share(labels: np.ndarray, scores: np.ndarray, look_alike: np.ndarray,
-                   top_fraction: float = TOP_FALSE_FRACTION) -> float:
+def aliasing_share(
+    labels: np.ndarray, scores: np.ndarray, look_alike: np.ndarray, top_fraction: float = TOP_FALSE_FRACTION
+) -> float:
     """Fraction of look-alike pairs among the top-scoring false pairs.
 
     The top-scoring false pairs are the hardest ``top_fraction`` of the false pairs
@@ -257,31 +278,52 @@ def _typed(table: pd.DataFrame) -> pd.DataFrame:
     """Column types independent of where rows came from (a CSV reads 0.0 back as int)."""
     floats = ["strength", "ap", "max_recall", "aliasing_share", "aliasing_chance"]
     integers = ["n_pairs", "n_positives", "n_look_alike"]
-    return table.astype({**dict.fromkeys(floats, "float64"), **dict.fromkeys(integers, "int64"),
-                         "condition": str, "method": str, "profile": str})
+    return table.astype(
+        {
+            **dict.fromkeys(floats, "float64"),
+            **dict.fromkeys(integers, "int64"),
+            "condition": str,
+            "method": str,
+            "profile": str,
+        }
+    )
 
 
-def _cell_row(sweep_route: SweepRoute, table: pd.DataFrame, condition: str, strength: float,
-              method: str, profile: str, where: str) -> dict[str, Any]:
+def _cell_row(
+    sweep_route: SweepRoute, table: pd.DataFrame, condition: str, strength: float, method: str, profile: str, where: str
+) -> dict[str, Any]:
     labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
     look_alike = sweep_route.pairs["look_alike"].to_numpy()
     metrics = evaluate_scores(labels, scores, where=where)
     n_false = int((labels == 0).sum())
     return {
-        "condition": condition, "strength": float(strength), "method": method, "profile": profile,
-        "ap": metrics["ap"], "max_recall": metrics["max_recall"],
+        "condition": condition,
+        "strength": float(strength),
+        "method": method,
+        "profile": profile,
+        "ap": metrics["ap"],
+        "max_recall": metrics["max_recall"],
         "aliasing_share": aliasing_share(labels, scores, look_alike),
         "aliasing_chance": float(look_alike.sum() / n_false) if n_false else float("nan"),
-        "n_pairs": metrics["n_pairs"], "n_positives": metrics["n_positives"],
+        "n_pairs": metrics["n_pairs"],
+        "n_positives": metrics["n_positives"],
         "n_look_alike": int(look_alike.sum()),
     }
 
 
-def run_sweep(out_dir: str | Path, methods: Iterable[str] | str,
-              conditions: Iterable[str] = synthetic.CONDITIONS,
-              strengths: Iterable[float] = DEFAULT_STRENGTHS, seed: int = 0, n_frames: int = 30,
-              profile: str | Mapping[str, str] = "paper", image_size: SequenceType[int] = (640, 480),
-              device: str = "auto", threads: int | None = None, progress: bool = True) -> pd.DataFrame:
+def run_sweep(
+    out_dir: str | Path,
+    methods: Iterable[str] | str,
+    conditions: Iterable[str] = synthetic.CONDITIONS,
+    strengths: Iterable[float] = DEFAULT_STRENGTHS,
+    seed: int = 0,
+    n_frames: int = 30,
+    profile: str | Mapping[str, str] = "paper",
+    image_size: SequenceType[int] = (640, 480),
+    device: str = "auto",
+    threads: int | None = None,
+    progress: bool = True,
+) -> pd.DataFrame:
     """Run every (condition, strength, method) cell not yet in ``<out_dir>/sweep.csv``.
 
     ``profile`` is one profile for every method or a mapping method -> profile.
@@ -304,35 +346,59 @@ def run_sweep(out_dir: str | Path, methods: Iterable[str] | str,
         for method, method_profile in profiles.items():
             wanted = [c for c in targets if (c, strength, method, method_profile) not in finished]
             if wanted:
-                rows += _run_cell(sweep_route, out_dir, wanted, strength, method, method_profile,
-                                  device, seed, threads, progress)
+                rows += _run_cell(
+                    sweep_route, out_dir, wanted, strength, method, method_profile, device, seed, threads, progress
+                )
                 finished.update((c, strength, method, method_profile) for c in wanted)
                 atomic_write_csv(out_dir / "sweep.csv", _ordered(pd.DataFrame(rows, columns=SWEEP_COLUMNS)))
             bar.update()
     bar.close()
     table = _ordered(pd.DataFrame(rows, columns=SWEEP_COLUMNS))
-    keep = (table["condition"].isin(conditions) & table["strength"].round(6).isin(strengths)
-            & pd.Series([profiles.get(m) == p for m, p in zip(table["method"], table["profile"])],
-                        index=table.index, dtype=bool))
+    keep = (
+        table["condition"].isin(conditions)
+        & table["strength"].round(6).isin(strengths)
+        & pd.Series(
+            [profiles.get(m) == p for m, p in zip(table["method"], table["profile"])], index=table.index, dtype=bool
+        )
+    )
     return table[keep].reset_index(drop=True)
 
 
-def _run_cell(sweep_route: SweepRoute, out_dir: Path, conditions: list[str], strength: float,
-              method: str, profile: str, device: str, seed: int, threads: int | None,
-              progress: bool) -> list[dict[str, Any]]:
+def _run_cell(
+    sweep_route: SweepRoute,
+    out_dir: Path,
+    conditions: list[str],
+    strength: float,
+    method: str,
+    profile: str,
+    device: str,
+    seed: int,
+    threads: int | None,
+    progress: bool,
+) -> list[dict[str, Any]]:
     """Render the cell's query folder (if needed), run the method, one row a condition."""
     render_query(sweep_route, conditions[0], strength)
     sequence = sweep_route.sequence(conditions[0], strength)
     run_dir = out_dir / "runs" / profile / cell_name(conditions[0], strength)
-    table = pipeline.run_method(sequence, method, profile, run_dir, out_dir / "cache",
-                                device=device, seed=seed, progress=progress, threads=threads)
+    table = pipeline.run_method(
+        sequence,
+        method,
+        profile,
+        run_dir,
+        out_dir / "cache",
+        device=device,
+        seed=seed,
+        progress=progress,
+        threads=threads,
+    )
     where = str(pipeline.method_dir(run_dir, method) / "pairs.csv")
-    return [_cell_row(sweep_route, table, condition, strength, method, profile, where)
-            for condition in conditions]
+    return [_cell_row(sweep_route, table, condition, strength, method, profile, where) for condition in conditions]
 
 
 def _ordered(table: pd.DataFrame) -> pd.DataFrame:
-    return _typed(table).sort_values(["condition", "profile", "method", "strength"], kind="stable").reset_index(drop=True)
+    return (
+        _typed(table).sort_values(["condition", "profile", "method", "strength"], kind="stable").reset_index(drop=True)
+    )
 
 
 # ------------------------------------------------------- breaking strength --
@@ -348,8 +414,14 @@ def breaking_strength(sweep: pd.DataFrame) -> pd.DataFrame:
         group = group.sort_values("strength")
         strengths = group["strength"].to_numpy(dtype=np.float64)
         recall = group["max_recall"].to_numpy(dtype=np.float64)
-        row = {"condition": condition, "method": method, "profile": profile,
-               "clear_max_recall": float("nan"), "breaking_strength": float("nan"), "note": ""}
+        row = {
+            "condition": condition,
+            "method": method,
+            "profile": profile,
+            "clear_max_recall": float("nan"),
+            "breaking_strength": float("nan"),
+            "note": "",
+        }
         if len(strengths) == 0 or strengths[0] != 0.0:
             row["note"] = "no strength-0 (clear) cell"
         elif recall[0] == 0.0:
@@ -358,8 +430,9 @@ def breaking_strength(sweep: pd.DataFrame) -> pd.DataFrame:
             row["clear_max_recall"] = float(recall[0])
             row["breaking_strength"], row["note"] = _crossing(strengths, recall, recall[0] / 2.0)
         rows.append(row)
-    return pd.DataFrame(rows, columns=["condition", "method", "profile", "clear_max_recall",
-                                       "breaking_strength", "note"])
+    return pd.DataFrame(
+        rows, columns=["condition", "method", "profile", "clear_max_recall", "breaking_strength", "note"]
+    )
 
 
 def _crossing(strengths: np.ndarray, values: np.ndarray, level: float) -> tuple[float, str]:
@@ -375,8 +448,10 @@ def breaking_strength_table(sweep: pd.DataFrame) -> pd.DataFrame:
     """Breaking strengths as a method x condition table of text ('0.43', 'not reached')."""
     table = breaking_strength(sweep)
     table["label"] = table["method"] + np.where(table["profile"] == "paper", "", " (" + table["profile"] + ")")
-    table["value"] = [f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED)
-                      for b, note in zip(table["breaking_strength"], table["note"])]
+    table["value"] = [
+        f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED)
+        for b, note in zip(table["breaking_strength"], table["note"])
+    ]
     return table.pivot(index="label", columns="condition", values="value").rename_axis(index="method", columns=None)
 
 
@@ -397,8 +472,7 @@ def plot_condition(sweep: pd.DataFrame, condition: str) -> plt.Figure:
             axis.plot(group["strength"], group[column], marker="o", label=label)
     chance = data.groupby("strength")["aliasing_chance"].first()
     axes[2].plot(chance.index, chance.values, linestyle=":", color="grey", label="chance")
-    titles = ("AP", "MR (recall at precision 1)",
-              f"look-alike share of the top {TOP_FALSE_FRACTION:.0%} false pairs")
+    titles = ("AP", "MR (recall at precision 1)", f"look-alike share of the top {TOP_FALSE_FRACTION:.0%} false pairs")
     for axis, title in zip(axes, titles):
         axis.set(xlabel=f"{condition} strength", title=title, ylim=(-0.02, 1.02))
         axis.grid(alpha=0.3)
@@ -409,16 +483,18 @@ def plot_condition(sweep: pd.DataFrame, condition: str) -> plt.Figure:
     return figure
 
 
-def plot_examples(out_dir: str | Path, conditions: SequenceType[str], strengths: SequenceType[float],
-                  frame: int | None = None) -> plt.Figure:
+def plot_examples(
+    out_dir: str | Path, conditions: SequenceType[str], strengths: SequenceType[float], frame: int | None = None
+) -> plt.Figure:
     """One query frame under each condition (rows) at each strength (columns), from disk."""
     image_root = Path(out_dir) / "images"
     params = json.loads((image_root / "route.json").read_text())
     width = max(3, len(str(params["n_frames"] - 1)))
     frame = params["n_frames"] // 2 if frame is None else frame
     strengths = sorted({float(s) for s in strengths} | {0.0})
-    figure, axes = plt.subplots(len(conditions), len(strengths),
-                                figsize=(2.6 * len(strengths), 2.1 * len(conditions)), squeeze=False)
+    figure, axes = plt.subplots(
+        len(conditions), len(strengths), figsize=(2.6 * len(strengths), 2.1 * len(conditions)), squeeze=False
+    )
     for axis_row, condition in zip(axes, conditions):
         for axis, strength in zip(axis_row, strengths):
             path = image_root / query_folder(condition, strength) / f"{frame:0{width}d}.png"
@@ -437,12 +513,11 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
     each line is its breaking strength (MR below half its clear value)."""
     conditions = list(dict.fromkeys(sweep["condition"]))
     breaking = breaking_strength(sweep).set_index(["condition", "method", "profile"])["breaking_strength"]
-    figure, axes = plt.subplots(1, len(conditions), figsize=(4.4 * len(conditions), 3.8),
-                                sharey=True, squeeze=False)
+    figure, axes = plt.subplots(1, len(conditions), figsize=(4.4 * len(conditions), 3.8), sharey=True, squeeze=False)
     for axis, condition in zip(axes[0], conditions):
         data = sweep[sweep["condition"] == condition].sort_values("strength")
         for (method, profile), group in data.groupby(["method", "profile"], sort=False):
-            line, = axis.plot(group["strength"], group["max_recall"], marker="o", label=_label(method, profile))
+            (line,) = axis.plot(group["strength"], group["max_recall"], marker="o", label=_label(method, profile))
             strength = breaking.get((condition, method, profile), float("nan"))
             if math.isfinite(strength):
                 axis.axvline(strength, color=line.get_color(), linestyle="--", linewidth=0.8, alpha=0.7)
@@ -463,9 +538,14 @@ RENDER_SETTINGS: dict[str, dict[str, float]] = {
 }
 
 
-def time_render(n_frames: int = 100, image_size: SequenceType[int] = (640, 480), seed: int = 0,
-                repeats: int = 3, settings: Mapping[str, Mapping[str, float]] | None = None,
-                workers: int | None = None) -> pd.DataFrame:
+def time_render(
+    n_frames: int = 100,
+    image_size: SequenceType[int] = (640, 480),
+    seed: int = 0,
+    repeats: int = 3,
+    settings: Mapping[str, Mapping[str, float]] | None = None,
+    workers: int | None = None,
+) -> pd.DataFrame:
     """Seconds to render one ``n_frames`` query traversal per condition setting (strength 1).
 
     Rendering only (writing PNGs is not counted); the scene is built once and timed
@@ -483,13 +563,24 @@ def time_render(n_frames: int = 100, image_size: SequenceType[int] = (640, 480),
         seconds = []
         for _ in range(repeats):
             start = time.perf_counter()
-            synthetic.render_traversal(route.scene, route.query, route.K, route.image_size, conditions,
-                                       seed, 1, workers=workers)
+            synthetic.render_traversal(
+                route.scene, route.query, route.K, route.image_size, conditions, seed, 1, workers=workers
+            )
             seconds.append(time.perf_counter() - start)
-        rows.append({"setting": name, "conditions": json.dumps(dict(conditions)), "n_frames": n_frames,
-                     "image_size": f"{image_size[0]}x{image_size[1]}", "repeats": repeats,
-                     "median_seconds": float(np.median(seconds)), "min_seconds": min(seconds),
-                     "max_seconds": max(seconds), "scene_seconds": scene_seconds,
-                     "workers": workers or min(4, os.cpu_count() or 1), "cpu_count": os.cpu_count(),
-                     "loadavg_1m": round(os.getloadavg()[0], 2)})
+        rows.append(
+            {
+                "setting": name,
+                "conditions": json.dumps(dict(conditions)),
+                "n_frames": n_frames,
+                "image_size": f"{image_size[0]}x{image_size[1]}",
+                "repeats": repeats,
+                "median_seconds": float(np.median(seconds)),
+                "min_seconds": min(seconds),
+                "max_seconds": max(seconds),
+                "scene_seconds": scene_seconds,
+                "workers": workers or min(4, os.cpu_count() or 1),
+                "cpu_count": os.cpu_count(),
+                "loadavg_1m": round(os.getloadavg()[0], 2),
+            }
+        )
     return pd.DataFrame(rows)

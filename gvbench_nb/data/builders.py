@@ -149,7 +149,9 @@ class RetrievalOptions:
 def _unknown_keys(given: Mapping[str, Any], valid: SequenceType[str], where: str) -> None:
     unknown = [k for k in given if k not in valid]
     if unknown:
-        raise BuildError(f"{where}: unknown key(s) {registry.unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}")
+        raise BuildError(
+            f"{where}: unknown key(s) {registry.unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}"
+        )
 
 
 def _metadata_spec(raw: Any, where: str) -> MetadataSpec | None:
@@ -184,10 +186,14 @@ def parse_options(raw: Mapping[str, Any], where: str = "builder_options") -> Ret
     registry.lookup("descriptor", options.descriptor, retrieval.GLOBAL_DESCRIPTORS, where, error=BuildError)
     for name, descriptor_conf in options.descriptor_options.items():
         if name not in retrieval.GLOBAL_DESCRIPTORS or not isinstance(descriptor_conf, Mapping):
-            raise BuildError(f"{where}: descriptor_options maps descriptor names ({', '.join(retrieval.GLOBAL_DESCRIPTORS)}) "
-                             f"to their options, e.g. {{vlad: {{num_words: 64}}}}; got {name!r}: {descriptor_conf!r}")
+            raise BuildError(
+                f"{where}: descriptor_options maps descriptor names ({', '.join(retrieval.GLOBAL_DESCRIPTORS)}) "
+                f"to their options, e.g. {{vlad: {{num_words: 64}}}}; got {name!r}: {descriptor_conf!r}"
+            )
     if options.local_features not in LOCAL_FEATURE_METHODS:
-        raise BuildError(f"{where}: local_features must be one of {', '.join(LOCAL_FEATURE_METHODS)}, got {options.local_features!r}")
+        raise BuildError(
+            f"{where}: local_features must be one of {', '.join(LOCAL_FEATURE_METHODS)}, got {options.local_features!r}"
+        )
     registry.lookup("label_rule", options.label_rule, retrieval.LABEL_RULES, where, error=BuildError)
     if not isinstance(options.top_n, int) or isinstance(options.top_n, bool) or options.top_n < 1:
         raise BuildError(f"{where}: top_n must be a positive integer, got {options.top_n!r}")
@@ -240,12 +246,16 @@ def _read_metadata(image_root: Path, spec: MetadataSpec) -> pd.DataFrame:
     wanted = [spec.name, *spec.position] + [c for c in (spec.heading, spec.frame) if c]
     missing = [c for c in wanted if c not in table.columns]
     if missing:
-        raise BuildError(f"{path}: missing column(s) {missing}; it has {list(table.columns)} "
-                         "(set builder_options metadata.name/position/heading/frame to its column names)")
+        raise BuildError(
+            f"{path}: missing column(s) {missing}; it has {list(table.columns)} "
+            "(set builder_options metadata.name/position/heading/frame to its column names)"
+        )
     return table.set_index(table[spec.name].astype(str), drop=False)
 
 
-def load_traversal(image_root: Path, folder: str, metadata: pd.DataFrame | None, spec: MetadataSpec | None) -> Traversal:
+def load_traversal(
+    image_root: Path, folder: str, metadata: pd.DataFrame | None, spec: MetadataSpec | None
+) -> Traversal:
     """A folder's images and their frame table (frames, and positions/headings from metadata)."""
     names = list_images(image_root, folder)
     frames = _frames_from_names(names)
@@ -258,12 +268,16 @@ def load_traversal(image_root: Path, folder: str, metadata: pd.DataFrame | None,
     keys = [n if n in metadata.index else n.split("/", 1)[1] for n in names]
     absent = [n for n, k in zip(names, keys) if k not in metadata.index]
     if absent:
-        raise BuildError(f"{len(absent)} image(s) of {folder!r} have no row in the metadata CSV {spec.csv} "
-                         f"(column {spec.name!r}), e.g. {absent[:3]}")
+        raise BuildError(
+            f"{len(absent)} image(s) of {folder!r} have no row in the metadata CSV {spec.csv} "
+            f"(column {spec.name!r}), e.g. {absent[:3]}"
+        )
     rows = metadata.loc[keys]
     if len(rows) != len(names):  # a name on several rows (bare file names shared by traversals)
-        raise BuildError(f"images of {folder!r} match several rows of the metadata CSV {spec.csv} (column {spec.name!r}); "
-                         "name each image once, by its path relative to image_root")
+        raise BuildError(
+            f"images of {folder!r} match several rows of the metadata CSV {spec.csv} (column {spec.name!r}); "
+            "name each image once, by its path relative to image_root"
+        )
     if spec.frame:
         frames = rows[spec.frame].to_numpy(np.int64)
     table = retrieval.frame_table(
@@ -290,7 +304,9 @@ def resolve_label_params(options: RetrievalOptions, image_root: Path) -> dict[st
         merged.update({k: v for k, v in loaded.items() if k in rule.default_params})
     unknown = set(options.label_params) - set(rule.default_params)
     if unknown:
-        raise BuildError(f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}")
+        raise BuildError(
+            f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}"
+        )
     merged.update(options.label_params)
     return merged
 
@@ -323,7 +339,9 @@ class BuildInputs:
 
 def prepare_inputs(params: Mapping[str, Any], options: RetrievalOptions | None = None) -> BuildInputs:
     """Resolve a loaded params dict (``config.load_params``) into ``BuildInputs``."""
-    options = options or parse_options(params.get("builder_options") or {}, f"{params.get('params_file', '<params>')}: builder_options")
+    options = options or parse_options(
+        params.get("builder_options") or {}, f"{params.get('params_file', '<params>')}: builder_options"
+    )
     image_root = Path(params["image_root"])
     if options.render_sample:
         from gvbench_nb.data import synthetic
@@ -333,18 +351,30 @@ def prepare_inputs(params: Mapping[str, Any], options: RetrievalOptions | None =
     query = load_traversal(image_root, options.query_folder, metadata, options.metadata)
     experiences = {f: load_traversal(image_root, f, metadata, options.metadata) for f in options.reference_folders}
     rows = retrieval.choose_queries(len(query.names), options.num_queries, params.get("seed", 0))
-    return BuildInputs(dict(params), options, image_root, query.rows(rows), rows, len(query.names), experiences,
-                       resolve_label_params(options, image_root))
+    return BuildInputs(
+        dict(params),
+        options,
+        image_root,
+        query.rows(rows),
+        rows,
+        len(query.names),
+        experiences,
+        resolve_label_params(options, image_root),
+    )
 
 
 def local_feature_conf(options: RetrievalOptions, profile: str) -> dict[str, Any]:
     """The extractor conf of ``local_features`` (identical to its method's, so the cache is shared)."""
     from gvbench_nb import methods
 
-    return methods.resolve_method(LOCAL_FEATURE_METHODS[options.local_features], options.feature_profile or profile)["extractor"]
+    return methods.resolve_method(LOCAL_FEATURE_METHODS[options.local_features], options.feature_profile or profile)[
+        "extractor"
+    ]
 
 
-def load_local_descriptors(inputs: BuildInputs, names: SequenceType[str], progress: bool = True) -> dict[str, np.ndarray]:
+def load_local_descriptors(
+    inputs: BuildInputs, names: SequenceType[str], progress: bool = True
+) -> dict[str, np.ndarray]:
     """Local descriptors ``{name: (N, D)}`` from the feature cache, extracting missing images first."""
     from gvbench_nb import pipeline
 
@@ -363,8 +393,9 @@ def load_local_descriptors(inputs: BuildInputs, names: SequenceType[str], progre
     return {n: inputs.local[n] for n in names}
 
 
-def global_descriptors(inputs: BuildInputs, descriptor: str, descriptor_options: Mapping[str, Any] | None = None,
-                       progress: bool = True) -> retrieval.GlobalDescriptors:
+def global_descriptors(
+    inputs: BuildInputs, descriptor: str, descriptor_options: Mapping[str, Any] | None = None, progress: bool = True
+) -> retrieval.GlobalDescriptors:
     """Rows for the chosen queries and every reference (experiences in order, stacked).
 
     vlad/bow fit their vocabulary on all reference experiences together (the map)."""
@@ -376,11 +407,17 @@ def global_descriptors(inputs: BuildInputs, descriptor: str, descriptor_options:
 
         device = str(resolve_device(inputs.params.get("device", "auto")))
         paths = lambda names: {n: str(inputs.image_root / n) for n in names}
-        return retrieval.compute_global_descriptors(descriptor, paths(references), paths(queries), device=device, **options)
+        return retrieval.compute_global_descriptors(
+            descriptor, paths(references), paths(queries), device=device, **options
+        )
     local = load_local_descriptors(inputs, list(references) + list(queries), progress)
     return retrieval.compute_global_descriptors(
-        descriptor, {n: local[n] for n in references}, {n: local[n] for n in queries},
-        seed=inputs.params.get("seed", 0), **options)
+        descriptor,
+        {n: local[n] for n in references},
+        {n: local[n] for n in queries},
+        seed=inputs.params.get("seed", 0),
+        **options,
+    )
 
 
 # ============================================================================ retrieval + labels
@@ -388,8 +425,10 @@ def global_descriptors(inputs: BuildInputs, descriptor: str, descriptor_options:
 
 def ground_truth(inputs: BuildInputs) -> np.ndarray:
     """(Q, R) bool: the rule on every chosen query x every reference (experiences stacked)."""
-    blocks = [retrieval.ground_truth_matrix(inputs.options.label_rule, inputs.rule_params, inputs.query.table, t.table)
-              for t in inputs.experiences.values()]
+    blocks = [
+        retrieval.ground_truth_matrix(inputs.options.label_rule, inputs.rule_params, inputs.query.table, t.table)
+        for t in inputs.experiences.values()
+    ]
     return np.concatenate(blocks, axis=1)
 
 
@@ -419,21 +458,25 @@ def label_candidates(inputs: BuildInputs, candidates: retrieval.Candidates) -> n
     for folder, traversal in inputs.experiences.items():
         mine = candidates.experience == folder
         pairs = np.stack([candidates.query[mine], candidates.reference[mine]], axis=1)
-        labels[mine] = retrieval.label_pairs(inputs.options.label_rule, inputs.rule_params, inputs.query.table,
-                                             traversal.table, pairs)
+        labels[mine] = retrieval.label_pairs(
+            inputs.options.label_rule, inputs.rule_params, inputs.query.table, traversal.table, pairs
+        )
     return labels
 
 
 def candidate_frame(inputs: BuildInputs, candidates: retrieval.Candidates, labels: np.ndarray) -> pd.DataFrame:
     """One row a candidate pair with image names: query, experience, reference, rank, similarity, label."""
-    return pd.DataFrame({
-        "query": [inputs.query.names[q] for q in candidates.query],
-        "experience": candidates.experience.astype(str),
-        "reference": [inputs.experiences[e].names[r] for e, r in zip(candidates.experience, candidates.reference)],
-        "rank": candidates.rank,
-        "similarity": candidates.similarity,
-        "label": labels.astype(int),
-    }, columns=CANDIDATE_COLUMNS)
+    return pd.DataFrame(
+        {
+            "query": [inputs.query.names[q] for q in candidates.query],
+            "experience": candidates.experience.astype(str),
+            "reference": [inputs.experiences[e].names[r] for e, r in zip(candidates.experience, candidates.reference)],
+            "rank": candidates.rank,
+            "similarity": candidates.similarity,
+            "label": labels.astype(int),
+        },
+        columns=CANDIDATE_COLUMNS,
+    )
 
 
 def recall_ks(top_n: int) -> list[int]:
@@ -456,8 +499,15 @@ def card_paths(pairs_path: str | Path) -> dict[str, Path]:
     }
 
 
-def make_card(inputs: BuildInputs, frame: pd.DataFrame, truth: np.ndarray, recall: dict[str, float],
-              seconds: dict[str, float], files: dict[str, Path], feature_conf: dict[str, Any] | None) -> dict[str, Any]:
+def make_card(
+    inputs: BuildInputs,
+    frame: pd.DataFrame,
+    truth: np.ndarray,
+    recall: dict[str, float],
+    seconds: dict[str, float],
+    files: dict[str, Path],
+    feature_conf: dict[str, Any] | None,
+) -> dict[str, Any]:
     """The sequence card: how the pairs were made, and counts computed from the pairs written."""
     from gvbench_nb.methods import conf_hash
 
@@ -465,8 +515,10 @@ def make_card(inputs: BuildInputs, frame: pd.DataFrame, truth: np.ndarray, recal
     pairs = [Pair(q, r, int(label)) for q, r, label in zip(frame["query"], frame["reference"], frame["label"])]
     counts = summarize(Sequence(inputs.params.get("sequence", "build"), inputs.image_root, pairs))
     per_experience = {
-        e: {"n_pairs": int((frame["experience"] == e).sum()),
-            "n_positives": int(frame.loc[frame["experience"] == e, "label"].sum())}
+        e: {
+            "n_pairs": int((frame["experience"] == e).sum()),
+            "n_positives": int(frame.loc[frame["experience"] == e, "label"].sum()),
+        }
         for e in inputs.experiences
     }
     return {
@@ -482,9 +534,13 @@ def make_card(inputs: BuildInputs, frame: pd.DataFrame, truth: np.ndarray, recal
         "seed": inputs.params.get("seed", 0),
         "descriptor": options.descriptor,
         "descriptor_options": inputs.descriptor_options(options.descriptor),
-        "local_features": None if feature_conf is None else {
-            "extractor": feature_conf["name"], "profile": options.feature_profile or inputs.params["profile"],
-            "conf_hash": conf_hash(feature_conf), "shared_with_method": LOCAL_FEATURE_METHODS[options.local_features],
+        "local_features": None
+        if feature_conf is None
+        else {
+            "extractor": feature_conf["name"],
+            "profile": options.feature_profile or inputs.params["profile"],
+            "conf_hash": conf_hash(feature_conf),
+            "shared_with_method": LOCAL_FEATURE_METHODS[options.local_features],
         },
         "top_n": options.top_n,
         "label_rule": options.label_rule,
@@ -527,8 +583,10 @@ def card_markdown(card: Mapping[str, Any]) -> str:
     ]
     lines += [f"| retrieval {k} | {v:.3f} |" for k, v in recall.items() if k.startswith("recall@")]
     if len(card["per_experience"]) > 1:
-        lines += [f"| pairs / positives from `{e}` | {v['n_pairs']} / {v['n_positives']} |"
-                  for e, v in card["per_experience"].items()]
+        lines += [
+            f"| pairs / positives from `{e}` | {v['n_pairs']} / {v['n_positives']} |"
+            for e, v in card["per_experience"].items()
+        ]
     lines += [
         "",
         f"Recall@k: fraction of the {recall['queries_evaluated']} queries with a true reference anywhere "
@@ -550,21 +608,34 @@ def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> di
     inputs = prepare_inputs(build_params)
     options = inputs.options
     started = time.perf_counter()
-    descriptors = global_descriptors(inputs, options.descriptor, inputs.descriptor_options(options.descriptor), progress)
+    descriptors = global_descriptors(
+        inputs, options.descriptor, inputs.descriptor_options(options.descriptor), progress
+    )
     described = time.perf_counter()
     candidates = retrieve(inputs, descriptors, options.top_n)
     labels = label_candidates(inputs, candidates)
     truth = ground_truth(inputs)
-    recall = retrieval.retrieval_recall_at(recall_ks(min(options.top_n, truth.shape[1])), stacked_indices(inputs, candidates), truth)
+    recall = retrieval.retrieval_recall_at(
+        recall_ks(min(options.top_n, truth.shape[1])), stacked_indices(inputs, candidates), truth
+    )
     retrieved = time.perf_counter()
     frame = candidate_frame(inputs, candidates, labels)
     files = card_paths(build_params["pairs"])
     write_pairs(files["pairs"], zip(frame["query"], frame["reference"], frame["label"]))
-    feature_conf = (local_feature_conf(options, build_params["profile"])
-                    if retrieval.GLOBAL_DESCRIPTORS[options.descriptor].inputs == "local_descriptors" else None)
-    card = make_card(inputs, frame, truth, recall,
-                     {"descriptors": described - started, "retrieval_and_labels": retrieved - described},
-                     files, feature_conf)
+    feature_conf = (
+        local_feature_conf(options, build_params["profile"])
+        if retrieval.GLOBAL_DESCRIPTORS[options.descriptor].inputs == "local_descriptors"
+        else None
+    )
+    card = make_card(
+        inputs,
+        frame,
+        truth,
+        recall,
+        {"descriptors": described - started, "retrieval_and_labels": retrieved - described},
+        files,
+        feature_conf,
+    )
     atomic_write_csv(files["candidates"], frame)
     atomic_write_json(files["card_json"], card)
     atomic_write_text(files["card_markdown"], card_markdown(card))
@@ -576,8 +647,12 @@ def build_retrieval_pairs(params: dict[str, Any]) -> None:
     build_sequence(params)
 
 
-def recall_curves(build_params: Mapping[str, Any], descriptors: SequenceType[str] | Mapping[str, Mapping[str, Any]],
-                  max_k: int | None = None, progress: bool = True) -> pd.DataFrame:
+def recall_curves(
+    build_params: Mapping[str, Any],
+    descriptors: SequenceType[str] | Mapping[str, Mapping[str, Any]],
+    max_k: int | None = None,
+    progress: bool = True,
+) -> pd.DataFrame:
     """Retrieval recall@k, k = 1..max_k (default top_n), of each descriptor on the same
     queries, references and ground truth. Columns: descriptor, k, recall, queries_evaluated.
 
@@ -592,8 +667,15 @@ def recall_curves(build_params: Mapping[str, Any], descriptors: SequenceType[str
     for name, options in descriptors.items():
         ranked = stacked_indices(inputs, retrieve(inputs, global_descriptors(inputs, name, options, progress), max_k))
         recall = retrieval.retrieval_recall_at(range(1, max_k + 1), ranked, truth)
-        rows += [{"descriptor": name, "k": k, "recall": recall[f"recall@{k}"],
-                  "queries_evaluated": recall["queries_evaluated"]} for k in range(1, max_k + 1)]
+        rows += [
+            {
+                "descriptor": name,
+                "k": k,
+                "recall": recall[f"recall@{k}"],
+                "queries_evaluated": recall["queries_evaluated"],
+            }
+            for k in range(1, max_k + 1)
+        ]
     return pd.DataFrame(rows, columns=["descriptor", "k", "recall", "queries_evaluated"])
 
 
@@ -605,11 +687,18 @@ def best_experience_table(candidates: pd.DataFrame, pairs_table: pd.DataFrame, s
     scored = candidates.merge(pairs_table[["query", "reference", score]], on=["query", "reference"], how="left")
     if scored[score].isna().any():
         missing = scored[scored[score].isna()].iloc[0]
-        raise BuildError(f"no {score!r} for candidate pair {missing['query']} {missing['reference']} in the pairs table; "
-                         "run the method on the built pair file first (without --limit)")
+        raise BuildError(
+            f"no {score!r} for candidate pair {missing['query']} {missing['reference']} in the pairs table; "
+            "run the method on the built pair file first (without --limit)"
+        )
     query_ids = pd.factorize(scored["query"])[0]
-    table = retrieval.Candidates(query_ids, scored["experience"].to_numpy(object), np.zeros(len(scored), np.int64),
-                                 scored["rank"].to_numpy(np.int64), scored["similarity"].to_numpy(np.float32))
+    table = retrieval.Candidates(
+        query_ids,
+        scored["experience"].to_numpy(object),
+        np.zeros(len(scored), np.int64),
+        scored["rank"].to_numpy(np.int64),
+        scored["similarity"].to_numpy(np.float32),
+    )
     best = retrieval.best_experience(table, scored[score].to_numpy(np.float64))
     chosen = scored.iloc[best.pair_row]
     return chosen[["query", "experience", "reference", "rank", score, "label"]].reset_index(drop=True)
@@ -640,16 +729,18 @@ def plot_recall_curves(curves: pd.DataFrame, title: str = "") -> Any:
 
     figure, axis = plt.subplots(figsize=(6, 3.8))
     for name, group in curves.groupby("descriptor", sort=False):
-        axis.plot(group["k"], group["recall"], marker="o", markersize=3,
-                  label=f"{name} (R@1 {group['recall'].iloc[0]:.1%})")
+        axis.plot(
+            group["k"], group["recall"], marker="o", markersize=3, label=f"{name} (R@1 {group['recall'].iloc[0]:.1%})"
+        )
     axis.set(xlabel="k (candidates a query)", ylabel="recall@k", ylim=(0, 1.02), title=title or "retrieval recall@k")
     axis.grid(alpha=0.3)
     axis.legend(loc="lower right", fontsize=8)
     return figure
 
 
-def candidate_strips(image_root: str | Path, candidates: pd.DataFrame, queries: SequenceType[str], k: int = 5,
-                     title: str = "") -> Any:
+def candidate_strips(
+    image_root: str | Path, candidates: pd.DataFrame, queries: SequenceType[str], k: int = 5, title: str = ""
+) -> Any:
     """A row a query: the query image, then its top-k candidates framed green (true) or red (false)."""
     import matplotlib.pyplot as plt
 
@@ -663,7 +754,9 @@ def candidate_strips(image_root: str | Path, candidates: pd.DataFrame, queries: 
         for axis, (_, row) in zip(axis_row[1:], ranked.iterrows()):
             axis.imshow(read_image(Path(image_root) / row["reference"]))
             colour = "green" if row["label"] == 1 else "red"
-            axis.set_title(f"#{row['rank'] + 1} {row['reference']}\nsim {row['similarity']:.3f}", fontsize=7, color=colour)
+            axis.set_title(
+                f"#{row['rank'] + 1} {row['reference']}\nsim {row['similarity']:.3f}", fontsize=7, color=colour
+            )
             for spine in axis.spines.values():
                 spine.set(edgecolor=colour, linewidth=3)
         for axis in axis_row:

@@ -106,10 +106,14 @@ def get_dataset(name: str, datasets: dict[str, Dataset] | None = None) -> Datase
     if name not in datasets:
         _, external = load_manifest()
         if name in external:
-            raise DataError(f"{name} cannot be fetched (no stable per-file URLs): get it from {external[name].where} "
-                            f"and check it with `{external[name].check}`")
-        raise DataError(registry.unknown_name_message("dataset", name, datasets)
-                        + " (python -m gvbench_nb data list describes them)")
+            raise DataError(
+                f"{name} cannot be fetched (no stable per-file URLs): get it from {external[name].where} "
+                f"and check it with `{external[name].check}`"
+            )
+        raise DataError(
+            registry.unknown_name_message("dataset", name, datasets)
+            + " (python -m gvbench_nb data list describes them)"
+        )
     return datasets[name]
 
 
@@ -213,9 +217,11 @@ def fetch_file(dataset: Dataset, item: DataFile, root: Path, mirror: str | None,
     source, local = _source_of(dataset, item, mirror)
     if local is not None:
         if not local.is_file():
-            raise DataError(f"{dataset.name}: {item.path} is missing in the mirror folder (expected {local}); "
-                            f"pass --mirror a folder holding {dataset.folder}/ with the files of `data fetch`, "
-                            "or omit --mirror to download from the public source")
+            raise DataError(
+                f"{dataset.name}: {item.path} is missing in the mirror folder (expected {local}); "
+                f"pass --mirror a folder holding {dataset.folder}/ with the files of `data fetch`, "
+                "or omit --mirror to download from the public source"
+            )
         shutil.copyfile(local, partial)
         bar.update(item.bytes)
     else:
@@ -234,8 +240,13 @@ def fetch_file(dataset: Dataset, item: DataFile, root: Path, mirror: str | None,
     return True
 
 
-def fetch(names: Iterable[str], to: Path | None = None, mirror: str | None = None, progress: bool = True,
-          datasets: dict[str, Dataset] | None = None) -> dict[str, int]:
+def fetch(
+    names: Iterable[str],
+    to: Path | None = None,
+    mirror: str | None = None,
+    progress: bool = True,
+    datasets: dict[str, Dataset] | None = None,
+) -> dict[str, int]:
     """Fetch datasets (default: the package manifest's) into ``to`` (default: :func:`data_dir`);
     returns how many files each dataset placed now (0: all were there and verified)."""
     from tqdm import tqdm
@@ -246,19 +257,30 @@ def fetch(names: Iterable[str], to: Path | None = None, mirror: str | None = Non
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError as error:
-        raise DataError(f"cannot create the data folder {root} ({error.strerror}); "
-                        "set GVBENCH_DATA or pass --to a writable folder") from None
+        raise DataError(
+            f"cannot create the data folder {root} ({error.strerror}); set GVBENCH_DATA or pass --to a writable folder"
+        ) from None
     placed: dict[str, int] = {}
     for dataset in chosen:
         count = 0
-        with tqdm(total=dataset.total_bytes, unit="B", unit_scale=True, unit_divisor=1024, desc=dataset.name,
-                  disable=not progress, file=sys.stderr, leave=True) as bar:
+        with tqdm(
+            total=dataset.total_bytes,
+            unit="B",
+            unit_scale=True,
+            unit_divisor=1024,
+            desc=dataset.name,
+            disable=not progress,
+            file=sys.stderr,
+            leave=True,
+        ) as bar:
             for item in dataset.files:
                 try:
                     count += fetch_file(dataset, item, root, mirror, bar)
                 except PermissionError as error:
-                    raise DataError(f"{dataset.name}: cannot write {error.filename} (permission denied); "
-                                    "set GVBENCH_DATA or pass --to a writable folder") from None
+                    raise DataError(
+                        f"{dataset.name}: cannot write {error.filename} (permission denied); "
+                        "set GVBENCH_DATA or pass --to a writable folder"
+                    ) from None
         placed[dataset.name] = count
     return placed
 
@@ -313,7 +335,10 @@ def images_of_params(params: dict[str, Any]) -> tuple[list[str], str]:
                 names.append(f"{folder}/")  # the whole folder is missing; reported as one missing entry
                 continue
             names += sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-        return names, f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)"
+        return (
+            names,
+            f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)",
+        )
     pairs = Path(params["pairs"])
     if pairs.is_file():
         from gvbench_nb.data.sequences import read_pairs
@@ -354,16 +379,27 @@ def list_text(root: Path | None = None) -> str:
     for d in datasets.values():
         found, total = presence(d, root)
         state = "present" if found == total else ("absent" if found == 0 else f"partial ({found}/{total} files)")
-        lines += [f"{d.name}  ({d.title}; {total} files, {_size(d.total_bytes)}; {state} in {root / d.folder})",
-                  f"  what:     {d.what}", f"  licence:  {d.licence}", f"  cite:     {d.citation}",
-                  f"  source:   {d.homepage}", f"  get it:   python -m gvbench_nb data fetch {d.name}", ""]
+        lines += [
+            f"{d.name}  ({d.title}; {total} files, {_size(d.total_bytes)}; {state} in {root / d.folder})",
+            f"  what:     {d.what}",
+            f"  licence:  {d.licence}",
+            f"  cite:     {d.citation}",
+            f"  source:   {d.homepage}",
+            f"  get it:   python -m gvbench_nb data fetch {d.name}",
+            "",
+        ]
     for e in external.values():
-        lines += [f"{e.name}  ({e.title}; not fetchable: no stable per-file URLs)", f"  what:     {e.what}",
-                  f"  licence:  {e.licence}", f"  cite:     {e.citation}", f"  get it:   {e.where}",
-                  f"  layout:   {e.layout}", f"  check:    {e.check}", ""]
+        lines += [
+            f"{e.name}  ({e.title}; not fetchable: no stable per-file URLs)",
+            f"  what:     {e.what}",
+            f"  licence:  {e.licence}",
+            f"  cite:     {e.citation}",
+            f"  get it:   {e.where}",
+            f"  layout:   {e.layout}",
+            f"  check:    {e.check}",
+            "",
+        ]
     return "\n".join(lines).rstrip() + "\n"
-
-
 
 
 def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, str]:
@@ -384,13 +420,21 @@ def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, s
     except PairFileError as error:
         raise DataError(str(error)) from None
     result = check_images(root, names, progress=progress)
-    lines = [f"{params['sequence']}: {result.named} images named by {origin}, under {root}",
-             f"  present {result.present}, decode {result.decoded}, missing {len(result.missing)}, "
-             f"do not decode {len(result.undecodable)}"]
+    lines = [
+        f"{params['sequence']}: {result.named} images named by {origin}, under {root}",
+        f"  present {result.present}, decode {result.decoded}, missing {len(result.missing)}, "
+        f"do not decode {len(result.undecodable)}",
+    ]
     if result.missing:
         official = Path(params["pairs"]).parent == data_dir() / get_dataset("gvbench-lists").folder
-        hint = ("; the GV-Bench images are not fetchable: `python -m gvbench_nb data list` says where to get them "
-                "(gvbench-images) and how to lay them out") if official else fetch_hint(root)
+        hint = (
+            (
+                "; the GV-Bench images are not fetchable: `python -m gvbench_nb data list` says where to get them "
+                "(gvbench-images) and how to lay them out"
+            )
+            if official
+            else fetch_hint(root)
+        )
         lines.append("  first missing: " + ", ".join(result.missing[:10]) + hint)
     if result.undecodable:
         lines.append("  first that do not decode: " + ", ".join(result.undecodable[:10]))

@@ -29,8 +29,9 @@ def max_pixels() -> int:
     if not value:
         return DEFAULT_MAX_PIXELS
     if not value.isdigit() or int(value) < 1:
-        raise ImageReadError(f"GVBENCH_MAX_PIXELS must be a positive whole number of pixels, got {value!r}; "
-                             "fix or unset it")
+        raise ImageReadError(
+            f"GVBENCH_MAX_PIXELS must be a positive whole number of pixels, got {value!r}; fix or unset it"
+        )
     return int(value)
 
 
@@ -57,7 +58,8 @@ def check_pixel_bound(path: str | os.PathLike[str]) -> None:
     if pixels > bound:
         raise ImageReadError(
             f"image {path} {size}, above the bound of {bound:,} pixels (refused before decoding); "
-            "shrink it, or raise the bound with GVBENCH_MAX_PIXELS")
+            "shrink it, or raise the bound with GVBENCH_MAX_PIXELS"
+        )
 
 
 def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
@@ -83,8 +85,11 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     # libjpeg computes it, which a cvtColor of the colour image misses by up to 2 levels);
     # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. Neither mode applies
     # EXIF orientation, as hloc ignores it.
-    flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION if grayscale \
+    flags = (
+        cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION
+        if grayscale
         else cv2.IMREAD_UNCHANGED
+    )
     image = cv2.imdecode(data, flags)
     if image is None or image.size == 0:
         raise ImageReadError(
@@ -105,8 +110,14 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
-def target_size(width: int, height: int, resize_max: int | None, resize_force: bool = False,
-                multiple_of: int | None = None, resize_to: tuple[int, int] | None = None) -> tuple[int, int]:
+def target_size(
+    width: int,
+    height: int,
+    resize_max: int | None,
+    resize_force: bool = False,
+    multiple_of: int | None = None,
+    resize_to: tuple[int, int] | None = None,
+) -> tuple[int, int]:
     """(width, height) after resizing the longest side to ``resize_max``.
 
     Without ``resize_force`` images are only shrunk (hloc's convention); with it they
@@ -145,8 +156,9 @@ def resize_bilinear_antialias(image: np.ndarray, size: tuple[int, int]) -> np.nd
         return image.astype(np.float32)
     tensor = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))
     tensor = tensor[None, None] if tensor.ndim == 2 else tensor.permute(2, 0, 1)[None]
-    resized = torch.nn.functional.interpolate(tensor, size=(int(size[1]), int(size[0])), mode="bilinear",
-                                              align_corners=False, antialias=True)[0]
+    resized = torch.nn.functional.interpolate(
+        tensor, size=(int(size[1]), int(size[0])), mode="bilinear", align_corners=False, antialias=True
+    )[0]
     return (resized[0] if image.ndim == 2 else resized.permute(1, 2, 0)).numpy()
 
 
@@ -159,8 +171,11 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     rgb = read_image(path, grayscale=False).astype(np.float32)
     height, width = rgb.shape[:2]
     fixed = conf.get("resize_to")
-    size = (int(fixed[0]), int(fixed[1])) if fixed else target_size(width, height, conf.get("resize_max"),
-                                                                    conf.get("resize_force", False))
+    size = (
+        (int(fixed[0]), int(fixed[1]))
+        if fixed
+        else target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False))
+    )
     image = resize_bilinear_antialias(rgb, size)
     if conf.get("grayscale", False):
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
@@ -194,12 +209,22 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
     elif interpolation == "area_or_linear":
         image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
         height, width = image.shape[:2]
-        size = target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False),
-                           conf.get("multiple_of"), conf.get("resize_to"))
+        size = target_size(
+            width,
+            height,
+            conf.get("resize_max"),
+            conf.get("resize_force", False),
+            conf.get("multiple_of"),
+            conf.get("resize_to"),
+        )
         resized = resize_image(image, size)
     else:
-        registry.check_choice("interpolation", interpolation, ("area_or_linear", "bilinear_antialias"),
-                              f"the conf of {conf.get('name', '?')!r}")
+        registry.check_choice(
+            "interpolation",
+            interpolation,
+            ("area_or_linear", "bilinear_antialias"),
+            f"the conf of {conf.get('name', '?')!r}",
+        )
         raise AssertionError("unreachable")
     scale = (np.array([width, height]) / np.array(size)).astype(np.float32)
     return resized, scale

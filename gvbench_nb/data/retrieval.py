@@ -67,7 +67,9 @@ def heading_difference_deg(a: np.ndarray | float, b: np.ndarray | float) -> np.n
     return np.minimum(difference, 360.0 - difference)
 
 
-def _pose_rule(params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray) -> np.ndarray:
+def _pose_rule(
+    params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray
+) -> np.ndarray:
     """True within ``max_distance_m`` (Euclidean, metres) and ``max_heading_deg``
     (wrapped); ``max_heading_deg=None`` ignores heading. Both bounds inclusive."""
     q_pos = _column(query, "position", "pose")[qi]
@@ -80,14 +82,18 @@ def _pose_rule(params: Mapping[str, Any], query: FrameTable, reference: FrameTab
     return close & (heading_difference_deg(q_head, r_head) <= params["max_heading_deg"])
 
 
-def _frame_tolerance_rule(params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray) -> np.ndarray:
+def _frame_tolerance_rule(
+    params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray
+) -> np.ndarray:
     """True when the frame indices differ by at most ``k`` (frame-aligned traversals)."""
     q_frame = _column(query, "frame", "frame_tolerance").astype(np.int64)[qi]
     r_frame = _column(reference, "frame", "frame_tolerance").astype(np.int64)[ri]
     return np.abs(q_frame - r_frame) <= int(params["k"])
 
 
-def _manual_rule(params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray) -> np.ndarray:
+def _manual_rule(
+    params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray
+) -> np.ndarray:
     """True exactly for the listed ``true_pairs`` of (query name, reference name)."""
     q_names = _column(query, "name", "manual")
     r_names = _column(reference, "name", "manual")
@@ -95,7 +101,11 @@ def _manual_rule(params: Mapping[str, Any], query: FrameTable, reference: FrameT
     r_row = {str(n): i for i, n in enumerate(r_names)}
     # pairs as codes q * R + r; pairs naming frames outside these tables are irrelevant here
     true_codes = np.array(
-        [q_row[str(q)] * len(r_names) + r_row[str(r)] for q, r in params["true_pairs"] if str(q) in q_row and str(r) in r_row],
+        [
+            q_row[str(q)] * len(r_names) + r_row[str(r)]
+            for q, r in params["true_pairs"]
+            if str(q) in q_row and str(r) in r_row
+        ],
         dtype=np.int64,
     )
     codes = np.asarray(qi, np.int64) * len(r_names) + np.asarray(ri, np.int64)
@@ -150,7 +160,9 @@ def _rule_params(rule: LabelRule, params: Mapping[str, Any] | None) -> dict[str,
     merged = {**rule.default_params, **(params or {})}
     unknown = set(merged) - set(rule.default_params)
     if unknown:
-        raise KeyError(f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}")
+        raise KeyError(
+            f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}"
+        )
     return merged
 
 
@@ -165,7 +177,9 @@ def label_pairs(
     ``params`` override the rule's defaults."""
     rule = get_label_rule(rule_name)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    return np.asarray(rule.evaluate(_rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool)
+    return np.asarray(
+        rule.evaluate(_rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool
+    )
 
 
 def _num_rows(table: FrameTable) -> int:
@@ -233,7 +247,9 @@ def fit_vocabulary(
     if len(data) < num_words:
         raise ValueError(f"{len(data)} descriptors cannot make {num_words} words")
     if kmeans == "minibatch":
-        model = MiniBatchKMeans(num_words, random_state=seed, batch_size=max(4096, 4 * num_words), n_init=1, max_iter=100)
+        model = MiniBatchKMeans(
+            num_words, random_state=seed, batch_size=max(4096, 4 * num_words), n_init=1, max_iter=100
+        )
     elif kmeans == "full":
         model = KMeans(num_words, random_state=seed, n_init=1, max_iter=100)
     else:
@@ -271,7 +287,9 @@ class VladEncoder:
     power: float = 0.5
 
     @classmethod
-    def fit(cls, reference_local: LocalDescriptors, num_words: int = 64, seed: int = 0, **vocabulary: Any) -> VladEncoder:
+    def fit(
+        cls, reference_local: LocalDescriptors, num_words: int = 64, seed: int = 0, **vocabulary: Any
+    ) -> VladEncoder:
         return cls(fit_vocabulary(reference_local, num_words, seed, **vocabulary))
 
     @property
@@ -304,7 +322,9 @@ class BowEncoder:
     idf: np.ndarray  # (K,)
 
     @classmethod
-    def fit(cls, reference_local: LocalDescriptors, num_words: int = 1000, seed: int = 0, **vocabulary: Any) -> BowEncoder:
+    def fit(
+        cls, reference_local: LocalDescriptors, num_words: int = 1000, seed: int = 0, **vocabulary: Any
+    ) -> BowEncoder:
         centres = fit_vocabulary(reference_local, num_words, seed, **vocabulary)
         counts = np.zeros(num_words, dtype=np.int64)
         for descriptors in reference_local.values():
@@ -329,7 +349,9 @@ class BowEncoder:
         return _l2_rows(self.term_frequencies(descriptors) * self.idf).astype(np.float32)
 
 
-def encode_all(encoder: VladEncoder | BowEncoder, local: LocalDescriptors, names: Sequence[str] | None = None) -> np.ndarray:
+def encode_all(
+    encoder: VladEncoder | BowEncoder, local: LocalDescriptors, names: Sequence[str] | None = None
+) -> np.ndarray:
     """(N, dim) rows in ``names`` order (default: the mapping's order)."""
     names = list(local) if names is None else list(names)
     if not names:
@@ -359,7 +381,9 @@ def vlad_global_descriptors(
 ) -> GlobalDescriptors:
     """VLAD with a vocabulary fitted on the reference traversal's local descriptors."""
     encoder = VladEncoder.fit(reference_local, num_words, seed, **vocabulary)
-    return GlobalDescriptors(list(reference_local), encode_all(encoder, reference_local), list(query_local), encode_all(encoder, query_local))
+    return GlobalDescriptors(
+        list(reference_local), encode_all(encoder, reference_local), list(query_local), encode_all(encoder, query_local)
+    )
 
 
 def bow_global_descriptors(
@@ -371,7 +395,9 @@ def bow_global_descriptors(
 ) -> GlobalDescriptors:
     """tf-idf bag of words; vocabulary and idf from the reference traversal."""
     encoder = BowEncoder.fit(reference_local, num_words, seed, **vocabulary)
-    return GlobalDescriptors(list(reference_local), encode_all(encoder, reference_local), list(query_local), encode_all(encoder, query_local))
+    return GlobalDescriptors(
+        list(reference_local), encode_all(encoder, reference_local), list(query_local), encode_all(encoder, query_local)
+    )
 
 
 def netvlad_global_descriptors(
@@ -408,14 +434,28 @@ class GlobalDescriptorMethod:
 GLOBAL_DESCRIPTORS: dict[str, GlobalDescriptorMethod] = {
     m.name: m
     for m in [
-        GlobalDescriptorMethod("netvlad", "images", netvlad_global_descriptors, "VGG16-NetVLAD Pitts30K, 4096-d whitened (GV-Bench's retrieval)"),
-        GlobalDescriptorMethod("vlad", "local_descriptors", vlad_global_descriptors, "VLAD over local descriptors, k-means vocabulary on the references"),
-        GlobalDescriptorMethod("bow", "local_descriptors", bow_global_descriptors, "tf-idf bag of words, cosine similarity (DBoW-like)"),
+        GlobalDescriptorMethod(
+            "netvlad",
+            "images",
+            netvlad_global_descriptors,
+            "VGG16-NetVLAD Pitts30K, 4096-d whitened (GV-Bench's retrieval)",
+        ),
+        GlobalDescriptorMethod(
+            "vlad",
+            "local_descriptors",
+            vlad_global_descriptors,
+            "VLAD over local descriptors, k-means vocabulary on the references",
+        ),
+        GlobalDescriptorMethod(
+            "bow", "local_descriptors", bow_global_descriptors, "tf-idf bag of words, cosine similarity (DBoW-like)"
+        ),
     ]
 }
 
 
-def compute_global_descriptors(method: str, reference_inputs: Mapping[str, Any], query_inputs: Mapping[str, Any], **params: Any) -> GlobalDescriptors:
+def compute_global_descriptors(
+    method: str, reference_inputs: Mapping[str, Any], query_inputs: Mapping[str, Any], **params: Any
+) -> GlobalDescriptors:
     entry = registry.lookup("global descriptor", method, GLOBAL_DESCRIPTORS)
     return entry.compute(reference_inputs, query_inputs, **params)
 

@@ -55,12 +55,16 @@ def shorten(text: str, limit: int = 80) -> str:
 
 def _check_length(path_text: str, where: str) -> None:
     if len(path_text) > MAX_PATH_CHARS:
-        raise PairFileError(f"{where}: path {shorten(path_text)!r} is longer than {MAX_PATH_CHARS} characters; "
-                            "is this line a pair? Write 'query_path reference_path label'")
+        raise PairFileError(
+            f"{where}: path {shorten(path_text)!r} is longer than {MAX_PATH_CHARS} characters; "
+            "is this line a pair? Write 'query_path reference_path label'"
+        )
     longest = max(path_text.replace("\\", "/").split("/"), key=lambda part: len(part.encode()))
     if len(longest.encode()) > MAX_NAME_BYTES:
-        raise PairFileError(f"{where}: the name {shorten(longest)!r} in a path is longer than {MAX_NAME_BYTES} bytes, "
-                            "which file systems do not allow; fix the path")
+        raise PairFileError(
+            f"{where}: the name {shorten(longest)!r} in a path is longer than {MAX_NAME_BYTES} bytes, "
+            "which file systems do not allow; fix the path"
+        )
 
 
 def normalise_path(path_text: str) -> str:
@@ -74,8 +78,10 @@ def _split_fields(line: str, where: str) -> list[str]:
     try:
         return shlex.split(line, comments=False, posix=True)
     except ValueError as error:  # an unclosed quote
-        raise PairFileError(f"{where}: {error} in {shorten(line)!r}; close the quote around the path "
-                            "(paths with spaces are written \"like this.jpg\")") from None
+        raise PairFileError(
+            f"{where}: {error} in {shorten(line)!r}; close the quote around the path "
+            '(paths with spaces are written "like this.jpg")'
+        ) from None
 
 
 def _check_relative(path_text: str, where: str) -> None:
@@ -103,8 +109,11 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
         where = f"{source}:{line_number}"
         fields = _split_fields(line, where)
         if len(fields) != 3:
-            hint = ("; write a path holding spaces in quotes, e.g. \"day 1/a.jpg\""
-                    if len(fields) > 3 and fields[-1] in ("0", "1") else "")
+            hint = (
+                '; write a path holding spaces in quotes, e.g. "day 1/a.jpg"'
+                if len(fields) > 3 and fields[-1] in ("0", "1")
+                else ""
+            )
             raise PairFileError(
                 f"{where}: expected 3 fields 'query_path reference_path label', got {len(fields)}: "
                 f"{shorten(line)!r}{hint}"
@@ -118,13 +127,14 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
         query, reference = normalise_path(query), normalise_path(reference)
         label = int(label_text)
         if query == reference:
-            raise PairFileError(f"{where}: self-pair: query and reference are both {query}; "
-                                "a pair needs two different images, remove this line")
+            raise PairFileError(
+                f"{where}: self-pair: query and reference are both {query}; "
+                "a pair needs two different images, remove this line"
+            )
         for key, order in (((query, reference), ""), ((reference, query), ", in the other order")):
             if key in seen:
                 first_line, first_label = seen[key]
-                labels = (f", with the opposite label: {first_label} there, {label} here"
-                          if first_label != label else "")
+                labels = f", with the opposite label: {first_label} there, {label} here" if first_label != label else ""
                 raise PairFileError(
                     f"{where}: duplicate pair {query} {reference} (first on line {first_line}{order}{labels}); "
                     "remove one of them"
@@ -138,8 +148,10 @@ def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     path = Path(path)
     if not path.is_file():
         what = "is a folder, not a pair file" if path.is_dir() else "not found"
-        raise PairFileError(f"pair file {what}: {path}; set the params' pairs to a file of "
-                            "'query_path reference_path label' lines (or a pairs_builder that makes it)")
+        raise PairFileError(
+            f"pair file {what}: {path}; set the params' pairs to a file of "
+            "'query_path reference_path label' lines (or a pairs_builder that makes it)"
+        )
     data = path.read_bytes()
     try:
         # utf-8-sig drops the byte-order mark some Windows editors write.
@@ -147,7 +159,7 @@ def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     except UnicodeDecodeError as error:
         line_number = data[: error.start].count(b"\n") + 1
         raise PairFileError(
-            f"{path}:{line_number}: not UTF-8 text ({data[error.start:error.start + 4]!r}); "
+            f"{path}:{line_number}: not UTF-8 text ({data[error.start : error.start + 4]!r}); "
             "is this a pair file? Save it as UTF-8 text"
         ) from None
     # splitlines() and strip() make CRLF (and lone CR) line endings read like LF.
@@ -229,7 +241,8 @@ class Sequence:
         if not Path(self.image_root).is_dir():
             raise MissingImagesError(
                 f"image_root {self.image_root} of sequence {self.name!r} does not exist or is not a folder; "
-                "set image_root (or --image-root) to the folder the pair file's paths are relative to")
+                "set image_root (or --image-root) to the folder the pair file's paths are relative to"
+            )
         missing = self.missing_images()
         if missing:
             index, pair = next((i, p) for i, p in enumerate(self.pairs) if missing[0] in (p.query, p.reference))
@@ -237,7 +250,8 @@ class Sequence:
                 f"{len(missing)} of {len(self.images)} images of sequence {self.name!r} are missing under "
                 f"{self.image_root}, first {missing[0]} (pair {index}: {pair.query} {pair.reference}"
                 f"{', ' + str(self.origin['pairs_file']) if self.origin.get('pairs_file') else ''}); "
-                "restore them, or remove the pairs that use them")
+                "restore them, or remove the pairs that use them"
+            )
 
 
 def summarize(sequence: Sequence) -> dict[str, object]:
@@ -293,11 +307,15 @@ def frame_tolerance_pairs(
     """
     low = tolerance + 1 if negative_margin is None else negative_margin
     if negative_margin is not None and negative_margin <= tolerance:
-        raise ValueError(f"negative_margin {negative_margin} must exceed tolerance {tolerance} "
-                         "(a negative cannot be as close as a true neighbour); raise it or drop it")
+        raise ValueError(
+            f"negative_margin {negative_margin} must exceed tolerance {tolerance} "
+            "(a negative cannot be as close as a true neighbour); raise it or drop it"
+        )
     if near_negatives and near_window < low:
-        raise ValueError(f"near_window {near_window} is below the smallest negative gap {low}: "
-                         f"no near negative can be drawn; set near_window to at least {low}")
+        raise ValueError(
+            f"near_window {near_window} is below the smallest negative gap {low}: "
+            f"no near negative can be drawn; set near_window to at least {low}"
+        )
     rng = random.Random(seed)
     references = {frame_index(r): r for r in reference_names}
     frames = sorted(references)

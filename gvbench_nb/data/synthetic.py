@@ -95,9 +95,23 @@ def _low_contrast(name: str, contrast: float) -> str:
 # ``cat`` is left out: it is the same photograph as ``chelsea``, and a duplicate
 # would be aliasing nobody controls.
 FACADE_TEXTURES: tuple[str, ...] = (
-    "astronaut", "brick", "camera", "chelsea", "coffee", "coins",
-    "horse", "moon", "page", "rocket", "text", "clock", "colorwheel",
-    "immunohistochemistry", "hubble_deep_field", "retina", "cell",
+    "astronaut",
+    "brick",
+    "camera",
+    "chelsea",
+    "coffee",
+    "coins",
+    "horse",
+    "moon",
+    "page",
+    "rocket",
+    "text",
+    "clock",
+    "colorwheel",
+    "immunohistochemistry",
+    "hubble_deep_field",
+    "retina",
+    "cell",
 )
 # Ground textures are the same photograph everywhere, only shifted: two far-apart
 # places would show ground patches related by a plane homography, which F-RANSAC
@@ -116,6 +130,7 @@ ALIAS_BLOCK_BUILDINGS = 2  # adjacent buildings repeated verbatim elsewhere on t
 # ----------------------------------------------------------------------------
 # Textures
 # ----------------------------------------------------------------------------
+
 
 @functools.cache
 def _texture_pyramid(key: str) -> tuple[np.ndarray, ...]:
@@ -150,6 +165,7 @@ def _texture_pyramid(key: str) -> tuple[np.ndarray, ...]:
 # ----------------------------------------------------------------------------
 # Scene
 # ----------------------------------------------------------------------------
+
 
 @dataclass
 class Scene:
@@ -189,19 +205,29 @@ class _SceneBuilder:
         self.rects: list[tuple] = []
         self.lamps: list[tuple[float, float, float]] = []
 
-    def add(self, origin, edge_u, edge_v, texture: str, metres_per_texture: float,
-            offset: Sequence[float], tint: Sequence[float]) -> None:
+    def add(
+        self,
+        origin,
+        edge_u,
+        edge_v,
+        texture: str,
+        metres_per_texture: float,
+        offset: Sequence[float],
+        tint: Sequence[float],
+    ) -> None:
         origin, edge_u, edge_v = (np.asarray(x, dtype=np.float64) for x in (origin, edge_u, edge_v))
         normal = np.cross(edge_u, edge_v)
         normal /= np.linalg.norm(normal)
         # Fixed directional sun + sky ambient: different façade orientations get
         # different brightness, like a real street at day.
         shade = 0.62 + 0.38 * max(0.0, float(normal @ self.SUN_DIRECTION))
-        self.rects.append((origin, edge_u, edge_v, texture, metres_per_texture,
-                           tuple(offset), tuple(np.asarray(tint) * shade)))
+        self.rects.append(
+            (origin, edge_u, edge_v, texture, metres_per_texture, tuple(offset), tuple(np.asarray(tint) * shade))
+        )
 
-    def add_vertical(self, a_xy, b_xy, z0: float, z1: float, facing_xy, texture: str,
-                     metres_per_texture: float, offset, tint) -> None:
+    def add_vertical(
+        self, a_xy, b_xy, z0: float, z1: float, facing_xy, texture: str, metres_per_texture: float, offset, tint
+    ) -> None:
         """Vertical rectangle over the ground segment a-b, visible from ``facing_xy``."""
         a = np.array([a_xy[0], a_xy[1], z0], dtype=np.float64)
         b = np.array([b_xy[0], b_xy[1], z0], dtype=np.float64)
@@ -212,16 +238,28 @@ class _SceneBuilder:
             a, b = b, a
         self.add(a, b - a, up, texture, metres_per_texture, offset, tint)
 
-    def add_ground(self, x0: float, x1: float, y0: float, y1: float, z: float, texture: str,
-                   metres_per_texture: float, offset, tint) -> None:
-        self.add([x0, y0, z], [x1 - x0, 0, 0], [0, y1 - y0, 0], texture,
-                 metres_per_texture, offset, tint)
+    def add_ground(
+        self,
+        x0: float,
+        x1: float,
+        y0: float,
+        y1: float,
+        z: float,
+        texture: str,
+        metres_per_texture: float,
+        offset,
+        tint,
+    ) -> None:
+        self.add([x0, y0, z], [x1 - x0, 0, 0], [0, y1 - y0, 0], texture, metres_per_texture, offset, tint)
 
     def build(self, alias_blocks) -> Scene:
         origin, edge_u, edge_v, texture, mpt, offset, tint = zip(*self.rects)
         return Scene(
-            origin=np.array(origin), edge_u=np.array(edge_u), edge_v=np.array(edge_v),
-            texture=list(texture), metres_per_texture=np.array(mpt, dtype=np.float64),
+            origin=np.array(origin),
+            edge_u=np.array(edge_u),
+            edge_v=np.array(edge_v),
+            texture=list(texture),
+            metres_per_texture=np.array(mpt, dtype=np.float64),
             texture_offset=np.array(offset, dtype=np.float64),
             tint=np.array(tint, dtype=np.float32),
             lamps=np.array(self.lamps, dtype=np.float64).reshape(-1, 3),
@@ -257,14 +295,17 @@ def _random_building(rng: np.random.Generator) -> _Lot:
         texture=str(rng.choice(FACADE_TEXTURES)),
         metres_per_texture=float(rng.uniform(5.0, 9.0)),
         offset=(float(rng.uniform()), float(rng.uniform())),
-        tint=cast(tuple[float, float, float],  # size=3: one factor per RGB channel
-                  tuple(float(c) for c in rng.uniform(0.85, 1.05) * rng.uniform(0.9, 1.05, size=3))),
+        tint=cast(
+            tuple[float, float, float],  # size=3: one factor per RGB channel
+            tuple(float(c) for c in rng.uniform(0.85, 1.05) * rng.uniform(0.9, 1.05, size=3)),
+        ),
         hedge=bool(rng.uniform() < 0.3),
     )
 
 
-def _street_side_lots(rng: np.random.Generator, x_start: float, x_end: float,
-                      copies: Mapping[float, list[_Lot]]) -> list[tuple[float, _Lot]]:
+def _street_side_lots(
+    rng: np.random.Generator, x_start: float, x_end: float, copies: Mapping[float, list[_Lot]]
+) -> list[tuple[float, _Lot]]:
     """Buildings and side-street gaps along one side, as (x_start, lot).
 
     ``copies`` maps an x position to a block of lots to repeat there verbatim
@@ -290,8 +331,7 @@ def _street_side_lots(rng: np.random.Generator, x_start: float, x_end: float,
     return lots
 
 
-def _add_lots(builder: _SceneBuilder, lots: list[tuple[float, _Lot]], side: float,
-              rng: np.random.Generator) -> None:
+def _add_lots(builder: _SceneBuilder, lots: list[tuple[float, _Lot]], side: float, rng: np.random.Generator) -> None:
     """Façades, end walls, hedges and the backdrop seen through side streets."""
     back_depth = 14.0
     for x0, lot in lots:
@@ -301,71 +341,118 @@ def _add_lots(builder: _SceneBuilder, lots: list[tuple[float, _Lot]], side: floa
             # Side-street ground and the backdrop building at its end.
             y_back = side * 34.0
             y_in, y_out = sorted((side * SIDEWALK_OUTER_M, side * 36.0))
-            builder.add_ground(x0 - 8, x1 + 8, y_in, y_out, 0.0, SIDEWALK_TEXTURE, 4.0,
-                               rng.uniform(size=2), (0.85, 0.8, 0.75))
-            builder.add_vertical((x0 - 8, y_back), (x1 + 8, y_back), 0.0, 14.0, street,
-                                 lot.texture or FACADE_TEXTURES[0], 8.0,
-                                 rng.uniform(size=2), rng.uniform(0.7, 1.0, size=3))
+            builder.add_ground(
+                x0 - 8, x1 + 8, y_in, y_out, 0.0, SIDEWALK_TEXTURE, 4.0, rng.uniform(size=2), (0.85, 0.8, 0.75)
+            )
+            builder.add_vertical(
+                (x0 - 8, y_back),
+                (x1 + 8, y_back),
+                0.0,
+                14.0,
+                street,
+                lot.texture or FACADE_TEXTURES[0],
+                8.0,
+                rng.uniform(size=2),
+                rng.uniform(0.7, 1.0, size=3),
+            )
             continue
         y = side * lot.setback
         y_back = side * (lot.setback + back_depth)
-        builder.add_vertical((x0, y), (x1, y), 0.0, lot.height, street, lot.texture,
-                             lot.metres_per_texture, lot.offset, lot.tint)
+        builder.add_vertical(
+            (x0, y), (x1, y), 0.0, lot.height, street, lot.texture, lot.metres_per_texture, lot.offset, lot.tint
+        )
         # End walls: visible where a neighbour is set further back or across a gap.
         wall_tint = np.asarray(lot.tint) * 0.85
-        builder.add_vertical((x0, y), (x0, y_back), 0.0, lot.height, (x0 - 1.0, y),
-                             lot.texture, lot.metres_per_texture,
-                             (lot.offset[0] + 0.37, lot.offset[1]), wall_tint)
-        builder.add_vertical((x1, y), (x1, y_back), 0.0, lot.height, (x1 + 1.0, y),
-                             lot.texture, lot.metres_per_texture,
-                             (lot.offset[0] + 0.61, lot.offset[1]), wall_tint)
+        builder.add_vertical(
+            (x0, y),
+            (x0, y_back),
+            0.0,
+            lot.height,
+            (x0 - 1.0, y),
+            lot.texture,
+            lot.metres_per_texture,
+            (lot.offset[0] + 0.37, lot.offset[1]),
+            wall_tint,
+        )
+        builder.add_vertical(
+            (x1, y),
+            (x1, y_back),
+            0.0,
+            lot.height,
+            (x1 + 1.0, y),
+            lot.texture,
+            lot.metres_per_texture,
+            (lot.offset[0] + 0.61, lot.offset[1]),
+            wall_tint,
+        )
         if lot.hedge:
             y_hedge = side * (lot.setback - 0.8)
-            builder.add_vertical((x0 + 1.0, y_hedge), (x1 - 1.0, y_hedge), 0.0, 1.3, street,
-                                 VEGETATION_TEXTURE, 3.0, (lot.offset[1], 0.3),
-                                 (0.45, 0.85, 0.35))
+            builder.add_vertical(
+                (x0 + 1.0, y_hedge),
+                (x1 - 1.0, y_hedge),
+                0.0,
+                1.3,
+                street,
+                VEGETATION_TEXTURE,
+                3.0,
+                (lot.offset[1], 0.3),
+                (0.45, 0.85, 0.35),
+            )
 
 
-def _add_ground(builder: _SceneBuilder, x_start: float, x_end: float,
-                rng: np.random.Generator) -> None:
+def _add_ground(builder: _SceneBuilder, x_start: float, x_end: float, rng: np.random.Generator) -> None:
     """Road, sidewalks and open ground in 12 m patches with independent texture
     offsets, so the ground is not exactly periodic along the street (ground
     textures are also faint, see ``ROAD_TEXTURE``)."""
     patch = 12.0
     for x0 in np.arange(x_start, x_end, patch):
         x1 = x0 + patch
-        builder.add_ground(x0, x1, -7.0, 7.0, 0.0, ROAD_TEXTURE, 6.0, rng.uniform(size=2),
-                           (0.55, 0.55, 0.58))
+        builder.add_ground(x0, x1, -7.0, 7.0, 0.0, ROAD_TEXTURE, 6.0, rng.uniform(size=2), (0.55, 0.55, 0.58))
         for side in (1.0, -1.0):
             # Up to just behind the deepest façade; side streets add their own ground.
             y_in, y_out = sorted((side * 7.0, side * SIDEWALK_OUTER_M))
-            builder.add_ground(x0, x1, y_in, y_out, 0.0, SIDEWALK_TEXTURE, 4.0,
-                               rng.uniform(size=2), (0.85, 0.8, 0.75))
+            builder.add_ground(x0, x1, y_in, y_out, 0.0, SIDEWALK_TEXTURE, 4.0, rng.uniform(size=2), (0.85, 0.8, 0.75))
     # Dashed centre line: strong, periodic road marking.
     for x0 in np.arange(x_start, x_end, 9.0):
-        builder.add_ground(x0, x0 + 3.0, -0.08, 0.08, 0.01, "page", 50.0, (0.0, 0.0),
-                           (2.2, 2.2, 2.1))
+        builder.add_ground(x0, x0 + 3.0, -0.08, 0.08, 0.01, "page", 50.0, (0.0, 0.0), (2.2, 2.2, 2.1))
 
 
-def _add_street_furniture(builder: _SceneBuilder, x_start: float, x_end: float,
-                          rng: np.random.Generator) -> None:
+def _add_street_furniture(builder: _SceneBuilder, x_start: float, x_end: float, rng: np.random.Generator) -> None:
     """Lamp posts (whose heads light the night) and street trees."""
     for side, phase in ((1.0, 0.0), (-1.0, 10.0)):
         for x in np.arange(x_start + phase, x_end, 20.0):
             y = side * 7.4
-            builder.add_vertical((x - 0.12, y), (x + 0.12, y), 0.0, 5.6, (x, 0.0),
-                                 POLE_TEXTURE, 2.0, rng.uniform(size=2), (0.35, 0.35, 0.38))
+            builder.add_vertical(
+                (x - 0.12, y),
+                (x + 0.12, y),
+                0.0,
+                5.6,
+                (x, 0.0),
+                POLE_TEXTURE,
+                2.0,
+                rng.uniform(size=2),
+                (0.35, 0.35, 0.38),
+            )
             builder.lamps.append((float(x), float(side * 6.6), 5.5))
         for x in np.arange(x_start + phase + 7.0, x_end, 20.0):
             if rng.uniform() < 0.5:
                 continue
             y = side * 7.9
-            builder.add_vertical((x - 0.15, y), (x + 0.15, y), 0.0, 2.6, (x, 0.0),
-                                 "gravel", 2.0, rng.uniform(size=2), (0.45, 0.35, 0.25))
+            builder.add_vertical(
+                (x - 0.15, y), (x + 0.15, y), 0.0, 2.6, (x, 0.0), "gravel", 2.0, rng.uniform(size=2), (0.45, 0.35, 0.25)
+            )
             width = float(rng.uniform(2.5, 4.0))
-            builder.add_vertical((x - width / 2, y), (x + width / 2, y), 2.4, 2.4 + width * 1.2,
-                                 (x, 0.0), VEGETATION_TEXTURE, 3.0, rng.uniform(size=2),
-                                 (0.4, 0.8, 0.3))
+            builder.add_vertical(
+                (x - width / 2, y),
+                (x + width / 2, y),
+                2.4,
+                2.4 + width * 1.2,
+                (x, 0.0),
+                VEGETATION_TEXTURE,
+                3.0,
+                rng.uniform(size=2),
+                (0.4, 0.8, 0.3),
+            )
 
 
 def _block_at(x: float, block: list[_Lot]) -> list[tuple[float, _Lot]]:
@@ -374,17 +461,21 @@ def _block_at(x: float, block: list[_Lot]) -> list[tuple[float, _Lot]]:
     return [(float(s), lot) for s, lot in zip(starts, block)]
 
 
-def _assign_facade_textures(rng: np.random.Generator, sides: list[list[tuple[float, _Lot]]],
-                            alias_block: list[_Lot]) -> list[list[tuple[float, _Lot]]]:
+def _assign_facade_textures(
+    rng: np.random.Generator, sides: list[list[tuple[float, _Lot]]], alias_block: list[_Lot]
+) -> list[list[tuple[float, _Lot]]]:
     """Give every lot (buildings and side-street backdrops) a texture from a
     shuffled cycle in street order, so a texture recurs only every ~15 lots
     (~100 m): accidental repeats would be uncontrolled aliasing.  The aliased
     buildings keep their own textures, used nowhere else."""
     reserved = {lot.texture for lot in alias_block}
     cycle = [str(t) for t in rng.permutation(FACADE_TEXTURES) if t not in reserved]
-    order = sorted((x, side, j) for side, lots in enumerate(sides)
-                   for j, (x, lot) in enumerate(lots)
-                   if not any(lot is aliased for aliased in alias_block))
+    order = sorted(
+        (x, side, j)
+        for side, lots in enumerate(sides)
+        for j, (x, lot) in enumerate(lots)
+        if not any(lot is aliased for aliased in alias_block)
+    )
     result = [list(lots) for lots in sides]
     for n, (x, side, j) in enumerate(order):
         result[side][j] = (x, replace(result[side][j][1], texture=cycle[n % len(cycle)]))
@@ -421,8 +512,9 @@ def build_scene(route_length_m: float, seed: int = 0) -> Scene:
     _add_ground(builder, x_start, x_end, rng)
     _add_street_furniture(builder, x_start, x_end, rng)
     # Far end of the street, so looking ahead never shows an empty horizon.
-    builder.add_vertical((x_end, -40.0), (x_end, 40.0), 0.0, 20.0, (0.0, 0.0),
-                         "hubble_deep_field", 20.0, (0.0, 0.0), (0.8, 0.8, 0.9))
+    builder.add_vertical(
+        (x_end, -40.0), (x_end, 40.0), 0.0, 20.0, (0.0, 0.0), "hubble_deep_field", 20.0, (0.0, 0.0), (0.8, 0.8, 0.9)
+    )
     return builder.build([(source_x, copy_start, block_length)])
 
 
@@ -430,13 +522,12 @@ def build_scene(route_length_m: float, seed: int = 0) -> Scene:
 # Cameras and traversals
 # ----------------------------------------------------------------------------
 
+
 def default_intrinsics(image_size: tuple[int, int] = (640, 480)) -> np.ndarray:
     """Pinhole K with a ~64 deg horizontal field of view for (width, height)."""
     width, height = image_size
     focal = 0.8 * width
-    return np.array([[focal, 0.0, (width - 1) / 2.0],
-                     [0.0, focal, (height - 1) / 2.0],
-                     [0.0, 0.0, 1.0]])
+    return np.array([[focal, 0.0, (width - 1) / 2.0], [0.0, focal, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
 def camera_rotation(yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.0) -> np.ndarray:
@@ -478,14 +569,20 @@ def _smooth_noise(rng: np.random.Generator, n: int, amplitude: float, correlatio
     """Slowly varying jitter (a driver does not zig-zag frame to frame)."""
     white = rng.normal(size=n + 16)
     kernel = np.exp(-0.5 * (np.arange(-8, 9) / correlation) ** 2)
-    smooth = np.convolve(white, kernel / np.linalg.norm(kernel), mode="same")[8:8 + n]
+    smooth = np.convolve(white, kernel / np.linalg.norm(kernel), mode="same")[8 : 8 + n]
     return amplitude * smooth
 
 
-def make_traversal(n_frames: int, spacing_m: float = 2.0, lateral_offset_m: float = 0.0,
-                   heading_offset_deg: float = 0.0, along_offset_m: float = 0.0,
-                   camera_height_m: float = 1.7, seed: int = 0,
-                   traversal_index: int = 0) -> Traversal:
+def make_traversal(
+    n_frames: int,
+    spacing_m: float = 2.0,
+    lateral_offset_m: float = 0.0,
+    heading_offset_deg: float = 0.0,
+    along_offset_m: float = 0.0,
+    camera_height_m: float = 1.7,
+    seed: int = 0,
+    traversal_index: int = 0,
+) -> Traversal:
     """Forward drive along +X with a per-traversal offset and smooth pose jitter."""
     rng = np.random.default_rng([seed, 2, traversal_index])
     x = along_offset_m + spacing_m * np.arange(n_frames)
@@ -501,6 +598,7 @@ def make_traversal(n_frames: int, spacing_m: float = 2.0, lateral_offset_m: floa
 # ----------------------------------------------------------------------------
 # Rendering
 # ----------------------------------------------------------------------------
+
 
 @dataclass
 class RenderedFrame:
@@ -554,8 +652,9 @@ def _remap_flat(texture: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np
     maps = np.zeros((2, rows * cols), dtype=np.float32)
     maps[0, :n] = map_x
     maps[1, :n] = map_y
-    out = cv2.remap(texture, maps[0].reshape(rows, cols), maps[1].reshape(rows, cols),
-                    cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    out = cv2.remap(
+        texture, maps[0].reshape(rows, cols), maps[1].reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
+    )
     return out.reshape(rows * cols, -1)[:n]
 
 
@@ -597,8 +696,9 @@ class _PlaneInCamera:
         return a, b
 
 
-def _planes_in_camera(scene: Scene, rotation: np.ndarray, position: np.ndarray,
-                      K_inv: np.ndarray) -> tuple[np.ndarray, np.ndarray, list]:
+def _planes_in_camera(
+    scene: Scene, rotation: np.ndarray, position: np.ndarray, K_inv: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, list]:
     """Front-facing rectangles: their corners in camera frame and plane functions."""
     R_wc = rotation.T
     origin = (scene.origin - position) @ R_wc.T
@@ -614,18 +714,24 @@ def _planes_in_camera(scene: Scene, rotation: np.ndarray, position: np.ndarray,
     corners = np.stack([origin, origin + edge_u, origin + edge_u + edge_v, origin + edge_v], axis=1)
     planes = []
     for i in front:
-        planes.append(_PlaneInCamera(
-            q_coef=((normal[i] @ K_inv) / plane_offset[i]).astype(np.float32),
-            a_coef=(u_hat[i] @ K_inv).astype(np.float32),
-            b_coef=(v_hat[i] @ K_inv).astype(np.float32),
-            a_offset=float(u_hat[i] @ origin[i]), b_offset=float(v_hat[i] @ origin[i]),
-            u_length=float(u_length[i]), v_length=float(v_length[i]),
-            plane_offset=float(plane_offset[i])))
+        planes.append(
+            _PlaneInCamera(
+                q_coef=((normal[i] @ K_inv) / plane_offset[i]).astype(np.float32),
+                a_coef=(u_hat[i] @ K_inv).astype(np.float32),
+                b_coef=(v_hat[i] @ K_inv).astype(np.float32),
+                a_offset=float(u_hat[i] @ origin[i]),
+                b_offset=float(v_hat[i] @ origin[i]),
+                u_length=float(u_length[i]),
+                v_length=float(v_length[i]),
+                plane_offset=float(plane_offset[i]),
+            )
+        )
     return front, corners[front], planes
 
 
-def render_frame(scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np.ndarray,
-                 image_size: tuple[int, int] = (640, 480)) -> RenderedFrame:
+def render_frame(
+    scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np.ndarray, image_size: tuple[int, int] = (640, 480)
+) -> RenderedFrame:
     """Ray-cast the scene from one camera pose (clear conditions)."""
     width, height = image_size
     K_inv = np.linalg.inv(K)
@@ -660,20 +766,22 @@ def render_frame(scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np
     counts = np.bincount(flat_id.astype(np.int32) + 1, minlength=len(planes) + 1)
     bounds = np.concatenate([[0], np.cumsum(counts)])
     ids = np.flatnonzero(counts) - 1  # -1 is the sky
-    ray_norm = np.sqrt(((cols[None, :] - K[0, 2]) / K[0, 0]) ** 2
-                       + ((rows[:, None] - K[1, 2]) / K[1, 1]) ** 2 + 1.0).ravel()
+    ray_norm = np.sqrt(
+        ((cols[None, :] - K[0, 2]) / K[0, 0]) ** 2 + ((rows[:, None] - K[1, 2]) / K[1, 1]) ** 2 + 1.0
+    ).ravel()
     world_normal = scene.normal.astype(np.float32)
     focal = float(K[0, 0])
     for k in ids.tolist():
-        pixels = order[bounds[k + 1]:bounds[k + 2]]
+        pixels = order[bounds[k + 1] : bounds[k + 2]]
         rr, cc = np.divmod(pixels, width)
         if k < 0:
             pixel_h = np.stack([cc, rr, np.ones_like(cc)], axis=1).astype(np.float32)
             image[pixels] = _sky_colour(pixel_h @ (rotation @ K_inv).T.astype(np.float32))
             continue
         i = front[k]
-        image[pixels] = _texture_colours(scene, i, planes[k], cc.astype(np.float32),
-                                         rr.astype(np.float32), ray_norm[pixels], focal)
+        image[pixels] = _texture_colours(
+            scene, i, planes[k], cc.astype(np.float32), rr.astype(np.float32), ray_norm[pixels], focal
+        )
         normals[pixels] = world_normal[i]
 
     # Mild optical blur: real lenses are not perfectly sharp and it hides
@@ -681,12 +789,14 @@ def render_frame(scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np
     image = cv2.GaussianBlur(image.reshape(height, width, 3), (0, 0), 0.6)
     depth = np.where(inv_depth > 0, 1.0 / np.maximum(inv_depth, 1e-12), SKY_DEPTH).astype(np.float32)
     lights = _visible_lamps(scene.lamps, rotation, position, K, depth)
-    return RenderedFrame(np.clip(np.rint(image), 0, 255).astype(np.uint8), depth,
-                         normals.reshape(height, width, 3), lights)
+    return RenderedFrame(
+        np.clip(np.rint(image), 0, 255).astype(np.uint8), depth, normals.reshape(height, width, 3), lights
+    )
 
 
-def _texture_colours(scene: Scene, i: int, plane: _PlaneInCamera, u: np.ndarray, v: np.ndarray,
-                     ray_norm: np.ndarray, focal: float) -> np.ndarray:
+def _texture_colours(
+    scene: Scene, i: int, plane: _PlaneInCamera, u: np.ndarray, v: np.ndarray, ray_norm: np.ndarray, focal: float
+) -> np.ndarray:
     """Tinted texture colours of rectangle ``i`` at pixels (u, v), mip-mapped."""
     q = plane.inverse_depth(u, v)
     a, b = plane.plane_coordinates(u, v, 1.0 / q)
@@ -715,8 +825,9 @@ def _texture_colours(scene: Scene, i: int, plane: _PlaneInCamera, u: np.ndarray,
     return colours * scene.tint[i]
 
 
-def _visible_lamps(lamps: np.ndarray, rotation: np.ndarray, position: np.ndarray,
-                   K: np.ndarray, depth: np.ndarray) -> np.ndarray:
+def _visible_lamps(
+    lamps: np.ndarray, rotation: np.ndarray, position: np.ndarray, K: np.ndarray, depth: np.ndarray
+) -> np.ndarray:
     """Project lamp heads; keep those in view and not hidden behind a surface."""
     if len(lamps) == 0:
         return np.zeros((0, 4))
@@ -738,20 +849,37 @@ def frame_rng(seed: int, traversal_index: int, frame_index: int) -> np.random.Ge
     return np.random.default_rng([seed, 3, traversal_index, frame_index])
 
 
-def _render_with_conditions(scene: Scene, traversal: Traversal, frame: int, K: np.ndarray,
-                            image_size: tuple[int, int], conditions: Mapping[str, float],
-                            seed: int, traversal_index: int) -> np.ndarray:
-    rendered = render_frame(scene, traversal.rotations[frame], traversal.positions[frame],
-                            K, image_size)
-    return apply_conditions(rendered.image, rendered.depth, rendered.normals, conditions,
-                            frame_rng(seed, traversal_index, frame),
-                            light_points=rendered.light_points)
+def _render_with_conditions(
+    scene: Scene,
+    traversal: Traversal,
+    frame: int,
+    K: np.ndarray,
+    image_size: tuple[int, int],
+    conditions: Mapping[str, float],
+    seed: int,
+    traversal_index: int,
+) -> np.ndarray:
+    rendered = render_frame(scene, traversal.rotations[frame], traversal.positions[frame], K, image_size)
+    return apply_conditions(
+        rendered.image,
+        rendered.depth,
+        rendered.normals,
+        conditions,
+        frame_rng(seed, traversal_index, frame),
+        light_points=rendered.light_points,
+    )
 
 
-def render_traversal(scene: Scene, traversal: Traversal, K: np.ndarray,
-                     image_size: tuple[int, int] = (640, 480),
-                     conditions: Mapping[str, float] | None = None, seed: int = 0,
-                     traversal_index: int = 0, workers: int | None = None) -> list[np.ndarray]:
+def render_traversal(
+    scene: Scene,
+    traversal: Traversal,
+    K: np.ndarray,
+    image_size: tuple[int, int] = (640, 480),
+    conditions: Mapping[str, float] | None = None,
+    seed: int = 0,
+    traversal_index: int = 0,
+    workers: int | None = None,
+) -> list[np.ndarray]:
     """Render every frame of a traversal under the given conditions (RGB uint8).
 
     Frames are independent (own random stream), so they are rendered on
@@ -763,8 +891,7 @@ def render_traversal(scene: Scene, traversal: Traversal, K: np.ndarray,
     workers = workers or min(4, os.cpu_count() or 1)
 
     def render(frame: int) -> np.ndarray:
-        return _render_with_conditions(scene, traversal, frame, K, image_size, conditions,
-                                       seed, traversal_index)
+        return _render_with_conditions(scene, traversal, frame, K, image_size, conditions, seed, traversal_index)
 
     if workers <= 1:
         return [render(frame) for frame in range(len(traversal))]
@@ -775,6 +902,7 @@ def render_traversal(scene: Scene, traversal: Traversal, K: np.ndarray,
 # ----------------------------------------------------------------------------
 # Conditions
 # ----------------------------------------------------------------------------
+
 
 def _validate_conditions(conditions: Mapping[str, float]) -> dict[str, float]:
     unknown = set(conditions) - set(CONDITIONS)
@@ -794,12 +922,13 @@ def _low_frequency_noise(rng: np.random.Generator, shape: tuple[int, int], cells
     return np.clip(cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC), 0.0, 1.0)
 
 
-def _apply_season(image: np.ndarray, normals: np.ndarray, depth: np.ndarray, strength: float,
-                  rng: np.random.Generator) -> np.ndarray:
+def _apply_season(
+    image: np.ndarray, normals: np.ndarray, depth: np.ndarray, strength: float, rng: np.random.Generator
+) -> np.ndarray:
     """Winter: snow on upward-facing surfaces, brown vegetation, pale overcast light."""
     up = np.clip(normals[..., 2], 0.0, 1.0)
     patchiness = _low_frequency_noise(rng, up.shape)
-    snow_cover = np.clip(strength * 1.25 * up ** 2 * (0.65 + 0.45 * patchiness), 0.0, 1.0)
+    snow_cover = np.clip(strength * 1.25 * up**2 * (0.65 + 0.45 * patchiness), 0.0, 1.0)
     snow = np.array([236.0, 240.0, 248.0], dtype=np.float32)
     image = image * (1 - snow_cover[..., None]) + snow * snow_cover[..., None]
 
@@ -819,8 +948,7 @@ def _apply_season(image: np.ndarray, normals: np.ndarray, depth: np.ndarray, str
     return np.where(sky, image * (1 - 0.7 * strength) + overcast * 0.7 * strength, image)
 
 
-def _apply_weather(image: np.ndarray, depth: np.ndarray, strength: float,
-                   rng: np.random.Generator) -> np.ndarray:
+def _apply_weather(image: np.ndarray, depth: np.ndarray, strength: float, rng: np.random.Generator) -> np.ndarray:
     """Fog that thickens with depth, rain streaks and a wet, softened lens."""
     extinction_per_m = 0.045 * strength  # visibility ~65 m at full strength
     transmission = np.exp(-extinction_per_m * np.where(np.isinf(depth), 1e4, depth))[..., None]
@@ -845,15 +973,14 @@ def _apply_weather(image: np.ndarray, depth: np.ndarray, strength: float,
     return image
 
 
-def _lamp_fields(depth: np.ndarray, light_points: np.ndarray, downscale: int = 4
-                 ) -> tuple[np.ndarray, np.ndarray]:
+def _lamp_fields(depth: np.ndarray, light_points: np.ndarray, downscale: int = 4) -> tuple[np.ndarray, np.ndarray]:
     """Light pools on surfaces near each lamp and the lamps' glare, (H, W) each.
 
     Both are smooth, so they are computed at 1/``downscale`` resolution.
     """
     height, width = depth.shape
     small_depth = np.where(np.isinf(depth), 1e4, depth)[::downscale, ::downscale]
-    rows, cols = np.mgrid[0:small_depth.shape[0], 0:small_depth.shape[1]].astype(np.float32)
+    rows, cols = np.mgrid[0 : small_depth.shape[0], 0 : small_depth.shape[1]].astype(np.float32)
     rows, cols = rows * downscale, cols * downscale
     pool = np.zeros_like(small_depth)
     glare = np.zeros_like(small_depth)
@@ -861,16 +988,19 @@ def _lamp_fields(depth: np.ndarray, light_points: np.ndarray, downscale: int = 4
         # The pool sits below the lamp head and only on surfaces at its depth.
         distance_sq = (cols - u) ** 2 + (rows - v - 0.6 * radius) ** 2
         near_lamp = np.exp(-np.abs(small_depth - lamp_depth) / 5.0)
-        pool += np.exp(-distance_sq / (2 * radius ** 2)) * near_lamp
+        pool += np.exp(-distance_sq / (2 * radius**2)) * near_lamp
         glare_sigma = 3.0 * max(2.0, 0.08 * radius)
-        glare += np.exp(-((cols - u) ** 2 + (rows - v) ** 2) / (2 * glare_sigma ** 2))
+        glare += np.exp(-((cols - u) ** 2 + (rows - v) ** 2) / (2 * glare_sigma**2))
     size = (width, height)
-    return (cv2.resize(pool, size, interpolation=cv2.INTER_LINEAR),
-            cv2.resize(glare, size, interpolation=cv2.INTER_LINEAR))
+    return (
+        cv2.resize(pool, size, interpolation=cv2.INTER_LINEAR),
+        cv2.resize(glare, size, interpolation=cv2.INTER_LINEAR),
+    )
 
 
-def _apply_illumination(image: np.ndarray, depth: np.ndarray, strength: float,
-                        rng: np.random.Generator, light_points: np.ndarray | None) -> np.ndarray:
+def _apply_illumination(
+    image: np.ndarray, depth: np.ndarray, strength: float, rng: np.random.Generator, light_points: np.ndarray | None
+) -> np.ndarray:
     """Day -> night: less daylight, headlights and lamps, colour cast, gain noise."""
     height, width = depth.shape
     linear = (image * np.float32(1 / 255.0)) ** np.float32(2.2)
@@ -897,8 +1027,9 @@ def _apply_illumination(image: np.ndarray, depth: np.ndarray, strength: float,
     sky = np.isinf(depth)
     if sky.any():
         glow = (np.nonzero(sky)[0].astype(np.float32) / height)[:, None]
-        night_sky = np.array([0.002, 0.003, 0.008], dtype=np.float32) + \
-            np.array([0.012, 0.007, 0.003], dtype=np.float32) * glow
+        night_sky = (
+            np.array([0.002, 0.003, 0.008], dtype=np.float32) + np.array([0.012, 0.007, 0.003], dtype=np.float32) * glow
+        )
         linear[sky] = linear[sky] * (1 - strength) + night_sky * (strength * gain_rgb)
 
     # Shot noise grows with signal and gain, read noise with gain only.  Buffers
@@ -926,9 +1057,15 @@ def _random_light_points(rng: np.random.Generator, depth: np.ndarray) -> np.ndar
     return np.column_stack([u, v, lamp_depth, 0.6 * width * 4.0 / lamp_depth])
 
 
-def apply_conditions(image: np.ndarray, depth: np.ndarray, normals: np.ndarray,
-                     conditions: Mapping[str, float], rng: np.random.Generator, *,
-                     light_points: np.ndarray | None = None) -> np.ndarray:
+def apply_conditions(
+    image: np.ndarray,
+    depth: np.ndarray,
+    normals: np.ndarray,
+    conditions: Mapping[str, float],
+    rng: np.random.Generator,
+    *,
+    light_points: np.ndarray | None = None,
+) -> np.ndarray:
     """Apply condition strengths (names in ``CONDITIONS``, values in [0, 1]).
 
     Conditions compose in a physical order: ``season`` changes surfaces,
@@ -947,8 +1084,7 @@ def apply_conditions(image: np.ndarray, depth: np.ndarray, normals: np.ndarray,
     if strengths["weather"] > 0:
         result = _apply_weather(result, depth, strengths["weather"], rng)
     if strengths["illumination"] > 0:
-        result = _apply_illumination(np.clip(result, 0, 255), depth, strengths["illumination"],
-                                     rng, light_points)
+        result = _apply_illumination(np.clip(result, 0, 255), depth, strengths["illumination"], rng, light_points)
     return np.clip(np.rint(result), 0, 255).astype(np.uint8)
 
 
@@ -956,23 +1092,29 @@ def apply_conditions(image: np.ndarray, depth: np.ndarray, normals: np.ndarray,
 # Labels, pairs and geometry
 # ----------------------------------------------------------------------------
 
+
 def heading_difference_deg(heading_a: np.ndarray, heading_b: np.ndarray) -> np.ndarray:
     """Absolute heading difference wrapped to [0, 180] degrees."""
     diff = np.abs(np.asarray(heading_a, dtype=np.float64) - np.asarray(heading_b, dtype=np.float64)) % 360.0
     return np.minimum(diff, 360.0 - diff)
 
 
-def pose_rule_labels(query_positions: np.ndarray, query_headings_deg: np.ndarray,
-                     reference_positions: np.ndarray, reference_headings_deg: np.ndarray,
-                     max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
-                     max_heading_deg: float = DEFAULT_MAX_HEADING_DEG) -> np.ndarray:
+def pose_rule_labels(
+    query_positions: np.ndarray,
+    query_headings_deg: np.ndarray,
+    reference_positions: np.ndarray,
+    reference_headings_deg: np.ndarray,
+    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
+    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
+) -> np.ndarray:
     """GV-Bench pose rule: (Q, R) bool matrix, True where the camera centres are
     within ``max_distance_m`` (3-D Euclidean) and headings within ``max_heading_deg``."""
     query_positions = np.atleast_2d(np.asarray(query_positions, dtype=np.float64))
     reference_positions = np.atleast_2d(np.asarray(reference_positions, dtype=np.float64))
     distance = np.linalg.norm(query_positions[:, None, :] - reference_positions[None, :, :], axis=2)
-    heading = heading_difference_deg(np.atleast_1d(query_headings_deg)[:, None],
-                                     np.atleast_1d(reference_headings_deg)[None, :])
+    heading = heading_difference_deg(
+        np.atleast_1d(query_headings_deg)[:, None], np.atleast_1d(reference_headings_deg)[None, :]
+    )
     return (distance <= max_distance_m) & (heading <= max_heading_deg)
 
 
@@ -991,10 +1133,14 @@ def _alias_reference_position(scene: Scene, query_x: float, look_ahead_m: float 
 LOOK_ALIKE_LOOK_AHEAD_M = 25.0
 
 
-def look_alike_labels(scene: Scene, query: Traversal, reference: Traversal,
-                      max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
-                      max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
-                      look_ahead_m: float = LOOK_ALIKE_LOOK_AHEAD_M) -> np.ndarray:
+def look_alike_labels(
+    scene: Scene,
+    query: Traversal,
+    reference: Traversal,
+    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
+    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
+    look_ahead_m: float = LOOK_ALIKE_LOOK_AHEAD_M,
+) -> np.ndarray:
     """(Q, R) bool: false pairs whose reference sees the look-alike of what the query sees.
 
     A pair is a look-alike (aliasing) pair when it is false by the pose rule but
@@ -1009,8 +1155,9 @@ def look_alike_labels(scene: Scene, query: Traversal, reference: Traversal,
     """
     headings_q = heading_from_rotation(query.rotations)
     headings_r = heading_from_rotation(reference.rotations)
-    true_pairs = pose_rule_labels(query.positions, headings_q, reference.positions, headings_r,
-                                  max_distance_m, max_heading_deg)
+    true_pairs = pose_rule_labels(
+        query.positions, headings_q, reference.positions, headings_r, max_distance_m, max_heading_deg
+    )
     look_alike = np.zeros_like(true_pairs)
     for qi, position in enumerate(query.positions):
         alias_x = _alias_reference_position(scene, float(position[0]), look_ahead_m)
@@ -1018,16 +1165,23 @@ def look_alike_labels(scene: Scene, query: Traversal, reference: Traversal,
             continue
         shifted = position.copy()
         shifted[0] = alias_x
-        look_alike[qi] = pose_rule_labels(shifted, headings_q[qi:qi + 1], reference.positions,
-                                          headings_r, max_distance_m, max_heading_deg)[0]
+        look_alike[qi] = pose_rule_labels(
+            shifted, headings_q[qi : qi + 1], reference.positions, headings_r, max_distance_m, max_heading_deg
+        )[0]
     return look_alike & ~true_pairs
 
 
-def select_pairs(scene: Scene, query: Traversal, reference: Traversal, seed: int = 0,
-                 max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
-                 max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
-                 n_positives: int = 3, n_near_negatives: int = 2,
-                 n_far_negatives: int = 2) -> list[tuple[int, int, int]]:
+def select_pairs(
+    scene: Scene,
+    query: Traversal,
+    reference: Traversal,
+    seed: int = 0,
+    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
+    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
+    n_positives: int = 3,
+    n_near_negatives: int = 2,
+    n_far_negatives: int = 2,
+) -> list[tuple[int, int, int]]:
     """Candidate (query, reference, label) triples per query frame.
 
     Per query: the nearest true reference plus random further true ones, near
@@ -1036,9 +1190,14 @@ def select_pairs(scene: Scene, query: Traversal, reference: Traversal, seed: int
     façade (otherwise one more far negative).  All choices come from ``seed``.
     """
     rng = np.random.default_rng([seed, 4])
-    labels = pose_rule_labels(query.positions, heading_from_rotation(query.rotations),
-                              reference.positions, heading_from_rotation(reference.rotations),
-                              max_distance_m, max_heading_deg)
+    labels = pose_rule_labels(
+        query.positions,
+        heading_from_rotation(query.rotations),
+        reference.positions,
+        heading_from_rotation(reference.rotations),
+        max_distance_m,
+        max_heading_deg,
+    )
     distance = np.linalg.norm(query.positions[:, None] - reference.positions[None], axis=2)
     pairs: list[tuple[int, int, int]] = []
     for qi in range(len(query)):
@@ -1081,8 +1240,9 @@ def _skew(vector: np.ndarray) -> np.ndarray:
     return np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
 
 
-def fundamental_from_poses(K0: np.ndarray, R0: np.ndarray, t0: np.ndarray,
-                           K1: np.ndarray, R1: np.ndarray, t1: np.ndarray) -> np.ndarray:
+def fundamental_from_poses(
+    K0: np.ndarray, R0: np.ndarray, t0: np.ndarray, K1: np.ndarray, R1: np.ndarray, t1: np.ndarray
+) -> np.ndarray:
     """Fundamental matrix F with ``x1^T F x0 = 0`` (OpenCV's findFundamentalMat(p0, p1)
     convention) from camera-to-world poses (R, t = camera centre)."""
     R0, R1 = np.asarray(R0, dtype=np.float64), np.asarray(R1, dtype=np.float64)
@@ -1098,8 +1258,21 @@ def fundamental_from_poses(K0: np.ndarray, R0: np.ndarray, t0: np.ndarray,
 # Sample generation
 # ----------------------------------------------------------------------------
 
-POSE_COLUMNS = ["traversal", "frame", "image", "x", "y", "z", "yaw_deg", "pitch_deg", "roll_deg",
-                "fx", "fy", "cx", "cy"] + [f"r{i}{j}" for i in range(3) for j in range(3)]
+POSE_COLUMNS = [
+    "traversal",
+    "frame",
+    "image",
+    "x",
+    "y",
+    "z",
+    "yaw_deg",
+    "pitch_deg",
+    "roll_deg",
+    "fx",
+    "fy",
+    "cx",
+    "cy",
+] + [f"r{i}{j}" for i in range(3) for j in range(3)]
 
 
 def _pose_rows(name: str, traversal: Traversal, K: np.ndarray, image_names: list[str]) -> list[dict]:
@@ -1107,10 +1280,15 @@ def _pose_rows(name: str, traversal: Traversal, K: np.ndarray, image_names: list
     for frame, image_name in enumerate(image_names):
         row = {"traversal": name, "frame": frame, "image": image_name}
         row.update(zip("xyz", (f"{v:.6f}" for v in traversal.positions[frame])))
-        row.update(yaw_deg=f"{traversal.yaw_deg[frame]:.6f}",
-                   pitch_deg=f"{traversal.pitch_deg[frame]:.6f}",
-                   roll_deg=f"{traversal.roll_deg[frame]:.6f}",
-                   fx=f"{K[0, 0]:.6f}", fy=f"{K[1, 1]:.6f}", cx=f"{K[0, 2]:.6f}", cy=f"{K[1, 2]:.6f}")
+        row.update(
+            yaw_deg=f"{traversal.yaw_deg[frame]:.6f}",
+            pitch_deg=f"{traversal.pitch_deg[frame]:.6f}",
+            roll_deg=f"{traversal.roll_deg[frame]:.6f}",
+            fx=f"{K[0, 0]:.6f}",
+            fy=f"{K[1, 1]:.6f}",
+            cx=f"{K[0, 2]:.6f}",
+            cy=f"{K[1, 2]:.6f}",
+        )
         R = traversal.rotations[frame]
         row.update({f"r{i}{j}": f"{R[i, j]:.9f}" for i in range(3) for j in range(3)})
         rows.append(row)
@@ -1152,30 +1330,43 @@ class Route:
         """Query frames under ``conditions``; each frame keeps its random stream
         whatever the strengths, so renders at different strengths differ only by
         the strength (common random numbers)."""
-        return render_traversal(self.scene, self.query, self.K, self.image_size, conditions or {},
-                                self.seed, 1)
+        return render_traversal(self.scene, self.query, self.K, self.image_size, conditions or {}, self.seed, 1)
 
 
-def make_route(seed: int = 0, n_frames: int = 30, image_size: tuple[int, int] = (640, 480),
-               spacing_m: float = 2.0, lateral_offset_m: float = 1.0,
-               heading_offset_deg: float = 4.0, along_offset_m: float = 1.0) -> Route:
+def make_route(
+    seed: int = 0,
+    n_frames: int = 30,
+    image_size: tuple[int, int] = (640, 480),
+    spacing_m: float = 2.0,
+    lateral_offset_m: float = 1.0,
+    heading_offset_deg: float = 4.0,
+    along_offset_m: float = 1.0,
+) -> Route:
     """The scene and both drives ``generate_sample`` renders (same parameters, same result)."""
     scene = build_scene((n_frames - 1) * spacing_m + along_offset_m, seed)
     reference = make_traversal(n_frames, spacing_m, seed=seed, traversal_index=0)
-    query = make_traversal(n_frames, spacing_m, lateral_offset_m, heading_offset_deg,
-                           along_offset_m, seed=seed, traversal_index=1)
-    return Route(scene, reference, query, default_intrinsics(image_size),
-                 (int(image_size[0]), int(image_size[1])), int(seed))
+    query = make_traversal(
+        n_frames, spacing_m, lateral_offset_m, heading_offset_deg, along_offset_m, seed=seed, traversal_index=1
+    )
+    return Route(
+        scene, reference, query, default_intrinsics(image_size), (int(image_size[0]), int(image_size[1])), int(seed)
+    )
 
 
-def generate_sample(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
-                    conditions: Mapping[str, float] | None = None,
-                    image_size: tuple[int, int] = (640, 480), spacing_m: float = 2.0,
-                    lateral_offset_m: float = 1.0, heading_offset_deg: float = 4.0,
-                    along_offset_m: float = 1.0,
-                    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
-                    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
-                    force: bool = False) -> dict:
+def generate_sample(
+    out_dir: str | Path,
+    seed: int = 0,
+    n_frames: int = 30,
+    conditions: Mapping[str, float] | None = None,
+    image_size: tuple[int, int] = (640, 480),
+    spacing_m: float = 2.0,
+    lateral_offset_m: float = 1.0,
+    heading_offset_deg: float = 4.0,
+    along_offset_m: float = 1.0,
+    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
+    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
+    force: bool = False,
+) -> dict:
     """Write a two-traversal sample: ``day/`` (reference, clear) and ``night/``
     (query, offset viewpoint, ``conditions`` - default a night change), plus
     ``poses.csv``, ``pairs.txt`` and ``generator.json``.
@@ -1187,11 +1378,16 @@ def generate_sample(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
     conditions = dict(DEFAULT_NIGHT_CONDITIONS if conditions is None else conditions)
     _validate_conditions(conditions)
     params = {
-        "version": GENERATOR_VERSION, "seed": int(seed), "n_frames": int(n_frames),
+        "version": GENERATOR_VERSION,
+        "seed": int(seed),
+        "n_frames": int(n_frames),
         "conditions": {k: float(v) for k, v in sorted(conditions.items())},
-        "image_size": [int(image_size[0]), int(image_size[1])], "spacing_m": float(spacing_m),
-        "lateral_offset_m": float(lateral_offset_m), "heading_offset_deg": float(heading_offset_deg),
-        "along_offset_m": float(along_offset_m), "max_distance_m": float(max_distance_m),
+        "image_size": [int(image_size[0]), int(image_size[1])],
+        "spacing_m": float(spacing_m),
+        "lateral_offset_m": float(lateral_offset_m),
+        "heading_offset_deg": float(heading_offset_deg),
+        "along_offset_m": float(along_offset_m),
+        "max_distance_m": float(max_distance_m),
         "max_heading_deg": float(max_heading_deg),
     }
     params_path = out_dir / "generator.json"
@@ -1206,12 +1402,10 @@ def generate_sample(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
         for stale in (out_dir / folder).glob("*.png"):
             if stale.stem.isdigit():  # only this generator's frame files
                 stale.unlink()
-    route = make_route(seed, n_frames, image_size, spacing_m, lateral_offset_m,
-                       heading_offset_deg, along_offset_m)
+    route = make_route(seed, n_frames, image_size, spacing_m, lateral_offset_m, heading_offset_deg, along_offset_m)
     K, scene, day, night = route.K, route.scene, route.reference, route.query
     day_names = write_traversal_images(out_dir / "day", route.render_reference(), route.name_width)
-    night_names = write_traversal_images(out_dir / "night", route.render_query(conditions),
-                                         route.name_width)
+    night_names = write_traversal_images(out_dir / "night", route.render_query(conditions), route.name_width)
 
     with open(out_dir / "poses.csv", "w", newline="", encoding="utf-8") as handle:
         writer = csv.DictWriter(handle, fieldnames=POSE_COLUMNS)
@@ -1220,12 +1414,13 @@ def generate_sample(out_dir: str | Path, seed: int = 0, n_frames: int = 30,
         writer.writerows(_pose_rows("night", night, K, night_names))
 
     pairs = select_pairs(scene, night, day, seed, max_distance_m, max_heading_deg)
-    write_pairs(out_dir / "pairs.txt",
-                      [(night_names[q], day_names[r], label) for q, r, label in pairs])
+    write_pairs(out_dir / "pairs.txt", [(night_names[q], day_names[r], label) for q, r, label in pairs])
     summary = {
-        "n_images": 2 * n_frames, "n_pairs": len(pairs),
+        "n_images": 2 * n_frames,
+        "n_pairs": len(pairs),
         "n_positives": int(sum(label for _, _, label in pairs)),
-        "max_distance_m": float(max_distance_m), "max_heading_deg": float(max_heading_deg),
+        "max_distance_m": float(max_distance_m),
+        "max_heading_deg": float(max_heading_deg),
     }
     params_path.write_text(json.dumps({"params": params, "summary": summary}, indent=2))
     return summary

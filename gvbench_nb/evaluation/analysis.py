@@ -38,8 +38,9 @@ TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_se
 
 
 # ------------------------------------------------------------ finding results --
-def ensure_results(params_file: str | os.PathLike[str], methods: SequenceType[str] = ("sift-nn",),
-                   **overrides: Any) -> Path:
+def ensure_results(
+    params_file: str | os.PathLike[str], methods: SequenceType[str] = ("sift-nn",), **overrides: Any
+) -> Path:
     """Run only the ``methods`` whose ``pairs.csv`` is missing, then make ``results.csv`` current.
 
     What an analysis notebook runs when it asks (``notebook.load_results(...,
@@ -49,8 +50,11 @@ def ensure_results(params_file: str | os.PathLike[str], methods: SequenceType[st
     """
     params = config.load_params(params_file, **overrides)
     output_dir = Path(params["output_dir"])
-    missing = [m for m in method_registry.expand_methods(list(methods))
-               if not (pipeline.method_dir(output_dir, m) / "pairs.csv").is_file()]
+    missing = [
+        m
+        for m in method_registry.expand_methods(list(methods))
+        if not (pipeline.method_dir(output_dir, m) / "pairs.csv").is_file()
+    ]
     if missing:
         sequence = config.prepare_sequence(params)
         for method in missing:
@@ -63,8 +67,9 @@ def ensure_results(params_file: str | os.PathLike[str], methods: SequenceType[st
     return output_dir
 
 
-def find_output_dirs(root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs",
-                     sequences: SequenceType[str] | None = None) -> list[Path]:
+def find_output_dirs(
+    root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs", sequences: SequenceType[str] | None = None
+) -> list[Path]:
     """Sequence output folders under ``root`` holding a ``results.csv`` (sorted by name).
 
     With ``sequences``, exactly those folders (``root/<name>``); a missing one is an error.
@@ -75,7 +80,8 @@ def find_output_dirs(root: str | os.PathLike[str] = config.PROJECT_ROOT / "outpu
         absent = [str(f) for f in folders if not (f / "results.csv").is_file()]
         if absent:
             raise FileNotFoundError(
-                f"no results.csv in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)")
+                f"no results.csv in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)"
+            )
         return folders
     return sorted(p.parent for p in root.glob("*/results.csv"))
 
@@ -86,8 +92,10 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
     for folder in output_dirs:
         path = Path(folder) / "results.csv"
         if not path.is_file():
-            raise FileNotFoundError(f"{path} is missing: evaluate that output folder first "
-                                    "(python -m gvbench_nb run PARAMS, or analysis.ensure_results)")
+            raise FileNotFoundError(
+                f"{path} is missing: evaluate that output folder first "
+                "(python -m gvbench_nb run PARAMS, or analysis.ensure_results)"
+            )
         frames.append(pd.read_csv(path).assign(output_dir=str(Path(folder))))
     if not frames:
         raise ValueError("no output folders given: pass at least one folder holding results.csv")
@@ -104,8 +112,9 @@ def load_run(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
-def load_pairs_tables(output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
-                      ) -> dict[str, pd.DataFrame]:
+def load_pairs_tables(
+    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
+) -> dict[str, pd.DataFrame]:
     """Every method's ``pairs.csv`` of one output folder (default: all with results)."""
     methods = list(methods) if methods else pipeline.methods_with_results(Path(output_dir))
     return {m: pipeline.load_pairs_table(Path(output_dir), m) for m in methods}
@@ -170,8 +179,9 @@ def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
     return results[results.duplicated(RUN_KEY, keep=False)]
 
 
-def join_paper_table(results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
-                     ) -> pd.DataFrame:
+def join_paper_table(
+    results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
+) -> pd.DataFrame:
     """Long table of ours and the published values, one row a (method, profile, sequence, source).
 
     ``source`` is ``ours``, ``paper`` or ``GV-Bench repository``; ``profile`` is the
@@ -182,14 +192,17 @@ def join_paper_table(results: pd.DataFrame, paper: pd.DataFrame, repository: pd.
     Two runs with the same (sequence, profile, method) are an error, not a silent choice.
     """
     if "profile" not in results:
-        raise ValueError("the results have no profile column: evaluate the runs again "
-                         "(python -m gvbench_nb run PARAMS) so results.csv records each run's profile")
+        raise ValueError(
+            "the results have no profile column: evaluate the runs again "
+            "(python -m gvbench_nb run PARAMS) so results.csv records each run's profile"
+        )
     twice = duplicated_runs(results)
     if not twice.empty:
         where = twice.get("output_dir", pd.Series(["?"] * len(twice), index=twice.index))
         runs = "; ".join(f"{r.sequence}/{r.profile}/{r.method} in {w}" for r, w in zip(twice.itertuples(), where))
-        raise ValueError(f"the same (sequence, profile, method) appears more than once: {runs}; "
-                         "pass only one output folder for each")
+        raise ValueError(
+            f"the same (sequence, profile, method) appears more than once: {runs}; pass only one output folder for each"
+        )
     ours = results[["method", "profile", "sequence", *METRICS]].copy()
     ours["paper_name"] = ours["method"].map(method_registry.paper_name)
     ours["source"] = OURS_LABEL
@@ -213,8 +226,9 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = METRICS) ->
 
     Rows, sequences keep first-seen order; a published column exists only where it has values.
     """
-    wide = joined.pivot_table(index=["method", "profile"], columns=["sequence", "source"], values=list(metrics),
-                              aggfunc="first")
+    wide = joined.pivot_table(
+        index=["method", "profile"], columns=["sequence", "source"], values=list(metrics), aggfunc="first"
+    )
     wide = wide.reorder_levels([1, 0, 2], axis=1)
     sequence_order = list(dict.fromkeys(joined["sequence"]))
     row_order = [r for r in dict.fromkeys(zip(joined["method"], joined["profile"])) if r in wide.index]
@@ -223,22 +237,23 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = METRICS) ->
     wide = wide.loc[row_order, keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     wide.index = pd.MultiIndex.from_tuples(
-        [(f"{m} ({method_registry.paper_name(m)})", p) for m, p in wide.index],
-        names=["method", "profile"])
+        [(f"{m} ({method_registry.paper_name(m)})", p) for m, p in wide.index], names=["method", "profile"]
+    )
     return wide
 
 
-def paper_reference_table(paper: pd.DataFrame, methods: Iterable[str] | None = None,
-                          source: str = PAPER_LABEL) -> pd.DataFrame:
+def paper_reference_table(
+    paper: pd.DataFrame, methods: Iterable[str] | None = None, source: str = PAPER_LABEL
+) -> pd.DataFrame:
     """A published table (all its sequences) for ``methods`` (its own names kept for the
     methods we do not implement when ``methods`` is None), columns (sequence, metric, source)."""
     if methods is not None:
         paper = paper[paper["method"].isin(list(methods))]
     wide = paper.assign(source=source).pivot_table(
-        index="paper_name", columns=["sequence", "source"], values=list(METRICS), aggfunc="first")
+        index="paper_name", columns=["sequence", "source"], values=list(METRICS), aggfunc="first"
+    )
     wide = wide.reorder_levels([1, 0, 2], axis=1)
-    keys = [(s, m, source) for s in dict.fromkeys(paper["sequence"]) for m in METRICS
-            if (s, m, source) in wide.columns]
+    keys = [(s, m, source) for s in dict.fromkeys(paper["sequence"]) for m in METRICS if (s, m, source) in wide.columns]
     wide = wide.loc[list(dict.fromkeys(paper["paper_name"])), keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     return wide
@@ -271,8 +286,9 @@ def text_results_table(wide: pd.DataFrame) -> pd.DataFrame:
 def runtime_table(results: pd.DataFrame) -> pd.DataFrame:
     """Seconds per pair split by stage (extraction amortised over the pairs using an
     image), total, FPS = 1 / seconds per pair, and MR - one row a (sequence, method)."""
-    table = results[["sequence", "method", "profile", "device", *TIME_COLUMNS, "seconds_per_pair",
-                     "max_recall", "ap"]].copy()
+    table = results[
+        ["sequence", "method", "profile", "device", *TIME_COLUMNS, "seconds_per_pair", "max_recall", "ap"]
+    ].copy()
     table["fps"] = 1.0 / table["seconds_per_pair"]
     return table
 
@@ -283,8 +299,9 @@ def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.Pa
     return Path(cache_dir) if cache_dir else Path(output_dir).parent / "cache"
 
 
-def image_size_of_run(output_dir: str | os.PathLike[str], method: str, run: dict[str, Any], cache_dir: Path
-                      ) -> tuple[int, int] | None:
+def image_size_of_run(
+    output_dir: str | os.PathLike[str], method: str, run: dict[str, Any], cache_dir: Path
+) -> tuple[int, int] | None:
     """Original (width, height) of the run's first query image: from the feature cache,
     else (dense matchers, or no cache here) the image file's header; None when neither is there."""
     first_query = pipeline.load_pairs_table(Path(output_dir), method)["query"].iloc[0]
@@ -308,8 +325,9 @@ def image_size_of_run(output_dir: str | os.PathLike[str], method: str, run: dict
     return None
 
 
-def run_description(output_dir: str | os.PathLike[str], methods: SequenceType[str],
-                    cache_dir: str | os.PathLike[str] | None = None) -> str:
+def run_description(
+    output_dir: str | os.PathLike[str], methods: SequenceType[str], cache_dir: str | os.PathLike[str] | None = None
+) -> str:
     """One line naming device, profile and image sizes of the runs, for figure captions."""
     devices, profiles, sizes = set(), set(), set()
     for method in methods:
@@ -326,10 +344,14 @@ def run_description(output_dir: str | os.PathLike[str], methods: SequenceType[st
         native = f"{size[0]}x{size[1]}" if size else "?"
         longest = f"{'=' if resizing.get('resize_force') else '<='}{resize}" if resize else "native"
         fixed = resizing.get("resize_to")
-        sizes.add(f"{resizing['name']}: {native}, " + (f"resized to {fixed[0]}x{fixed[1]}" if fixed
-                                                       else f"longest side {longest}"))
-    return (f"device {' / '.join(sorted(devices))}; profile {' / '.join(sorted(profiles))}; "
-            f"images {'; '.join(sorted(sizes))}")
+        sizes.add(
+            f"{resizing['name']}: {native}, "
+            + (f"resized to {fixed[0]}x{fixed[1]}" if fixed else f"longest side {longest}")
+        )
+    return (
+        f"device {' / '.join(sorted(devices))}; profile {' / '.join(sorted(profiles))}; "
+        f"images {'; '.join(sorted(sizes))}"
+    )
 
 
 # ------------------------------------------------------------------- inliers --
@@ -341,8 +363,10 @@ def normalised_inliers(table: pd.DataFrame) -> pd.Series:
 
 def normalised_inlier_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """Long table: method, pair_index, label, num_inliers, normalised_inliers."""
-    frames = [t[["pair_index", "label", "num_inliers"]].assign(method=m, normalised_inliers=normalised_inliers(t))
-              for m, t in tables.items()]
+    frames = [
+        t[["pair_index", "label", "num_inliers"]].assign(method=m, normalised_inliers=normalised_inliers(t))
+        for m, t in tables.items()
+    ]
     return pd.concat(frames, ignore_index=True)
 
 
@@ -359,10 +383,12 @@ def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
     top_false = float(false_scores.max())
     largest = float(table["score"].max()) or 1.0
     return {
-        "n_true": int(len(true_scores)), "n_false": int(len(false_scores)),
+        "n_true": int(len(true_scores)),
+        "n_false": int(len(false_scores)),
         "true_zero_inliers": float(np.mean(true_scores == 0)),
         "false_zero_inliers": float(np.mean(false_scores == 0)),
-        "top_false_score": top_false, "top_false_normalised": top_false / largest,
+        "top_false_score": top_false,
+        "top_false_normalised": top_false / largest,
         "true_above_top_false": float(np.mean(true_scores > top_false)),
         "true_in_overlap": float(np.mean(true_scores <= top_false)),
     }
@@ -399,8 +425,9 @@ def ground_truth_offsets(table: pd.DataFrame, image_root: str | os.PathLike[str]
         assert image_root is not None, "poses are read from an image_root"
         missing = sorted(set(table["query"]).union(table["reference"]) - set(poses.index))
         if missing:
-            raise KeyError(f"{Path(image_root) / 'poses.csv'} has no pose for {len(missing)} images, "
-                           f"e.g. {missing[:3]}")
+            raise KeyError(
+                f"{Path(image_root) / 'poses.csv'} has no pose for {len(missing)} images, e.g. {missing[:3]}"
+            )
         centres = poses[["x", "y", "z"]].to_numpy(dtype=float)
         axes = poses[["r02", "r12", "r22"]].to_numpy(dtype=float)  # optical axis (camera z) in the world
         row = {name: i for i, name in enumerate(poses.index)}
@@ -408,7 +435,8 @@ def ground_truth_offsets(table: pd.DataFrame, image_root: str | os.PathLike[str]
         r = np.array([row[n] for n in table["reference"]], dtype=int)
         out["distance_m"] = np.linalg.norm(centres[q] - centres[r], axis=1)
         cosine = np.einsum("ij,ij->i", axes[q], axes[r]) / (
-            np.linalg.norm(axes[q], axis=1) * np.linalg.norm(axes[r], axis=1))
+            np.linalg.norm(axes[q], axis=1) * np.linalg.norm(axes[r], axis=1)
+        )
         out["heading_deg"] = np.degrees(np.arccos(np.clip(cosine, -1.0, 1.0)))
     return out
 
@@ -425,13 +453,16 @@ def top_false_negatives(table: pd.DataFrame, k: int = 5) -> pd.DataFrame:
     return true.sort_values(["score", "pair_index"], ascending=[True, True], kind="mergesort").head(k)
 
 
-def failures_table(tables: dict[str, pd.DataFrame], k: int = 5,
-                   image_root: str | os.PathLike[str] | None = None) -> pd.DataFrame:
+def failures_table(
+    tables: dict[str, pd.DataFrame], k: int = 5, image_root: str | os.PathLike[str] | None = None
+) -> pd.DataFrame:
     """Top false positives and false negatives of every method with their offsets."""
     frames = []
     for method, table in tables.items():
-        for kind, rows in (("false_positive", top_false_positives(table, k)),
-                           ("false_negative", top_false_negatives(table, k))):
+        for kind, rows in (
+            ("false_positive", top_false_positives(table, k)),
+            ("false_negative", top_false_negatives(table, k)),
+        ):
             rows = rows.assign(method=method, kind=kind, rank=np.arange(1, len(rows) + 1))
             frames.append(rows.join(ground_truth_offsets(rows, image_root)))
     columns = ["method", "kind", "rank", "pair_index", "query", "reference", "label", "score", "num_matches"]
@@ -439,8 +470,14 @@ def failures_table(tables: dict[str, pd.DataFrame], k: int = 5,
     return frame[columns + [c for c in ("frame_offset", "distance_m", "heading_deg") if c in frame]]
 
 
-def near_miss_false_positives(table: pd.DataFrame, offsets: pd.DataFrame, top_k: int = 20,
-                              column: str = "frame_offset", low: float = 3, high: float = 5) -> dict[str, Any]:
+def near_miss_false_positives(
+    table: pd.DataFrame,
+    offsets: pd.DataFrame,
+    top_k: int = 20,
+    column: str = "frame_offset",
+    low: float = 3,
+    high: float = 5,
+) -> dict[str, Any]:
     """How many of the ``top_k`` highest-scoring false pairs lie just outside the
     ground-truth threshold (``low <= offset <= high``), against the share of such
     pairs among all false pairs: the ground-truth ambiguity the paper discusses."""
@@ -449,15 +486,24 @@ def near_miss_false_positives(table: pd.DataFrame, offsets: pd.DataFrame, top_k:
     top = top_false_positives(table, top_k)
     n_near_top = int(near.loc[top.index].sum())
     return {
-        "top_k": int(len(top)), "column": column, "low": low, "high": high,
-        "near_in_top": n_near_top, "near_share_in_top": n_near_top / max(len(top), 1),
+        "top_k": int(len(top)),
+        "column": column,
+        "low": low,
+        "high": high,
+        "near_in_top": n_near_top,
+        "near_share_in_top": n_near_top / max(len(top), 1),
         "near_share_all_false": float(near[false].mean()) if false.any() else float("nan"),
         "top_k_min_score": float(top["score"].min()) if len(top) else float("nan"),
     }
 
 
-def match_lines(output_dir: str | os.PathLike[str], method: str, query: str, reference: str,
-                cache_dir: str | os.PathLike[str] | None = None) -> dict[str, np.ndarray]:
+def match_lines(
+    output_dir: str | os.PathLike[str],
+    method: str,
+    query: str,
+    reference: str,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, np.ndarray]:
     """Matched points of one pair (original pixels) and its inlier mask, from the stores.
 
     Reads the run's match store and, for detector-based methods, the keypoints in the
@@ -486,13 +532,17 @@ def match_lines(output_dir: str | os.PathLike[str], method: str, query: str, ref
         features.close()
     pair_matches = entry["matches"].astype(int).reshape(-1, 2)
     # float32: the cache may hold float16 keypoints (as hloc stores them).
-    return {"points0": points0[pair_matches[:, 0]].astype(np.float32),
-            "points1": points1[pair_matches[:, 1]].astype(np.float32), "inlier_mask": inlier_mask}
+    return {
+        "points0": points0[pair_matches[:, 0]].astype(np.float32),
+        "points1": points1[pair_matches[:, 1]].astype(np.float32),
+        "inlier_mask": inlier_mask,
+    }
 
 
 # ------------------------------------------------------------------ bootstrap --
-def weighted_ap_max_recall(labels: np.ndarray, scores: np.ndarray, weights: np.ndarray
-                           ) -> tuple[np.ndarray, np.ndarray]:
+def weighted_ap_max_recall(
+    labels: np.ndarray, scores: np.ndarray, weights: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """AP and MR of many weightings of the same pairs at once.
 
     ``weights`` is (B, N): how often each pair counts in each of B resamples. Equals
@@ -553,9 +603,14 @@ def align_tables(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
         if other != keys:
             raise ValueError(
                 f"methods {methods[0]!r} and {method!r} scored different pairs ({len(keys - other)} only in the first, "
-                f"{len(other - keys)} only in the second); rerun them on the same pairs (same --limit)")
-        base = base.merge(table[["query", "reference", "score"]].rename(columns={"score": f"score:{method}"}),
-                          on=["query", "reference"], how="left", validate="one_to_one")
+                f"{len(other - keys)} only in the second); rerun them on the same pairs (same --limit)"
+            )
+        base = base.merge(
+            table[["query", "reference", "score"]].rename(columns={"score": f"score:{method}"}),
+            on=["query", "reference"],
+            how="left",
+            validate="one_to_one",
+        )
     return base
 
 
@@ -579,8 +634,16 @@ class Bootstrap:
                 values = frame[method].to_numpy()
                 valid = values[~np.isnan(values)]
                 low, high = np.percentile(valid, [tail, 100 - tail]) if len(valid) else (np.nan, np.nan)
-                rows.append({"method": method, "metric": metric, "estimate": self.estimates.loc[method, metric],
-                             "low": low, "high": high, "n_valid": len(valid)})
+                rows.append(
+                    {
+                        "method": method,
+                        "metric": metric,
+                        "estimate": self.estimates.loc[method, metric],
+                        "low": low,
+                        "high": high,
+                        "n_valid": len(valid),
+                    }
+                )
         return pd.DataFrame(rows)
 
     def pairwise(self, metric: str = "max_recall", level: float = 0.975) -> pd.DataFrame:
@@ -595,8 +658,16 @@ class Bootstrap:
                 both = frame[[a, b]].dropna()
                 wins = float((both[a] > both[b]).mean()) if len(both) else float("nan")
                 ties = float((both[a] == both[b]).mean()) if len(both) else float("nan")
-                rows.append({"metric": metric, "method_a": a, "method_b": b, "a_beats_b": wins, "tied": ties,
-                             "a_better": bool(wins > level)})
+                rows.append(
+                    {
+                        "metric": metric,
+                        "method_a": a,
+                        "method_b": b,
+                        "a_beats_b": wins,
+                        "tied": ties,
+                        "a_better": bool(wins > level),
+                    }
+                )
         return pd.DataFrame(rows)
 
     def ranking_matrix(self, metric: str = "max_recall", level: float = 0.975) -> pd.DataFrame:
@@ -629,7 +700,10 @@ def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = 1000, seed: in
         ap, max_recall = weighted_ap_max_recall(labels, scores, np.ones((1, len(labels))))
         estimates[method] = {"ap": ap[0], "max_recall": max_recall[0]}
     return Bootstrap(
-        methods=methods, estimates=pd.DataFrame(estimates).T,
+        methods=methods,
+        estimates=pd.DataFrame(estimates).T,
         samples={metric: pd.DataFrame(values) for metric, values in samples.items()},
-        n_queries=int(query_codes.max()) + 1, n_pairs=len(aligned), seed=seed,
+        n_queries=int(query_codes.max()) + 1,
+        n_pairs=len(aligned),
+        seed=seed,
     )

@@ -17,17 +17,32 @@ from gvbench_nb import pipeline
 from gvbench_nb.evaluation import analysis
 
 PICKS = ("index", "false_positive", "false_negative")
-VIEW_COLUMNS = ["method", "pair_index", "query", "reference", "label", "num_matches", "num_inliers", "score",
-                "rank", "n_pairs", "max_false_score", "above_all_false"]
+VIEW_COLUMNS = [
+    "method",
+    "pair_index",
+    "query",
+    "reference",
+    "label",
+    "num_matches",
+    "num_inliers",
+    "score",
+    "rank",
+    "n_pairs",
+    "max_false_score",
+    "above_all_false",
+]
 
 
-def load_tables(output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
-                ) -> dict[str, pd.DataFrame]:
+def load_tables(
+    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
+) -> dict[str, pd.DataFrame]:
     """``pairs.csv`` of each method (default: every method with results in ``output_dir``)."""
     methods = list(methods) if methods else pipeline.methods_with_results(Path(output_dir))
     if not methods:
-        raise pipeline.ResultsError(f"{output_dir} holds no method results (<method>/pairs.csv); run a method "
-                                    "first (python -m gvbench_nb run PARAMS --methods NAME)")
+        raise pipeline.ResultsError(
+            f"{output_dir} holds no method results (<method>/pairs.csv); run a method "
+            "first (python -m gvbench_nb run PARAMS --methods NAME)"
+        )
     return {method: pipeline.load_pairs_table(Path(output_dir), method) for method in methods}
 
 
@@ -37,8 +52,13 @@ def score_ranks(table: pd.DataFrame) -> pd.Series:
     return table["score"].rank(method="min", ascending=False).astype(int)
 
 
-def choose_pair(tables: dict[str, pd.DataFrame], pick: str = "index", pair_index: int | None = None,
-                pick_method: str | None = None, pick_rank: int = 1) -> int:
+def choose_pair(
+    tables: dict[str, pd.DataFrame],
+    pick: str = "index",
+    pair_index: int | None = None,
+    pick_method: str | None = None,
+    pick_rank: int = 1,
+) -> int:
     """The ``pair_index`` to show: ``pair_index`` itself (``pick='index'``), or the
     ``pick_rank``-th top false positive (highest-scoring false pair) or false negative
     (lowest-scoring true pair) of ``pick_method`` (default: the first method)."""
@@ -47,15 +67,19 @@ def choose_pair(tables: dict[str, pd.DataFrame], pick: str = "index", pair_index
     first = next(iter(tables.values()))
     if pick == "index":
         if pair_index is None or not 0 <= int(pair_index) < len(first):
-            raise ValueError(f"pair_index must be a pair of the run, 0 to {len(first) - 1}, got {pair_index!r}; "
-                             "or set pick to 'false_positive' or 'false_negative'")
+            raise ValueError(
+                f"pair_index must be a pair of the run, 0 to {len(first) - 1}, got {pair_index!r}; "
+                "or set pick to 'false_positive' or 'false_negative'"
+            )
         return int(pair_index)
     method = pick_method or next(iter(tables))
     if method not in tables:
-        raise ValueError(f"pick_method {method!r} is not among the methods shown ({', '.join(tables)}); "
-                         "add it to methods")
+        raise ValueError(
+            f"pick_method {method!r} is not among the methods shown ({', '.join(tables)}); add it to methods"
+        )
     ranked = (analysis.top_false_positives if pick == "false_positive" else analysis.top_false_negatives)(
-        tables[method], int(pick_rank))
+        tables[method], int(pick_rank)
+    )
     if len(ranked) < int(pick_rank):
         kind = "false" if pick == "false_positive" else "true"
         raise ValueError(f"{method} has {len(ranked)} {kind} pairs, fewer than pick_rank {pick_rank}; lower pick_rank")
@@ -69,20 +93,34 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
     rows = []
     for method, table in tables.items():
         if not 0 <= pair_index < len(table):
-            raise ValueError(f"pair_index {pair_index} is outside {method}'s {len(table)} pairs; "
-                             f"pick 0 to {len(table) - 1}")
+            raise ValueError(
+                f"pair_index {pair_index} is outside {method}'s {len(table)} pairs; pick 0 to {len(table) - 1}"
+            )
         row = table.iloc[pair_index]
         false_scores = table.loc[table["label"] == 0, "score"]
         max_false = float(false_scores.max()) if len(false_scores) else float("-inf")
-        rows.append({"method": method, "pair_index": int(row["pair_index"]), "query": row["query"],
-                     "reference": row["reference"], "label": int(row["label"]), "num_matches": int(row["num_matches"]),
-                     "num_inliers": int(row["num_inliers"]), "score": row["score"],
-                     "rank": int(score_ranks(table).iloc[pair_index]), "n_pairs": len(table),
-                     "max_false_score": max_false, "above_all_false": bool(row["score"] > max_false)})
+        rows.append(
+            {
+                "method": method,
+                "pair_index": int(row["pair_index"]),
+                "query": row["query"],
+                "reference": row["reference"],
+                "label": int(row["label"]),
+                "num_matches": int(row["num_matches"]),
+                "num_inliers": int(row["num_inliers"]),
+                "score": row["score"],
+                "rank": int(score_ranks(table).iloc[pair_index]),
+                "n_pairs": len(table),
+                "max_false_score": max_false,
+                "above_all_false": bool(row["score"] > max_false),
+            }
+        )
     view = pd.DataFrame(rows, columns=VIEW_COLUMNS)
     if view[["query", "reference"]].drop_duplicates().shape[0] > 1:
-        raise ValueError(f"pair {pair_index} is not the same pair in every method's pairs.csv "
-                         f"({', '.join(view['method'])}); show methods run on the same pairs")
+        raise ValueError(
+            f"pair {pair_index} is not the same pair in every method's pairs.csv "
+            f"({', '.join(view['method'])}); show methods run on the same pairs"
+        )
     return view
 
 

@@ -28,6 +28,8 @@ EXTRACTOR_TYPES: dict[str, str] = {
 
 
 def build_extractor(conf: dict[str, Any], device: torch.device) -> Callable[[np.ndarray], dict[str, np.ndarray]]:
-    kind = registry.resolve_type("extractor type", conf["type"], EXTRACTOR_TYPES, f"extractor conf {conf.get('name', '?')!r}")
+    kind = registry.resolve_type(
+        "extractor type", conf["type"], EXTRACTOR_TYPES, f"extractor conf {conf.get('name', '?')!r}"
+    )
     extractor: Callable[[np.ndarray], dict[str, np.ndarray]] = kind(conf, device)
     return extractor

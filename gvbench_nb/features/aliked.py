@@ -1,5 +1,4 @@
-"""ALIKED through kornia.
-"""
+"""ALIKED through kornia."""
 
 from __future__ import annotations
 
@@ -21,8 +20,11 @@ class AlikedExtractor:
         weights.require(*conf["checkpoints"])
         self.device = device
         self.model = ALIKED.from_pretrained(
-            conf["model_name"], max_num_keypoints=conf["max_keypoints"],
-            detection_threshold=conf["detection_threshold"], nms_radius=conf["nms_radius"], device=device,
+            conf["model_name"],
+            max_num_keypoints=conf["max_keypoints"],
+            detection_threshold=conf["detection_threshold"],
+            nms_radius=conf["nms_radius"],
+            device=device,
         ).eval()
 
     @torch.inference_mode()

@@ -14,12 +14,10 @@ import torch
 Features = dict[str, np.ndarray]
 
 
-
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
     if device in (None, "auto"):
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
     return torch.device(device)
-
 
 
 def to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
@@ -28,11 +26,9 @@ def to_tensor(image: np.ndarray, device: torch.device) -> torch.Tensor:
     return tensor.to(device)
 
 
-
 def to_uint8(image: np.ndarray) -> np.ndarray:
     """The 8-bit image OpenCV's detectors need (the prepared image is float after resizing)."""
     return image if image.dtype == np.uint8 else np.clip(np.rint(image), 0, 255).astype(np.uint8)
-
 
 
 def empty_features(dim: int) -> Features:

@@ -1,5 +1,4 @@
-"""DISK through kornia.
-"""
+"""DISK through kornia."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""ORB through OpenCV.
-"""
+"""ORB through OpenCV."""
 
 from __future__ import annotations
 
@@ -18,7 +17,9 @@ class OrbExtractor:
     def __init__(self, conf: dict[str, Any], device: torch.device):
         # ORB.create is ORB_create; OpenCV's stubs type only the class method.
         self.orb = cv2.ORB.create(
-            nfeatures=conf["max_keypoints"], scaleFactor=conf.get("scale_factor", 1.2), nlevels=conf.get("levels", 8),
+            nfeatures=conf["max_keypoints"],
+            scaleFactor=conf.get("scale_factor", 1.2),
+            nlevels=conf.get("levels", 8),
             fastThreshold=conf.get("fast_threshold", 20),
         )
 

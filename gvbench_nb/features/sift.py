@@ -1,5 +1,4 @@
-"""SIFT: COLMAP's through pycolmap (the paper's, hloc's ``dog`` extractor) and OpenCV's.
-"""
+"""SIFT: COLMAP's through pycolmap (the paper's, hloc's ``dog`` extractor) and OpenCV's."""
 
 from __future__ import annotations
 
@@ -19,7 +18,6 @@ def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     descriptors = descriptors / (np.abs(descriptors).sum(axis=-1, keepdims=True) + eps)
     descriptors = np.sqrt(np.maximum(descriptors, eps))
     return descriptors / (np.linalg.norm(descriptors, axis=-1, keepdims=True) + eps)
-
 
 
 class ColmapSiftExtractor:
@@ -43,19 +41,24 @@ class ColmapSiftExtractor:
         options.first_octave = conf["first_octave"]
         options.peak_threshold = conf["peak_threshold"]
         options.max_num_features = conf["max_keypoints"]
-        options.normalization = pycolmap.Normalization.L1_ROOT if conf.get("root_sift", True) \
-            else pycolmap.Normalization.L2
+        options.normalization = (
+            pycolmap.Normalization.L1_ROOT if conf.get("root_sift", True) else pycolmap.Normalization.L2
+        )
         use_gpu = pycolmap.has_cuda and device.type == "cuda"
         with warnings.catch_warnings():  # pycolmap 4 deprecates Sift, the class hloc uses
             warnings.simplefilter("ignore", DeprecationWarning)
-            self.sift = pycolmap.Sift(options=pycolmap.FeatureExtractionOptions(sift=options),
-                                      device=pycolmap.Device.cuda if use_gpu else pycolmap.Device.cpu)
+            self.sift = pycolmap.Sift(
+                options=pycolmap.FeatureExtractionOptions(sift=options),
+                device=pycolmap.Device.cuda if use_gpu else pycolmap.Device.cpu,
+            )
         self._lock = threading.Lock()  # one extractor object, several workers: one image at a time
 
     def __call__(self, image: np.ndarray) -> Features:
         if image.ndim != 2:
-            raise ValueError(f"COLMAP SIFT needs a grayscale image, got shape {image.shape}; "
-                             "set 'grayscale': True in the extractor conf")
+            raise ValueError(
+                f"COLMAP SIFT needs a grayscale image, got shape {image.shape}; "
+                "set 'grayscale': True in the extractor conf"
+            )
         normalised = np.ascontiguousarray(image.astype(np.float32) / np.float32(255.0))
         with self._lock:
             keypoints, descriptors = self.sift.extract(normalised)
@@ -68,7 +71,6 @@ class ColmapSiftExtractor:
             "scores": np.zeros(len(keypoints), np.float32),
             "descriptors": np.ascontiguousarray(descriptors, dtype=np.float32),
         }
-
 
 
 class OpenCVSiftExtractor:

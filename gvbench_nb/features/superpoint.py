@@ -72,9 +72,7 @@ def simple_nms(scores: Tensor, nms_radius: int) -> Tensor:
     return torch.where(max_mask, scores, zeros)
 
 
-def remove_borders(
-    keypoints: Tensor, scores: Tensor, border: int, height: int, width: int
-) -> tuple[Tensor, Tensor]:
+def remove_borders(keypoints: Tensor, scores: Tensor, border: int, height: int, width: int) -> tuple[Tensor, Tensor]:
     """Drop keypoints closer than ``border`` pixels to the image edge.
 
     ``keypoints``: (N, 2) integer (row, col) = (y, x), the order of ``nonzero``
@@ -218,15 +216,11 @@ class SuperPoint(nn.Module):
             scores_all.append(kpt_scores)
 
         dense = self.dense_descriptors(features)
-        descriptors_all = [
-            sample_descriptors(k[None], d[None], 8)[0].t() for k, d in zip(keypoints_all, dense)
-        ]
+        descriptors_all = [sample_descriptors(k[None], d[None], 8)[0].t() for k, d in zip(keypoints_all, dense)]
         return {"keypoints": keypoints_all, "scores": scores_all, "descriptors": descriptors_all}
 
     @classmethod
-    def from_pretrained(
-        cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu"
-    ) -> SuperPoint:
+    def from_pretrained(cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperPoint:
         """Same as :func:`load_superpoint`."""
         return load_superpoint(conf, device)
 

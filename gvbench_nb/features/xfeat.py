@@ -1,5 +1,4 @@
-"""XFeat through kornia.
-"""
+"""XFeat through kornia."""
 
 from __future__ import annotations
 

@@ -26,6 +26,5 @@ class PreparedMatcher(Protocol):
     def match_prepared(self, prepared0: Any, prepared1: Any) -> Matches: ...
 
 
-
 def empty_matches() -> Matches:
     return np.zeros((0, 2), np.int64), np.zeros((0,), np.float32)

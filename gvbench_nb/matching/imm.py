@@ -30,8 +30,14 @@ SETUP_HINT = "run `make setup-imm` and use its venv (.venv-imm/bin/python), or `
 # The image preparation of the GV-Bench repository's loop (dataloaders/ImagePairDataset.py:
 # RGB at a fixed 512x288, width x height) and vismatch's default keypoint budget (get_matcher).
 MATCHER_DEFAULTS: dict[str, Any] = {
-    "type": "imm", "dense": True, "grayscale": False, "resize_to": [512, 288], "resize_max": None,
-    "resize_force": False, "max_num_keypoints": 2048, "checkpoints": [],
+    "type": "imm",
+    "dense": True,
+    "grayscale": False,
+    "resize_to": [512, 288],
+    "resize_max": None,
+    "resize_force": False,
+    "max_num_keypoints": 2048,
+    "checkpoints": [],
 }
 
 # Files vismatch's matchers load from <torch hub dir>/checkpoints at first use (its LightGlue
@@ -64,7 +70,7 @@ def is_imm(name: str) -> bool:
 
 def vismatch_name(method: str) -> str:
     """``imm:sift-nn`` -> ``sift-nn``."""
-    return method[len(PREFIX):]
+    return method[len(PREFIX) :]
 
 
 def vismatch_installed() -> bool:
@@ -101,8 +107,10 @@ def check_name(method: str) -> None:
 
         close = difflib.get_close_matches(name, known, n=1)
         hint = f" Did you mean 'imm:{close[0]}'?" if close else ""
-        raise ImmUnavailableError(f"vismatch {vismatch_version()} has no matcher {name!r} (method {method!r}).{hint} "
-                                  f"`python -m gvbench_nb methods` lists its names")
+        raise ImmUnavailableError(
+            f"vismatch {vismatch_version()} has no matcher {name!r} (method {method!r}).{hint} "
+            f"`python -m gvbench_nb methods` lists its names"
+        )
 
 
 def matcher_conf(method: str, overrides: dict[str, Any] | None = None) -> dict[str, Any]:
@@ -123,7 +131,8 @@ def paper_name(method: str) -> str:
 def checkpoints_dir() -> Path:
     """Where vismatch's LightGlue and DISK look for their checkpoints (torch's hub folder)."""
     torch_home = os.environ.get("TORCH_HOME") or os.path.join(
-        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "torch")
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "torch"
+    )
     return Path(torch_home) / "hub" / "checkpoints"
 
 
@@ -138,17 +147,23 @@ def missing_weights(method: str) -> list[str] | None:
 def require(method: str) -> None:
     """Fail before any work when vismatch or a method's known weights are missing."""
     if not vismatch_installed():
-        raise ImmUnavailableError(f"method {method!r} needs vismatch, which is not installed in this environment; "
-                                  f"{SETUP_HINT}")
+        raise ImmUnavailableError(
+            f"method {method!r} needs vismatch, which is not installed in this environment; {SETUP_HINT}"
+        )
     check_name(method)
     missing = missing_weights(method)
     if missing:
         from gvbench_nb.weights import MissingWeightsError
 
-        hint = "; `python -m gvbench_nb weights --link` copies ours under vismatch's names" if any(
-            f in OUR_NAMES for f in missing) else ""
-        raise MissingWeightsError(f"method {method!r} needs {', '.join(missing)} in {checkpoints_dir()} "
-                                  f"(vismatch loads them from there){hint}")
+        hint = (
+            "; `python -m gvbench_nb weights --link` copies ours under vismatch's names"
+            if any(f in OUR_NAMES for f in missing)
+            else ""
+        )
+        raise MissingWeightsError(
+            f"method {method!r} needs {', '.join(missing)} in {checkpoints_dir()} "
+            f"(vismatch loads them from there){hint}"
+        )
 
 
 def weights_label(method: str) -> str:
@@ -164,11 +179,14 @@ def method_rows() -> list[dict[str, Any]]:
     for name in available_names():
         method = PREFIX + name
         missing = missing_weights(method)
-        rows.append({
-            "method": method, "weights": weights_label(method),
-            "available": "unknown" if missing is None else not missing,
-            "missing": ", ".join(missing or []),
-        })
+        rows.append(
+            {
+                "method": method,
+                "weights": weights_label(method),
+                "available": "unknown" if missing is None else not missing,
+                "missing": ", ".join(missing or []),
+            }
+        )
     return rows
 
 
@@ -205,13 +223,15 @@ class ImmPairMatcher:
         self.torch = torch
         self.device = str(device)
         try:
-            self.matcher = get_matcher(conf["vismatch_name"], device=self.device,
-                                       max_num_keypoints=conf["max_num_keypoints"])
+            self.matcher = get_matcher(
+                conf["vismatch_name"], device=self.device, max_num_keypoints=conf["max_num_keypoints"]
+            )
         except Exception as error:  # vismatch fetching weights offline, a missing extra package, ...
             raise ImmUnavailableError(
                 f"vismatch could not build matcher {conf['vismatch_name']!r} ({type(error).__name__}: {error}); "
                 f"its weights come from HuggingFace or GitHub at first use: run it once where those are "
-                f"reachable, or put its files where vismatch loads them") from error
+                f"reachable, or put its files where vismatch loads them"
+            ) from error
 
     def to_tensor(self, image: np.ndarray) -> Any:
         if image.ndim == 2:
@@ -222,11 +242,16 @@ class ImmPairMatcher:
     def __call__(self, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with self.torch.inference_mode():
             matched = self.matcher._forward(self.to_tensor(image0), self.to_tensor(image1))
-        points0, points1 = (np.asarray(_numpy(p) if p is not None else np.empty((0, 2)), dtype=np.float32).reshape(-1, 2)
-                            for p in matched[:2])
+        points0, points1 = (
+            np.asarray(_numpy(p) if p is not None else np.empty((0, 2)), dtype=np.float32).reshape(-1, 2)
+            for p in matched[:2]
+        )
         confidences = _numpy(matched[6]) if len(matched) > 6 and matched[6] is not None else None
-        scores = (np.ones(len(points0), dtype=np.float32) if confidences is None
-                  else np.asarray(confidences, dtype=np.float32).ravel())
+        scores = (
+            np.ones(len(points0), dtype=np.float32)
+            if confidences is None
+            else np.asarray(confidences, dtype=np.float32).ravel()
+        )
         # As vismatch's forward does before its RANSAC: drop matches with a point outside its image
         # (padding some matchers add).
         (h0, w0), (h1, w1) = image0.shape[:2], image1.shape[:2]

@@ -1,5 +1,4 @@
-"""LightGlue (and LighterGlue for XFeat) through kornia.
-"""
+"""LightGlue (and LighterGlue for XFeat) through kornia."""
 
 from __future__ import annotations
 
@@ -36,11 +35,15 @@ class LightGlueMatcher:
         # On CUDA kornia's own forward already attends through scaled_dot_product_attention.
         self.cross_attention = conf.get("cross_attention", "kornia")
         if self.cross_attention not in lightglue_prepared.CROSS_ATTENTIONS:
-            raise ValueError(f"matcher {conf.get('name', conf['type'])!r}: unknown cross_attention "
-                             f"{self.cross_attention!r}; use one of {', '.join(lightglue_prepared.CROSS_ATTENTIONS)}")
+            raise ValueError(
+                f"matcher {conf.get('name', conf['type'])!r}: unknown cross_attention "
+                f"{self.cross_attention!r}; use one of {', '.join(lightglue_prepared.CROSS_ATTENTIONS)}"
+            )
         if self.cross_attention == "sdpa" and device.type == "cpu" and not self.can_prepare:
-            raise ValueError(f"matcher {conf.get('name', conf['type'])!r}: cross_attention 'sdpa' needs the prepared "
-                             "CPU path (no mixed precision, scale/orientation or LAF inputs); drop the option")
+            raise ValueError(
+                f"matcher {conf.get('name', conf['type'])!r}: cross_attention 'sdpa' needs the prepared "
+                "CPU path (no mixed precision, scale/orientation or LAF inputs); drop the option"
+            )
 
     def _side(self, features: dict[str, np.ndarray]) -> dict[str, torch.Tensor]:
         return {
@@ -62,8 +65,10 @@ class LightGlueMatcher:
     def prepare(self, features: dict[str, np.ndarray]) -> PreparedImage | None:
         """One image's LightGlue state before it meets the other image (None: no keypoints)."""
         if not self.can_prepare:
-            raise RuntimeError("this LightGlue cannot be prepared per image (CUDA, mixed precision or "
-                               "scale/orientation inputs); call the matcher on two feature dicts")
+            raise RuntimeError(
+                "this LightGlue cannot be prepared per image (CUDA, mixed precision or "
+                "scale/orientation inputs); call the matcher on two feature dicts"
+            )
         if len(features["keypoints"]) == 0:
             return None
         side = self._side(features)

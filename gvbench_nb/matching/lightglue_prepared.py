@@ -59,8 +59,9 @@ def supports_prepared(model: LightGlue) -> bool:
 
 
 @torch.inference_mode()
-def prepare_image(model: LightGlue, keypoints: torch.Tensor, descriptors: torch.Tensor,
-                  image_size: torch.Tensor) -> PreparedImage:
+def prepare_image(
+    model: LightGlue, keypoints: torch.Tensor, descriptors: torch.Tensor, image_size: torch.Tensor
+) -> PreparedImage:
     """The per-image part of LightGlue for ``keypoints`` (1, N, 2) in pixels,
     ``descriptors`` (1, N, input_dim) and ``image_size`` (1, 2) as (width, height); N > 0."""
     keypoints = normalize_keypoints(keypoints, image_size).clone()
@@ -81,8 +82,9 @@ def _transformer(model: LightGlue, index: int) -> TransformerLayer:
     return cast(TransformerLayer, model.transformers[index])
 
 
-def _cross_messages(query_key0: torch.Tensor, query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
-                    attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+def _cross_messages(
+    query_key0: torch.Tensor, query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor, attention: str
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Bidirectional cross-attention of pre-scaled query/keys (1, H, N, d), heads not yet merged.
 
     ``kornia``: kornia's CPU path, one similarity matrix softmaxed both ways. ``sdpa``:
@@ -102,9 +104,16 @@ def _cross_messages(query_key0: torch.Tensor, query_key1: torch.Tensor, value0: 
     return message0, message1
 
 
-def _cross_block(cross: CrossBlock, x0: torch.Tensor, x1: torch.Tensor, query_key0: torch.Tensor,
-                 query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor,
-                 attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+def _cross_block(
+    cross: CrossBlock,
+    x0: torch.Tensor,
+    x1: torch.Tensor,
+    query_key0: torch.Tensor,
+    query_key1: torch.Tensor,
+    value0: torch.Tensor,
+    value1: torch.Tensor,
+    attention: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """The rest of kornia's ``CrossBlock.forward`` (CPU path, no mask) from its projections."""
     message0, message1 = _cross_messages(query_key0, query_key1, value0, value1, attention)
     message0, message1 = (cross.to_out(t.transpose(1, 2).flatten(start_dim=-2)) for t in (message0, message1))
@@ -118,15 +127,31 @@ def _projections(cross: CrossBlock, x: torch.Tensor) -> tuple[torch.Tensor, torc
     return query_key * cross.scale**0.5, value
 
 
-def _first_cross_block(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
-                       attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+def _first_cross_block(
+    model: LightGlue, image0: PreparedImage, image1: PreparedImage, attention: str
+) -> tuple[torch.Tensor, torch.Tensor]:
     """kornia ``CrossBlock.forward`` of layer 0 from prepared projections."""
-    return _cross_block(_transformer(model, 0).cross_attn, image0.descriptors, image1.descriptors,
-                        image0.query_key, image1.query_key, image0.value, image1.value, attention)
+    return _cross_block(
+        _transformer(model, 0).cross_attn,
+        image0.descriptors,
+        image1.descriptors,
+        image0.query_key,
+        image1.query_key,
+        image0.value,
+        image1.value,
+        attention,
+    )
 
 
-def _layer(model: LightGlue, index: int, desc0: torch.Tensor, desc1: torch.Tensor, encoding0: torch.Tensor,
-           encoding1: torch.Tensor, attention: str) -> tuple[torch.Tensor, torch.Tensor]:
+def _layer(
+    model: LightGlue,
+    index: int,
+    desc0: torch.Tensor,
+    desc1: torch.Tensor,
+    encoding0: torch.Tensor,
+    encoding1: torch.Tensor,
+    attention: str,
+) -> tuple[torch.Tensor, torch.Tensor]:
     """kornia ``TransformerLayer.forward`` (no masks); kornia's own module when attention is kornia's."""
     layer = _transformer(model, index)
     if attention == "kornia":
@@ -136,8 +161,14 @@ def _layer(model: LightGlue, index: int, desc0: torch.Tensor, desc1: torch.Tenso
     return _cross_block(layer.cross_attn, desc0, desc1, query_key0, query_key1, value0, value1, attention)
 
 
-def _prune(model: LightGlue, layer: int, confidence: torch.Tensor | None, descriptors: torch.Tensor,
-           encoding: torch.Tensor, indices: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def _prune(
+    model: LightGlue,
+    layer: int,
+    confidence: torch.Tensor | None,
+    descriptors: torch.Tensor,
+    encoding: torch.Tensor,
+    indices: torch.Tensor,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """One image's point pruning after ``layer``: the points LightGlue keeps, as kornia keeps them."""
     # kornia fills model.log_assignment with MatchAssignments; ModuleList types its items Module.
     matchability = cast(MatchAssignment, model.log_assignment[layer]).get_matchability(descriptors)
@@ -147,17 +178,22 @@ def _prune(model: LightGlue, layer: int, confidence: torch.Tensor | None, descri
 
 
 @torch.inference_mode()
-def match_prepared(model: LightGlue, image0: PreparedImage, image1: PreparedImage,
-                   cross_attention: str = "kornia") -> tuple[torch.Tensor, torch.Tensor]:
+def match_prepared(
+    model: LightGlue, image0: PreparedImage, image1: PreparedImage, cross_attention: str = "kornia"
+) -> tuple[torch.Tensor, torch.Tensor]:
     """Matches (K, 2) and their scores (K,) of one pair from its prepared images, as
     ``model({"image0": ..., "image1": ...})["matches"][0]`` and ``["scores"][0]`` with
     ``cross_attention="kornia"``; ``"sdpa"`` computes the cross-attention with torch's fused
     kernel instead (see ``_cross_messages``), which can change a near-threshold match."""
     if cross_attention not in CROSS_ATTENTIONS:
-        raise ValueError(f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "
-                         f"use one of {', '.join(CROSS_ATTENTIONS)}")
+        raise ValueError(
+            f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "
+            f"use one of {', '.join(CROSS_ATTENTIONS)}"
+        )
     if image0.descriptors.device.type == "cuda" and _transformer(model, 0).cross_attn.flash is not None:
-        raise ValueError("match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA")
+        raise ValueError(
+            "match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA"
+        )
     m, n = image0.num_keypoints, image1.num_keypoints
     device = image0.descriptors.device
     conf = model.conf

@@ -1,5 +1,4 @@
-"""LoFTR, a dense matcher, run and merged as hloc does (``match_dense.py``).
-"""
+"""LoFTR, a dense matcher, run and merged as hloc does (``match_dense.py``)."""
 
 from __future__ import annotations
 
@@ -15,8 +14,9 @@ if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this m
     pass
 
 
-def swapped_dense_call(model: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]],
-                       image0: torch.Tensor, image1: torch.Tensor) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def swapped_dense_call(
+    model: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]], image0: torch.Tensor, image1: torch.Tensor
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """LoFTR run as hloc runs it (``hloc/matchers/loftr.py``): the network sees image 1 as
     its first image and image 0 as its second (its fine stage refines the second image's
     points, so hloc's image 0 is the refined one); the points come back in our order.
@@ -27,7 +27,6 @@ def swapped_dense_call(model: Callable[[dict[str, torch.Tensor]], dict[str, torc
         output["keypoints0"].cpu().numpy().astype(np.float32),
         output["confidence"].cpu().numpy().astype(np.float32),
     )
-
 
 
 class LoFTRMatcher:
@@ -63,14 +62,12 @@ class LoFTRMatcher:
         return swapped_dense_call(self.model, tensor(image0), tensor(image1))
 
 
-
 def _cell_centres(points: np.ndarray, size: float) -> np.ndarray:
     """hloc's quantisation (``match_dense.to_cpts``): the centre of each point's
     ``size``-pixel cell, np.round (half to even) as hloc rounds; size 0 keeps the points."""
     if size <= 0:
         return points
     return np.round(np.round((points + 0.5) / size) * size - 0.5, 2)
-
 
 
 def _one_to_one(matches: np.ndarray, scores: np.ndarray) -> np.ndarray:
@@ -84,7 +81,6 @@ def _one_to_one(matches: np.ndarray, scores: np.ndarray) -> np.ndarray:
         first[1:] = matches[order[1:], side] != matches[order[:-1], side]
         winners.append(order[first])
     return np.sort(np.intersect1d(winners[0], winners[1]))
-
 
 
 def merge_dense_matches(
@@ -129,9 +125,11 @@ def merge_dense_matches(
             image_cells = cells.setdefault(name, {})
             points = np.asarray(points, dtype=np.float32)
             # Scores summed in float32, as hloc's Counter sums its float32 scores.
-            for cell, bin_, score in zip(map(tuple, _cell_centres(points, cell_pixels).tolist()),
-                                         map(tuple, _cell_centres(points, int(max_error)).tolist()),
-                                         np.asarray(scores, dtype=np.float32)):
+            for cell, bin_, score in zip(
+                map(tuple, _cell_centres(points, cell_pixels).tolist()),
+                map(tuple, _cell_centres(points, int(max_error)).tolist()),
+                np.asarray(scores, dtype=np.float32),
+            ):
                 image_cells.setdefault(cell, Counter())[bin_] += score
         for name in pairs[index]:
             remaining[name] -= 1

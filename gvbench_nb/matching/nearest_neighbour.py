@@ -1,5 +1,4 @@
-"""Nearest-neighbour matching with hloc's rule, for float (L2) and binary (Hamming) descriptors.
-"""
+"""Nearest-neighbour matching with hloc's rule, for float (L2) and binary (Hamming) descriptors."""
 
 from __future__ import annotations
 
@@ -30,11 +29,11 @@ def nearest_neighbour_matches(
         return two_way_l2_matches(descriptors0, descriptors1, mutual, ratio_threshold, distance_threshold)
     if metric == "hamming":
         matches, scores = hamming_nearest_neighbour_matches(
-            descriptors0.cpu().numpy(), descriptors1.cpu().numpy(), mutual, ratio_threshold, distance_threshold)
+            descriptors0.cpu().numpy(), descriptors1.cpu().numpy(), mutual, ratio_threshold, distance_threshold
+        )
         return torch.from_numpy(matches), torch.from_numpy(scores)
     registry.check_choice("metric", metric, ("l2", "hamming"))
     raise AssertionError("unreachable")
-
 
 
 def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
@@ -56,12 +55,11 @@ def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_p
     words0, words1 = words(descriptors0), words(descriptors1)
     distance = np.empty((len(words0), len(words1)), np.uint16)
     for start in range(0, len(words0), rows_per_block):
-        block = distance[start:start + rows_per_block]
+        block = distance[start : start + rows_per_block]
         block[:] = 0
         for word in range(words0.shape[1]):
-            block += np.bitwise_count(words0[start:start + rows_per_block, word, None] ^ words1[None, :, word])
+            block += np.bitwise_count(words0[start : start + rows_per_block, word, None] ^ words1[None, :, word])
     return distance
-
 
 
 def _two_nearest(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -77,9 +75,9 @@ def _two_nearest(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     return nearest, first, others.min(axis=1).astype(np.float64)
 
 
-
-def _passes(first: np.ndarray, second: np.ndarray, ratio_threshold: float | None,
-            distance_threshold: float | None) -> np.ndarray:
+def _passes(
+    first: np.ndarray, second: np.ndarray, ratio_threshold: float | None, distance_threshold: float | None
+) -> np.ndarray:
     """hloc's tests on one direction's two nearest distances (squared, as hloc compares them)."""
     keep = np.ones(len(first), bool)
     if ratio_threshold:
@@ -87,7 +85,6 @@ def _passes(first: np.ndarray, second: np.ndarray, ratio_threshold: float | None
     if distance_threshold:
         keep &= first**2 <= distance_threshold**2
     return keep
-
 
 
 def hamming_nearest_neighbour_matches(
@@ -120,7 +117,6 @@ def hamming_nearest_neighbour_matches(
     matches = np.stack([index0, nearest1[index0]], axis=1).astype(np.int64)
     n_bits = 8 * descriptors0.shape[1]
     return matches, (1 - first[index0] / n_bits).astype(np.float32)
-
 
 
 def two_way_l2_matches(
@@ -188,7 +184,6 @@ def two_way_l2_matches(
     return matches.cpu(), ((best[keep] + 1) / 2).float().cpu()
 
 
-
 class NearestNeighbourMatcher:
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.conf, self.device = conf, device
@@ -196,8 +191,11 @@ class NearestNeighbourMatcher:
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
         if self.conf.get("metric", "l2") == "hamming":
             return hamming_nearest_neighbour_matches(
-                features0["descriptors"], features1["descriptors"], mutual=self.conf.get("mutual", True),
-                ratio_threshold=self.conf.get("ratio_threshold"), distance_threshold=self.conf.get("distance_threshold"),
+                features0["descriptors"],
+                features1["descriptors"],
+                mutual=self.conf.get("mutual", True),
+                ratio_threshold=self.conf.get("ratio_threshold"),
+                distance_threshold=self.conf.get("distance_threshold"),
             )
         matches, scores = nearest_neighbour_matches(
             torch.from_numpy(features0["descriptors"]).to(self.device),

@@ -270,9 +270,7 @@ class SuperGlue(nn.Module):
         return mutual_matches(scores, self.conf["match_threshold"])
 
     @classmethod
-    def from_pretrained(
-        cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu"
-    ) -> SuperGlue:
+    def from_pretrained(cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperGlue:
         """Same as :func:`load_superglue`."""
         return load_superglue(conf, device)
 

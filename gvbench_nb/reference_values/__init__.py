@@ -24,7 +24,11 @@ COLUMNS = ["reference_name", "method", "sequence", *METRICS]
 # its 'xfeat' is XFeat sparse with mutual nearest neighbours (our xfeat-nn); 'superpoint-lg' is
 # SuperPoint + LightGlue. master (MASt3R), roma, duster (DUSt3R) and sift-lg have no method here.
 REPOSITORY_METHODS: dict[str, str] = {
-    "sift-nn": "sift-nn", "disk-lg": "disk-lg", "superpoint-lg": "sp-lg", "xfeat": "xfeat-nn", "loftr": "loftr",
+    "sift-nn": "sift-nn",
+    "disk-lg": "disk-lg",
+    "superpoint-lg": "sp-lg",
+    "xfeat": "xfeat-nn",
+    "loftr": "loftr",
 }
 
 
@@ -42,8 +46,7 @@ def paper_table() -> pd.DataFrame:
     from gvbench_nb import methods as method_registry
 
     raw = _read("paper_table.csv").rename(columns={"method": "reference_name"})
-    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.METHODS.items()
-                     if conf["in_paper"]}
+    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.METHODS.items() if conf["in_paper"]}
     raw["method"] = raw["reference_name"].map(by_paper_name)
     for metric in METRICS:
         raw[metric] = raw[metric] / 100.0

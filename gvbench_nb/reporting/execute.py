@@ -21,7 +21,11 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
     # The kernel starts in notebooks/ through nbclient's resources rather than papermill's
     # cwd, which changes this whole process's folder and is unsafe for notebooks run in threads.
     papermill.execute_notebook(
-        str(NOTEBOOKS_DIR / name), str(output_path), parameters=parameters,
+        str(NOTEBOOKS_DIR / name),
+        str(output_path),
+        parameters=parameters,
         resources={"metadata": {"path": str(NOTEBOOKS_DIR)}},
-        progress_bar=False, stderr_file=sys.stderr, kernel_name="python3",
+        progress_bar=False,
+        stderr_file=sys.stderr,
+        kernel_name="python3",
     )

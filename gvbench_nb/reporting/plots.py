@@ -27,7 +27,7 @@ def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:
         labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
         curve = pr_curve(labels, scores, where=method)
         max_recall = max_recall_at_full_precision(labels, scores, where=method)
-        line, = axis.plot(curve["recall"], curve["precision"], label=f"{method} (MR {max_recall:.1%})")
+        (line,) = axis.plot(curve["recall"], curve["precision"], label=f"{method} (MR {max_recall:.1%})")
         axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
     axis.grid(alpha=0.3)
@@ -44,8 +44,14 @@ def inlier_histogram(table: pd.DataFrame, title: str = "") -> plt.Figure:
     for label, name, colour in ((1, "true loop closure", "tab:blue"), (0, "false", "tab:orange")):
         inliers = table.loc[table["label"] == label, "num_inliers"]
         if len(inliers):
-            axis.hist(inliers, bins=bins.tolist(), histtype="stepfilled", facecolor=to_rgba(colour, 0.25),
-                      edgecolor=colour, label=name)
+            axis.hist(
+                inliers,
+                bins=bins.tolist(),
+                histtype="stepfilled",
+                facecolor=to_rgba(colour, 0.25),
+                edgecolor=colour,
+                label=name,
+            )
     axis.set(xlabel="RANSAC inliers (score)", ylabel="Count", title=title)
     axis.legend(title="pair")
     return figure
@@ -60,9 +66,17 @@ def example_pairs(image_root: Path, pairs: pd.DataFrame, n: int = 4, title: str 
             axis.imshow(read_image(Path(image_root) / name))
             axis.set_title(name, fontsize=8)
             axis.axis("off")
-        axis_row[0].text(-0.02, 0.5, "true" if row["label"] == 1 else "false", transform=axis_row[0].transAxes,
-                         rotation=90, va="center", ha="right", fontsize=11,
-                         color="green" if row["label"] == 1 else "red")
+        axis_row[0].text(
+            -0.02,
+            0.5,
+            "true" if row["label"] == 1 else "false",
+            transform=axis_row[0].transAxes,
+            rotation=90,
+            va="center",
+            ha="right",
+            fontsize=11,
+            color="green" if row["label"] == 1 else "red",
+        )
     if title:
         figure.suptitle(title)
     figure.tight_layout()
@@ -78,19 +92,31 @@ def positives_per_query(pairs: pd.DataFrame, title: str = "") -> plt.Figure:
     return figure
 
 
-def draw_matches(image0: np.ndarray, image1: np.ndarray, points0: np.ndarray, points1: np.ndarray,
-                 inlier_mask: np.ndarray, axis: plt.Axes | None = None, max_lines: int = 300) -> plt.Axes:
+def draw_matches(
+    image0: np.ndarray,
+    image1: np.ndarray,
+    points0: np.ndarray,
+    points1: np.ndarray,
+    inlier_mask: np.ndarray,
+    axis: plt.Axes | None = None,
+    max_lines: int = 300,
+) -> plt.Axes:
     """Side by side with inlier matches green and outliers red."""
     height = max(image0.shape[0], image1.shape[0])
     canvas = np.zeros((height, image0.shape[1] + image1.shape[1], 3), dtype=np.uint8)
     canvas[: image0.shape[0], : image0.shape[1]] = image0 if image0.ndim == 3 else image0[..., None]
-    canvas[: image1.shape[0], image0.shape[1]:] = image1 if image1.ndim == 3 else image1[..., None]
+    canvas[: image1.shape[0], image0.shape[1] :] = image1 if image1.ndim == 3 else image1[..., None]
     axis = axis or plt.subplots(figsize=(10, 4))[1]
     axis.imshow(canvas)
     order = np.argsort(~inlier_mask)[:max_lines]
     for index in order:
         (x0, y0), (x1, y1) = points0[index], points1[index]
-        axis.plot([x0, x1 + image0.shape[1]], [y0, y1], color="lime" if inlier_mask[index] else "red",
-                  linewidth=0.6, alpha=0.8)
+        axis.plot(
+            [x0, x1 + image0.shape[1]],
+            [y0, y1],
+            color="lime" if inlier_mask[index] else "red",
+            linewidth=0.6,
+            alpha=0.8,
+        )
     axis.axis("off")
     return axis

@@ -35,8 +35,12 @@ PER_SEQUENCE_NOTEBOOKS = (
 )
 ACROSS_SEQUENCES_NOTEBOOK = "analysis_results_table.ipynb"
 # Figures shown on the summary page, per sequence ({sequence} filled in).
-KEY_FIGURES = ("fps_vs_max_recall_{sequence}.png", "seconds_per_pair_{sequence}.png",
-               "normalised_inliers_{sequence}.png", "bootstrap_intervals_{sequence}.png")
+KEY_FIGURES = (
+    "fps_vs_max_recall_{sequence}.png",
+    "seconds_per_pair_{sequence}.png",
+    "normalised_inliers_{sequence}.png",
+    "bootstrap_intervals_{sequence}.png",
+)
 
 HELP = "run the analysis notebooks over finished sequences and write an HTML report"
 DESCRIPTION = """\
@@ -70,7 +74,6 @@ def execute_and_convert(source: str, target: Path, parameters: dict, sequence: s
     """
     from papermill.exceptions import PapermillExecutionError
 
-
     error = None
     try:
         execute_notebook(source, target, parameters)
@@ -95,8 +98,9 @@ def _offline_exporter() -> HTMLExporter:
     import jinja2
     from nbconvert import HTMLExporter
 
-    return HTMLExporter(extra_loaders=[jinja2.DictLoader({"offline.html.j2": OFFLINE_TEMPLATE})],
-                        template_file="offline.html.j2")
+    return HTMLExporter(
+        extra_loaders=[jinja2.DictLoader({"offline.html.j2": OFFLINE_TEMPLATE})], template_file="offline.html.j2"
+    )
 
 
 def _relative(path: Path, start: Path) -> str:
@@ -112,11 +116,14 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
     repository = analysis.load_repository_table()
     wide = analysis.results_table(analysis.join_paper_table(results, paper, repository))
     table_html = analysis.style_results_table(wide).to_html()
-    paper_note = ("One row a (method, profile). Columns labelled <b>paper</b> (grey italics) are the GV-Bench "
-                  "paper's published values, beside our paper-profile runs; <b>GV-Bench repository</b> columns "
-                  "are that repository's published values, beside our repository-profile runs; each where it "
-                  "has that method and sequence."
-                  if len(paper) else "The paper's table was not found: showing ours only.")
+    paper_note = (
+        "One row a (method, profile). Columns labelled <b>paper</b> (grey italics) are the GV-Bench "
+        "paper's published values, beside our paper-profile runs; <b>GV-Bench repository</b> columns "
+        "are that repository's published values, beside our repository-profile runs; each where it "
+        "has that method and sequence."
+        if len(paper)
+        else "The paper's table was not found: showing ours only."
+    )
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>gvbench-nb report</title>",
         "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
@@ -124,8 +131,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         "img{max-width:100%;border:1px solid #eee;margin:6px 0}.error{color:#b00}</style></head><body>",
         "<h1>gvbench-nb: geometric verification report</h1>",
         f"<p>Generated {html.escape(_dt.datetime.now().isoformat(timespec='seconds'))} from "
-        f"{len(output_dirs)} sequence folder(s): "
-        + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
+        f"{len(output_dirs)} sequence folder(s): " + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
         "<h2>AP and max recall at 100% precision (%)</h2>",
         f"<p>Bold: the best of its column. {paper_note}</p>",
         table_html,
@@ -136,8 +142,11 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
     parts.append("<h2>Notebooks</h2><ul>")
     for item in executed:
         label = f"{item.sequence or 'all sequences'}: {item.notebook.stem}"
-        link = (f"<a href='{_relative(item.html, report_dir)}'>{html.escape(label)}</a>" if item.html
-                else html.escape(label))
+        link = (
+            f"<a href='{_relative(item.html, report_dir)}'>{html.escape(label)}</a>"
+            if item.html
+            else html.escape(label)
+        )
         error = f" <span class='error'>failed: {html.escape(item.error)}</span>" if item.error else ""
         parts.append(f"<li>{link}{error}</li>")
     parts.append("</ul>")
@@ -183,13 +192,25 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
     report_dir.mkdir(parents=True, exist_ok=True)
     output_dirs = [d.resolve() for d in output_dirs]
     # params_files=[]: the report runs nothing, it only reads what runs wrote.
-    jobs: list[tuple[str, Path, dict, str]] = [(ACROSS_SEQUENCES_NOTEBOOK, report_dir / ACROSS_SEQUENCES_NOTEBOOK, {
-        "output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}, "")]
+    jobs: list[tuple[str, Path, dict, str]] = [
+        (
+            ACROSS_SEQUENCES_NOTEBOOK,
+            report_dir / ACROSS_SEQUENCES_NOTEBOOK,
+            {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)},
+            "",
+        )
+    ]
     for folder in output_dirs:
         target_dir = report_dir / folder.name
         for name in PER_SEQUENCE_NOTEBOOKS:
-            jobs.append((name, target_dir / name, {"output_dirs": [str(folder)], "params_files": [],
-                                                   "output_dir": str(target_dir)}, _sequence_name(folder)))
+            jobs.append(
+                (
+                    name,
+                    target_dir / name,
+                    {"output_dirs": [str(folder)], "params_files": [], "output_dir": str(target_dir)},
+                    _sequence_name(folder),
+                )
+            )
     executed = []
     for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {target}")
@@ -214,8 +235,11 @@ def command_report(args: argparse.Namespace) -> int:
     report_dir = Path(args.output_dir)
     output_dirs = [d for d in output_dirs if d.resolve() != report_dir.resolve()]
     if not output_dirs:
-        print(f"error: no sequence folder with a results.csv under {root}; run one first, e.g. "
-              "python -m gvbench_nb run params/sample.yaml", file=sys.stderr)
+        print(
+            f"error: no sequence folder with a results.csv under {root}; run one first, e.g. "
+            "python -m gvbench_nb run params/sample.yaml",
+            file=sys.stderr,
+        )
         return 2
     print(f"report over {len(output_dirs)} sequence(s): {', '.join(d.name for d in output_dirs)} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
@@ -226,14 +250,26 @@ def command_report(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``report`` on the CLI's subcommands."""
-    parser = subparsers.add_parser("report", help=HELP, description=DESCRIPTION, epilog=EPILOG,
-                                   formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--output-dir", default=str(config.PROJECT_ROOT / "outputs" / "report"),
-                        help="where the executed notebooks, their HTML, figures and index.html go "
-                             "(default: outputs/report)")
-    parser.add_argument("--sequences",
-                        help="comma-separated sequence folder names under --outputs-root (default: every folder "
-                             "with a results.csv), e.g. sample,gardens_point")
-    parser.add_argument("--outputs-root", default=str(config.PROJECT_ROOT / "outputs"),
-                        help="the folder holding the sequence output folders (default: outputs)")
+    parser = subparsers.add_parser(
+        "report",
+        help=HELP,
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    parser.add_argument(
+        "--output-dir",
+        default=str(config.PROJECT_ROOT / "outputs" / "report"),
+        help="where the executed notebooks, their HTML, figures and index.html go (default: outputs/report)",
+    )
+    parser.add_argument(
+        "--sequences",
+        help="comma-separated sequence folder names under --outputs-root (default: every folder "
+        "with a results.csv), e.g. sample,gardens_point",
+    )
+    parser.add_argument(
+        "--outputs-root",
+        default=str(config.PROJECT_ROOT / "outputs"),
+        help="the folder holding the sequence output folders (default: outputs)",
+    )
     parser.set_defaults(handler=command_report)

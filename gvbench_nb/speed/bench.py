@@ -61,8 +61,7 @@ CACHED, PER_PAIR = "cached", "per_pair"  # the two pipelines, as named in every 
 STAGES = ("extract", "match", "verify", "other")
 # Timer sums per stage, and the wall time of matching + verification (they overlap in ours).
 TIMED = STAGES + ("match_verify_wall",)
-GPU_NOTE = ("These figures are this CPU's. On a machine with a CUDA GPU, `bench` (device auto or cuda) "
-            "measures the GPU.")
+GPU_NOTE = "These figures are this CPU's. On a machine with a CUDA GPU, `bench` (device auto or cuda) measures the GPU."
 
 
 class ScoreMismatchError(AssertionError):
@@ -77,8 +76,11 @@ def environment_row(device: torch.device) -> dict[str, Any]:
     load_1m, load_5m, _ = os.getloadavg()
     return {
         "device": str(device),
-        "device_name": (torch.cuda.get_device_name(device) if device.type == "cuda"
-                        else pipeline.environment_info(device)["device_name"]),
+        "device_name": (
+            torch.cuda.get_device_name(device)
+            if device.type == "cuda"
+            else pipeline.environment_info(device)["device_name"]
+        ),
         "torch_threads": torch.get_num_threads(),
         "opencv_threads": cv2.getNumThreads(),
         "cpu_count": os.cpu_count(),
@@ -89,8 +91,14 @@ def environment_row(device: torch.device) -> dict[str, Any]:
 
 
 # ------------------------------------------------------------------- pipelines --
-def run_cached_pipeline(sequence: Sequence, conf: dict[str, Any], work_dir: Path, device: torch.device,
-                        seed: int = 0, workers: int | None = None) -> tuple[pd.DataFrame, dict[str, float]]:
+def run_cached_pipeline(
+    sequence: Sequence,
+    conf: dict[str, Any],
+    work_dir: Path,
+    device: torch.device,
+    seed: int = 0,
+    workers: int | None = None,
+) -> tuple[pd.DataFrame, dict[str, float]]:
     """Our pipeline from a cold cache in ``work_dir``, ``workers`` images or pairs at a
     time (``pipeline.worker_count``): per-pair table and stage seconds (totals).
 
@@ -109,8 +117,13 @@ def run_cached_pipeline(sequence: Sequence, conf: dict[str, Any], work_dir: Path
     table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
     wall = time.perf_counter() - start
     match, verify = float(table["match_seconds"].sum()), float(table["verify_seconds"].sum())
-    seconds = {"wall": wall, "extract": extracted - start, "match": match, "verify": verify,
-               "match_verify_wall": matched - extracted}
+    seconds = {
+        "wall": wall,
+        "extract": extracted - start,
+        "match": match,
+        "verify": verify,
+        "match_verify_wall": matched - extracted,
+    }
     seconds["other"] = wall - seconds["extract"] - seconds["match_verify_wall"]
     return table[["query", "reference", "num_matches", "num_inliers"]], seconds
 
@@ -121,8 +134,9 @@ def _extract_image(path: Path, extractor_conf: dict[str, Any], extractor: Callab
     return pipeline.stored_features(extractor(image), image, scale, extractor_conf.get("store_float16", False))
 
 
-def _dense_pair(root: Path, pair: Any, matcher_conf: dict[str, Any], matcher: Callable
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+def _dense_pair(
+    root: Path, pair: Any, matcher_conf: dict[str, Any], matcher: Callable
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
     """Matched points in original pixels, their scores and both images' original (width, height)."""
     image0, scale0 = load_for_extraction(root / pair.query, matcher_conf)
     image1, scale1 = load_for_extraction(root / pair.reference, matcher_conf)
@@ -131,8 +145,9 @@ def _dense_pair(root: Path, pair: Any, matcher_conf: dict[str, Any], matcher: Ca
     return to_original_pixels(points0, scale0), to_original_pixels(points1, scale1), scores, sizes
 
 
-def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torch.device, seed: int = 0,
-                          progress: bool = False) -> tuple[pd.DataFrame, dict[str, float]]:
+def run_per_pair_pipeline(
+    sequence: Sequence, conf: dict[str, Any], device: torch.device, seed: int = 0, progress: bool = False
+) -> tuple[pd.DataFrame, dict[str, float]]:
     """GV-Bench's way: for every pair, load and extract both images, then match and verify.
 
     Same extractor, matcher and verifier models (and seeds) as ours; no cache, no
@@ -163,14 +178,27 @@ def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torc
             points0, points1 = features0["keypoints"], features1["keypoints"]
             sizes = pipeline.image_sizes(features0, features1)
         matched = time.perf_counter()
-        verified = verify_matches(points0, points1, matches, match_scores, conf["verifier"],
-                                  seed=pipeline.pair_seed(seed, pair.query, pair.reference), image_sizes=sizes)
+        verified = verify_matches(
+            points0,
+            points1,
+            matches,
+            match_scores,
+            conf["verifier"],
+            seed=pipeline.pair_seed(seed, pair.query, pair.reference),
+            image_sizes=sizes,
+        )
         done = time.perf_counter()
         seconds["extract"] += extracted - began
         seconds["match"] += matched - extracted
         seconds["verify"] += done - matched
-        rows.append({"query": pair.query, "reference": pair.reference,
-                     "num_matches": verified["num_matches"], "num_inliers": verified["num_inliers"]})
+        rows.append(
+            {
+                "query": pair.query,
+                "reference": pair.reference,
+                "num_matches": verified["num_matches"],
+                "num_inliers": verified["num_inliers"],
+            }
+        )
     seconds["wall"] = time.perf_counter() - start
     seconds["match_verify_wall"] = seconds["match"] + seconds["verify"]  # one after the other
     seconds["other"] = seconds["wall"] - seconds["extract"] - seconds["match_verify_wall"]
@@ -179,8 +207,10 @@ def run_per_pair_pipeline(sequence: Sequence, conf: dict[str, Any], device: torc
 
 def check_same_scores(cached: pd.DataFrame, per_pair: pd.DataFrame, where: str) -> None:
     """Raise ``ScoreMismatchError`` naming the pairs whose num_inliers differ."""
-    if len(cached) != len(per_pair) or not (cached[["query", "reference"]].values
-                                            == per_pair[["query", "reference"]].values).all():
+    if (
+        len(cached) != len(per_pair)
+        or not (cached[["query", "reference"]].values == per_pair[["query", "reference"]].values).all()
+    ):
         raise ScoreMismatchError(f"{where}: the two pipelines ran different pairs ({len(cached)} vs {len(per_pair)})")
     differ = np.nonzero(cached["num_inliers"].to_numpy() != per_pair["num_inliers"].to_numpy())[0]
     if len(differ):
@@ -188,16 +218,26 @@ def check_same_scores(cached: pd.DataFrame, per_pair: pd.DataFrame, where: str) 
             f"  pair {i}: {cached['query'].iat[i]} {cached['reference'].iat[i]}: cached "
             f"{cached['num_inliers'].iat[i]} inliers ({cached['num_matches'].iat[i]} matches), per-pair "
             f"{per_pair['num_inliers'].iat[i]} ({per_pair['num_matches'].iat[i]} matches)"
-            for i in differ[:10])
+            for i in differ[:10]
+        )
         raise ScoreMismatchError(
             f"{where}: SCORES DIFFER on {len(differ)} of {len(cached)} pairs between the cached pipeline and "
             f"the per-pair reference:\n{shown}\nThe cache must reproduce fresh extraction exactly: check what "
-            "extract_features stores (dtype, keypoint scaling, image_size) against bench._extract_image.")
+            "extract_features stores (dtype, keypoint scaling, image_size) against bench._extract_image."
+        )
 
 
 # ------------------------------------------------------------------- the bench --
-def bench_method(sequence: Sequence, method: str, profile: str, repeats: int = 3, device: str = "auto",
-                 seed: int = 0, progress: bool = True, workers: int = DEFAULT_BENCH_WORKERS) -> pd.DataFrame:
+def bench_method(
+    sequence: Sequence,
+    method: str,
+    profile: str,
+    repeats: int = 3,
+    device: str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    workers: int = DEFAULT_BENCH_WORKERS,
+) -> pd.DataFrame:
     """Both pipelines ``repeats`` times on ``sequence``; one row per (repeat, pipeline).
     Ours runs ``workers`` images or pairs at a time; the per-pair pipeline, as the
     reference code, one pair at a time.
@@ -217,24 +257,44 @@ def bench_method(sequence: Sequence, method: str, profile: str, repeats: int = 3
             environment = environment_row(resolved)
             if which == CACHED:
                 with tempfile.TemporaryDirectory(prefix="gvbench-bench-") as work_dir:
-                    results[which], seconds = run_cached_pipeline(sequence, conf, Path(work_dir), resolved, seed,
-                                                                  workers)
+                    results[which], seconds = run_cached_pipeline(
+                        sequence, conf, Path(work_dir), resolved, seed, workers
+                    )
             else:
                 results[which], seconds = run_per_pair_pipeline(sequence, conf, resolved, seed)
-            rows.append(_timing_row(sequence, conf, repeat, which, seconds,
-                                    {"workers": workers if which == CACHED else 1, **environment}))
-        check_same_scores(results[CACHED], results[PER_PAIR],
-                          f"{sequence.name} {method} ({profile}), repeat {repeat}")
+            rows.append(
+                _timing_row(
+                    sequence,
+                    conf,
+                    repeat,
+                    which,
+                    seconds,
+                    {"workers": workers if which == CACHED else 1, **environment},
+                )
+            )
+        check_same_scores(results[CACHED], results[PER_PAIR], f"{sequence.name} {method} ({profile}), repeat {repeat}")
     return pd.DataFrame(rows)
 
 
-def _timing_row(sequence: Sequence, conf: dict[str, Any], repeat: int, which: str,
-                seconds: dict[str, float], environment: dict[str, Any]) -> dict[str, Any]:
+def _timing_row(
+    sequence: Sequence,
+    conf: dict[str, Any],
+    repeat: int,
+    which: str,
+    seconds: dict[str, float],
+    environment: dict[str, Any],
+) -> dict[str, Any]:
     n_pairs = len(sequence.pairs)
     return {
-        "sequence": sequence.name, "method": conf["method"], "profile": conf["profile"],
-        "n_pairs": n_pairs, "n_images": len(sequence.images), "repeat": repeat, "pipeline": which,
-        "wall_seconds": seconds["wall"], "pairs_per_second": n_pairs / seconds["wall"],
+        "sequence": sequence.name,
+        "method": conf["method"],
+        "profile": conf["profile"],
+        "n_pairs": n_pairs,
+        "n_images": len(sequence.images),
+        "repeat": repeat,
+        "pipeline": which,
+        "wall_seconds": seconds["wall"],
+        "pairs_per_second": n_pairs / seconds["wall"],
         **{f"{stage}_seconds_per_pair": seconds[stage] / n_pairs for stage in TIMED},
         **environment,
     }
@@ -255,16 +315,21 @@ def summarize_bench(rows: pd.DataFrame) -> pd.DataFrame:
         ceilings = 1.0 / (per_pair["pairs_per_second"] * per_pair["match_verify_wall_seconds_per_pair"])
         n_images = int(group["n_images"].iat[0])
         row: dict[str, Any] = dict(zip(keys, key))
-        row.update({
-            "n_images": n_images, "uses_per_image": 2 * row["n_pairs"] / n_images, "repeats": len(ratios),
-            "cached_pairs_per_second": cached["pairs_per_second"].median(),
-            "per_pair_pairs_per_second": per_pair["pairs_per_second"].median(),
-            "speedup": ratios.median(), "speedup_min": ratios.min(), "speedup_max": ratios.max(),
-            "speedup_target": SPEEDUP_TARGETS.get(row["method"], np.nan),
-            "speedup_if_extraction_were_free": ceilings.median(),
-        })
-        row["meets_target"] = (bool(row["speedup"] >= row["speedup_target"])
-                               if row["method"] in SPEEDUP_TARGETS else "")
+        row.update(
+            {
+                "n_images": n_images,
+                "uses_per_image": 2 * row["n_pairs"] / n_images,
+                "repeats": len(ratios),
+                "cached_pairs_per_second": cached["pairs_per_second"].median(),
+                "per_pair_pairs_per_second": per_pair["pairs_per_second"].median(),
+                "speedup": ratios.median(),
+                "speedup_min": ratios.min(),
+                "speedup_max": ratios.max(),
+                "speedup_target": SPEEDUP_TARGETS.get(row["method"], np.nan),
+                "speedup_if_extraction_were_free": ceilings.median(),
+            }
+        )
+        row["meets_target"] = bool(row["speedup"] >= row["speedup_target"]) if row["method"] in SPEEDUP_TARGETS else ""
         for name, frame in ((CACHED, cached), (PER_PAIR, per_pair)):
             for stage in TIMED:
                 row[f"{name}_{stage}_seconds_per_pair"] = frame[f"{stage}_seconds_per_pair"].median()
@@ -272,13 +337,16 @@ def summarize_bench(rows: pd.DataFrame) -> pd.DataFrame:
         row["cached_extract_seconds_per_image"] = row[f"{CACHED}_extract_seconds_per_pair"] * row["n_pairs"] / n_images
         row["scores_identical"] = True  # bench_method raised otherwise
         first, last = group.iloc[0], group.iloc[-1]
-        row.update({
-            "loadavg_1m_start": first["loadavg_1m"], "loadavg_1m_end": last["loadavg_1m"],
-            "loadavg_1m_max": group["loadavg_1m"].max(),
-            **{c: first[c] for c in ("device", "device_name", "torch_threads", "opencv_threads", "cpu_count")},
-            "cached_workers": int(cached["workers"].iat[0]) if "workers" in cached else 1,
-            "date": first["date"],
-        })
+        row.update(
+            {
+                "loadavg_1m_start": first["loadavg_1m"],
+                "loadavg_1m_end": last["loadavg_1m"],
+                "loadavg_1m_max": group["loadavg_1m"].max(),
+                **{c: first[c] for c in ("device", "device_name", "torch_threads", "opencv_threads", "cpu_count")},
+                "cached_workers": int(cached["workers"].iat[0]) if "workers" in cached else 1,
+                "date": first["date"],
+            }
+        )
         summaries.append(row)
     return pd.DataFrame(summaries)
 
@@ -296,29 +364,44 @@ def _merge_csv(path: Path, new: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
 
 def print_summary(summary: pd.DataFrame) -> None:
     for _, row in summary.iterrows():
-        target = (f" (target >= {row['speedup_target']:g}x: {'met' if row['meets_target'] else 'NOT met'})"
-                  if row["method"] in SPEEDUP_TARGETS else "")
-        print(f"\n{row['sequence']} {row['method']} ({row['profile']}), {row['n_pairs']} pairs over "
-              f"{row['n_images']} unique images ({row['uses_per_image']:.2f} uses per image), "
-              f"median of {row['repeats']} repeats, load average {row['loadavg_1m_start']}-{row['loadavg_1m_end']}:")
+        target = (
+            f" (target >= {row['speedup_target']:g}x: {'met' if row['meets_target'] else 'NOT met'})"
+            if row["method"] in SPEEDUP_TARGETS
+            else ""
+        )
+        print(
+            f"\n{row['sequence']} {row['method']} ({row['profile']}), {row['n_pairs']} pairs over "
+            f"{row['n_images']} unique images ({row['uses_per_image']:.2f} uses per image), "
+            f"median of {row['repeats']} repeats, load average {row['loadavg_1m_start']}-{row['loadavg_1m_end']}:"
+        )
         print(f"  ours: {row['cached_workers']} image(s) or pair(s) at a time; per-pair pipeline: one pair at a time")
-        print(f"  cached   {row['cached_pairs_per_second']:8.2f} pairs/s   "
-              f"per-pair {row['per_pair_pairs_per_second']:8.2f} "
-              f"pairs/s   speed-up {row['speedup']:.2f}x [{row['speedup_min']:.2f}-{row['speedup_max']:.2f}]{target}")
+        print(
+            f"  cached   {row['cached_pairs_per_second']:8.2f} pairs/s   "
+            f"per-pair {row['per_pair_pairs_per_second']:8.2f} "
+            f"pairs/s   speed-up {row['speedup']:.2f}x [{row['speedup_min']:.2f}-{row['speedup_max']:.2f}]{target}"
+        )
         print("  seconds per pair   " + "  ".join(f"{s:>8}" for s in STAGES) + "  match+verify wall")
         for name in (CACHED, PER_PAIR):
             print(f"  {name:<17}" + "  ".join(f"{row[f'{name}_{s}_seconds_per_pair']:8.4f}" for s in TIMED))
         print("  (match and verify are timer sums; ours runs them overlapped, so its wall column is what they cost)")
-        print(f"  speed-up if extraction were free and pairs were matched as the per-pair pipeline does "
-              f"(Amdahl's bound on caching features): "
-              f"{row['speedup_if_extraction_were_free']:.2f}x")
+        print(
+            f"  speed-up if extraction were free and pairs were matched as the per-pair pipeline does "
+            f"(Amdahl's bound on caching features): "
+            f"{row['speedup_if_extraction_were_free']:.2f}x"
+        )
         print("  scores identical on every pair: yes")
 
 
 # --------------------------------------------------------------------- scaling --
-def scaling_table(sequence: Sequence, method: str, profile: str, limits: tuple[int, ...] = DEFAULT_SCALING_LIMITS,
-                  device: str = "auto", seed: int = 0, per_pair_extract_per_image: float | None = None
-                  ) -> pd.DataFrame:
+def scaling_table(
+    sequence: Sequence,
+    method: str,
+    profile: str,
+    limits: tuple[int, ...] = DEFAULT_SCALING_LIMITS,
+    device: str = "auto",
+    seed: int = 0,
+    per_pair_extract_per_image: float | None = None,
+) -> pd.DataFrame:
     """Cost against the number of pairs and of unique images, from ONE cold run.
 
     The cached pipeline runs once on the first ``max(limits)`` pairs; every prefix's
@@ -340,8 +423,11 @@ def scaling_table(sequence: Sequence, method: str, profile: str, limits: tuple[i
         # one worker: the stage sums below need each image's and pair's own cost
         table, seconds = run_cached_pipeline(largest, conf, Path(work_dir), resolved, seed, workers=1)
         wall = time.perf_counter() - started
-        image_seconds = (_image_seconds(largest, conf, Path(work_dir) / "cache") if conf["extractor"]
-                         else dict.fromkeys(largest.images, 0.0))
+        image_seconds = (
+            _image_seconds(largest, conf, Path(work_dir) / "cache")
+            if conf["extractor"]
+            else dict.fromkeys(largest.images, 0.0)
+        )
         full = pipeline.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out", seed)
     environment = environment_row(resolved)
     rows = []
@@ -352,9 +438,15 @@ def scaling_table(sequence: Sequence, method: str, profile: str, limits: tuple[i
         extract_per_pair = sum(image_seconds[p.query] + image_seconds[p.reference] for p in prefix.pairs)
         match, verify = float(pairs["match_seconds"].sum()), float(pairs["verify_seconds"].sum())
         row: dict[str, Any] = {
-            "sequence": sequence.name, "method": method, "profile": profile, "n_pairs": limit,
-            "n_images": len(prefix.images), "uses_per_image": 2 * limit / len(prefix.images),
-            "extract_seconds": extract, "match_seconds": match, "verify_seconds": verify,
+            "sequence": sequence.name,
+            "method": method,
+            "profile": profile,
+            "n_pairs": limit,
+            "n_images": len(prefix.images),
+            "uses_per_image": 2 * limit / len(prefix.images),
+            "extract_seconds": extract,
+            "match_seconds": match,
+            "verify_seconds": verify,
             "total_seconds": extract + match + verify,
             "seconds_per_pair": (extract + match + verify) / limit,
             "per_pair_extract_seconds": extract_per_pair,
@@ -375,8 +467,10 @@ def _image_seconds(sequence: Sequence, conf: dict[str, Any], cache_dir: Path) ->
     """Measured extractor seconds of each unique image (the cache's per-entry timer)."""
     store = pipeline.feature_store(cache_dir, conf["extractor"])
     store.refresh()
-    seconds = {name: float(store.read(pipeline.image_key(sequence.image_root, name))["attr:seconds"])
-               for name in sequence.images}
+    seconds = {
+        name: float(store.read(pipeline.image_key(sequence.image_root, name))["attr:seconds"])
+        for name in sequence.images
+    }
     store.close()
     return seconds
 
@@ -413,16 +507,22 @@ def measure_prefetch_overlap(sequence: Sequence, method: str, profile: str, devi
         pipeline.extract_features(sequence, extractor_conf, Path(work_dir), resolved, progress=False, workers=1)
         prefetched = time.perf_counter() - started
     return {
-        "sequence": sequence.name, "method": method, "profile": profile, "n_images": len(paths),
-        "decode_seconds": decode, "extract_seconds": extract, "sequential_seconds": decode + extract,
+        "sequence": sequence.name,
+        "method": method,
+        "profile": profile,
+        "n_images": len(paths),
+        "decode_seconds": decode,
+        "extract_seconds": extract,
+        "sequential_seconds": decode + extract,
         "extract_features_seconds": prefetched,
         "decode_hidden_fraction": (decode + extract - prefetched) / decode if decode > 0 else np.nan,
         **environment_row(resolved),
     }
 
 
-def profile_pipeline(sequence: Sequence, method: str, profile: str, device: str = "auto", seed: int = 0,
-                     top: int = 25) -> str:
+def profile_pipeline(
+    sequence: Sequence, method: str, profile: str, device: str = "auto", seed: int = 0, top: int = 25
+) -> str:
     """cProfile of our pipeline from a cold cache; the top functions by own and cumulative time."""
     from gvbench_nb.features.base import resolve_device
 
@@ -434,8 +534,10 @@ def profile_pipeline(sequence: Sequence, method: str, profile: str, device: str 
         run_cached_pipeline(sequence, conf, Path(work_dir), resolved, seed)
         profiler.disable()
     report = io.StringIO()
-    report.write(f"cProfile: {sequence.name} {method} ({profile}), {len(sequence.pairs)} pairs, "
-                 f"{len(sequence.images)} images, cold cache\n")
+    report.write(
+        f"cProfile: {sequence.name} {method} ({profile}), {len(sequence.pairs)} pairs, "
+        f"{len(sequence.images)} images, cold cache\n"
+    )
     for order in ("tottime", "cumulative"):
         report.write(f"\n===== top {top} by {order} =====\n")
         pstats.Stats(profiler, stream=report).strip_dirs().sort_stats(order).print_stats(top)
@@ -449,12 +551,20 @@ def official_sequence_sizes(gt_dir: Path) -> pd.DataFrame:
     for name in OFFICIAL_SEQUENCES:
         path = Path(gt_dir) / f"{name}.txt"
         if not path.is_file():
-            raise FileNotFoundError(f"official pair list missing: {path}; run `python -m gvbench_nb data fetch "
-                                    "gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)")
+            raise FileNotFoundError(
+                f"official pair list missing: {path}; run `python -m gvbench_nb data fetch "
+                "gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)"
+            )
         pairs = read_pairs(path)
         images = {p for pair in pairs for p in (pair.query, pair.reference)}
-        rows.append({"sequence": name, "n_pairs": len(pairs), "n_images": len(images),
-                     "uses_per_image": 2 * len(pairs) / len(images)})
+        rows.append(
+            {
+                "sequence": name,
+                "n_pairs": len(pairs),
+                "n_images": len(images),
+                "uses_per_image": 2 * len(pairs) / len(images),
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -468,14 +578,18 @@ def costs_from_bench(summary: pd.DataFrame) -> pd.DataFrame:
         # Summaries written before matching overlapped verification have no wall column.
         wall_column = f"{CACHED}_match_verify_wall_seconds_per_pair"
         stages = ("match_verify_wall", "other") if pd.notna(measured.get(wall_column)) else ("match", "verify", "other")
-        rows.append({
-            "method": measured["method"], "profile": measured["profile"], "source": "bench",
-            "extract_seconds_per_image": measured["cached_extract_seconds_per_image"],
-            "cached_seconds_per_pair": sum(measured[f"{CACHED}_{s}_seconds_per_pair"] for s in stages),
-            "per_pair_seconds_per_pair": 1.0 / measured["per_pair_pairs_per_second"],
-            "measured_on": f"bench: {measured['sequence']} ({measured['n_pairs']} pairs), {measured['device_name']}, "
-                           f"{measured['cpu_count']} CPUs, load {measured['loadavg_1m_start']}",
-        })
+        rows.append(
+            {
+                "method": measured["method"],
+                "profile": measured["profile"],
+                "source": "bench",
+                "extract_seconds_per_image": measured["cached_extract_seconds_per_image"],
+                "cached_seconds_per_pair": sum(measured[f"{CACHED}_{s}_seconds_per_pair"] for s in stages),
+                "per_pair_seconds_per_pair": 1.0 / measured["per_pair_pairs_per_second"],
+                "measured_on": f"bench: {measured['sequence']} ({measured['n_pairs']} pairs), {measured['device_name']}, "
+                f"{measured['cpu_count']} CPUs, load {measured['loadavg_1m_start']}",
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -493,13 +607,18 @@ def costs_from_runs(output_dir: Path) -> pd.DataFrame:
         per_image = float(table["extract_seconds"].sum()) / n_images
         per_pair = float((table["match_seconds"] + table["verify_seconds"]).mean())
         run = load_run(output_dir, method)
-        rows.append({
-            "method": method, "profile": table["profile"].iat[0], "source": "run",
-            "extract_seconds_per_image": per_image, "cached_seconds_per_pair": per_pair,
-            "per_pair_seconds_per_pair": 2 * per_image + per_pair,
-            "measured_on": f"run: {Path(output_dir).name} ({len(table)} pairs), "
-                           f"{run['environment']['device_name']}, finished {run['finished_at']}",
-        })
+        rows.append(
+            {
+                "method": method,
+                "profile": table["profile"].iat[0],
+                "source": "run",
+                "extract_seconds_per_image": per_image,
+                "cached_seconds_per_pair": per_pair,
+                "per_pair_seconds_per_pair": 2 * per_image + per_pair,
+                "measured_on": f"run: {Path(output_dir).name} ({len(table)} pairs), "
+                f"{run['environment']['device_name']}, finished {run['finished_at']}",
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -512,28 +631,40 @@ def estimate_official_runtime(costs: pd.DataFrame, sizes: pd.DataFrame) -> pd.Da
     rows = []
     for _, cost in costs.iterrows():
         for _, size in sizes.iterrows():
-            cached_seconds = (size["n_images"] * cost["extract_seconds_per_image"]
-                              + size["n_pairs"] * cost["cached_seconds_per_pair"])
+            cached_seconds = (
+                size["n_images"] * cost["extract_seconds_per_image"] + size["n_pairs"] * cost["cached_seconds_per_pair"]
+            )
             reference_seconds = size["n_pairs"] * cost["per_pair_seconds_per_pair"]
-            rows.append({
-                "sequence": size["sequence"], "method": cost["method"], "profile": cost["profile"],
-                "source": cost["source"], "n_pairs": size["n_pairs"], "n_images": size["n_images"],
-                "cached_hours": cached_seconds / 3600, "per_pair_hours": reference_seconds / 3600,
-                "speedup": reference_seconds / cached_seconds, "measured_on": cost["measured_on"],
-            })
+            rows.append(
+                {
+                    "sequence": size["sequence"],
+                    "method": cost["method"],
+                    "profile": cost["profile"],
+                    "source": cost["source"],
+                    "n_pairs": size["n_pairs"],
+                    "n_images": size["n_images"],
+                    "cached_hours": cached_seconds / 3600,
+                    "per_pair_hours": reference_seconds / 3600,
+                    "speedup": reference_seconds / cached_seconds,
+                    "measured_on": cost["measured_on"],
+                }
+            )
     return pd.DataFrame(rows)
 
 
-def print_estimate(bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = None,
-                   runs: Path | None = None) -> pd.DataFrame:
+def print_estimate(
+    bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = None, runs: Path | None = None
+) -> pd.DataFrame:
     """Print (and write ``estimate.csv``) the official-sequence estimate from ``summary.csv``
     and, with ``runs`` (a sequence output folder), from every method that ran there."""
     from gvbench_nb.config import data_dir
 
     summary_path = Path(bench_dir) / "summary.csv"
     if not summary_path.is_file() and runs is None:
-        raise FileNotFoundError(f"no bench summary at {summary_path}: run `python -m gvbench_nb bench PARAMS` "
-                                "first, or give --runs outputs/<sequence>")
+        raise FileNotFoundError(
+            f"no bench summary at {summary_path}: run `python -m gvbench_nb bench PARAMS` "
+            "first, or give --runs outputs/<sequence>"
+        )
     if gt_dir is None:
         gt_dir = data_dir() / "gvbench_gt"
     sizes = official_sequence_sizes(gt_dir)
@@ -549,9 +680,11 @@ def print_estimate(bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = No
     print(estimate.drop(columns="measured_on").to_string(index=False, float_format=lambda v: f"{v:.2f}"))
     print("\nAll six sequences, per method:")
     print(totals.to_string(float_format=lambda v: f"{v:.2f}"))
-    print("\nCaveats: measured on Gardens Point (960x540 images); the official images differ in size "
-          "(extraction scales roughly with pixels, matching with keypoints), and the machine was shared "
-          "(load averages in summary.csv). Treat these as order-of-magnitude figures.")
+    print(
+        "\nCaveats: measured on Gardens Point (960x540 images); the official images differ in size "
+        "(extraction scales roughly with pixels, matching with keypoints), and the machine was shared "
+        "(load averages in summary.csv). Treat these as order-of-magnitude figures."
+    )
     print(GPU_NOTE)
     return estimate
 
@@ -562,11 +695,16 @@ def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int
 
     table = time_render(n_frames=n_frames, repeats=repeats, workers=workers)
     _merge_csv(Path(bench_dir) / "render.csv", table, ["setting", "n_frames", "image_size", "workers"])
-    print(f"render time of one {n_frames}-frame query traversal ({table['image_size'].iat[0]}, "
-          f"{table['workers'].iat[0]} worker threads, median of {repeats}; scene built once in "
-          f"{table['scene_seconds'].iat[0]:.1f} s):")
-    print(table[["setting", "median_seconds", "min_seconds", "max_seconds", "loadavg_1m"]]
-          .to_string(index=False, float_format=lambda v: f"{v:.1f}"))
+    print(
+        f"render time of one {n_frames}-frame query traversal ({table['image_size'].iat[0]}, "
+        f"{table['workers'].iat[0]} worker threads, median of {repeats}; scene built once in "
+        f"{table['scene_seconds'].iat[0]:.1f} s):"
+    )
+    print(
+        table[["setting", "median_seconds", "min_seconds", "max_seconds", "loadavg_1m"]].to_string(
+            index=False, float_format=lambda v: f"{v:.1f}"
+        )
+    )
     print(f"written to {Path(bench_dir) / 'render.csv'}\n")
     return table
 
@@ -575,11 +713,12 @@ def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int
 def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
     """Register ``bench`` on the CLI's subparsers."""
     bench = subparsers.add_parser(
-        "bench", help="time our cached pipeline against the per-pair reference pipeline on the same pairs",
+        "bench",
+        help="time our cached pipeline against the per-pair reference pipeline on the same pairs",
         description="Runs both pipelines on the same pairs (cold cache in a temporary folder each repeat), "
-                    "fails if any pair's num_inliers differ, and writes per-repeat, summary and scaling "
-                    "CSVs. With --estimate alone (no params), prints the official-sequence estimate "
-                    "from the summary.",
+        "fails if any pair's num_inliers differ, and writes per-repeat, summary and scaling "
+        "CSVs. With --estimate alone (no params), prints the official-sequence estimate "
+        "from the summary.",
     )
     bench.add_argument("params", nargs="?", help="params YAML, e.g. params/gardens_point.yaml")
     bench.add_argument("--methods", help="comma-separated method names (default: the params')")
@@ -587,23 +726,39 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     bench.add_argument("--repeats", type=int, default=3, help="repeats per method; medians reported (default 3)")
     bench.add_argument("--profile", help="'paper' or 'repository' (default: the params')")
     bench.add_argument("--device", help="override the params' device")
-    bench.add_argument("--threads", type=int,
-                       help="torch and OpenCV threads for both pipelines (default: every core; on a loaded "
-                            "machine fewer threads than cores avoids spin-waiting, see the report)")
-    bench.add_argument("--workers", type=int, default=DEFAULT_BENCH_WORKERS,
-                       help=f"images or pairs our pipeline runs at once (default {DEFAULT_BENCH_WORKERS}; `run` "
-                            "takes $GVBENCH_WORKERS, default 1); the per-pair pipeline runs one pair at a time")
+    bench.add_argument(
+        "--threads",
+        type=int,
+        help="torch and OpenCV threads for both pipelines (default: every core; on a loaded "
+        "machine fewer threads than cores avoids spin-waiting, see the report)",
+    )
+    bench.add_argument(
+        "--workers",
+        type=int,
+        default=DEFAULT_BENCH_WORKERS,
+        help=f"images or pairs our pipeline runs at once (default {DEFAULT_BENCH_WORKERS}; `run` "
+        "takes $GVBENCH_WORKERS, default 1); the per-pair pipeline runs one pair at a time",
+    )
     bench.add_argument("--bench-dir", default=str(DEFAULT_BENCH_DIR), help="where CSVs go (default outputs/bench)")
-    bench.add_argument("--scaling", default=",".join(map(str, DEFAULT_SCALING_LIMITS)),
-                       help="pair counts of the scaling table, or 'none' (default 50,100,200,400)")
+    bench.add_argument(
+        "--scaling",
+        default=",".join(map(str, DEFAULT_SCALING_LIMITS)),
+        help="pair counts of the scaling table, or 'none' (default 50,100,200,400)",
+    )
     bench.add_argument("--overlap", action="store_true", help="also measure whether prefetching hides decoding")
     bench.add_argument("--cprofile", action="store_true", help="also write a cProfile report of our pipeline")
     bench.add_argument("--estimate", action="store_true", help="print the official-sequence estimate at the end")
-    bench.add_argument("--runs", help="with --estimate: also cost every method that ran in this sequence output "
-                                      "folder, from its per-pair timers (e.g. outputs/gardens_point)")
-    bench.add_argument("--render", action="store_true",
-                       help="time rendering one synthetic query traversal, clear and under each condition at "
-                            "strength 1 (writes render.csv); needs no params")
+    bench.add_argument(
+        "--runs",
+        help="with --estimate: also cost every method that ran in this sequence output "
+        "folder, from its per-pair timers (e.g. outputs/gardens_point)",
+    )
+    bench.add_argument(
+        "--render",
+        action="store_true",
+        help="time rendering one synthetic query traversal, clear and under each condition at "
+        "strength 1 (writes render.csv); needs no params",
+    )
     bench.add_argument("--frames", type=int, default=100, help="frames of the --render traversal (default 100)")
     bench.set_defaults(handler=command_bench)
     return bench
@@ -633,9 +788,11 @@ def command_bench(args: argparse.Namespace) -> int:
     sequence = full.limited(args.limit)
     pipeline.configure_threads(args.threads)
     profile, device, seed = params["profile"], params["device"], params["seed"]
-    print(f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} unique images, profile {profile}, "
-          f"torch threads {torch.get_num_threads()}, OpenCV threads {cv2.getNumThreads()}, "
-          f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}")
+    print(
+        f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} unique images, profile {profile}, "
+        f"torch threads {torch.get_num_threads()}, OpenCV threads {cv2.getNumThreads()}, "
+        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
+    )
     for method in params["methods"]:
         rows = bench_method(sequence, method, profile, args.repeats, device, seed, workers=args.workers)
         _merge_csv(bench_dir / f"{sequence.name}_{method}.csv", rows, ["profile", "n_pairs"])
@@ -648,14 +805,27 @@ def command_bench(args: argparse.Namespace) -> int:
             scaling = scaling_table(full, method, profile, limits, device, seed, per_image)
             _merge_csv(bench_dir / f"scaling_{sequence.name}_{method}.csv", scaling, ["profile", "n_pairs"])
             print(f"\nscaling ({method}, {profile}; stage sums of one cold run on {max(limits)} pairs):")
-            print(scaling[["n_pairs", "n_images", "uses_per_image", "extract_seconds", "match_seconds",
-                           "verify_seconds", "total_seconds", "per_pair_total_seconds", "speedup_from_stage_sums"]]
-                  .to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+            print(
+                scaling[
+                    [
+                        "n_pairs",
+                        "n_images",
+                        "uses_per_image",
+                        "extract_seconds",
+                        "match_seconds",
+                        "verify_seconds",
+                        "total_seconds",
+                        "per_pair_total_seconds",
+                        "speedup_from_stage_sums",
+                    ]
+                ].to_string(index=False, float_format=lambda v: f"{v:.3f}")
+            )
         if args.overlap and not method_registry.is_dense(method_registry.resolve_method(method, profile)):
             overlap = pd.DataFrame([measure_prefetch_overlap(sequence, method, profile, device)])
             _merge_csv(bench_dir / "overlap.csv", overlap, ["sequence", "method", "profile", "n_images"])
-            print("\nprefetch overlap:\n"
-                  + overlap.iloc[:, :9].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+            print(
+                "\nprefetch overlap:\n" + overlap.iloc[:, :9].to_string(index=False, float_format=lambda v: f"{v:.3f}")
+            )
         if args.cprofile:
             report = profile_pipeline(sequence, method, profile, device, seed)
             path = bench_dir / f"cprofile_{sequence.name}_{method}_{profile}.txt"

@@ -65,21 +65,43 @@ def default_threads(workers_on_this_machine: int) -> int:
     return max(1, (os.cpu_count() or 1) // max(1, workers_on_this_machine))
 
 
-def extract_shard(sequence: Sequence, extractor_conf: dict[str, Any], cache_dir: str, index: int, count: int,
-                  device: str = "auto", threads: int | None = None) -> dict[str, int]:
+def extract_shard(
+    sequence: Sequence,
+    extractor_conf: dict[str, Any],
+    cache_dir: str,
+    index: int,
+    count: int,
+    device: str = "auto",
+    threads: int | None = None,
+) -> dict[str, int]:
     """Phase 1 task: extract image slice ``index::count`` of ``sequence`` into the cache."""
     from gvbench_nb.features.base import (
         resolve_device,  # imports torch: only where a device is resolved
     )
 
     pipeline.configure_threads(threads)
-    return pipeline.extract_features(sequence, extractor_conf, Path(cache_dir), resolve_device(device),
-                                     progress=False, images=sequence.images[index::count])
+    return pipeline.extract_features(
+        sequence,
+        extractor_conf,
+        Path(cache_dir),
+        resolve_device(device),
+        progress=False,
+        images=sequence.images[index::count],
+    )
 
 
-def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output_dir: str, index: int, count: int,
-                device: str = "auto", seed: int = 0, threads: int | None = None,
-                after: list[Any] | None = None) -> dict[str, Any]:
+def match_shard(
+    sequence: Sequence,
+    conf: dict[str, Any],
+    cache_dir: str,
+    output_dir: str,
+    index: int,
+    count: int,
+    device: str = "auto",
+    seed: int = 0,
+    threads: int | None = None,
+    after: list[Any] | None = None,
+) -> dict[str, Any]:
     """Phase 2 task: extract what is still missing, then match and verify pair shard ``index::count``.
 
     ``after`` only orders the task after its extraction shards (Dask passes their results).
@@ -90,33 +112,49 @@ def match_shard(sequence: Sequence, conf: dict[str, Any], cache_dir: str, output
 
     pipeline.configure_threads(threads)
     if count > 1 and method_registry.is_dense(conf) and pipeline.dense_merge_options(conf["matcher"]) is not None:
-        raise ValueError(f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
-                         "so its pairs cannot be matched in shards; run it with one matching shard")
+        raise ValueError(
+            f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
+            "so its pairs cannot be matched in shards; run it with one matching shard"
+        )
     shard = pair_shard(sequence, index, count)
     resolved = resolve_device(device)
     started = time.perf_counter()
-    extraction = (pipeline.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
-                  if conf["extractor"] else {"images": 0, "cached": 0, "extracted": 0})
+    extraction = (
+        pipeline.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
+        if conf["extractor"]
+        else {"images": 0, "cached": 0, "extracted": 0}
+    )
     extracted = time.perf_counter()
-    matching = pipeline.match_and_verify(shard, conf, Path(cache_dir), Path(output_dir), resolved, seed,
-                                         progress=False)
-    return {"shard": f"{index}/{count}", "extraction": extraction, "matching": matching,
-            "extract_wall_seconds": extracted - started,
-            "match_verify_wall_seconds": time.perf_counter() - extracted}
+    matching = pipeline.match_and_verify(shard, conf, Path(cache_dir), Path(output_dir), resolved, seed, progress=False)
+    return {
+        "shard": f"{index}/{count}",
+        "extraction": extraction,
+        "matching": matching,
+        "extract_wall_seconds": extracted - started,
+        "match_verify_wall_seconds": time.perf_counter() - extracted,
+    }
 
 
 # ------------------------------------------------------------------------- merge --
 def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Pair]:
     store = pipeline.match_store(output_dir, conf)
     store.refresh()
-    missing = [p for p in sequence.pairs
-               if pipeline.pair_key(sequence.image_root, p.query, p.reference, seed) not in store]
+    missing = [
+        p for p in sequence.pairs if pipeline.pair_key(sequence.image_root, p.query, p.reference, seed) not in store
+    ]
     store.close()
     return missing
 
 
-def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int = 0,
-                 device: str = "auto", shards: list[dict[str, Any]] | None = None) -> pd.DataFrame:
+def merge_method(
+    sequence: Sequence,
+    conf: dict[str, Any],
+    cache_dir: Path,
+    output_dir: Path,
+    seed: int = 0,
+    device: str = "auto",
+    shards: list[dict[str, Any]] | None = None,
+) -> pd.DataFrame:
     """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
     from gvbench_nb.features.base import (
         resolve_device,  # imports torch: only where a device is resolved
@@ -129,16 +167,24 @@ def merge_method(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outp
             f"cannot merge {conf['method']} on {sequence.name}: {len(missing)} of {len(sequence.pairs)} pairs have "
             f"no result in {pipeline.match_store(output_dir, conf).folder} (first: pair {first}, "
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
-            "finished pairs are skipped), then merge.")
+            "finished pairs are skipped), then merge."
+        )
     table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
     folder = pipeline.method_dir(output_dir, conf["method"])
-    atomic_write_json(folder / "run.json", {
-        "sequence": sequence.name, "image_root": str(sequence.image_root), "n_pairs": len(sequence.pairs),
-        "pairs": sequence.origin, "conf": conf, "seed": seed,
-        "environment": pipeline.environment_info(resolve_device(device)),
-        "this_run": {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
-        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-    })
+    atomic_write_json(
+        folder / "run.json",
+        {
+            "sequence": sequence.name,
+            "image_root": str(sequence.image_root),
+            "n_pairs": len(sequence.pairs),
+            "pairs": sequence.origin,
+            "conf": conf,
+            "seed": seed,
+            "environment": pipeline.environment_info(resolve_device(device)),
+            "this_run": {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
+            "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        },
+    )
     atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
     (folder / pipeline.UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
@@ -156,8 +202,9 @@ def _require_weights(params: dict[str, Any]) -> None:
 
 
 # --------------------------------------------------------------- one machine ----
-def run_shard(params: dict[str, Any], index: int, count: int, threads: int | None = None,
-              progress: bool = True) -> list[dict[str, Any]]:
+def run_shard(
+    params: dict[str, Any], index: int, count: int, threads: int | None = None, progress: bool = True
+) -> list[dict[str, Any]]:
     """Shard ``index`` of ``count`` of every method of a params file, here (``run --shard i/n``).
 
     Shards may run at the same time on machines sharing the cache and output folders,
@@ -173,12 +220,23 @@ def run_shard(params: dict[str, Any], index: int, count: int, threads: int | Non
         _remove_stale_results(Path(params["output_dir"]), method)
         if conf["extractor"]:
             extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
-        result = match_shard(sequence, conf, params["cache_dir"], params["output_dir"], index, count,
-                             params["device"], params["seed"], threads)
+        result = match_shard(
+            sequence,
+            conf,
+            params["cache_dir"],
+            params["output_dir"],
+            index,
+            count,
+            params["device"],
+            params["seed"],
+            threads,
+        )
         if progress:
-            print(f"{sequence.name} {method}: shard {index}/{count} done "
-                  f"({result['matching']['matched']} pairs matched, "
-                  f"{result['extraction']['extracted']} images extracted)")
+            print(
+                f"{sequence.name} {method}: shard {index}/{count} done "
+                f"({result['matching']['matched']} pairs matched, "
+                f"{result['extraction']['extracted']} images extracted)"
+            )
         done.append({"method": method, **result})
     return done
 
@@ -191,15 +249,15 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
     for method in params["methods"]:
         conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-        merge_method(sequence, conf, cache_dir, output_dir, params["seed"], params["device"],
-                     (shards or {}).get(method))
+        merge_method(
+            sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
+        )
     return pipeline.evaluate(output_dir, params["methods"])
 
 
 # -------------------------------------------------------------------------- Dask --
 @contextlib.contextmanager
-def dask_client(scheduler: str | None = None, n_workers: int | None = None, processes: bool = True
-                ) -> Iterator[Any]:
+def dask_client(scheduler: str | None = None, n_workers: int | None = None, processes: bool = True) -> Iterator[Any]:
     """A client of ``scheduler`` (an address such as tcp://host:8786), else of a new LocalCluster
     with one single-threaded worker per core (torch threads are set per task instead)."""
     from distributed import Client, LocalCluster
@@ -209,14 +267,22 @@ def dask_client(scheduler: str | None = None, n_workers: int | None = None, proc
             yield client
         return
     workers = n_workers or os.cpu_count() or 1
-    with LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes,
-                      dashboard_address=None) as cluster, Client(cluster) as client:
+    with (
+        LocalCluster(n_workers=workers, threads_per_worker=1, processes=processes, dashboard_address=None) as cluster,
+        Client(cluster) as client,
+    ):
         yield client
 
 
-def run_many(params_list: list[dict[str, Any]], n_shards: int, scheduler: str | None = None,
-             n_workers: int | None = None, processes: bool = True, threads: int | None = None,
-             progress: bool = True) -> dict[str, pd.DataFrame]:
+def run_many(
+    params_list: list[dict[str, Any]],
+    n_shards: int,
+    scheduler: str | None = None,
+    n_workers: int | None = None,
+    processes: bool = True,
+    threads: int | None = None,
+    progress: bool = True,
+) -> dict[str, pd.DataFrame]:
     """Every (sequence x method) of ``params_list`` in ``n_shards`` shards on one Dask cluster.
 
     All tasks are submitted at once (extraction shards first, matching shards after their
@@ -246,20 +312,46 @@ def run_many(params_list: list[dict[str, Any]], n_shards: int, scheduler: str | 
                 _remove_stale_results(Path(output_dir), method)
                 after: list[Any] = []
                 if conf["extractor"]:
-                    key = (f"{cache_dir}\t{sequence.image_root}\t{sequence.name}",
-                           method_registry.conf_hash(conf["extractor"]))
+                    key = (
+                        f"{cache_dir}\t{sequence.image_root}\t{sequence.name}",
+                        method_registry.conf_hash(conf["extractor"]),
+                    )
                     if key not in extraction:  # methods sharing an extractor share its shards
                         name = f"extract-{sequence.name}-{conf['extractor']['name']}"
                         extraction[key] = [
-                            client.submit(extract_shard, sequence, conf["extractor"], cache_dir, i, n_shards,
-                                          params["device"], threads, pure=False, key=f"{name}-{i}of{n_shards}-{job}")
-                            for i in range(n_shards)]
+                            client.submit(
+                                extract_shard,
+                                sequence,
+                                conf["extractor"],
+                                cache_dir,
+                                i,
+                                n_shards,
+                                params["device"],
+                                threads,
+                                pure=False,
+                                key=f"{name}-{i}of{n_shards}-{job}",
+                            )
+                            for i in range(n_shards)
+                        ]
                     after = extraction[key]
                 matching[(job, method)] = [
-                    client.submit(match_shard, sequence, conf, cache_dir, output_dir, i, n_shards, params["device"],
-                                  params["seed"], threads, after, pure=False,
-                                  key=f"match-{sequence.name}-{method}-{i}of{n_shards}-{job}")
-                    for i in range(n_shards)]
+                    client.submit(
+                        match_shard,
+                        sequence,
+                        conf,
+                        cache_dir,
+                        output_dir,
+                        i,
+                        n_shards,
+                        params["device"],
+                        params["seed"],
+                        threads,
+                        after,
+                        pure=False,
+                        key=f"match-{sequence.name}-{method}-{i}of{n_shards}-{job}",
+                    )
+                    for i in range(n_shards)
+                ]
         all_futures = [f for futures in matching.values() for f in futures]
         bar = tqdm(total=len(all_futures), desc="shards", unit="shard", disable=not progress)
         for job, (params, sequence) in enumerate(zip(params_list, sequences)):
@@ -272,16 +364,25 @@ def run_many(params_list: list[dict[str, Any]], n_shards: int, scheduler: str | 
                     try:
                         shards[method].append(future.result())
                     except Exception as error:
-                        raise ShardError(f"shard {i}/{n_shards} of {method} on {sequence.name} failed: "
-                                         f"{type(error).__name__}: {error}") from error
+                        raise ShardError(
+                            f"shard {i}/{n_shards} of {method} on {sequence.name} failed: "
+                            f"{type(error).__name__}: {error}"
+                        ) from error
                     bar.update()
             results[params["output_dir"]] = merge_runs(params, shards)
         bar.close()
     return results
 
 
-def run_sharded(params: dict[str, Any], n_shards: int, scheduler: str | None = None, n_workers: int | None = None,
-                processes: bool = True, threads: int | None = None, progress: bool = True) -> pd.DataFrame:
+def run_sharded(
+    params: dict[str, Any],
+    n_shards: int,
+    scheduler: str | None = None,
+    n_workers: int | None = None,
+    processes: bool = True,
+    threads: int | None = None,
+    progress: bool = True,
+) -> pd.DataFrame:
     """One params file's methods in ``n_shards`` shards on Dask; returns its results table."""
     return run_many([params], n_shards, scheduler, n_workers, processes, threads, progress)[params["output_dir"]]
 
@@ -310,8 +411,10 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
     if args.shard:
         index, count = parse_shard(args.shard)
         run_shard(params, index, count)
-        print(f"shard {index}/{count} finished; when all {count} are: python -m gvbench_nb run "
-              f"{params['params_file']} --merge (with the same --methods/--limit/--profile)")
+        print(
+            f"shard {index}/{count} finished; when all {count} are: python -m gvbench_nb run "
+            f"{params['params_file']} --merge (with the same --methods/--limit/--profile)"
+        )
         return 0
     if args.merge:
         results = merge_runs(params)
@@ -319,7 +422,10 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
         workers = args.workers or os.cpu_count() or 1
         n_shards = args.shards or 2 * workers
         results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else workers)
-    print(results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]]
-          .to_string(index=False))
+    print(
+        results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
+            index=False
+        )
+    )
     print(f"results table: {Path(params['output_dir']) / 'results.csv'}")
     return 0

@@ -175,7 +175,7 @@ def load_doppelgangers(
         raise MissingWeightsError(f"{path} does not exist.\n" + missing_message(CHECKPOINT_NAME))
     checkpoint = load_checkpoint(path, map_location="cpu")
     state = checkpoint["dec"] if isinstance(checkpoint, Mapping) and "dec" in checkpoint else checkpoint
-    state = {(k[len("module."):] if k.startswith("module.") else k): v for k, v in state.items()}
+    state = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
     model = DoppelgangersClassifier()
     load_state_dict_strict(model, state, str(path))
     return model.eval().to(device)
@@ -434,8 +434,11 @@ def focal_loss(
     logpt = F.log_softmax(logits, dim=1).gather(1, targets[:, None]).squeeze(1)
     pt = logpt.detach().exp()
     if alpha is not None:
-        weights = torch.tensor([alpha, 1 - alpha] if isinstance(alpha, (int, float)) else list(alpha),
-                               dtype=logits.dtype, device=logits.device)
+        weights = torch.tensor(
+            [alpha, 1 - alpha] if isinstance(alpha, (int, float)) else list(alpha),
+            dtype=logits.dtype,
+            device=logits.device,
+        )
         logpt = logpt * weights[targets]
     return (-((1 - pt) ** gamma) * logpt).mean()
 

@@ -66,8 +66,9 @@ def fundamental_inliers(
     return mask.ravel().astype(bool)
 
 
-def to_verifier_frame(keypoints: np.ndarray, image_size: np.ndarray | SequenceType[int] | None,
-                      conf: dict[str, Any]) -> np.ndarray:
+def to_verifier_frame(
+    keypoints: np.ndarray, image_size: np.ndarray | SequenceType[int] | None, conf: dict[str, Any]
+) -> np.ndarray:
     """Keypoints (original pixels) in the frame the verifier fits in.
 
     ``coordinates`` = "original" leaves them; "resize_to" maps them into the fixed
@@ -80,15 +81,25 @@ def to_verifier_frame(keypoints: np.ndarray, image_size: np.ndarray | SequenceTy
         return keypoints
     registry.check_choice("verifier coordinates", coordinates, ("original", "resize_to"))
     if image_size is None:
-        raise ValueError("the verifier conf fits in resized coordinates but no original image size was given; "
-                         "rerun extraction so the feature cache records each image's image_size")
+        raise ValueError(
+            "the verifier conf fits in resized coordinates but no original image size was given; "
+            "rerun extraction so the feature cache records each image's image_size"
+        )
     scale = np.asarray(conf["resize_to"], dtype=np.float64) / np.asarray(image_size, dtype=np.float64)
     return (np.asarray(keypoints, dtype=np.float64) + 0.5) * scale - 0.5
 
 
-def homography_inliers(points0: np.ndarray, points1: np.ndarray, threshold_px: float = 3.0, confidence: float = 0.99,
-                       max_iters: int = 1000, method: str = "FM_RANSAC", min_matches: int = 4, seed: int = 0,
-                       few_matches: str = "zero") -> np.ndarray:
+def homography_inliers(
+    points0: np.ndarray,
+    points1: np.ndarray,
+    threshold_px: float = 3.0,
+    confidence: float = 0.99,
+    max_iters: int = 1000,
+    method: str = "FM_RANSAC",
+    min_matches: int = 4,
+    seed: int = 0,
+    few_matches: str = "zero",
+) -> np.ndarray:
     """Inlier mask of a homography fitted robustly (``cv2.findHomography``).
 
     ``method`` takes the fundamental estimators' names; FM_RANSAC means plain
@@ -133,10 +144,20 @@ def filter_and_fit(
     matches scoring ``min_match_score`` or less (None keeps all), then fit ``model`` robustly.
     Returns (inlier mask over all the given matches, number of matches that entered the fit)."""
     keep = np.ones(len(points0), dtype=bool) if min_match_score is None else np.asarray(match_scores) > min_match_score
-    fit = registry.lookup("verifier model", model, {"fundamental": fundamental_inliers, "homography": homography_inliers})
-    inliers_of_kept = fit(np.asarray(points0)[keep], np.asarray(points1)[keep], threshold_px=threshold_px,
-                          confidence=confidence, max_iters=max_iters, method=method, min_matches=min_matches,
-                          seed=seed, few_matches=few_matches)
+    fit = registry.lookup(
+        "verifier model", model, {"fundamental": fundamental_inliers, "homography": homography_inliers}
+    )
+    inliers_of_kept = fit(
+        np.asarray(points0)[keep],
+        np.asarray(points1)[keep],
+        threshold_px=threshold_px,
+        confidence=confidence,
+        max_iters=max_iters,
+        method=method,
+        min_matches=min_matches,
+        seed=seed,
+        few_matches=few_matches,
+    )
     mask = np.zeros(len(keep), dtype=bool)
     mask[np.flatnonzero(keep)[inliers_of_kept]] = True
     return mask, int(keep.sum())
@@ -159,9 +180,18 @@ def verify_matches(
     points0 = to_verifier_frame(keypoints0[matches[:, 0]], image_sizes[0], conf)
     points1 = to_verifier_frame(keypoints1[matches[:, 1]], image_sizes[1], conf)
     inlier_mask, num_filtered = filter_and_fit(
-        points0, points1, match_scores, model=conf["type"], method=conf["method"], threshold_px=conf["threshold_px"],
-        confidence=conf["confidence"], max_iters=conf["max_iters"], min_matches=conf["min_matches"],
-        min_match_score=conf.get("min_match_score", 0.0), few_matches=conf.get("few_matches", "zero"), seed=seed,
+        points0,
+        points1,
+        match_scores,
+        model=conf["type"],
+        method=conf["method"],
+        threshold_px=conf["threshold_px"],
+        confidence=conf["confidence"],
+        max_iters=conf["max_iters"],
+        min_matches=conf["min_matches"],
+        min_match_score=conf.get("min_match_score", 0.0),
+        few_matches=conf.get("few_matches", "zero"),
+        seed=seed,
     )
     return {
         "num_matches": int(len(matches)),

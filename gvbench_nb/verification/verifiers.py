@@ -61,7 +61,10 @@ from gvbench_nb.weights import MissingWeightsError
 
 # ------------------------------------------------------------------ registry --
 ESTIMATOR_SHORT_NAMES: dict[str, str] = {
-    "FM_RANSAC": "ransac", "USAC_DEFAULT": "degensac", "USAC_ACCURATE": "lo-ransac", "USAC_MAGSAC": "magsac",
+    "FM_RANSAC": "ransac",
+    "USAC_DEFAULT": "degensac",
+    "USAC_ACCURATE": "lo-ransac",
+    "USAC_MAGSAC": "magsac",
 }
 MODEL_SHORT_NAMES: dict[str, str] = {"fundamental": "F", "homography": "H"}
 GV_SCORES = ("inliers", "inlier_ratio", "inliers_over_keypoints")
@@ -70,17 +73,27 @@ PAPER_VERIFIER = "gv-F-ransac-inliers"
 MIN_MATCHES = {"fundamental": 8, "homography": 4}
 
 # Per-pair features of the learned combination (see ``gv_features``).
-FEATURES = ("log_inliers", "log_matches", "inlier_ratio", "inliers_over_keypoints", "inlier_hull_area",
-            "inlier_spread")
+FEATURES = ("log_inliers", "log_matches", "inlier_ratio", "inliers_over_keypoints", "inlier_hull_area", "inlier_spread")
 
 
 def gv_conf(model: str, estimator: str, score: str) -> dict[str, Any]:
     """The conf of one GV verifier; thresholds are the paper's (3 px, 0.99, 1000 iterations)."""
     if model not in MODEL_SHORT_NAMES or estimator not in ESTIMATORS or score not in GV_SCORES:
-        raise KeyError(f"unknown GV verifier ({model}, {estimator}, {score}); models {list(MODEL_SHORT_NAMES)}, "
-                       f"estimators {list(ESTIMATORS)}, scores {list(GV_SCORES)}")
-    return {"type": "gv", "model": model, "estimator": estimator, "score": score, "threshold_px": 3.0,
-            "confidence": 0.99, "max_iters": 1000, "min_matches": MIN_MATCHES[model], "min_match_score": 0.5}
+        raise KeyError(
+            f"unknown GV verifier ({model}, {estimator}, {score}); models {list(MODEL_SHORT_NAMES)}, "
+            f"estimators {list(ESTIMATORS)}, scores {list(GV_SCORES)}"
+        )
+    return {
+        "type": "gv",
+        "model": model,
+        "estimator": estimator,
+        "score": score,
+        "threshold_px": 3.0,
+        "confidence": 0.99,
+        "max_iters": 1000,
+        "min_matches": MIN_MATCHES[model],
+        "min_match_score": 0.5,
+    }
 
 
 def gv_name(model: str, estimator: str, score: str) -> str:
@@ -90,18 +103,38 @@ def gv_name(model: str, estimator: str, score: str) -> str:
 VERIFIERS: dict[str, dict[str, Any]] = {
     gv_name(m, e, s): gv_conf(m, e, s) for m in MODEL_SHORT_NAMES for e in ESTIMATORS for s in GV_SCORES
 }
-VERIFIERS.update({
-    # slope 10 on distances in [0, 1] (1 - score / best score): a candidate with 10% fewer
-    # inliers than the best weighs e^-1 of it. The paper's 350 was for NetVLAD distances.
-    "sue": {"type": "sue", "base": PAPER_VERIFIER, "slope": 10.0, "top_k": 10},
-    "doppelgangers": {"type": "doppelgangers", "weights": "official", "size": 1024},
-    "doppelgangers-in-domain": {"type": "doppelgangers", "weights": "in-domain", "size": 96, "epochs": 3,
-                                "batch_size": 8, "lr": 5e-4, "max_train_pairs": 300, "seed": 0},
-    "learned_combination": {"type": "learned_combination", "base": PAPER_VERIFIER, "features": list(FEATURES),
-                            "classifier": None, "C": 1.0},
-    "learned_combination+dg": {"type": "learned_combination", "base": PAPER_VERIFIER,
-                               "features": list(FEATURES), "classifier": "doppelgangers-in-domain", "C": 1.0},
-})
+VERIFIERS.update(
+    {
+        # slope 10 on distances in [0, 1] (1 - score / best score): a candidate with 10% fewer
+        # inliers than the best weighs e^-1 of it. The paper's 350 was for NetVLAD distances.
+        "sue": {"type": "sue", "base": PAPER_VERIFIER, "slope": 10.0, "top_k": 10},
+        "doppelgangers": {"type": "doppelgangers", "weights": "official", "size": 1024},
+        "doppelgangers-in-domain": {
+            "type": "doppelgangers",
+            "weights": "in-domain",
+            "size": 96,
+            "epochs": 3,
+            "batch_size": 8,
+            "lr": 5e-4,
+            "max_train_pairs": 300,
+            "seed": 0,
+        },
+        "learned_combination": {
+            "type": "learned_combination",
+            "base": PAPER_VERIFIER,
+            "features": list(FEATURES),
+            "classifier": None,
+            "C": 1.0,
+        },
+        "learned_combination+dg": {
+            "type": "learned_combination",
+            "base": PAPER_VERIFIER,
+            "features": list(FEATURES),
+            "classifier": "doppelgangers-in-domain",
+            "C": 1.0,
+        },
+    }
+)
 
 
 def resolve_verifier(name: str, **overrides: Any) -> dict[str, Any]:
@@ -138,8 +171,10 @@ def place_disjoint_split(
     0-89, test 110-199.
     """
     if gap_frames < 2 * tolerance:
-        raise ValueError(f"gap_frames={gap_frames} < 2 * tolerance ({2 * tolerance}): a place of tolerance "
-                         f"{tolerance} frames could then reach both splits; widen the gap")
+        raise ValueError(
+            f"gap_frames={gap_frames} < 2 * tolerance ({2 * tolerance}): a place of tolerance "
+            f"{tolerance} frames could then reach both splits; widen the gap"
+        )
     query_frames = pairs["query"].map(position).to_numpy()
     reference_frames = pairs["reference"].map(position).to_numpy()
     lo = int(min(query_frames.min(), reference_frames.min()))
@@ -147,24 +182,31 @@ def place_disjoint_split(
     train_end = lo + int(np.floor(train_fraction * (hi - lo + 1))) - 1
     test_start = train_end + gap_frames + 1
     if train_end < lo or test_start > hi:
-        raise ValueError(f"frames {lo}-{hi} leave no room for train (to {train_end}) and test (from {test_start}); "
-                         "lower gap_frames or change train_fraction")
+        raise ValueError(
+            f"frames {lo}-{hi} leave no room for train (to {train_end}) and test (from {test_start}); "
+            "lower gap_frames or change train_fraction"
+        )
     in_train = (query_frames <= train_end) & (reference_frames <= train_end)
     in_test = (query_frames >= test_start) & (reference_frames >= test_start)
     split = np.where(in_train, SPLIT_TRAIN, np.where(in_test, SPLIT_TEST, SPLIT_DROPPED))
     return pd.Series(split, index=pairs.index, name="split")
 
 
-def split_summary(pairs: pd.DataFrame, split: pd.Series, position: Callable[[str], int] = frame_index
-                  ) -> pd.DataFrame:
+def split_summary(pairs: pd.DataFrame, split: pd.Series, position: Callable[[str], int] = frame_index) -> pd.DataFrame:
     """Pairs, positives, queries and the frame range of each split (for the notebooks)."""
     rows = []
     for name in (SPLIT_TRAIN, SPLIT_TEST, SPLIT_DROPPED):
         part = pairs[split == name]
         frames = pd.concat([part["query"], part["reference"]]).map(position) if len(part) else pd.Series([], dtype=int)
-        rows.append({"split": name, "pairs": len(part), "positives": int(part["label"].sum()),
-                     "queries": part["query"].nunique(),
-                     "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-"})
+        rows.append(
+            {
+                "split": name,
+                "pairs": len(part),
+                "positives": int(part["label"].sum()),
+                "queries": part["query"].nunique(),
+                "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-",
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -191,8 +233,9 @@ class CachedMatches:
     stored ``points0/points1`` (keypoints = matches there, as in ``pairs.csv``).
     """
 
-    def __init__(self, output_dir: str | os.PathLike[str], method: str,
-                 cache_dir: str | os.PathLike[str] | None = None) -> None:
+    def __init__(
+        self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
+    ) -> None:
         self.output_dir = Path(output_dir)
         self.method = method
         self.run = analysis.load_run(self.output_dir, method)
@@ -202,8 +245,11 @@ class CachedMatches:
         self.image_root = Path(self.run["image_root"])
         self.pairs = pipeline.load_pairs_table(self.output_dir, method)
         self.matches = pipeline.match_store(self.output_dir, self.conf)
-        self.features = (pipeline.feature_store(analysis.resolve_cache_dir(self.output_dir, cache_dir),
-                                                self.conf["extractor"]) if self.conf["extractor"] else None)
+        self.features = (
+            pipeline.feature_store(analysis.resolve_cache_dir(self.output_dir, cache_dir), self.conf["extractor"])
+            if self.conf["extractor"]
+            else None
+        )
         self._read_features = lru_cache(maxsize=512)(self._features_of)
         self._read_image = lru_cache(maxsize=48)(self._image_of)
 
@@ -216,12 +262,16 @@ class CachedMatches:
         assert self.features is not None
         key = pipeline.image_key(self.image_root, name)
         if key not in self.features:
-            raise KeyError(f"features of {name!r} are not in {self.features.folder}; pass cache_dir= the run's "
-                           "cache folder (its params' cache_dir)")
+            raise KeyError(
+                f"features of {name!r} are not in {self.features.folder}; pass cache_dir= the run's "
+                "cache folder (its params' cache_dir)"
+            )
         entry = self.features.read(key)
         # float32: the cache may hold float16 (as hloc stores it), whose squares overflow in statistics.
-        return (np.asarray(entry["keypoints"], dtype=np.float32),
-                (int(entry["image_size"][0]), int(entry["image_size"][1])))
+        return (
+            np.asarray(entry["keypoints"], dtype=np.float32),
+            (int(entry["image_size"][0]), int(entry["image_size"][1])),
+        )
 
     def _image_of(self, name: str) -> np.ndarray:
         path = self.image_root / name
@@ -237,8 +287,10 @@ class CachedMatches:
     def pair(self, query: str, reference: str) -> PairMatches:
         key = pipeline.pair_key(self.image_root, query, reference, self.seed)
         if key not in self.matches:
-            raise KeyError(f"pair {query} {reference} is not in the match store {self.matches.folder}; "
-                           f"rerun {self.method!r} on these pairs")
+            raise KeyError(
+                f"pair {query} {reference} is not in the match store {self.matches.folder}; "
+                f"rerun {self.method!r} on these pairs"
+            )
         entry = self.matches.read(key)
         scores = np.asarray(entry["match_scores"], dtype=np.float64).reshape(-1)
         inlier_mask = np.asarray(entry["inlier_mask"], dtype=bool).reshape(-1)
@@ -250,8 +302,16 @@ class CachedMatches:
         keypoints0, size0 = self._read_features(query)
         keypoints1, size1 = self._read_features(reference)
         index = np.asarray(entry["matches"], dtype=np.int64).reshape(-1, 2)
-        return PairMatches(keypoints0[index[:, 0]], keypoints1[index[:, 1]], scores, inlier_mask,
-                           len(keypoints0), len(keypoints1), size0, size1)
+        return PairMatches(
+            keypoints0[index[:, 0]],
+            keypoints1[index[:, 1]],
+            scores,
+            inlier_mask,
+            len(keypoints0),
+            len(keypoints1),
+            size0,
+            size1,
+        )
 
     def pair_seed(self, query: str, reference: str) -> int:
         """The RANSAC seed the run used for this pair."""
@@ -272,11 +332,20 @@ def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.
     ``ransac.filter_and_fit``, the run's own step, so FM_RANSAC with the run's seed gives the
     stored mask.
     """
-    return filter_and_fit(pair.points0, pair.points1, pair.match_scores, model=conf["model"],
-                          method=conf["estimator"], threshold_px=conf["threshold_px"], confidence=conf["confidence"],
-                          max_iters=conf["max_iters"], min_matches=conf["min_matches"],
-                          min_match_score=conf["min_match_score"], few_matches=conf.get("few_matches", "zero"),
-                          seed=seed)
+    return filter_and_fit(
+        pair.points0,
+        pair.points1,
+        pair.match_scores,
+        model=conf["model"],
+        method=conf["estimator"],
+        threshold_px=conf["threshold_px"],
+        confidence=conf["confidence"],
+        max_iters=conf["max_iters"],
+        min_matches=conf["min_matches"],
+        min_match_score=conf["min_match_score"],
+        few_matches=conf.get("few_matches", "zero"),
+        seed=seed,
+    )
 
 
 def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:
@@ -308,19 +377,27 @@ def gv_features(pair: PairMatches, inlier_mask: np.ndarray, num_fitted: int) -> 
         "inliers_over_keypoints": n_inliers / max(min(pair.num_keypoints0, pair.num_keypoints1), 1),
         "log_inliers": float(np.log1p(n_inliers)),
         "log_matches": float(np.log1p(num_fitted)),
-        "inlier_hull_area": min(hull_area_fraction(inliers0, pair.image_size0),
-                                hull_area_fraction(inliers1, pair.image_size1)),
+        "inlier_hull_area": min(
+            hull_area_fraction(inliers0, pair.image_size0), hull_area_fraction(inliers1, pair.image_size1)
+        ),
         "inlier_spread": min(spread(inliers0, pair.image_size0), spread(inliers1, pair.image_size1)),
     }
 
 
-def gv_feature_table(cached: CachedMatches, pairs: pd.DataFrame, conf: dict[str, Any], progress: bool = True
-                     ) -> pd.DataFrame:
+def gv_feature_table(
+    cached: CachedMatches, pairs: pd.DataFrame, conf: dict[str, Any], progress: bool = True
+) -> pd.DataFrame:
     """``gv_features`` of every pair (query, reference order kept), fitting once a pair with its run seed."""
     rows = []
     desc = f"{MODEL_SHORT_NAMES[conf['model']]}-{ESTIMATOR_SHORT_NAMES[conf['estimator']]}"
-    for query, reference in tqdm(zip(pairs["query"], pairs["reference"]), total=len(pairs), desc=desc,
-                                 disable=not progress, unit="pair", leave=False):
+    for query, reference in tqdm(
+        zip(pairs["query"], pairs["reference"]),
+        total=len(pairs),
+        desc=desc,
+        disable=not progress,
+        unit="pair",
+        leave=False,
+    ):
         pair = cached.pair(query, reference)
         mask, num_fitted = fit_inliers(pair, conf, cached.pair_seed(query, reference))
         rows.append({"query": query, "reference": reference, **gv_features(pair, mask, num_fitted)})
@@ -328,8 +405,9 @@ def gv_feature_table(cached: CachedMatches, pairs: pd.DataFrame, conf: dict[str,
 
 
 # ----------------------------------------------------------------------- SUE --
-def sue_pair_scores(table: pd.DataFrame, slope: float = 10.0, top_k: int = 10,
-                    position: Callable[[str], int] = frame_index) -> pd.DataFrame:
+def sue_pair_scores(
+    table: pd.DataFrame, slope: float = 10.0, top_k: int = 10, position: Callable[[str], int] = frame_index
+) -> pd.DataFrame:
     """SUE of each query's GV-ranked candidates, turned into a per-pair score.
 
     ``table`` has query, reference and ``score`` (the base GV score, >= 0). For each query:
@@ -364,11 +442,20 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
     from gvbench_nb.verification.doppelgangers import build_input
 
     inputs = []
-    for query, reference in tqdm(zip(pairs["query"], pairs["reference"]), total=len(pairs),
-                                 desc=f"doppelgangers inputs {size}px", disable=not progress, unit="pair", leave=False):
+    for query, reference in tqdm(
+        zip(pairs["query"], pairs["reference"]),
+        total=len(pairs),
+        desc=f"doppelgangers inputs {size}px",
+        disable=not progress,
+        unit="pair",
+        leave=False,
+    ):
         pair = cached.pair(query, reference)
-        inputs.append(build_input(cached.image(query), cached.image(reference), pair.points0, pair.points1,
-                                  pair.match_scores, None, size))
+        inputs.append(
+            build_input(
+                cached.image(query), cached.image(reference), pair.points0, pair.points1, pair.match_scores, None, size
+            )
+        )
     return np.stack(inputs) if inputs else np.zeros((0, 10, size, size), np.float32)
 
 
@@ -387,19 +474,30 @@ def balanced_subset(labels: np.ndarray, max_pairs: int | None, seed: int) -> np.
     return np.sort(chosen)
 
 
-def in_domain_weights_path(folder: str | os.PathLike[str], cached: CachedMatches, conf: dict[str, Any],
-                           split_conf: dict[str, Any]) -> Path:
+def in_domain_weights_path(
+    folder: str | os.PathLike[str], cached: CachedMatches, conf: dict[str, Any], split_conf: dict[str, Any]
+) -> Path:
     """Where in-domain weights live; the name says what they are (sequence, matches, split,
     size, epochs, seed) and ends in the hash of everything that made them."""
-    identity = {"verifier": conf, "split": split_conf, "matches": {"method": cached.method,
-                "conf_hash": method_registry.conf_hash(cached.conf), "sequence": cached.sequence}}
-    name = (f"doppelgangers_in-domain_{cached.sequence}_{cached.method}-{cached.conf['profile']}_train-split"
-            f"_size{conf['size']}_ep{conf['epochs']}_seed{conf['seed']}_{method_registry.conf_hash(identity)}.pt")
+    identity = {
+        "verifier": conf,
+        "split": split_conf,
+        "matches": {
+            "method": cached.method,
+            "conf_hash": method_registry.conf_hash(cached.conf),
+            "sequence": cached.sequence,
+        },
+    }
+    name = (
+        f"doppelgangers_in-domain_{cached.sequence}_{cached.method}-{cached.conf['profile']}_train-split"
+        f"_size{conf['size']}_ep{conf['epochs']}_seed{conf['seed']}_{method_registry.conf_hash(identity)}.pt"
+    )
     return Path(folder) / name
 
 
-def train_in_domain(cached: CachedMatches, train_pairs: pd.DataFrame, conf: dict[str, Any], path: Path,
-                    progress: bool = True) -> dict[str, Any]:
+def train_in_domain(
+    cached: CachedMatches, train_pairs: pd.DataFrame, conf: dict[str, Any], path: Path, progress: bool = True
+) -> dict[str, Any]:
     """Train the Doppelgangers architecture on ``train_pairs`` (published recipe: focal loss, Adam)
     and save ``{'dec': state_dict, 'info': ...}`` at ``path`` (loadable by ``load_doppelgangers``).
     Returns the info: pairs used, seconds to build inputs and to train, the history."""
@@ -419,13 +517,28 @@ def train_in_domain(cached: CachedMatches, train_pairs: pd.DataFrame, conf: dict
     model = DoppelgangersClassifier()
     start = time.perf_counter()
     labels = np.array(subset["label"], dtype=np.int64)  # a writable copy (torch refuses read-only arrays)
-    history = train_classifier(model, inputs, labels, epochs=conf["epochs"], lr=conf["lr"],
-                               batch_size=conf["batch_size"], seed=conf["seed"], progress=progress)
+    history = train_classifier(
+        model,
+        inputs,
+        labels,
+        epochs=conf["epochs"],
+        lr=conf["lr"],
+        batch_size=conf["batch_size"],
+        seed=conf["seed"],
+        progress=progress,
+    )
     train_seconds = time.perf_counter() - start
-    info = {"weights": path.name, "matches": cached.label, "conf": conf, "n_train_pairs": int(len(subset)),
-            "n_train_positives": int(subset["label"].sum()), "input_seconds": input_seconds,
-            "train_seconds": train_seconds, "torch_threads": torch.get_num_threads(),
-            "history": history}
+    info = {
+        "weights": path.name,
+        "matches": cached.label,
+        "conf": conf,
+        "n_train_pairs": int(len(subset)),
+        "n_train_positives": int(subset["label"].sum()),
+        "input_seconds": input_seconds,
+        "train_seconds": train_seconds,
+        "torch_threads": torch.get_num_threads(),
+        "history": history,
+    }
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"dec": model.state_dict(), "info": info}, path)
     atomic_write_json(path.with_suffix(".json"), info)
@@ -485,8 +598,9 @@ class VerifierBench:
                 info = json.loads(path.with_suffix(".json").read_text())
                 info["reused"] = True
             else:
-                info = train_in_domain(self.cached, self.pairs[self.pairs["split"] == SPLIT_TRAIN], conf, path,
-                                       self.progress)
+                info = train_in_domain(
+                    self.cached, self.pairs[self.pairs["split"] == SPLIT_TRAIN], conf, path, self.progress
+                )
                 info["reused"] = False
             model = load_doppelgangers(path)
             self.weights_info[name] = info
@@ -521,8 +635,11 @@ class VerifierBench:
             return self.classifier_probability(name, conf)
         if kind == "learned_combination":
             features = self.combination_features(conf)
-            model = fit_combination(features[self.used()["split"] == SPLIT_TRAIN],
-                                    self.used().loc[self.used()["split"] == SPLIT_TRAIN, "label"], conf)
+            model = fit_combination(
+                features[self.used()["split"] == SPLIT_TRAIN],
+                self.used().loc[self.used()["split"] == SPLIT_TRAIN, "label"],
+                conf,
+            )
             return pd.Series(model.predict_proba(features.to_numpy())[:, 1], index=features.index)
         raise KeyError(f"verifier {name!r} has unknown type {kind!r}")
 
@@ -530,11 +647,17 @@ class VerifierBench:
         features = self.gv(self.conf(conf["base"]))[list(conf["features"])].copy()
         if conf["classifier"]:
             features["classifier_probability"] = self.classifier_probability(
-                conf["classifier"], self.conf(conf["classifier"]))
+                conf["classifier"], self.conf(conf["classifier"])
+            )
         return features
 
-    def evaluate(self, names: Iterable[str], split: str = SPLIT_TEST, n_resamples: int = 1000, seed: int = 0,
-                 ) -> tuple[pd.DataFrame, dict[str, pd.DataFrame], analysis.Bootstrap | None]:
+    def evaluate(
+        self,
+        names: Iterable[str],
+        split: str = SPLIT_TEST,
+        n_resamples: int = 1000,
+        seed: int = 0,
+    ) -> tuple[pd.DataFrame, dict[str, pd.DataFrame], analysis.Bootstrap | None]:
         """AP, MR and their query-bootstrap 95% CIs of each verifier on ``split``.
 
         A verifier that cannot run (missing weights) gets a row with its reason in
@@ -544,22 +667,44 @@ class VerifierBench:
         part = self.used()[self.used()["split"] == split]
         for name in names:
             conf = self.conf(name)
-            row = {"verifier": name, "conf_hash": method_registry.conf_hash(conf), "split": split,
-                   "matches": self.cached.label, "n_pairs": len(part), "n_positives": int(part["label"].sum())}
+            row = {
+                "verifier": name,
+                "conf_hash": method_registry.conf_hash(conf),
+                "split": split,
+                "matches": self.cached.label,
+                "n_pairs": len(part),
+                "n_positives": int(part["label"].sum()),
+            }
             try:
                 start = time.perf_counter()
                 score = self.scores(name, conf)
                 row["seconds"] = time.perf_counter() - start
             except MissingWeightsError as error:
-                rows.append({**row, "status": f"unavailable: {str(error).splitlines()[0]}",
-                             "conf": json.dumps(conf, sort_keys=True)})
+                rows.append(
+                    {
+                        **row,
+                        "status": f"unavailable: {str(error).splitlines()[0]}",
+                        "conf": json.dumps(conf, sort_keys=True),
+                    }
+                )
                 continue
             tables[name] = part[["query", "reference", "label"]].assign(score=score.loc[part.index].to_numpy())
-            metrics = evaluate_scores(tables[name]["label"].to_numpy(), tables[name]["score"].to_numpy(),
-                                      where=f"verifier {name} on the {split} split of {self.cached.label}")
+            metrics = evaluate_scores(
+                tables[name]["label"].to_numpy(),
+                tables[name]["score"].to_numpy(),
+                where=f"verifier {name} on the {split} split of {self.cached.label}",
+            )
             weights = self.weights_info.get(name) or self.weights_info.get(conf.get("classifier") or "")
-            rows.append({**row, "ap": metrics["ap"], "max_recall": metrics["max_recall"], "status": "ok",
-                         "weights": weights["weights"] if weights else "", "conf": json.dumps(conf, sort_keys=True)})
+            rows.append(
+                {
+                    **row,
+                    "ap": metrics["ap"],
+                    "max_recall": metrics["max_recall"],
+                    "status": "ok",
+                    "weights": weights["weights"] if weights else "",
+                    "conf": json.dumps(conf, sort_keys=True),
+                }
+            )
         results = pd.DataFrame(rows)
         boot = None
         if tables:
@@ -568,9 +713,24 @@ class VerifierBench:
             for metric in analysis.METRICS:
                 results[f"{metric}_ci_low"] = results["verifier"].map(wide[("low", metric)])
                 results[f"{metric}_ci_high"] = results["verifier"].map(wide[("high", metric)])
-        columns = ["verifier", "split", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low",
-                   "max_recall_ci_high", "n_pairs", "n_positives", "matches", "weights", "seconds", "status",
-                   "conf_hash", "conf"]
+        columns = [
+            "verifier",
+            "split",
+            "ap",
+            "max_recall",
+            "ap_ci_low",
+            "ap_ci_high",
+            "max_recall_ci_low",
+            "max_recall_ci_high",
+            "n_pairs",
+            "n_positives",
+            "matches",
+            "weights",
+            "seconds",
+            "status",
+            "conf_hash",
+            "conf",
+        ]
         return results.reindex(columns=columns), tables, boot
 
 
@@ -582,8 +742,10 @@ def fit_combination(features: pd.DataFrame, labels: pd.Series, conf: dict[str, A
 
     labels = np.asarray(labels).astype(int)
     if len(np.unique(labels)) < 2:
-        raise ValueError(f"the learned combination needs true and false training pairs; got {len(labels)} pairs "
-                         f"all labelled {labels[:1]}: widen the train split")
+        raise ValueError(
+            f"the learned combination needs true and false training pairs; got {len(labels)} pairs "
+            f"all labelled {labels[:1]}: widen the train split"
+        )
     model = make_pipeline(StandardScaler(), LogisticRegression(C=conf["C"], max_iter=1000))
     return model.fit(features.to_numpy(dtype=np.float64), labels)
 
@@ -600,9 +762,15 @@ def ensure_method_results(params_file: str | os.PathLike[str], method: str, **ov
     return output_dir
 
 
-def open_bench(results_dir: str | os.PathLike[str], method: str, output_dir: str | os.PathLike[str],
-               cache_dir: str | os.PathLike[str] | None = None, progress: bool = True,
-               overrides: dict[str, dict[str, Any]] | None = None, **split_options: Any) -> VerifierBench:
+def open_bench(
+    results_dir: str | os.PathLike[str],
+    method: str,
+    output_dir: str | os.PathLike[str],
+    cache_dir: str | os.PathLike[str] | None = None,
+    progress: bool = True,
+    overrides: dict[str, dict[str, Any]] | None = None,
+    **split_options: Any,
+) -> VerifierBench:
     """A ``VerifierBench`` on ``results_dir/method``'s cached matches, split with
     ``place_disjoint_split(**split_options)``; learned weights go to ``output_dir``."""
     cached = CachedMatches(results_dir, method, cache_dir)
@@ -629,21 +797,26 @@ def write_results(results: pd.DataFrame, output_dir: str | os.PathLike[str], nam
 
 def verifier_table(results: pd.DataFrame) -> pd.DataFrame:
     """AP and MR with their 95% CIs as text (%), one row a verifier, for people."""
+
     def cell(row: pd.Series, metric: str) -> str:
         if row.get("status") != "ok":
             return "-"
         return f"{100 * row[metric]:.1f} [{100 * row[f'{metric}_ci_low']:.1f}, {100 * row[f'{metric}_ci_high']:.1f}]"
 
-    return pd.DataFrame({
-        "verifier": results["verifier"],
-        "AP % [95% CI]": [cell(r, "ap") for _, r in results.iterrows()],
-        "MR % [95% CI]": [cell(r, "max_recall") for _, r in results.iterrows()],
-        "status": results["status"], "weights": results["weights"].fillna(""),
-    }).set_index("verifier")
+    return pd.DataFrame(
+        {
+            "verifier": results["verifier"],
+            "AP % [95% CI]": [cell(r, "ap") for _, r in results.iterrows()],
+            "MR % [95% CI]": [cell(r, "max_recall") for _, r in results.iterrows()],
+            "status": results["status"],
+            "weights": results["weights"].fillna(""),
+        }
+    ).set_index("verifier")
 
 
-def best_by(results: pd.DataFrame, boot: analysis.Bootstrap, metric: str = "max_recall",
-            baseline: str = PAPER_VERIFIER) -> dict[str, Any]:
+def best_by(
+    results: pd.DataFrame, boot: analysis.Bootstrap, metric: str = "max_recall", baseline: str = PAPER_VERIFIER
+) -> dict[str, Any]:
     """The verifier with the highest ``metric`` and its gain over ``baseline`` with a paired
     bootstrap 95% CI of the difference (same query resamples for both)."""
     ok = results[results["status"] == "ok"]
@@ -651,35 +824,79 @@ def best_by(results: pd.DataFrame, boot: analysis.Bootstrap, metric: str = "max_
     difference = (boot.samples[metric][winner] - boot.samples[metric][baseline]).dropna()
     low, high = np.percentile(difference, [2.5, 97.5]) if len(difference) else (np.nan, np.nan)
     estimate = float(ok.set_index("verifier").loc[winner, metric] - ok.set_index("verifier").loc[baseline, metric])
-    return {"metric": metric, "winner": winner, "baseline": baseline, "difference": estimate,
-            "difference_ci_low": float(low), "difference_ci_high": float(high),
-            "winner_beats_baseline_share": float((difference > 0).mean()) if len(difference) else float("nan")}
+    return {
+        "metric": metric,
+        "winner": winner,
+        "baseline": baseline,
+        "difference": estimate,
+        "difference_ci_low": float(low),
+        "difference_ci_high": float(high),
+        "winner_beats_baseline_share": float((difference > 0).mean()) if len(difference) else float("nan"),
+    }
 
 
 # ------------------------------------------------------- paper comparison --
 PAPER_ROWS = {"SIFT+NN": "GV: SIFT+NN, F-RANSAC inliers", "Doppelgangers": "Doppelgangers"}
 
 
-def doppelgangers_comparison(results: pd.DataFrame, paper: pd.DataFrame, sequence: str,
-                             verifiers_shown: SequenceType[str] = (PAPER_VERIFIER, "doppelgangers",
-                                                                   "doppelgangers-in-domain")) -> pd.DataFrame:
+def doppelgangers_comparison(
+    results: pd.DataFrame,
+    paper: pd.DataFrame,
+    sequence: str,
+    verifiers_shown: SequenceType[str] = (PAPER_VERIFIER, "doppelgangers", "doppelgangers-in-domain"),
+) -> pd.DataFrame:
     """GV vs Doppelgangers as the paper's supplementary table: ours on ``sequence``'s test split
     (source 'ours', with CIs and the weights used) beside the paper's SIFT+NN and Doppelgangers
     rows on its own sequences (source 'paper', as published). AP and MR as fractions."""
     ours = results[results["verifier"].isin(verifiers_shown)].copy()
     ours = ours.assign(source=analysis.OURS_LABEL, sequence=f"{sequence} (test split)")
     theirs = paper[paper["paper_name"].isin(list(PAPER_ROWS))].copy()
-    theirs = theirs.assign(source=analysis.PAPER_LABEL, verifier=theirs["paper_name"].map(PAPER_ROWS), weights="",
-                           status="published")
-    columns = ["source", "sequence", "verifier", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low",
-               "max_recall_ci_high", "status", "weights"]
+    theirs = theirs.assign(
+        source=analysis.PAPER_LABEL, verifier=theirs["paper_name"].map(PAPER_ROWS), weights="", status="published"
+    )
+    columns = [
+        "source",
+        "sequence",
+        "verifier",
+        "ap",
+        "max_recall",
+        "ap_ci_low",
+        "ap_ci_high",
+        "max_recall_ci_low",
+        "max_recall_ci_high",
+        "status",
+        "weights",
+    ]
     return pd.concat([ours.reindex(columns=columns), theirs.reindex(columns=columns)], ignore_index=True)
 
 
 __all__ = [
-    "CachedMatches", "FEATURES", "GV_SCORES", "PAPER_ROWS", "PAPER_VERIFIER", "PairMatches", "VERIFIERS",
-    "VerifierBench", "balanced_subset", "best_by", "doppelgangers_comparison", "ensure_method_results",
-    "fit_combination", "fit_inliers", "gv_conf", "gv_feature_table", "gv_features", "gv_name", "homography_inliers",
-    "in_domain_weights_path", "open_bench", "place_disjoint_split", "resolve_verifier", "split_summary",
-    "sue_pair_scores", "train_in_domain", "verifier_table", "write_results",
+    "CachedMatches",
+    "FEATURES",
+    "GV_SCORES",
+    "PAPER_ROWS",
+    "PAPER_VERIFIER",
+    "PairMatches",
+    "VERIFIERS",
+    "VerifierBench",
+    "balanced_subset",
+    "best_by",
+    "doppelgangers_comparison",
+    "ensure_method_results",
+    "fit_combination",
+    "fit_inliers",
+    "gv_conf",
+    "gv_feature_table",
+    "gv_features",
+    "gv_name",
+    "homography_inliers",
+    "in_domain_weights_path",
+    "open_bench",
+    "place_disjoint_split",
+    "resolve_verifier",
+    "split_summary",
+    "sue_pair_scores",
+    "train_in_domain",
+    "verifier_table",
+    "write_results",
 ]

@@ -80,6 +80,7 @@ def test_prepared_matches_equal_kornia_for_other_lightglue_weights(shared_data, 
         np.testing.assert_array_equal(got[1], expected[1], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_prepared_image_without_keypoints_matches_nothing(disk_features):
     conf, features = disk_features

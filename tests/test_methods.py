@@ -64,6 +64,7 @@ def test_results_lists_every_method_without_results_with_the_files_it_needs(empt
     assert "`superglue_outdoor.pth` from https://" in table.loc["sp-sg", "status"]
 
 
+@pytest.mark.slow
 def test_loftr_loads_an_official_layout_checkpoint_strictly(empty_hub):
     from kornia.feature import LoFTR
 

@@ -518,6 +518,7 @@ def test_a_file_that_is_not_a_checkpoint_is_refused_naming_it(tmp_path, content)
 
 
 # ------------------------------------------------------------- 2. nothing lost --
+@pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize(
     "kill, committed_features, committed_matches, extracted_again, matched_again",
@@ -574,6 +575,7 @@ def test_a_damaged_shard_is_reported_by_name_not_read(tmp_path):
 
 
 # --------------------------------------------------------- 3. concurrent runs --
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing(sequence, baseline, tmp_path):
     go = tmp_path / "go"
@@ -601,6 +603,7 @@ def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing
 
 
 # ------------------------------------------------------------- 4. determinism --
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_two_runs_from_scratch_give_identical_pairs_and_results(sequence, baseline, tmp_path):
     pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False)
@@ -631,6 +634,7 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
     assert build(0, "first.txt") != build(1, "other_seed.txt")
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
     table = pipeline.run_method(

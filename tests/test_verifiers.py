@@ -200,6 +200,7 @@ def cached_run(shared_data: Path, tmp_path_factory) -> Path:
     return root
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
     cached = verifiers.CachedMatches(cached_run / "out", "sift-nn", cached_run / "cache")

@@ -91,6 +91,7 @@ def test_prepared_image_without_keypoints_matches_nothing(disk_features):
     assert pair_matches.shape == (0, 2) and scores.shape == (0,)
 
 
+@pytest.mark.slow
 @pytest.mark.real_data
 def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):
     conf, features = disk_features

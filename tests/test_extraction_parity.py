@@ -144,9 +144,9 @@ def test_disk_is_shrunk_to_1600_and_never_enlarged(tmp_path):
     assert images.load_for_extraction(small, conf)[0].shape == (300, 400, 3)
 
 
+# ------------------------------------------------------------- COLMAP SIFT --
 # The reference is hloc's own call, pycolmap.Sift, which pycolmap 4 deprecates.
 @pytest.mark.filterwarnings("ignore:pycolmap.Sift is deprecated:DeprecationWarning")
-# ------------------------------------------------------------- COLMAP SIFT --
 def test_sift_is_colmap_sift_with_hloc_conf(tmp_path):
     path = tmp_path / "image.png"
     cv2.imwrite(str(path), _textured(480, 640, seed=4))

@@ -4,7 +4,7 @@ Both our nearest-neighbour matcher and vismatch's (OpenCV's brute-force k=2 sear
 descriptor distance of a pair: a (2048 x 128) by (128 x 2048) product at the repository profile's
 2048 keypoints. This times, on one thread and alternating, that product alone, our matcher under
 the repository profile's rule (ratio 0.75, one way) and OpenCV's ``BFMatcher.knnMatch(k=2)``, on
-random descriptors (seed 0), and prints the medians: the product bounds how fast any exact
+random descriptors (seed 0), and the same for ORB's binary descriptors, and prints the medians: the product bounds how fast any exact
 matcher can be, and so how far ahead of the peer's per-pair loop a run can get.
 
     .venv/bin/python benchmarks/nn_matching_bound.py [--keypoints 2048] [--repeats 15]
@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb.matching.nearest_neighbour import NearestNeighbourMatcher
+from gvbench_nb.matching.nearest_neighbour import NearestNeighbourMatcher, hamming_nearest_neighbour_matches
 
 
 def main() -> None:
@@ -37,15 +37,22 @@ def main() -> None:
     ours = NearestNeighbourMatcher({"mutual": False, "ratio_threshold": 0.75}, torch.device("cpu"))
     brute_force = cv2.BFMatcher(cv2.NORM_L2)
     features0, features1 = {"descriptors": descriptors0}, {"descriptors": descriptors1}
+    binary0 = rng.integers(0, 256, (args.keypoints, 32), dtype=np.uint8)  # ORB: 256 bits
+    binary1 = rng.integers(0, 256, (args.keypoints, 32), dtype=np.uint8)
+    hamming = cv2.BFMatcher(cv2.NORM_HAMMING)
     timings: dict[str, list[float]] = {
         "descriptor product": [],
         "ours (ratio 0.75, one way)": [],
         "OpenCV BFMatcher knn k=2 (vismatch's)": [],
+        "ORB: ours, popcount (ratio 0.75, one way)": [],
+        "ORB: OpenCV BFMatcher Hamming knn k=2 (vismatch's)": [],
     }
     calls = [
         lambda: tensor0 @ tensor1.T,
         lambda: ours(features0, features1),
         lambda: brute_force.knnMatch(descriptors0, descriptors1, k=2),
+        lambda: hamming_nearest_neighbour_matches(binary0, binary1, mutual=False, ratio_threshold=0.75),
+        lambda: hamming.knnMatch(binary0, binary1, k=2),
     ]
     for call in calls:
         call()  # warm-up
@@ -54,7 +61,10 @@ def main() -> None:
             start = time.perf_counter()
             call()
             times.append(time.perf_counter() - start)
-    print(f"{args.keypoints} x {args.keypoints} descriptors of 128 floats, one thread, medians of {args.repeats}:")
+    print(
+        f"{args.keypoints} x {args.keypoints} descriptors (128 floats; ORB: 32 bytes), one thread, "
+        f"medians of {args.repeats}:"
+    )
     for name, times in timings.items():
         print(f"  {name}: {statistics.median(times) * 1e3:.1f} ms")
 

@@ -38,7 +38,7 @@ from gvbench_nb.reporting import plots
 
 # %% tags=["parameters"]
 params_file = "../params/sample.yaml"  # the sequence: a params YAML whose output_dir holds the runs
-methods = ["sift-nn", "orb-nn"]  # methods to compare
+methods = ["sift-nn"]  # methods to compare, each with its run, e.g. ["sift-nn", "orb-nn", "xfeat-nn"]
 pick = "false_positive"  # 'index' (pair_index below), 'false_positive' or 'false_negative' (of pick_method)
 pair_index = 0  # the pair shown when pick is 'index' (row of pairs.csv)
 pick_method = None  # whose false positives / negatives are ranked (None: the first of methods)

@@ -7,6 +7,7 @@ the old and the new readings differ.
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import cv2
@@ -71,7 +72,9 @@ def hloc_dog(image: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     options = pycolmap.SiftExtractionOptions()
     options.first_octave, options.peak_threshold = 0, 0.01
     options.normalization = pycolmap.Normalization.L1_ROOT
-    sift = pycolmap.Sift(options=pycolmap.FeatureExtractionOptions(sift=options), device=pycolmap.Device.cpu)
+    with warnings.catch_warnings():  # hloc's own call, which pycolmap 4 deprecates
+        warnings.simplefilter("ignore", DeprecationWarning)
+        sift = pycolmap.Sift(options=pycolmap.FeatureExtractionOptions(sift=options), device=pycolmap.Device.cpu)
     keypoints, descriptors = sift.extract(np.ascontiguousarray(image / 255.0, dtype=np.float32))
     eps = 1e-6
     descriptors = descriptors / (np.linalg.norm(descriptors, ord=1, axis=-1, keepdims=True) + eps)
@@ -145,8 +148,6 @@ def test_disk_is_shrunk_to_1600_and_never_enlarged(tmp_path):
 
 
 # ------------------------------------------------------------- COLMAP SIFT --
-# The reference is hloc's own call, pycolmap.Sift, which pycolmap 4 deprecates.
-@pytest.mark.filterwarnings("ignore:pycolmap.Sift is deprecated:DeprecationWarning")
 def test_sift_is_colmap_sift_with_hloc_conf(tmp_path):
     path = tmp_path / "image.png"
     cv2.imwrite(str(path), _textured(480, 640, seed=4))

@@ -1022,7 +1022,23 @@ def run_method(
             sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
         )
     table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-    # pairs.csv is written last: its presence marks a finished run (methods_with_results).
+    write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
+    # The record is used once: a later run that finds everything cached records that.
+    (folder / WORK_RECORD).unlink(missing_ok=True)
+    return table
+
+
+def write_method_outputs(
+    folder: Path,
+    sequence: Sequence,
+    conf: dict[str, Any],
+    seed: int,
+    environment: dict[str, Any],
+    this_run: dict[str, Any],
+    table: pd.DataFrame,
+) -> None:
+    """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
+    finished run, ``methods_with_results``), then the unfinished marker removed."""
     atomic_write_json(
         folder / "run.json",
         {
@@ -1032,48 +1048,38 @@ def run_method(
             "pairs": sequence.origin,
             "conf": conf,
             "seed": seed,
-            "environment": work["environment"],
-            "this_run": work["this_run"],
+            "environment": environment,
+            "this_run": this_run,
             "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
         },
     )
     atomic_write_csv(folder / "pairs.csv", table)
-    # The record is used once: a later run that finds everything cached records that.
-    (folder / WORK_RECORD).unlink(missing_ok=True)
     (folder / UNFINISHED_MARKER).unlink(missing_ok=True)
-    return table
 
 
 # ------------------------------------------------------------------- evaluation --
+def params_arguments(params: dict[str, Any]) -> dict[str, Any]:
+    """What a loaded params file sets for ``run_method`` and ``compute_method``: profile, output and
+    cache folders, device, seed and verifier overrides."""
+    return {
+        "profile": params["profile"],
+        "output_dir": Path(params["output_dir"]),
+        "cache_dir": Path(params["cache_dir"]),
+        "device": params["device"],
+        "seed": params["seed"],
+        "verifier": params.get("verifier") or None,
+    }
+
+
 def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
     """``run_method`` with what a loaded params file sets: profile, output and cache folders,
     device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
-    return run_method(
-        sequence,
-        method,
-        params["profile"],
-        Path(params["output_dir"]),
-        Path(params["cache_dir"]),
-        device=params["device"],
-        seed=params["seed"],
-        verifier=params.get("verifier") or None,
-        **options,
-    )
+    return run_method(sequence, method, **params_arguments(params), **options)
 
 
 def compute_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> dict[str, Any]:
     """``compute_method`` with what a loaded params file sets, as ``run_method_of_params`` runs it."""
-    return compute_method(
-        sequence,
-        method,
-        params["profile"],
-        Path(params["output_dir"]),
-        Path(params["cache_dir"]),
-        device=params["device"],
-        seed=params["seed"],
-        verifier=params.get("verifier") or None,
-        **options,
-    )
+    return compute_method(sequence, method, **params_arguments(params), **options)
 
 
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:

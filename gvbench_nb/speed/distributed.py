@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import datetime as _dt
 import os
 import time
 from collections.abc import Iterator
@@ -34,7 +33,6 @@ import pandas as pd
 from gvbench_nb import methods as method_registry
 from gvbench_nb import pipeline
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
 
 
 class ShardError(RuntimeError):
@@ -170,23 +168,15 @@ def merge_method(
             "finished pairs are skipped), then merge."
         )
     table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
-    folder = pipeline.method_dir(output_dir, conf["method"])
-    atomic_write_json(
-        folder / "run.json",
-        {
-            "sequence": sequence.name,
-            "image_root": str(sequence.image_root),
-            "n_pairs": len(sequence.pairs),
-            "pairs": sequence.origin,
-            "conf": conf,
-            "seed": seed,
-            "environment": pipeline.environment_info(resolve_device(device)),
-            "this_run": {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
-            "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        },
+    pipeline.write_method_outputs(
+        pipeline.method_dir(output_dir, conf["method"]),
+        sequence,
+        conf,
+        seed,
+        pipeline.environment_info(resolve_device(device)),
+        {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
+        table,
     )
-    atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
-    (folder / pipeline.UNFINISHED_MARKER).unlink(missing_ok=True)
     return table
 
 

@@ -40,7 +40,8 @@ def hloc_matches(distance: np.ndarray, mutual: bool, ratio: float | None, thresh
 
 
 def one_way_matches(distance: np.ndarray, mutual: bool, ratio: float | None, threshold: float | None) -> np.ndarray:
-    """The tests applied to rows only, then the mutual check (the Hamming path's rule)."""
+    """The tests applied to rows only, then the mutual check: the one-way reading
+    (``ratio_test_on="rows"``), not hloc's."""
     matches = []
     for i, row in enumerate(distance):
         j, ok = _passes(row, ratio, threshold)
@@ -69,6 +70,45 @@ def test_ratio_applies_to_columns_too_minimal_case():
 
     matches, scores = nearest_neighbour_matches(torch.from_numpy(rows), torch.from_numpy(columns), ratio_threshold=0.8)
     assert matches.shape == (0, 2) and scores.shape == (0,)
+    one_way, _ = nearest_neighbour_matches(
+        torch.from_numpy(rows), torch.from_numpy(columns), ratio_threshold=0.8, ratio_test_on="rows"
+    )
+    assert one_way.tolist() == [[0, 0]]
+
+
+@pytest.mark.parametrize("seed", range(3))
+@pytest.mark.parametrize("metric", ["l2", "hamming"])
+def test_ratio_on_rows_only_is_the_one_way_rule(seed, metric):
+    # The option that measures what the two-way test changes: rows' ratio test, then only the mutual check.
+    rng = np.random.default_rng(20 + seed)
+    if metric == "l2":
+        descriptors1 = rng.normal(size=(60, 16)).astype(np.float32)
+        parents = rng.integers(0, 60, 200)
+        descriptors0 = (descriptors1[parents] + 0.35 * rng.normal(size=(200, 16))).astype(np.float32)
+        distance = _l2_distance(descriptors0, descriptors1)
+    else:
+        descriptors1 = rng.integers(0, 256, (60, 32), dtype=np.uint8)
+        flips = rng.random((200, 256)) < 0.15
+        descriptors0 = np.packbits(np.unpackbits(descriptors1[rng.integers(0, 60, 200)], axis=1) ^ flips, axis=1)
+        distance = np.unpackbits(descriptors0[:, None] ^ descriptors1[None], axis=2).sum(axis=2).astype(np.float64)
+    expected = one_way_matches(distance, True, 0.8, None)
+    assert len(expected) > len(hloc_matches(distance, True, 0.8, None)) > 5  # the rules differ here
+
+    matches, _ = nearest_neighbour_matches(
+        torch.from_numpy(descriptors0),
+        torch.from_numpy(descriptors1),
+        ratio_threshold=0.8,
+        metric=metric,
+        ratio_test_on="rows",
+    )
+    np.testing.assert_array_equal(matches.numpy(), expected)
+
+
+def test_ratio_test_on_rejects_unknown_values():
+    with pytest.raises(ValueError, match="ratio_test_on"):
+        nearest_neighbour_matches(
+            torch.zeros((2, 4)), torch.zeros((2, 4)), ratio_threshold=0.8, ratio_test_on="columns"
+        )
 
 
 RULES = [

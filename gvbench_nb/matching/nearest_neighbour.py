@@ -21,19 +21,38 @@ def nearest_neighbour_matches(
     ratio_threshold: float | None = None,
     distance_threshold: float | None = None,
     metric: str = "l2",
+    ratio_test_on: str = "rows_and_columns",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Nearest-neighbour matches with hloc's rule (``hloc/matchers/nearest_neighbor.py``):
     ``l2`` through ``two_way_l2_matches``, ``hamming`` (binary uint8 descriptors) through
     ``hamming_nearest_neighbour_matches``. Returns (matches (M, 2) long, scores (M,) float)."""
+    check_ratio_test_on(ratio_test_on)
     if metric == "l2":
-        return two_way_l2_matches(descriptors0, descriptors1, mutual, ratio_threshold, distance_threshold)
+        return two_way_l2_matches(
+            descriptors0, descriptors1, mutual, ratio_threshold, distance_threshold, ratio_test_on
+        )
     if metric == "hamming":
         matches, scores = hamming_nearest_neighbour_matches(
-            descriptors0.cpu().numpy(), descriptors1.cpu().numpy(), mutual, ratio_threshold, distance_threshold
+            descriptors0.cpu().numpy(),
+            descriptors1.cpu().numpy(),
+            mutual,
+            ratio_threshold,
+            distance_threshold,
+            ratio_test_on,
         )
         return torch.from_numpy(matches), torch.from_numpy(scores)
     registry.check_choice("metric", metric, ("l2", "hamming"))
     raise AssertionError("unreachable")
+
+
+# Where the Lowe ratio test applies under the mutual check: hloc applies it to the rows AND the
+# columns (the paper's chain); "rows" is the one-way reading (ratio on the rows, then only the
+# mutual check), kept so that what the two-way test changes can be measured.
+RATIO_TEST_ON = ("rows_and_columns", "rows")
+
+
+def check_ratio_test_on(ratio_test_on: str) -> None:
+    registry.check_choice("ratio_test_on", ratio_test_on, RATIO_TEST_ON)
 
 
 def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
@@ -93,6 +112,7 @@ def hamming_nearest_neighbour_matches(
     mutual: bool = True,
     ratio_threshold: float | None = None,
     distance_threshold: float | None = None,
+    ratio_test_on: str = "rows_and_columns",
 ) -> Matches:
     """Nearest-neighbour matches of binary descriptors (uint8 (N, B), 8B bits) by Hamming distance,
     with hloc's rule (``hloc/matchers/nearest_neighbor.py``): each row's nearest column must pass
@@ -100,6 +120,7 @@ def hamming_nearest_neighbour_matches(
     nearest row, under the same tests, must be the row itself. The ratio test is skipped when
     either side has a single descriptor. Ties go to the lower index: the nearest is the first
     minimum, and a tie at the nearest distance fails the ratio test unless both are 0 bits.
+    ``ratio_test_on="rows"``: the columns' side of the mutual check skips the ratio test.
     Returns matches (M, 2) int64 and scores (M,) float32 = 1 - distance / bits.
     """
     if len(descriptors0) == 0 or len(descriptors1) == 0:
@@ -111,7 +132,8 @@ def hamming_nearest_neighbour_matches(
     keep = _passes(first, second, ratio_threshold, distance_threshold)
     if mutual:
         nearest0, first_back, second_back = _two_nearest(distance.T)
-        back = np.where(_passes(first_back, second_back, ratio_threshold, distance_threshold), nearest0, -1)
+        column_ratio = ratio_threshold if ratio_test_on == "rows_and_columns" else None
+        back = np.where(_passes(first_back, second_back, column_ratio, distance_threshold), nearest0, -1)
         keep &= back[nearest1] == np.arange(len(descriptors0))
     index0 = np.flatnonzero(keep)
     matches = np.stack([index0, nearest1[index0]], axis=1).astype(np.int64)
@@ -125,6 +147,7 @@ def two_way_l2_matches(
     mutual: bool = True,
     ratio_threshold: float | None = None,
     distance_threshold: float | None = None,
+    ratio_test_on: str = "rows_and_columns",
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """hloc's nearest-neighbour rule (``hloc/matchers/nearest_neighbor.py``) on L2 descriptors.
 
@@ -133,7 +156,8 @@ def two_way_l2_matches(
     (d1^2 <= ratio^2 d2^2, d1 and d2 its two best) and the distance test (d1 <= threshold);
     with ``mutual`` each column (a descriptor of image 1) must pass the same tests against
     its two best rows, and the row and column must be each other's best. The ratio test is
-    skipped when either image has a single descriptor. Score = (similarity + 1) / 2. Ties
+    skipped when either image has a single descriptor; ``ratio_test_on="rows"`` skips it on
+    the columns' side of the mutual check (the one-way reading). Score = (similarity + 1) / 2. Ties
     go to the first index. Returns (matches (M, 2) long, scores (M,) float).
     """
     if len(descriptors0) == 0 or len(descriptors1) == 0:
@@ -146,12 +170,11 @@ def two_way_l2_matches(
     if len(descriptors0) == 1 or len(descriptors1) == 1:
         ratio_threshold = None
 
-    def passes(best: torch.Tensor, second: torch.Tensor | None) -> torch.Tensor:
+    def passes(best: torch.Tensor, second: torch.Tensor | None, ratio: float | None = ratio_threshold) -> torch.Tensor:
         distance_squared = 2 * (1 - best)
         keep = torch.ones_like(best, dtype=torch.bool)
-        if ratio_threshold:
-            assert second is not None, "second bests are computed whenever ratio_threshold is set"
-            keep &= distance_squared <= ratio_threshold**2 * (2 * (1 - second))
+        if ratio and second is not None:
+            keep &= distance_squared <= ratio**2 * (2 * (1 - second))
         if distance_threshold:
             keep &= distance_squared <= distance_threshold**2
         return keep
@@ -172,7 +195,8 @@ def two_way_l2_matches(
             similarity[rows, columns] = -float("inf")
             row_second = similarity.amax(dim=1)[rows]
             column_second = similarity.amax(dim=0)[columns]
-        keep = passes(best, row_second) & passes(best, column_second)
+        keep = passes(best, row_second)
+        keep &= passes(best, column_second if ratio_test_on == "rows_and_columns" else None, ratio_threshold)
     else:
         rows, columns, best = index0, best_index, best_similarity
         row_second = None
@@ -186,6 +210,7 @@ def two_way_l2_matches(
 
 class NearestNeighbourMatcher:
     def __init__(self, conf: dict[str, Any], device: torch.device):
+        check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
         self.conf, self.device = conf, device
 
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
@@ -196,6 +221,7 @@ class NearestNeighbourMatcher:
                 mutual=self.conf.get("mutual", True),
                 ratio_threshold=self.conf.get("ratio_threshold"),
                 distance_threshold=self.conf.get("distance_threshold"),
+                ratio_test_on=self.conf.get("ratio_test_on", "rows_and_columns"),
             )
         matches, scores = nearest_neighbour_matches(
             torch.from_numpy(features0["descriptors"]).to(self.device),
@@ -204,5 +230,6 @@ class NearestNeighbourMatcher:
             ratio_threshold=self.conf.get("ratio_threshold"),
             distance_threshold=self.conf.get("distance_threshold"),
             metric=self.conf.get("metric", "l2"),
+            ratio_test_on=self.conf.get("ratio_test_on", "rows_and_columns"),
         )
         return matches.numpy().astype(np.int64), scores.numpy().astype(np.float32)

@@ -10,7 +10,7 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb.reporting.execute import execute_notebook
+from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -78,7 +78,8 @@ def execute_run_notebooks(
         for future in futures:  # in job order: the first failing notebook's error is raised
             future.result()
 
-    with ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
+    # Every notebook's kernel is started ahead (``kernels_ahead``), while this process computes.
+    with kernels_ahead(len(jobs)), ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
         started: list[Future] = []
         verifying: list[Future] = []
         try:

@@ -2,11 +2,102 @@
 
 from __future__ import annotations
 
+import contextlib
+import functools
 import sys
+import threading
+from collections.abc import Iterator
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from jupyter_client.manager import KernelManager
 
 NOTEBOOKS_DIR = Path(__file__).resolve().parents[2] / "notebooks"
+KERNEL_NAME = "python3"
+
+
+class KernelPool:
+    """Fresh kernels started ahead of the notebooks that will run in them.
+
+    A kernel takes one to two seconds to start; started while the run is still extracting
+    and matching, it is ready when its notebook is. Every notebook still gets a kernel of
+    its own, started for it and shut down after it, so nothing passes between notebooks.
+    ``count`` kernels in all, at most ``ahead`` started and waiting at any time.
+    """
+
+    def __init__(self, count: int, ahead: int = 3):
+        self._lock = threading.Lock()
+        self._waiting: list[KernelManager] = []
+        self._to_start = count
+        for _ in range(min(ahead, count)):
+            self._start_one()
+
+    def _start_one(self) -> None:
+        self._to_start -= 1
+        manager = _client_recording_manager()(kernel_name=KERNEL_NAME)
+        try:
+            manager.start_kernel(cwd=str(NOTEBOOKS_DIR))
+        except Exception:  # papermill then starts the notebook's kernel itself, and reports any error
+            return
+        self._waiting.append(manager)
+
+    def take(self) -> KernelManager | None:
+        """A started kernel (and another started in its place while more are due), or None."""
+        with self._lock:
+            if not self._waiting:
+                return None
+            manager = self._waiting.pop(0)
+            if self._to_start > 0:
+                self._start_one()
+            return manager
+
+    def shutdown(self) -> None:
+        """Stop the kernels no notebook took (a finished or failed run)."""
+        with self._lock:
+            waiting, self._waiting, self._to_start = self._waiting, [], 0
+        for manager in waiting:
+            stop_kernel(manager)
+
+
+@functools.cache
+def _client_recording_manager() -> type[KernelManager]:
+    """A KernelManager that remembers the clients it made: nbclient leaves the channels of a
+    client open when it did not start the kernel, so ``stop_kernel`` closes them."""
+    from jupyter_client.manager import KernelManager
+
+    class ClientRecordingKernelManager(KernelManager):
+        def client(self, **kwargs: Any) -> Any:
+            client = super().client(**kwargs)
+            self.__dict__.setdefault("issued_clients", []).append(client)
+            return client
+
+    return ClientRecordingKernelManager
+
+
+def stop_kernel(manager: KernelManager) -> None:
+    for client in manager.__dict__.get("issued_clients", []):
+        with contextlib.suppress(Exception):
+            client.stop_channels()
+    with contextlib.suppress(Exception):  # already gone
+        manager.shutdown_kernel(now=True)
+
+
+_pool: KernelPool | None = None
+
+
+@contextlib.contextmanager
+def kernels_ahead(count: int) -> Iterator[KernelPool]:
+    """While the block runs, ``execute_notebook`` takes its kernels from a ``KernelPool`` of
+    ``count`` kernels; the ones left are stopped at the end."""
+    global _pool
+    pool = KernelPool(count)
+    _pool = pool
+    try:
+        yield pool
+    finally:
+        _pool = None
+        pool.shutdown()
 
 
 def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
@@ -17,15 +108,22 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
     import papermill
 
     output_path.parent.mkdir(parents=True, exist_ok=True)
+    manager = _pool.take() if _pool is not None else None
     # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
-    # The kernel starts in notebooks/ through nbclient's resources rather than papermill's
-    # cwd, which changes this whole process's folder and is unsafe for notebooks run in threads.
-    papermill.execute_notebook(
-        str(NOTEBOOKS_DIR / name),
-        str(output_path),
-        parameters=parameters,
-        resources={"metadata": {"path": str(NOTEBOOKS_DIR)}},
-        progress_bar=False,
-        stderr_file=sys.stderr,
-        kernel_name="python3",
-    )
+    # The kernel starts in notebooks/ (a started one was started there; papermill starts
+    # others there through nbclient's resources rather than papermill's cwd, which changes
+    # this whole process's folder and is unsafe for notebooks run in threads).
+    try:
+        papermill.execute_notebook(
+            str(NOTEBOOKS_DIR / name),
+            str(output_path),
+            parameters=parameters,
+            resources={"metadata": {"path": str(NOTEBOOKS_DIR)}},
+            progress_bar=False,
+            stderr_file=sys.stderr,
+            kernel_name=KERNEL_NAME,
+            **({"km": manager} if manager is not None else {}),
+        )
+    finally:
+        if manager is not None:  # nbclient stops only the kernels it started
+            stop_kernel(manager)

@@ -1,0 +1,64 @@
+"""Kernels started ahead of a run's notebooks: each notebook still gets a fresh kernel of its
+own, started in notebooks/, and no kernel outlives the run, whether it finishes or fails."""
+
+from __future__ import annotations
+
+import json
+
+import nbformat
+import pytest
+
+from gvbench_nb.reporting import execute
+
+
+def _alive(manager) -> bool:
+    return bool(manager.is_alive())
+
+
+def test_pool_starts_ahead_hands_each_kernel_out_once_and_stops_the_rest():
+    pool = execute.KernelPool(count=3, ahead=2)
+    try:
+        first = pool.take()
+        second = pool.take()
+        assert first is not None and second is not None and first is not second
+        assert _alive(first) and _alive(second)
+        third = pool.take()  # started when the first was taken
+        assert third is not None and third not in (first, second)
+        assert pool.take() is None  # three in all
+    finally:
+        pool.shutdown()
+        for manager in (first, second, third):
+            execute.stop_kernel(manager)
+    assert not any(_alive(m) for m in (first, second, third))
+
+
+def test_kernels_left_untaken_are_stopped_when_the_run_fails():
+    with pytest.raises(RuntimeError, match="a notebook failed"), execute.kernels_ahead(2) as pool:
+        waiting = list(pool._waiting)
+        assert len(waiting) == 2 and all(_alive(m) for m in waiting)
+        raise RuntimeError("a notebook failed")
+    assert not any(_alive(m) for m in waiting)
+    assert execute._pool is None
+
+
+def test_a_notebook_runs_in_a_started_kernel_in_the_notebooks_folder_which_is_then_stopped(tmp_path, monkeypatch):
+    monkeypatch.setattr(execute, "NOTEBOOKS_DIR", tmp_path)
+    notebook = nbformat.v4.new_notebook()
+    parameters = nbformat.v4.new_code_cell("out = ''")
+    parameters.metadata["tags"] = ["parameters"]
+    notebook.cells = [
+        parameters,
+        nbformat.v4.new_code_cell(
+            "import json, os\nopen(out, 'w').write(json.dumps({'pid': os.getpid(), 'cwd': os.getcwd()}))"
+        ),
+    ]
+    notebook.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    nbformat.write(notebook, tmp_path / "tiny.ipynb")
+    with execute.kernels_ahead(1) as pool:
+        manager = pool._waiting[0]
+        pid = manager.provisioner.process.pid
+        execute.execute_notebook("tiny.ipynb", tmp_path / "out" / "tiny.ipynb", {"out": str(tmp_path / "where.json")})
+        assert not _alive(manager)  # stopped once its notebook finished
+    wrote = json.loads((tmp_path / "where.json").read_text())
+    assert wrote == {"pid": pid, "cwd": str(tmp_path)}
+    assert (tmp_path / "out" / "tiny.ipynb").is_file()

@@ -49,7 +49,10 @@ def test_a_notebook_runs_in_a_started_kernel_in_the_notebooks_folder_which_is_th
     notebook.cells = [
         parameters,
         nbformat.v4.new_code_cell(
-            "import json, os\nopen(out, 'w').write(json.dumps({'pid': os.getpid(), 'cwd': os.getcwd()}))"
+            "import json, os, sys, types\n"
+            "modules = sorted(k for k, v in globals().items() if isinstance(v, types.ModuleType) and not k.startswith('__'))\n"
+            "open(out, 'w').write(json.dumps({'pid': os.getpid(), 'cwd': os.getcwd(), 'loaded': 'pandas' in sys.modules,"
+            " 'modules_named': modules, 'last_result': repr(globals().get('_'))}))"
         ),
     ]
     notebook.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
@@ -60,5 +63,12 @@ def test_a_notebook_runs_in_a_started_kernel_in_the_notebooks_folder_which_is_th
         execute.execute_notebook("tiny.ipynb", tmp_path / "out" / "tiny.ipynb", {"out": str(tmp_path / "where.json")})
         assert not _alive(manager)  # stopped once its notebook finished
     wrote = json.loads((tmp_path / "where.json").read_text())
-    assert wrote == {"pid": pid, "cwd": str(tmp_path)}
+    # The preloaded modules are loaded, but the notebook's namespace holds only what its cells made.
+    assert wrote == {
+        "pid": pid,
+        "cwd": str(tmp_path),
+        "loaded": True,
+        "modules_named": ["json", "os", "sys", "types"],
+        "last_result": "''",
+    }
     assert (tmp_path / "out" / "tiny.ipynb").is_file()

@@ -15,6 +15,8 @@ if TYPE_CHECKING:
 
 NOTEBOOKS_DIR = Path(__file__).resolve().parents[2] / "notebooks"
 KERNEL_NAME = "python3"
+# What every stage notebook's setup cell imports; a started kernel loads them while it waits.
+PRELOAD = ("pandas", "matplotlib.pyplot", "gvbench_nb.pipeline", "gvbench_nb.reporting.plots")
 
 
 class KernelPool:
@@ -24,9 +26,15 @@ class KernelPool:
     and matching, it is ready when its notebook is. Every notebook still gets a kernel of
     its own, started for it and shut down after it, so nothing passes between notebooks.
     ``count`` kernels in all, at most ``ahead`` started and waiting at any time.
+
+    A kernel imports the ``preload`` modules as it starts (IPython's ``exec_lines``: outside
+    the history, defining no name in the notebook's namespace); its notebook's own imports
+    then find them loaded. A module that fails to import fails again in the notebook, where
+    the error is kept.
     """
 
-    def __init__(self, count: int, ahead: int = 3):
+    def __init__(self, count: int, ahead: int = 3, preload: tuple[str, ...] = PRELOAD):
+        self._preload = preload
         self._lock = threading.Lock()
         self._waiting: list[KernelManager] = []
         self._to_start = count
@@ -37,7 +45,7 @@ class KernelPool:
         self._to_start -= 1
         manager = _client_recording_manager()(kernel_name=KERNEL_NAME)
         try:
-            manager.start_kernel(cwd=str(NOTEBOOKS_DIR))
+            manager.start_kernel(cwd=str(NOTEBOOKS_DIR), extra_arguments=preload_arguments(self._preload))
         except Exception:  # papermill then starts the notebook's kernel itself, and reports any error
             return
         self._waiting.append(manager)
@@ -73,6 +81,14 @@ def _client_recording_manager() -> type[KernelManager]:
             return client
 
     return ClientRecordingKernelManager
+
+
+def preload_arguments(modules: tuple[str, ...]) -> list[str]:
+    """The kernel's command-line arguments that import ``modules`` at start-up; the line
+    evaluates to None so that nothing is displayed or bound (not even ``_``)."""
+    if not modules:
+        return []
+    return [f"--IPKernelApp.exec_lines=list(map(__import__, {tuple(modules)!r})).clear()"]
 
 
 def stop_kernel(manager: KernelManager) -> None:

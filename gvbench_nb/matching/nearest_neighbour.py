@@ -198,7 +198,8 @@ def two_way_l2_matches(
     def passes(best: torch.Tensor, second: torch.Tensor | None, ratio: float | None = ratio_threshold) -> torch.Tensor:
         distance_squared = 2 * (1 - best)
         keep = torch.ones_like(best, dtype=torch.bool)
-        if ratio and second is not None:
+        if ratio:
+            assert second is not None, "second bests are computed whenever ratio_threshold is set"
             keep &= distance_squared <= ratio**2 * (2 * (1 - second))
         if distance_threshold:
             keep &= distance_squared <= distance_threshold**2
@@ -220,8 +221,8 @@ def two_way_l2_matches(
             similarity[rows, columns] = -float("inf")
             row_second = similarity.amax(dim=1)[rows]
             column_second = similarity.amax(dim=0)[columns]
-        keep = passes(best, row_second)
-        keep &= passes(best, column_second if ratio_test_on == "rows_and_columns" else None, ratio_threshold)
+        column_ratio = ratio_threshold if ratio_test_on == "rows_and_columns" else None
+        keep = passes(best, row_second) & passes(best, column_second, column_ratio)
     else:
         rows, columns, best = index0, best_index, best_similarity
         row_second = None

@@ -143,6 +143,12 @@ def command_run(args: argparse.Namespace) -> int:
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         return distributed.run_from_cli(args, params)
     output_dir = Path(params["output_dir"])
+    for method, previous in pipeline.replaced_profiles(output_dir, params["methods"], params["profile"]).items():
+        print(
+            f"note: {pipeline.method_dir(output_dir, method)} holds {previous}-profile results; this "
+            f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)",
+            file=sys.stderr,
+        )
     # This run owns its methods' outputs from here: whatever fails next, no earlier
     # pairs.csv, run.json or results.csv survives looking like its result.
     pipeline.claim_method_outputs(output_dir, params["methods"], params["params_file"])

@@ -384,6 +384,21 @@ class ResultsError(FileNotFoundError):
     """An output folder holds no results, or a method's results are unfinished or partial."""
 
 
+def replaced_profiles(output_dir: Path, methods: Iterable[str], profile: str) -> dict[str, str]:
+    """Methods whose finished results in ``output_dir`` are of another profile than ``profile``
+    (method -> that profile): a run of theirs there replaces those results."""
+    replaced = {}
+    for method in methods:
+        try:
+            run = json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+            previous = run["conf"]["profile"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue
+        if previous != profile:
+            replaced[method] = previous
+    return replaced
+
+
 def claim_method_outputs(output_dir: Path, methods: Iterable[str], params_file: str | None = None) -> None:
     """Before any work of a run: remove each method's previous ``pairs.csv`` and
     ``run.json`` (and the folder's ``results.csv``) and mark its folder unfinished, so a

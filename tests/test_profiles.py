@@ -3,6 +3,8 @@ its verification in resized coordinates."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 from PIL import Image
@@ -187,3 +189,28 @@ def test_repository_image_chain_sizes_and_scale(tmp_path):
     image, scale = images.load_for_extraction(path, disk)
     assert image.shape == (576, 1024, 3)  # 512x288, then LightGlue's extractor input at 1024 on the long side
     np.testing.assert_allclose(scale, [1280 / 1024, 960 / 576], rtol=1e-6)
+
+
+def test_a_run_of_another_profile_says_it_replaces_the_folders_results(tmp_path):
+    from gvbench_nb import pipeline
+
+    for method, profile in (("sift-nn", "repository"), ("orb-nn", "paper")):
+        (tmp_path / method).mkdir()
+        (tmp_path / method / "run.json").write_text(json.dumps({"conf": {"profile": profile}}))
+    (tmp_path / "xfeat-nn").mkdir()
+    (tmp_path / "xfeat-nn" / "run.json").write_text("{not json")  # unreadable: nothing to replace
+    assert pipeline.replaced_profiles(tmp_path, ["sift-nn", "orb-nn", "xfeat-nn", "disk-nn"], "paper") == {
+        "sift-nn": "repository"
+    }
+
+
+@pytest.mark.slow
+def test_cli_notes_a_profile_replaced_in_one_output_folder(tmp_path, capsys):
+    from gvbench_nb import cli
+
+    common = ["run", "params/sample.yaml", "--methods", "orb-nn", "--limit", "4", "--output-dir", str(tmp_path)]
+    assert cli.main(common) == 0
+    assert "note:" not in capsys.readouterr().err
+    assert cli.main([*common, "--profile", "paper"]) == 0
+    err = capsys.readouterr().err
+    assert f"note: {tmp_path / 'orb-nn'} holds repository-profile results; this paper-profile run replaces them" in err

@@ -10,6 +10,8 @@ import pytest
 
 from gvbench_nb.reporting import execute
 
+pytestmark = pytest.mark.reliability
+
 
 def _alive(manager) -> bool:
     return bool(manager.is_alive())

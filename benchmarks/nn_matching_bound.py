@@ -45,6 +45,7 @@ def main() -> None:
         "ours (ratio 0.75, one way)": [],
         "OpenCV BFMatcher knn k=2 (vismatch's)": [],
         "ORB: ours, popcount (ratio 0.75, one way)": [],
+        "ORB: ours, popcount (ratio 0.8, hloc's two-way rule)": [],
         "ORB: OpenCV BFMatcher Hamming knn k=2 (vismatch's)": [],
     }
     calls = [
@@ -52,6 +53,7 @@ def main() -> None:
         lambda: ours(features0, features1),
         lambda: brute_force.knnMatch(descriptors0, descriptors1, k=2),
         lambda: hamming_nearest_neighbour_matches(binary0, binary1, mutual=False, ratio_threshold=0.75),
+        lambda: hamming_nearest_neighbour_matches(binary0, binary1, mutual=True, ratio_threshold=0.8),
         lambda: hamming.knnMatch(binary0, binary1, k=2),
     ]
     for call in calls:

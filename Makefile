@@ -64,4 +64,4 @@ notebooks: setup
 	$(VENV)/bin/jupytext --sync notebooks/*.ipynb
 
 clean:
-	rm -rf outputs/sample outputs/cache
+	rm -rf outputs/sample outputs/cache outputs/data

@@ -107,8 +107,32 @@ def execute_run_notebooks(
                 future.cancel()
 
 
+# What a run publishes besides each method's files (``run_files``); anything else a stage holds
+# is checked against the folder's record when it is published.
+RUN_FILES = (
+    "params.resolved.yaml",
+    "01_sequence.ipynb",
+    "sequence_positives_per_query.png",
+    "sequence_examples.png",
+    "03_evaluate.ipynb",
+    "results.csv",
+    "pr_curves.png",
+)
+
+
+def run_files(methods: list[str]) -> list[str]:
+    """The files a run of ``methods`` publishes in its output folder."""
+    per_method = [
+        name
+        for m in methods
+        for name in (f"02_verify_{m}.ipynb", f"inliers_{m}.png", f"{m}/pairs.csv", f"{m}/run.json")
+    ]
+    return [*RUN_FILES, *per_method]
+
+
 def command_run(args: argparse.Namespace) -> int:
     from gvbench_nb import config, methods, pipeline, weights
+    from gvbench_nb.runner import record
     from gvbench_nb.speed import distributed
 
     # Paths typed on the command line are relative to the current folder, not the params file.
@@ -121,8 +145,6 @@ def command_run(args: argparse.Namespace) -> int:
         output_dir=absolute(args.output_dir),
         image_root=absolute(args.image_root),
     )
-    config.check_writable_folder(params, "output_dir")
-    config.check_writable_folder(params, "cache_dir")
     # Every method's weights are checked before any work: nothing half-runs.
     missing = [
         c
@@ -140,49 +162,107 @@ def command_run(args: argparse.Namespace) -> int:
     for method in params["methods"]:  # vismatch and its weights, for imm: methods
         if imm.is_imm(method):
             imm.require(method)
-    if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
-        return distributed.run_from_cli(args, params)
     output_dir = Path(params["output_dir"])
-    for method, previous in pipeline.replaced_profiles(output_dir, params["methods"], params["profile"]).items():
-        print(
-            f"note: {pipeline.method_dir(output_dir, method)} holds {previous}-profile results; this "
-            f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)",
-            file=sys.stderr,
-        )
-    # This run owns its methods' outputs from here: whatever fails next, no earlier
-    # pairs.csv, run.json or results.csv survives looking like its result.
-    pipeline.claim_method_outputs(output_dir, params["methods"], params["params_file"])
-    # One resolved params file (overrides applied) is what every notebook loads.
-    resolved = str(config.write_resolved_params(params, output_dir))
+    # Whose folder it is, before anything is written there.
+    record.check_owned(output_dir)
     sequence = config.prepare_sequence(params)
     sequence.check_images()
-    common = {"params_file": resolved}
-    jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
-    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m}) for m in params["methods"]]
-    jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": params["methods"]}))
-    print(
-        f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
-        f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir} "
-        f"(params as run: {resolved})"
-    )
-    # The notebooks' params (the resolved file) make the sequence they run, so the caches are filled for it.
-    run_params = config.load_params(resolved)
-    run_sequence = config.prepare_sequence(run_params)
+    config.check_writable_folder(params, "output_dir")
+    config.check_writable_folder(params, "cache_dir")
+    record.claim(output_dir)
+    if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
+        return distributed.run_from_cli(args, params)
+    lock = record.FolderLock(output_dir)
+    lock.acquire()  # one run writes a folder at a time: a second is refused here
+    stage = None
+    try:
+        record.finish_publishing(output_dir)
+        kept, bindings = kept_methods(output_dir, params["methods"], pipeline.sequence_binding(sequence))
+        record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
+        for method, previous in pipeline.replaced_profiles(output_dir, params["methods"], params["profile"]).items():
+            print(
+                f"note: {pipeline.method_dir(output_dir, method)} holds {previous}-profile results; this "
+                f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)",
+                file=sys.stderr,
+            )
+        # The run writes its results into a stage of its own and publishes them whole when it
+        # succeeds; the methods it does not run are carried over, so the folder's table lists them all.
+        stage = record.open_stage(output_dir)
+        record.carry(output_dir, stage, kept)
+        resolved = str(config.write_resolved_params({**params, "output_dir": str(stage)}, stage))
+        common = {"params_file": resolved}
+        jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
+        jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m}) for m in params["methods"]]
+        jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
+        print(
+            f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
+            f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}"
+            + (f" (kept from earlier runs: {', '.join(kept)})" if kept else "")
+        )
+        # The notebooks' params (the stage's resolved file) make the sequence they run, so the caches are filled for it.
+        run_params = config.load_params(resolved)
+        run_sequence = config.prepare_sequence(run_params)
 
-    def compute(method: str) -> None:
-        pipeline.compute_method_of_params(run_params, run_sequence, method)
+        def compute(method: str) -> None:
+            pipeline.compute_method_of_params(run_params, run_sequence, method)
 
-    execute_run_notebooks(jobs, output_dir, compute)
+        execute_run_notebooks(jobs, stage, compute)
+        config.write_resolved_params(params, stage)  # as published: the output folder's own paths
+        for method in params["methods"]:
+            bindings[method] = pipeline.sequence_binding(run_sequence)
+        record.publish(output_dir, stage, bindings)
+    except Exception:
+        if stage is not None and stage.is_dir():
+            print(
+                f"the run did not finish: {output_dir} still holds the previous run's results; this run's partial "
+                f"work and executed notebooks are in {stage}",
+                file=sys.stderr,
+            )
+        raise
+    finally:
+        lock.release()
+    print_run_results(output_dir)
+    return 0
+
+
+def kept_methods(
+    output_dir: Path, methods: list[str], binding: dict[str, Any]
+) -> tuple[list[str], dict[str, dict[str, Any]]]:
+    """The methods an output folder holds that this run does not rerun, with their bindings;
+    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
+    from gvbench_nb.runner import record
+
+    published = (record.read_record(output_dir) or {}).get("methods", {})
+    kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
+    other = [
+        m
+        for m, entry in kept.items()
+        if (entry.get("pairs_digest"), entry.get("images_digest"))
+        != (binding["pairs_digest"], binding["images_digest"])
+    ]
+    if other:
+        raise record.RecordError(
+            f"{output_dir} holds results of {', '.join(other)} computed on other pairs, labels or images than this "
+            f"run's ({binding['pairs_file']}); run them again with this run (--methods "
+            f"{','.join([*methods, *other])}) or give another --output-dir"
+        )
+    return list(kept), kept
+
+
+def print_run_results(output_dir: Path) -> None:
+    """The folder's results table as ``run`` ends, with a note on timers taken from the cache."""
     import pandas as pd
 
     results = pd.read_csv(output_dir / "results.csv")
-    print(
-        results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
-            index=False
+    columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
+    print(results[columns].to_string(index=False))
+    reused = results.loc[results["timers"] != "this run", "method"].tolist()
+    if reused:
+        print(
+            f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "
+            "that computed them (timers column), not this run's"
         )
-    )
     print(f"results table: {output_dir / 'results.csv'}")
-    return 0
 
 
 def markdown_table(frame: Any) -> str:
@@ -198,11 +278,19 @@ def command_results(args: argparse.Namespace) -> int:
     import json
 
     from gvbench_nb import pipeline
+    from gvbench_nb.runner import record
 
     for folder in args.output_dirs:
         folder = Path(folder)
-        pipeline.check_results_finished(folder)
-        results = pipeline.evaluate(folder, write=False)
+        if not folder.is_dir():
+            pipeline.evaluate(folder, write=False)  # says the folder does not exist
+        record.check_published(folder)
+        unfinished = pipeline.unfinished_methods(folder)
+        finished_methods = [m for m in pipeline.methods_with_results(folder) if m not in unfinished]
+        if not finished_methods:
+            pipeline.check_results_finished(folder)  # names the unfinished methods, if any
+        results = pipeline.evaluate(folder, finished_methods, write=False)
+        pipeline.check_inputs_unchanged(folder, results["method"])
         runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
         environment = runs[0]["environment"]
         finished = max(run["finished_at"] for run in runs)
@@ -218,6 +306,8 @@ def command_results(args: argparse.Namespace) -> int:
             "match_seconds_per_pair",
             "verify_seconds_per_pair",
             "seconds_per_pair",
+            "timers",
+            "pairs_digest",
         ]
         print(
             f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, device {environment['device']} "
@@ -226,6 +316,14 @@ def command_results(args: argparse.Namespace) -> int:
         )
         print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
         print()
+        holder = record.running(folder)
+        if holder:
+            print(
+                f"note: a run (pid {holder.get('pid')}, started {holder.get('started_at')}) is writing {folder} now; "
+                "the rows above are the results published before it\n"
+            )
+        for method, why in unfinished.items():
+            print(f"not finished: {method}: {why}")
         if args.all_methods:
             others = not_run_table(set(results["method"]))
             if len(others):
@@ -538,6 +636,7 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
     from gvbench_nb.data.sequences import PairFileError
     from gvbench_nb.evaluation import metrics
     from gvbench_nb.matching.imm import ImmUnavailableError
+    from gvbench_nb.runner.record import RecordError
     from gvbench_nb.speed import distributed
     from gvbench_nb.store import StoreCorruptError
 
@@ -561,6 +660,7 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
             pipeline.ResultsError,
             data.DataError,
             ImmUnavailableError,
+            RecordError,
         ),
     ):
         return f"error: {error}", 2

@@ -36,6 +36,7 @@ from gvbench_nb.data.images import (
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.evaluation.metrics import evaluate_scores
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.runner import record
 from gvbench_nb.store import ShardedStore
 from gvbench_nb.verification.ransac import verify_matches
 
@@ -450,10 +451,22 @@ def check_results_finished(output_dir: Path) -> None:
         )
 
 
+def stores_folder(output_dir: Path) -> Path:
+    """Where a run's match stores live: its output folder, also while the run's results are
+    staged (``record.open_stage``): stores are caches every run of the folder shares, keyed by
+    content; only results wait in the stage to be published whole."""
+    output_dir = Path(output_dir)
+    if record.is_stage(output_dir):
+        return output_dir.parent
+    return output_dir
+
+
 def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """Per-pair matches and inlier masks of one method conf (a changed conf starts afresh)."""
     matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
-    return ShardedStore(method_dir(output_dir, conf["method"]) / f"matches-{method_registry.conf_hash(matching_conf)}")
+    return ShardedStore(
+        method_dir(stores_folder(output_dir), conf["method"]) / f"matches-{method_registry.conf_hash(matching_conf)}"
+    )
 
 
 def match_and_verify(
@@ -679,7 +692,8 @@ def pair_list_hash(keys: dict[Any, str]) -> str:
 
 def raw_dense_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """A dense matcher's raw matches a pair (original pixels), before merging."""
-    return ShardedStore(method_dir(output_dir, conf["method"]) / f"raw-{method_registry.conf_hash(conf['matcher'])}")
+    folder = method_dir(stores_folder(output_dir), conf["method"])
+    return ShardedStore(folder / f"raw-{method_registry.conf_hash(conf['matcher'])}")
 
 
 def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any, str], where: Path) -> None:
@@ -961,6 +975,7 @@ def compute_method(
     work and needs neither torch nor any model."""
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
+    record.claim(output_dir)  # its stores and work record go into the folder: only into one that is the package's
     from gvbench_nb.features.base import resolve_device
 
     resolved_device = resolve_device(device)
@@ -1029,18 +1044,70 @@ def run_method(
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     folder = method_dir(output_dir, method)
-    # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
-    claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
-    work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
-    if work is None or has_pending_work(sequence, conf, cache_dir, output_dir, seed):
-        work = compute_method(
-            sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
-        )
-    table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-    write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
-    # The record is used once: a later run that finds everything cached records that.
-    (folder / WORK_RECORD).unlink(missing_ok=True)
+    # Outside a run's stage (a notebook run on its own), the method writes into the output
+    # folder in place: only into a folder that is the package's, and one writer at a time.
+    in_place = not record.is_stage(output_dir)
+    lock = record.FolderLock(output_dir) if in_place else None
+    if lock is not None:
+        record.claim(output_dir)
+        lock.acquire(wait_seconds=600)
+    try:
+        # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
+        claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
+        work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
+        if work is None or has_pending_work(sequence, conf, cache_dir, output_dir, seed):
+            work = compute_method(
+                sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
+            )
+        table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
+        write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
+        # The record is used once: a later run that finds everything cached records that.
+        (folder / WORK_RECORD).unlink(missing_ok=True)
+        if in_place:
+            record_method_in_place(output_dir, method, sequence)
+    finally:
+        if lock is not None:
+            lock.release()
     return table
+
+
+def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) -> None:
+    """Enter a method's finished outputs, written in place, in the folder's record."""
+    with record.editing(output_dir) as entry:
+        written = [f"{method}/{name}" for name in FINISHED_OUTPUTS]
+        entry["files"].update({name: record.file_sha256(Path(output_dir) / name) for name in written})
+        entry["methods"][method] = {**sequence_binding(sequence), "files": written}
+
+
+def pairs_digest(rows: Iterable[tuple[str, str, int]]) -> str:
+    """SHA-256 of the (query, reference, label) rows a method scored, in order: two tables with
+    the same digest were scored on the same pairs with the same labels."""
+    text = "".join(f"{query}\t{reference}\t{int(label)}\n" for query, reference, label in rows)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def table_pairs_digest(table: pd.DataFrame) -> str:
+    return pairs_digest(zip(table["query"], table["reference"], table["label"]))
+
+
+def images_digest(image_root: Path, names: Iterable[str]) -> str:
+    """BLAKE2b of the images' names and content keys: changes when any image's bytes change."""
+    digest = hashlib.blake2b(digest_size=20)
+    for name in sorted(set(names)):
+        digest.update(f"{name}\t{image_key(image_root, name)}\n".encode())
+    return digest.hexdigest()
+
+
+def sequence_binding(sequence: Sequence) -> dict[str, Any]:
+    """What a method's results are bound to: the pairs and labels scored, the images' contents,
+    and the pair file they came from (as it was then)."""
+    return {
+        "pairs_digest": pairs_digest((p.query, p.reference, p.label) for p in sequence.pairs),
+        "images_digest": images_digest(sequence.image_root, sequence.images),
+        "n_pairs": len(sequence.pairs),
+        "pairs_file": sequence.origin.get("pairs_file"),
+        "pairs_sha256": sequence.origin.get("pairs_sha256"),
+    }
 
 
 def write_method_outputs(
@@ -1054,6 +1121,8 @@ def write_method_outputs(
 ) -> None:
     """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
     finished run, ``methods_with_results``), then the unfinished marker removed."""
+    from gvbench_nb import __version__
+
     atomic_write_json(
         folder / "run.json",
         {
@@ -1061,8 +1130,11 @@ def write_method_outputs(
             "image_root": str(sequence.image_root),
             "n_pairs": len(sequence.pairs),
             "pairs": sequence.origin,
+            "binding": sequence_binding(sequence),
             "conf": conf,
             "seed": seed,
+            "package_version": __version__,
+            "run_id": record.stage_run_id(folder.parent),
             "environment": environment,
             "this_run": this_run,
             "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
@@ -1111,8 +1183,24 @@ def methods_with_results(output_dir: Path) -> list[str]:
     return ordered + sorted(found - set(ordered))
 
 
+def timers_source(run: dict[str, Any]) -> str:
+    """Whose timers a method's seconds are: ``this run`` (it computed every image and pair),
+    ``cached`` (every one came from the cache: the seconds are those of the runs that computed
+    them) or ``partly cached``."""
+    this_run = run.get("this_run", {})
+    extraction, matching = this_run.get("extraction", {}), this_run.get("matching", {})
+    reused = extraction.get("cached", 0) + matching.get("cached", 0)
+    computed = extraction.get("extracted", 0) + matching.get("matched", 0)
+    if not reused:
+        return "this run"
+    return "cached" if not computed else "partly cached"
+
+
 def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = True) -> pd.DataFrame:
-    """AP, MR and seconds per pair for every method with results; writes ``results.csv``."""
+    """AP, MR and seconds per pair for every method with results; writes ``results.csv``.
+
+    Every method must have scored the same pairs with the same labels (``pairs_digest``, from
+    the pairs tables themselves): a table that mixes pair files is refused, naming the rows."""
     output_dir = Path(output_dir)
     methods = methods or methods_with_results(output_dir)
     if not methods:
@@ -1146,9 +1234,61 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
                 "device": run["environment"]["device"],
                 # >1: the seconds above include waiting for cores shared by concurrent images/pairs
                 "workers": run.get("this_run", {}).get("workers", 1),  # runs written before workers existed: 1
+                "timers": timers_source(run),
+                "pairs_digest": table_pairs_digest(table)[:12],
+                "finished_at": run.get("finished_at"),
             }
         )
     results = pd.DataFrame(rows)
+    check_one_binding(output_dir, results)
     if write:
         atomic_write_csv(output_dir / "results.csv", results)
+        record.register([output_dir / "results.csv"])
     return results
+
+
+def check_one_binding(output_dir: Path, results: pd.DataFrame) -> None:
+    """Refuse a results table whose methods scored different pairs or labels, naming the rows."""
+    groups = results.groupby("pairs_digest", sort=False)["method"].apply(list)
+    if len(groups) > 1:
+        described = "; ".join(f"{', '.join(names)}: pairs {digest}" for digest, names in groups.items())
+        raise ResultsError(
+            f"{output_dir}: its methods were scored on different pairs or labels ({described}), so their AP and MR "
+            "do not compare; rerun them on one pair file, or give each pair file its own output_dir"
+        )
+
+
+def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
+    """Methods whose inputs changed since they ran: method -> what changed (the pair file's
+    SHA-256, or the images' contents); inputs no longer there to check are not reported."""
+    changed = {}
+    for method in methods:
+        run = json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+        pairs = run.get("pairs") or {}
+        pairs_file = pairs.get("pairs_file")
+        if pairs_file and Path(pairs_file).is_file() and record.file_sha256(pairs_file) != pairs.get("pairs_sha256"):
+            changed[method] = f"the pair file {pairs_file} changed"
+            continue
+        recorded = (run.get("binding") or {}).get("images_digest")
+        root = Path(run.get("image_root", ""))
+        if recorded and root.is_dir():
+            table = load_pairs_table(output_dir, method)
+            try:
+                now = images_digest(root, [*table["query"], *table["reference"]])
+            except ImageReadError:
+                changed[method] = f"an image under {root} is gone"
+                continue
+            if now != recorded:
+                changed[method] = f"images under {root} changed"
+    return changed
+
+
+def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
+    """``ResultsError`` naming the methods whose pair file or images changed since they ran."""
+    changed = changed_inputs(output_dir, methods)
+    if changed:
+        described = "; ".join(f"{method}: {why}" for method, why in changed.items())
+        raise ResultsError(
+            f"{output_dir}: results computed from inputs that have changed since ({described}); run those methods "
+            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {output_dir})"
+        )

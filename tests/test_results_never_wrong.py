@@ -254,6 +254,7 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
                         "ap": 1.0,
                         "max_recall": 1.0,
                         "seconds_per_pair": 0.0,
+                        "timers": "this run",
                     }
                 ]
             ).to_csv(output_path.parent / "results.csv")
@@ -281,10 +282,12 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
     order = [s["notebook"] for s in seen]
     assert sorted(order) == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
     assert order.index("03_evaluate.ipynb") > order.index("02_verify.ipynb")
-    assert all(
-        s == {**s, "image_root": str(root), "limit": 3, "profile": "repository", "output_dir": str(out)} for s in seen
-    )
-    assert yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())["image_root"] == str(root)
+    assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "repository"} for s in seen)
+    # The notebooks write into the run's stage inside the output folder; the published params name the folder.
+    stages = {Path(s["output_dir"]) for s in seen}
+    assert len(stages) == 1 and next(iter(stages)).parent == out and next(iter(stages)).name.startswith(".run-")
+    published = yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())
+    assert published["image_root"] == str(root) and published["output_dir"] == str(out)
 
 
 @pytest.mark.slow
@@ -365,30 +368,30 @@ def test_evaluate_waits_for_every_verify_notebook_but_not_for_the_sequence_noteb
     assert sorted(events[:2]) == ["02_verify_a.ipynb", "02_verify_b.ipynb"]
 
 
-def test_a_run_that_fails_before_a_method_starts_leaves_no_old_result_and_results_refuses(
+def test_a_run_that_fails_leaves_the_previous_results_whole_and_says_where_its_work_is(
     root, tmp_path, monkeypatch, capsys
 ):
     write_pairs(tmp_path / "pairs.txt", PAIRS)
-    params_path = _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache"))
-    out = tmp_path / "out"
+    params_path = _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "work" / "cache"))
+    out = tmp_path / "work" / "out"
     run_first = run(root, tmp_path / "work")  # an earlier finished run in the same folder
-    shutil.copytree(tmp_path / "work" / "out" / METHOD, out / METHOD)
     pipeline.evaluate(out)
-    assert len(run_first) == 4 and (out / "results.csv").is_file()
+    before = {p: p.read_bytes() for p in (out / METHOD / "pairs.csv", out / METHOD / "run.json", out / "results.csv")}
+    assert len(run_first) == 4
 
     def kernel_dies(name, output_path, parameters):
         raise RuntimeError("the kernel died")
 
     monkeypatch.setattr(cli, "execute_notebook", kernel_dies)
-    with pytest.raises(RuntimeError, match="kernel died"):
-        cli.main(["run", str(params_path)])
-    for stale in (out / METHOD / "pairs.csv", out / METHOD / "run.json", out / "results.csv"):
-        assert not stale.exists(), stale
     capsys.readouterr()
-    assert cli.main(["results", str(out)]) == 2
-    message = capsys.readouterr().err
-    assert f"{out} holds unfinished results ({METHOD}: a run started at" in message
-    assert f"--methods {METHOD}" in message and len(message.strip().splitlines()) == 1
+    with pytest.raises(RuntimeError, match="kernel died"):
+        cli.main(["run", str(params_path), "--output-dir", str(out)])
+    said = capsys.readouterr().err
+    assert f"{out} still holds the previous run's results" in said
+    stages = [p for p in out.iterdir() if p.name.startswith(".run-")]
+    assert len(stages) == 1 and str(stages[0]) in said
+    assert {p: p.read_bytes() for p in before} == before
+    assert cli.main(["results", str(out)]) == 0
 
 
 def test_results_refuses_a_method_folder_with_pairs_but_no_run_record(root, tmp_path, capsys):
@@ -561,7 +564,7 @@ def test_an_output_folder_that_cannot_be_written_is_one_sentence(tmp_path, capsy
 def test_results_on_a_folder_without_results_is_one_sentence(tmp_path, capsys):
     (tmp_path / "empty").mkdir()
     message = cli_error(capsys, "results", str(tmp_path / "empty"))
-    assert f"{tmp_path / 'empty'} holds no method results" in message
+    assert f"{tmp_path / 'empty'} holds no gvbench-run.json, so no gvbench-nb run wrote it" in message
 
 
 def test_a_missing_image_root_says_the_folder_does_not_exist(tmp_path, capsys, valid):

@@ -11,12 +11,14 @@ from matplotlib.colors import to_rgba
 
 from gvbench_nb.data.images import read_image
 from gvbench_nb.evaluation.metrics import max_recall_at_full_precision, pr_curve
+from gvbench_nb.runner import record
 
 
 def save(figure: plt.Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     figure.savefig(path, dpi=120, bbox_inches="tight")
+    record.register([path])  # in an output folder, the package's file from now on
     return path
 
 

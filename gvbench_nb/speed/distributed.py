@@ -177,6 +177,7 @@ def merge_method(
         {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
         table,
     )
+    pipeline.record_method_in_place(output_dir, conf["method"], sequence)
     return table
 
 

@@ -1,0 +1,388 @@
+"""The run record: what makes an output folder gvbench-nb's, who may write it, and how a run
+publishes its results into it.
+
+An output folder belongs to the package only while it holds ``gvbench-run.json`` (the record),
+written by the package; it lists every file the package published there with its SHA-256, so a
+file of the same name that the package did not write (or that was changed since) is never
+overwritten. One run at a time writes a folder (``FolderLock``). ``run`` builds everything in a
+stage (``<folder>/.run-<id>/``) and moves it into place only when the whole run succeeded
+(``publish``): a failed or interrupted run leaves the previous run's results as they were.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime as _dt
+import hashlib
+import json
+import os
+import platform
+import shutil
+import sys
+from collections.abc import Iterable, Iterator
+from pathlib import Path
+from typing import Any
+
+from gvbench_nb import __version__
+from gvbench_nb.io_utils import atomic_write_json, fsync_folder
+
+RECORD_NAME = "gvbench-run.json"
+LOCK_NAME = ".gvbench.lock"  # held by the one run writing the folder
+HOLDER_NAME = ".gvbench-running.json"  # who holds the lock: pid, host, command, start
+RECORD_LOCK_NAME = ".gvbench-record.lock"  # held for the moment the record is read and rewritten
+STAGE_PREFIX = ".run-"
+STAGE_MARKER = ".stage.json"  # in a stage: the folder it will be published into
+PACKAGE = "gvbench-nb"
+# Files a stage holds that are the run's working state, not its results.
+WORKING_FILES = (STAGE_MARKER, ".computed.json", ".unfinished.json")
+# The names the package writes in an output folder besides its record.
+OWN_NAMES = (RECORD_NAME, LOCK_NAME, HOLDER_NAME, RECORD_LOCK_NAME)
+
+
+class RecordError(ValueError):
+    """An output folder cannot be written: not the package's, held by another run, or changed by hand."""
+
+
+def now() -> str:
+    return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def read_record(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """The folder's record, or None when it has none (or one the package did not write)."""
+    try:
+        record = json.loads((Path(folder) / RECORD_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or record.get("package") != PACKAGE:
+        return None
+    record.setdefault("files", {})
+    record.setdefault("methods", {})
+    return record
+
+
+def is_stage(folder: str | os.PathLike[str]) -> bool:
+    return (Path(folder) / STAGE_MARKER).is_file()
+
+
+def _shown(names: list[str], at_most: int = 3) -> str:
+    shown = ", ".join(sorted(names)[:at_most])
+    return shown + (f" and {len(names) - at_most} more" if len(names) > at_most else "")
+
+
+def check_owned(folder: str | os.PathLike[str]) -> None:
+    """Raise ``RecordError`` unless ``folder`` is missing, empty, a stage, or holds a record."""
+    folder = Path(folder)
+    if not folder.is_dir() or is_stage(folder) or read_record(folder) is not None:
+        return
+    entries = [p.name for p in folder.iterdir()]
+    if entries:
+        raise RecordError(
+            f"output folder {folder} is not empty ({_shown(entries)}) and holds no {RECORD_NAME}, so its files are "
+            "not gvbench-nb's to replace; give a new or empty output_dir (or --output-dir), or the folder of an "
+            "earlier run"
+        )
+
+
+def foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> list[str]:
+    """Of ``names`` (paths relative to ``folder``), those present there that the package did not
+    write or that changed since it wrote them (their SHA-256 differs from the record's)."""
+    folder = Path(folder)
+    record = read_record(folder) or {"files": {}}
+    foreign = []
+    for name in names:
+        path = folder / name
+        if not (path.exists() or path.is_symlink()):
+            continue
+        if path.is_symlink() or not path.is_file() or record["files"].get(name) != file_sha256(path):
+            foreign.append(name)
+    return foreign
+
+
+def check_no_foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> None:
+    foreign = foreign_files(folder, names)
+    if foreign:
+        raise RecordError(
+            f"{Path(folder)} holds {_shown(foreign)}, which gvbench-nb did not write there (or which changed since "
+            "it did); move them away, or give another output_dir (or --output-dir)"
+        )
+
+
+@contextlib.contextmanager
+def _file_lock(path: Path, timeout: float) -> Iterator[None]:
+    from filelock import FileLock
+
+    with FileLock(str(path), timeout=timeout):
+        yield
+
+
+@contextlib.contextmanager
+def editing(folder: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:
+    """The folder's record (a new one when it has none), rewritten atomically after the block."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    with _file_lock(folder / RECORD_LOCK_NAME, timeout=60):
+        record = read_record(folder) or {
+            "package": PACKAGE,
+            "created_at": now(),
+            "state": "published",
+            "files": {},
+            "methods": {},
+        }
+        yield record
+        record["version"] = __version__
+        atomic_write_json(folder / RECORD_NAME, record)
+
+
+def owning_folder(path: str | os.PathLike[str]) -> Path | None:
+    """The output folder holding ``path`` (its folder or the one above, for a method's files)
+    when that folder has a record; None for a stage or any other folder."""
+    path = Path(path)
+    for folder in (path.parent, path.parent.parent):
+        if is_stage(folder):
+            return None
+        if read_record(folder) is not None:
+            return folder
+    return None
+
+
+def register(paths: Iterable[str | os.PathLike[str]]) -> None:
+    """Record files the package has just written in place (a notebook run outside ``run``), so a
+    later run knows them for its own; files outside an output folder with a record are ignored."""
+    by_folder: dict[Path, list[Path]] = {}
+    for path in map(Path, paths):
+        folder = owning_folder(path)
+        if folder is not None:
+            by_folder.setdefault(folder, []).append(path)
+    for folder, written in by_folder.items():
+        with editing(folder) as record:
+            for path in written:
+                if path.is_file():
+                    record["files"][path.relative_to(folder).as_posix()] = file_sha256(path)
+
+
+def claim(folder: str | os.PathLike[str]) -> None:
+    """Make a new or empty folder an output folder (write its record); check an existing one is."""
+    folder = Path(folder)
+    check_owned(folder)
+    if is_stage(folder) or read_record(folder) is not None:
+        return
+    with editing(folder):
+        pass
+
+
+# Folders whose lock this process holds, and how many times: the run's own steps (a method
+# run in place inside the command that holds the folder) take it again without waiting on it.
+_held: dict[Path, list[Any]] = {}  # folder -> [count, the FileLock that holds it]
+
+
+class FolderLock:
+    """The lock of one output folder, held by the run writing it (released when its process ends,
+    whatever way it ends), with who holds it beside it (``HOLDER_NAME``)."""
+
+    def __init__(self, folder: str | os.PathLike[str]):
+        from filelock import FileLock
+
+        self.folder = Path(folder).resolve()
+        self._lock = FileLock(str(self.folder / LOCK_NAME))
+
+    def acquire(self, wait_seconds: float = 0) -> None:
+        from filelock import Timeout
+
+        if self.folder in _held:
+            _held[self.folder][0] += 1
+            return
+        self.folder.mkdir(parents=True, exist_ok=True)
+        try:
+            self._lock.acquire(timeout=wait_seconds)
+        except Timeout:
+            raise RecordError(
+                f"another run is writing {self.folder} ({describe_holder(self.folder)}); wait for it to finish or "
+                "give another output_dir (or --output-dir)"
+            ) from None
+        atomic_write_json(
+            self.folder / HOLDER_NAME,
+            {"pid": os.getpid(), "host": platform.node(), "started_at": now(), "command": " ".join(sys.argv)},
+        )
+        _held[self.folder] = [1, self._lock]
+
+    def release(self) -> None:
+        held = _held[self.folder]
+        held[0] -= 1
+        if held[0]:
+            return
+        del _held[self.folder]
+        (self.folder / HOLDER_NAME).unlink(missing_ok=True)
+        held[1].release()
+
+    def __enter__(self) -> FolderLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+
+def _holder(folder: Path) -> dict[str, Any]:
+    try:
+        holder = json.loads((folder / HOLDER_NAME).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    return holder if isinstance(holder, dict) else {}
+
+
+def describe_holder(folder: str | os.PathLike[str]) -> str:
+    holder = _holder(Path(folder))
+    if not holder:
+        return "its holder is not known"
+    return f"pid {holder.get('pid')} on {holder.get('host')}, started {holder.get('started_at')}"
+
+
+def running(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
+    """Who is writing ``folder`` now, or None (a holder file left by a killed run is not a run)."""
+    from filelock import FileLock, Timeout
+
+    folder = Path(folder)
+    if not (folder / HOLDER_NAME).is_file():
+        return None
+    probe = FileLock(str(folder / LOCK_NAME))
+    try:
+        probe.acquire(timeout=0)
+    except Timeout:
+        return _holder(folder)
+    probe.release()
+    return None
+
+
+# ---------------------------------------------------------------------- stage --
+def open_stage(folder: str | os.PathLike[str]) -> Path:
+    """A new, empty stage in ``folder`` for one run; the stages of earlier runs that stopped
+    (the lock holder's to remove: no run is using them) are deleted first."""
+    folder = Path(folder)
+    for old in folder.glob(f"{STAGE_PREFIX}*"):
+        if old.is_dir() and is_stage(old):
+            shutil.rmtree(old, ignore_errors=True)
+    run_id = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ") + f"-{os.getpid()}"
+    stage = folder / f"{STAGE_PREFIX}{run_id}"
+    stage.mkdir(parents=True)
+    atomic_write_json(stage / STAGE_MARKER, {"output_dir": str(folder), "run_id": run_id, "started_at": now()})
+    return stage
+
+
+def stage_run_id(stage: str | os.PathLike[str]) -> str | None:
+    try:
+        return str(json.loads((Path(stage) / STAGE_MARKER).read_text(encoding="utf-8"))["run_id"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def staged_files(stage: Path) -> list[str]:
+    """The files a stage will publish (relative paths), its working state left out."""
+    files = []
+    for path in sorted(stage.rglob("*")):
+        relative = path.relative_to(stage)
+        if path.is_file() and path.name not in WORKING_FILES and not path.name.startswith(".write-check-"):
+            files.append(relative.as_posix())
+    return files
+
+
+def carry(folder: Path, stage: Path, methods: Iterable[str]) -> list[str]:
+    """Copy the published files of ``methods`` (kept from earlier runs) into the stage, so the
+    stage holds the folder's whole next state; returns the methods carried."""
+    record = read_record(folder) or {"methods": {}, "files": {}}
+    carried = []
+    for method in methods:
+        if method not in record["methods"]:
+            continue
+        for name in method_files(record["files"], method):
+            target = stage / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            shutil.copy2(folder / name, target)
+        carried.append(method)
+    return carried
+
+
+def method_files(files: Iterable[str], method: str) -> list[str]:
+    """Of a run's published files, those that belong to one method (kept with it by later runs)."""
+    return [
+        name
+        for name in files
+        if name.startswith(f"{method}/") or name in (f"02_verify_{method}.ipynb", f"inliers_{method}.png")
+    ]
+
+
+def publish(folder: Path, stage: Path, methods: dict[str, dict[str, Any]]) -> list[str]:
+    """Move a finished stage's files into ``folder`` and record them; the files of the previous
+    publication that the stage does not hold again are removed (the package wrote them).
+    ``methods``: method -> what its results are bound to, kept in the record.
+
+    The record says ``publishing`` while files move, so a reader never takes a half-moved folder
+    for a run's results; the next run on the folder finishes the move first (``finish_publishing``)."""
+    check_no_foreign_files(folder, staged_files(stage))
+    with editing(folder) as record:
+        record["state"] = "publishing"
+        record["stage"] = stage.name
+        record["next"] = {"files": staged_files(stage), "methods": methods, "run_id": stage_run_id(stage)}
+    return _move_and_record(folder, stage)
+
+
+def _move_and_record(folder: Path, stage: Path) -> list[str]:
+    record = read_record(folder)
+    assert record is not None and record.get("state") == "publishing"
+    files, methods = record["next"]["files"], record["next"]["methods"]
+    for name in files:
+        if (stage / name).is_file():  # a resumed move finds some files moved already
+            target = folder / name
+            target.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(stage / name, target)
+    fsync_folder(folder)
+    with editing(folder) as record:
+        for name in set(record["files"]) - set(files):
+            (folder / name).unlink(missing_ok=True)
+        record["files"] = {name: file_sha256(folder / name) for name in files if (folder / name).is_file()}
+        record["methods"] = {
+            method: {**binding, "files": method_files(files, method)} for method, binding in methods.items()
+        }
+        record["run_id"] = record["next"]["run_id"]
+        record["state"] = "published"
+        record["published_at"] = now()
+        for key in ("stage", "next"):
+            record.pop(key, None)
+    shutil.rmtree(stage, ignore_errors=True)
+    return files
+
+
+def finish_publishing(folder: Path) -> bool:
+    """Finish the publication a killed run left half done (called with the folder's lock held)."""
+    record = read_record(folder)
+    if record is None or record.get("state") != "publishing":
+        return False
+    stage = folder / str(record.get("stage"))
+    if not stage.is_dir():
+        stage.mkdir()  # every file was moved already: only the record is left to write
+    _move_and_record(folder, stage)
+    return True
+
+
+def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:
+    """The record of a folder whose results a reader may use; ``RecordError`` otherwise."""
+    folder = Path(folder)
+    record = read_record(folder)
+    if record is None:
+        raise RecordError(
+            f"{folder} holds no {RECORD_NAME}, so no gvbench-nb run wrote it (or it was written by an older "
+            "version); run the methods into a new folder (python -m gvbench_nb run PARAMS --output-dir NEW)"
+        )
+    if record.get("state") == "publishing":
+        raise RecordError(
+            f"{folder}: a run stopped while publishing its results ({record.get('stage')}); run it again "
+            "(python -m gvbench_nb run PARAMS) to finish"
+        )
+    return record

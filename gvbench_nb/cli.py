@@ -287,6 +287,15 @@ def command_results(args: argparse.Namespace) -> int:
         record.check_published(folder)
         unfinished = pipeline.unfinished_methods(folder)
         finished_methods = [m for m in pipeline.methods_with_results(folder) if m not in unfinished]
+        edited = record.changed_files(
+            folder, [f"{m}/{name}" for m in finished_methods for name in ("pairs.csv", "run.json")]
+        )
+        if edited:
+            raise record.RecordError(
+                f"{folder}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a run's; "
+                "run those methods again (python -m gvbench_nb run PARAMS --output-dir "
+                f"{folder}) after moving the edited files away"
+            )
         if not finished_methods:
             pipeline.check_results_finished(folder)  # names the unfinished methods, if any
         results = pipeline.evaluate(folder, finished_methods, write=False)

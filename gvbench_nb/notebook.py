@@ -20,6 +20,7 @@ import pandas as pd
 from gvbench_nb import config, pipeline
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.runner import record
 
 if TYPE_CHECKING:
     from gvbench_nb.verification.verifiers import VerifierBench
@@ -85,7 +86,9 @@ def load_sequence(params_file: PathLike, **overrides: Any) -> tuple[dict[str, An
     """The params file (``overrides`` that are not None replace its keys) and its sequence;
     the pair file is made first when the params build it (``config.prepare_sequence``)."""
     params = config.load_params(params_file, **overrides)
-    return params, config.prepare_sequence(params)
+    sequence = config.prepare_sequence(params)
+    record.claim(params["output_dir"])  # the notebook writes its figures and tables there
+    return params, sequence
 
 
 def require_results(

@@ -1044,14 +1044,16 @@ def run_method(
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     folder = method_dir(output_dir, method)
-    # Outside a run's stage (a notebook run on its own), the method writes into the output
-    # folder in place: only into a folder that is the package's, and one writer at a time.
+    # Outside a run's stage (a notebook run on its own), the method writes its results into the
+    # output folder in place: only into a folder that is the package's, and one writer at a time
+    # while the results are written. The stores are filled first, by any number of processes at
+    # once (they are safe for that).
     in_place = not record.is_stage(output_dir)
-    lock = record.FolderLock(output_dir) if in_place else None
-    if lock is not None:
+    written = [f"{method}/{name}" for name in FINISHED_OUTPUTS]
+    if in_place:
         record.claim(output_dir)
-        lock.acquire(wait_seconds=600)
-    try:
+        record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
+    with record.pending(output_dir if in_place else None, written):
         # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
         claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
         work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
@@ -1059,15 +1061,19 @@ def run_method(
             work = compute_method(
                 sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
             )
-        table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-        write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
-        # The record is used once: a later run that finds everything cached records that.
-        (folder / WORK_RECORD).unlink(missing_ok=True)
-        if in_place:
-            record_method_in_place(output_dir, method, sequence)
-    finally:
+        lock = record.FolderLock(output_dir) if in_place else None
         if lock is not None:
-            lock.release()
+            lock.acquire(wait_seconds=600)
+        try:
+            table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
+            write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
+            # The record is used once: a later run that finds everything cached records that.
+            (folder / WORK_RECORD).unlink(missing_ok=True)
+            if in_place:
+                record_method_in_place(output_dir, method, sequence)
+        finally:
+            if lock is not None:
+                lock.release()
     return table
 
 
@@ -1242,8 +1248,9 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
     results = pd.DataFrame(rows)
     check_one_binding(output_dir, results)
     if write:
-        atomic_write_csv(output_dir / "results.csv", results)
-        record.register([output_dir / "results.csv"])
+        if not record.is_stage(output_dir):
+            record.claim(output_dir)
+        record.save_checked(output_dir / "results.csv", lambda path: atomic_write_csv(path, results))
     return results
 
 

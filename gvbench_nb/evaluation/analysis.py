@@ -606,11 +606,20 @@ def align_tables(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
                 f"{len(other - keys)} only in the second); rerun them on the same pairs (same --limit)"
             )
         base = base.merge(
-            table[["query", "reference", "score"]].rename(columns={"score": f"score:{method}"}),
+            table[["query", "reference", "label", "score"]].rename(
+                columns={"score": f"score:{method}", "label": f"label:{method}"}
+            ),
             on=["query", "reference"],
             how="left",
             validate="one_to_one",
         )
+        # Each method is scored against its own labels: the same pairs under other labels do not compare.
+        differ = int((base.pop(f"label:{method}") != base["label"]).sum())
+        if differ:
+            raise ValueError(
+                f"methods {methods[0]!r} and {method!r} scored the same pairs under different labels ({differ} pairs "
+                "differ): they ran on different pair files; rerun them on one pair file"
+            )
     return base
 
 

@@ -17,9 +17,8 @@ from gvbench_nb.runner import record
 def save(figure: plt.Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    figure.savefig(path, dpi=120, bbox_inches="tight")
-    record.register([path])  # in an output folder, the package's file from now on
-    return path
+    # Never over a file of an output folder that the package did not write; recorded as its own after.
+    return record.save_checked(path, lambda target: figure.savefig(target, dpi=120, bbox_inches="tight"))
 
 
 def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:

@@ -96,10 +96,11 @@ def foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> list[
     write or that changed since it wrote them (their SHA-256 differs from the record's)."""
     folder = Path(folder)
     record = read_record(folder) or {"files": {}}
+    being_written = set(record.get("pending", []))  # by a writer that may have been killed half way
     foreign = []
     for name in names:
         path = folder / name
-        if not (path.exists() or path.is_symlink()):
+        if not (path.exists() or path.is_symlink()) or (name in being_written and path.is_file()):
             continue
         if path.is_symlink() or not path.is_file() or record["files"].get(name) != file_sha256(path):
             foreign.append(name)
@@ -169,13 +170,48 @@ def register(paths: Iterable[str | os.PathLike[str]]) -> None:
 
 
 def claim(folder: str | os.PathLike[str]) -> None:
-    """Make a new or empty folder an output folder (write its record); check an existing one is."""
+    """Make ``folder`` an output folder of the package (give it a record) unless it is one, or a
+    stage. Whoever writes a file there first checks that name (``check_no_foreign_files``);
+    ``run`` also refuses a non-empty folder without a record before it claims it (``check_owned``)."""
     folder = Path(folder)
-    check_owned(folder)
     if is_stage(folder) or read_record(folder) is not None:
         return
-    with editing(folder):
+    with editing(folder):  # under the record's lock: two writers claiming at once make one record
         pass
+
+
+@contextlib.contextmanager
+def pending(folder: str | os.PathLike[str] | None, names: list[str]) -> Iterator[None]:
+    """Mark ``names`` as being written by the package in ``folder`` (None: nothing to mark), so
+    that files a killed writer left half recorded are still known for the package's."""
+    if folder is None:
+        yield
+        return
+    with editing(folder) as record:
+        record["pending"] = sorted({*record.get("pending", []), *names})
+    yield
+    with editing(folder) as record:
+        record["pending"] = [n for n in record.get("pending", []) if n not in names]
+        for name in names:
+            if (Path(folder) / name).is_file():
+                record["files"][name] = file_sha256(Path(folder) / name)
+        if not record["pending"]:
+            del record["pending"]
+
+
+def save_checked(path: str | os.PathLike[str], write: Any) -> Path:
+    """``write(path)`` where the package may write ``path``: not over a file of an output folder
+    that the package did not write there; the file is then recorded as the package's."""
+    path = Path(path)
+    folder = owning_folder(path)
+    if folder is None:
+        write(path)
+        return path
+    name = path.relative_to(folder).as_posix()
+    check_no_foreign_files(folder, [name])
+    with pending(folder, [name]):
+        write(path)
+    return path
 
 
 # Folders whose lock this process holds, and how many times: the run's own steps (a method
@@ -369,6 +405,16 @@ def finish_publishing(folder: Path) -> bool:
         stage.mkdir()  # every file was moved already: only the record is left to write
     _move_and_record(folder, stage)
     return True
+
+
+def changed_files(folder: str | os.PathLike[str], names: Iterable[str] | None = None) -> list[str]:
+    """Of the files the record lists (or of ``names`` among them), those changed or gone since
+    the package wrote them."""
+    folder = Path(folder)
+    record = read_record(folder) or {"files": {}}
+    listed = record["files"]
+    wanted = listed if names is None else [n for n in names if n in listed]
+    return [n for n in wanted if not (folder / n).is_file() or file_sha256(folder / n) != listed[n]]
 
 
 def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:

@@ -1,0 +1,395 @@
+"""The run record: an output folder is one run's truth, never mixed, never stale, never a user's.
+
+Part of ``pytest -m reliability``. Each test is a way a careless or hostile user could make
+a table wrong while the exit code says 0; docs/reliability.md lists them beside their promise.
+The runs go through ``python -m gvbench_nb run``'s own code (``cli.main``) with the notebooks
+executed in this process (``in_process_notebooks``: what each stage notebook computes, without
+papermill), on four small photographs matched with ORB: seconds, no real data needed. One test
+runs the real notebooks in a second process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import yaml
+from test_results_never_wrong import write_root
+
+from gvbench_nb import cli, config, pipeline
+from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
+from gvbench_nb.evaluation import analysis
+from gvbench_nb.evaluation.metrics import evaluate_scores
+from gvbench_nb.runner import record
+
+pytestmark = pytest.mark.reliability
+
+PAIRS = [
+    Pair("query/a.png", "reference/a.png", 1),
+    Pair("query/a.png", "reference/b.png", 0),
+    Pair("query/b.png", "reference/b.png", 1),
+    Pair("query/b.png", "reference/a.png", 0),
+]
+FLIPPED = [Pair(p.query, p.reference, 1 - p.label) for p in PAIRS]
+
+
+def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
+    """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
+    params = config.load_params(parameters["params_file"])
+    if name == "02_verify.ipynb":
+        sequence = config.prepare_sequence(params)
+        pipeline.run_method_of_params(params, sequence, parameters["method"], progress=False)
+    elif name == "03_evaluate.ipynb":
+        pipeline.evaluate(Path(params["output_dir"]), parameters.get("methods"))
+    output_path.write_text(json.dumps({"executed": name}))
+
+
+@pytest.fixture
+def notebooks_here(monkeypatch):
+    monkeypatch.setattr(cli, "execute_notebook", in_process_notebooks)
+
+
+@pytest.fixture
+def root(tmp_path) -> Path:
+    return write_root(tmp_path / "images")
+
+
+def params_file(tmp_path: Path, name: str = "params.yaml", pairs: list[Pair] = PAIRS, **changes) -> Path:
+    pairs_path = tmp_path / f"{Path(name).stem}-pairs.txt"
+    write_pairs(pairs_path, pairs)
+    params = {
+        "sequence": "photos",
+        "image_root": str(tmp_path / "images"),
+        "pairs": str(pairs_path),
+        "methods": ["orb-nn"],
+        "profile": "repository",
+        "output_dir": str(tmp_path / "out"),
+        "cache_dir": str(tmp_path / "cache"),
+        "device": "cpu",
+    }
+    params.update(changes)
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    capsys.readouterr()
+    code = cli.main(list(argv))
+    said = capsys.readouterr()
+    return code, said.out, said.err
+
+
+def one_sentence(err: str) -> str:
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+# ---------------------------------------------------------------- ownership --
+def test_a_folder_of_the_users_files_is_refused_and_left_byte_identical(tmp_path, root, capsys, notebooks_here):
+    out = tmp_path / "out"
+    (out / "orb-nn").mkdir(parents=True)
+    for name in ("results.csv", "orb-nn/pairs.csv", "pr_curves.png", "01_sequence.ipynb"):
+        (out / name).write_text(f"the user's own {name}\n")
+    before = snapshot(out)
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)))
+    assert code == 2
+    assert f"output folder {out} is not empty" in one_sentence(err) and "gvbench-run.json" in err
+    assert snapshot(out) == before
+
+
+def test_an_empty_output_dir_string_is_the_params_folder_and_is_refused(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path, output_dir="")
+    before = snapshot(tmp_path)
+    code, _, err = run_cli(capsys, "run", str(path))
+    assert code == 2 and "is not empty" in one_sentence(err)
+    assert snapshot(tmp_path) == before
+
+
+def test_a_file_the_package_wrote_and_the_user_edited_is_not_overwritten(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    edited = tmp_path / "out" / "results.csv"
+    edited.write_text(edited.read_text() + "# my notes\n")
+    code, _, err = run_cli(capsys, "run", str(path))
+    assert code == 2 and "results.csv" in one_sentence(err) and "changed since" in err
+    assert edited.read_text().endswith("# my notes\n")
+
+
+def test_results_refuses_scores_edited_by_hand(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    table = tmp_path / "out" / "orb-nn" / "pairs.csv"
+    frame = pd.read_csv(table)
+    frame.loc[frame["label"] == 0, "score"] = 0  # a perfect method, by hand
+    frame.to_csv(table, index=False)
+    code, out, err = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 2 and "orb-nn/pairs.csv changed since gvbench-nb wrote them" in one_sentence(err)
+    assert out == ""
+
+
+# --------------------------------------------------------- one writer at a time --
+def hold_lock(folder: Path) -> subprocess.Popen:
+    """Another process holding the folder's lock, as a running ``run`` does."""
+    code = (
+        "import sys, time\nfrom gvbench_nb.runner import record\n"
+        f"record.FolderLock({str(folder)!r}).acquire()\nprint('held', flush=True)\ntime.sleep(120)\n"
+    )
+    holder = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
+    assert holder.stdout is not None and holder.stdout.readline().strip() == "held"
+    return holder
+
+
+def test_a_second_run_on_a_held_folder_is_refused_and_writes_nothing(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = snapshot(tmp_path / "out")
+    holder = hold_lock(tmp_path / "out")
+    try:
+        flipped = params_file(tmp_path, "flipped.yaml", FLIPPED)
+        code, _, err = run_cli(capsys, "run", str(flipped))
+        assert code == 2 and f"another run is writing {tmp_path / 'out'} (pid {holder.pid}" in one_sentence(err)
+        after = snapshot(tmp_path / "out")
+        assert {k: v for k, v in after.items() if k != record.HOLDER_NAME} == {
+            k: v for k, v in before.items() if k != record.HOLDER_NAME
+        }
+        # Meanwhile `results` shows what is published and says a run is writing the folder.
+        code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
+        assert code == 0 and "orb-nn" in out and f"a run (pid {holder.pid}" in out
+    finally:
+        holder.kill()
+        holder.wait()
+    # A holder that died leaves no lock behind.
+    assert record.running(tmp_path / "out") is None
+    assert run_cli(capsys, "run", str(path))[0] == 0
+
+
+@pytest.mark.slow
+def test_two_runs_started_together_on_one_folder_never_print_each_others_numbers(tmp_path, root):
+    """Run A (the real notebooks, in a second process) and, while it runs, run B on the same
+    folder with every label flipped: B is refused, A prints its own AP."""
+    a = params_file(tmp_path, "a.yaml", PAIRS)
+    b = params_file(tmp_path, "b.yaml", FLIPPED)
+    env = {**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)}
+    first = subprocess.Popen(
+        [sys.executable, "-m", "gvbench_nb", "run", str(a)], stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env
+    )
+    deadline = time.monotonic() + 120
+    while record.running(tmp_path / "out") is None and first.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.05)
+    second = subprocess.run(
+        [sys.executable, "-m", "gvbench_nb", "run", str(b)], capture_output=True, text=True, env=env, timeout=300
+    )
+    out, err = first.communicate(timeout=600)
+    assert first.returncode == 0, err.decode()[-2000:]
+    assert second.returncode == 2 and "another run is writing" in second.stderr
+    table = pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")
+    assert table["label"].tolist() == [p.label for p in PAIRS]  # A's labels, not B's
+    alone = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy())
+    printed = next(line.split() for line in out.decode().splitlines() if line.startswith("orb-nn"))
+    assert float(printed[4]) == pytest.approx(alone["ap"], abs=1e-6)  # A prints its own AP
+
+
+# ------------------------------------------------------------------ bindings --
+def test_a_run_on_another_pair_file_into_a_folder_holding_other_methods_is_refused(
+    tmp_path, root, capsys, notebooks_here
+):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    before = snapshot(tmp_path / "out")
+    flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, methods=["sift-opencv-nn"])
+    code, _, err = run_cli(capsys, "run", str(flipped))
+    assert code == 2 and "holds results of orb-nn computed on other pairs, labels or images" in one_sentence(err)
+    assert "--methods sift-opencv-nn,orb-nn" in err
+    assert snapshot(tmp_path / "out") == before
+    # Rerunning every method of the folder on the new file replaces them all.
+    assert run_cli(capsys, "run", str(flipped), "--methods", "sift-opencv-nn,orb-nn")[0] == 0
+    results = pd.read_csv(tmp_path / "out" / "results.csv")
+    assert sorted(results["method"]) == ["orb-nn", "sift-opencv-nn"] and results["pairs_digest"].nunique() == 1
+
+
+def test_results_refuses_a_folder_whose_methods_scored_different_labels_naming_them(tmp_path, root, capsys):
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):  # the library writes in place
+        pipeline.run_method(
+            Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
+        )
+    code, out_text, err = run_cli(capsys, "results", str(out))
+    assert code == 2 and out_text == ""
+    assert "scored on different pairs or labels (orb-nn: pairs" in one_sentence(err) and "sift-opencv-nn: pairs" in err
+
+
+def test_the_report_never_scores_one_method_against_another_methods_labels(tmp_path, root):
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    tables = {}
+    for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):
+        tables[method] = pipeline.run_method(
+            Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
+        )
+    with pytest.raises(ValueError, match="scored the same pairs under different labels"):
+        analysis.align_tables(tables)
+
+
+def test_a_label_edited_after_the_run_makes_results_refuse_naming_the_file(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    pairs_file = tmp_path / "params-pairs.txt"
+    write_pairs(pairs_file, [PAIRS[0], Pair(PAIRS[1].query, PAIRS[1].reference, 1), *PAIRS[2:]])
+    code, out, err = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 2 and out == ""
+    assert f"orb-nn: the pair file {pairs_file} changed" in one_sentence(err)
+
+
+def test_an_image_replaced_after_the_run_makes_results_refuse(tmp_path, root, capsys, notebooks_here):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    (root / "query" / "a.png").write_bytes((root / "query" / "b.png").read_bytes())
+    code, _, err = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 2 and f"orb-nn: images under {root} changed" in one_sentence(err)
+
+
+# ------------------------------------------------------------ published whole --
+@pytest.mark.parametrize("failing", ["02_verify.ipynb", "03_evaluate.ipynb"])
+def test_a_failed_rerun_leaves_the_folder_as_the_last_good_run_published_it(
+    tmp_path, root, capsys, monkeypatch, failing
+):
+    monkeypatch.setattr(cli, "execute_notebook", in_process_notebooks)
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = {k: v for k, v in snapshot(tmp_path / "out").items() if "/matches-" not in k}
+
+    def fails_in(name, output_path, parameters):
+        if name == failing:
+            output_path.write_text("the executed notebook, with its traceback")
+            raise RuntimeError(f"{name} failed")
+        in_process_notebooks(name, output_path, parameters)
+
+    monkeypatch.setattr(cli, "execute_notebook", fails_in)
+    with pytest.raises(RuntimeError, match="failed"):
+        cli.main(["run", str(path)])
+    err = capsys.readouterr().err
+    after = snapshot(tmp_path / "out")
+    stage = next(p for p in (tmp_path / "out").iterdir() if p.name.startswith(record.STAGE_PREFIX))
+    assert f"this run's partial work and executed notebooks are in {stage}" in err
+    assert (stage / failing.replace(".ipynb", "_orb-nn.ipynb" if "02" in failing else ".ipynb")).is_file()
+    published = {k: v for k, v in after.items() if not k.startswith(record.STAGE_PREFIX) and "/matches-" not in k}
+    assert {k: v for k, v in published.items() if not k.startswith(".gvbench")} == {
+        k: v for k, v in before.items() if not k.startswith(".gvbench")
+    }
+    assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0
+    # The next good run clears the failed run's stage.
+    monkeypatch.setattr(cli, "execute_notebook", in_process_notebooks)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    assert not stage.exists()
+
+
+def test_a_run_refused_before_work_leaves_nothing_and_names_the_params_file_once(tmp_path, capsys, notebooks_here):
+    path = params_file(tmp_path, image_root=str(tmp_path / "no-such-images"))
+    code, _, err = run_cli(capsys, "run", str(path))
+    assert code == 2 and err.count(str(path)) == 1, err
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
+
+
+def test_a_mistyped_pair_file_keeps_the_finished_run(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = snapshot(tmp_path / "out")
+    typo = params_file(tmp_path, "typo.yaml")
+    raw = yaml.safe_load(typo.read_text())
+    typo.write_text(yaml.safe_dump({**raw, "pairs": str(tmp_path / "params-pairs.txtt")}))
+    code, _, err = run_cli(capsys, "run", str(typo))
+    assert code == 2 and "does not exist" in one_sentence(err)
+    assert snapshot(tmp_path / "out") == before
+    assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0
+
+
+def test_a_publication_killed_half_way_is_refused_then_finished_by_the_next_run(
+    tmp_path, root, capsys, monkeypatch, notebooks_here
+):
+    path = params_file(tmp_path)
+    moved: list[str] = []
+    real_replace = os.replace
+
+    def killed_after_two(source, target):
+        stage = str(tmp_path / "out" / record.STAGE_PREFIX)
+        if str(source).startswith(stage) and not str(target).startswith(stage):  # publishing, not staging
+            if len(moved) == 2:
+                raise KeyboardInterrupt  # as a kill between two moves would stop it
+            moved.append(str(target))
+        real_replace(source, target)
+
+    monkeypatch.setattr(record.os, "replace", killed_after_two)
+    with pytest.raises(KeyboardInterrupt):
+        cli.main(["run", str(path)])
+    monkeypatch.setattr(record.os, "replace", real_replace)
+    code, _, err = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 2 and "stopped while publishing" in one_sentence(err)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0
+
+
+# ---------------------------------------------------------------- the table --
+def test_the_folder_table_lists_every_method_run_one_at_a_time(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path), "--methods", "orb-nn")[0] == 0
+    code, out, _ = run_cli(capsys, "run", str(path), "--methods", "sift-opencv-nn")
+    assert code == 0
+    results = pd.read_csv(tmp_path / "out" / "results.csv")
+    assert sorted(results["method"]) == ["orb-nn", "sift-opencv-nn"]
+    assert "orb-nn" in out and "sift-opencv-nn" in out  # the table `run` prints is the folder's
+    kept = json.loads((tmp_path / "out" / "orb-nn" / "run.json").read_text())
+    assert kept["binding"]["pairs_digest"] == pipeline.pairs_digest((p.query, p.reference, p.label) for p in PAIRS)
+
+
+# ------------------------------------------------------------------- timers --
+def test_a_rerun_served_from_the_cache_says_its_timers_are_the_earlier_runs(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    code, out, _ = run_cli(capsys, "run", str(path))
+    assert code == 0 and pd.read_csv(tmp_path / "out" / "results.csv")["timers"].tolist() == ["this run"]
+    assert "came from the cache" not in out
+    # The same run again (as `make demo` after `make test`'s notebooks): every image and pair is cached.
+    code, out, _ = run_cli(capsys, "run", str(path))
+    assert code == 0 and pd.read_csv(tmp_path / "out" / "results.csv")["timers"].tolist() == ["cached"]
+    assert "orb-nn: images or pairs came from the cache, so their seconds are those of the runs" in out
+    # Another folder shares the feature cache only: its matching is its own.
+    other = params_file(tmp_path, "demo.yaml", output_dir=str(tmp_path / "demo"))
+    assert run_cli(capsys, "run", str(other))[0] == 0
+    assert pd.read_csv(tmp_path / "demo" / "results.csv")["timers"].tolist() == ["partly cached"]
+
+
+# -------------------------------------------------------------- interruption --
+@pytest.mark.slow
+def test_ctrl_c_during_a_run_keeps_the_published_results(tmp_path, root):
+    path = params_file(tmp_path)
+    env = {**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)}
+    subprocess.run([sys.executable, "-m", "gvbench_nb", "run", str(path)], check=True, env=env, capture_output=True)
+    before = {k: v for k, v in snapshot(tmp_path / "out").items() if "/matches-" not in k}
+    second = subprocess.Popen(
+        [sys.executable, "-m", "gvbench_nb", "run", str(path), "--methods", "orb-nn,sift-opencv-nn"],
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+    )
+    deadline = time.monotonic() + 120
+    while (
+        not list((tmp_path / "out").glob(f"{record.STAGE_PREFIX}*/01_sequence.ipynb")) and time.monotonic() < deadline
+    ):
+        time.sleep(0.05)
+    second.send_signal(signal.SIGINT)
+    second.communicate(timeout=120)
+    assert second.returncode != 0
+    after = {
+        k: v
+        for k, v in snapshot(tmp_path / "out").items()
+        if not k.startswith((record.STAGE_PREFIX, ".gvbench")) and "/matches-" not in k
+    }
+    assert after == {k: v for k, v in before.items() if not k.startswith(".gvbench")}

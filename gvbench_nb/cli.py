@@ -287,19 +287,10 @@ def command_results(args: argparse.Namespace) -> int:
         record.check_published(folder)
         unfinished = pipeline.unfinished_methods(folder)
         finished_methods = [m for m in pipeline.methods_with_results(folder) if m not in unfinished]
-        edited = record.changed_files(
-            folder, [f"{m}/{name}" for m in finished_methods for name in ("pairs.csv", "run.json")]
-        )
-        if edited:
-            raise record.RecordError(
-                f"{folder}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a run's; "
-                "run those methods again (python -m gvbench_nb run PARAMS --output-dir "
-                f"{folder}) after moving the edited files away"
-            )
         if not finished_methods:
             pipeline.check_results_finished(folder)  # names the unfinished methods, if any
+        pipeline.check_results_current(folder, finished_methods)
         results = pipeline.evaluate(folder, finished_methods, write=False)
-        pipeline.check_inputs_unchanged(folder, results["method"])
         runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
         environment = runs[0]["environment"]
         finished = max(run["finished_at"] for run in runs)

@@ -1290,6 +1290,24 @@ def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
     return changed
 
 
+def check_results_current(output_dir: Path, methods: Iterable[str], tables: Iterable[str] = ()) -> None:
+    """Raise unless ``methods``' results in ``output_dir`` are what a finished run published
+    (the folder's record), unedited (their files' SHA-256 are the record's; ``tables``: more such
+    files, e.g. ``results.csv``), from a pair file and images unchanged since."""
+    output_dir = Path(output_dir)
+    methods = list(methods)
+    record.check_published(output_dir)
+    names = [f"{m}/{name}" for m in methods for name in FINISHED_OUTPUTS] + list(tables)
+    edited = record.changed_files(output_dir, names)
+    if edited:
+        raise record.RecordError(
+            f"{output_dir}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a "
+            f"run's; run those methods again (python -m gvbench_nb run PARAMS --output-dir {output_dir}) after "
+            "moving the edited files away"
+        )
+    check_inputs_unchanged(output_dir, methods)
+
+
 def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
     """``ResultsError`` naming the methods whose pair file or images changed since they ran."""
     changed = changed_inputs(output_dir, methods)

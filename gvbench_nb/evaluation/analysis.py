@@ -96,7 +96,12 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
                 f"{path} is missing: evaluate that output folder first "
                 "(python -m gvbench_nb run PARAMS, or analysis.ensure_results)"
             )
-        frames.append(pd.read_csv(path).assign(output_dir=str(Path(folder))))
+        frame = pd.read_csv(path)
+        # Read only what a run published, unedited, from inputs unchanged since, on one set of pairs.
+        pipeline.check_results_current(Path(folder), frame["method"], tables=["results.csv"])
+        if "pairs_digest" in frame and frame["pairs_digest"].nunique() > 1:
+            pipeline.check_one_binding(Path(folder), frame)
+        frames.append(frame.assign(output_dir=str(Path(folder))))
     if not frames:
         raise ValueError("no output folders given: pass at least one folder holding results.csv")
     results = pd.concat(frames, ignore_index=True)

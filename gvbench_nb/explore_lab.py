@@ -131,7 +131,9 @@ def lab_command(copy: Path, port: int, token: str, open_browser: bool) -> list[s
         # The server would otherwise ask the network for news and updates.
         "--LabApp.news_url=",
         "--LabApp.check_for_updates_class=jupyterlab.NeverCheckForUpdate",
-        copy.name,
+        # JupyterLab refuses root unless told; containers and CI often run as root.
+        *(["--ServerApp.allow_root=True"] if hasattr(os, "geteuid") and os.geteuid() == 0 else []),
+        str(copy),
     ]
 
 

@@ -207,7 +207,7 @@ def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run)
     assert explore_lab.prepare_copy(out) == (copy, False) and copy.read_bytes() == edited
     assert source.read_bytes() == before
     command = explore_lab.lab_command(copy, 9999, "t", open_browser=False)
-    assert f"--ServerApp.root_dir={copy.parent}" in command and command[-1] == copy.name
+    assert f"--ServerApp.root_dir={copy.parent}" in command and command[-1] == str(copy)
 
 
 def test_explore_command_opens_lab_on_the_copy(tiny_run, monkeypatch, capsys):

@@ -247,6 +247,17 @@ class ExploreControls:
         )
         self.status = widgets.HTML()
         self.areas = {name: widgets.Output() for name in VIEWS}
+        # CSS classes name each control and view on the page (what a browser test finds them by).
+        for name, box in (
+            ("pick", self.pick),
+            ("pair-index", self.pair_index),
+            ("pick-rank", self.pick_rank),
+            ("pick-method", self.pick_method),
+            ("methods", self.methods),
+            ("status", self.status),
+            *((f"view-{name}", area) for name, area in self.areas.items()),
+        ):
+            box.add_class(f"gvbench-{name}")
         self.drawn: dict[str, Any] = {}  # the views last drawn, by name
         self._following = False  # set while the pair_index box follows a pick, so it draws once
         for box in (self.pick, self.pick_rank, self.pick_method, self.methods):
@@ -296,7 +307,6 @@ class ExploreControls:
             finally:
                 self._following = False
         self.drawn = self.draw(index, list(shown))
-        self.status.value = html.escape(f"pair {index} ({self.pick.value}), methods {', '.join(shown)}")
         from IPython.display import display
 
         for name in VIEWS:
@@ -304,3 +314,8 @@ class ExploreControls:
             area.clear_output(wait=True)
             with area:
                 display(self.drawn[name])
+        # Last, naming every control: once it reads so, every view shows that choice.
+        self.status.value = html.escape(
+            f"pair {index}: pick {self.pick.value}, pick_method {ranked_by}, pick_rank {self.pick_rank.value}; "
+            f"methods {', '.join(shown)}"
+        )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -28,6 +29,34 @@ def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:
         curve = pr_curve(labels, scores, where=method)
         max_recall = max_recall_at_full_precision(labels, scores, where=method)
         (line,) = axis.plot(curve["recall"], curve["precision"], label=f"{method} (MR {max_recall:.1%})")
+        axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
+    axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
+    axis.grid(alpha=0.3)
+    axis.legend(loc="lower left", fontsize=8)
+    return figure
+
+
+PROFILE_LINE_STYLES = {"repository": "-", "paper": "--"}  # a profile's curves share a line style
+
+
+def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str = "") -> plt.Figure:
+    """PR curve per (method, profile) of one sequence, MR marked: a method keeps its colour
+    across profiles and a profile its line style; each label names both."""
+    figure, axis = plt.subplots(figsize=(7, 5.5))
+    colours: dict[str, Any] = {}
+    for (method, profile), table in tables.items():
+        labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
+        where = f"{method} ({profile} profile)"
+        curve = pr_curve(labels, scores, where=where)
+        max_recall = max_recall_at_full_precision(labels, scores, where=where)
+        (line,) = axis.plot(
+            curve["recall"],
+            curve["precision"],
+            color=colours.get(method),
+            linestyle=PROFILE_LINE_STYLES.get(profile, ":"),
+            label=f"{where}: MR {max_recall:.1%}",
+        )
+        colours.setdefault(method, line.get_color())
         axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
     axis.grid(alpha=0.3)

@@ -140,10 +140,16 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         parts.append(f"<h3>Max recall across sequences</h3><img src='{_relative(radar, report_dir)}'>")
     curves = pr_curve_figures(report_dir, output_dirs)
     if curves:
+        from gvbench_nb.reporting import plots
+
+        styles = {"-": "solid", "--": "dashed", ":": "dotted"}
+        profiles = ", ".join(
+            f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines the {p} profile"
+            for p in dict.fromkeys(results["profile"])
+        )
         parts.append(
-            "<h2>Precision-recall curves per sequence</h2><p>Every method the runs hold; a method keeps its "
-            "colour, solid lines are the repository profile, dashed the paper profile; the dot is the "
-            "max recall at 100% precision.</p>"
+            "<h2>Precision-recall curves per sequence</h2><p>Every method the runs hold, each in its own colour; "
+            f"{profiles}; the dot is the max recall at 100% precision.</p>"
         )
         parts.extend(f"<img src='{_relative(path, report_dir)}'>" for path in curves.values())
     parts.append("<h2>Notebooks</h2><ul>")

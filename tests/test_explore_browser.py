@@ -107,6 +107,14 @@ def sources_status() -> str:
     ).stdout
 
 
+def sources_bytes() -> dict[str, bytes]:
+    """The tracked explore notebook and its twin, byte for byte (a checkout with edits of its
+    own still shows whether this test wrote them)."""
+    return {
+        name: (PROJECT_ROOT / "notebooks" / name).read_bytes() for name in ("explore_pairs.ipynb", "explore_pairs.py")
+    }
+
+
 def expected_status(index: int, pick: str, method: str) -> str:
     return f"pair {index}: pick {pick}, pick_method {method}, pick_rank 1; methods {', '.join(METHODS)}"
 
@@ -133,7 +141,7 @@ def test_explore_in_jupyterlab_redraws_every_view_and_leaves_the_sources_clean(
     import pandas as pd
 
     path, sync_playwright = chromium
-    before = sources_status()
+    before, before_bytes = sources_status(), sources_bytes()
     tables = {m: pd.read_csv(run_folder / m / "pairs.csv") for m in METHODS}
     with sync_playwright() as driver:
         browser = driver.chromium.launch(executable_path=path, headless=True)
@@ -171,4 +179,5 @@ def test_explore_in_jupyterlab_redraws_every_view_and_leaves_the_sources_clean(
             browser.close()
     # Saving wrote the outputs into the working copy, and nothing into the tracked notebooks.
     assert "image/png" in (run_folder / "explore" / "explore_pairs.ipynb").read_text()
-    assert sources_status() == before, sources_status()
+    assert sources_status() == before, sources_status()  # empty on a clean checkout
+    assert sources_bytes() == before_bytes

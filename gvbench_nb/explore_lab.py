@@ -103,16 +103,32 @@ def prepare_copy(output_dir: Path, source: Path = SOURCE_NOTEBOOK) -> tuple[Path
     return copy, True
 
 
+def port_is_free(port: int) -> bool:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        try:
+            probe.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
 def free_port(start: int = DEFAULT_PORT, tries: int = 50) -> int:
     """The first port from ``start`` that nothing listens on at localhost."""
     for port in range(start, start + tries):
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
-            try:
-                probe.bind(("127.0.0.1", port))
-            except OSError:
-                continue
+        if port_is_free(port):
             return port
-    raise OSError(f"no free port in {start}-{start + tries - 1}; pass --port with a free one")
+    raise pipeline.ResultsError(f"no free port in {start}-{start + tries - 1}; pass --port with a free one")
+
+
+def port_number(text: str) -> int:
+    """``--port``: a TCP port, 1 to 65535."""
+    try:
+        port = int(text)
+    except ValueError:
+        port = 0
+    if not 1 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a port; give a number from 1 to 65535")
+    return port
 
 
 def lab_command(copy: Path, port: int, token: str, open_browser: bool) -> list[str]:
@@ -144,7 +160,10 @@ def lab_url(copy: Path, port: int, token: str) -> str:
 def command_explore(args: argparse.Namespace) -> int:
     output_dir = Path(args.output_dir).resolve()
     methods = check_run_folder(output_dir)
-    port = args.port if args.port else free_port()
+    if args.port and not port_is_free(args.port):
+        print(f"error: port {args.port} is in use on 127.0.0.1; give another --port or leave it out", file=sys.stderr)
+        return 2
+    port = args.port or free_port()
     copy, written = prepare_copy(output_dir)
     token = secrets.token_hex(16)
     state = (
@@ -175,6 +194,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         metavar="OUTPUT_DIR",
         help="a finished run's output folder (default: outputs/sample, which make demo writes)",
     )
-    parser.add_argument("--port", type=int, help=f"JupyterLab's port (default: the first free from {DEFAULT_PORT})")
+    parser.add_argument(
+        "--port", type=port_number, help=f"JupyterLab's port (default: the first free from {DEFAULT_PORT})"
+    )
     parser.add_argument("--no-browser", action="store_true", help="do not open a browser; open the printed URL")
     parser.set_defaults(handler=command_explore)

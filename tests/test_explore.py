@@ -194,6 +194,7 @@ def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run)
     out = tiny_run.parent / "out"
     source = NOTEBOOKS / "explore_pairs.ipynb"
     before = source.read_bytes()
+    (out / "explore" / "explore_pairs.ipynb").unlink(missing_ok=True)  # another test's copy
     copy, written = explore_lab.prepare_copy(out)
     assert written and copy == out / "explore" / "explore_pairs.ipynb"
     notebook = json.loads(copy.read_text())
@@ -241,3 +242,19 @@ def test_the_recorded_cache_is_found_without_cache_dir(tmp_path):
     (out / "params.resolved.yaml").write_text(f"sequence: seq\ncache_dir: {tmp_path / 'elsewhere'}\n")
     assert analysis.resolve_cache_dir(out) == tmp_path / "elsewhere"
     assert analysis.resolve_cache_dir(out, tmp_path / "given") == tmp_path / "given"
+
+
+def test_explore_refuses_a_busy_port_before_writing_anything(tiny_run, capsys):
+    import socket
+
+    out = tiny_run.parent / "out"
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        copy = out / "explore" / "explore_pairs.ipynb"
+        copy.unlink(missing_ok=True)
+        assert cli.main(["explore", str(out), "--port", str(port)]) == 2
+    error = capsys.readouterr().err
+    assert error == f"error: port {port} is in use on 127.0.0.1; give another --port or leave it out\n"
+    assert not copy.exists()

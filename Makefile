@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
 DATA_MIRROR := ../shared/data
 
-.PHONY: setup demo test test-fast lint notebooks clean setup-imm
+.PHONY: setup demo test test-fast lint notebooks clean setup-imm lab
 
 setup: $(STAMP)
 
@@ -43,6 +43,12 @@ $(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
 
 demo: setup
 	$(PY) -m gvbench_nb run params/sample.yaml
+
+# JupyterLab on a working copy of the explore notebook, pointed at a run's folder
+# (`make lab RUN=outputs/gardens_point`; default outputs/sample, which `make demo` writes).
+RUN ?= outputs/sample
+lab: setup
+	$(PY) -m gvbench_nb explore $(RUN)
 
 test: setup
 	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi

@@ -604,6 +604,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_command(commands)
     add_build_command(commands)
     report.add_command(commands)
+    __import__("gvbench_nb.explore_lab", fromlist=["add_command"]).add_command(commands)
     bench.add_command(commands)
     return parser
 

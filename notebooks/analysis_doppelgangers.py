@@ -44,7 +44,7 @@ profile = None  # profile of that run when params_file must make it; None: the p
 # True: run `method` with params_file when its pairs.csv is missing; False: an error
 # naming the command that makes it
 compute_missing = False
-cache_dir = None  # feature cache of the run; None: <results_dir>/../cache
+cache_dir = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
 output_dir = "../outputs/sample/verifiers"  # verifiers.csv, weights, figures
 # Place-disjoint split (frame ranges with a gap); tolerance = the largest frame offset
 # of a true pair.

@@ -43,7 +43,7 @@ k = 3  # pairs drawn a method and kind
 near_low = 3  # false positives this many frames from the query or more ...
 near_high = 5  # ... up to this many are 'just outside' the ground-truth threshold
 near_top_k = 20  # how many top false positives are checked for near misses
-cache_dir = None  # feature cache; None: <output_dir>/../cache
+cache_dir = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
 
 # %%
 output_dirs, results, figures = notebook.load_results(

@@ -36,7 +36,7 @@ ensure_methods = ["sift-nn"]
 # the command that makes them
 compute_missing = False
 output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
-cache_dir = None  # feature cache (for image sizes); None: <output_dir>/../cache
+cache_dir = None  # feature cache (for image sizes); None: the one the run recorded (params.resolved.yaml)
 
 # %%
 output_dirs, results, figures = notebook.load_results(

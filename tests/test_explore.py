@@ -1,16 +1,19 @@
-"""notebooks/explore_pairs: the pair it shows, each method's score and rank, from cached results only."""
+"""notebooks/explore_pairs and ``explore``: the pair it shows, each method's score and rank, from
+cached results only; its controls redraw every view; the command opens a working copy."""
 
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import numpy as np
 import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import config, pipeline
-from gvbench_nb.evaluation import explore
+from gvbench_nb import cli, config, explore_lab, pipeline
+from gvbench_nb.evaluation import analysis, explore
+from gvbench_nb.reporting import plots
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 METHODS = ["sift-nn", "orb-nn"]
@@ -51,6 +54,7 @@ def tiny_run(tmp_path_factory) -> Path:
             progress=False,
             threads=1,
         )
+    config.write_resolved_params(loaded, loaded["output_dir"])  # the record `run` writes
     return path
 
 
@@ -118,3 +122,139 @@ def test_explore_notebook_shows_the_scores_and_ranks_of_pairs_csv(tiny_run, tmp_
     # Under papermill the controls cell draws no widgets and says so.
     last = json.loads(executed.read_text())["cells"][-1]
     assert "controls: none" in "".join("".join(o.get("text", "")) for o in last["outputs"])
+
+
+def test_matches_canvas_has_a_white_gap_between_the_two_images():
+    image0 = np.zeros((4, 5, 3), np.uint8)
+    image1 = np.full((6, 3, 3), 7, np.uint8)
+    canvas, offset = plots.match_canvas(image0, image1, gap=2)
+    assert canvas.shape == (6, 5 + 2 + 3, 3) and offset == 7
+    assert (canvas[:, 5:7] == 255).all()  # the gap
+    assert (canvas[:4, :5] == 0).all() and (canvas[:, 7:] == 7).all()
+
+
+def test_score_histograms_of_four_methods_share_one_legend_in_a_grid():
+    rng = np.random.default_rng(0)
+    tables = {f"m{i}": pd.DataFrame({"label": [1, 0] * 20, "score": rng.integers(0, 50, 40)}) for i in range(4)}
+    view = pd.DataFrame(
+        [{"method": m, "score": t["score"].iloc[0], "rank": 1, "n_pairs": 40} for m, t in tables.items()]
+    )
+    figure = plots.score_histograms(tables, view)
+    visible = [axis for axis in figure.axes if axis.get_visible()]
+    assert len(visible) == 4
+    assert {round(axis.get_position().x0, 2) for axis in visible} == {
+        round(visible[0].get_position().x0, 2),
+        round(visible[1].get_position().x0, 2),
+    }  # two columns
+    assert all(axis.get_legend() is None for axis in visible) and len(figure.legends) == 1
+    assert [t.get_text() for t in figure.legends[0].get_texts()] == ["true pairs", "false pairs", "this pair"]
+
+
+def test_explore_defaults_to_every_method_the_run_holds(tiny_run):
+    assert explore.default_methods(tiny_run) == METHODS
+
+
+@pytest.mark.parametrize("pick", explore.PICKS)
+def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run, tmp_path, pick):
+    pytest.importorskip("ipywidgets")
+    out = tiny_run.parent / "out"
+    tables = explore.load_tables(out)
+    drawn: list[tuple[int, list[str]]] = []
+
+    def draw(index, shown):
+        drawn.append((index, shown))
+        return explore.pair_views(out, {m: tables[m] for m in shown}, index, tmp_path)
+
+    controls = explore.ExploreControls(tables, draw, pick="index", pair_index=3)
+    controls.redraw()
+    for method in METHODS:
+        controls.pick_method.value = method
+        controls.pick.value = pick  # no change when it is already 'index': set the index instead
+        if pick == "index":
+            controls.pair_index.value = 5
+        expected = explore.choose_pair(tables, pick, 5, method, 1)
+        assert drawn[-1] == (expected, METHODS)
+        assert controls.pair_index.value == expected
+        assert set(controls.drawn) == set(explore.VIEWS)
+        assert list(controls.drawn["table"]["pair_index"]) == [expected] * len(METHODS)
+        for name in ("matches", "scores"):
+            assert controls.drawn[name].data[:8] == b"\x89PNG\r\n\x1a\n"
+        controls.pick.value = "index"
+    # Fewer methods shown: every view redrawn for those only.
+    controls.methods.value = ("orb-nn",)
+    assert drawn[-1][1] == ["orb-nn"] and list(controls.drawn["table"]["method"]) == ["orb-nn"]
+    # Typing an index while a pick is chosen switches the pick to 'index'.
+    controls.pick.value = "false_negative"
+    controls.pick_method.value = "orb-nn"
+    controls.pair_index.value = 2
+    assert controls.pick.value == "index" and drawn[-1][0] == 2
+
+
+def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run):
+    out = tiny_run.parent / "out"
+    source = NOTEBOOKS / "explore_pairs.ipynb"
+    before = source.read_bytes()
+    (out / "explore" / "explore_pairs.ipynb").unlink(missing_ok=True)  # another test's copy
+    copy, written = explore_lab.prepare_copy(out)
+    assert written and copy == out / "explore" / "explore_pairs.ipynb"
+    notebook = json.loads(copy.read_text())
+    parameters = next(c for c in notebook["cells"] if "parameters" in c["metadata"].get("tags", []))
+    namespace: dict = {}
+    exec("".join(parameters["source"]), namespace)
+    assert namespace["params_file"] == str(out / "params.resolved.yaml") and namespace["output_dir"] == str(out)
+    assert namespace["methods"] is None and "jupytext" not in notebook["metadata"]
+    copy.write_text(copy.read_text().replace("Explore one pair", "My notes"))
+    edited = copy.read_bytes()
+    assert explore_lab.prepare_copy(out) == (copy, False) and copy.read_bytes() == edited
+    assert source.read_bytes() == before
+    command = explore_lab.lab_command(copy, 9999, "t", open_browser=False)
+    assert f"--ServerApp.root_dir={copy.parent}" in command and command[-1] == str(copy)
+
+
+def test_explore_command_opens_lab_on_the_copy(tiny_run, monkeypatch, capsys):
+    out = tiny_run.parent / "out"
+    started = []
+    monkeypatch.setattr(explore_lab.os, "execv", lambda path, argv: started.append(argv))
+    assert cli.main(["explore", str(out), "--no-browser", "--port", "9876"]) == 0
+    printed = capsys.readouterr().out
+    assert str(out / "explore" / "explore_pairs.ipynb") in printed
+    assert "http://127.0.0.1:9876/lab/tree/explore_pairs.ipynb?token=" in printed
+    assert "--ServerApp.open_browser=False" in started[0] and "--ServerApp.port=9876" in started[0]
+
+
+@pytest.mark.parametrize("folder", ["missing", "no_record", "no_results"])
+def test_explore_refuses_a_folder_that_is_no_finished_run_in_one_sentence(tmp_path, capsys, folder):
+    target = tmp_path / "out"
+    if folder != "missing":
+        target.mkdir()
+    if folder == "no_results":
+        (target / "params.resolved.yaml").write_text("sequence: x\n")
+    assert cli.main(["explore", str(target)]) == 2
+    error = capsys.readouterr().err
+    assert error.startswith("error: ") and error.count("\n") == 1 and "Traceback" not in error
+    assert not (target / "explore").exists()
+
+
+def test_the_recorded_cache_is_found_without_cache_dir(tmp_path):
+    out = tmp_path / "outputs" / "seq"
+    out.mkdir(parents=True)
+    assert analysis.resolve_cache_dir(out) == tmp_path / "outputs" / "cache"  # no record: the default
+    (out / "params.resolved.yaml").write_text(f"sequence: seq\ncache_dir: {tmp_path / 'elsewhere'}\n")
+    assert analysis.resolve_cache_dir(out) == tmp_path / "elsewhere"
+    assert analysis.resolve_cache_dir(out, tmp_path / "given") == tmp_path / "given"
+
+
+def test_explore_refuses_a_busy_port_before_writing_anything(tiny_run, capsys):
+    import socket
+
+    out = tiny_run.parent / "out"
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        copy = out / "explore" / "explore_pairs.ipynb"
+        copy.unlink(missing_ok=True)
+        assert cli.main(["explore", str(out), "--port", str(port)]) == 2
+    error = capsys.readouterr().err
+    assert error == f"error: port {port} is in use on 127.0.0.1; give another --port or leave it out\n"
+    assert not copy.exists()

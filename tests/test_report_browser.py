@@ -1,5 +1,6 @@
-"""The HTML report as a page in a real browser: every image loads, every link resolves,
-the tables name their runs' profiles, and no page logs an error.
+"""The HTML report as a page in a real browser: every image loads (the PR curves among them),
+every link resolves, the tables name their runs' profiles, the notebook pages show no code, and
+no page logs an error.
 
 A small report is built from the embedded ``sample`` route (two cheap methods, the first
 pairs only), then headless Chromium (the system's, driven by playwright) opens
@@ -113,7 +114,7 @@ def test_report_page_loads_its_images_and_links_and_names_profiles(chromium, rep
 def check_report(browser, index: Path) -> None:
     page, linked = check_page(browser, index.as_uri())
     sources = page.evaluate("[...document.images].map(i => i.getAttribute('src'))")
-    assert "max_recall_radar.png" in sources
+    assert "max_recall_radar.png" in sources and "pr_curves_sample.png" in sources
     assert {f"sample/{name.format(sequence='sample')}" for name in report.KEY_FIGURES} <= set(sources)
     assert page.locator(".error").count() == 0, "a notebook failed: " + page.locator(".error").first.inner_text()
     # Every table has a 'profile' header and names the run's profile on each of its data rows.
@@ -129,4 +130,7 @@ def check_report(browser, index: Path) -> None:
     assert len(linked) == 1 + len(report.PER_SEQUENCE_NOTEBOOKS)
     for target in linked:
         notebook_page, _ = check_page(browser, target.as_uri())
+        # Outputs only: no code cell's source is on the page.
+        assert notebook_page.locator(".jp-InputArea-editor").count() == 0, target
+        assert notebook_page.locator(".jp-OutputArea").count() > 0, target
         notebook_page.close()

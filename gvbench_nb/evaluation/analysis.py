@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import pandas as pd
+import yaml
 
 from gvbench_nb import config, pipeline, reference_values
 from gvbench_nb import methods as method_registry
@@ -299,9 +300,17 @@ def runtime_table(results: pd.DataFrame) -> pd.DataFrame:
 
 
 def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """The feature cache of an output folder: ``cache_dir`` when given, else the params'
-    default ``<output_dir>/../cache`` (run.json does not record it)."""
-    return Path(cache_dir) if cache_dir else Path(output_dir).parent / "cache"
+    """The feature cache of an output folder: ``cache_dir`` when given, else the one its run
+    recorded (``cache_dir`` in ``<output_dir>/params.resolved.yaml``), else the params'
+    default ``<output_dir>/../cache`` (a folder written without ``run``)."""
+    if cache_dir:
+        return Path(cache_dir)
+    recorded = Path(output_dir) / config.RESOLVED_PARAMS_NAME
+    if recorded.is_file():
+        params = yaml.safe_load(recorded.read_text(encoding="utf-8")) or {}
+        if isinstance(params, dict) and params.get("cache_dir"):
+            return Path(params["cache_dir"])
+    return Path(output_dir).parent / "cache"
 
 
 def image_size_of_run(
@@ -532,7 +541,10 @@ def match_lines(
         points0 = features.read(pipeline.image_key(image_root, query))["keypoints"]
         points1 = features.read(pipeline.image_key(image_root, reference))["keypoints"]
     except KeyError as error:
-        raise KeyError(f"{error}; pass cache_dir= the run's cache folder (its params' cache_dir)") from None
+        raise KeyError(
+            f"{error}; the run's cache {features.folder.parent.parent} does not hold that pair's features: "
+            "rerun its method (python -m gvbench_nb run PARAMS --methods NAME) to fill it"
+        ) from None
     finally:
         features.close()
     pair_matches = entry["matches"].astype(int).reshape(-1, 2)

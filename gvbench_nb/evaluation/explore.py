@@ -8,8 +8,10 @@ from __future__ import annotations
 import importlib.util
 import os
 import sys
+from collections.abc import Callable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
+from typing import Any
 
 import pandas as pd
 
@@ -151,3 +153,169 @@ def use_widgets(controls: str = "auto") -> bool:
     if controls == "widgets" and not available:
         raise ValueError("controls='widgets' needs ipywidgets (pip install ipywidgets); or set controls='auto'")
     return available and (controls == "widgets" or not batch_execution())
+
+
+def default_methods(params_file: str | os.PathLike[str], output_dir: str | os.PathLike[str] | None = None) -> list[str]:
+    """Every method with results in the params' output folder (``output_dir`` when given),
+    in registry order; ``['sift-nn']`` when it holds none, so the error names a command to make it."""
+    from gvbench_nb import config
+
+    folder = Path(output_dir) if output_dir else Path(config.load_params(params_file)["output_dir"])
+    return pipeline.methods_with_results(folder) or ["sift-nn"]
+
+
+VIEWS = ("table", "matches", "scores")  # what the notebook shows of one pair, top to bottom
+
+
+def figure_image(figure: Any, path: Path) -> Any:
+    """A figure saved as PNG at ``path`` and closed, returned as an IPython image: displaying
+    the image, not the figure, shows every view in a widget's output area as well as in a batch run."""
+    import matplotlib.pyplot as plt
+    from IPython.display import Image
+
+    from gvbench_nb.reporting import plots
+
+    plots.save(figure, path)
+    plt.close(figure)
+    return Image(data=path.read_bytes(), format="png")
+
+
+def pair_views(
+    output_dir: str | os.PathLike[str],
+    tables: dict[str, pd.DataFrame],
+    pair_index: int,
+    figures_dir: str | os.PathLike[str],
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, Any]:
+    """Every view of one pair (``VIEWS``): the table across methods, the matches figure and the
+    score histograms; each is also written to ``figures_dir`` (CSV, PNG)."""
+    from gvbench_nb.data.images import read_image
+    from gvbench_nb.reporting import plots
+
+    figures = Path(figures_dir)
+    figures.mkdir(parents=True, exist_ok=True)
+    view = pair_across_methods(tables, pair_index)
+    view.to_csv(figures / "explore_pair.csv", index=False)
+    run = analysis.load_run(output_dir, str(view["method"].iloc[0]))
+    first = view.iloc[0]
+    image_root = Path(run["image_root"])
+    images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
+    lines = {
+        method: analysis.match_lines(output_dir, method, first["query"], first["reference"], cache_dir)
+        for method in view["method"]
+    }
+    kind = "true" if first["label"] == 1 else "false"
+    title = f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}"
+    matches = plots.pair_matches(images, view, lines, title)
+    scores = plots.score_histograms(tables, view)
+    return {
+        "table": view,
+        "matches": figure_image(matches, figures / f"explore_pair_{first['pair_index']}.png"),
+        "scores": figure_image(scores, figures / f"explore_scores_{first['pair_index']}.png"),
+    }
+
+
+class ExploreControls:
+    """The notebook's controls: ``pick``, ``pair_index``, ``pick_rank``, ``pick_method`` and the
+    methods shown. Any change chooses the pair again and redraws every view (``draw(index,
+    methods)`` returns them, ``VIEWS``) into its own output area; the ``pair_index`` box follows
+    the pair a pick chose, and typing an index switches ``pick`` to 'index'."""
+
+    def __init__(
+        self,
+        tables: dict[str, pd.DataFrame],
+        draw: Callable[[int, list[str]], dict[str, Any]],
+        pick: str = "false_positive",
+        pair_index: int = 0,
+        pick_method: str | None = None,
+        pick_rank: int = 1,
+        methods: SequenceType[str] | None = None,
+    ) -> None:
+        import ipywidgets as widgets
+
+        self.tables = tables
+        self.draw = draw
+        names = list(tables)
+        self.pick = widgets.Dropdown(options=list(PICKS), value=pick, description="pick")
+        self.pair_index = widgets.BoundedIntText(
+            value=pair_index, min=0, max=len(next(iter(tables.values()))) - 1, description="pair_index"
+        )
+        self.pick_rank = widgets.BoundedIntText(value=pick_rank, min=1, max=100_000, description="pick_rank")
+        self.pick_method = widgets.Dropdown(options=names, value=pick_method or names[0], description="pick_method")
+        self.methods = widgets.SelectMultiple(
+            options=names, value=tuple(methods or names), rows=min(8, len(names)), description="methods"
+        )
+        self.status = widgets.HTML()
+        self.areas = {name: widgets.Output() for name in VIEWS}
+        # CSS classes name each control and view on the page (what a browser test finds them by).
+        for name, box in (
+            ("pick", self.pick),
+            ("pair-index", self.pair_index),
+            ("pick-rank", self.pick_rank),
+            ("pick-method", self.pick_method),
+            ("methods", self.methods),
+            ("status", self.status),
+            *((f"view-{name}", area) for name, area in self.areas.items()),
+        ):
+            box.add_class(f"gvbench-{name}")
+        self.drawn: dict[str, Any] = {}  # the views last drawn, by name
+        self._following = False  # set while the pair_index box follows a pick, so it draws once
+        for box in (self.pick, self.pick_rank, self.pick_method, self.methods):
+            box.observe(self.redraw, names="value")
+        self.pair_index.observe(self._index_typed, names="value")
+
+    def widget(self) -> Any:
+        import ipywidgets as widgets
+
+        return widgets.VBox(
+            [
+                widgets.HBox([self.pick, self.pair_index, self.pick_rank]),
+                widgets.HBox([self.pick_method, self.methods]),
+                self.status,
+                *(self.areas[name] for name in VIEWS),
+            ]
+        )
+
+    def shown_methods(self) -> list[str]:
+        return list(self.methods.value) or list(self.tables)
+
+    def _index_typed(self, _change: Any = None) -> None:
+        if self._following:
+            return
+        if self.pick.value != "index":
+            self.pick.value = "index"  # observed: that redraws
+        else:
+            self.redraw()
+
+    def redraw(self, _change: Any = None) -> None:
+        import html
+
+        shown = {method: self.tables[method] for method in self.shown_methods()}
+        ranked_by = self.pick_method.value
+        if self.pick.value != "index" and ranked_by not in shown:
+            self.status.value = html.escape(f"pick_method {ranked_by} is not among the methods shown: select it too")
+            return
+        try:
+            index = choose_pair(shown, self.pick.value, self.pair_index.value, ranked_by, self.pick_rank.value)
+        except ValueError as error:
+            self.status.value = html.escape(str(error))
+            return
+        if self.pair_index.value != index:
+            self._following = True
+            try:
+                self.pair_index.value = index
+            finally:
+                self._following = False
+        self.drawn = self.draw(index, list(shown))
+        from IPython.display import display
+
+        for name in VIEWS:
+            area = self.areas[name]
+            area.clear_output(wait=True)
+            with area:
+                display(self.drawn[name])
+        # Last, naming every control: once it reads so, every view shows that choice.
+        self.status.value = html.escape(
+            f"pair {index}: pick {self.pick.value}, pick_method {ranked_by}, pick_rank {self.pick_rank.value}; "
+            f"methods {', '.join(shown)}"
+        )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import matplotlib.pyplot as plt
 import numpy as np
@@ -29,6 +30,34 @@ def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:
         curve = pr_curve(labels, scores, where=method)
         max_recall = max_recall_at_full_precision(labels, scores, where=method)
         (line,) = axis.plot(curve["recall"], curve["precision"], label=f"{method} (MR {max_recall:.1%})")
+        axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
+    axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
+    axis.grid(alpha=0.3)
+    axis.legend(loc="lower left", fontsize=8)
+    return figure
+
+
+PROFILE_LINE_STYLES = {"repository": "-", "paper": "--"}  # a profile's curves share a line style
+
+
+def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str = "") -> plt.Figure:
+    """PR curve per (method, profile) of one sequence, MR marked: a method keeps its colour
+    across profiles and a profile its line style; each label names both."""
+    figure, axis = plt.subplots(figsize=(7, 5.5))
+    colours: dict[str, Any] = {}
+    for (method, profile), table in tables.items():
+        labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
+        where = f"{method} ({profile} profile)"
+        curve = pr_curve(labels, scores, where=where)
+        max_recall = max_recall_at_full_precision(labels, scores, where=where)
+        (line,) = axis.plot(
+            curve["recall"],
+            curve["precision"],
+            color=colours.get(method),
+            linestyle=PROFILE_LINE_STYLES.get(profile, ":"),
+            label=f"{where}: MR {max_recall:.1%}",
+        )
+        colours.setdefault(method, line.get_color())
         axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
     axis.grid(alpha=0.3)
@@ -93,6 +122,20 @@ def positives_per_query(pairs: pd.DataFrame, title: str = "") -> plt.Figure:
     return figure
 
 
+MATCH_GAP = 12  # white pixels between the two images of a pair, so their edges do not touch
+
+
+def match_canvas(image0: np.ndarray, image1: np.ndarray, gap: int = MATCH_GAP) -> tuple[np.ndarray, int]:
+    """The two images side by side on white, ``gap`` pixels apart; returns the canvas and
+    the x offset of the second image."""
+    height = max(image0.shape[0], image1.shape[0])
+    offset = image0.shape[1] + gap
+    canvas = np.full((height, offset + image1.shape[1], 3), 255, dtype=np.uint8)
+    canvas[: image0.shape[0], : image0.shape[1]] = image0 if image0.ndim == 3 else image0[..., None]
+    canvas[: image1.shape[0], offset:] = image1 if image1.ndim == 3 else image1[..., None]
+    return canvas, offset
+
+
 def draw_matches(
     image0: np.ndarray,
     image1: np.ndarray,
@@ -101,19 +144,17 @@ def draw_matches(
     inlier_mask: np.ndarray,
     axis: plt.Axes | None = None,
     max_lines: int = 300,
+    gap: int = MATCH_GAP,
 ) -> plt.Axes:
-    """Side by side with inlier matches green and outliers red."""
-    height = max(image0.shape[0], image1.shape[0])
-    canvas = np.zeros((height, image0.shape[1] + image1.shape[1], 3), dtype=np.uint8)
-    canvas[: image0.shape[0], : image0.shape[1]] = image0 if image0.ndim == 3 else image0[..., None]
-    canvas[: image1.shape[0], image0.shape[1] :] = image1 if image1.ndim == 3 else image1[..., None]
+    """Side by side, ``gap`` pixels apart, with inlier matches green and outliers red."""
+    canvas, offset = match_canvas(image0, image1, gap)
     axis = axis or plt.subplots(figsize=(10, 4))[1]
     axis.imshow(canvas)
     order = np.argsort(~inlier_mask)[:max_lines]
     for index in order:
         (x0, y0), (x1, y1) = points0[index], points1[index]
         axis.plot(
-            [x0, x1 + image0.shape[1]],
+            [x0, x1 + offset],
             [y0, y1],
             color="lime" if inlier_mask[index] else "red",
             linewidth=0.6,
@@ -121,3 +162,60 @@ def draw_matches(
         )
     axis.axis("off")
     return axis
+
+
+def pair_matches(
+    images: tuple[np.ndarray, np.ndarray],
+    view: pd.DataFrame,
+    lines: dict[str, dict[str, np.ndarray]],
+    title: str = "",
+) -> plt.Figure:
+    """One pair's matches and inliers, one row a method of ``view`` (explore's table), each
+    titled with its score and rank; ``lines``: each method's ``analysis.match_lines``."""
+    figure, axes = plt.subplots(len(view), 1, figsize=(10, 3.4 * len(view)), squeeze=False)
+    for axis, row in zip(axes[:, 0], view.itertuples()):
+        method = str(row.method)
+        drawn = lines[method]
+        draw_matches(*images, drawn["points0"], drawn["points1"], drawn["inlier_mask"], axis=axis)
+        axis.set_title(
+            f"{method}: score {row.score} ({row.num_inliers} inliers of {row.num_matches} matches), "
+            f"rank {row.rank} of {row.n_pairs}",
+            fontsize=9,
+        )
+    if title:
+        figure.suptitle(title)
+    figure.tight_layout()
+    return figure
+
+
+def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, columns: int = 2) -> plt.Figure:
+    """Each method's scores of true and false pairs with one pair's score marked (explore's
+    ``view``): a grid of at most ``columns`` panels a row and one legend for all, so four
+    methods stay as legible as one."""
+    count = len(view)
+    ncols = min(columns, count)
+    nrows = -(-count // ncols)
+    figure, axes = plt.subplots(nrows, ncols, figsize=(5 * ncols, 3 * nrows + 0.6), squeeze=False)
+    for axis, row in zip(axes.flat, view.itertuples()):
+        table = tables[str(row.method)]
+        bins = np.histogram_bin_edges(table["score"], bins=min(40, max(5, table["score"].nunique())))
+        for label, colour, name in ((1, "tab:green", "true pairs"), (0, "tab:red", "false pairs")):
+            axis.hist(
+                table.loc[table["label"] == label, "score"],
+                bins=bins.tolist(),
+                histtype="step",
+                color=colour,
+                label=name,
+            )
+        axis.axvline(float(row.score), color="black", linewidth=1.5, label="this pair")
+        axis.set(
+            xlabel="score (RANSAC inliers)",
+            ylabel="pairs",
+            title=f"{row.method}: this pair ranks {row.rank} of {row.n_pairs}",
+        )
+    for axis in axes.flat[count:]:
+        axis.set_visible(False)
+    handles, labels = axes.flat[0].get_legend_handles_labels()
+    figure.legend(handles, labels, loc="upper center", ncol=len(labels), frameon=False)
+    figure.tight_layout(rect=(0, 0, 1, 1 - 0.6 / (3 * nrows + 0.6)))
+    return figure

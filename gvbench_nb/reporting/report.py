@@ -23,6 +23,7 @@ from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.reporting.execute import execute_notebook
 
 if TYPE_CHECKING:
+    import pandas as pd
     from nbconvert import HTMLExporter
 
 # `analysis` (torch, OpenCV) is imported inside the functions: `--help` stays instant.
@@ -98,8 +99,13 @@ def _offline_exporter() -> HTMLExporter:
     import jinja2
     from nbconvert import HTMLExporter
 
+    # Code cells hidden: the pages show what the notebooks found (a failing cell's traceback stays).
     return HTMLExporter(
-        extra_loaders=[jinja2.DictLoader({"offline.html.j2": OFFLINE_TEMPLATE})], template_file="offline.html.j2"
+        extra_loaders=[jinja2.DictLoader({"offline.html.j2": OFFLINE_TEMPLATE})],
+        template_file="offline.html.j2",
+        exclude_input=True,
+        exclude_input_prompt=True,
+        exclude_output_prompt=True,
     )
 
 
@@ -116,14 +122,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
     repository = analysis.load_repository_table()
     wide = analysis.results_table(analysis.join_paper_table(results, paper, repository))
     table_html = analysis.style_results_table(wide).to_html()
-    paper_note = (
-        "One row a (method, profile). Columns labelled <b>paper</b> (grey italics) are the GV-Bench "
-        "paper's published values, beside our paper-profile runs; <b>GV-Bench repository</b> columns "
-        "are that repository's published values, beside our repository-profile runs; each where it "
-        "has that method and sequence."
-        if len(paper)
-        else "The paper's table was not found: showing ours only."
-    )
+    paper_note = table_note(wide, paper_found=len(paper) > 0)
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>gvbench-nb report</title>",
         "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
@@ -139,6 +138,20 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
     radar = report_dir / "max_recall_radar.png"
     if radar.is_file():
         parts.append(f"<h3>Max recall across sequences</h3><img src='{_relative(radar, report_dir)}'>")
+    curves = pr_curve_figures(report_dir, output_dirs)
+    if curves:
+        from gvbench_nb.reporting import plots
+
+        styles = {"-": "solid", "--": "dashed", ":": "dotted"}
+        profiles = ", ".join(
+            f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines the {p} profile"
+            for p in dict.fromkeys(results["profile"])
+        )
+        parts.append(
+            "<h2>Precision-recall curves per sequence</h2><p>Every method the runs hold, each in its own colour; "
+            f"{profiles}; the dot is the max recall at 100% precision.</p>"
+        )
+        parts.extend(f"<img src='{_relative(path, report_dir)}'>" for path in curves.values())
     parts.append("<h2>Notebooks</h2><ul>")
     for item in executed:
         label = f"{item.sequence or 'all sequences'}: {item.notebook.stem}"
@@ -163,6 +176,52 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         parts.extend(f"<img src='{_relative(f, report_dir)}'>" for f in shown)
     parts.append("</body></html>")
     return "\n".join(parts)
+
+
+def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
+    """The results table's header text: its rows, and only the kinds of columns it has."""
+    from gvbench_nb.evaluation import analysis
+
+    sources = set(wide.columns.get_level_values("source"))
+    notes = [f"One row a (method, profile); <b>{analysis.OURS_LABEL}</b> columns are our runs, in that profile."]
+    if analysis.PAPER_LABEL in sources:
+        notes.append(
+            f"Columns labelled <b>{analysis.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
+            "values, beside our paper-profile runs, where the paper has that method and sequence."
+        )
+    if analysis.REPOSITORY_LABEL in sources:
+        notes.append(
+            f"<b>{analysis.REPOSITORY_LABEL}</b> columns (grey italics) are that repository's published values, "
+            "beside our repository-profile runs, where it has that method and sequence."
+        )
+    if not paper_found:
+        notes.append("The paper's table was not found: no published values are shown.")
+    elif not sources & {analysis.PAPER_LABEL, analysis.REPOSITORY_LABEL}:
+        notes.append("No published values exist for these methods, sequences and profiles.")
+    return " ".join(notes)
+
+
+def pr_curve_figures(report_dir: Path, output_dirs: list[Path]) -> dict[str, Path]:
+    """``<report_dir>/pr_curves_<sequence>.png`` for each sequence: every (method, profile) of
+    the folders that ran it, from their ``pairs.csv``; the profile is the one results.csv names."""
+    import matplotlib.pyplot as plt
+    import pandas as pd
+
+    from gvbench_nb import pipeline
+    from gvbench_nb.reporting import plots
+
+    by_sequence: dict[str, dict[tuple[str, str], pd.DataFrame]] = {}
+    for folder in output_dirs:
+        results = pd.read_csv(folder / "results.csv")
+        for row in results.drop_duplicates("method").itertuples():
+            tables = by_sequence.setdefault(str(row.sequence), {})
+            tables[(str(row.method), str(row.profile))] = pipeline.load_pairs_table(folder, str(row.method))
+    written = {}
+    for sequence, tables in by_sequence.items():
+        figure = plots.pr_curves_by_profile(tables, title=f"{sequence}: precision-recall (dot: MR)")
+        written[sequence] = plots.save(figure, report_dir / f"pr_curves_{sequence}.png")
+        plt.close(figure)
+    return written
 
 
 def _intervals_html(path: Path, output_dir: Path) -> str:

@@ -393,3 +393,16 @@ def test_ctrl_c_during_a_run_keeps_the_published_results(tmp_path, root):
         if not k.startswith((record.STAGE_PREFIX, ".gvbench")) and "/matches-" not in k
     }
     assert after == {k: v for k, v in before.items() if not k.startswith(".gvbench")}
+
+
+def test_the_explore_notebook_refuses_methods_scored_on_different_labels(tmp_path, root):
+    from gvbench_nb.evaluation import explore
+
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):
+        pipeline.run_method(
+            Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
+        )
+    with pytest.raises(pipeline.ResultsError, match="scored on different pairs or labels"):
+        explore.load_tables(out)
+    assert list(explore.load_tables(out, ["orb-nn"])) == ["orb-nn"]

@@ -38,14 +38,19 @@ VIEW_COLUMNS = [
 def load_tables(
     output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
 ) -> dict[str, pd.DataFrame]:
-    """``pairs.csv`` of each method (default: every method with results in ``output_dir``)."""
+    """``pairs.csv`` of each method (default: every method with results in ``output_dir``), as a
+    run published them, from inputs unchanged since, every method on the same pairs and labels."""
     methods = list(methods) if methods else pipeline.methods_with_results(Path(output_dir))
     if not methods:
         raise pipeline.ResultsError(
             f"{output_dir} holds no method results (<method>/pairs.csv); run a method "
             "first (python -m gvbench_nb run PARAMS --methods NAME)"
         )
-    return {method: pipeline.load_pairs_table(Path(output_dir), method) for method in methods}
+    pipeline.check_results_current(Path(output_dir), methods)
+    tables = {method: pipeline.load_pairs_table(Path(output_dir), method) for method in methods}
+    digests = pd.DataFrame({"method": list(tables), "pairs_digest": map(pipeline.table_pairs_digest, tables.values())})
+    pipeline.check_one_binding(Path(output_dir), digests)
+    return tables
 
 
 def score_ranks(table: pd.DataFrame) -> pd.Series:

@@ -490,6 +490,34 @@ def device_problem(device: str) -> str | None:
     return None
 
 
+def _check_frame_tolerance_options(params: dict[str, Any], root: Path) -> None:
+    """The frame_tolerance builder's options name two image folders and only the rule's parameters."""
+    import inspect
+
+    options = params["builder_options"]
+    where = f"{blame(params, 'builder_options')}: builder_options"
+    rule = [
+        k
+        for k in inspect.signature(frame_tolerance_pairs).parameters
+        if k not in ("query_names", "reference_names", "seed")
+    ]
+    known = ["query_folder", "reference_folder", *rule]
+    unknown = [k for k in options if k not in known]
+    if unknown:
+        raise ParamsError(
+            f"{where}: unknown option(s) {registry.unknown_keys_hint(unknown, known)}; known: {', '.join(known)}"
+        )
+    for key in ("query_folder", "reference_folder"):
+        folder = options.get(key)
+        if not isinstance(folder, str) or not folder:
+            raise ParamsError(f"{where}: {key} must name a folder of images under image_root, got {folder!r}")
+        if not (root / folder).is_dir():
+            raise ParamsError(
+                f"{where}: {key} {folder!r} is not a folder of images: {root / folder} "
+                f"{path_problem(root / folder) or 'is a file'}; set it to a folder under image_root {root}"
+            )
+
+
 def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
     """Everything a run needs that can be checked before it writes a file or imports a
     model: the device, the output and cache folders, the weights, the builder's options and
@@ -538,6 +566,8 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
                     f"but {root / folder} {path_problem(root / folder) or 'is not a folder'}; "
                     "set the folder names (or image_root) to folders of images"
                 )
+    if builder == "frame_tolerance":
+        _check_frame_tolerance_options(params, root)
     if builder is not None:
         return  # the builder makes (or checks) the pair file
     if path_problem(params["pairs"]) is not None:

@@ -472,3 +472,24 @@ def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_pa
     rerun = command(["run", params], tmp_path)
     assert rerun.returncode == 0, rerun.stderr[-3000:]
     assert "results table:" in rerun.stdout
+
+
+def test_frame_tolerance_options_are_checked_before_any_work(absent_images, capsys):
+    for folder in ("night", "day"):
+        (absent_images / "images" / folder).mkdir()
+    options = {"query_folder": "night", "reference_folder": "day", "tolerence": 2}
+    path = write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options)
+    message = cli_error(capsys, "run", str(path))
+    assert f"{path}: builder_options: unknown option(s) 'tolerence' (did you mean 'tolerance'?)" in message
+    options = {"query_folder": "night", "reference_folder": "dya"}
+    message = cli_error(
+        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
+    )
+    assert "reference_folder 'dya' is not a folder of images" in message and "does not exist" in message
+    assert_nothing_written(absent_images)
+
+
+def test_a_nul_byte_in_a_params_path_is_refused_naming_the_key(tmp_path):
+    path = write_params(tmp_path, output_dir="out\0put")
+    with pytest.raises(config.ParamsError, match=f"{path}: output_dir holds a NUL byte"):
+        config.load_params(path)

@@ -23,6 +23,7 @@ from gvbench_nb import methods as method_registry
 from gvbench_nb import registry
 from gvbench_nb.data import builders, fetch
 from gvbench_nb.data.sequences import (
+    Pair,
     Sequence,
     frame_tolerance_pairs,
     read_pairs,
@@ -270,8 +271,8 @@ def build_sample(params: dict[str, Any]) -> None:
     synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
 
 
-def build_frame_tolerance(params: dict[str, Any]) -> None:
-    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
+def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
+    """The pairs the frame_tolerance builder makes of the params' two image folders."""
     options = dict(params["builder_options"])
     root = Path(params["image_root"])
     query_folder = options.pop("query_folder")
@@ -288,9 +289,14 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
         return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in extensions)
 
     try:
-        pairs = frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
+        return frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
     except (TypeError, ValueError) as error:
         raise ParamsError(f"{params['params_file']}: builder_options: {error}") from None
+
+
+def build_frame_tolerance(params: dict[str, Any]) -> None:
+    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
+    pairs = frame_tolerance_sequence_pairs(params)
     # Rebuilt on every run (milliseconds, seeded): a pair file made under other options is
     # replaced, and an unchanged one is left untouched.
     if not Path(params["pairs"]).is_file() or read_pairs(params["pairs"]) != pairs:
@@ -490,8 +496,9 @@ def device_problem(device: str) -> str | None:
     return None
 
 
-def _check_frame_tolerance_options(params: dict[str, Any], root: Path) -> None:
-    """The frame_tolerance builder's options name two image folders and only the rule's parameters."""
+def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
+    """The frame_tolerance builder's options name two image folders and only the rule's
+    parameters; returns the sequence it would build (nothing is written)."""
     import inspect
 
     options = params["builder_options"]
@@ -508,14 +515,10 @@ def _check_frame_tolerance_options(params: dict[str, Any], root: Path) -> None:
             f"{where}: unknown option(s) {registry.unknown_keys_hint(unknown, known)}; known: {', '.join(known)}"
         )
     for key in ("query_folder", "reference_folder"):
-        folder = options.get(key)
-        if not isinstance(folder, str) or not folder:
-            raise ParamsError(f"{where}: {key} must name a folder of images under image_root, got {folder!r}")
-        if not (root / folder).is_dir():
-            raise ParamsError(
-                f"{where}: {key} {folder!r} is not a folder of images: {root / folder} "
-                f"{path_problem(root / folder) or 'is a file'}; set it to a folder under image_root {root}"
-            )
+        if not isinstance(options.get(key), str) or not options[key]:
+            raise ParamsError(f"{where}: {key} must name a folder of images under image_root, got {options.get(key)!r}")
+    pairs = frame_tolerance_sequence_pairs(params)
+    return Sequence(params["sequence"], Path(params["image_root"]), pairs, origin={"pairs_file": params["pairs"]})
 
 
 def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
@@ -567,7 +570,7 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
                     "set the folder names (or image_root) to folders of images"
                 )
     if builder == "frame_tolerance":
-        _check_frame_tolerance_options(params, root)
+        _check_frame_tolerance_options(params).limited(params["limit"]).check_images()
     if builder is not None:
         return  # the builder makes (or checks) the pair file
     if path_problem(params["pairs"]) is not None:

@@ -485,7 +485,14 @@ def test_frame_tolerance_options_are_checked_before_any_work(absent_images, caps
     message = cli_error(
         capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
     )
-    assert "reference_folder 'dya' is not a folder of images" in message and "does not exist" in message
+    assert f"image folder {absent_images / 'images' / 'dya'} not found" in message
+    (absent_images / "images" / "night" / "Image001.png").symlink_to(absent_images / "gone.png")
+    options = {"query_folder": "night", "reference_folder": "day"}
+    (absent_images / "images" / "day" / "Image001.png").write_bytes(b"")
+    message = cli_error(
+        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
+    )
+    assert "first night/Image001.png, which is a broken symbolic link" in message
     assert_nothing_written(absent_images)
 
 

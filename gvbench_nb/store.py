@@ -11,6 +11,7 @@ the same host. hloc keeps one HDF5 file a conf; we keep one folder a conf.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import socket
 import uuid
@@ -23,7 +24,7 @@ from urllib.parse import quote, unquote
 import h5py
 import numpy as np
 
-from gvbench_nb.io_utils import fsync_folder
+from gvbench_nb.io_utils import WRITE_FAILURES, fsync_folder
 
 SHARD_SUFFIX = ".h5"
 
@@ -228,35 +229,41 @@ class ShardWriter:
         final = folder / f"{name}{SHARD_SUFFIX}"
         # The shard is built in memory and written with plain file I/O: a write that fails
         # (a full disk, a quota, a file size limit) is then one OSError naming the file, where
-        # HDF5 writing to disk itself can end in a cascade of errors or a crash.
-        with h5py.File(name, "w", driver="core", backing_store=False) as handle:
-            for key, (arrays, attrs) in self._buffer.items():
-                group = handle.create_group(_group_name(key))
-                for array_name, array in arrays.items():
-                    dataset = group.create_dataset(array_name, data=np.asarray(array))
-                    # The digest of what HDF5 gives back, so reading compares like with like.
-                    group.attrs[_DIGEST_PREFIX + array_name] = array_digest(dataset[()])
-                for attr_name, value in attrs.items():
-                    group.attrs[attr_name] = value
-                group.attrs[_ATTRS_DIGEST] = attrs_digest(
-                    key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")}
-                )
-            handle.flush()
-            image = handle.id.get_file_image()
+        # HDF5 writing to disk itself can end in a cascade of errors or a crash. The temporary
+        # file is opened first, so a writer killed while building leaves it for the next
+        # writer to delete, as one killed while writing does.
+        buffer = io.BytesIO()
         try:
             with open(temporary, "wb") as stream:
-                stream.write(image)
+                with h5py.File(buffer, "w") as handle:
+                    for key, (arrays, attrs) in self._buffer.items():
+                        group = handle.create_group(_group_name(key))
+                        for array_name, array in arrays.items():
+                            dataset = group.create_dataset(array_name, data=np.asarray(array))
+                            # The digest of what HDF5 gives back, so reading compares like with like.
+                            group.attrs[_DIGEST_PREFIX + array_name] = array_digest(dataset[()])
+                        for attr_name, value in attrs.items():
+                            group.attrs[attr_name] = value
+                        group.attrs[_ATTRS_DIGEST] = attrs_digest(
+                            key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")}
+                        )
+                stream.write(buffer.getbuffer())
                 stream.flush()
                 os.fsync(stream.fileno())
             os.replace(temporary, final)
             fsync_folder(folder)
         except BaseException as error:
             temporary.unlink(missing_ok=True)
-            if isinstance(error, OSError):
+            if isinstance(error, OSError) and error.errno is not None:  # the file system's, not HDF5's
+                advice = (
+                    "free disk space (or raise the quota or file size limit)"
+                    if error.errno in WRITE_FAILURES
+                    else "make the folder writable"
+                )
                 raise StoreWriteError(
                     f"cannot write the shard {temporary} of the store {folder} "
-                    f"({error.strerror or error}, {len(image):,} bytes); free disk space (or raise the "
-                    "quota or file size limit) and run again: the entries written before it are kept"
+                    f"({error.strerror or error}, {buffer.getbuffer().nbytes:,} bytes); {advice} "
+                    "and run again: the entries written before it are kept"
                 ) from error
             raise
         index = self.store._index

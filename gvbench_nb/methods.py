@@ -372,7 +372,8 @@ def _is_whole(value: Any) -> bool:
 VERIFIER_RANGES: dict[str, tuple[Any, str]] = {
     "threshold_px": (lambda v: _is_number(v) and v > 0, "a number of pixels above 0"),
     "confidence": (lambda v: _is_number(v) and 0 < v < 1, "a number between 0 and 1 (both excluded)"),
-    "max_iters": (lambda v: _is_whole(v) and v >= 1, "a whole number of at least 1"),
+    # OpenCV takes an int: above 2**31 - 1 it would fail mid-run.
+    "max_iters": (lambda v: _is_whole(v) and 1 <= v <= 2**31 - 1, "a whole number from 1 to 2147483647"),
     "min_matches": (lambda v: _is_whole(v) and v >= 0, "a whole number of at least 0"),
     "min_match_score": (lambda v: v is None or _is_number(v), "a number or null (null keeps every match)"),
     "resize_to": (

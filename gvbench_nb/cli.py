@@ -3,14 +3,16 @@
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
-from collections.abc import Callable
+import threading
+from collections.abc import Callable, Iterator
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead
+from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -131,37 +133,13 @@ def run_files(methods: list[str]) -> list[str]:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb import config, methods, pipeline, weights
+    from gvbench_nb import config, pipeline
     from gvbench_nb.runner import record
     from gvbench_nb.speed import distributed
 
-    # Paths typed on the command line are relative to the current folder, not the params file.
-    absolute = lambda path: str(Path(path).resolve()) if path else None
-    params = config.load_params(
-        args.params,
-        methods=args.methods,
-        limit=args.limit,
-        profile=args.profile,
-        output_dir=absolute(args.output_dir),
-        image_root=absolute(args.image_root),
-    )
-    # Every method's weights are checked before any work: nothing half-runs.
-    missing = [
-        c
-        for m in params["methods"]
-        for c in methods.required_checkpoints(m, params["profile"])
-        if not weights.is_present(c)
-    ]
-    if missing:
-        raise weights.MissingWeightsError(
-            "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
-            + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
-        )
-    from gvbench_nb.matching import imm
-
-    for method in params["methods"]:  # vismatch and its weights, for imm: methods
-        if imm.is_imm(method):
-            imm.require(method)
+    params = run_params_of_args(args)
+    # Weights, vismatch, the device, the folders and every image were checked before any work
+    # (``check_before_work``): nothing half-runs.
     output_dir = Path(params["output_dir"])
     # Whose folder it is, before anything is written there.
     record.check_owned(output_dir)
@@ -609,14 +587,94 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
+    """The params of a ``run`` command line: its params file with the options applied
+    (paths typed on the command line are relative to the current folder)."""
+    from gvbench_nb import config
+
+    absolute = lambda path: str(Path(path).resolve()) if path else None
+    return config.load_params(
+        args.params,
+        methods=args.methods,
+        limit=args.limit,
+        profile=args.profile,
+        output_dir=absolute(args.output_dir),
+        image_root=absolute(args.image_root),
+    )
+
+
+def check_before_work(args: argparse.Namespace) -> None:
+    """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
+    if args.command == "run":
+        from gvbench_nb import config
+
+        config.check_run_inputs(run_params_of_args(args), images=not getattr(args, "merge", False))
+
+
+def resume_hint(argv: SequenceType[str]) -> str:
+    """The line Ctrl-C prints: the same command resumes from the caches."""
+    import shlex
+
+    command = shlex.join([Path(sys.executable).name, "-m", "gvbench_nb", *argv])
+    return f"interrupted; what was finished is kept: run the same command to resume: {command}"
+
+
+@contextlib.contextmanager
+def stop_on_interrupt(argv: SequenceType[str]) -> Iterator[None]:
+    """While inside, Ctrl-C (SIGINT) prints ``resume_hint`` and ends the process at once, exit code 130.
+
+    Ending at once is safe: every file a run writes is committed by a rename, so a run
+    stopped anywhere resumes from what it committed, as after kill -9 (docs/reliability.md).
+    Unwinding instead would wait for the notebooks' threads and kernels, and can hang.
+    The notebooks' kernels run in sessions of their own, so they are stopped here.
+    """
+    import signal
+
+    def stop(signum: int, frame: object) -> None:
+        try:
+            sys.stdout.flush()
+        finally:
+            print(resume_hint(argv), file=sys.stderr, flush=True)
+            try:
+                import psutil
+
+                for child in psutil.Process().children(recursive=True):
+                    with contextlib.suppress(psutil.Error):
+                        child.kill()
+            finally:
+                os._exit(130)
+
+    if threading.current_thread() is not threading.main_thread():  # only the main thread may set handlers
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, stop)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def main(argv: SequenceType[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
+    if "--debug" in argv:  # Python's KeyboardInterrupt, with its traceback
+        return run_command(argv)
+    with stop_on_interrupt(argv):
+        return run_command(argv)
+
+
+def run_command(argv: list[str]) -> int:
     if argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
         return data_main(argv[1:])
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        check_before_work(args)
         return args.handler(args)
+    except KeyboardInterrupt:
+        if args.debug:
+            raise
+        print(resume_hint(argv), file=sys.stderr)
+        return 130
     except Exception as error:
         report = None if args.debug else user_error(error)
         if report is None:  # --debug, or a fault of the program rather than of its input
@@ -626,45 +684,74 @@ def main(argv: SequenceType[str] | None = None) -> int:
         return code
 
 
+# Errors a user can cause: (module, class). A class is looked up only when its module is
+# already imported: an error can only be raised by a module that is loaded, and importing
+# the others (papermill, OpenCV, h5py) to answer a typo would take seconds.
+USER_ERRORS = (
+    ("gvbench_nb.config", "ParamsError"),
+    ("gvbench_nb.data.sequences", "PairFileError"),
+    ("gvbench_nb.weights", "MissingWeightsError"),
+    ("gvbench_nb.weights", "WeightsLayoutError"),
+    ("gvbench_nb.evaluation.metrics", "MetricsUndefinedError"),
+    ("gvbench_nb.data.images", "ImageReadError"),
+    ("gvbench_nb.speed.distributed", "ShardError"),
+    ("gvbench_nb.store", "StoreCorruptError"),
+    ("gvbench_nb.store", "StoreWriteError"),
+    ("gvbench_nb.io_utils", "WriteFailedError"),
+    ("gvbench_nb.pipeline", "ResultsError"),
+    ("gvbench_nb.data.fetch", "DataError"),
+    ("gvbench_nb.matching.imm", "ImmUnavailableError"),
+    ("gvbench_nb.data.builders", "BuildError"),
+    ("gvbench_nb.runner.record", "RecordError"),
+)
+
+
+def _loaded_classes(names: SequenceType[tuple[str, str]]) -> tuple[type, ...]:
+    found = (getattr(sys.modules[module], name, None) for module, name in names if module in sys.modules)
+    return tuple(c for c in found if isinstance(c, type))
+
+
+def _written_path(error: BaseException) -> str | None:
+    """The file a failed write was writing, when a frame of its traceback holds it as ``path``
+    (Python's write errors name no file; papermill's and most writers' frames do)."""
+    found = None
+    traceback = error.__traceback__
+    while traceback is not None:
+        value = traceback.tb_frame.f_locals.get("path")
+        if isinstance(value, (str, os.PathLike)):
+            found = os.fspath(value)
+        traceback = traceback.tb_next
+    return found
+
+
 def user_error(error: BaseException) -> tuple[str, int] | None:
     """The message and exit code of an error a user can cause (bad params, pairs,
     images, weights, caches or paths); None for any other error."""
-    from papermill.exceptions import PapermillExecutionError
-
-    from gvbench_nb import config, pipeline, weights
-    from gvbench_nb.data import fetch as data
-    from gvbench_nb.data.images import ImageReadError
-    from gvbench_nb.data.sequences import PairFileError
-    from gvbench_nb.evaluation import metrics
-    from gvbench_nb.matching.imm import ImmUnavailableError
-    from gvbench_nb.runner.record import RecordError
-    from gvbench_nb.speed import distributed
-    from gvbench_nb.store import StoreCorruptError
-
-    if isinstance(error, PapermillExecutionError):
-        # The failing cell's own error, without the notebook machinery around it.
+    papermill = _loaded_classes([("papermill.exceptions", "PapermillExecutionError")])
+    if papermill and isinstance(error, papermill):
+        # The failing cell's own error, without the notebook machinery around it; an error
+        # the user can cause (a full disk, a bad image) reads as it would outside a notebook.
+        count = getattr(error, "exec_count", None)
+        if getattr(error, "ename", None) in {name for _, name in USER_ERRORS}:
+            return (
+                f"error: {getattr(error, 'evalue', '')} (the executed notebook in the output folder keeps the traceback)",
+                2,
+            )
         return (
-            f"error in {error.exec_count and 'cell ' + str(error.exec_count)}: {error.ename}: {error.evalue}\n"
+            f"error in {count and 'cell ' + str(count)}: {getattr(error, 'ename', '')}: "
+            f"{getattr(error, 'evalue', '')}\n"
             "the executed notebook (with the full traceback) is in the output folder"
         ), 1
-    if isinstance(
-        error,
-        (
-            config.ParamsError,
-            PairFileError,
-            weights.MissingWeightsError,
-            weights.WeightsLayoutError,
-            metrics.MetricsUndefinedError,
-            ImageReadError,
-            distributed.ShardError,
-            StoreCorruptError,
-            pipeline.ResultsError,
-            data.DataError,
-            ImmUnavailableError,
-            RecordError,
-        ),
-    ):
+    if isinstance(error, _loaded_classes(USER_ERRORS)):
         return f"error: {error}", 2
+    from gvbench_nb.io_utils import WRITE_FAILURES
+
+    if isinstance(error, OSError) and error.errno in WRITE_FAILURES and not error.filename:
+        written = _written_path(error)
+        return (
+            f"error: cannot write {written or 'a file'} ({error.strerror or error}): the disk is full or a quota "
+            "or file size limit is reached; free space and run again"
+        ), 2
     if isinstance(error, OSError):  # a file or folder the user named cannot be used
         where = f" {error.filename}:" if error.filename else ""
         return f"error:{where} {error.strerror or error}; check that path (--debug shows the traceback)", 2

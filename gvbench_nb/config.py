@@ -23,12 +23,13 @@ from gvbench_nb import methods as method_registry
 from gvbench_nb import registry
 from gvbench_nb.data import builders, fetch
 from gvbench_nb.data.sequences import (
+    Pair,
     Sequence,
     frame_tolerance_pairs,
     read_pairs,
     write_pairs,
 )
-from gvbench_nb.io_utils import atomic_write_json, atomic_write_text
+from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, path_problem
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -67,8 +68,66 @@ def _expand(value: str, source: str, key: str) -> str:
     return re.sub(r"\$\{([A-Za-z_][A-Za-z0-9_]*)\}", replace, value)
 
 
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """YAML's safe loader, refusing a key given twice in one mapping (YAML itself keeps the last)."""
+
+
+def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+    seen: dict[Any, int] = {}
+    for key_node, _ in node.value:
+        if key_node.tag == "tag:yaml.org,2002:merge":  # '<<: *anchor' merges, it is not a key
+            continue
+        key = loader.construct_object(key_node, deep=True)
+        line = key_node.start_mark.line + 1
+        try:
+            first = seen.setdefault(key, line)
+        except TypeError:  # an unhashable key: the constructor below reports it
+            continue
+        if first != line:
+            source = getattr(loader, "source_name", key_node.start_mark.name)
+            raise ParamsError(
+                f"{source}:{line}: key {key!r} is given twice (first on line {first}); "
+                "YAML would silently keep the last one, so keep only the one you mean"
+            )
+    return loader.construct_mapping(node, deep=deep)
+
+
+_UniqueKeyLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _unique_mapping)
+
+
+def read_yaml_mapping(path: Path) -> dict[str, Any]:
+    """A params file's YAML mapping; a key given twice is refused with file:line."""
+    with open(path, encoding="utf-8") as handle:
+        loader = _UniqueKeyLoader(handle)
+        loader.source_name = str(path)
+        try:
+            raw = loader.get_single_data() or {}
+        except yaml.YAMLError as error:
+            raise ParamsError(f"{path}: not valid YAML: {error}") from None
+        finally:
+            loader.dispose()
+    if not isinstance(raw, dict):
+        raise ParamsError(f"{path}: expected a mapping of keys to values, got {type(raw).__name__}")
+    return raw
+
+
+def option_name(key: str) -> str:
+    """How the command line spells the override of a params key (``image_root`` -> ``--image-root``)."""
+    return "--" + key.replace("_", "-")
+
+
+def blame(params: dict[str, Any], key: str) -> str:
+    """Where a params value came from, as an error names it: its option, else the params file."""
+    return option_name(key) if key in params.get("overridden", ()) else str(params["params_file"])
+
+
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
-    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys."""
+    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys.
+
+    A wrong value is blamed on where it came from: an override on its option
+    (``--methods``), any other value on the params file. ``params["overridden"]`` lists
+    the overridden keys.
+    """
     path = Path(path).resolve()
     if path.is_dir():
         examples = sorted(p.name for p in path.glob("*.yaml"))[:3]
@@ -77,15 +136,11 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
             + (f" such as {path / examples[0]}" if examples else "")
         )
     if not path.is_file():
-        raise ParamsError(f"params file not found: {path}; give the path of a params YAML (e.g. params/sample.yaml)")
-    with open(path, encoding="utf-8") as handle:
-        try:
-            raw = yaml.safe_load(handle) or {}
-        except yaml.YAMLError as error:
-            raise ParamsError(f"{path}: not valid YAML: {error}") from None
-    if not isinstance(raw, dict):
-        raise ParamsError(f"{path}: expected a mapping of keys to values, got {type(raw).__name__}")
-    raw.update({k: v for k, v in overrides.items() if v is not None})
+        problem = path_problem(path) or "is not a regular file"
+        raise ParamsError(f"params file {path} {problem}; give the path of a params YAML (e.g. params/sample.yaml)")
+    raw = read_yaml_mapping(path)
+    given = {k: v for k, v in overrides.items() if v is not None}
+    raw.update(given)
     valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     unknown = [k for k in raw if k not in valid]
     if unknown:
@@ -97,29 +152,41 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
     params = {**OPTIONAL_KEYS, **raw}
     params["params_file"] = str(path)
-    _check_types(params, path)
+    params["overridden"] = sorted(given)
+    _check_types(params)
     try:
         params["methods"] = method_registry.expand_methods(params["methods"])
+    except KeyError as error:
+        raise ParamsError(f"{blame(params, 'methods')}: {error}") from None
+    try:
         method_registry.check_profile(params["profile"])
     except KeyError as error:
-        raise ParamsError(f"{path}: {error}") from None
+        raise ParamsError(f"{blame(params, 'profile')}: {error}") from None
     if not params["methods"]:
-        raise ParamsError(f"{path}: methods is empty; name at least one (python -m gvbench_nb methods lists them)")
+        raise ParamsError(
+            f"{blame(params, 'methods')}: methods is empty; name at least one (python -m gvbench_nb methods lists them)"
+        )
     if params["pairs_builder"] is not None:
         try:
             registry.lookup("pairs_builder", params["pairs_builder"], PAIR_BUILDERS)
         except registry.UnknownNameError as error:
-            raise ParamsError(f"{path}: {error}") from None
+            raise ParamsError(f"{blame(params, 'pairs_builder')}: {error}") from None
     try:
         method_registry.check_verifier_overrides(params["verifier"])
     except (KeyError, ValueError) as error:
-        raise ParamsError(f"{path}: verifier: {error}") from None
+        raise ParamsError(f"{blame(params, 'verifier')}: verifier: {error}") from None
     if params["limit"] is not None and params["limit"] < 1:
-        raise ParamsError(f"{path}: limit must be a positive integer or null, got {params['limit']!r}")
+        raise ParamsError(
+            f"{blame(params, 'limit')}: limit must be a positive integer or null, got {params['limit']!r}"
+        )
+    if params["seed"] < 0:  # numpy's generators refuse negative seeds
+        raise ParamsError(f"{blame(params, 'seed')}: seed must be an integer of at least 0, got {params['seed']!r}")
     for key in PATH_KEYS:
         value = params.get(key)
         if value is None:
             continue
+        if "\0" in str(value):
+            raise ParamsError(f"{blame(params, key)}: {key} holds a NUL byte, which no path can; fix the path")
         value = Path(_expand(str(value), str(path), key)).expanduser()
         params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
     if params["cache_dir"] is None:
@@ -183,15 +250,16 @@ TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
 }
 
 
-def _check_types(params: dict[str, Any], source: Path) -> None:
-    """Every key's value has the right kind; the error names the key and what it must be."""
-    wrong = [
-        f"{key} must be {what}, got {params[key]!r}"
-        for key, (check, what) in TYPE_CHECKS.items()
-        if key in params and not check(params[key])
-    ]
+def _check_types(params: dict[str, Any]) -> None:
+    """Every key's value has the right kind; the error names where it came from, the key and
+    what it must be (the first source with a wrong value: an option before the file)."""
+    wrong: dict[str, list[str]] = {}
+    for key, (check, what) in TYPE_CHECKS.items():
+        if key in params and not check(params[key]):
+            wrong.setdefault(blame(params, key), []).append(f"{key} must be {what}, got {params[key]!r}")
     if wrong:
-        raise ParamsError(f"{source}: " + "; ".join(wrong))
+        source = sorted(wrong, key=lambda where: not where.startswith("--"))[0]
+        raise ParamsError(f"{source}: " + "; ".join(wrong[source]))
 
 
 # ------------------------------------------------------------------ builders --
@@ -203,8 +271,8 @@ def build_sample(params: dict[str, Any]) -> None:
     synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
 
 
-def build_frame_tolerance(params: dict[str, Any]) -> None:
-    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
+def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
+    """The pairs the frame_tolerance builder makes of the params' two image folders."""
     options = dict(params["builder_options"])
     root = Path(params["image_root"])
     query_folder = options.pop("query_folder")
@@ -221,9 +289,14 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
         return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in extensions)
 
     try:
-        pairs = frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
+        return frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
     except (TypeError, ValueError) as error:
         raise ParamsError(f"{params['params_file']}: builder_options: {error}") from None
+
+
+def build_frame_tolerance(params: dict[str, Any]) -> None:
+    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
+    pairs = frame_tolerance_sequence_pairs(params)
     # Rebuilt on every run (milliseconds, seeded): a pair file made under other options is
     # replaced, and an unchanged one is left untouched.
     if not Path(params["pairs"]).is_file() or read_pairs(params["pairs"]) != pairs:
@@ -257,13 +330,17 @@ def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
 
 
 def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
-    """What a builder's output depends on, as JSON would read it back."""
+    """What a builder's output depends on, as JSON would read it back: the builder, its
+    options, the seed, the image root and (retrieval) what it read there
+    (``builders.inputs_digest``: the image folders' listings, the metadata and label files)."""
     stamp = {
         "pairs_builder": params["pairs_builder"],
         "builder_options": params["builder_options"],
         "seed": params["seed"],
         "image_root": params["image_root"],
     }
+    if params["pairs_builder"] == builders.BUILDER_NAME and params["image_root"] is not None:
+        stamp["inputs"] = builders.inputs_digest(params["image_root"], params["builder_options"])
     return json.loads(json.dumps(stamp, sort_keys=True, default=str))
 
 
@@ -284,29 +361,24 @@ def _stamp_matches(params: dict[str, Any]) -> bool:
 
 def _missing_pairs_error(params: dict[str, Any]) -> ParamsError:
     pairs = Path(params["pairs"])
-    what = "is a folder, not a pair file" if pairs.is_dir() else "does not exist"
+    what = path_problem(pairs) or "is not a pair file"
+    what = "is a folder, not a pair file" if what == "is a folder, not a file" else what
     return ParamsError(
         f"{params['params_file']}: the pair file {pairs} {what}; set pairs to a file of "
         "'query_path reference_path label' lines, or set pairs_builder to make it"
     )
 
 
-def prepare_sequence(params: dict[str, Any]) -> Sequence:
-    """The sequence of a params file, building its pairs (and images) when a builder is set.
-
-    A builder's pair file is rebuilt whenever its builder, options, seed or image root
-    differ from those recorded beside it (``<pairs>.builder.json``) or the file changed
-    since: a pair file made by a builder belongs to it, so change the options, not the file.
-    """
-    source = params["params_file"]
+def _check_image_root(params: dict[str, Any]) -> Path:
+    """The image root, refused when unset, or (unless the sample builder renders it) not a folder."""
+    source = blame(params, "image_root")
     if params["image_root"] is None:
         raise ParamsError(
             f"{source}: image_root is not set. Set it (or pass --image-root) to the folder holding the images "
             f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
         )
     root = Path(params["image_root"])
-    builder = params["pairs_builder"]
-    if builder != "sample" and not root.is_dir():  # the sample builder renders its images into the root
+    if params["pairs_builder"] != "sample" and not root.is_dir():  # the sample builder renders into the root
         what = "is a file, not a folder" if root.exists() else "does not exist"
         raise ParamsError(
             f"{source}: image_root {root} {what}"
@@ -316,13 +388,25 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
                 "holding the images that the pair file's paths are relative to"
             )
         )
+    return root
+
+
+def prepare_sequence(params: dict[str, Any]) -> Sequence:
+    """The sequence of a params file, building its pairs (and images) when a builder is set.
+
+    A builder's pair file is rebuilt whenever its builder, options, seed, image root or
+    (retrieval) the images it read differ from those recorded beside it (``<pairs>.builder.json``) or the file changed
+    since: a pair file made by a builder belongs to it, so change the options, not the file.
+    """
+    root = _check_image_root(params)
+    builder = params["pairs_builder"]
     if builder and (builder == "sample" or not _stamp_matches(params)):
         builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds
         PAIR_BUILDERS[builder](params)
         atomic_write_json(
             builder_stamp_path(params["pairs"]), {**builder_stamp(params), "pairs_sha256": file_sha256(params["pairs"])}
         )
-    if not Path(params["pairs"]).is_file():
+    if path_problem(params["pairs"]) is not None:
         raise _missing_pairs_error(params)
     sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
     return sequence.limited(params["limit"])
@@ -345,7 +429,7 @@ def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
 def load_sequence_pairs_only(params: dict[str, Any]) -> Sequence:
     """Pairs without touching images (works for the official lists without their images)."""
     root = Path(params["image_root"]) if params["image_root"] else Path(".")
-    if not Path(params["pairs"]).is_file():
+    if path_problem(params["pairs"]) is not None:
         raise _missing_pairs_error(params)
     return Sequence(params["sequence"], root, read_pairs(params["pairs"])).limited(params["limit"])
 
@@ -369,6 +453,131 @@ def check_writable_folder(params: dict[str, Any], key: str) -> Path:
             "you can write in"
         ) from None
     return folder
+
+
+def check_folder_can_be_made(params: dict[str, Any], key: str) -> None:
+    """``params[key]`` is a folder that can be written, or one that could be made: checked
+    without creating anything (``check_writable_folder`` makes it once every check passed)."""
+    folder = Path(params[key])
+    flag = option_name(key)
+    if folder.exists() and not folder.is_dir():
+        raise ParamsError(
+            f"{blame(params, key)}: {key} {folder} is a file, not a folder; set {key} (or pass {flag}) to a folder"
+        )
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        what = "is a file" if not existing.is_dir() else "cannot be written"
+        raise ParamsError(
+            f"{blame(params, key)}: cannot write in {key} {folder} ({existing} {what}); "
+            f"set {key} (or pass {flag}) to a folder you can write in"
+        )
+
+
+def device_problem(device: str) -> str | None:
+    """Why ``device`` (a params ``device`` value) cannot be used here, or None.
+
+    ``auto`` and ``cpu`` always can; torch is imported only to check a device named
+    otherwise (a run on it imports torch anyway).
+    """
+    if device in ("auto", "cpu"):
+        return None
+    import torch
+
+    if device == "mps":
+        return None if torch.backends.mps.is_available() else "this machine's torch has no MPS (Apple GPU) device"
+    if torch.version.cuda is None:
+        return f"this torch ({torch.__version__}) is built without CUDA"
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if count == 0:
+        return "no CUDA device is visible (check the driver and CUDA_VISIBLE_DEVICES)"
+    index = int(device.partition(":")[2] or 0)
+    if index >= count:
+        return f"only {count} CUDA device(s) are visible (cuda:0 to cuda:{count - 1})"
+    return None
+
+
+def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
+    """The frame_tolerance builder's options name two image folders and only the rule's
+    parameters; returns the sequence it would build (nothing is written)."""
+    import inspect
+
+    options = params["builder_options"]
+    where = f"{blame(params, 'builder_options')}: builder_options"
+    rule = [
+        k
+        for k in inspect.signature(frame_tolerance_pairs).parameters
+        if k not in ("query_names", "reference_names", "seed")
+    ]
+    known = ["query_folder", "reference_folder", *rule]
+    unknown = [k for k in options if k not in known]
+    if unknown:
+        raise ParamsError(
+            f"{where}: unknown option(s) {registry.unknown_keys_hint(unknown, known)}; known: {', '.join(known)}"
+        )
+    for key in ("query_folder", "reference_folder"):
+        if not isinstance(options.get(key), str) or not options[key]:
+            raise ParamsError(f"{where}: {key} must name a folder of images under image_root, got {options.get(key)!r}")
+    pairs = frame_tolerance_sequence_pairs(params)
+    return Sequence(params["sequence"], Path(params["image_root"]), pairs, origin={"pairs_file": params["pairs"]})
+
+
+def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
+    """Everything a run needs that can be checked before it writes a file or imports a
+    model: the device, the output and cache folders, the weights, the builder's options and
+    folders, and (``images``) the pair file and every image it names (each missing, broken
+    link, link loop, folder or FIFO named as what it is). Raises the error a user reads."""
+    from gvbench_nb import weights
+
+    problem = device_problem(params["device"])
+    if problem:
+        raise ParamsError(
+            f"{blame(params, 'device')}: device {params['device']!r} cannot be used: {problem}; "
+            "set device: auto (CUDA when available, else the CPU) or cpu"
+        )
+    check_folder_can_be_made(params, "output_dir")
+    check_folder_can_be_made(params, "cache_dir")
+    missing = [
+        c
+        for m in params["methods"]
+        for c in method_registry.required_checkpoints(m, params["profile"])
+        if not weights.is_present(c)
+    ]
+    if missing:
+        raise weights.MissingWeightsError(
+            "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
+            + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
+        )
+    from gvbench_nb.matching import imm
+
+    for method in params["methods"]:
+        if imm.is_imm(method):
+            imm.require(method)
+    if not images:
+        return
+    root = _check_image_root(params)
+    builder = params["pairs_builder"]
+    options = params["builder_options"]
+    if builder == builders.BUILDER_NAME:
+        try:
+            parsed = builders.parse_options(options, f"{blame(params, 'builder_options')}: builder_options")
+        except builders.BuildError as error:
+            raise ParamsError(str(error)) from None
+        for folder in (parsed.query_folder, *parsed.reference_folders):
+            if not (root / folder).is_dir() and not options.get("render_sample"):
+                raise ParamsError(
+                    f"{blame(params, 'builder_options')}: builder_options names the image folder {folder!r}, "
+                    f"but {root / folder} {path_problem(root / folder) or 'is not a folder'}; "
+                    "set the folder names (or image_root) to folders of images"
+                )
+    if builder == "frame_tolerance":
+        _check_frame_tolerance_options(params).limited(params["limit"]).check_images()
+    if builder is not None:
+        return  # the builder makes (or checks) the pair file
+    if path_problem(params["pairs"]) is not None:
+        raise _missing_pairs_error(params)
+    Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin={"pairs_file": params["pairs"]}).limited(
+        params["limit"]
+    ).check_images()
 
 
 RESOLVED_PARAMS_NAME = "params.resolved.yaml"

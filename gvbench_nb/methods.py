@@ -12,6 +12,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import json
+import math
 from typing import Any
 
 from gvbench_nb import registry, weights
@@ -358,15 +359,47 @@ def register_method(
     METHODS[name] = {"paper_name": paper_name or name, "extractor": extractor, "matcher": matcher, "in_paper": in_paper}
 
 
-def check_verifier_overrides(overrides: dict[str, Any]) -> None:
-    """Overrides of the run's verifier name its keys; the model and estimator are known ones."""
-    from gvbench_nb.verification import ransac
+def _is_number(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
+
+def _is_whole(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+# Numeric verifier keys: (check, what the value must be). OpenCV does not refuse values out
+# of range: a threshold of 0 or less silently becomes its 3 px default, for one.
+VERIFIER_RANGES: dict[str, tuple[Any, str]] = {
+    "threshold_px": (lambda v: _is_number(v) and v > 0, "a number of pixels above 0"),
+    "confidence": (lambda v: _is_number(v) and 0 < v < 1, "a number between 0 and 1 (both excluded)"),
+    # OpenCV takes an int: above 2**31 - 1 it would fail mid-run.
+    "max_iters": (lambda v: _is_whole(v) and 1 <= v <= 2**31 - 1, "a whole number from 1 to 2147483647"),
+    "min_matches": (lambda v: _is_whole(v) and v >= 0, "a whole number of at least 0"),
+    "min_match_score": (lambda v: v is None or _is_number(v), "a number or null (null keeps every match)"),
+    "resize_to": (
+        lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(_is_whole(x) and x >= 1 for x in v),
+        "[width, height], two whole numbers of at least 1",
+    ),
+}
+
+
+def check_verifier_overrides(overrides: dict[str, Any]) -> None:
+    """Overrides of the run's verifier name its keys; the model and estimator are known ones;
+    numeric values are in range (``VERIFIER_RANGES``)."""
     unknown = [key for key in overrides if key not in VERIFIER and key != "resize_to"]
     if unknown:
         raise ValueError(
             f"unknown key(s) {registry.unknown_keys_hint(unknown, list(VERIFIER))}; valid: {', '.join(VERIFIER)}"
         )
+    for key, (check, what) in VERIFIER_RANGES.items():
+        if key in overrides and not check(overrides[key]):
+            raise ValueError(f"{key} must be {what}, got {overrides[key]!r}")
+    if "coordinates" in overrides:
+        registry.check_choice("verifier coordinates", overrides["coordinates"], ("original", "resize_to"))
+    if not {"type", "method", "few_matches"} & set(overrides):
+        return
+    from gvbench_nb.verification import ransac  # imports OpenCV: only when a choice is to be checked
+
     if "type" in overrides:
         registry.check_choice("verifier model", overrides["type"], ransac.MODELS)
     if "method" in overrides:

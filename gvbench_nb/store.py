@@ -11,6 +11,7 @@ the same host. hloc keeps one HDF5 file a conf; we keep one folder a conf.
 from __future__ import annotations
 
 import contextlib
+import io
 import os
 import socket
 import uuid
@@ -23,7 +24,7 @@ from urllib.parse import quote, unquote
 import h5py
 import numpy as np
 
-from gvbench_nb.io_utils import fsync_folder
+from gvbench_nb.io_utils import WRITE_FAILURES, fsync_folder
 
 SHARD_SUFFIX = ".h5"
 
@@ -46,6 +47,10 @@ def _process_alive(pid: int) -> bool:
 
 class StoreCorruptError(OSError):
     """A committed shard cannot be read, or its bytes no longer match their checksums."""
+
+
+class StoreWriteError(OSError):
+    """A shard could not be written (disk full, quota, file size limit); nothing of it is kept."""
 
 
 # Each dataset carries the CRC-32 of its dtype, shape and bytes as the attribute
@@ -222,26 +227,44 @@ class ShardWriter:
         name = f"shard-{os.getpid()}-{uuid.uuid4().hex[:12]}"
         temporary = folder / f".{name}.{_HOST}.tmp"
         final = folder / f"{name}{SHARD_SUFFIX}"
+        # The shard is built in memory and written with plain file I/O: a write that fails
+        # (a full disk, a quota, a file size limit) is then one OSError naming the file, where
+        # HDF5 writing to disk itself can end in a cascade of errors or a crash. The temporary
+        # file is opened first, so a writer killed while building leaves it for the next
+        # writer to delete, as one killed while writing does.
+        buffer = io.BytesIO()
         try:
-            with h5py.File(temporary, "w") as handle:
-                for key, (arrays, attrs) in self._buffer.items():
-                    group = handle.create_group(_group_name(key))
-                    for array_name, array in arrays.items():
-                        dataset = group.create_dataset(array_name, data=np.asarray(array))
-                        # The digest of what HDF5 gives back, so reading compares like with like.
-                        group.attrs[_DIGEST_PREFIX + array_name] = array_digest(dataset[()])
-                    for attr_name, value in attrs.items():
-                        group.attrs[attr_name] = value
-                    group.attrs[_ATTRS_DIGEST] = attrs_digest(
-                        key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")}
-                    )
-            with open(temporary, "rb") as stream:
+            with open(temporary, "wb") as stream:
+                with h5py.File(buffer, "w") as handle:
+                    for key, (arrays, attrs) in self._buffer.items():
+                        group = handle.create_group(_group_name(key))
+                        for array_name, array in arrays.items():
+                            dataset = group.create_dataset(array_name, data=np.asarray(array))
+                            # The digest of what HDF5 gives back, so reading compares like with like.
+                            group.attrs[_DIGEST_PREFIX + array_name] = array_digest(dataset[()])
+                        for attr_name, value in attrs.items():
+                            group.attrs[attr_name] = value
+                        group.attrs[_ATTRS_DIGEST] = attrs_digest(
+                            key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")}
+                        )
+                stream.write(buffer.getbuffer())
+                stream.flush()
                 os.fsync(stream.fileno())
             os.replace(temporary, final)
             fsync_folder(folder)
-        except BaseException:
-            if temporary.exists():
-                temporary.unlink()
+        except BaseException as error:
+            temporary.unlink(missing_ok=True)
+            if isinstance(error, OSError) and error.errno is not None:  # the file system's, not HDF5's
+                advice = (
+                    "free disk space (or raise the quota or file size limit)"
+                    if error.errno in WRITE_FAILURES
+                    else "make the folder writable"
+                )
+                raise StoreWriteError(
+                    f"cannot write the shard {temporary} of the store {folder} "
+                    f"({error.strerror or error}, {buffer.getbuffer().nbytes:,} bytes); {advice} "
+                    "and run again: the entries written before it are kept"
+                ) from error
             raise
         index = self.store._index
         if index is not None:

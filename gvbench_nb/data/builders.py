@@ -231,6 +231,52 @@ def list_images(image_root: Path, folder: str) -> list[str]:
     return names
 
 
+def inputs_digest(image_root: str | Path, options: Mapping[str, Any]) -> dict[str, str | None]:
+    """What a retrieval build read, as one BLAKE2b digest a file or folder: each image
+    folder's listing (every image's name, size, mtime and inode: the pipeline's rule for when
+    a file is hashed again), the metadata CSV and the label_params_file. A frame added,
+    removed or replaced changes its folder's digest. Read from the raw options, so a stamp
+    can be compared before they are parsed; a folder or file that is not there is None."""
+    import hashlib
+    import os
+
+    def digest(entries: list[tuple[str, os.stat_result]]) -> str:
+        blake = hashlib.blake2b(digest_size=16)
+        for name, info in sorted(entries, key=lambda entry: entry[0]):
+            blake.update(f"{name}\0{info.st_size}\0{info.st_mtime_ns}\0{info.st_ino}\n".encode())
+        return blake.hexdigest()
+
+    def folder_digest(folder: Path) -> str | None:
+        try:
+            with os.scandir(folder) as listing:
+                entries = [
+                    (entry.name, entry.stat())
+                    for entry in listing
+                    if Path(entry.name).suffix.lower() in IMAGE_EXTENSIONS and entry.is_file()
+                ]
+        except OSError:
+            return None
+        return digest(entries)
+
+    def file_digest(path: Path) -> str | None:
+        try:
+            return digest([(path.name, path.stat())])
+        except OSError:
+            return None
+
+    root = Path(image_root)
+    references = options.get("reference_folders") or ()
+    folders = [options.get("query_folder"), *([references] if isinstance(references, str) else references)]
+    found: dict[str, str | None] = {
+        f"folder:{folder}": folder_digest(root / folder) for folder in folders if isinstance(folder, str)
+    }
+    metadata = options.get("metadata")
+    for name in (metadata.get("csv") if isinstance(metadata, Mapping) else None, options.get("label_params_file")):
+        if isinstance(name, str):
+            found[f"file:{name}"] = file_digest(root / name)
+    return found
+
+
 def _frames_from_names(names: list[str]) -> np.ndarray | None:
     try:
         return np.array([frame_index(n) for n in names], dtype=np.int64)

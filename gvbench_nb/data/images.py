@@ -9,6 +9,7 @@ import cv2
 import numpy as np
 
 from gvbench_nb import registry
+from gvbench_nb.io_utils import path_problem
 
 
 class ImageReadError(OSError):
@@ -69,9 +70,11 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     missing, empty and undecodable files raise ``ImageReadError`` naming the file.
     """
     path = Path(path)
-    if not path.is_file():
-        what = "is a folder, not an image file" if path.is_dir() else "not found"
-        raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
+    problem = path_problem(path)
+    if problem == "does not exist":
+        raise ImageReadError(f"image not found: {path}; check image_root and the pair file's paths")
+    if problem is not None:
+        raise ImageReadError(f"image {path} {problem}; check image_root and the pair file's paths")
     check_pixel_bound(path)
     try:
         data = np.fromfile(path, dtype=np.uint8)

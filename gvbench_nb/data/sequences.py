@@ -26,7 +26,7 @@ from pathlib import Path, PurePosixPath
 
 import pandas as pd
 
-from gvbench_nb.io_utils import atomic_write_text
+from gvbench_nb.io_utils import atomic_write_text, path_problem
 
 
 class PairFileError(ValueError):
@@ -54,6 +54,11 @@ def shorten(text: str, limit: int = 80) -> str:
 
 
 def _check_length(path_text: str, where: str) -> None:
+    if "\0" in path_text:
+        raise PairFileError(
+            f"{where}: path {shorten(path_text)!r} holds a NUL byte, which no file name can; "
+            "is this a text pair file? Fix the line"
+        )
     if len(path_text) > MAX_PATH_CHARS:
         raise PairFileError(
             f"{where}: path {shorten(path_text)!r} is longer than {MAX_PATH_CHARS} characters; "
@@ -146,10 +151,12 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
 
 def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     path = Path(path)
-    if not path.is_file():
-        what = "is a folder, not a pair file" if path.is_dir() else "not found"
+    problem = path_problem(path)
+    if problem is not None:
+        what = {"does not exist": "not found", "is a folder, not a file": "is a folder, not a pair file"}.get(problem)
         raise PairFileError(
-            f"pair file {what}: {path}; set the params' pairs to a file of "
+            (f"pair file {what}: {path}" if what else f"pair file {path} {problem}")
+            + "; set the params' pairs to a file of "
             "'query_path reference_path label' lines (or a pairs_builder that makes it)"
         )
     data = path.read_bytes()
@@ -233,22 +240,33 @@ class Sequence:
         return Sequence(self.name, self.image_root, self.pairs[:limit], {**self.origin, "limit": limit})
 
     def missing_images(self) -> list[str]:
-        return [name for name in self.images if not (self.image_root / name).is_file()]
+        return list(self.image_problems())
+
+    def image_problems(self) -> dict[str, str]:
+        """Image path -> what keeps it from being read (``io_utils.path_problem``), for every
+        image of the pairs that is not a readable regular file."""
+        problems = {name: path_problem(self.image_root / name) for name in self.images}
+        return {name: problem for name, problem in problems.items() if problem is not None}
 
     def check_images(self) -> None:
-        """Raise ``MissingImagesError`` naming how many images are missing, the first one
-        and the pair that uses it, when any image of the pairs is not a file."""
+        """Raise ``MissingImagesError`` naming how many images cannot be read, the first one,
+        what it is (missing, a broken link, a link loop, a folder, a FIFO, a device...) and the
+        pair that uses it, when any image of the pairs is not a readable file."""
         if not Path(self.image_root).is_dir():
             raise MissingImagesError(
                 f"image_root {self.image_root} of sequence {self.name!r} does not exist or is not a folder; "
                 "set image_root (or --image-root) to the folder the pair file's paths are relative to"
             )
-        missing = self.missing_images()
-        if missing:
-            index, pair = next((i, p) for i, p in enumerate(self.pairs) if missing[0] in (p.query, p.reference))
+        problems = self.image_problems()
+        if problems:
+            first, problem = next(iter(problems.items()))
+            index, pair = next((i, p) for i, p in enumerate(self.pairs) if first in (p.query, p.reference))
+            missing = all(p == "does not exist" for p in problems.values())
+            state = "are missing" if missing else "cannot be read"
+            what = "" if problem == "does not exist" else f", which {problem}"
             raise MissingImagesError(
-                f"{len(missing)} of {len(self.images)} images of sequence {self.name!r} are missing under "
-                f"{self.image_root}, first {missing[0]} (pair {index}: {pair.query} {pair.reference}"
+                f"{len(problems)} of {len(self.images)} images of sequence {self.name!r} {state} under "
+                f"{self.image_root}, first {first}{what} (pair {index}: {pair.query} {pair.reference}"
                 f"{', ' + str(self.origin['pairs_file']) if self.origin.get('pairs_file') else ''}); "
                 "restore them, or remove the pairs that use them"
             )

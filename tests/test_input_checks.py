@@ -1,0 +1,503 @@
+"""Inputs are checked before any work, and faults are named.
+
+Every params value (types, ranges, the device, keys given twice, method names from the
+command line or the file) is checked before a file is written or a model library is
+imported; a refused run leaves nothing behind. A pair file built by retrieval follows
+its image folders. A path that is a broken link, a loop, a folder, a FIFO or holds a NUL
+byte is named as what it is. A full disk and Ctrl-C each end in one sentence, and a
+rerun recovers. Images are scikit-image's sample photographs.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from gvbench_nb import cli, config, pipeline
+from gvbench_nb.data import builders
+from gvbench_nb.data.images import ImageReadError, read_image
+from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
+
+pytestmark = pytest.mark.reliability
+
+PROJECT = Path(__file__).resolve().parent.parent
+METHOD = "sift-nn"
+PAIRS = [
+    Pair("query/a.png", "reference/a.png", 1),
+    Pair("query/a.png", "reference/b.png", 0),
+    Pair("query/b.png", "reference/b.png", 1),
+    Pair("query/b.png", "reference/a.png", 0),
+]
+
+
+def _photo(name: str, size: tuple[int, int], warped: bool) -> np.ndarray:
+    import skimage.data
+
+    image = getattr(skimage.data, name)()
+    image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
+    image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    if warped:  # the query view: a small rotation and zoom
+        matrix = cv2.getRotationMatrix2D((size[0] / 2, size[1] / 2), 4.0, 1.05)
+        image = cv2.warpAffine(image, matrix, size, borderMode=cv2.BORDER_REFLECT)
+    return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+
+
+def write_photos(root: Path, size: tuple[int, int] = (320, 240)) -> Path:
+    """``query/{a,b}.png`` (warped) and ``reference/{a,b}.png``."""
+    for folder, warped in (("query", True), ("reference", False)):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+        for letter, photo in zip("ab", ("astronaut", "coffee")):
+            cv2.imwrite(str(root / folder / f"{letter}.png"), _photo(photo, size, warped))
+    return root
+
+
+def write_params(tmp_path: Path, **changes: object) -> Path:
+    params = {
+        "sequence": "s",
+        "image_root": str(tmp_path / "images"),
+        "pairs": str(tmp_path / "pairs.txt"),
+        "methods": [METHOD],
+        "profile": "paper",
+        "output_dir": str(tmp_path / "out"),
+        "cache_dir": str(tmp_path / "cache"),
+        "seed": 0,
+    }
+    params.update(changes)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    return path
+
+
+@pytest.fixture
+def absent_images(tmp_path) -> Path:
+    """A params file whose pairs name images that are not there: a run that got past the
+    params checks would stop at the images, after creating its folders."""
+    (tmp_path / "images").mkdir()
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    return tmp_path
+
+
+def cli_error(capsys, *argv: str) -> str:
+    """Run the CLI expecting a user error: exit 2 and one line on stderr, no traceback."""
+    capsys.readouterr()
+    assert cli.main(list(argv)) == 2
+    message = capsys.readouterr().err
+    assert "Traceback" not in message and len(message.strip().splitlines()) == 1, message
+    return message
+
+
+def assert_nothing_written(tmp_path: Path) -> None:
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
+
+
+# ----------------------------------------------------------- params in range --
+@pytest.mark.parametrize(
+    "key, value, expected",
+    [
+        ("threshold_px", -1, "threshold_px must be a number of pixels above 0, got -1"),
+        ("threshold_px", 0, "threshold_px must be a number of pixels above 0, got 0"),
+        ("threshold_px", math.nan, "threshold_px must be a number of pixels above 0, got nan"),
+        ("threshold_px", "3", "threshold_px must be a number of pixels above 0, got '3'"),
+        ("confidence", 5, "confidence must be a number between 0 and 1 (both excluded), got 5"),
+        ("confidence", 1, "confidence must be a number between 0 and 1 (both excluded), got 1"),
+        ("confidence", 0.0, "confidence must be a number between 0 and 1 (both excluded), got 0.0"),
+        ("max_iters", 0, "max_iters must be a whole number from 1 to 2147483647, got 0"),
+        ("max_iters", 10.5, "max_iters must be a whole number from 1 to 2147483647, got 10.5"),
+        ("max_iters", 2**31, "max_iters must be a whole number from 1 to 2147483647, got 2147483648"),
+        ("min_matches", -1, "min_matches must be a whole number of at least 0, got -1"),
+        ("resize_to", [0, 288], "resize_to must be [width, height], two whole numbers of at least 1, got [0, 288]"),
+    ],
+)
+def test_verifier_values_out_of_range_are_refused_naming_the_file_and_key(tmp_path, key, value, expected):
+    path = write_params(tmp_path, verifier={key: value})
+    with pytest.raises(config.ParamsError) as error:
+        config.load_params(path)
+    assert str(error.value) == f"{path}: verifier: {expected}"
+
+
+def test_a_negative_seed_is_refused_before_numpy_meets_it(tmp_path):
+    path = write_params(tmp_path, seed=-1)
+    with pytest.raises(config.ParamsError, match=f"{path}: seed must be an integer of at least 0, got -1"):
+        config.load_params(path)
+
+
+def test_a_threshold_of_zero_is_refused_before_any_file_is_written(absent_images, capsys):
+    path = write_params(absent_images, verifier={"threshold_px": 0})
+    message = cli_error(capsys, "run", str(path))
+    assert f"{path}: verifier: threshold_px must be a number of pixels above 0, got 0" in message
+    assert_nothing_written(absent_images)
+
+
+# ------------------------------------------------------- keys given twice --
+def test_a_key_given_twice_is_refused_naming_the_key_and_line(tmp_path):
+    path = write_params(tmp_path)
+    path.write_text(path.read_text() + "seed: 3\n")
+    line = len(path.read_text().splitlines())
+    with pytest.raises(config.ParamsError) as error:
+        config.load_params(path)
+    first = path.read_text().splitlines().index("seed: 0") + 1
+    assert str(error.value).startswith(f"{path}:{line}: key 'seed' is given twice (first on line {first})")
+
+
+def test_a_verifier_key_given_twice_is_refused_too(tmp_path):
+    path = write_params(tmp_path)
+    path.write_text(path.read_text() + "verifier:\n  threshold_px: 1.0\n  threshold_px: 2.0\n")
+    line = len(path.read_text().splitlines())
+    with pytest.raises(config.ParamsError, match=f"{path}:{line}: key 'threshold_px' is given twice"):
+        config.load_params(path)
+
+
+# -------------------------------------------------------------- the device --
+def test_cuda_on_a_torch_without_cuda_is_refused_before_any_work(absent_images, capsys, monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.version, "cuda", None)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    path = write_params(absent_images, device="cuda")
+    message = cli_error(capsys, "run", str(path))
+    assert f"error: {path}: device 'cuda' cannot be used: this torch ({torch.__version__}) is built without CUDA" in (
+        message
+    )
+    assert "set device: auto" in message
+    assert_nothing_written(absent_images)
+
+
+def test_a_cuda_index_beyond_the_visible_devices_is_refused(tmp_path, monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.version, "cuda", "12.1")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    assert config.device_problem("cuda:0") is None
+    assert config.device_problem("cuda:1") == "only 1 CUDA device(s) are visible (cuda:0 to cuda:0)"
+
+
+# ------------------------------------------------ method names, and how fast --
+def answer_in_a_fresh_interpreter(argv: list[str], cwd: Path) -> dict:
+    """``cli.main(argv)`` in a new interpreter: its exit code, stderr and which of the
+    heavy modules it imported."""
+    heavy = ("papermill", "torch", "kornia", "nbclient")
+    code = (
+        "import contextlib, io, json, sys\nfrom gvbench_nb import cli\nerr = io.StringIO()\n"
+        f"with contextlib.redirect_stderr(err):\n    rc = cli.main({argv!r})\n"
+        f"print(json.dumps({{'rc': rc, 'err': err.getvalue(), 'imported': [m for m in {heavy!r} if m in sys.modules]}}))"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", code],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(PROJECT)},
+        timeout=120,
+    )
+    assert done.returncode == 0, done.stderr
+    return json.loads(done.stdout.strip().splitlines()[-1])
+
+
+def test_a_method_typo_is_blamed_on_where_it_came_from_before_heavy_imports(absent_images):
+    path = write_params(absent_images)
+    answer = answer_in_a_fresh_interpreter(["run", str(path), "--methods", "sift-n"], absent_images)
+    assert answer["rc"] == 2
+    assert answer["err"].startswith("error: --methods: unknown method 'sift-n'. Did you mean 'sift-nn'?")
+    assert str(path) not in answer["err"]
+    assert answer["imported"] == []  # neither papermill (seconds) nor a model library
+    path = write_params(absent_images, methods=["orb-n"])
+    answer = answer_in_a_fresh_interpreter(["run", str(path)], absent_images)
+    assert answer["rc"] == 2 and answer["imported"] == []
+    assert answer["err"].startswith(f"error: {path}: unknown method 'orb-n'. Did you mean 'orb-nn'?")
+    assert_nothing_written(absent_images)
+
+
+def test_a_profile_typo_on_the_command_line_is_blamed_on_the_option(absent_images, capsys):
+    message = cli_error(capsys, "run", str(write_params(absent_images)), "--profile", "papr")
+    assert message.startswith("error: --profile: unknown profile 'papr'")
+    assert_nothing_written(absent_images)
+
+
+# ------------------------------------------- a retrieval pair file follows its images --
+FRAMES, DIM = 12, 16
+WORDS = 3.0 * np.random.default_rng(99).normal(size=(4, DIM))
+
+
+def place_descriptors(frame: int, salt: int = 0) -> np.ndarray:
+    """Descriptors of place ``frame`` (VLAD tells places apart by the offsets from 4 shared words)."""
+    place = np.random.default_rng(1000 + frame)
+    words = np.arange(32) % len(WORDS)
+    rows = WORDS[words] + 0.5 * place.normal(size=(len(WORDS), DIM))[words]
+    return (rows + 0.02 * np.random.default_rng([frame, salt]).normal(size=rows.shape)).astype(np.float32)
+
+
+def add_frame(root: Path, cache_dir: Path, folder: str, frame: int, shade: int = 0) -> None:
+    """An image file and its local descriptors in the feature cache (so nothing is extracted)."""
+    (root / folder).mkdir(parents=True, exist_ok=True)
+    name = f"{folder}/Image{frame:03d}.png"
+    cv2.imwrite(str(root / name), np.full((8, 8), (40 * frame + shade) % 255, np.uint8))
+    options = builders.parse_options({"query_folder": "night", "reference_folders": ["day"]})
+    store = pipeline.feature_store(cache_dir, builders.local_feature_conf(options, "repository"))
+    descriptors = place_descriptors(frame, shade)
+    with store.writer() as writer:
+        writer.put(
+            pipeline.image_key(root, name),
+            {
+                "keypoints": np.zeros((len(descriptors), 2), np.float32),
+                "scores": np.ones(len(descriptors), np.float32),
+                "descriptors": descriptors,
+                "image_size": np.array([8, 8]),
+            },
+            {"seconds": 0.0},
+        )
+
+
+def retrieval_params(tmp_path: Path) -> Path:
+    options = {
+        "query_folder": "night",
+        "reference_folders": ["day"],
+        "descriptor": "vlad",
+        "descriptor_options": {"vlad": {"num_words": 4}},
+        "top_n": 3,
+        "label_rule": "frame_tolerance",
+        "label_params": {"k": 1},
+    }
+    return write_params(
+        tmp_path,
+        pairs_builder="retrieval",
+        builder_options=options,
+        profile="repository",
+        pairs=str(tmp_path / "p.txt"),
+    )
+
+
+@pytest.fixture
+def retrieval_sequence(tmp_path, monkeypatch):
+    """12 + 12 frames; ``prepare()`` prepares the sequence, ``builds`` counts the builds."""
+    for folder in ("night", "day"):
+        for frame in range(FRAMES):
+            add_frame(tmp_path / "images", tmp_path / "cache", folder, frame)
+    builds = []
+    build = config.PAIR_BUILDERS["retrieval"]
+    monkeypatch.setitem(config.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
+    path = retrieval_params(tmp_path)
+
+    def prepare() -> Sequence:
+        return config.prepare_sequence(config.load_params(path))
+
+    return prepare, builds
+
+
+def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_added(retrieval_sequence, tmp_path):
+    prepare, builds = retrieval_sequence
+    assert len(prepare().pairs) == 3 * FRAMES and len(builds) == 1
+    assert len(prepare().pairs) == 3 * FRAMES and len(builds) == 1  # unchanged: not rebuilt
+    for folder in ("night", "day"):
+        add_frame(tmp_path / "images", tmp_path / "cache", folder, FRAMES)
+    pairs = prepare().pairs
+    assert len(builds) == 2 and len(pairs) == 3 * (FRAMES + 1)
+    assert any(p.query == f"night/Image{FRAMES:03d}.png" for p in pairs)
+    assert any(p.reference == f"day/Image{FRAMES:03d}.png" for p in pairs)
+
+
+def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_replaced(retrieval_sequence, tmp_path):
+    prepare, builds = retrieval_sequence
+    prepare()
+    image = tmp_path / "images" / "day" / "Image005.png"
+    before = image.stat()
+    add_frame(tmp_path / "images", tmp_path / "cache", "day", 5, shade=1)  # other bytes, same name
+    os.utime(image, ns=(before.st_atime_ns, before.st_mtime_ns + 1))  # even with a near-identical mtime
+    prepare()
+    assert len(builds) == 2
+    prepare()
+    assert len(builds) == 2
+
+
+# ------------------------------------------------------------- path kinds --
+def _broken_link(root: Path) -> None:
+    (root / "reference" / "b.png").unlink()
+    (root / "reference" / "b.png").symlink_to(root / "nowhere.png")
+
+
+def _link_loop(root: Path) -> None:
+    (root / "reference" / "b.png").unlink()
+    (root / "reference" / "b.png").symlink_to(root / "reference" / "c.png")
+    (root / "reference" / "c.png").symlink_to(root / "reference" / "b.png")
+
+
+def _folder(root: Path) -> None:
+    (root / "reference" / "b.png").unlink()
+    (root / "reference" / "b.png").mkdir()
+
+
+def _fifo(root: Path) -> None:
+    (root / "reference" / "b.png").unlink()
+    os.mkfifo(root / "reference" / "b.png")
+
+
+PATH_KINDS = [
+    (_broken_link, "which is a broken symbolic link (to {root}/nowhere.png, which does not exist)"),
+    (_link_loop, "which is a symbolic link loop"),
+    (_folder, "which is a folder, not a file"),
+    (_fifo, "which is a FIFO (named pipe), not a file"),
+]
+
+
+@pytest.mark.parametrize("make, expected", PATH_KINDS, ids=["broken-link", "link-loop", "folder", "fifo"])
+def test_an_image_path_is_named_as_what_it_is(tmp_path, make, expected):
+    root = write_photos(tmp_path / "images")
+    make(root)
+    sequence = Sequence("s", root, PAIRS, origin={"pairs_file": "pairs.txt"})
+    with pytest.raises(MissingImagesError) as error:
+        sequence.check_images()
+    assert str(error.value).startswith(
+        f"1 of 4 images of sequence 's' cannot be read under {root}, first reference/b.png, "
+        + expected.format(root=root)
+    )
+    assert "(pair 1: query/a.png reference/b.png, pairs.txt)" in str(error.value)
+    with pytest.raises(ImageReadError, match=expected.split(" (")[0].removeprefix("which ")):
+        read_image(root / "reference" / "b.png")  # never opened: a FIFO would block
+
+
+@pytest.mark.parametrize("make, expected", PATH_KINDS[2:], ids=["folder", "fifo"])
+def test_a_run_naming_a_folder_or_fifo_stops_before_any_work(tmp_path, capsys, make, expected):
+    root = write_photos(tmp_path / "images")
+    make(root)
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    message = cli_error(capsys, "run", str(write_params(tmp_path)))
+    assert expected in message and "reference/b.png" in message
+    assert_nothing_written(tmp_path)
+
+
+def test_a_nul_byte_in_a_pair_file_is_named_with_file_and_line(tmp_path):
+    path = tmp_path / "pairs.txt"
+    path.write_bytes(b"query/a.png reference/a.png 1\nquery/a\x00.png reference/b.png 0\n")
+    with pytest.raises(PairFileError, match=f"{path}:2: path 'query/a\\\\x00.png' holds a NUL byte"):
+        read_pairs(path)
+
+
+def test_a_pair_file_that_is_a_fifo_is_named_so(tmp_path):
+    os.mkfifo(tmp_path / "pairs.txt")
+    with pytest.raises(PairFileError, match=r"pair file .*pairs.txt is a FIFO \(named pipe\), not a file"):
+        read_pairs(tmp_path / "pairs.txt")
+
+
+# --------------------------------------------------------------- faults --
+def command(argv: list[str], cwd: Path, limit_kb: int | None = None) -> subprocess.CompletedProcess:
+    """``python -m gvbench_nb ARGV`` in a subprocess, under ``ulimit -f limit_kb`` when given
+    (files above it cannot be written: Python gets EFBIG, as on a full disk)."""
+    line = " ".join([sys.executable, "-m", "gvbench_nb", *argv])
+    script = f"ulimit -f {limit_kb}; exec {line}" if limit_kb else f"exec {line}"
+    environment = {**os.environ, "PYTHONPATH": str(PROJECT), "GVBENCH_THREADS": "1"}
+    return subprocess.run(["bash", "-c", script], capture_output=True, text=True, cwd=cwd, env=environment, timeout=300)
+
+
+def error_lines(stderr: str) -> list[str]:
+    """The error lines of stderr, each from its ``error:`` (a progress bar may end without a newline)."""
+    lines = stderr.replace("\r", "\n").splitlines()
+    return [line[line.index("error:") :] if "error:" in line else line for line in lines if "error" in line.lower()]
+
+
+@pytest.mark.slow
+def test_a_full_disk_is_one_sentence_naming_the_file_and_a_rerun_recovers(tmp_path):
+    # 4 photos of 1024x768: a feature shard of about 1.2 MB, above the 1000 KB limit.
+    write_photos(tmp_path / "images", size=(1024, 768))
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    params = str(write_params(tmp_path))
+    full = command(["run", params, "--shard", "0/1"], tmp_path, limit_kb=1000)
+    assert full.returncode == 2, full.stderr[-3000:]
+    assert "Traceback" not in full.stderr and "HDF5" not in full.stderr
+    [line] = error_lines(full.stderr)
+    store = tmp_path / "cache" / "features"
+    assert line.startswith(f"error: cannot write the shard {store}/") and "(File too large," in line
+    assert [p.name for p in store.rglob("*") if p.is_file()] == []  # nothing half-written stays
+    rerun = command(["run", params, "--shard", "0/1"], tmp_path)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert len(list(store.rglob("*.h5"))) == 1
+
+
+@pytest.mark.slow
+def test_a_full_disk_while_a_notebook_is_written_names_the_notebook(tmp_path):
+    write_photos(tmp_path / "images", size=(1024, 768))
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    full = command(["run", str(write_params(tmp_path))], tmp_path, limit_kb=1000)
+    assert full.returncode == 2, full.stderr[-3000:]
+    assert "Traceback" not in full.stderr
+    [line] = error_lines(full.stderr)
+    assert line.startswith(f"error: cannot write {tmp_path / 'out'}/") and "(File too large)" in line, line
+
+
+@pytest.mark.slow
+def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_path):
+    write_photos(tmp_path / "images")
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    params = str(write_params(tmp_path))
+    environment = {**os.environ, "PYTHONPATH": str(PROJECT), "GVBENCH_THREADS": "1"}
+    process = subprocess.Popen(
+        [sys.executable, "-m", "gvbench_nb", "run", params],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=tmp_path,
+        env=environment,
+    )
+    import psutil
+
+    try:
+        assert process.stdout is not None
+        while "executing 01_sequence" not in (line := process.stdout.readline()):  # work has started
+            assert line, process.stderr.read() if process.stderr else ""
+        time.sleep(0.5)
+        kernels = psutil.Process(process.pid).children(recursive=True)
+        process.send_signal(signal.SIGINT)
+        _, stderr = process.communicate(timeout=60)
+    finally:
+        if process.poll() is None:
+            process.kill()
+    assert process.returncode == 130
+    assert "Traceback" not in stderr and "KeyboardInterrupt" not in stderr
+    [line] = [line for line in stderr.splitlines() if "interrupted" in line]
+    assert line == (
+        "interrupted; what was finished is kept: run the same command to resume: "
+        f"{Path(sys.executable).name} -m gvbench_nb run {params}"
+    )
+    psutil.wait_procs(kernels, timeout=10)
+    assert not [k for k in kernels if k.is_running() and k.status() != psutil.STATUS_ZOMBIE]
+    rerun = command(["run", params], tmp_path)
+    assert rerun.returncode == 0, rerun.stderr[-3000:]
+    assert "results table:" in rerun.stdout
+
+
+def test_frame_tolerance_options_are_checked_before_any_work(absent_images, capsys):
+    for folder in ("night", "day"):
+        (absent_images / "images" / folder).mkdir()
+    options = {"query_folder": "night", "reference_folder": "day", "tolerence": 2}
+    path = write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options)
+    message = cli_error(capsys, "run", str(path))
+    assert f"{path}: builder_options: unknown option(s) 'tolerence' (did you mean 'tolerance'?)" in message
+    options = {"query_folder": "night", "reference_folder": "dya"}
+    message = cli_error(
+        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
+    )
+    assert f"image folder {absent_images / 'images' / 'dya'} not found" in message
+    (absent_images / "images" / "night" / "Image001.png").symlink_to(absent_images / "gone.png")
+    options = {"query_folder": "night", "reference_folder": "day"}
+    (absent_images / "images" / "day" / "Image001.png").write_bytes(b"")
+    message = cli_error(
+        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
+    )
+    assert "first night/Image001.png, which is a broken symbolic link" in message
+    assert_nothing_written(absent_images)
+
+
+def test_a_nul_byte_in_a_params_path_is_refused_naming_the_key(tmp_path):
+    path = write_params(tmp_path, output_dir="out\0put")
+    with pytest.raises(config.ParamsError, match=f"{path}: output_dir holds a NUL byte"):
+        config.load_params(path)

@@ -167,8 +167,15 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     grey (its OpenCV and LoFTR matchers convert after resizing), min-max stretched to 0-255
     where its OpenCV matchers do, and resized again when the model resizes its input
     (LightGlue's extractors: longest side ``model_input_long_side``, also enlarging).
-    Rounded to 8 bits once, at the end. Returns the image and the original (width, height)."""
+    Made 8-bit once, at the end: rounded, or truncated where the conf's ``uint8`` says
+    ``truncate`` (the fork's OpenCV matchers: ``astype("uint8")`` of the stretched image).
+    Returns the image and the original (width, height)."""
+    stretched = conf.get("normalize_minmax", False)
     rgb = read_image(path, grayscale=False).astype(np.float32)
+    if stretched:
+        # The stretch's input as the fork has it, torchvision's ToTensor (x / 255 in float32):
+        # the grey conversion and min-max scaling then round as there, which truncation exposes.
+        rgb /= np.float32(255.0)
     height, width = rgb.shape[:2]
     fixed = conf.get("resize_to")
     size = (
@@ -179,7 +186,7 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     image = resize_bilinear_antialias(rgb, size)
     if conf.get("grayscale", False):
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    if conf.get("normalize_minmax", False):
+    if stretched:
         # OpenCV's stubs omit that dst may be None (a new array of src's type).
         image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)  # type: ignore[call-overload]
     long_side = conf.get("model_input_long_side")
@@ -190,7 +197,10 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     if multiple_of:
         h, w = image.shape[:2]
         image = resize_bilinear_antialias(image, (w // multiple_of * multiple_of, h // multiple_of * multiple_of))
-    return np.clip(np.round(image), 0, 255).astype(np.uint8), (width, height)
+    conversion = conf.get("uint8", "round")
+    registry.check_choice("uint8", conversion, ("round", "truncate"), f"the conf of {conf.get('name', '?')!r}")
+    image = np.clip(image, 0, 255)
+    return (np.floor(image) if conversion == "truncate" else np.round(image)).astype(np.uint8), (width, height)
 
 
 def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:

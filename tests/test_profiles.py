@@ -208,6 +208,27 @@ def test_repository_opencv_image_is_truncated_as_the_fork_makes_it(tmp_path):
         np.testing.assert_array_equal(ours, theirs.astype(np.float32))
 
 
+def test_exif_orientation_is_applied_as_hloc_reads_and_ignored_as_pil_loads(tmp_path):
+    """hloc reads with cv2.imread (IMREAD_GRAYSCALE / IMREAD_COLOR), which turns the image by
+    its EXIF orientation; the repository's PIL ``Image.open().convert("RGB")`` does not."""
+    rgb = np.zeros((40, 80, 3), np.uint8)
+    rgb[:, :10] = 255
+    picture = Image.fromarray(rgb)
+    exif = picture.getexif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise to display
+    path = tmp_path / "turned.jpg"
+    picture.save(path, "JPEG", exif=exif.tobytes())
+    paper = methods.resolve_method("sift-nn", "paper")["extractor"]
+    image, _ = images.load_for_extraction(path, paper)
+    np.testing.assert_array_equal(image, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.float32))
+    assert image.shape == (80, 40)
+    repository = methods.resolve_method("orb-nn", "repository")["extractor"]
+    _, scale = images.load_for_extraction(path, repository)
+    with Image.open(path) as loaded:
+        assert loaded.convert("RGB").size == (80, 40)  # PIL: width 80, as stored
+    np.testing.assert_allclose(scale, [80 / 512, 40 / 288], rtol=1e-6)
+
+
 def opencv_knn_ratio(descriptors0: np.ndarray, descriptors1: np.ndarray, norm: int) -> list[tuple[int, int]]:
     """The fork's handcrafted matcher rule: BFMatcher(norm).knnMatch(k=2), kept when
     m.distance < 0.75 * n.distance."""

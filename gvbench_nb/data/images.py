@@ -62,11 +62,14 @@ def check_pixel_bound(path: str | os.PathLike[str]) -> None:
         )
 
 
-def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
+def read_image(path: str | os.PathLike[str], grayscale: bool = False, exif_orientation: bool = False) -> np.ndarray:
     """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
 
     16-bit, RGBA, palette and grayscale files are converted rather than rejected;
     missing, empty and undecodable files raise ``ImageReadError`` naming the file.
+    ``exif_orientation``: turn the image as its EXIF orientation tag says, as hloc's
+    ``cv2.imread`` does; PIL's ``Image.open().convert("RGB")`` (the GV-Bench repository's
+    loader) does not, nor does this function by default.
     """
     path = Path(path)
     if not path.is_file():
@@ -83,13 +86,14 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     # (tests/test_reliability.py checks it); the first bytes show what the file really is.
     # Grayscale is decoded as grayscale (hloc's cv2.IMREAD_GRAYSCALE: a JPEG's luma as
     # libjpeg computes it, which a cvtColor of the colour image misses by up to 2 levels);
-    # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. Neither mode applies
-    # EXIF orientation, as hloc ignores it.
-    flags = (
-        cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION
-        if grayscale
-        else cv2.IMREAD_UNCHANGED
-    )
+    # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. OpenCV turns the image by
+    # its EXIF orientation unless told not to; IMREAD_UNCHANGED never does.
+    if grayscale:
+        flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH
+        if not exif_orientation:
+            flags |= cv2.IMREAD_IGNORE_ORIENTATION
+    else:
+        flags = cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH if exif_orientation else cv2.IMREAD_UNCHANGED
     image = cv2.imdecode(data, flags)
     if image is None or image.size == 0:
         raise ImageReadError(
@@ -217,7 +221,8 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
         resized = resized8.astype(np.float32)
         size = resized.shape[1::-1]
     elif interpolation == "area_or_linear":
-        image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
+        # hloc's read_image (cv2.imread) applies EXIF orientation.
+        image = read_image(path, grayscale=conf.get("grayscale", False), exif_orientation=True).astype(np.float32)
         height, width = image.shape[:2]
         size = target_size(
             width,

@@ -143,6 +143,8 @@ MATCHERS: dict[str, dict[str, Any]] = {
     # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
     "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
     # Dense: matches an image pair directly; its image preparation lives in the matcher conf.
+    # multiple_of_resize: match_dense's ImagePairDataset shrinks (INTER_AREA), then floors each
+    # side to the multiple in a second, bilinear resize.
     # merge_*: hloc's match_dense conf `loftr` (1-px cells, 1 px max error) with its default
     # cap of 8192 keypoints an image (matchers.merge_dense_matches).
     "loftr-outdoor": {
@@ -153,6 +155,7 @@ MATCHERS: dict[str, dict[str, Any]] = {
         "resize_max": 1024,
         "resize_force": False,
         "multiple_of": 8,
+        "multiple_of_resize": "bilinear",
         "coarse_threshold": 0.2,
         "merge_cell_size": 1,
         "merge_max_error": 1,

@@ -229,6 +229,27 @@ def test_exif_orientation_is_applied_as_hloc_reads_and_ignored_as_pil_loads(tmp_
     np.testing.assert_allclose(scale, [80 / 512, 40 / 288], rtol=1e-6)
 
 
+@pytest.mark.parametrize(("width", "height", "shrunk"), [(960, 540, (960, 540)), (1100, 700, (1024, 652))])
+def test_paper_loftr_input_floors_to_eight_in_a_second_bilinear_resize(tmp_path, width, height, shrunk):
+    """hloc's match_dense: INTER_AREA only when shrinking to 1024, then each side floored to a
+    multiple of 8 by torchvision's bilinear resize of the [0, 1] tensor (PIL's BILINEAR is the
+    same algorithm, the independent reference here), not one resize to the floored size."""
+    rng = np.random.default_rng(4)
+    grey = (rng.random((height, width)) * 255).astype(np.uint8)
+    path = tmp_path / "frame.png"
+    Image.fromarray(grey).save(path)
+    conf = methods.resolve_method("loftr", "paper")["matcher"]
+    first = grey.astype(np.float32)
+    if shrunk != (width, height):
+        first = cv2.resize(first, shrunk, interpolation=cv2.INTER_AREA)
+    floored = (shrunk[0] // 8 * 8, shrunk[1] // 8 * 8)
+    second = Image.fromarray(first / np.float32(255.0), mode="F").resize(floored, Image.BILINEAR)
+    ours, scale = images.load_for_extraction(path, conf)
+    assert ours.shape == (floored[1], floored[0])
+    np.testing.assert_allclose(ours, np.asarray(second) * 255, atol=0.02)  # PIL and torch round apart
+    np.testing.assert_allclose(scale, [width / floored[0], height / floored[1]], rtol=1e-6)
+
+
 def opencv_knn_ratio(descriptors0: np.ndarray, descriptors1: np.ndarray, norm: int) -> list[tuple[int, int]]:
     """The fork's handcrafted matcher rule: BFMatcher(norm).knnMatch(k=2), kept when
     m.distance < 0.75 * n.distance."""

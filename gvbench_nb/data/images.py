@@ -224,15 +224,24 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
         # hloc's read_image (cv2.imread) applies EXIF orientation.
         image = read_image(path, grayscale=conf.get("grayscale", False), exif_orientation=True).astype(np.float32)
         height, width = image.shape[:2]
+        # "bilinear": hloc's match_dense floors each side to the multiple in a second resize
+        # (torchvision's bilinear resize of the [0, 1] tensor) after the INTER_AREA shrink;
+        # otherwise the floored size is reached in the one resize.
+        floor_separately = conf.get("multiple_of_resize") == "bilinear" and conf.get("multiple_of")
         size = target_size(
             width,
             height,
             conf.get("resize_max"),
             conf.get("resize_force", False),
-            conf.get("multiple_of"),
+            None if floor_separately else conf.get("multiple_of"),
             conf.get("resize_to"),
         )
         resized = resize_image(image, size)
+        if floor_separately:
+            multiple = int(conf["multiple_of"])
+            size = (size[0] // multiple * multiple, size[1] // multiple * multiple)
+            unit = resize_bilinear_antialias(resized / np.float32(255.0), size)
+            resized = unit * np.float32(255.0)
     else:
         registry.check_choice(
             "interpolation",

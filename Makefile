@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
 DATA_MIRROR := ../shared/data
 
-.PHONY: setup demo test test-fast lint notebooks clean setup-imm lab
+.PHONY: setup demo test test-fast test-reference lint notebooks clean setup-imm lab
 
 setup: $(STAMP)
 
@@ -57,6 +57,12 @@ test: setup
 # The fast tier: every test not marked slow (no notebook execution), under a minute.
 test-fast: setup
 	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q -m "not slow" tests
+
+# The reference tier: Magic Leap's SuperPoint and SuperGlue, cvg's LightGlue and
+# image-matching-models' OpenCV matchers run beside ours (tests/test_reference_parity.py); it
+# needs the opt-in venv above, and skips elsewhere.
+test-reference: setup-imm
+	GVBENCH_DATA=$(TEST_DATA) $(IMM_VENV)/bin/python -m pytest -m reference tests
 
 # Lint and format check (ruff) on the package, tests, benchmarks and the notebooks' cells; types (mypy).
 lint: setup

@@ -144,6 +144,8 @@ MATCHERS: dict[str, dict[str, Any]] = {
     # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
     "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
     # Dense: matches an image pair directly; its image preparation lives in the matcher conf.
+    # multiple_of_resize: match_dense's ImagePairDataset shrinks (INTER_AREA), then floors each
+    # side to the multiple in a second, bilinear resize.
     # merge_*: hloc's match_dense conf `loftr` (1-px cells, 1 px max error) with its default
     # cap of 8192 keypoints an image (matchers.merge_dense_matches).
     "loftr-outdoor": {
@@ -154,6 +156,7 @@ MATCHERS: dict[str, dict[str, Any]] = {
         "resize_max": 1024,
         "resize_force": False,
         "multiple_of": 8,
+        "multiple_of_resize": "bilinear",
         "coarse_threshold": 0.2,
         "merge_cell_size": 1,
         "merge_max_error": 1,
@@ -216,6 +219,7 @@ _REPOSITORY_SIFT = {
     "peak_threshold": 0.04 / 3,
     "root_sift": False,
     "normalize_minmax": True,
+    "uint8": "truncate",
 }
 # LightGlue's extractors (cvg/lightglue, which the fork calls) resize their input again,
 # longest side to 1024 (so 512x288 runs at 1024x576), and map keypoints back.
@@ -230,7 +234,7 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
     "repository": {
         "sift": {**_REPOSITORY_SIFT, "type": "opencv_sift"},
         "opencv_sift": _REPOSITORY_SIFT,
-        "orb": {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "normalize_minmax": True},
+        "orb": {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "normalize_minmax": True, "uint8": "truncate"},
         "disk": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
         # LightGlue's SuperPoint defaults: NMS 4, detection threshold 0.0005, borders 4.
         "superpoint": {
@@ -246,10 +250,11 @@ PROFILES: dict[str, dict[str, dict[str, Any]]] = {
         "xfeat": {**_REPOSITORY_IMAGE, "max_keypoints": 2048},
         # The fork's LoFTR verifies each pair's raw matches: no merging across pairs.
         "loftr": {**{k: v for k, v in _REPOSITORY_IMAGE.items() if k != "store_float16"}, "merge_max_keypoints": None},
-        # The fork's sift-nn / orb-nn: OpenCV BFMatcher k=2, Lowe ratio 0.75, no mutual check
-        # (disk-nn, which the repository does not run, shares sift-nn's matcher conf).
-        "nn-ratio": {"ratio_threshold": 0.75, "mutual": False},
-        "nn-hamming": {"ratio_threshold": 0.75, "mutual": False},
+        # The fork's sift-nn / orb-nn: OpenCV BFMatcher k=2 on the raw descriptors, kept when
+        # m.distance < 0.75 n.distance (strict), no mutual check (disk-nn, which the repository
+        # does not run, shares sift-nn's matcher conf).
+        "nn-ratio": {"ratio_threshold": 0.75, "mutual": False, "rule": "knn_ratio"},
+        "nn-hamming": {"ratio_threshold": 0.75, "mutual": False, "rule": "knn_ratio"},
         # The fork's LightGlue runs without adaptive depth or width (both -1); its xfeat-lg
         # is XFeat's own LighterGlue call, with that model's settings.
         **{

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 
+import cv2
 import numpy as np
 import pytest
 from PIL import Image
@@ -181,14 +182,130 @@ def test_repository_image_chain_sizes_and_scale(tmp_path):
     Image.fromarray((rng.random((960, 1280, 3)) * 255).astype(np.uint8)).save(path)
     sift = methods.resolve_method("sift-nn", "repository")["extractor"]
     image, scale = images.load_for_extraction(path, sift)
-    # Rounded to 8 bits once, at the end of the chain, and handed on as float32 like every image.
+    # Made 8-bit once, at the end of the chain, and handed on as float32 like every image.
     assert image.shape == (288, 512) and image.dtype == np.float32 and np.array_equal(image, np.round(image))
-    assert (image.min(), image.max()) == (0, 255)  # min-max stretched, as the fork's OpenCV matchers do
+    # Min-max stretched, as the fork's OpenCV matchers do; its truncation can take the top to 254.
+    assert image.min() == 0 and image.max() >= 254
     np.testing.assert_allclose(scale, [1280 / 512, 960 / 288], rtol=1e-6)
     disk = methods.resolve_method("disk-lg", "repository")["extractor"]
     image, scale = images.load_for_extraction(path, disk)
     assert image.shape == (576, 1024, 3)  # 512x288, then LightGlue's extractor input at 1024 on the long side
     np.testing.assert_allclose(scale, [1280 / 1024, 960 / 576], rtol=1e-6)
+
+
+def test_repository_opencv_image_is_truncated_as_the_fork_makes_it(tmp_path):
+    """The fork's OpenCV matchers take ToTensor's x / 255, grey it with cvtColor, stretch it
+    with cv2.normalize(NORM_MINMAX) and make it 8-bit with astype("uint8"): truncation. At
+    512x288 no resize runs, so the steps are the published ones, written out here."""
+    rng = np.random.default_rng(1)
+    rgb = (rng.random((288, 512, 3)) * 255).astype(np.uint8)
+    path = tmp_path / "frame.png"
+    Image.fromarray(rgb).save(path)
+    grey = cv2.cvtColor(rgb.astype(np.float32) / np.float32(255.0), cv2.COLOR_RGB2GRAY)
+    theirs = cv2.normalize(grey, None, 0, 255, cv2.NORM_MINMAX).astype("uint8")
+    for method in ("orb-nn", "sift-nn"):
+        ours, _ = images.load_for_extraction(path, methods.resolve_method(method, "repository")["extractor"])
+        np.testing.assert_array_equal(ours, theirs.astype(np.float32))
+
+
+def test_exif_orientation_is_applied_as_hloc_reads_and_ignored_as_pil_loads(tmp_path):
+    """hloc reads with cv2.imread (IMREAD_GRAYSCALE / IMREAD_COLOR), which turns the image by
+    its EXIF orientation; the repository's PIL ``Image.open().convert("RGB")`` does not."""
+    rgb = np.zeros((40, 80, 3), np.uint8)
+    rgb[:, :10] = 255
+    picture = Image.fromarray(rgb)
+    exif = picture.getexif()
+    exif[0x0112] = 6  # rotate 90 degrees clockwise to display
+    path = tmp_path / "turned.jpg"
+    picture.save(path, "JPEG", exif=exif.tobytes())
+    paper = methods.resolve_method("sift-nn", "paper")["extractor"]
+    image, _ = images.load_for_extraction(path, paper)
+    np.testing.assert_array_equal(image, cv2.imread(str(path), cv2.IMREAD_GRAYSCALE).astype(np.float32))
+    assert image.shape == (80, 40)
+    repository = methods.resolve_method("orb-nn", "repository")["extractor"]
+    _, scale = images.load_for_extraction(path, repository)
+    with Image.open(path) as loaded:
+        assert loaded.convert("RGB").size == (80, 40)  # PIL: width 80, as stored
+    np.testing.assert_allclose(scale, [80 / 512, 40 / 288], rtol=1e-6)
+
+
+@pytest.mark.parametrize(("width", "height", "shrunk"), [(960, 540, (960, 540)), (1100, 700, (1024, 652))])
+def test_paper_loftr_input_floors_to_eight_in_a_second_bilinear_resize(tmp_path, width, height, shrunk):
+    """hloc's match_dense: INTER_AREA only when shrinking to 1024, then each side floored to a
+    multiple of 8 by torchvision's bilinear resize of the [0, 1] tensor (PIL's BILINEAR is the
+    same algorithm, the independent reference here), not one resize to the floored size."""
+    rng = np.random.default_rng(4)
+    grey = (rng.random((height, width)) * 255).astype(np.uint8)
+    path = tmp_path / "frame.png"
+    Image.fromarray(grey).save(path)
+    conf = methods.resolve_method("loftr", "paper")["matcher"]
+    first = grey.astype(np.float32)
+    if shrunk != (width, height):
+        first = cv2.resize(first, shrunk, interpolation=cv2.INTER_AREA)
+    floored = (shrunk[0] // 8 * 8, shrunk[1] // 8 * 8)
+    second = Image.fromarray(first / np.float32(255.0), mode="F").resize(floored, Image.BILINEAR)
+    ours, scale = images.load_for_extraction(path, conf)
+    assert ours.shape == (floored[1], floored[0])
+    np.testing.assert_allclose(ours, np.asarray(second) * 255, atol=0.02)  # PIL and torch round apart
+    np.testing.assert_allclose(scale, [width / floored[0], height / floored[1]], rtol=1e-6)
+
+
+def opencv_knn_ratio(descriptors0: np.ndarray, descriptors1: np.ndarray, norm: int) -> list[tuple[int, int]]:
+    """The fork's handcrafted matcher rule: BFMatcher(norm).knnMatch(k=2), kept when
+    m.distance < 0.75 * n.distance."""
+    pairs = cv2.BFMatcher(norm).knnMatch(descriptors0, descriptors1, k=2)
+    return [(m.queryIdx, m.trainIdx) for m, n in pairs if m.distance < 0.75 * n.distance]
+
+
+def repository_matches(method: str, descriptors0: np.ndarray, descriptors1: np.ndarray) -> list[tuple[int, int]]:
+    from gvbench_nb.matching import build_matcher
+
+    matcher = build_matcher(methods.resolve_method(method, "repository")["matcher"], "cpu")
+    features = [
+        {"keypoints": np.zeros((len(d), 2), np.float32), "descriptors": d} for d in (descriptors0, descriptors1)
+    ]
+    matches, _ = matcher(*features)
+    return [tuple(int(i) for i in row) for row in matches]
+
+
+def test_repository_orb_ratio_test_is_strict_on_hamming_bits():
+    """Integer Hamming distances reach the ratio exactly: 3 bits against 4 is not < 0.75 x 4,
+    so the fork drops it (hloc's <= would keep it); 2 against 4 passes."""
+    query = np.zeros((2, 32), np.uint8)
+    query[1, 31] = 0xFF  # the second query: 8 bits from the first
+    train = np.zeros((4, 32), np.uint8)
+    train[0, 0] = 0b111  # 3 bits from query 0
+    train[1, 0] = 0b1111  # 4 bits from query 0
+    train[2, 31], train[2, 0] = 0xFF, 0b11  # 2 bits from query 1
+    train[3, 31], train[3, 0] = 0xFF, 0b1111  # 4 bits from query 1
+    expected = opencv_knn_ratio(query, train, cv2.NORM_HAMMING)
+    assert expected == [(1, 2)]
+    assert repository_matches("orb-nn", query, train) == expected
+    rng = np.random.default_rng(2)
+    random0, random1 = (rng.integers(0, 256, (n, 32), dtype=np.uint8) for n in (300, 280))
+    random1[:100] = random0[:100] ^ (rng.random((100, 32)) < 0.05).astype(np.uint8)  # near copies
+    assert repository_matches("orb-nn", random0, random1) == opencv_knn_ratio(random0, random1, cv2.NORM_HAMMING)
+
+
+def test_repository_sift_matches_raw_descriptors_by_opencv_l2():
+    """The fork's BFMatcher compares raw SIFT descriptors: the nearest by L2 distance, which
+    is not the nearest direction when norms differ (normalising first picks train 0 here)."""
+    query = np.zeros((1, 128), np.float32)
+    query[0, 0] = 10
+    train = np.zeros((2, 128), np.float32)
+    train[0, 0] = 20  # same direction, 10 away
+    train[1, 0], train[1, 1] = 10, 3  # another direction, 3 away
+    expected = opencv_knn_ratio(query, train, cv2.NORM_L2)
+    assert expected == [(0, 1)]
+    assert repository_matches("sift-nn", query, train) == expected
+    rng = np.random.default_rng(3)
+    # Whole numbers up to 255 with uneven norms, as OpenCV's SIFT descriptors are.
+    random0 = np.floor(rng.random((300, 128)) ** 3 * 256).astype(np.float32)
+    random1 = np.clip(random0[rng.permutation(300)[:250]] + rng.integers(-20, 21, (250, 128)), 0, 255)
+    random1 = random1.astype(np.float32)
+    expected = opencv_knn_ratio(random0, random1, cv2.NORM_L2)
+    assert len(expected) > 50
+    assert repository_matches("sift-nn", random0, random1) == expected
 
 
 def test_a_run_of_another_profile_says_it_replaces_the_folders_results(tmp_path):

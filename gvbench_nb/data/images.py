@@ -63,11 +63,14 @@ def check_pixel_bound(path: str | os.PathLike[str]) -> None:
         )
 
 
-def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndarray:
+def read_image(path: str | os.PathLike[str], grayscale: bool = False, exif_orientation: bool = False) -> np.ndarray:
     """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
 
     16-bit, RGBA, palette and grayscale files are converted rather than rejected;
     missing, empty and undecodable files raise ``ImageReadError`` naming the file.
+    ``exif_orientation``: turn the image as its EXIF orientation tag says, as hloc's
+    ``cv2.imread`` does; PIL's ``Image.open().convert("RGB")`` (the GV-Bench repository's
+    loader) does not, nor does this function by default.
     """
     path = Path(path)
     problem = path_problem(path)
@@ -86,13 +89,14 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False) -> np.ndar
     # (tests/test_reliability.py checks it); the first bytes show what the file really is.
     # Grayscale is decoded as grayscale (hloc's cv2.IMREAD_GRAYSCALE: a JPEG's luma as
     # libjpeg computes it, which a cvtColor of the colour image misses by up to 2 levels);
-    # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. Neither mode applies
-    # EXIF orientation, as hloc ignores it.
-    flags = (
-        cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH | cv2.IMREAD_IGNORE_ORIENTATION
-        if grayscale
-        else cv2.IMREAD_UNCHANGED
-    )
+    # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. OpenCV turns the image by
+    # its EXIF orientation unless told not to; IMREAD_UNCHANGED never does.
+    if grayscale:
+        flags = cv2.IMREAD_GRAYSCALE | cv2.IMREAD_ANYDEPTH
+        if not exif_orientation:
+            flags |= cv2.IMREAD_IGNORE_ORIENTATION
+    else:
+        flags = cv2.IMREAD_COLOR | cv2.IMREAD_ANYDEPTH if exif_orientation else cv2.IMREAD_UNCHANGED
     image = cv2.imdecode(data, flags)
     if image is None or image.size == 0:
         raise ImageReadError(
@@ -170,8 +174,15 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     grey (its OpenCV and LoFTR matchers convert after resizing), min-max stretched to 0-255
     where its OpenCV matchers do, and resized again when the model resizes its input
     (LightGlue's extractors: longest side ``model_input_long_side``, also enlarging).
-    Rounded to 8 bits once, at the end. Returns the image and the original (width, height)."""
+    Made 8-bit once, at the end: rounded, or truncated where the conf's ``uint8`` says
+    ``truncate`` (the fork's OpenCV matchers: ``astype("uint8")`` of the stretched image).
+    Returns the image and the original (width, height)."""
+    stretched = conf.get("normalize_minmax", False)
     rgb = read_image(path, grayscale=False).astype(np.float32)
+    if stretched:
+        # The stretch's input as the fork has it, torchvision's ToTensor (x / 255 in float32):
+        # the grey conversion and min-max scaling then round as there, which truncation exposes.
+        rgb /= np.float32(255.0)
     height, width = rgb.shape[:2]
     fixed = conf.get("resize_to")
     size = (
@@ -182,7 +193,7 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     image = resize_bilinear_antialias(rgb, size)
     if conf.get("grayscale", False):
         image = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
-    if conf.get("normalize_minmax", False):
+    if stretched:
         # OpenCV's stubs omit that dst may be None (a new array of src's type).
         image = cv2.normalize(image, None, 0, 255, cv2.NORM_MINMAX)  # type: ignore[call-overload]
     long_side = conf.get("model_input_long_side")
@@ -193,7 +204,10 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
     if multiple_of:
         h, w = image.shape[:2]
         image = resize_bilinear_antialias(image, (w // multiple_of * multiple_of, h // multiple_of * multiple_of))
-    return np.clip(np.round(image), 0, 255).astype(np.uint8), (width, height)
+    conversion = conf.get("uint8", "round")
+    registry.check_choice("uint8", conversion, ("round", "truncate"), f"the conf of {conf.get('name', '?')!r}")
+    image = np.clip(image, 0, 255)
+    return (np.floor(image) if conversion == "truncate" else np.round(image)).astype(np.uint8), (width, height)
 
 
 def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:
@@ -210,17 +224,27 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
         resized = resized8.astype(np.float32)
         size = resized.shape[1::-1]
     elif interpolation == "area_or_linear":
-        image = read_image(path, grayscale=conf.get("grayscale", False)).astype(np.float32)
+        # hloc's read_image (cv2.imread) applies EXIF orientation.
+        image = read_image(path, grayscale=conf.get("grayscale", False), exif_orientation=True).astype(np.float32)
         height, width = image.shape[:2]
+        # "bilinear": hloc's match_dense floors each side to the multiple in a second resize
+        # (torchvision's bilinear resize of the [0, 1] tensor) after the INTER_AREA shrink;
+        # otherwise the floored size is reached in the one resize.
+        floor_separately = conf.get("multiple_of_resize") == "bilinear" and conf.get("multiple_of")
         size = target_size(
             width,
             height,
             conf.get("resize_max"),
             conf.get("resize_force", False),
-            conf.get("multiple_of"),
+            None if floor_separately else conf.get("multiple_of"),
             conf.get("resize_to"),
         )
         resized = resize_image(image, size)
+        if floor_separately:
+            multiple = int(conf["multiple_of"])
+            size = (size[0] // multiple * multiple, size[1] // multiple * multiple)
+            unit = resize_bilinear_antialias(resized / np.float32(255.0), size)
+            resized = unit * np.float32(255.0)
     else:
         registry.check_choice(
             "interpolation",

@@ -29,10 +29,18 @@ from kornia.feature.lightglue import (
     LightGlue,
     MatchAssignment,
     TransformerLayer,
-    _check_keypoints_normalized,
     filter_matches,
     normalize_keypoints,
 )
+
+try:  # kornia 0.9 checks the normalised range in LightGlue.forward; 0.8 (the opt-in venv's) does not
+    from kornia.feature.lightglue import _check_keypoints_normalized
+except ImportError:
+
+    def _check_keypoints_normalized(keypoints: torch.Tensor) -> None:  # type: ignore[misc]
+        """What kornia 0.9 checks: keypoints normalised by their image size lie in [-1, 1]."""
+        if not (torch.all(keypoints >= -1) and torch.all(keypoints <= 1)):
+            raise ValueError("keypoints normalised by the image size must lie in [-1, 1]; check image_size")
 
 
 @dataclass(frozen=True)

@@ -113,7 +113,7 @@ def _two_nearest(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarr
     if distance.shape[1] < 2:
         return nearest, first, np.full(len(distance), np.inf)
     others = distance.copy()
-    others[rows, nearest] = np.iinfo(distance.dtype).max
+    others[rows, nearest] = np.iinfo(distance.dtype).max if distance.dtype.kind in "iu" else np.inf
     return nearest, first, others.min(axis=1).astype(np.float64)
 
 
@@ -234,12 +234,78 @@ def two_way_l2_matches(
     return matches.cpu(), ((best[keep] + 1) / 2).float().cpu()
 
 
+# The rule a matcher conf applies: hloc's (above), or "knn_ratio", the GV-Bench repository's
+# OpenCV matchers (image-matching-models' handcrafted.py): cv2.BFMatcher's two nearest neighbours
+# of each row, kept when ``m.distance < ratio * n.distance``, no mutual check, raw descriptors.
+RULES = ("hloc", "knn_ratio")
+
+
+def check_rule(rule: str) -> None:
+    registry.check_choice("nearest-neighbour rule", rule, RULES)
+
+
+def l2_distances_as_opencv(descriptors0: np.ndarray, descriptors1: np.ndarray) -> np.ndarray:
+    """(N0, N1) L2 distances of raw float descriptors as cv2.BFMatcher(NORM_L2) reports them:
+    the square root, in float32, of the summed squared differences.
+
+    The squared distances come from one float64 product (|a|^2 + |b|^2 - 2 a.b); for OpenCV's
+    SIFT descriptors, whole numbers up to 255, every term is an integer below 2^53, so they are
+    exact and equal to OpenCV's float32 sums (below 2^24), and so is the float32 root."""
+    a = np.asarray(descriptors0, dtype=np.float64)
+    b = np.asarray(descriptors1, dtype=np.float64)
+    squared = (a * a).sum(axis=1)[:, None] + (b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)
+    return np.sqrt(np.maximum(squared, 0.0).astype(np.float32))
+
+
+def knn_ratio_matches(distance: np.ndarray, ratio_threshold: float) -> tuple[np.ndarray, np.ndarray]:
+    """The repository's rule on a distance matrix: each row's nearest column, kept when its
+    distance is strictly below ``ratio_threshold`` times the row's second-nearest (compared in
+    float64, as Python compares OpenCV's float32 distances). A tie at the nearest distance never
+    passes, so which of the tied columns is nearest does not matter. With a single column there
+    is no second neighbour: the repository's loop fails there (it unpacks two), we keep no match.
+    Returns (matches (M, 2) int64, nearest distances (M,) float64)."""
+    if distance.shape[0] == 0 or distance.shape[1] < 2:
+        return np.zeros((0, 2), np.int64), np.zeros((0,), np.float64)
+    nearest, first, second = _two_nearest(distance)
+    keep = first < ratio_threshold * second
+    rows = np.flatnonzero(keep)
+    return np.stack([rows, nearest[rows]], axis=1).astype(np.int64), first[rows]
+
+
 class NearestNeighbourMatcher:
     def __init__(self, conf: dict[str, Any], device: torch.device):
         check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
+        check_rule(conf.get("rule", "hloc"))
+        if conf.get("rule", "hloc") == "knn_ratio" and (conf.get("mutual") or not conf.get("ratio_threshold")):
+            raise ValueError(
+                f"matcher conf {conf.get('name', '?')!r}: rule 'knn_ratio' is a one-way ratio test; "
+                "set mutual: false and a ratio_threshold"
+            )
         self.conf, self.device = conf, device
 
+    def knn_ratio(self, descriptors0: np.ndarray, descriptors1: np.ndarray) -> Matches:
+        """The repository's OpenCV rule (``knn_ratio_matches``) on raw descriptors: Hamming bits
+        for binary ones, OpenCV's L2 distance for float ones. Scores: 1 - distance / bits, or
+        (cosine similarity + 1) / 2 (the repository applies no score filter)."""
+        if len(descriptors0) == 0 or len(descriptors1) == 0:
+            return empty_matches()
+        hamming = self.conf.get("metric", "l2") == "hamming"
+        distance = (
+            hamming_distances(descriptors0, descriptors1)
+            if hamming
+            else l2_distances_as_opencv(descriptors0, descriptors1)
+        )
+        matches, first = knn_ratio_matches(distance, self.conf["ratio_threshold"])
+        if hamming:
+            return matches, (1 - first / (8 * descriptors0.shape[1])).astype(np.float32)
+        a = descriptors0[matches[:, 0]].astype(np.float64)
+        b = descriptors1[matches[:, 1]].astype(np.float64)
+        norms = np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
+        return matches, (((a * b).sum(axis=1) / norms + 1) / 2).astype(np.float32)
+
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
+        if self.conf.get("rule", "hloc") == "knn_ratio":
+            return self.knn_ratio(features0["descriptors"], features1["descriptors"])
         if self.conf.get("metric", "l2") == "hamming":
             return hamming_nearest_neighbour_matches(
                 features0["descriptors"],

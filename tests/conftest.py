@@ -14,6 +14,30 @@ import pytest
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
+# The tests that read or write the repository's outputs/sample and outputs/cache (the notebooks'
+# default params, and runs of params/sample.yaml, which renders its images there): under
+# pytest-xdist (`make test` runs two workers) they share one worker, in collection order.
+SHARED_OUTPUTS_GROUP = "outputs_sample"
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # One torch/OpenCV thread a worker: two workers on two cores, each spinning two threads,
+        # would wait on each other. Runs (and their notebook kernels) read GVBENCH_THREADS.
+        os.environ.setdefault("GVBENCH_THREADS", "1")
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        import cv2
+        import torch
+
+        torch.set_num_threads(1)
+        cv2.setNumThreads(1)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.suffix == ".ipynb":  # nbmake runs each notebook with its default params
+            item.add_marker(pytest.mark.xdist_group(SHARED_OUTPUTS_GROUP))
+
 
 def _first_dir(*candidates: Path | None) -> Path | None:
     return next((c for c in candidates if c is not None and c.is_dir()), None)

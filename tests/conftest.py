@@ -33,10 +33,20 @@ def pytest_configure(config: pytest.Config) -> None:
         cv2.setNumThreads(1)
 
 
+@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups off the items
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.suffix == ".ipynb":  # nbmake runs each notebook with its default params
             item.add_marker(pytest.mark.xdist_group(SHARED_OUTPUTS_GROUP))
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # Long work first, so that no worker is left with it while the others idle: the shared
+        # group (the notebooks, one after another), then the slow tests; order within each kept.
+        def rank(item: pytest.Item) -> int:
+            if item.get_closest_marker("xdist_group") is not None:
+                return 0
+            return 1 if item.get_closest_marker("slow") is not None else 2
+
+        items.sort(key=rank)
 
 
 def _first_dir(*candidates: Path | None) -> Path | None:

@@ -26,6 +26,11 @@ IMAGES = [
 ]
 
 
+# The best 1024 of an image's keypoints (the profile keeps 2048): equality holds for any number,
+# and attention over half the keypoints costs about a quarter; true pairs keep hundreds of matches.
+MAX_KEYPOINTS = 1024
+
+
 def features_of(shared_data: Path, method: str, names: list[str] = IMAGES) -> tuple[dict, list[dict]]:
     conf = methods.resolve_method(method, "repository")
     extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
@@ -33,6 +38,8 @@ def features_of(shared_data: Path, method: str, names: list[str] = IMAGES) -> tu
     for name in names:
         image, _ = images.load_for_extraction(shared_data / "gardens_point" / name, conf["extractor"])
         found = extractor(image)
+        best = np.argsort(-found["scores"], kind="stable")[:MAX_KEYPOINTS]
+        found = {key: value[best] for key, value in found.items()}
         found["image_size"] = np.array(image.shape[:2][::-1], np.float32)
         features.append(found)
     return conf, features
@@ -43,6 +50,12 @@ def disk_features(shared_data):
     return features_of(shared_data, "disk-lg")
 
 
+# The tests of disk_features share one xdist worker: the fixture (DISK on five images) is then
+# computed once, not once a worker.
+on_disk_features_worker = pytest.mark.xdist_group("disk_features")
+
+
+@on_disk_features_worker
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize(
@@ -80,6 +93,7 @@ def test_prepared_matches_equal_kornia_for_other_lightglue_weights(shared_data, 
         np.testing.assert_array_equal(got[1], expected[1], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
 
 
+@on_disk_features_worker
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_prepared_image_without_keypoints_matches_nothing(disk_features):
@@ -91,6 +105,7 @@ def test_prepared_image_without_keypoints_matches_nothing(disk_features):
     assert pair_matches.shape == (0, 2) and scores.shape == (0,)
 
 
+@on_disk_features_worker
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):

@@ -58,9 +58,9 @@ $(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
 demo: setup
 	$(PY) -m gvbench_nb run params/sample.yaml
 
-# On every core (pytest-xdist); tests sharing outputs/sample run on one worker (tests/conftest.py).
+# On every core (pytest-xdist); the tests sharing outputs/sample take turns (a lock, tests/conftest.py).
 # -rs: every skip's reason at the end.
-PYTEST_PARALLEL := -n auto --dist loadgroup -rs
+PYTEST_PARALLEL := -n auto -rs
 
 test: setup
 	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi

@@ -7,7 +7,10 @@ per-user cache): tests that need it skip with the ``data fetch`` command that fi
 
 from __future__ import annotations
 
+import hashlib
 import os
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
@@ -15,9 +18,14 @@ import pytest
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
 # The tests that read or write the repository's outputs/sample and outputs/cache (the notebooks'
-# default params, and runs of params/sample.yaml, which renders its images there): under
-# pytest-xdist (`make test` runs two workers) they share one worker, in collection order.
-SHARED_OUTPUTS_GROUP = "outputs_sample"
+# default params, and runs of params/sample.yaml, which renders its images there) run one at a
+# time under pytest-xdist (`make test` runs a worker a core): each holds a lock shared by every
+# worker of this checkout while it runs. (xdist's own `--dist loadgroup` cannot do it: with
+# pytest 9 it drops the groups silently.)
+SHARED_OUTPUTS = "shared_outputs"
+SHARED_OUTPUTS_LOCK = Path(tempfile.gettempdir()) / (
+    "gvbench-nb-tests-" + hashlib.sha1(str(PROJECT_ROOT).encode()).hexdigest()[:12] + ".lock"
+)
 
 
 def pytest_configure(config: pytest.Config) -> None:
@@ -33,20 +41,29 @@ def pytest_configure(config: pytest.Config) -> None:
         cv2.setNumThreads(1)
 
 
-@pytest.hookimpl(tryfirst=True)  # before xdist reads the groups off the items
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
     for item in items:
         if item.path.suffix == ".ipynb":  # nbmake runs each notebook with its default params
-            item.add_marker(pytest.mark.xdist_group(SHARED_OUTPUTS_GROUP))
+            item.add_marker(pytest.mark.shared_outputs)
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        # Long work first, so that no worker is left with it while the others idle: the shared
-        # group (the notebooks, one after another), then the slow tests; order within each kept.
+        # Long work first, so that no worker is left with it while the others idle: the tests
+        # of the shared outputs (one at a time), then the slow tests; order within each kept.
         def rank(item: pytest.Item) -> int:
-            if item.get_closest_marker("xdist_group") is not None:
+            if item.get_closest_marker(SHARED_OUTPUTS) is not None:
                 return 0
             return 1 if item.get_closest_marker("slow") is not None else 2
 
         items.sort(key=rank)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    if item.get_closest_marker(SHARED_OUTPUTS) is None:
+        return (yield)
+    from filelock import FileLock
+
+    with FileLock(str(SHARED_OUTPUTS_LOCK)):  # setup, call and teardown of the item
+        return (yield)
 
 
 def _first_dir(*candidates: Path | None) -> Path | None:

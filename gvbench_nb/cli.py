@@ -22,6 +22,9 @@ the methods and the profile; results land in <output_dir>/<method>/pairs.csv and
 """
 
 EPILOG = """\
+Run it with the project's venv: .venv/bin/python -m gvbench_nb (or `source .venv/bin/activate`
+first); `imm:` methods need .venv-imm instead (`make setup-imm`).
+
 examples:
   python -m gvbench_nb run params/sample.yaml
   python -m gvbench_nb data fetch gardens_point gvbench-lists
@@ -33,15 +36,16 @@ examples:
   python -m gvbench_nb methods
   .venv-imm/bin/python -m gvbench_nb run params/gardens_point.yaml --methods imm:sift-nn,imm:orb-nn
   python -m gvbench_nb weights --link
-  GVBENCH_WORKERS=2 python -m gvbench_nb run params/gardens_point.yaml
+  python -m gvbench_nb run params/gardens_point.yaml --jobs 2
 
 environment:
   GVBENCH_DATA     the data folder: what ${GVBENCH_DATA} stands for in params and where `data fetch`
                    puts datasets (default: a per-user cache folder, printed by `data list`)
   GVBENCH_THREADS  torch and OpenCV threads (default: every core)
-  GVBENCH_WORKERS  images, then pairs, processed at once (default 1). 2 is faster on two or
-                   more cores (see `bench`), but each image's and pair's timer then includes
-                   waiting for the shared cores: keep 1 for the runtime analyses.
+  GVBENCH_JOBS     images, then pairs, processed at once (default 1), as `run --jobs` sets it.
+                   2 is faster on two or more cores (see `bench`), but each image's and pair's
+                   timer then includes waiting for the shared cores: keep 1 for the runtime
+                   analyses. (`run --dask-workers` is the size of a Dask cluster instead.)
 """
 
 
@@ -547,7 +551,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
     run.set_defaults(handler=command_run)
-    distributed.add_run_arguments(run)  # --shard I/N, --merge, --dask, --scheduler, --shards, --workers
+    distributed.add_run_arguments(run)  # --jobs; --shard I/N, --merge, --dask, --scheduler, --shards, --dask-workers
 
     results = commands.add_parser(
         "results",
@@ -562,7 +566,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     results.set_defaults(handler=command_results)
 
-    listing = commands.add_parser("methods", help="list every method, its paper name and whether its weights are here")
+    listing = commands.add_parser(
+        "methods",
+        help="list every method, its paper name and whether its weights are here",
+        description="List every registered method: its name in the paper, whether the paper ran it, the "
+        "checkpoints it needs and whether they are in the weights folder (`weights` says where to put "
+        "missing ones). Where vismatch is installed (the opt-in .venv-imm: `make setup-imm`), also every "
+        "image-matching-models matcher, run as imm:<name>.",
+    )
     listing.set_defaults(handler=command_methods)
 
     weights_parser = commands.add_parser(

@@ -81,9 +81,13 @@ def configure_threads(n_threads: int | None = None) -> int:
     return n
 
 
+JOBS_ENV = "GVBENCH_JOBS"  # the run's parallelism, as `run --jobs` and `bench --jobs` set it
+RENAMED_ENV = {"GVBENCH_WORKERS": JOBS_ENV}  # an old name, no longer read: the CLI names its successor
+
+
 def worker_count(workers: int | None = None) -> int:
-    """How many images are extracted, and pairs matched and verified, at once:
-    ``workers``, else $GVBENCH_WORKERS, else 1.
+    """How many images are extracted, and pairs matched and verified, at once (the run's
+    jobs): ``workers``, else $GVBENCH_JOBS (what ``--jobs`` sets), else 1.
 
     With 1, one image (decoded ahead) and one pair (verified while the next is matched)
     are in flight, so the per-image and per-pair timers are close to each item's own
@@ -91,9 +95,14 @@ def worker_count(workers: int | None = None) -> int:
     (measured by ``bench``) but the timers include waiting for the shared cores. Scores
     are the same either way.
     """
-    n = workers if workers is not None else int(os.environ.get("GVBENCH_WORKERS") or 1)
+    text = os.environ.get(JOBS_ENV) or "1"
+    try:
+        n = workers if workers is not None else int(text)
+    except ValueError:
+        n = 0
     if n < 1:
-        raise ValueError(f"workers must be at least 1, got {n} (argument or $GVBENCH_WORKERS)")
+        given = n if workers is not None else repr(text)
+        raise ValueError(f"jobs must be a whole number of at least 1, got {given} (--jobs or ${JOBS_ENV})")
     return n
 
 

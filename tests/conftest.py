@@ -7,12 +7,63 @@ per-user cache): tests that need it skip with the ``data fetch`` command that fi
 
 from __future__ import annotations
 
+import hashlib
 import os
+import tempfile
+from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
+
+# The tests that read or write the repository's outputs/sample and outputs/cache (the notebooks'
+# default params, and runs of params/sample.yaml, which renders its images there) run one at a
+# time under pytest-xdist (`make test` runs a worker a core): each holds a lock shared by every
+# worker of this checkout while it runs. (xdist's own `--dist loadgroup` cannot do it: with
+# pytest 9 it drops the groups silently.)
+SHARED_OUTPUTS = "shared_outputs"
+SHARED_OUTPUTS_LOCK = Path(tempfile.gettempdir()) / (
+    "gvbench-nb-tests-" + hashlib.sha1(str(PROJECT_ROOT).encode()).hexdigest()[:12] + ".lock"
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # One torch/OpenCV thread a worker: two workers on two cores, each spinning two threads,
+        # would wait on each other. Runs (and their notebook kernels) read GVBENCH_THREADS.
+        os.environ.setdefault("GVBENCH_THREADS", "1")
+        os.environ.setdefault("OMP_NUM_THREADS", "1")
+        import cv2
+        import torch
+
+        torch.set_num_threads(1)
+        cv2.setNumThreads(1)
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    for item in items:
+        if item.path.suffix == ".ipynb":  # nbmake runs each notebook with its default params
+            item.add_marker(pytest.mark.shared_outputs)
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # Long work first, so that no worker is left with it while the others idle: the tests
+        # of the shared outputs (one at a time), then the slow tests; order within each kept.
+        def rank(item: pytest.Item) -> int:
+            if item.get_closest_marker(SHARED_OUTPUTS) is not None:
+                return 0
+            return 1 if item.get_closest_marker("slow") is not None else 2
+
+        items.sort(key=rank)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Iterator[None]:
+    if item.get_closest_marker(SHARED_OUTPUTS) is None:
+        return (yield)
+    from filelock import FileLock
+
+    with FileLock(str(SHARED_OUTPUTS_LOCK)):  # setup, call and teardown of the item
+        return (yield)
 
 
 def _first_dir(*candidates: Path | None) -> Path | None:

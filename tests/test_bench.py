@@ -44,6 +44,8 @@ def day_pairs(shared_data: Path) -> Sequence:
 def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path, method):
     sequence = day_pairs(shared_data) if method == "sift-nn" else few_pairs(shared_data)
     conf = methods.resolve_method(method, "repository")
+    if method == "disk-lg":  # half the keypoints, a quarter of LightGlue's attention: the same comparison
+        conf["extractor"]["max_keypoints"] = 1024
     ours, our_seconds = bench.run_cached_pipeline(sequence, conf, tmp_path, torch.device("cpu"), seed=3)
     reference, reference_seconds = bench.run_per_pair_pipeline(sequence, conf, torch.device("cpu"), seed=3)
     bench.check_same_scores(ours, reference, "test")  # raises on any difference
@@ -229,3 +231,23 @@ def test_add_command_registers_bench():
         "repository",
     )
     assert args.handler is bench.command_bench
+
+
+def test_bench_takes_jobs_and_estimate_names_the_lists_before_any_timing(tmp_path, monkeypatch, capsys):
+    from gvbench_nb import cli
+
+    monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
+    assert cli.build_parser().parse_args(["bench", "p.yaml"]).jobs == 2  # the bench's own default
+    assert cli.build_parser().parse_args(["bench", "p.yaml", "--jobs", "1"]).jobs == 1
+    monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
+    timed = []
+    monkeypatch.setattr(bench, "bench_method", lambda *args, **kwargs: timed.append(args))
+    for argv in (["bench", "--estimate"], ["bench", "params/sample.yaml", "--estimate"]):
+        assert cli.main(argv) == 2
+        error = capsys.readouterr().err.strip()
+        assert error == (
+            "error: bench --estimate needs the official pair lists, and day.txt, night.txt, nordland.txt, "
+            f"season.txt, uacampus.txt, weather.txt are missing from {tmp_path / 'gvbench_gt'}: run "
+            "`python -m gvbench_nb data fetch gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)"
+        )
+    assert timed == []

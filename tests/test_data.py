@@ -193,13 +193,38 @@ def test_a_missing_file_fails_naming_the_url_and_what_to_do(server, tmp_path):
     assert not (tmp_path / "toy" / "three.txt").exists()
 
 
-def test_an_unreachable_source_keeps_the_partial_file_and_says_rerun(tmp_path, monkeypatch):
+def test_an_unreachable_source_says_so_names_no_file_and_leaves_no_empty_folder(tmp_path, monkeypatch):
     monkeypatch.setattr(data, "TIMEOUT_SECONDS", 2.0)
-    closed = make_dataset({"x.bin": b"abc"}, "http://127.0.0.1:9")  # the discard port: nothing listens
-    with pytest.raises(
-        data.DataError, match=r"toy: x\.bin: could not download http://127\.0\.0\.1:9/src/x\.bin .*rerun"
-    ):
+    closed = make_dataset({"a/x.bin": b"abc"}, "http://127.0.0.1:9")  # the discard port: nothing listens
+    root = tmp_path / "data"
+    with pytest.raises(data.DataError) as raised:
+        data.fetch(["toy"], to=root, progress=False, datasets={"toy": closed})
+    message = str(raised.value)
+    assert message.startswith("toy: a/x.bin: cannot reach 127.0.0.1:9 (")
+    assert "unreachable and nothing was downloaded" in message and "--mirror DIR" in message
+    assert "toy/" in message and ".partial" not in message and "resume" not in message
+    assert "\n" not in message
+    assert not root.exists()  # the data folder this fetch created, and the dataset's folders, are gone
+
+
+def test_an_unreachable_source_keeps_an_earlier_partial_file_and_names_it(tmp_path, monkeypatch):
+    monkeypatch.setattr(data, "TIMEOUT_SECONDS", 2.0)
+    closed = make_dataset({"x.bin": b"abcdef"}, "http://127.0.0.1:9")
+    partial = data.partial_path(tmp_path / "toy" / "x.bin")
+    partial.parent.mkdir()
+    partial.write_bytes(b"abc")  # what a cut download left
+    with pytest.raises(data.DataError, match=r"cannot reach 127\.0\.0\.1:9 .*the 3 bytes an earlier attempt left in"):
         data.fetch(["toy"], to=tmp_path, progress=False, datasets={"toy": closed})
+    assert partial.read_bytes() == b"abc"
+
+
+def test_a_failed_fetch_keeps_folders_that_hold_files_placed_before(server, tmp_path):
+    serve(server, {"a/one.bin": TOY["a/one.bin"]})  # b/two.bin and three.txt: 404
+    toy = make_dataset(TOY, server.url)
+    with pytest.raises(data.DataError, match="HTTP 404"):
+        data.fetch(["toy"], to=tmp_path, progress=False, datasets={"toy": toy})
+    assert (tmp_path / "toy" / "a" / "one.bin").read_bytes() == TOY["a/one.bin"]
+    assert not (tmp_path / "toy" / "b").exists()
 
 
 def test_a_mirror_folder_with_the_data_layout_is_copied_and_checked(tmp_path):
@@ -323,7 +348,7 @@ def test_cli_fetch_exits_2_with_one_sentence_when_a_mirror_serves_other_bytes(se
     assert printed[0] == f"data folder: {tmp_path.resolve()}" and len(printed) == 2
     assert printed[1].startswith(f"error: gvbench-lists: {first.path} from {server.url}/gvbench_gt/{first.path} ")
     assert "SHA-256" in printed[1]
-    assert list((tmp_path / "gvbench_gt").iterdir()) == []
+    assert not (tmp_path / "gvbench_gt").exists()  # nothing placed: no folder left either
 
 
 def gardens_folder(root: Path, frames: int = 12, broken: str | None = None) -> None:
@@ -369,7 +394,11 @@ def test_check_reports_counts_and_first_missing_files_of_a_params(tmp_path, monk
 def test_check_without_data_names_the_fetch_command(tmp_path, monkeypatch, capsys):
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
     assert cli.main(["data", "check", str(PROJECT_ROOT / "params" / "gardens_point_viewpoint.yaml"), "--quiet"]) == 1
-    assert "data fetch gardens_point" in capsys.readouterr().out
+    report = capsys.readouterr().out
+    assert "data fetch gardens_point" in report
+    # Missing folders name no image: counted as folders, not as images.
+    assert ": 0 images named by the folders" in report and "present 0, decode 0, missing 0," in report
+    assert "missing folders: day_left/, day_right/" in report and "NOT ready to run" in report
     assert cli.main(["data", "check", str(PROJECT_ROOT / "params" / "night.yaml"), "--quiet"]) == 2
     error = capsys.readouterr().err
     assert "image_root is not set; pass --image-root" in error

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.machinery
 import importlib.util
+import os
 import subprocess
 import sys
 import types
@@ -120,6 +121,19 @@ def test_methods_command_says_how_to_enable_imm_without_vismatch():
     assert "imm:<name>" in out and "make setup-imm" in out
 
 
+def test_methods_points_to_the_opt_in_venv_not_to_pip_and_has_a_description(no_vismatch, capsys):
+    from gvbench_nb import cli
+
+    assert cli.main(["methods"]) == 0
+    last = capsys.readouterr().out.strip().splitlines()[-1]
+    # pip install vismatch would replace the default venv's torch and kornia pins.
+    assert "pip install" not in last and "make setup-imm" in last
+    assert "`.venv-imm/bin/python -m gvbench_nb ...`" in last
+    with pytest.raises(SystemExit):
+        cli.main(["methods", "--help"])
+    assert "List every registered method" in " ".join(capsys.readouterr().out.split())
+
+
 def test_unknown_vismatch_name_is_one_sentence_with_a_suggestion(fake_vismatch):
     with pytest.raises(imm.ImmUnavailableError, match=r"no matcher 'sift-n'.*Did you mean 'imm:sift-nn'"):
         methods.expand_methods(["imm:sift-n"])
@@ -141,6 +155,52 @@ def test_weights_vismatch_loads_are_checked_and_named(fake_vismatch, tmp_path, m
     imm.require("imm:disk-lightglue")
     rows = {row["method"]: row for row in imm.method_rows()}
     assert rows["imm:sift-nn"]["available"] is True and rows["imm:fake-nn"]["available"] == "unknown"
+
+
+def test_xfeat_weights_are_linked_into_a_hub_snapshot_vismatch_finds(fake_vismatch, tmp_path, monkeypatch):
+    monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
+    monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hf"))
+    fake_vismatch.available_models.append("xfeat")
+    from gvbench_nb.weights import MissingWeightsError
+
+    with pytest.raises(
+        MissingWeightsError, match=r"xfeat.pt in a HuggingFace snapshot of vismatch/xfeat.*weights --link"
+    ):
+        imm.require("imm:xfeat")
+    folder = tmp_path / "torch" / "hub" / "checkpoints"
+    folder.mkdir(parents=True)
+    (folder / "xfeat.pt").write_bytes(b"xfeat weights")
+    assert imm.link_local_weights()["vismatch/xfeat/xfeat.pt"].startswith("linked")
+    imm.require("imm:xfeat")
+    # huggingface_hub's cache layout: refs/main names the snapshot folder holding the file.
+    storage = tmp_path / "hf" / "models--vismatch--xfeat"
+    revision = (storage / "refs" / "main").read_text()
+    assert (storage / "snapshots" / revision / "xfeat.pt").read_bytes() == b"xfeat weights"
+    assert imm.link_local_weights()["vismatch/xfeat/xfeat.pt"] == "present"
+
+
+@needs_vismatch
+@pytest.mark.slow
+def test_imm_xfeat_builds_offline_from_the_linked_weights_without_the_hub_banner(tmp_path):
+    if not (imm.checkpoints_dir() / "xfeat.pt").is_file():
+        pytest.skip(f"xfeat.pt is not in {imm.checkpoints_dir()}: run `python -m gvbench_nb weights --link`")
+    probe = (
+        "import numpy as np\n"
+        "from gvbench_nb import methods\n"
+        "from gvbench_nb.matching import imm\n"
+        "print(imm.link_local_weights()['vismatch/xfeat/xfeat.pt'])\n"
+        "matcher = imm.ImmPairMatcher(methods.resolve_method('imm:xfeat', 'repository')['matcher'], 'cpu')\n"
+        "image = np.random.default_rng(0).integers(0, 255, (288, 512, 3), dtype=np.uint8)\n"
+        "print('matches', len(matcher(image, image)[0]))\n"
+        "imm.ImmPairMatcher(methods.resolve_method('imm:sift-nn', 'repository')['matcher'], 'cpu')\n"
+    )
+    # Offline: huggingface_hub answers from its cache only (no host is asked).
+    environment = {**os.environ, "HF_HUB_CACHE": str(tmp_path / "hf"), "HF_HUB_OFFLINE": "1"}
+    done = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, env=environment, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert done.stdout.startswith("linked") and "matches " in done.stdout
+    assert int(done.stdout.split("matches ")[1].split()[0]) > 100
+    assert "HF repo" not in done.stdout + done.stderr and "!!!!" not in done.stdout
 
 
 def fake_sequence(tmp_path: Path) -> Sequence:

@@ -74,3 +74,29 @@ def test_a_notebook_runs_in_a_started_kernel_in_the_notebooks_folder_which_is_th
         "last_result": "''",
     }
     assert (tmp_path / "out" / "tiny.ipynb").is_file()
+
+
+def test_kernels_run_encrypted_and_print_no_transport_or_iprogress_warning(tmp_path, monkeypatch, capfd):
+    monkeypatch.setattr(execute, "NOTEBOOKS_DIR", tmp_path)
+    notebook = nbformat.v4.new_notebook()
+    parameters = nbformat.v4.new_code_cell("out = ''")
+    parameters.metadata["tags"] = ["parameters"]
+    # tqdm.auto in a kernel without ipywidgets (as in .venv-imm, where huggingface_hub imports it)
+    without_widgets = "import sys\nsys.modules['ipywidgets'] = None\nimport tqdm.auto"
+    notebook.cells = [
+        parameters,
+        nbformat.v4.new_code_cell(without_widgets),
+        nbformat.v4.new_code_cell("open(out, 'w').write('ran')"),
+    ]
+    notebook.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
+    nbformat.write(notebook, tmp_path / "tiny.ipynb")
+    with execute.kernels_ahead(1) as pool:  # a started kernel from the pool
+        assert pool._waiting[0].curve_publickey is not None  # CurveZMQ keys provisioned
+        execute.execute_notebook("tiny.ipynb", tmp_path / "pooled.ipynb", {"out": str(tmp_path / "pooled.txt")})
+    execute.execute_notebook("tiny.ipynb", tmp_path / "alone.ipynb", {"out": str(tmp_path / "alone.txt")})
+    assert (tmp_path / "pooled.txt").read_text() == (tmp_path / "alone.txt").read_text() == "ran"
+    printed = capfd.readouterr()
+    assert "without encryption" not in printed.err + printed.out
+    for executed in ("pooled.ipynb", "alone.ipynb"):
+        outputs = [o for c in nbformat.read(tmp_path / executed, as_version=4).cells for o in c.get("outputs", [])]
+        assert "IProgress" not in json.dumps(outputs), executed

@@ -321,6 +321,7 @@ def test_a_run_of_another_profile_says_it_replaces_the_folders_results(tmp_path)
     }
 
 
+@pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample
 @pytest.mark.slow
 @pytest.mark.reliability
 def test_cli_notes_a_profile_replaced_in_one_output_folder(tmp_path, capsys):

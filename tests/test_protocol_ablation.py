@@ -49,6 +49,7 @@ def test_variants_that_do_not_apply_say_why():
     assert protocol_ablation.applies("ratio-on-rows", "orb-nn", 960) is None
 
 
+@pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample
 @pytest.mark.slow
 def test_ablation_on_sample_writes_one_row_a_variant(tmp_path, capsys):
     code = protocol_ablation.main(

@@ -352,7 +352,7 @@ def test_uncommon_image_kinds_are_read_not_rejected(tmp_path):
 def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(
     small_root, tmp_path, monkeypatch, workers
 ):
-    monkeypatch.setenv("GVBENCH_WORKERS", workers)  # the error surfaces from a worker thread as well
+    monkeypatch.setenv("GVBENCH_JOBS", workers)  # the error surfaces from a worker thread as well
     root = tmp_path / "root"
     shutil.copytree(small_root, root)
     good = [
@@ -660,13 +660,55 @@ def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
             np.testing.assert_array_equal(mine.read(key)[name], reference.read(key)[name])
 
 
-def test_worker_count_comes_from_the_argument_then_the_environment(monkeypatch):
-    monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
+def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
+    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
+    monkeypatch.setenv("GVBENCH_WORKERS", "3")  # the old name is no longer read
     assert pipeline.worker_count() == 1
-    monkeypatch.setenv("GVBENCH_WORKERS", "3")
+    monkeypatch.setenv("GVBENCH_JOBS", "3")
     assert pipeline.worker_count() == 3 and pipeline.worker_count(2) == 2
-    with pytest.raises(ValueError, match="GVBENCH_WORKERS"):
+    with pytest.raises(ValueError, match=r"--jobs or \$GVBENCH_JOBS"):
         pipeline.worker_count(0)
+    monkeypatch.setenv("GVBENCH_JOBS", "two")
+    with pytest.raises(ValueError, match=r"got 'two' \(--jobs or \$GVBENCH_JOBS\)"):
+        pipeline.worker_count()
+
+
+def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the_variable(monkeypatch, capsys):
+    from gvbench_nb import cli
+
+    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
+    monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
+    args = cli.build_parser().parse_args(["run", "p.yaml", "--jobs", "2", "--dask-workers", "3"])
+    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and pipeline.worker_count() == 2
+    assert args.dask_workers == 3  # the Dask cluster's size: another name, another number
+    monkeypatch.delenv("GVBENCH_JOBS")
+    assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None
+    monkeypatch.setenv("GVBENCH_JOBS", "0")
+    with pytest.raises(SystemExit) as stopped:  # a bad variable is refused at parse time, before any work
+        cli.build_parser().parse_args(["run", "p.yaml"])
+    assert stopped.value.code == 2
+    assert "argument --jobs: must be a whole number of at least 1 (--jobs or $GVBENCH_JOBS), got '0'" in (
+        capsys.readouterr().err
+    )
+    monkeypatch.delenv("GVBENCH_JOBS")
+    with pytest.raises(SystemExit):  # the old spelling is gone, not an alias
+        cli.build_parser().parse_args(["run", "p.yaml", "--workers", "2"])
+    assert "unrecognized arguments: --workers 2" in capsys.readouterr().err
+
+
+def test_the_old_variable_gets_one_line_naming_its_successor(monkeypatch, capsys):
+    from gvbench_nb import cli
+    from gvbench_nb.speed import jobs
+
+    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
+    monkeypatch.setenv("GVBENCH_WORKERS", "2")
+    monkeypatch.setattr(jobs, "_hinted", set())
+    cli.build_parser().parse_args(["results", "outputs/x"])  # a command without --jobs: no hint
+    assert capsys.readouterr().err == ""
+    assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None
+    assert capsys.readouterr().err.splitlines() == [
+        "note: GVBENCH_WORKERS is no longer read; set GVBENCH_JOBS=2 (or pass --jobs) instead"
+    ]
 
 
 @pytest.mark.real_data

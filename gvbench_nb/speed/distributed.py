@@ -380,14 +380,28 @@ def run_sharded(
 
 # -------------------------------------------------------------------------- CLI --
 def add_run_arguments(run: argparse.ArgumentParser) -> None:
-    """The ``run`` command's scale-out options (cli.py calls this on its ``run`` parser)."""
+    """The ``run`` command's --jobs and scale-out options (cli.py calls this on its ``run`` parser)."""
+    from gvbench_nb.speed.jobs import add_jobs_argument
+
+    add_jobs_argument(
+        run,
+        None,
+        "images, then pairs, processed at once (default: $GVBENCH_JOBS, else 1). 2 is faster on two or "
+        "more cores (see `bench`), but each image's and pair's timer then includes waiting for the shared "
+        "cores: keep 1 for the runtime analyses",
+    )
     group = run.add_argument_group("scale-out (no notebooks; results as `run` writes them)")
     group.add_argument("--shard", metavar="I/N", help="run only shard I of N (0-based) here; then --merge")
     group.add_argument("--merge", action="store_true", help="merge finished shards: pairs.csv, run.json, results.csv")
     group.add_argument("--dask", action="store_true", help="run all shards on Dask and merge")
     group.add_argument("--scheduler", metavar="ADDR", help="Dask scheduler address (default: a LocalCluster here)")
-    group.add_argument("--shards", type=int, help="number of shards with --dask (default: 2 per worker)")
-    group.add_argument("--workers", type=int, help="LocalCluster workers (default: one per core)")
+    group.add_argument("--shards", type=int, help="number of shards with --dask (default: 2 per Dask worker)")
+    group.add_argument(
+        "--dask-workers",
+        type=int,
+        metavar="N",
+        help="with --dask: the LocalCluster's worker processes (default: one per core)",
+    )
 
 
 def wants_scale_out(args: argparse.Namespace) -> bool:
@@ -410,9 +424,9 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
     if args.merge:
         results = merge_runs(params)
     else:
-        workers = args.workers or os.cpu_count() or 1
-        n_shards = args.shards or 2 * workers
-        results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else workers)
+        dask_workers = args.dask_workers or os.cpu_count() or 1
+        n_shards = args.shards or 2 * dask_workers
+        results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
     print(
         results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
             index=False

@@ -1,0 +1,60 @@
+"""``--jobs N``: how many images, then pairs, a run processes at once (``pipeline.worker_count``).
+
+One name for one concept: the flag of ``run`` and ``bench`` and the environment variable
+$GVBENCH_JOBS that ``run`` exports for its notebook kernels. A Dask cluster's size is
+another thing, ``run --dask-workers``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+
+from gvbench_nb.pipeline import JOBS_ENV, RENAMED_ENV
+
+_hinted: set[str] = set()
+
+
+def hint_renamed_variables() -> None:
+    """One line on stderr for each old variable still set (it is no longer read)."""
+    for old, new in RENAMED_ENV.items():
+        if os.environ.get(old) and old not in _hinted:
+            _hinted.add(old)
+            print(
+                f"note: {old} is no longer read; set {new}={os.environ[old]} (or pass --jobs) instead", file=sys.stderr
+            )
+
+
+def jobs_value(text: str) -> int | None:
+    """argparse type of --jobs: a whole number of at least 1; "" (no flag, no $GVBENCH_JOBS) is None."""
+    hint_renamed_variables()  # runs when the command that takes --jobs parses, not for every command
+    if text == "":
+        return None
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be a whole number of at least 1 (--jobs or ${JOBS_ENV}), got {text!r}")
+    return value
+
+
+class ExportJobs(argparse.Action):
+    """Keep --jobs and export it as $GVBENCH_JOBS: the run's notebooks execute in kernels
+    started from this process, which read the number there."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        os.environ[JOBS_ENV] = str(values)
+        setattr(namespace, self.dest, values)
+
+
+def add_jobs_argument(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, help: str
+) -> None:
+    """``--jobs N``. Without ``default``, $GVBENCH_JOBS is the default (checked as the flag is);
+    the default stays a string so that argparse passes it through ``jobs_value`` too."""
+    fallback = str(default) if default is not None else os.environ.get(JOBS_ENV, "")
+    parser.add_argument(
+        "--jobs", type=jobs_value, default=fallback, action=ExportJobs, metavar="N", dest="jobs", help=help
+    )

@@ -1043,7 +1043,7 @@ def run_method(
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
     ``verifier``: overrides of the profile's verifier conf (``methods.resolve_method``).
-    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_WORKERS or 1).
+    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_JOBS or 1).
 
     Missing weights fail here, before any work. Finished work found in the caches is
     reused, so an interrupted run resumes. When every image and pair is cached and

@@ -500,12 +500,13 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
-    from gvbench_nb.reporting import report
+    from gvbench_nb.reporting import compare, report
     from gvbench_nb.speed import bench
 
     add_data_command(commands)
     add_build_command(commands)
     report.add_command(commands)
+    compare.add_command(commands)
     bench.add_command(commands)
     return parser
 

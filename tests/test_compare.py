@@ -107,3 +107,14 @@ def test_compare_refuses_too_few_resamples(folder, capsys):
         cli.main(["compare", str(folder), "--resamples", "10"])
     assert exit.value.code == 2
     assert "at least 100" in capsys.readouterr().err
+
+
+def test_compare_takes_methods_from_several_folders_of_the_same_pairs(tmp_path, capsys):
+    table = noisy_table()
+    write_run(tmp_path / "one", "sift-nn", table)
+    write_run(tmp_path / "two", "xfeat-lg", table.assign(score=table["label"] * 10.0))
+    assert cli.main(["compare", str(tmp_path / "one"), str(tmp_path / "two"), "--resamples", "100"]) == 0
+    assert "xfeat-lg > sift-nn" in capsys.readouterr().out
+    write_run(tmp_path / "three", "sift-nn", table)
+    message = refused(capsys, ["compare", str(tmp_path / "one"), str(tmp_path / "three")])
+    assert "'sift-nn' has results in both" in message

@@ -26,20 +26,41 @@ DEFAULT_RESAMPLES = 1000
 INTERVAL_COLUMNS = ("ap_low", "ap_high", "max_recall_low", "max_recall_high", "interval_unit")
 
 
+def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[str, Path]:
+    """Which of ``output_dirs`` holds each method's finished results; a method in two is refused."""
+    found: dict[str, Path] = {}
+    for folder in map(Path, output_dirs):
+        pipeline.check_results_finished(folder)
+        ran = pipeline.methods_with_results(folder)
+        if not ran:
+            what = "does not exist" if not folder.exists() else "holds no method results (<method>/pairs.csv)"
+            raise pipeline.ResultsError(
+                f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
+            )
+        for method in ran:
+            if method in found:
+                raise analysis.IncomparableRunsError(
+                    f"method {method!r} has results in both {found[method]} and {folder}; "
+                    "pass only one of the two folders"
+                )
+            found[method] = folder
+    return found
+
+
 def folder_tables(
-    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
+    output_dirs: str | os.PathLike[str] | SequenceType[str | os.PathLike[str]], methods: SequenceType[str] | None = None
 ) -> dict[str, pd.DataFrame]:
-    """The finished pair tables of ``methods`` (default: all) in ``output_dir``, checked to be
-    comparable (same pairs, same labels) before anything is resampled."""
-    output_dir = Path(output_dir)
-    pipeline.check_results_finished(output_dir)
-    methods = list(methods) if methods else pipeline.methods_with_results(output_dir)
-    if not methods:
-        what = "does not exist" if not output_dir.exists() else "holds no method results (<method>/pairs.csv)"
+    """The finished pair tables of ``methods`` (default: all) in one or more output folders,
+    checked to be comparable (same pairs, same labels) before anything is resampled."""
+    folders = [output_dirs] if isinstance(output_dirs, (str, os.PathLike)) else list(output_dirs)
+    found = method_folders(folders)
+    wanted = list(methods) if methods else list(found)
+    absent = [m for m in wanted if m not in found]
+    if absent:
         raise pipeline.ResultsError(
-            f"{output_dir} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
+            f"no results for method {absent[0]!r} in {', '.join(map(str, folders))}; run it on the same pairs first"
         )
-    tables = analysis.load_pairs_tables(output_dir, methods)
+    tables = {m: pipeline.load_pairs_table(found[m], m) for m in wanted}
     analysis.align_tables(tables)
     return tables
 

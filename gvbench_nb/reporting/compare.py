@@ -15,7 +15,8 @@ from pathlib import Path
 
 HELP = "AP and MR with bootstrap intervals over queries, and which method rankings a paired bootstrap supports"
 DESCRIPTION = """\
-Reads the finished <method>/pairs.csv of one output folder (nothing is recomputed), draws the
+Reads the finished <method>/pairs.csv of one output folder, or of several folders run on the same
+pairs (nothing is recomputed), draws the
 queries with replacement (every pair of a drawn query counts; the same draws for every method)
 and prints each method's AP and MR with 95 % percentile intervals, then for every pair of
 methods the share of those resamples in which the first (the higher on all pairs) beats the
@@ -27,6 +28,7 @@ examples:
   python -m gvbench_nb compare outputs/gardens_point
   python -m gvbench_nb compare outputs/gardens_point --metric max_recall --resamples 2000 --seed 1 --markdown
   python -m gvbench_nb compare outputs/sample --methods sift-nn,xfeat-nn
+  python -m gvbench_nb compare outputs/gardens_point outputs/gardens_point_xfeat_lg
 """
 
 
@@ -46,22 +48,24 @@ def command_compare(args: argparse.Namespace) -> int:
     from gvbench_nb.cli import markdown_table
     from gvbench_nb.evaluation import analysis, intervals
 
-    folder = Path(args.output_dir)
+    folders = [Path(f) for f in args.output_dirs]
+    where = ", ".join(map(str, folders))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
-    tables = intervals.folder_tables(folder, methods)
+    tables = intervals.folder_tables(folders, methods)
     if len(tables) < 2:
         raise analysis.IncomparableRunsError(
-            f"{folder} holds results of one method only ({', '.join(tables)}); "
+            f"{where} holds results of one method only ({', '.join(tables)}); "
             "run another method on the same pairs, or name two or more with --methods"
         )
     boot = analysis.bootstrap(tables, args.resamples, args.seed)
-    runs = {m: json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in tables}
+    found = intervals.method_folders(folders)
+    runs = {m: json.loads((pipeline.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
     table = intervals.intervals_of(boot)
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])
     sequences = ", ".join(dict.fromkeys(run["sequence"] for run in runs.values()))
     show = lambda frame: markdown_table(frame) if args.markdown else frame.to_string(index=False, float_format="%.3f")
     print(
-        f"{sequences} ({folder}): AP and MR on all {boot.n_pairs} pairs, with 95 % percentile intervals over "
+        f"{sequences} ({where}): AP and MR on all {boot.n_pairs} pairs, with 95 % percentile intervals over "
         f"{boot.n_queries} queries resampled with replacement ({args.resamples} resamples, seed {args.seed})\n"
     )
     columns = ["method", "profile", "ap", "ap_low", "ap_high", "max_recall", "max_recall_low", "max_recall_high"]
@@ -84,7 +88,13 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         epilog=EPILOG,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    parser.add_argument("output_dir", help="a sequence output folder of finished runs, e.g. outputs/gardens_point")
+    parser.add_argument(
+        "output_dirs",
+        nargs="+",
+        metavar="OUTPUT_DIR",
+        help="output folders of finished runs on the same pairs, e.g. outputs/gardens_point "
+        "(several: each method from the folder that has it)",
+    )
     parser.add_argument(
         "--metric", choices=["ap", "max_recall"], help="rank by this metric only (default: both, AP first)"
     )

@@ -112,6 +112,13 @@ def test_interval_columns_keyed_by_method():
     full = intervals.query_intervals(tables, 200, seed=0).set_index("method")
     pd.testing.assert_frame_equal(columns, full[list(columns.columns)])
     assert (columns["ap_low"] <= full["ap"]).all() and (full["ap"] <= columns["ap_high"]).all()
+    # Methods run on different pairs still get their own intervals, over their own queries.
+    shorter = intervals.interval_columns({"a": tables["a"], "c": tables["a"].iloc[:100]}, 200, seed=0)
+    pd.testing.assert_series_equal(shorter.loc["a"], columns.loc["a"])
+    assert (
+        shorter.loc["c", "ap_high"] - shorter.loc["c", "ap_low"]
+        > columns.loc["a", "ap_high"] - columns.loc["a", "ap_low"]
+    )
 
 
 def test_refuses_methods_with_different_labels():

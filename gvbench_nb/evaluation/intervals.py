@@ -100,8 +100,16 @@ def interval_columns(
     tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = LEVEL
 ) -> pd.DataFrame:
     """The interval columns for a results table, indexed by method: ``ap_low``, ``ap_high``,
-    ``max_recall_low``, ``max_recall_high`` and ``interval_unit`` (what was resampled)."""
-    return query_intervals(tables, n_resamples, seed, level).set_index("method")[list(INTERVAL_COLUMNS)]
+    ``max_recall_low``, ``max_recall_high`` and ``interval_unit`` (what was resampled).
+
+    Each method is resampled over its own queries, so a folder whose methods ran on
+    different pairs (another ``--limit``) still gets its columns; methods of the same pairs
+    in the same order get the same draws, hence the intervals ``query_intervals`` gives.
+    """
+    frames = [query_intervals({method: table}, n_resamples, seed, level) for method, table in tables.items()]
+    if not frames:
+        raise analysis.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")
+    return pd.concat(frames, ignore_index=True).set_index("method")[list(INTERVAL_COLUMNS)]
 
 
 def paired_shares(boot: analysis.Bootstrap, metric: str, ranked_share: float = RANKED_SHARE) -> pd.DataFrame:

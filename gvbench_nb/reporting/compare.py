@@ -73,7 +73,8 @@ def command_compare(args: argparse.Namespace) -> int:
     for metric in [args.metric] if args.metric else list(analysis.METRICS):
         print(
             f"\n{metric}: share of the same {args.resamples} query resamples in which the first beats the second "
-            f"(tied: equal); ranked when one side wins >= {intervals.RANKED_SHARE:.0%}, else tie\n"
+            f"(tied: both equal); ranked when one side wins in >= {100 * intervals.RANKED_SHARE:.0f} % of them, "
+            "else tie\n"
         )
         print(show(intervals.paired_shares(boot, metric)))
     return 0

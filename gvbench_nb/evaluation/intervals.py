@@ -130,8 +130,10 @@ def paired_shares(boot: analysis.Bootstrap, metric: str, ranked_share: float = R
             first, second = (b, a) if estimates[b] > estimates[a] else (a, b)
             # Paired: one row of ``samples`` is one draw of queries for every method.
             both = samples[[first, second]].dropna()
-            wins = float(np.mean(both[first] > both[second])) if len(both) else float("nan")
-            losses = float(np.mean(both[first] < both[second])) if len(both) else float("nan")
+            left, right = both[first].to_numpy(), both[second].to_numpy()
+            wins, ties, losses = (
+                float(np.mean(op(left, right))) if len(both) else float("nan") for op in (np.greater, np.equal, np.less)
+            )
             if wins >= ranked_share:
                 verdict = f"{first} > {second}"
             elif losses >= ranked_share:
@@ -146,7 +148,7 @@ def paired_shares(boot: analysis.Bootstrap, metric: str, ranked_share: float = R
                     "first_value": float(estimates[first]),
                     "second_value": float(estimates[second]),
                     "first_beats_second": wins,
-                    "tied": float(1.0 - wins - losses) if len(both) else float("nan"),
+                    "tied": ties,
                     "second_beats_first": losses,
                     "verdict": verdict,
                 }

@@ -1,6 +1,6 @@
 """AP and MR with bootstrap intervals over queries, and paired rankings of methods.
 
-Both read the per-method pair tables of one output folder and run ``analysis.bootstrap``:
+Both read the per-method pair tables of output folders and run ``analysis.bootstrap``:
 queries are drawn with replacement (all pairs of a query together, since a query's pairs
 share its image and are not independent) and every method is scored on the same draws,
 so "A beats B" is counted resample by resample. The resampling unit is named in every
@@ -78,6 +78,7 @@ def query_intervals(
 
 
 def intervals_of(boot: analysis.Bootstrap, level: float = LEVEL) -> pd.DataFrame:
+    """``query_intervals``' table from a bootstrap already drawn (so shares and intervals share its draws)."""
     long = boot.intervals(level).set_index(["method", "metric"])
     rows = []
     for method in boot.methods:

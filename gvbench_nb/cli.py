@@ -273,6 +273,10 @@ def command_results(args: argparse.Namespace) -> int:
             pipeline.check_results_finished(folder)  # names the unfinished methods, if any
         pipeline.check_results_current(folder, finished_methods)
         results = pipeline.evaluate(folder, finished_methods, write=False)
+        from gvbench_nb.evaluation import intervals
+
+        tables = {m: pipeline.load_pairs_table(folder, m) for m in results["method"]}
+        results = results.join(intervals.interval_columns(tables), on="method")
         runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
         environment = runs[0]["environment"]
         finished = max(run["finished_at"] for run in runs)
@@ -283,7 +287,11 @@ def command_results(args: argparse.Namespace) -> int:
             "n_pairs",
             "n_positives",
             "ap",
+            "ap_low",
+            "ap_high",
             "max_recall",
+            "max_recall_low",
+            "max_recall_high",
             "extract_seconds_per_pair",
             "match_seconds_per_pair",
             "verify_seconds_per_pair",
@@ -297,6 +305,10 @@ def command_results(args: argparse.Namespace) -> int:
             f"kornia {environment['kornia']}, opencv {environment['opencv']}\n"
         )
         print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
+        print(
+            f"\n*_low, *_high: 95 % bootstrap interval over {results['interval_unit'].iloc[0]} resamples "
+            "(python -m gvbench_nb compare ranks the methods pairwise)"
+        )
         print()
         holder = record.running(folder)
         if holder:
@@ -587,13 +599,14 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
-    from gvbench_nb.reporting import report
+    from gvbench_nb.reporting import compare, report
     from gvbench_nb.speed import bench
 
     add_data_command(commands)
     add_build_command(commands)
     report.add_command(commands)
     __import__("gvbench_nb.explore_lab", fromlist=["add_command"]).add_command(commands)
+    compare.add_command(commands)
     bench.add_command(commands)
     return parser
 

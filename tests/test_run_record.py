@@ -236,7 +236,7 @@ def test_the_report_never_scores_one_method_against_another_methods_labels(tmp_p
         tables[method] = pipeline.run_method(
             Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
         )
-    with pytest.raises(ValueError, match="scored the same pairs under different labels"):
+    with pytest.raises(pipeline.ResultsError, match="label 4 of the same pairs differently"):
         analysis.align_tables(tables)
 
 

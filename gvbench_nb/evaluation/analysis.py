@@ -604,13 +604,18 @@ def query_resample_weights(query_codes: np.ndarray, n_resamples: int, seed: int)
     return counts[:, query_codes]
 
 
+class IncomparableRunsError(pipeline.ResultsError, ValueError):
+    """Methods' results that cannot be compared pair by pair: different pairs or labels."""
+
+
 def align_tables(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
     """One row a pair: query, reference, label and a ``score:<method>`` column per method.
 
-    All methods must have scored the same pairs (a bootstrap compares them pair by pair).
+    All methods must have scored the same pairs under the same labels (a bootstrap
+    compares them pair by pair).
     """
     if not tables:
-        raise ValueError("no methods to compare: pass at least one pairs table")
+        raise IncomparableRunsError("no methods to compare: pass at least one pairs table")
     methods = list(tables)
     base = tables[methods[0]][["query", "reference", "label"]].copy()
     keys = set(zip(base["query"], base["reference"]))
@@ -618,24 +623,24 @@ def align_tables(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
         table = tables[method]
         other = set(zip(table["query"], table["reference"]))
         if other != keys:
-            raise ValueError(
+            raise IncomparableRunsError(
                 f"methods {methods[0]!r} and {method!r} scored different pairs ({len(keys - other)} only in the first, "
                 f"{len(other - keys)} only in the second); rerun them on the same pairs (same --limit)"
             )
         base = base.merge(
             table[["query", "reference", "label", "score"]].rename(
-                columns={"score": f"score:{method}", "label": f"label:{method}"}
+                columns={"label": "label:other", "score": f"score:{method}"}
             ),
             on=["query", "reference"],
             how="left",
             validate="one_to_one",
         )
-        # Each method is scored against its own labels: the same pairs under other labels do not compare.
-        differ = int((base.pop(f"label:{method}") != base["label"]).sum())
-        if differ:
-            raise ValueError(
-                f"methods {methods[0]!r} and {method!r} scored the same pairs under different labels ({differ} pairs "
-                "differ): they ran on different pair files; rerun them on one pair file"
+        relabelled = base["label"].to_numpy() != base.pop("label:other").to_numpy()
+        if relabelled.any():
+            first = base[relabelled].iloc[0]
+            raise IncomparableRunsError(
+                f"methods {methods[0]!r} and {method!r} label {int(relabelled.sum())} of the same pairs differently "
+                f"(e.g. {first['query']} {first['reference']}); rerun them with the same pair file and label rule"
             )
     return base
 

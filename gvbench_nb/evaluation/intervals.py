@@ -1,0 +1,157 @@
+"""AP and MR with bootstrap intervals over queries, and paired rankings of methods.
+
+Both read the per-method pair tables of output folders and run ``analysis.bootstrap``:
+queries are drawn with replacement (all pairs of a query together, since a query's pairs
+share its image and are not independent) and every method is scored on the same draws,
+so "A beats B" is counted resample by resample. The resampling unit is named in every
+table these functions return.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence as SequenceType
+from pathlib import Path
+
+import numpy as np
+import pandas as pd
+
+from gvbench_nb import pipeline
+from gvbench_nb.evaluation import analysis
+
+RESAMPLING_UNIT = "query"
+LEVEL = 0.95  # the intervals' coverage
+RANKED_SHARE = 0.95  # a ranking needs the leader ahead in this share of the paired resamples
+DEFAULT_RESAMPLES = 1000
+INTERVAL_COLUMNS = ("ap_low", "ap_high", "max_recall_low", "max_recall_high", "interval_unit")
+
+
+def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[str, Path]:
+    """Which of ``output_dirs`` holds each method's finished results; a method in two is refused."""
+    found: dict[str, Path] = {}
+    for folder in map(Path, output_dirs):
+        pipeline.check_results_finished(folder)
+        ran = pipeline.methods_with_results(folder)
+        if not ran:
+            what = "does not exist" if not folder.exists() else "holds no method results (<method>/pairs.csv)"
+            raise pipeline.ResultsError(
+                f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
+            )
+        for method in ran:
+            if method in found:
+                raise analysis.IncomparableRunsError(
+                    f"method {method!r} has results in both {found[method]} and {folder}; "
+                    "pass only one of the two folders"
+                )
+            found[method] = folder
+    return found
+
+
+def folder_tables(
+    output_dirs: str | os.PathLike[str] | SequenceType[str | os.PathLike[str]], methods: SequenceType[str] | None = None
+) -> dict[str, pd.DataFrame]:
+    """The finished pair tables of ``methods`` (default: all) in one or more output folders,
+    checked to be comparable (same pairs, same labels) before anything is resampled."""
+    folders = [output_dirs] if isinstance(output_dirs, (str, os.PathLike)) else list(output_dirs)
+    found = method_folders(folders)
+    wanted = list(methods) if methods else list(found)
+    absent = [m for m in wanted if m not in found]
+    if absent:
+        raise pipeline.ResultsError(
+            f"no results for method {absent[0]!r} in {', '.join(map(str, folders))}; run it on the same pairs first"
+        )
+    tables = {m: pipeline.load_pairs_table(found[m], m) for m in wanted}
+    analysis.align_tables(tables)
+    return tables
+
+
+def query_intervals(
+    tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = LEVEL
+) -> pd.DataFrame:
+    """One row a method: ``ap`` and ``max_recall`` on all pairs, each with its ``level``
+    percentile interval over query resamples (``*_low``, ``*_high``), the unit resampled
+    (``interval_unit``), ``n_queries``, ``n_pairs``, ``n_resamples``, ``seed``.
+
+    Deterministic for a seed; the same draws serve every method.
+    """
+    return intervals_of(analysis.bootstrap(tables, n_resamples, seed), level)
+
+
+def intervals_of(boot: analysis.Bootstrap, level: float = LEVEL) -> pd.DataFrame:
+    """``query_intervals``' table from a bootstrap already drawn (so shares and intervals share its draws)."""
+    long = boot.intervals(level).set_index(["method", "metric"])
+    rows = []
+    for method in boot.methods:
+        row: dict[str, object] = {"method": method}
+        for metric in analysis.METRICS:
+            row[metric] = float(long.loc[(method, metric), "estimate"])
+            row[f"{metric}_low"] = float(long.loc[(method, metric), "low"])
+            row[f"{metric}_high"] = float(long.loc[(method, metric), "high"])
+        rows.append(row)
+    table = pd.DataFrame(rows)
+    table["interval_unit"] = RESAMPLING_UNIT
+    table["n_queries"] = boot.n_queries
+    table["n_pairs"] = boot.n_pairs
+    table["n_resamples"] = len(boot.samples["ap"])
+    table["seed"] = boot.seed
+    return table
+
+
+def interval_columns(
+    tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = LEVEL
+) -> pd.DataFrame:
+    """The interval columns for a results table, indexed by method: ``ap_low``, ``ap_high``,
+    ``max_recall_low``, ``max_recall_high`` and ``interval_unit`` (what was resampled).
+
+    Each method is resampled over its own queries, so a folder whose methods ran on
+    different pairs (another ``--limit``) still gets its columns; methods of the same pairs
+    in the same order get the same draws, hence the intervals ``query_intervals`` gives.
+    """
+    frames = [query_intervals({method: table}, n_resamples, seed, level) for method, table in tables.items()]
+    if not frames:
+        raise analysis.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")
+    return pd.concat(frames, ignore_index=True).set_index("method")[list(INTERVAL_COLUMNS)]
+
+
+def paired_shares(boot: analysis.Bootstrap, metric: str, ranked_share: float = RANKED_SHARE) -> pd.DataFrame:
+    """Every pair of methods once, the one with the higher value on all pairs first:
+    the share of paired resamples in which the first beats the second, is tied with it,
+    or loses, and the verdict.
+
+    A resample where both are equal (frequent for MR) counts for neither, so a ranking
+    needs ``ranked_share`` strict wins in one direction; anything else is a tie.
+    """
+    if metric not in analysis.METRICS:
+        raise ValueError(f"unknown metric {metric!r}: use one of {', '.join(analysis.METRICS)}")
+    samples = boot.samples[metric]
+    estimates = boot.estimates[metric]
+    rows = []
+    for i, a in enumerate(boot.methods):
+        for b in boot.methods[i + 1 :]:
+            first, second = (b, a) if estimates[b] > estimates[a] else (a, b)
+            # Paired: one row of ``samples`` is one draw of queries for every method.
+            both = samples[[first, second]].dropna()
+            left, right = both[first].to_numpy(), both[second].to_numpy()
+            wins, ties, losses = (
+                float(np.mean(op(left, right))) if len(both) else float("nan") for op in (np.greater, np.equal, np.less)
+            )
+            if wins >= ranked_share:
+                verdict = f"{first} > {second}"
+            elif losses >= ranked_share:
+                verdict = f"{second} > {first}"
+            else:
+                verdict = "tie"
+            rows.append(
+                {
+                    "metric": metric,
+                    "first": first,
+                    "second": second,
+                    "first_value": float(estimates[first]),
+                    "second_value": float(estimates[second]),
+                    "first_beats_second": wins,
+                    "tied": ties,
+                    "second_beats_first": losses,
+                    "verdict": verdict,
+                }
+            )
+    return pd.DataFrame(rows)

@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
+from gvbench_nb.reporting.tables import markdown_table
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -245,15 +246,6 @@ def print_run_results(output_dir: Path) -> None:
             "that computed them (timers column), not this run's"
         )
     print(f"results table: {output_dir / 'results.csv'}")
-
-
-def markdown_table(frame: Any) -> str:
-    """A pandas frame as a GitHub markdown table (floats to 3 decimals)."""
-    header = "| " + " | ".join(map(str, frame.columns)) + " |"
-    rule = "|" + "|".join("---" for _ in frame.columns) + "|"
-    cell = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)
-    rows = ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
-    return "\n".join([header, rule, *rows])
 
 
 def command_results(args: argparse.Namespace) -> int:

@@ -3,6 +3,7 @@ import pytest
 from helpers import with_outlier_matches
 
 from gvbench_nb.methods import VERIFIER
+from gvbench_nb.verification import ransac
 from gvbench_nb.verification.ransac import ESTIMATORS, fundamental_inliers, verify_matches
 
 
@@ -55,3 +56,40 @@ def test_resize_to_is_a_fixed_size_whatever_the_aspect_ratio():
     assert target_size(640, 480, None, resize_to=(512, 288)) == (512, 288)
     assert target_size(300, 900, 1600, resize_to=(512, 288)) == (512, 288)
     assert target_size(960, 540, 512) == (512, 288)
+
+
+# Thirteen matches of a real sample pair (sift-nn, repository profile) where most query points
+# match the same two reference points: OpenCV's USAC estimators raise on it instead of returning
+# no model.
+DEGENERATE_QUERY = [
+    [304.17974853515625, 216.40762329101562], [366.32916259765625, 292.62890625],
+    [369.8649597167969, 214.63534545898438], [394.4306640625, 348.8855285644531],
+    [403.36676025390625, 344.5108642578125], [404.11065673828125, 367.6290588378906],
+    [410.1116027832031, 378.9583435058594], [421.07855224609375, 397.42791748046875],
+    [423.76470947265625, 376.2637634277344], [426.81683349609375, 378.54510498046875],
+    [433.0713195800781, 400.0957946777344], [434.77215576171875, 242.8515625],
+    [466.87860107421875, 247.93698120117188],
+]  # fmt: skip
+DEGENERATE_REFERENCE = [
+    [302.02459716796875, 334.56494140625], [302.02459716796875, 334.56494140625],
+    [302.02459716796875, 334.56494140625], [297.3966064453125, 317.9959716796875],
+    [305.5838623046875, 328.83624267578125], [305.5838623046875, 328.83624267578125],
+    [305.5838623046875, 328.83624267578125], [305.5838623046875, 328.83624267578125],
+    [305.5838623046875, 328.83624267578125], [305.5838623046875, 328.83624267578125],
+    [302.02459716796875, 334.56494140625], [451.85748291015625, 258.1497802734375],
+    [84.86955261230469, 284.8394470214844],
+]  # fmt: skip
+
+
+def test_a_degenerate_pair_that_usac_raises_on_is_a_pair_without_a_model():
+    import cv2
+
+    points0, points1 = np.array(DEGENERATE_QUERY), np.array(DEGENERATE_REFERENCE)
+    with pytest.raises(cv2.error):  # what OpenCV itself does with it
+        cv2.setRNGSeed(0)
+        cv2.findFundamentalMat(points0, points1, cv2.USAC_DEFAULT, 1.0, 0.99, 10000)
+    for rule, expected in (("zero", 0), ("all", len(points0))):
+        mask = ransac.fundamental_inliers(
+            points0, points1, threshold_px=1.0, method="USAC_DEFAULT", max_iters=10000, few_matches=rule
+        )
+        assert mask.sum() == expected

@@ -45,8 +45,8 @@ def resample_count(text: str) -> int:
 
 def command_compare(args: argparse.Namespace) -> int:
     from gvbench_nb import pipeline
-    from gvbench_nb.cli import markdown_table
     from gvbench_nb.evaluation import analysis, intervals
+    from gvbench_nb.reporting.tables import markdown_table
 
     folders = [Path(f) for f in args.output_dirs]
     where = ", ".join(map(str, folders))

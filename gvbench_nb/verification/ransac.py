@@ -60,7 +60,10 @@ def fundamental_inliers(
         return unverifiable
     flag = registry.lookup("estimator", method, ESTIMATORS)
     cv2.setRNGSeed(int(seed))
-    F, mask = cv2.findFundamentalMat(points0, points1, flag, threshold_px, confidence, max_iters)
+    try:
+        F, mask = cv2.findFundamentalMat(points0, points1, flag, threshold_px, confidence, max_iters)
+    except cv2.error:  # OpenCV's USAC raises where its RANSAC returns no model (degenerate matches)
+        return unverifiable
     if F is None or mask is None or F.shape != (3, 3):
         return unverifiable
     return mask.ravel().astype(bool)

@@ -8,7 +8,6 @@ expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.d
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -29,7 +28,7 @@ from gvbench_nb.data.sequences import (
     read_pairs,
     write_pairs,
 )
-from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, path_problem
+from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256, path_problem
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -313,14 +312,6 @@ PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
     "frame_tolerance": build_frame_tolerance,
     "retrieval": build_retrieval,
 }
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:

@@ -7,6 +7,7 @@ that looks complete.
 from __future__ import annotations
 
 import errno
+import hashlib
 import json
 import os
 import stat
@@ -70,6 +71,15 @@ def path_problem(path: str | os.PathLike[str]) -> str | None:
     if stat.S_ISSOCK(mode):
         return "is a socket, not a file"
     return "is not a regular file"
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of a file's bytes (pair files, published results)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as stream:
+        for block in iter(lambda: stream.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def fsync_folder(folder: Path) -> None:

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import contextlib
 import datetime as _dt
-import hashlib
 import json
 import os
 import platform
@@ -24,7 +23,7 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb import __version__
-from gvbench_nb.io_utils import atomic_write_json, fsync_folder
+from gvbench_nb.io_utils import atomic_write_json, file_sha256, fsync_folder
 
 RECORD_NAME = "gvbench-run.json"
 LOCK_NAME = ".gvbench.lock"  # held by the one run writing the folder
@@ -45,14 +44,6 @@ class RecordError(ValueError):
 
 def now() -> str:
     return _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds")
-
-
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as stream:
-        for block in iter(lambda: stream.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
 
 
 def read_record(folder: str | os.PathLike[str]) -> dict[str, Any] | None:

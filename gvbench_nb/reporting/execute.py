@@ -104,9 +104,12 @@ QUIET_WARNINGS = "__import__('warnings').filterwarnings('ignore', 'IProgress not
 
 def preload_arguments(modules: tuple[str, ...]) -> list[str]:
     """The kernel's command-line arguments that silence ``QUIET_WARNINGS`` and import ``modules``
-    at start-up; the line evaluates to None so that nothing is displayed or bound (not even ``_``)."""
+    at start-up (the line evaluates to None so that nothing is displayed or bound, not even ``_``),
+    and keep its history in memory."""
     imports = f" or list(map(__import__, {tuple(modules)!r})).clear()" if modules else ""
-    return [f"--IPKernelApp.exec_lines={QUIET_WARNINGS}{imports}"]
+    # History in memory: a batch kernel keeps none, and kernels running at once then never
+    # contend for (or, on a full disk, fail to write) the one history file.
+    return [f"--IPKernelApp.exec_lines={QUIET_WARNINGS}{imports}", "--HistoryManager.hist_file=:memory:"]
 
 
 def stop_kernel(manager: KernelManager) -> None:

@@ -12,6 +12,7 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
+from gvbench_nb.arguments import whole_number_at_least
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
 from gvbench_nb.reporting.tables import markdown_table
 
@@ -381,13 +382,7 @@ def command_weights(args: argparse.Namespace) -> int:
 
 def positive_int(text: str) -> int:
     """argparse type of --limit: a whole number of at least 1."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a positive whole number of pairs, got {text!r}")
-    return value
+    return whole_number_at_least(text, 1, "a positive whole number of pairs")
 
 
 def command_build(args: argparse.Namespace) -> int:

@@ -11,6 +11,8 @@ import argparse
 import json
 from pathlib import Path
 
+from gvbench_nb.arguments import whole_number_at_least
+
 # `intervals` (and through it torch) is imported inside the handler: `--help` stays instant.
 
 HELP = "AP and MR with bootstrap intervals over queries, and which method rankings a paired bootstrap supports"
@@ -34,13 +36,7 @@ examples:
 
 def resample_count(text: str) -> int:
     """argparse type of --resamples: a whole number of at least 100 (fewer makes 95 % percentiles coarse)."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 100:
-        raise argparse.ArgumentTypeError(f"must be a whole number of resamples of at least 100, got {text!r}")
-    return value
+    return whole_number_at_least(text, 100, "a whole number of resamples of at least 100")
 
 
 def command_compare(args: argparse.Namespace) -> int:

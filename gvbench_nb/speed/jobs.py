@@ -11,6 +11,7 @@ import argparse
 import os
 import sys
 
+from gvbench_nb.arguments import whole_number_at_least
 from gvbench_nb.pipeline import JOBS_ENV, RENAMED_ENV
 
 _hinted: set[str] = set()
@@ -31,13 +32,7 @@ def jobs_value(text: str) -> int | None:
     hint_renamed_variables()  # runs when the command that takes --jobs parses, not for every command
     if text == "":
         return None
-    try:
-        value = int(text)
-    except ValueError:
-        value = 0
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be a whole number of at least 1 (--jobs or ${JOBS_ENV}), got {text!r}")
-    return value
+    return whole_number_at_least(text, 1, f"a whole number of at least 1 (--jobs or ${JOBS_ENV})")
 
 
 class ExportJobs(argparse.Action):

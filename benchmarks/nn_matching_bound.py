@@ -20,7 +20,7 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb.matching.nearest_neighbour import NearestNeighbourMatcher, hamming_nearest_neighbour_matches
+from gvbench_nb.protocol.matching.nearest_neighbour import NearestNeighbourMatcher, hamming_nearest_neighbour_matches
 
 
 def main() -> None:

@@ -5,7 +5,7 @@ every pair, load both images, extract both, match, RANSAC (``matcher(img0, img1)
 the opt-in venv (``make setup-imm``); ours runs in the default venv as a user runs it
 (``python -m gvbench_nb run``, notebooks included, a fresh cache every run). Both are timed as
 whole processes, alternating (ours, peer, ours, peer, ...), and compared by the ratio of their
-median wall times. AP and MR of both come from the same metric code (``gvbench_nb.evaluation.metrics``).
+median wall times. AP and MR of both come from the same metric code (``gvbench_nb.protocol.metrics``).
 
     .venv/bin/python benchmarks/peer_vismatch.py params/gardens_point.yaml --method sift-nn --runs 2
 
@@ -60,7 +60,7 @@ def write_pair_file(sequence: Any, path: Path) -> None:
 def peer_image_size(params: dict[str, Any], method: str, sequence: Any) -> tuple[int, int]:
     """(height, width) our profile prepares this sequence's images at (its first image decides)."""
     from gvbench_nb import methods
-    from gvbench_nb.data.images import read_image, target_size
+    from gvbench_nb.protocol.images import read_image, target_size
 
     conf = methods.resolve_method(method, params["profile"])
     prepared = conf["extractor"] or conf["matcher"]
@@ -77,7 +77,7 @@ def peer_image_size(params: dict[str, Any], method: str, sequence: Any) -> tuple
 
 
 def score_pairs(labels: list[int], scores: list[float]) -> dict[str, float]:
-    from gvbench_nb.evaluation.metrics import evaluate_scores
+    from gvbench_nb.protocol.metrics import evaluate_scores
 
     metrics = evaluate_scores(labels, scores, where="peer")
     return {"ap": metrics["ap"], "max_recall": metrics["max_recall"]}

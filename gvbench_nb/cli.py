@@ -324,7 +324,8 @@ def not_run_table(ran: set[str]) -> Any:
     """Registered methods that have no results: why, and the files a user needs to run them."""
     import pandas as pd
 
-    from gvbench_nb import methods, weights
+    from gvbench_nb import methods
+    from gvbench_nb.protocol import weights
 
     rows = []
     for row in methods.method_table():
@@ -343,8 +344,7 @@ def not_run_table(ran: set[str]) -> Any:
 
 
 def command_methods(args: argparse.Namespace) -> int:
-    from gvbench_nb import methods
-    from gvbench_nb.matching import imm
+    from gvbench_nb import imm, methods
 
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
     print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
@@ -360,12 +360,12 @@ def command_methods(args: argparse.Namespace) -> int:
 
 
 def command_weights(args: argparse.Namespace) -> int:
-    from gvbench_nb import weights
+    from gvbench_nb.protocol import weights
 
     if args.link:
         for name, what in weights.link_carried_weights().items():
             print(f"{name}: {what}")
-        from gvbench_nb.matching import imm
+        from gvbench_nb import imm
 
         if imm.vismatch_installed():  # the same LightGlue files under the names vismatch loads
             for name, what in imm.link_local_weights().items():
@@ -701,17 +701,17 @@ def run_command(argv: list[str]) -> int:
 USER_ERRORS = (
     ("gvbench_nb.config", "ParamsError"),
     ("gvbench_nb.data.sequences", "PairFileError"),
-    ("gvbench_nb.weights", "MissingWeightsError"),
-    ("gvbench_nb.weights", "WeightsLayoutError"),
-    ("gvbench_nb.evaluation.metrics", "MetricsUndefinedError"),
-    ("gvbench_nb.data.images", "ImageReadError"),
+    ("gvbench_nb.protocol.weights", "MissingWeightsError"),
+    ("gvbench_nb.protocol.weights", "WeightsLayoutError"),
+    ("gvbench_nb.protocol.metrics", "MetricsUndefinedError"),
+    ("gvbench_nb.protocol.images", "ImageReadError"),
     ("gvbench_nb.speed.distributed", "ShardError"),
     ("gvbench_nb.store", "StoreCorruptError"),
     ("gvbench_nb.store", "StoreWriteError"),
     ("gvbench_nb.io_utils", "WriteFailedError"),
     ("gvbench_nb.pipeline", "ResultsError"),
     ("gvbench_nb.data.fetch", "DataError"),
-    ("gvbench_nb.matching.imm", "ImmUnavailableError"),
+    ("gvbench_nb.imm", "ImmUnavailableError"),
     ("gvbench_nb.data.builders", "BuildError"),
     ("gvbench_nb.runner.record", "RecordError"),
 )

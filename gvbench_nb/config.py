@@ -19,7 +19,6 @@ from typing import Any
 import yaml
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb import registry
 from gvbench_nb.data import builders, fetch
 from gvbench_nb.data.sequences import (
     Pair,
@@ -28,7 +27,9 @@ from gvbench_nb.data.sequences import (
     read_pairs,
     write_pairs,
 )
-from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256, path_problem
+from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256
+from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.images import path_problem
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 
@@ -517,7 +518,7 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
     model: the device, the output and cache folders, the weights, the builder's options and
     folders, and (``images``) the pair file and every image it names (each missing, broken
     link, link loop, folder or FIFO named as what it is). Raises the error a user reads."""
-    from gvbench_nb import weights
+    from gvbench_nb.protocol import weights
 
     problem = device_problem(params["device"])
     if problem:
@@ -538,7 +539,7 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
             + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
         )
-    from gvbench_nb.matching import imm
+    from gvbench_nb import imm
 
     for method in params["methods"]:
         if imm.is_imm(method):

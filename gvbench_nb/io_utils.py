@@ -10,7 +10,6 @@ import errno
 import hashlib
 import json
 import os
-import stat
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -32,45 +31,6 @@ class WriteFailedError(OSError):
 
 # A disk or quota that is full, or a file size limit (EFBIG: Python ignores SIGXFSZ).
 WRITE_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
-
-
-def path_problem(path: str | os.PathLike[str]) -> str | None:
-    """What keeps ``path`` from being read as a regular file, in words that follow its name
-    ("is a broken symbolic link to ...", "is a folder, not a file", "does not exist"), or None.
-
-    Only metadata is read: a FIFO or a device is named, never opened (opening a FIFO blocks).
-    """
-    text = os.fspath(path)
-    if "\0" in text:
-        return "holds a NUL byte, which no file name can"
-    try:
-        info = os.stat(text)
-    except OSError as error:
-        if error.errno == errno.ELOOP:
-            return "is a symbolic link loop (following it leads back to itself)"
-        if error.errno == errno.ENOENT and os.path.islink(text):
-            return f"is a broken symbolic link (to {os.readlink(text)}, which does not exist)"
-        if error.errno == errno.ENOENT:
-            return "does not exist"
-        if error.errno == errno.ENOTDIR:
-            return "does not exist (a folder on its path is a file)"
-        if error.errno == errno.EACCES:
-            return "cannot be reached (permission denied on a folder of its path)"
-        if error.errno == errno.ENAMETOOLONG:
-            return "has a name longer than the file system allows"
-        return f"cannot be used ({error.strerror or error})"
-    mode = info.st_mode
-    if stat.S_ISREG(mode):
-        return None if os.access(text, os.R_OK) else "cannot be read (permission denied)"
-    if stat.S_ISDIR(mode):
-        return "is a folder, not a file"
-    if stat.S_ISFIFO(mode):
-        return "is a FIFO (named pipe), not a file"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "is a device, not a file"
-    if stat.S_ISSOCK(mode):
-        return "is a socket, not a file"
-    return "is not a regular file"
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:

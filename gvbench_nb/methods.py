@@ -15,8 +15,8 @@ import json
 import math
 from typing import Any
 
-from gvbench_nb import registry, weights
-from gvbench_nb.matching import imm
+from gvbench_nb import imm
+from gvbench_nb.protocol import registry, weights
 
 # store_float16: the cache keeps float arrays as float16, as hloc stores them (as_half)
 # and matches them from there; it is part of the conf hash, so a profile can turn it off.
@@ -403,7 +403,7 @@ def check_verifier_overrides(overrides: dict[str, Any]) -> None:
         registry.check_choice("verifier coordinates", overrides["coordinates"], ("original", "resize_to"))
     if not {"type", "method", "few_matches"} & set(overrides):
         return
-    from gvbench_nb.verification import ransac  # imports OpenCV: only when a choice is to be checked
+    from gvbench_nb.protocol import ransac  # imports OpenCV: only when a choice is to be checked
 
     if "type" in overrides:
         registry.check_choice("verifier model", overrides["type"], ransac.MODELS)

@@ -28,22 +28,22 @@ import pandas as pd
 from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data.images import (
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,
     to_original_pixels,
 )
-from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.evaluation.metrics import evaluate_scores
-from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.protocol.ransac import verify_matches
 from gvbench_nb.runner import record
 from gvbench_nb.store import ShardedStore
-from gvbench_nb.verification.ransac import verify_matches
 
 if TYPE_CHECKING:
     import torch
 
-    from gvbench_nb.matching.base import PreparedMatcher
+    from gvbench_nb.protocol.matching.base import PreparedMatcher
 
 # torch and the model modules (extractors, matchers) are imported by the functions that
 # run models: a notebook or command that only reads results never pays for them.
@@ -237,8 +237,8 @@ def extract_features(
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
     if not todo:
         return counts
-    from gvbench_nb.features import build_extractor
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features import build_extractor
+    from gvbench_nb.protocol.features.base import resolve_device
 
     extractor = build_extractor(extractor_conf, resolve_device(device))
 
@@ -498,8 +498,8 @@ def match_and_verify(
     counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
     if not todo:
         return counts
-    from gvbench_nb.features.base import resolve_device
-    from gvbench_nb.matching import build_matcher
+    from gvbench_nb.protocol.features.base import resolve_device
+    from gvbench_nb.protocol.matching import build_matcher
 
     matcher = build_matcher(conf["matcher"], resolve_device(device))
     if method_registry.is_dense(conf):
@@ -756,7 +756,7 @@ def _match_dense_pairs(
             bar.update()
         bar.close()
 
-    from gvbench_nb.matching.loftr import merge_dense_matches
+    from gvbench_nb.protocol.matching.loftr import merge_dense_matches
 
     merge = dense_merge_options(conf["matcher"])
     if merge is None:
@@ -985,7 +985,7 @@ def compute_method(
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     record.claim(output_dir)  # its stores and work record go into the folder: only into one that is the package's
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)
     configure_threads(threads)

@@ -10,7 +10,7 @@ import pandas as pd
 import pytest
 
 from gvbench_nb import pipeline
-from gvbench_nb.evaluation import metrics
+from gvbench_nb.protocol import metrics
 
 
 def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:

@@ -11,7 +11,8 @@ import pytest
 from sklearn.metrics import average_precision_score
 
 from gvbench_nb import pipeline
-from gvbench_nb.evaluation import analysis, metrics
+from gvbench_nb.evaluation import analysis
+from gvbench_nb.protocol import metrics
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:

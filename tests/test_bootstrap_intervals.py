@@ -7,7 +7,8 @@ import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb.evaluation import analysis, intervals, metrics
+from gvbench_nb.evaluation import analysis, intervals
+from gvbench_nb.protocol import metrics
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:

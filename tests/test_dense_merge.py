@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import matching as matchers
-from gvbench_nb import methods, pipeline, registry
+from gvbench_nb import methods, pipeline
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.matching.loftr import LoFTRMatcher, merge_dense_matches, swapped_dense_call
+from gvbench_nb.protocol import matching as matchers
+from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.matching.loftr import LoFTRMatcher, merge_dense_matches, swapped_dense_call
 
 
 def hloc_merge_reference(pairs, raw, max_keypoints):

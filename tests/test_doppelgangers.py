@@ -10,6 +10,7 @@ import pytest
 import torch
 from helpers import random_state_dict, read_layout
 
+from gvbench_nb.protocol.weights import MissingWeightsError, WeightsLayoutError
 from gvbench_nb.verification.doppelgangers import (
     DoppelgangersClassifier,
     build_input,
@@ -22,7 +23,6 @@ from gvbench_nb.verification.doppelgangers import (
     to_resized_frame,
     train_classifier,
 )
-from gvbench_nb.weights import MissingWeightsError, WeightsLayoutError
 
 
 @pytest.fixture(scope="module")

@@ -8,9 +8,10 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from gvbench_nb import methods, pipeline, registry
+from gvbench_nb import methods, pipeline
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Sequence, read_pairs
+from gvbench_nb.protocol import registry
 
 HERE = Path(__file__).resolve().parent
 
@@ -61,7 +62,7 @@ def test_a_misspelled_type_gets_one_did_you_mean(monkeypatch: pytest.MonkeyPatch
     monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))
     methods.register_method("orb-typo", extractor="orb", matcher={"type": "nn-hamming-typo"})
     with pytest.raises(registry.UnknownNameError, match="unknown matcher type 'nn-hamming-typo'.*Known: nn, lightglue"):
-        from gvbench_nb.matching import build_matcher
+        from gvbench_nb.protocol.matching import build_matcher
 
         build_matcher(methods.resolve_method("orb-typo")["matcher"], "cpu")  # type: ignore[arg-type]
 

@@ -15,10 +15,10 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import features as extractors
 from gvbench_nb import methods, pipeline
-from gvbench_nb.data import images
 from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.protocol import features as extractors
+from gvbench_nb.protocol import images
 
 GARDENS_POINT_IMAGES = [
     "night_right/Image050.jpg",

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb.matching.nearest_neighbour import (
+from gvbench_nb.protocol.matching.nearest_neighbour import (
     NearestNeighbourMatcher,
     hamming_distances,
     hamming_nearest_neighbour_matches,

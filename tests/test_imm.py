@@ -18,10 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import methods, pipeline
-from gvbench_nb.data.images import load_for_extraction
+from gvbench_nb import imm, methods, pipeline
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.matching import imm
+from gvbench_nb.protocol.images import load_for_extraction
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
     sys.modules.get("vismatch"), types.SimpleNamespace
@@ -88,7 +87,7 @@ def fake_vismatch(monkeypatch):
 def test_imm_methods_resolve_as_dense_pair_matchers(no_vismatch):
     conf = methods.resolve_method("imm:sift-nn", "paper")
     assert conf["extractor"] is None and conf["matcher"]["dense"]
-    assert conf["matcher"]["type"] == "imm" and conf["matcher"]["vismatch_name"] == "sift-nn"
+    assert conf["matcher"]["type"] == "gvbench_nb.imm:ImmPairMatcher" and conf["matcher"]["vismatch_name"] == "sift-nn"
     assert conf["matcher"]["resize_to"] == [512, 288] and conf["paper_name"] == "vismatch sift-nn"
     assert methods.required_checkpoints("imm:sift-nn") == []
     assert methods.expand_methods("sift-nn, imm:orb-nn") == ["sift-nn", "imm:orb-nn"]
@@ -142,7 +141,7 @@ def test_unknown_vismatch_name_is_one_sentence_with_a_suggestion(fake_vismatch):
 def test_weights_vismatch_loads_are_checked_and_named(fake_vismatch, tmp_path, monkeypatch):
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
     fake_vismatch.available_models.append("disk-lightglue")
-    from gvbench_nb.weights import MissingWeightsError
+    from gvbench_nb.protocol.weights import MissingWeightsError
 
     with pytest.raises(MissingWeightsError, match=r"depth-save.pth, disk_lightglue_v0-1_arxiv.pth in .*checkpoints"):
         imm.require("imm:disk-lightglue")
@@ -161,7 +160,7 @@ def test_xfeat_weights_are_linked_into_a_hub_snapshot_vismatch_finds(fake_vismat
     monkeypatch.setenv("TORCH_HOME", str(tmp_path / "torch"))
     monkeypatch.setenv("HF_HUB_CACHE", str(tmp_path / "hf"))
     fake_vismatch.available_models.append("xfeat")
-    from gvbench_nb.weights import MissingWeightsError
+    from gvbench_nb.protocol.weights import MissingWeightsError
 
     with pytest.raises(
         MissingWeightsError, match=r"xfeat.pt in a HuggingFace snapshot of vismatch/xfeat.*weights --link"
@@ -187,7 +186,7 @@ def test_imm_xfeat_builds_offline_from_the_linked_weights_without_the_hub_banner
     probe = (
         "import numpy as np\n"
         "from gvbench_nb import methods\n"
-        "from gvbench_nb.matching import imm\n"
+        "from gvbench_nb.protocol.matching import imm\n"
         "print(imm.link_local_weights()['vismatch/xfeat/xfeat.pt'])\n"
         "matcher = imm.ImmPairMatcher(methods.resolve_method('imm:xfeat', 'repository')['matcher'], 'cpu')\n"
         "image = np.random.default_rng(0).integers(0, 255, (288, 512, 3), dtype=np.uint8)\n"

@@ -26,8 +26,8 @@ import yaml
 
 from gvbench_nb import cli, config, pipeline
 from gvbench_nb.data import builders
-from gvbench_nb.data.images import ImageReadError, read_image
 from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
+from gvbench_nb.protocol.images import ImageReadError, read_image
 
 pytestmark = pytest.mark.reliability
 

@@ -7,7 +7,7 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "gvbench_nb"
-STAGES = ("data", "features", "matching", "verification", "evaluation", "analyses", "reporting", "speed")
+STAGES = ("protocol", "protocol/features", "protocol/matching", "data", "verification", "evaluation", "analyses", "reporting", "speed", "runner")
 
 
 def module_name(path: Path) -> str:

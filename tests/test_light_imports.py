@@ -79,7 +79,7 @@ def test_checkpoint_folder_without_torch_is_torch_hubs(env):
     code = (
         "import os\n"
         + "".join(f"os.environ.pop({k!r}, None)\n" for k in clean)
-        + "from gvbench_nb import weights\nbefore = str(weights.checkpoints_dir())\n"
+        + "from gvbench_nb.protocol import weights\nbefore = str(weights.checkpoints_dir())\n"
         "assert 'torch' not in __import__('sys').modules\n"
         "import torch\nOUT = [before, os.path.join(torch.hub.get_dir(), 'checkpoints'), "
         "str(weights.checkpoints_dir())]"

@@ -10,11 +10,11 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import features as extractors
-from gvbench_nb import matching as matchers
 from gvbench_nb import methods
-from gvbench_nb.data import images
 from gvbench_nb.pipeline import PreparedCache
+from gvbench_nb.protocol import features as extractors
+from gvbench_nb.protocol import images
+from gvbench_nb.protocol import matching as matchers
 
 # Two true pairs (many matches: LightGlue runs deep and prunes) and false pairs (it stops early).
 IMAGES = [
@@ -104,7 +104,7 @@ def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):
     conf, features = disk_features
     matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
     matcher.model.conf.mp = True
-    from gvbench_nb.matching.lightglue_prepared import supports_prepared
+    from gvbench_nb.protocol.matching.lightglue_prepared import supports_prepared
 
     assert not supports_prepared(matcher.model)
 

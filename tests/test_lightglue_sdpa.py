@@ -7,9 +7,9 @@ import torch
 import torch.nn.functional as F
 from test_lightglue_prepared import features_of  # the shared real-image feature helper
 
-from gvbench_nb import matching as matchers
 from gvbench_nb import methods
-from gvbench_nb.matching import lightglue_prepared
+from gvbench_nb.protocol import matching as matchers
+from gvbench_nb.protocol.matching import lightglue_prepared
 
 # A true pair (LightGlue runs deep and prunes), a near one and a false one (it stops early).
 IMAGES = ["night_right/Image060.jpg", "day_right/Image060.jpg", "day_right/Image063.jpg", "day_right/Image140.jpg"]

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb.matching.nearest_neighbour import nearest_neighbour_matches
+from gvbench_nb.protocol.matching.nearest_neighbour import nearest_neighbour_matches
 
 
 def _passes(distances: np.ndarray, ratio: float | None, threshold: float | None) -> tuple[int, bool]:

@@ -6,8 +6,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from gvbench_nb import methods, pipeline, weights
+from gvbench_nb import methods, pipeline
 from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.protocol import weights
 
 PAPER_METHODS = ["sift-nn", "sp-nn", "sp-sg", "disk-nn", "disk-lg", "loftr"]
 
@@ -68,7 +69,7 @@ def test_results_lists_every_method_without_results_with_the_files_it_needs(empt
 def test_loftr_loads_an_official_layout_checkpoint_strictly(empty_hub):
     from kornia.feature import LoFTR
 
-    from gvbench_nb.matching.loftr import LoFTRMatcher
+    from gvbench_nb.protocol.matching.loftr import LoFTRMatcher
 
     state = {f"matcher.{k}": v for k, v in LoFTR(pretrained=None).state_dict().items()}
     empty_hub.mkdir(parents=True)

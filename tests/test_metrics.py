@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb.evaluation.metrics import (
+from gvbench_nb.protocol.metrics import (
     MetricsUndefinedError,
     average_precision,
     evaluate_scores,

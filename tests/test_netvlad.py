@@ -9,8 +9,8 @@ import pytest
 import scipy.io
 import torch
 
-from gvbench_nb import weights
 from gvbench_nb.data import netvlad as nv
+from gvbench_nb.protocol import weights
 
 VGG_SHAPES = {
     "conv1_1": (64, 3), "conv1_2": (64, 64),

@@ -11,8 +11,7 @@ import pytest
 from PIL import Image
 
 from gvbench_nb import config, methods
-from gvbench_nb.data import images
-from gvbench_nb.verification import ransac
+from gvbench_nb.protocol import images, ransac
 
 
 # ------------------------------------------------------------ few-matches rule --
@@ -258,7 +257,7 @@ def opencv_knn_ratio(descriptors0: np.ndarray, descriptors1: np.ndarray, norm: i
 
 
 def repository_matches(method: str, descriptors0: np.ndarray, descriptors1: np.ndarray) -> list[tuple[int, int]]:
-    from gvbench_nb.matching import build_matcher
+    from gvbench_nb.protocol.matching import build_matcher
 
     matcher = build_matcher(methods.resolve_method(method, "repository")["matcher"], "cpu")
     features = [

@@ -22,7 +22,7 @@ import pytest
 import torch
 
 from gvbench_nb import methods
-from gvbench_nb.data import images
+from gvbench_nb.protocol import images
 
 ENABLE = "make setup-imm && .venv-imm/bin/python -m pytest -m reference tests (make test-reference)"
 VISMATCH = importlib.util.find_spec("vismatch")
@@ -110,7 +110,7 @@ def superpoint_pair(shared_data, reference_dir):
     Point frames prepared as the paper's ``superpoint_max`` conf prepares them (1600 px)."""
     import json
 
-    from gvbench_nb.features import superpoint as ours_module
+    from gvbench_nb.protocol.features import superpoint as ours_module
 
     layout = json.loads((reference_dir / "layouts" / "superpoint_v1.layout.json").read_text())
     state = scaled_random_state(layout, seed=1)
@@ -156,7 +156,7 @@ def test_superglue_equals_magic_leaps_on_superpoint_features(superpoint_pair, re
     problem takes minutes on a 2-core CPU; the computation is the same)."""
     import json
 
-    from gvbench_nb.matching import superglue as ours_module
+    from gvbench_nb.protocol.matching import superglue as ours_module
 
     layout = json.loads((reference_dir / "layouts" / "superglue_outdoor.layout.json").read_text())
     state = scaled_random_state(layout, seed=2)
@@ -231,8 +231,8 @@ def cvg_lightglue() -> type:
 @pytest.fixture(scope="module")
 def disk_features(shared_data):
     """DISK features of a real pair as the paper profile stores them (original pixels, float16)."""
-    from gvbench_nb import weights
-    from gvbench_nb.features import build_extractor
+    from gvbench_nb.protocol import weights
+    from gvbench_nb.protocol.features import build_extractor
 
     if not weights.is_present("disk_depth") or not weights.is_present("lightglue_disk"):
         pytest.skip("DISK / LightGlue weights missing: run `python -m gvbench_nb weights --link`")
@@ -267,7 +267,7 @@ def test_lightglue_equals_cvgs_as_hloc_calls_it(disk_features):
     early stopping and point pruning both run) against cvg's on the same DISK features. hloc's
     match_features hands each side the feature file's ``image_size`` (the original size), as
     ours does; both the per-pair call and the per-image prepared path give cvg's matches."""
-    from gvbench_nb.matching import build_matcher
+    from gvbench_nb.protocol.matching import build_matcher
 
     conf = methods.resolve_method("disk-lg", "paper")["matcher"]
     options = {k: conf[k] for k in ("depth_confidence", "width_confidence", "filter_threshold")}
@@ -289,8 +289,8 @@ def test_repository_opencv_matchers_equal_image_matching_models(shared_data, met
     from vismatch import get_matcher
     from vismatch.utils import _load_image
 
-    from gvbench_nb.features import build_extractor
-    from gvbench_nb.matching import build_matcher
+    from gvbench_nb.protocol.features import build_extractor
+    from gvbench_nb.protocol.matching import build_matcher
 
     conf = methods.resolve_method(method, "repository")
     extractor = build_extractor(conf["extractor"], torch.device("cpu"))

@@ -29,10 +29,11 @@ import pandas as pd
 import pytest
 import torch
 
-from gvbench_nb import config, methods, pipeline, weights
-from gvbench_nb.data.images import ImageReadError, read_image
+from gvbench_nb import config, methods, pipeline
 from gvbench_nb.data.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
-from gvbench_nb.evaluation.metrics import MetricsUndefinedError
+from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.images import ImageReadError, read_image
+from gvbench_nb.protocol.metrics import MetricsUndefinedError
 from gvbench_nb.runner import record
 from gvbench_nb.store import ShardedStore, StoreCorruptError
 

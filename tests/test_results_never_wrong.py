@@ -24,8 +24,7 @@ import pytest
 import yaml
 from helpers import check_stage_outputs
 
-from gvbench_nb import cli, config, pipeline, weights
-from gvbench_nb.data.images import ImageReadError, read_image
+from gvbench_nb import cli, config, pipeline
 from gvbench_nb.data.sequences import (
     Pair,
     PairFileError,
@@ -36,6 +35,8 @@ from gvbench_nb.data.sequences import (
     read_pairs,
     write_pairs,
 )
+from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.images import ImageReadError, read_image
 from gvbench_nb.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability

@@ -26,7 +26,7 @@ from test_results_never_wrong import write_root
 from gvbench_nb import cli, config, pipeline
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.evaluation import analysis
-from gvbench_nb.evaluation.metrics import evaluate_scores
+from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.runner import record
 
 pytestmark = pytest.mark.reliability

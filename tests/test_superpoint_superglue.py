@@ -11,9 +11,9 @@ import torch
 import torch.nn.functional as F
 from helpers import random_state_dict, read_layout
 
-from gvbench_nb import weights
-from gvbench_nb.features import superpoint as sp
-from gvbench_nb.matching import superglue as sg
+from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.features import superpoint as sp
+from gvbench_nb.protocol.matching import superglue as sg
 
 # ----------------------------------------------------------------------------- fixtures
 

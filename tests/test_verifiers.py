@@ -13,8 +13,8 @@ from test_verify import two_view_scene  # the shared synthetic two-view scene
 
 from gvbench_nb import pipeline
 from gvbench_nb.data.sequences import Pair, Sequence, frame_index, frame_tolerance_pairs
+from gvbench_nb.protocol.ransac import ESTIMATORS
 from gvbench_nb.verification import verifiers
-from gvbench_nb.verification.ransac import ESTIMATORS
 
 
 def as_pair(points0: np.ndarray, points1: np.ndarray, n_keypoints: int = 1000) -> verifiers.PairMatches:

@@ -3,8 +3,8 @@ import pytest
 from helpers import with_outlier_matches
 
 from gvbench_nb.methods import VERIFIER
-from gvbench_nb.verification import ransac
-from gvbench_nb.verification.ransac import ESTIMATORS, fundamental_inliers, verify_matches
+from gvbench_nb.protocol import ransac
+from gvbench_nb.protocol.ransac import ESTIMATORS, fundamental_inliers, verify_matches
 
 
 def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
@@ -50,7 +50,7 @@ def test_score_filter_drops_low_confidence_matches_before_ransac():
 
 
 def test_resize_to_is_a_fixed_size_whatever_the_aspect_ratio():
-    from gvbench_nb.data.images import target_size
+    from gvbench_nb.protocol.images import target_size
 
     # The GV-Bench repository resizes every image to 512x288, portrait ones too.
     assert target_size(640, 480, None, resize_to=(512, 288)) == (512, 288)

@@ -2,7 +2,7 @@ import os
 
 import pytest
 
-from gvbench_nb import weights
+from gvbench_nb.protocol import weights
 
 
 def test_carried_weights_are_linked_once_and_outlive_a_dangling_symlink(empty_hub, tmp_path):

@@ -38,12 +38,13 @@ import pandas as pd
 from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb import pipeline, registry
+from gvbench_nb import pipeline
 from gvbench_nb.data import synthetic
-from gvbench_nb.data.images import read_image
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.evaluation.metrics import evaluate_scores
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.images import read_image
+from gvbench_nb.protocol.metrics import evaluate_scores
 
 SWEEP_COLUMNS = [
     "condition",

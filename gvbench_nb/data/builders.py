@@ -59,7 +59,6 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from gvbench_nb import registry
 from gvbench_nb.data import retrieval
 from gvbench_nb.data.sequences import (
     Pair,
@@ -70,6 +69,7 @@ from gvbench_nb.data.sequences import (
     write_pairs,
 )
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text
+from gvbench_nb.protocol import registry
 
 BUILDER_NAME = "retrieval"
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
@@ -449,7 +449,7 @@ def global_descriptors(
     options = dict(descriptor_options or {})
     references, queries = inputs.reference_names, inputs.query.names
     if method.inputs == "images":
-        from gvbench_nb.features.base import resolve_device
+        from gvbench_nb.protocol.features.base import resolve_device
 
         device = str(resolve_device(inputs.params.get("device", "auto")))
         paths = lambda names: {n: str(inputs.image_root / n) for n in names}
@@ -790,7 +790,7 @@ def candidate_strips(
     """A row a query: the query image, then its top-k candidates framed green (true) or red (false)."""
     import matplotlib.pyplot as plt
 
-    from gvbench_nb.data.images import read_image
+    from gvbench_nb.protocol.images import read_image
 
     figure, axes = plt.subplots(len(queries), k + 1, figsize=(2.2 * (k + 1), 1.6 * len(queries)), squeeze=False)
     for axis_row, query in zip(axes, queries):

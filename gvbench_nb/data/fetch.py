@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import registry
+from gvbench_nb.protocol import registry
 
 MANIFEST_PATH = Path(__file__).resolve().parent / "datasets.json"
 APP_NAME = "gvbench-nb"

@@ -56,7 +56,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from gvbench_nb import weights
+from gvbench_nb.protocol import weights
 
 CHECKPOINT_NAME = "netvlad_pitts30k"
 MAX_SIDE = 1024

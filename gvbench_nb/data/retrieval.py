@@ -26,7 +26,7 @@ from typing import Any
 
 import numpy as np
 
-from gvbench_nb import registry
+from gvbench_nb.protocol import registry
 
 FrameTable = Mapping[str, Any]
 LocalDescriptors = Mapping[str, np.ndarray]

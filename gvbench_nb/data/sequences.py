@@ -26,7 +26,8 @@ from pathlib import Path, PurePosixPath
 
 import pandas as pd
 
-from gvbench_nb.io_utils import atomic_write_text, path_problem
+from gvbench_nb.io_utils import atomic_write_text
+from gvbench_nb.protocol.images import path_problem
 
 
 class PairFileError(ValueError):

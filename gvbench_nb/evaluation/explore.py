@@ -194,7 +194,7 @@ def pair_views(
 ) -> dict[str, Any]:
     """Every view of one pair (``VIEWS``): the table across methods, the matches figure and the
     score histograms; each is also written to ``figures_dir`` (CSV, PNG)."""
-    from gvbench_nb.data.images import read_image
+    from gvbench_nb.protocol.images import read_image
     from gvbench_nb.reporting import plots
 
     figures = Path(figures_dir)

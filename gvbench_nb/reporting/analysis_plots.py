@@ -15,8 +15,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.ticker import NullFormatter, ScalarFormatter
 
-from gvbench_nb.data.images import read_image
 from gvbench_nb.evaluation import analysis
+from gvbench_nb.protocol.images import read_image
 from gvbench_nb.reporting import plots
 
 STAGE_LABELS = {

@@ -10,8 +10,8 @@ import numpy as np
 import pandas as pd
 from matplotlib.colors import to_rgba
 
-from gvbench_nb.data.images import read_image
-from gvbench_nb.evaluation.metrics import max_recall_at_full_precision, pr_curve
+from gvbench_nb.protocol.images import read_image
+from gvbench_nb.protocol.metrics import max_recall_at_full_precision, pr_curve
 from gvbench_nb.runner import record
 
 

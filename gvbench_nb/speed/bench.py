@@ -40,11 +40,11 @@ from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb import pipeline
-from gvbench_nb.data.images import load_for_extraction, to_original_pixels
 from gvbench_nb.data.sequences import Sequence, read_pairs
 from gvbench_nb.io_utils import atomic_write_csv
+from gvbench_nb.protocol.images import load_for_extraction, to_original_pixels
+from gvbench_nb.protocol.ransac import verify_matches
 from gvbench_nb.speed.jobs import add_jobs_argument
-from gvbench_nb.verification.ransac import verify_matches
 
 if TYPE_CHECKING:
     import torch
@@ -155,8 +155,8 @@ def run_per_pair_pipeline(
     prefetching; the matcher's plain two-image call for every pair. ``extract`` includes
     decoding (the reference does it inline); model construction is in ``other``.
     """
-    from gvbench_nb.features import build_extractor
-    from gvbench_nb.matching import build_matcher
+    from gvbench_nb.protocol.features import build_extractor
+    from gvbench_nb.protocol.matching import build_matcher
 
     start = time.perf_counter()
     dense = method_registry.is_dense(conf)
@@ -246,7 +246,7 @@ def bench_method(
     The order alternates between repeats so neither pipeline always runs on a warm
     page cache or a quieter machine. Raises ``ScoreMismatchError`` on any difference.
     """
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features.base import resolve_device
 
     conf = method_registry.resolve_method(method, profile)
     resolved = resolve_device(device)
@@ -415,7 +415,7 @@ def scaling_table(
     uses the bench's measured per-image cost of the per-pair pipeline, decode included,
     when given.
     """
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features.base import resolve_device
 
     conf = method_registry.resolve_method(method, profile)
     largest = sequence.limited(max(limits))
@@ -487,8 +487,8 @@ def measure_prefetch_overlap(sequence: Sequence, method: str, profile: str, devi
     of decoding hidden is ``(decode + extract - extract_features) / decode`` (a lower
     bound: extract_features also writes the store).
     """
-    from gvbench_nb.features import build_extractor
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features import build_extractor
+    from gvbench_nb.protocol.features.base import resolve_device
 
     conf = method_registry.resolve_method(method, profile)
     if method_registry.is_dense(conf):
@@ -527,7 +527,7 @@ def profile_pipeline(
     sequence: Sequence, method: str, profile: str, device: str = "auto", seed: int = 0, top: int = 25
 ) -> str:
     """cProfile of our pipeline from a cold cache; the top functions by own and cumulative time."""
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features.base import resolve_device
 
     conf = method_registry.resolve_method(method, profile)
     resolved = resolve_device(device)
@@ -778,7 +778,7 @@ def command_bench(args: argparse.Namespace) -> int:
     import torch
 
     from gvbench_nb import config
-    from gvbench_nb.features.base import resolve_device
+    from gvbench_nb.protocol.features.base import resolve_device
 
     bench_dir = Path(args.bench_dir)
     if args.estimate:  # before any timing: the estimate at the end would fail without them

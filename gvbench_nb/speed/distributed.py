@@ -73,7 +73,7 @@ def extract_shard(
     threads: int | None = None,
 ) -> dict[str, int]:
     """Phase 1 task: extract image slice ``index::count`` of ``sequence`` into the cache."""
-    from gvbench_nb.features.base import (
+    from gvbench_nb.protocol.features.base import (
         resolve_device,  # imports torch: only where a device is resolved
     )
 
@@ -104,7 +104,7 @@ def match_shard(
 
     ``after`` only orders the task after its extraction shards (Dask passes their results).
     """
-    from gvbench_nb.features.base import (
+    from gvbench_nb.protocol.features.base import (
         resolve_device,  # imports torch: only where a device is resolved
     )
 
@@ -154,7 +154,7 @@ def merge_method(
     shards: list[dict[str, Any]] | None = None,
 ) -> pd.DataFrame:
     """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
-    from gvbench_nb.features.base import (
+    from gvbench_nb.protocol.features.base import (
         resolve_device,  # imports torch: only where a device is resolved
     )
 

@@ -53,7 +53,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from gvbench_nb.weights import (
+from gvbench_nb.protocol.weights import (
     MissingWeightsError,
     load_checkpoint,
     load_state_dict_strict,

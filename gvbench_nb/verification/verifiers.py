@@ -49,15 +49,16 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
-from gvbench_nb import config, pipeline, registry
+from gvbench_nb import config, pipeline
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import frame_index
 from gvbench_nb.evaluation import analysis
-from gvbench_nb.evaluation.metrics import evaluate_scores
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
-from gvbench_nb.verification.ransac import ESTIMATORS, filter_and_fit, homography_inliers
+from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.protocol.ransac import ESTIMATORS, filter_and_fit, homography_inliers
+from gvbench_nb.protocol.weights import MissingWeightsError
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
-from gvbench_nb.weights import MissingWeightsError
 
 # ------------------------------------------------------------------ registry --
 ESTIMATOR_SHORT_NAMES: dict[str, str] = {

@@ -7,8 +7,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from gvbench_nb import weights
-from gvbench_nb.features.base import Features, to_tensor
+from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.features.base import Features, to_tensor
 
 
 class XFeatExtractor:

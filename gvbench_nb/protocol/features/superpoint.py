@@ -27,8 +27,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gvbench_nb import weights
-from gvbench_nb.features.base import Features, to_tensor
+from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.features.base import Features, to_tensor
 
 CHECKPOINT = "superpoint_v1"
 

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from gvbench_nb import registry
+from gvbench_nb.protocol import registry
 
 if TYPE_CHECKING:  # torch is imported where checkpoints are loaded: listing and checking them stays light
     import torch
@@ -115,7 +115,7 @@ CHECKPOINTS: dict[str, Checkpoint] = {
                 "https://github.com/cvg/LightGlue/releases/download/v0.1_arxiv/superpoint_v1.pth",
             ),
             "Magic Leap, non-commercial research only",
-            "gvbench_nb.features.superpoint.SuperPoint",
+            "gvbench_nb.protocol.features.superpoint.SuperPoint",
         ),
         Checkpoint(
             "superglue_outdoor",
@@ -124,7 +124,7 @@ CHECKPOINTS: dict[str, Checkpoint] = {
                 "https://github.com/magicleap/SuperGluePretrainedNetwork/raw/master/models/weights/superglue_outdoor.pth",
             ),
             "Magic Leap, non-commercial research only",
-            "gvbench_nb.matching.superglue.SuperGlue",
+            "gvbench_nb.protocol.matching.superglue.SuperGlue",
         ),
         Checkpoint(
             "loftr_outdoor",

@@ -8,7 +8,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from gvbench_nb import weights
+from gvbench_nb.protocol import weights
 
 if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
     pass

@@ -8,7 +8,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from gvbench_nb import registry
+from gvbench_nb.protocol import registry
 
 # Robust estimators OpenCV offers for the fundamental matrix; FM_RANSAC is the paper's.
 ESTIMATORS: dict[str, int] = {

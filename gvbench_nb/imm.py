@@ -39,7 +39,7 @@ SETUP_HINT = (
 # The image preparation of the GV-Bench repository's loop (dataloaders/ImagePairDataset.py:
 # RGB at a fixed 512x288, width x height) and vismatch's default keypoint budget (get_matcher).
 MATCHER_DEFAULTS: dict[str, Any] = {
-    "type": "imm",
+    "type": "gvbench_nb.imm:ImmPairMatcher",
     "dense": True,
     "grayscale": False,
     "resize_to": [512, 288],
@@ -192,7 +192,7 @@ def require(method: str) -> None:
     check_name(method)
     missing = missing_weights(method)
     if missing:
-        from gvbench_nb.weights import MissingWeightsError
+        from gvbench_nb.protocol.weights import MissingWeightsError
 
         name = vismatch_name(method)
         if name in SNAPSHOT_OF:

@@ -7,11 +7,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import torch
 
-from gvbench_nb import weights
-from gvbench_nb.matching.base import Matches, empty_matches
+from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.matching.base import Matches, empty_matches
 
 if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
-    from gvbench_nb.matching.lightglue_prepared import PreparedImage
+    from gvbench_nb.protocol.matching.lightglue_prepared import PreparedImage
 
 
 class LightGlueMatcher:
@@ -20,7 +20,7 @@ class LightGlueMatcher:
     def __init__(self, conf: dict[str, Any], device: torch.device):
         from kornia.feature import LightGlue
 
-        from gvbench_nb.matching import lightglue_prepared
+        from gvbench_nb.protocol.matching import lightglue_prepared
 
         self._prepared = lightglue_prepared
         weights.require(*conf["checkpoints"])

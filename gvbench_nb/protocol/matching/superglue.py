@@ -28,8 +28,8 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor, nn
 
-from gvbench_nb import registry, weights
-from gvbench_nb.matching.base import Matches, empty_matches
+from gvbench_nb.protocol import registry, weights
+from gvbench_nb.protocol.matching.base import Matches, empty_matches
 
 CHECKPOINTS = {"outdoor": "superglue_outdoor"}
 

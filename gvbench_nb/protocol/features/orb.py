@@ -8,7 +8,7 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb.features.base import Features, empty_features, to_uint8
+from gvbench_nb.protocol.features.base import Features, empty_features, to_uint8
 
 
 class OrbExtractor:

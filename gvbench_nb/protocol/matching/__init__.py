@@ -11,18 +11,16 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from gvbench_nb import registry
+from gvbench_nb.protocol import registry
 
 if TYPE_CHECKING:
     import torch
 
 MATCHER_TYPES: dict[str, str] = {
-    "nn": "gvbench_nb.matching.nearest_neighbour:NearestNeighbourMatcher",
-    "lightglue": "gvbench_nb.matching.lightglue:LightGlueMatcher",
-    "superglue": "gvbench_nb.matching.superglue:SuperGlueMatcher",
-    "loftr": "gvbench_nb.matching.loftr:LoFTRMatcher",
-    # vismatch's matchers, imported only by imm: methods (opt-in environment)
-    "imm": "gvbench_nb.matching.imm:ImmPairMatcher",
+    "nn": "gvbench_nb.protocol.matching.nearest_neighbour:NearestNeighbourMatcher",
+    "lightglue": "gvbench_nb.protocol.matching.lightglue:LightGlueMatcher",
+    "superglue": "gvbench_nb.protocol.matching.superglue:SuperGlueMatcher",
+    "loftr": "gvbench_nb.protocol.matching.loftr:LoFTRMatcher",
 }
 
 

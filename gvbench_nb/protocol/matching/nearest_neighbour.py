@@ -9,8 +9,8 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb import registry
-from gvbench_nb.matching.base import Matches, empty_matches
+from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.matching.base import Matches, empty_matches
 
 if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
     pass

@@ -10,20 +10,20 @@ from __future__ import annotations
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any
 
-from gvbench_nb import registry
+from gvbench_nb.protocol import registry
 
 if TYPE_CHECKING:
     import numpy as np
     import torch
 
 EXTRACTOR_TYPES: dict[str, str] = {
-    "sift": "gvbench_nb.features.sift:ColmapSiftExtractor",
-    "opencv_sift": "gvbench_nb.features.sift:OpenCVSiftExtractor",
-    "orb": "gvbench_nb.features.orb:OrbExtractor",
-    "disk": "gvbench_nb.features.disk:DiskExtractor",
-    "aliked": "gvbench_nb.features.aliked:AlikedExtractor",
-    "xfeat": "gvbench_nb.features.xfeat:XFeatExtractor",
-    "superpoint": "gvbench_nb.features.superpoint:SuperPointExtractor",
+    "sift": "gvbench_nb.protocol.features.sift:ColmapSiftExtractor",
+    "opencv_sift": "gvbench_nb.protocol.features.sift:OpenCVSiftExtractor",
+    "orb": "gvbench_nb.protocol.features.orb:OrbExtractor",
+    "disk": "gvbench_nb.protocol.features.disk:DiskExtractor",
+    "aliked": "gvbench_nb.protocol.features.aliked:AlikedExtractor",
+    "xfeat": "gvbench_nb.protocol.features.xfeat:XFeatExtractor",
+    "superpoint": "gvbench_nb.protocol.features.superpoint:SuperPointExtractor",
 }
 
 

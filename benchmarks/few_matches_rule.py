@@ -10,7 +10,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gvbench_nb import config, methods, pipeline
+from gvbench_nb import methods
+from gvbench_nb.runner import config, method_runs, scoring
 
 
 def main() -> None:
@@ -22,13 +23,14 @@ def main() -> None:
     params = config.load_params(args.params, profile="paper")
     sequence = config.prepare_sequence(params)
     for rule in ("zero", "all"):
-        methods.VERIFIER_PROFILES["paper"]["few_matches"] = rule
         out = Path(args.output_dir) / f"{params['sequence']}_{rule}"
         for method in methods.expand_methods(args.methods):
-            table = pipeline.run_method(sequence, method, "paper", out, Path(params["cache_dir"]), progress=False)
-            few = int((table["num_matches_filtered"] < methods.VERIFIER["min_matches"]).sum())
-            print(f"few_matches={rule} {method}: {few} pairs with fewer than {methods.VERIFIER['min_matches']} matches")
-        print(pipeline.evaluate(out)[["method", "profile", "ap", "max_recall"]].to_string(index=False))
+            verifier = methods.RECIPES["paper"][method]["verifier"]
+            verifier["few_matches"] = rule
+            table = method_runs.run_method(sequence, method, "paper", out, Path(params["cache_dir"]), progress=False)
+            few = int((table["num_matches_filtered"] < verifier["min_matches"]).sum())
+            print(f"few_matches={rule} {method}: {few} pairs with fewer than {verifier['min_matches']} matches")
+        print(scoring.evaluate(out)[["method", "profile", "ap", "max_recall"]].to_string(index=False))
 
 
 if __name__ == "__main__":

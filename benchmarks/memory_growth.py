@@ -18,21 +18,21 @@ from pathlib import Path
 
 def measure(params_file: str, method: str, pairs: int, cache_mib: int) -> int:
     """This process's peak resident memory in MiB after the method's work on ``pairs`` pairs."""
-    from gvbench_nb import config, pipeline
+    from gvbench_nb.runner import config, method_runs, pair_matching
 
-    bounded = pipeline.FeatureCache.__init__
+    bounded = pair_matching.FeatureCache.__init__
 
-    def init(self: pipeline.FeatureCache, read: object, max_bytes: int = 0) -> None:
+    def init(self: pair_matching.FeatureCache, read: object, max_bytes: int = 0) -> None:
         bounded(self, read, cache_mib << 20)  # type: ignore[arg-type]
 
-    pipeline.FeatureCache.__init__ = init  # type: ignore[method-assign]
+    pair_matching.FeatureCache.__init__ = init  # type: ignore[method-assign]
     with tempfile.TemporaryDirectory() as folder:
         params = config.load_params(
             params_file, limit=pairs, output_dir=str(Path(folder) / "out"), cache_dir=str(Path(folder) / "cache")
         )
         sequence = config.prepare_sequence(params)
-        pipeline.compute_method_of_params(params, sequence, method, progress=False)
-        pipeline.run_method_of_params(params, sequence, method, progress=False)
+        method_runs.compute_method_of_params(params, sequence, method, progress=False)
+        method_runs.run_method_of_params(params, sequence, method, progress=False)
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
 
 

@@ -84,7 +84,7 @@ def score_pairs(labels: list[int], scores: list[float]) -> dict[str, float]:
 
 
 def orchestrate(args: argparse.Namespace) -> int:
-    from gvbench_nb import config
+    from gvbench_nb.runner import config
 
     ours_python, peer_python = Path(args.ours_python), Path(args.peer_python)
     for what, path, hint in (("ours", ours_python, "make setup"), ("peer", peer_python, "make setup-imm")):

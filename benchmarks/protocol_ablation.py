@@ -32,19 +32,22 @@ from typing import Any
 import pandas as pd
 from PIL import Image
 
-from gvbench_nb import config, methods, pipeline
+from gvbench_nb import methods
+from gvbench_nb.runner import config, method_runs, scoring
 
 Patch = Callable[[str], "contextlib.AbstractContextManager[str]"]
 
 
 @contextlib.contextmanager
-def _patched(table: dict[str, dict[str, Any]], name: str, changes: dict[str, Any]) -> Iterator[None]:
-    saved = copy.deepcopy(table[name])
-    table[name].update(changes)
+def _patched(method: str, part: str, changes: dict[str, Any]) -> Iterator[str]:
+    """``method``'s paper recipe with ``changes`` in one part (extractor, matcher or verifier)."""
+    recipe = methods.RECIPES["paper"][method]
+    saved = copy.deepcopy(recipe[part])
+    recipe[part].update(changes)
     try:
-        yield
+        yield method
     finally:
-        table[name] = saved
+        recipe[part] = saved
 
 
 @contextlib.contextmanager
@@ -52,22 +55,16 @@ def paper(method: str) -> Iterator[str]:
     yield method
 
 
-@contextlib.contextmanager
-def ratio_on_rows(method: str) -> Iterator[str]:
-    with _patched(methods.MATCHERS, methods.METHODS[method]["matcher"], {"ratio_test_on": "rows"}):
-        yield method
+def ratio_on_rows(method: str) -> contextlib.AbstractContextManager[str]:
+    return _patched(method, "matcher", {"ratio_test_on": "rows"})
 
 
-@contextlib.contextmanager
-def float32_storage(method: str) -> Iterator[str]:
-    with _patched(methods.EXTRACTORS, methods.METHODS[method]["extractor"], {"store_float16": False}):
-        yield method
+def float32_storage(method: str) -> contextlib.AbstractContextManager[str]:
+    return _patched(method, "extractor", {"store_float16": False})
 
 
-@contextlib.contextmanager
-def few_matches_all(method: str) -> Iterator[str]:
-    with _patched(methods.VERIFIER_PROFILES, "paper", {"few_matches": "all"}):
-        yield method
+def few_matches_all(method: str) -> contextlib.AbstractContextManager[str]:
+    return _patched(method, "verifier", {"few_matches": "all"})
 
 
 @contextlib.contextmanager
@@ -75,10 +72,8 @@ def opencv_sift(method: str) -> Iterator[str]:
     yield "sift-opencv-nn"
 
 
-@contextlib.contextmanager
-def no_resize_max(method: str) -> Iterator[str]:
-    with _patched(methods.EXTRACTORS, methods.METHODS[method]["extractor"], {"resize_max": None}):
-        yield method
+def no_resize_max(method: str) -> contextlib.AbstractContextManager[str]:
+    return _patched(method, "extractor", {"resize_max": None})
 
 
 VARIANTS: dict[str, Patch] = {
@@ -93,8 +88,8 @@ VARIANTS: dict[str, Patch] = {
 
 def applies(variant: str, method: str, largest_side: int) -> str | None:
     """Why ``variant`` does not apply to ``method`` on these images, or None when it does."""
-    matcher = methods.MATCHERS[methods.METHODS[method]["matcher"]]
-    extractor = methods.METHODS[method]["extractor"]
+    matcher = methods.RECIPES["paper"][method]["matcher"]
+    extractor = methods.RECIPES["paper"][method]["extractor"]
     if variant == "ratio-on-rows" and not (matcher["type"] == "nn" and matcher.get("ratio_threshold")):
         return "no ratio test in its matcher"
     if variant == "float32-storage" and extractor is None:
@@ -102,10 +97,10 @@ def applies(variant: str, method: str, largest_side: int) -> str | None:
     if variant == "opencv-sift" and method != "sift-nn":
         return "SIFT only"
     if variant == "no-resize-max":
-        if extractor != "disk":
+        if extractor is None or extractor["type"] != "disk":
             return "DISK only"
-        if largest_side <= methods.EXTRACTORS["disk"]["resize_max"]:
-            return f"not exercised: no image above {methods.EXTRACTORS['disk']['resize_max']} px"
+        if largest_side <= extractor["resize_max"]:
+            return f"not exercised: no image above {extractor['resize_max']} px"
     return None
 
 
@@ -137,8 +132,8 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             with VARIANTS[variant](method) as ran:
                 folder = out / variant
-                table = pipeline.run_method(sequence, ran, "paper", folder, Path(params["cache_dir"]), progress=True)
-                result = pipeline.evaluate(folder, [ran], write=False).iloc[0]
+                table = method_runs.run_method(sequence, ran, "paper", folder, Path(params["cache_dir"]), progress=True)
+                result = scoring.evaluate(folder, [ran], write=False).iloc[0]
             rows.append(
                 {
                     "method": method,

@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gvbench_nb import config, pipeline
+from gvbench_nb.runner import config, method_runs, scoring
 
 STEPS: list[tuple[str, dict]] = [
     ("repository", {}),
@@ -47,7 +47,7 @@ def main() -> None:
     for index, (name, overrides) in enumerate(STEPS):
         out = Path(args.out) / f"{params['sequence']}_{index}"
         for method in methods:
-            pipeline.run_method(
+            method_runs.run_method(
                 sequence,
                 method,
                 "repository",
@@ -58,7 +58,7 @@ def main() -> None:
                 progress=False,
                 verifier=overrides,
             )
-        for row in pipeline.evaluate(out, methods).itertuples():
+        for row in scoring.evaluate(out, methods).itertuples():
             cells[(name, str(row.method))] = f"{row.ap:.3f} / {row.max_recall:.3f}"
     print("| verifier | " + " | ".join(methods) + " |")
     print("|---|" + "---|" * len(methods))

@@ -45,7 +45,7 @@ environment:
                    puts datasets (default: a per-user cache folder, printed by `data list`)
   GVBENCH_THREADS  torch and OpenCV threads (default: every core)
   GVBENCH_JOBS     images, then pairs, processed at once (default 1), as `run --jobs` sets it.
-                   2 is faster on two or more cores (see `bench`), but each image's and pair's
+                   2 is faster on two or more cores (see `python -m gvbench_nb.speed`), but each image's and pair's
                    timer then includes waiting for the shared cores: keep 1 for the runtime
                    analyses. (`run --dask-workers` is the size of a Dask cluster instead.)
 """
@@ -139,9 +139,7 @@ def run_files(methods: list[str]) -> list[str]:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb import config, pipeline
-    from gvbench_nb.runner import record
-    from gvbench_nb.speed import distributed
+    from gvbench_nb.runner import config, distributed, method_outputs, method_runs, record, scoring
 
     params = run_params_of_args(args)
     # Weights, vismatch, the device, the folders and every image were checked before any work
@@ -161,11 +159,13 @@ def command_run(args: argparse.Namespace) -> int:
     stage = None
     try:
         record.finish_publishing(output_dir)
-        kept, bindings = kept_methods(output_dir, params["methods"], pipeline.sequence_binding(sequence))
+        kept, bindings = kept_methods(output_dir, params["methods"], scoring.sequence_binding(sequence))
         record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
-        for method, previous in pipeline.replaced_profiles(output_dir, params["methods"], params["profile"]).items():
+        for method, previous in method_outputs.replaced_profiles(
+            output_dir, params["methods"], params["profile"]
+        ).items():
             print(
-                f"note: {pipeline.method_dir(output_dir, method)} holds {previous}-profile results; this "
+                f"note: {method_outputs.method_dir(output_dir, method)} holds {previous}-profile results; this "
                 f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)",
                 file=sys.stderr,
             )
@@ -188,12 +188,12 @@ def command_run(args: argparse.Namespace) -> int:
         run_sequence = config.prepare_sequence(run_params)
 
         def compute(method: str) -> None:
-            pipeline.compute_method_of_params(run_params, run_sequence, method)
+            method_runs.compute_method_of_params(run_params, run_sequence, method)
 
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
         for method in params["methods"]:
-            bindings[method] = pipeline.sequence_binding(run_sequence)
+            bindings[method] = scoring.sequence_binding(run_sequence)
         record.publish(output_dir, stage, bindings)
     except Exception:
         if stage is not None and stage.is_dir():
@@ -252,25 +252,24 @@ def print_run_results(output_dir: Path) -> None:
 def command_results(args: argparse.Namespace) -> int:
     import json
 
-    from gvbench_nb import pipeline
-    from gvbench_nb.runner import record
+    from gvbench_nb.runner import method_outputs, record, scoring
 
     for folder in args.output_dirs:
         folder = Path(folder)
         if not folder.is_dir():
-            pipeline.evaluate(folder, write=False)  # says the folder does not exist
+            scoring.evaluate(folder, write=False)  # says the folder does not exist
         record.check_published(folder)
-        unfinished = pipeline.unfinished_methods(folder)
-        finished_methods = [m for m in pipeline.methods_with_results(folder) if m not in unfinished]
+        unfinished = method_outputs.unfinished_methods(folder)
+        finished_methods = [m for m in scoring.methods_with_results(folder) if m not in unfinished]
         if not finished_methods:
-            pipeline.check_results_finished(folder)  # names the unfinished methods, if any
-        pipeline.check_results_current(folder, finished_methods)
-        results = pipeline.evaluate(folder, finished_methods, write=False)
+            method_outputs.check_results_finished(folder)  # names the unfinished methods, if any
+        scoring.check_results_current(folder, finished_methods)
+        results = scoring.evaluate(folder, finished_methods, write=False)
         from gvbench_nb.evaluation import intervals
 
-        tables = {m: pipeline.load_pairs_table(folder, m) for m in results["method"]}
+        tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
         results = results.join(intervals.interval_columns(tables), on="method")
-        runs = [json.loads((pipeline.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
+        runs = [json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
         environment = runs[0]["environment"]
         finished = max(run["finished_at"] for run in runs)
         columns = [
@@ -346,6 +345,14 @@ def not_run_table(ran: set[str]) -> Any:
 def command_methods(args: argparse.Namespace) -> int:
     from gvbench_nb import imm, methods
 
+    if args.name:
+        import yaml
+
+        methods.expand_methods([args.name])  # a typo gets its did-you-mean before anything prints
+        conf = methods.resolve_method(args.name, args.profile)
+        print(f"# {args.name} under the {args.profile} profile (its cache identity: {methods.conf_hash(conf)})")
+        print(yaml.safe_dump({args.name: conf}, sort_keys=False, default_flow_style=False), end="")
+        return 0
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
     print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
     if not imm.vismatch_installed():
@@ -388,8 +395,8 @@ def positive_int(text: str) -> int:
 def command_build(args: argparse.Namespace) -> int:
     import sys
 
-    from gvbench_nb import config
-    from gvbench_nb.data import builders
+    from gvbench_nb.runner import config
+    from gvbench_nb.runner import sequence_build as builders
 
     try:
         params = config.load_build_params(
@@ -431,8 +438,8 @@ def add_build_command(subparsers: argparse._SubParsersAction) -> argparse.Argume
 
 
 def command_data(args: argparse.Namespace) -> int:
-    from gvbench_nb import config
     from gvbench_nb.data import fetch
+    from gvbench_nb.runner import config
 
     if args.data_command == "list":
         print(fetch.list_text(), end="")
@@ -514,7 +521,7 @@ def data_main(argv: SequenceType[str]) -> int:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from gvbench_nb.speed import distributed
+    from gvbench_nb.runner import distributed
 
     parser = argparse.ArgumentParser(
         prog="python -m gvbench_nb",
@@ -571,8 +578,11 @@ def build_parser() -> argparse.ArgumentParser:
         description="List every registered method: its name in the paper, whether the paper ran it, the "
         "checkpoints it needs and whether they are in the weights folder (`weights` says where to put "
         "missing ones). Where vismatch is installed (the opt-in .venv-imm: `make setup-imm`), also every "
-        "image-matching-models matcher, run as imm:<name>.",
+        "image-matching-models matcher, run as imm:<name>. With a NAME, print that method's whole "
+        "recipe under --profile (image preparation, extractor, matcher, verifier), as protocol/recipes/ writes it.",
     )
+    listing.add_argument("name", nargs="?", help="a method whose whole recipe to print, e.g. sift-nn")
+    listing.add_argument("--profile", default="paper", help="the profile of the recipe: paper (default) or repository")
     listing.set_defaults(handler=command_methods)
 
     weights_parser = commands.add_parser(
@@ -586,22 +596,21 @@ def build_parser() -> argparse.ArgumentParser:
     weights_parser.set_defaults(handler=command_weights)
 
     # Commands that live beside the modules they drive.
+    from gvbench_nb import explore_lab
     from gvbench_nb.reporting import compare, report
-    from gvbench_nb.speed import bench
 
     add_data_command(commands)
     add_build_command(commands)
     report.add_command(commands)
-    __import__("gvbench_nb.explore_lab", fromlist=["add_command"]).add_command(commands)
+    explore_lab.add_command(commands)
     compare.add_command(commands)
-    bench.add_command(commands)
     return parser
 
 
 def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
     """The params of a ``run`` command line: its params file with the options applied
     (paths typed on the command line are relative to the current folder)."""
-    from gvbench_nb import config
+    from gvbench_nb.runner import config
 
     absolute = lambda path: str(Path(path).resolve()) if path else None
     return config.load_params(
@@ -616,22 +625,22 @@ def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
 
 def check_before_work(args: argparse.Namespace) -> None:
     """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
-    if args.command == "run":
-        from gvbench_nb import config
+    if getattr(args, "command", None) == "run":
+        from gvbench_nb.runner import config
 
         config.check_run_inputs(run_params_of_args(args), images=not getattr(args, "merge", False))
 
 
-def resume_hint(argv: SequenceType[str]) -> str:
+def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:
     """The line Ctrl-C prints: the same command resumes from the caches."""
     import shlex
 
-    command = shlex.join([Path(sys.executable).name, "-m", "gvbench_nb", *argv])
+    command = shlex.join([Path(sys.executable).name, "-m", module, *argv])
     return f"interrupted; what was finished is kept: run the same command to resume: {command}"
 
 
 @contextlib.contextmanager
-def stop_on_interrupt(argv: SequenceType[str]) -> Iterator[None]:
+def stop_on_interrupt(argv: SequenceType[str], module: str = "gvbench_nb") -> Iterator[None]:
     """While inside, Ctrl-C (SIGINT) prints ``resume_hint`` and ends the process at once, exit code 130.
 
     Ending at once is safe: every file a run writes is committed by a rename, so a run
@@ -645,7 +654,7 @@ def stop_on_interrupt(argv: SequenceType[str]) -> Iterator[None]:
         try:
             sys.stdout.flush()
         finally:
-            print(resume_hint(argv), file=sys.stderr, flush=True)
+            print(resume_hint(argv, module), file=sys.stderr, flush=True)
             try:
                 import psutil
 
@@ -665,26 +674,33 @@ def stop_on_interrupt(argv: SequenceType[str]) -> Iterator[None]:
         signal.signal(signal.SIGINT, previous)
 
 
-def main(argv: SequenceType[str] | None = None) -> int:
+def main(
+    argv: SequenceType[str] | None = None,
+    parser: Callable[[], argparse.ArgumentParser] | None = None,
+    module: str = "gvbench_nb",
+) -> int:
+    """Run a command line; ``parser`` builds another program's parser (``module``, e.g.
+    ``python -m gvbench_nb.speed``) that shares this one's error messages and Ctrl-C handling."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in argv:  # Python's KeyboardInterrupt, with its traceback
-        return run_command(argv)
-    with stop_on_interrupt(argv):
-        return run_command(argv)
+        return run_command(argv, parser, module)
+    with stop_on_interrupt(argv, module):
+        return run_command(argv, parser, module)
 
 
-def run_command(argv: list[str]) -> int:
-    if argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
+def run_command(
+    argv: list[str], parser: Callable[[], argparse.ArgumentParser] | None = None, module: str = "gvbench_nb"
+) -> int:
+    if parser is None and argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
         return data_main(argv[1:])
-    parser = build_parser()
-    args = parser.parse_args(argv)
+    args = (parser or build_parser)().parse_args(argv)
     try:
         check_before_work(args)
         return args.handler(args)
     except KeyboardInterrupt:
         if args.debug:
             raise
-        print(resume_hint(argv), file=sys.stderr)
+        print(resume_hint(argv, module), file=sys.stderr)
         return 130
     except Exception as error:
         report = None if args.debug else user_error(error)
@@ -699,21 +715,22 @@ def run_command(argv: list[str]) -> int:
 # already imported: an error can only be raised by a module that is loaded, and importing
 # the others (papermill, OpenCV, h5py) to answer a typo would take seconds.
 USER_ERRORS = (
-    ("gvbench_nb.config", "ParamsError"),
+    ("gvbench_nb.runner.config", "ParamsError"),
     ("gvbench_nb.data.sequences", "PairFileError"),
     ("gvbench_nb.protocol.weights", "MissingWeightsError"),
     ("gvbench_nb.protocol.weights", "WeightsLayoutError"),
     ("gvbench_nb.protocol.metrics", "MetricsUndefinedError"),
     ("gvbench_nb.protocol.images", "ImageReadError"),
-    ("gvbench_nb.speed.distributed", "ShardError"),
-    ("gvbench_nb.store", "StoreCorruptError"),
-    ("gvbench_nb.store", "StoreWriteError"),
+    ("gvbench_nb.runner.distributed", "ShardError"),
+    ("gvbench_nb.runner.store", "StoreCorruptError"),
+    ("gvbench_nb.runner.store", "StoreWriteError"),
     ("gvbench_nb.io_utils", "WriteFailedError"),
-    ("gvbench_nb.pipeline", "ResultsError"),
+    ("gvbench_nb.runner.method_outputs", "ResultsError"),
     ("gvbench_nb.data.fetch", "DataError"),
     ("gvbench_nb.imm", "ImmUnavailableError"),
-    ("gvbench_nb.data.builders", "BuildError"),
+    ("gvbench_nb.runner.sequence_build", "BuildError"),
     ("gvbench_nb.runner.record", "RecordError"),
+    ("gvbench_nb.protocol.registry", "UnknownNameError"),
 )
 
 

@@ -17,8 +17,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import config, pipeline
 from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
+from gvbench_nb.runner import config, method_outputs, scoring
 
 SOURCE_NOTEBOOK = NOTEBOOKS_DIR / "explore_pairs.ipynb"
 COPY_FOLDER = "explore"  # inside the run's folder: the working copy and the figures it writes
@@ -43,19 +43,19 @@ def check_run_folder(output_dir: Path) -> list[str]:
     """The methods a finished run's folder holds; a ``ResultsError`` (one sentence) when the
     folder is missing or is not the output folder of a finished ``run``."""
     if not output_dir.is_dir():
-        raise pipeline.ResultsError(
+        raise method_outputs.ResultsError(
             f"{output_dir} is not a folder; give the output folder of a finished run "
             "(e.g. outputs/sample after make demo, or python -m gvbench_nb run params/sample.yaml)"
         )
     record = output_dir / config.RESOLVED_PARAMS_NAME
     if not record.is_file():
-        raise pipeline.ResultsError(
+        raise method_outputs.ResultsError(
             f"{output_dir} has no {config.RESOLVED_PARAMS_NAME}, so it is not the output folder of a run; "
             "give the folder a run wrote (python -m gvbench_nb run PARAMS prints it)"
         )
-    methods = pipeline.methods_with_results(output_dir)
+    methods = scoring.methods_with_results(output_dir)
     if not methods:
-        raise pipeline.ResultsError(
+        raise method_outputs.ResultsError(
             f"{output_dir} holds no finished method (<method>/pairs.csv); finish its run first "
             f"(python -m gvbench_nb run {record})"
         )
@@ -117,7 +117,7 @@ def free_port(start: int = DEFAULT_PORT, tries: int = 50) -> int:
     for port in range(start, start + tries):
         if port_is_free(port):
             return port
-    raise pipeline.ResultsError(f"no free port in {start}-{start + tries - 1}; pass --port with a free one")
+    raise method_outputs.ResultsError(f"no free port in {start}-{start + tries - 1}; pass --port with a free one")
 
 
 def port_number(text: str) -> int:

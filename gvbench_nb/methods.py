@@ -1,305 +1,22 @@
-"""The method registry: a method is an extractor conf + a matcher conf, plain dicts.
+"""The method catalogue: every method a run can name, under each profile.
 
-Adding a method is one entry in ``METHODS``: its extractor and matcher are conf names from
-``EXTRACTORS`` / ``MATCHERS`` or conf dicts written in the entry; a new model is one file in
-``features/`` or ``matching/`` whose class the conf's ``type`` names (``docs/extending.md``).
-Confs follow the paper's protocol (``docs/protocol.md``); the ``repository`` profile is the GV-Bench repository's current protocol
-(fixed 512x288 images, 2048 keypoints) and is recorded in every output it produces.
+A method is a recipe of ``protocol/recipes/<profile>.yaml`` (written whole there), or
+``imm:<name>``, vismatch's matcher ``<name>`` run as a pair matcher (``imm.py``). This module
+resolves a name to its recipe (plus the run's verifier overrides), checks those overrides, says
+which weights a method needs and expands ``all`` / ``all-available``.
 """
 
 from __future__ import annotations
 
 import copy
-import hashlib
-import json
 import math
 from typing import Any
 
 from gvbench_nb import imm
-from gvbench_nb.protocol import registry, weights
+from gvbench_nb.protocol import recipes, registry, weights
+from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
 
-# store_float16: the cache keeps float arrays as float16, as hloc stores them (as_half)
-# and matches them from there; it is part of the conf hash, so a profile can turn it off.
-EXTRACTORS: dict[str, dict[str, Any]] = {
-    # hloc's `sift` conf: its `dog` extractor, COLMAP's SIFT through pycolmap.
-    "sift": {
-        "type": "sift",
-        "grayscale": True,
-        "resize_max": 1600,
-        "resize_force": False,
-        "max_keypoints": 8192,
-        "first_octave": 0,
-        "peak_threshold": 0.01,
-        "root_sift": True,
-        "store_float16": True,
-        "checkpoints": [],
-    },
-    # OpenCV's SIFT, not the paper's: kept for comparison under its own name.
-    "sift-opencv": {
-        "type": "opencv_sift",
-        "grayscale": True,
-        "resize_max": 1600,
-        "resize_force": False,
-        "max_keypoints": 8192,
-        "peak_threshold": 0.01,
-        "root_sift": True,
-        "store_float16": True,
-        "checkpoints": [],
-    },
-    "orb": {
-        "type": "orb",
-        "grayscale": True,
-        "resize_max": 1600,
-        "resize_force": False,
-        "max_keypoints": 2000,
-        "scale_factor": 1.2,
-        "levels": 8,
-        "fast_threshold": 20,
-        "store_float16": True,
-        "checkpoints": [],
-    },
-    "disk": {
-        "type": "disk",
-        "grayscale": False,
-        "resize_max": 1600,
-        "resize_force": False,
-        "weights": "depth",
-        "max_keypoints": 5000,
-        "nms_window": 5,
-        "detection_threshold": 0.0,
-        "store_float16": True,
-        "checkpoints": ["disk_depth"],
-    },
-    "superpoint": {
-        "type": "superpoint",
-        "grayscale": True,
-        "resize_max": 1600,
-        "resize_force": True,
-        "nms_radius": 3,
-        "keypoint_threshold": 0.005,
-        "max_keypoints": 4096,
-        "remove_borders": 4,
-        "store_float16": True,
-        "checkpoints": ["superpoint_v1"],
-    },
-    "aliked": {
-        "type": "aliked",
-        "grayscale": False,
-        "resize_max": 1024,
-        "resize_force": False,
-        "model_name": "aliked-n16",
-        "max_keypoints": 4096,
-        "detection_threshold": 0.2,
-        "nms_radius": 2,
-        "store_float16": True,
-        "checkpoints": ["aliked_n16"],
-    },
-    "xfeat": {
-        "type": "xfeat",
-        "grayscale": False,
-        "resize_max": 1024,
-        "resize_force": False,
-        "max_keypoints": 4096,
-        "detection_threshold": 0.05,
-        "store_float16": True,
-        "checkpoints": ["xfeat"],
-    },
-}
-
-MATCHERS: dict[str, dict[str, Any]] = {
-    "nn-ratio": {"type": "nn", "mutual": True, "ratio_threshold": 0.8, "distance_threshold": None, "checkpoints": []},
-    "nn-distance": {
-        "type": "nn",
-        "mutual": True,
-        "ratio_threshold": None,
-        "distance_threshold": 0.7,
-        "checkpoints": [],
-    },
-    "nn-mutual": {"type": "nn", "mutual": True, "ratio_threshold": None, "distance_threshold": None, "checkpoints": []},
-    "nn-hamming": {"type": "nn", "metric": "hamming", "mutual": True, "ratio_threshold": 0.8, "checkpoints": []},
-    "lightglue-disk": {
-        "type": "lightglue",
-        "features": "disk",
-        "depth_confidence": 0.95,
-        "width_confidence": 0.99,
-        "filter_threshold": 0.1,
-        "checkpoints": ["lightglue_disk"],
-    },
-    "lightglue-superpoint": {
-        "type": "lightglue",
-        "features": "superpoint",
-        "depth_confidence": 0.95,
-        "width_confidence": 0.99,
-        "filter_threshold": 0.1,
-        "checkpoints": ["lightglue_superpoint"],
-    },
-    "lightglue-aliked": {
-        "type": "lightglue",
-        "features": "aliked",
-        "depth_confidence": 0.95,
-        "width_confidence": 0.99,
-        "filter_threshold": 0.1,
-        "checkpoints": ["lightglue_aliked"],
-    },
-    # LighterGlue's own conf (kornia's 'xfeat' entry) sets its confidences; we keep them.
-    "lighterglue-xfeat": {"type": "lightglue", "features": "xfeat", "checkpoints": ["lighterglue_xfeat"]},
-    # Dense: matches an image pair directly; its image preparation lives in the matcher conf.
-    # multiple_of_resize: match_dense's ImagePairDataset shrinks (INTER_AREA), then floors each
-    # side to the multiple in a second, bilinear resize.
-    # merge_*: hloc's match_dense conf `loftr` (1-px cells, 1 px max error) with its default
-    # cap of 8192 keypoints an image (matchers.merge_dense_matches).
-    "loftr-outdoor": {
-        "type": "loftr",
-        "dense": True,
-        "weights": "outdoor",
-        "grayscale": True,
-        "resize_max": 1024,
-        "resize_force": False,
-        "multiple_of": 8,
-        "multiple_of_resize": "bilinear",
-        "coarse_threshold": 0.2,
-        "merge_cell_size": 1,
-        "merge_max_error": 1,
-        "merge_max_keypoints": 8192,
-        "checkpoints": ["loftr_outdoor"],
-    },
-    "superglue-outdoor": {
-        "type": "superglue",
-        "weights": "outdoor",
-        "sinkhorn_iterations": 50,
-        "match_threshold": 0.2,
-        "checkpoints": ["superglue_outdoor"],
-    },
-}
-
-METHODS: dict[str, dict[str, Any]] = {
-    "sift-nn": {"paper_name": "SIFT+NN", "extractor": "sift", "matcher": "nn-ratio", "in_paper": True},
-    "sp-nn": {"paper_name": "SP+NN", "extractor": "superpoint", "matcher": "nn-distance", "in_paper": True},
-    "sp-sg": {"paper_name": "SP+SG", "extractor": "superpoint", "matcher": "superglue-outdoor", "in_paper": True},
-    "disk-nn": {"paper_name": "DISK+NN", "extractor": "disk", "matcher": "nn-ratio", "in_paper": True},
-    "disk-lg": {"paper_name": "DISK+LG", "extractor": "disk", "matcher": "lightglue-disk", "in_paper": True},
-    "loftr": {"paper_name": "LoFTR", "extractor": None, "matcher": "loftr-outdoor", "in_paper": True},
-    "sp-lg": {"paper_name": "SP+LG", "extractor": "superpoint", "matcher": "lightglue-superpoint", "in_paper": False},
-    "aliked-nn": {"paper_name": "ALIKED+NN", "extractor": "aliked", "matcher": "nn-mutual", "in_paper": False},
-    "aliked-lg": {"paper_name": "ALIKED+LG", "extractor": "aliked", "matcher": "lightglue-aliked", "in_paper": False},
-    "xfeat-nn": {"paper_name": "XFeat+NN", "extractor": "xfeat", "matcher": "nn-mutual", "in_paper": False},
-    "xfeat-lg": {
-        "paper_name": "XFeat+LighterGlue",
-        "extractor": "xfeat",
-        "matcher": "lighterglue-xfeat",
-        "in_paper": False,
-    },
-    "orb-nn": {"paper_name": "ORB+NN", "extractor": "orb", "matcher": "nn-hamming", "in_paper": False},
-    "sift-opencv-nn": {
-        "paper_name": "SIFT (OpenCV)+NN",
-        "extractor": "sift-opencv",
-        "matcher": "nn-ratio",
-        "in_paper": False,
-    },
-}
-
-# The GV-Bench repository's current evaluation (main.py, config/*.yaml and its fork of
-# image-matching-models, branch gvbench): every image read as RGB with PIL and resized to a
-# fixed 512x288 (width x height) by torchvision's antialiased bilinear Resize, then each
-# matcher with the fork's own defaults (2048 keypoints for the sparse ones).
-REPOSITORY_IMAGE_SIZE = (512, 288)
-_REPOSITORY_IMAGE = {
-    "resize_to": list(REPOSITORY_IMAGE_SIZE),
-    "resize_max": None,
-    "resize_force": False,
-    "interpolation": "bilinear_antialias",
-    "store_float16": False,
-}
-# The fork's sift-nn is OpenCV SIFT with its own defaults (contrastThreshold 0.04 = peak
-# 0.04 / 3 layers), plain SIFT descriptors, on the min-max stretched grey image it makes; so
-# under this profile the `sift` extractor is OpenCV's, not COLMAP's.
-_REPOSITORY_SIFT = {
-    **_REPOSITORY_IMAGE,
-    "max_keypoints": 2048,
-    "peak_threshold": 0.04 / 3,
-    "root_sift": False,
-    "normalize_minmax": True,
-    "uint8": "truncate",
-}
-# LightGlue's extractors (cvg/lightglue, which the fork calls) resize their input again,
-# longest side to 1024 (so 512x288 runs at 1024x576), and map keypoints back.
-_LIGHTGLUE_INPUT = {"model_input_long_side": 1024}
-
-# Profile -> overrides, keyed by extractor or matcher type, then by conf name (the more
-# specific, applied last). 'paper' is the protocol as published (the hloc chain, MODELS.md
-# section 1); 'repository' is the GV-Bench repository's current code, the cheap profile whose
-# numbers compare with that repository's published table (reference_values).
-PROFILES: dict[str, dict[str, dict[str, Any]]] = {
-    "paper": {},
-    "repository": {
-        "sift": {**_REPOSITORY_SIFT, "type": "opencv_sift"},
-        "opencv_sift": _REPOSITORY_SIFT,
-        "orb": {**_REPOSITORY_IMAGE, "max_keypoints": 2048, "normalize_minmax": True, "uint8": "truncate"},
-        "disk": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
-        # LightGlue's SuperPoint defaults: NMS 4, detection threshold 0.0005, borders 4.
-        "superpoint": {
-            **_REPOSITORY_IMAGE,
-            **_LIGHTGLUE_INPUT,
-            "max_keypoints": 2048,
-            "resize_force": False,
-            "nms_radius": 4,
-            "keypoint_threshold": 0.0005,
-        },
-        "aliked": {**_REPOSITORY_IMAGE, **_LIGHTGLUE_INPUT, "max_keypoints": 2048},
-        # The fork's 'xfeat' is XFeat sparse, mutual nearest neighbour (min_cossim -1): xfeat-nn.
-        "xfeat": {**_REPOSITORY_IMAGE, "max_keypoints": 2048},
-        # The fork's LoFTR verifies each pair's raw matches: no merging across pairs.
-        "loftr": {**{k: v for k, v in _REPOSITORY_IMAGE.items() if k != "store_float16"}, "merge_max_keypoints": None},
-        # The fork's sift-nn / orb-nn: OpenCV BFMatcher k=2 on the raw descriptors, kept when
-        # m.distance < 0.75 n.distance (strict), no mutual check (disk-nn, which the repository
-        # does not run, shares sift-nn's matcher conf).
-        "nn-ratio": {"ratio_threshold": 0.75, "mutual": False, "rule": "knn_ratio"},
-        "nn-hamming": {"ratio_threshold": 0.75, "mutual": False, "rule": "knn_ratio"},
-        # The fork's LightGlue runs without adaptive depth or width (both -1); its xfeat-lg
-        # is XFeat's own LighterGlue call, with that model's settings.
-        **{
-            name: {"depth_confidence": -1, "width_confidence": -1}
-            for name in ("lightglue-disk", "lightglue-superpoint", "lightglue-aliked")
-        },
-    },
-}
-# Profiles this package used to have, and what replaced them.
-REPLACED_PROFILES: dict[str, str] = {"fast": "repository"}
-
-# Verification after the score filter (which matters for SG, LG, LoFTR). ``few_matches`` is
-# what a pair scores when it has fewer than ``min_matches`` matches or RANSAC finds no model:
-# "zero" (no inliers) is the rule of the benchmark's released evaluation code (May 2024 on);
-# "all" (every match counted as an inlier) is that of the code of the paper's submission
-# period (Jan-Mar 2024). Which one produced the published table is not stated; the paper
-# profile keeps the released code's rule, the one anyone rerunning the benchmark gets, and
-# because a pair too poor to verify should not score by its raw match count.
-# ``coordinates``: "original" fits F on keypoints in original pixels (hloc stores them so);
-# "resize_to" maps them first into the fixed ``resize_to`` frame the repository's code fits in.
-VERIFIER: dict[str, Any] = {
-    "type": "fundamental",
-    "method": "FM_RANSAC",
-    "threshold_px": 3.0,
-    "confidence": 0.99,
-    "max_iters": 1000,
-    "min_matches": 8,
-    "few_matches": "zero",
-    "min_match_score": 0.5,
-    "coordinates": "original",
-}
-VERIFIER_PROFILES: dict[str, dict[str, Any]] = {
-    "paper": {},
-    # main.py's ransac_kwargs; the fork's BaseMatcher.process_matches counts every match when
-    # fewer than 8 (4 before its commit of 2025-01-11) and applies no score filter.
-    "repository": {
-        "confidence": 0.95,
-        "max_iters": 2000,
-        "few_matches": "all",
-        "min_match_score": None,
-        "coordinates": "resize_to",
-        "resize_to": list(REPOSITORY_IMAGE_SIZE),
-    },
-}
-
+__all__ = ["RECIPES", "check_profile", "conf_hash"]
 
 UnknownNameError = registry.UnknownNameError
 
@@ -308,60 +25,41 @@ def _unknown(kind: str, name: str, known: list[str]) -> UnknownNameError:
     return UnknownNameError(registry.unknown_name_message(kind, name, known))
 
 
-def check_profile(profile: str) -> None:
-    if profile in REPLACED_PROFILES and profile not in PROFILES:
-        raise UnknownNameError(
-            f"profile {profile!r} was replaced by {REPLACED_PROFILES[profile]!r} (the GV-Bench repository's "
-            f"current protocol); set profile: {REPLACED_PROFILES[profile]} or paper"
-        )
-    if profile not in PROFILES:
-        raise _unknown("profile", profile, list(PROFILES))
+def method_names() -> list[str]:
+    """Every method of the recipes, in the paper table's order (then the repository's own)."""
+    return list(dict.fromkeys(name for table in RECIPES.values() for name in table))
 
 
-def profile_overrides(profile: str, conf: dict[str, Any], name: str) -> dict[str, Any]:
-    """The overrides a profile makes to one extractor or matcher conf: by type, then by name."""
-    overrides = PROFILES[profile]
-    return {**overrides.get(conf["type"], {}), **(overrides.get(name, {}) if name != conf["type"] else {})}
+def verifier_keys() -> list[str]:
+    """The verifier conf's keys, as the recipes write them."""
+    return list(dict.fromkeys(key for table in RECIPES.values() for r in table.values() for key in r["verifier"]))
 
 
-def _component(
-    kind: str, entry: str | dict[str, Any], table: dict[str, dict[str, Any]], profile: str, method: str
-) -> dict[str, Any]:
-    """An extractor or matcher conf under a profile: a conf name from ``table``, or a conf dict
-    written in the method entry itself (named after the method unless it has a ``name``)."""
-    if isinstance(entry, dict):
-        conf, name = copy.deepcopy(entry), str(entry.get("name", method))
-    else:
-        conf, name = copy.deepcopy(registry.lookup(kind, entry, table, f"method {method!r}")), entry
-    conf.setdefault("checkpoints", [])
-    conf.update(profile_overrides(profile, conf, name))
-    conf["name"] = name
-    return conf
-
-
-def component_name(entry: str | dict[str, Any] | None) -> str:
-    """How ``methods`` lists a method's extractor or matcher."""
-    if entry is None:
-        return "(dense)"
-    return entry if isinstance(entry, str) else str(entry.get("name", entry["type"]))
-
-
-def register_method(
-    name: str,
-    extractor: str | dict[str, Any] | None,
-    matcher: str | dict[str, Any],
-    paper_name: str | None = None,
-    in_paper: bool = False,
-) -> None:
-    """Add a method: ``extractor`` and ``matcher`` are conf names (``EXTRACTORS``, ``MATCHERS``) or
-    conf dicts whose ``type`` is a registered type or a ``"package.module:Class"`` reference.
-    A method of the package is one entry in ``METHODS``; this is the same entry made from code."""
-    if name in METHODS or imm.is_imm(name) or name in ("all", "all-available"):
+def register_method(name: str, profiles: dict[str, dict[str, Any]]) -> None:
+    """Add a method from code: ``profiles`` maps a profile to the method's whole recipe there
+    (the keys of ``recipes.RECIPE_KEYS``; ``paper_name`` and ``in_paper`` may be left out).
+    A package method is one entry a profile in ``protocol/recipes/``; this is the same entry made
+    from code. A profile the method has no recipe under refuses it by name."""
+    if name in method_names() or imm.is_imm(name) or name in ("all", "all-available"):
         raise ValueError(f"method name {name!r} is taken; choose another name")
-    for kind, entry in (("extractor", extractor), ("matcher", matcher)):
-        if isinstance(entry, dict) and "type" not in entry:
-            raise ValueError(f"method {name!r}: the {kind} conf needs a 'type' (a registered type or 'module:Class')")
-    METHODS[name] = {"paper_name": paper_name or name, "extractor": extractor, "matcher": matcher, "in_paper": in_paper}
+    for profile, entry in profiles.items():
+        check_profile(profile)
+        for kind in ("extractor", "matcher"):
+            conf = entry.get(kind)
+            if isinstance(conf, dict) and "type" not in conf:
+                raise ValueError(
+                    f"method {name!r}: the {kind} conf needs a 'type' (a registered type or 'module:Class')"
+                )
+        if entry.get("matcher") is None:
+            raise ValueError(f"method {name!r}: a recipe needs a matcher conf")
+    for profile, entry in profiles.items():
+        whole = {"paper_name": name, "in_paper": False, "extractor": None, **copy.deepcopy(entry)}
+        for kind in ("extractor", "matcher"):
+            if whole[kind] is not None:
+                whole[kind].setdefault("name", name)
+                whole[kind].setdefault("checkpoints", [])
+        whole.setdefault("verifier", recipes.recipe(method_names()[0], profile)["verifier"])
+        RECIPES[profile][name] = {key: whole[key] for key in recipes.RECIPE_KEYS}
 
 
 def _is_number(value: Any) -> bool:
@@ -391,10 +89,10 @@ VERIFIER_RANGES: dict[str, tuple[Any, str]] = {
 def check_verifier_overrides(overrides: dict[str, Any]) -> None:
     """Overrides of the run's verifier name its keys; the model and estimator are known ones;
     numeric values are in range (``VERIFIER_RANGES``)."""
-    unknown = [key for key in overrides if key not in VERIFIER and key != "resize_to"]
+    unknown = [key for key in overrides if key not in verifier_keys()]
     if unknown:
         raise ValueError(
-            f"unknown key(s) {registry.unknown_keys_hint(unknown, list(VERIFIER))}; valid: {', '.join(VERIFIER)}"
+            f"unknown key(s) {registry.unknown_keys_hint(unknown, verifier_keys())}; valid: {', '.join(verifier_keys())}"
         )
     for key, (check, what) in VERIFIER_RANGES.items():
         if key in overrides and not check(overrides[key]):
@@ -414,40 +112,30 @@ def check_verifier_overrides(overrides: dict[str, Any]) -> None:
 
 
 def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The full conf of a method under a profile: name, extractor, matcher, verifier.
+    """The full conf of a method under a profile: its recipe, with the run's verifier overrides.
 
-    ``verifier``: overrides of the profile's verifier conf (the params' ``verifier`` key), so a
+    ``verifier``: overrides of the recipe's verifier conf (the params' ``verifier`` key), so a
     stronger verifier than the paper's reaches ``pairs.csv`` and ``results.csv``; the verifier
-    conf is part of the match folder's hash, so its results never mix with the default's.
-
-    ``imm:<name>`` is vismatch's matcher ``<name>`` run as a pair matcher (``imm.py``); a
-    profile's ``imm`` entry overrides its image preparation."""
+    conf is part of the match folder's hash, so its results never mix with the default's."""
+    check_profile(profile)
     if imm.is_imm(name):
-        check_profile(profile)
-        extractor = None
-        matcher = imm.matcher_conf(name, PROFILES[profile].get("imm"))
-        paper_name = imm.paper_name(name)
+        whole = {"paper_name": imm.paper_name(name), "extractor": None, "matcher": imm.matcher_conf(name, None)}
+        base_verifier = recipes.recipe(method_names()[0], profile)["verifier"]
     else:
-        if name not in METHODS:
-            raise _unknown("method", name, list(METHODS))
-        check_profile(profile)
-        method = METHODS[name]
-        paper_name = method["paper_name"]
-        extractor = None  # dense matchers (LoFTR) have none: they cannot use the per-image cache
-        if method["extractor"] is not None:
-            extractor = _component("extractor", method["extractor"], EXTRACTORS, profile, name)
-        matcher = _component("matcher", method["matcher"], MATCHERS, profile, name)
+        if name not in RECIPES[profile]:
+            known = method_names()
+            if name in known:
+                raise UnknownNameError(f"method {name!r} has no recipe under profile {profile!r}")
+            raise _unknown("method", name, known)
+        whole = recipes.recipe(name, profile)
+        base_verifier = whole["verifier"]
     return {
         "method": name,
-        "paper_name": paper_name,
+        "paper_name": whole["paper_name"],
         "profile": profile,
-        "extractor": extractor,
-        "matcher": matcher,
-        "verifier": {
-            **copy.deepcopy(VERIFIER),
-            **copy.deepcopy(VERIFIER_PROFILES[profile]),
-            **copy.deepcopy(verifier or {}),
-        },
+        "extractor": whole["extractor"],
+        "matcher": whole["matcher"],
+        "verifier": {**base_verifier, **copy.deepcopy(verifier or {})},
     }
 
 
@@ -462,12 +150,7 @@ def paper_name(name: str) -> str:
     for ``imm:`` methods, else the name itself."""
     if imm.is_imm(name):
         return imm.paper_name(name)
-    return METHODS.get(name, {}).get("paper_name", name)
-
-
-def conf_hash(conf: dict[str, Any]) -> str:
-    """Short stable hash of a conf (its cache identity)."""
-    return hashlib.sha1(json.dumps(conf, sort_keys=True).encode()).hexdigest()[:10]
+    return RECIPES["paper"].get(name, {}).get("paper_name", name)
 
 
 def required_checkpoints(name: str, profile: str = "paper") -> list[str]:
@@ -480,7 +163,8 @@ def required_checkpoints(name: str, profile: str = "paper") -> list[str]:
 def method_table() -> list[dict[str, Any]]:
     """One row a method for ``python -m gvbench_nb methods``."""
     rows = []
-    for name, method in METHODS.items():
+    for name in method_names():
+        method = RECIPES["paper"][name]
         needed = required_checkpoints(name)
         missing = [c for c in needed if not weights.is_present(c)]
         rows.append(
@@ -488,8 +172,8 @@ def method_table() -> list[dict[str, Any]]:
                 "method": name,
                 "paper_name": method["paper_name"],
                 "in_paper": method["in_paper"],
-                "extractor": component_name(method["extractor"]),
-                "matcher": component_name(method["matcher"]),
+                "extractor": method["extractor"]["name"] if method["extractor"] else "(dense)",
+                "matcher": method["matcher"]["name"],
                 "weights": ", ".join(needed) or "-",
                 "available": not missing,
                 "missing": ", ".join(weights.get(c).file for c in missing),
@@ -516,14 +200,14 @@ def expand_methods(names: list[str] | str) -> list[str]:
     expanded: list[str] = []
     for name in names:
         if name == "all":
-            expanded.extend(METHODS)
+            expanded.extend(method_names())
         elif name == "all-available":
             expanded.extend(available_methods())
-        elif name in METHODS:
+        elif name in method_names():
             expanded.append(name)
         elif imm.is_imm(name):
             imm.check_name(name)
             expanded.append(name)
         else:
-            raise _unknown("method", name, list(METHODS) + ["all", "all-available", "imm:<vismatch name>"])
+            raise _unknown("method", name, method_names() + ["all", "all-available", "imm:<vismatch name>"])
     return list(dict.fromkeys(expanded))

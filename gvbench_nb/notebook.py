@@ -17,15 +17,14 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import pandas as pd
 
-from gvbench_nb import config, pipeline
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.runner import record
+from gvbench_nb.runner import config, method_outputs, record, scoring
 
 if TYPE_CHECKING:
-    from gvbench_nb.verification.verifiers import VerifierBench
+    from gvbench_nb.studies.verifiers import VerifierBench
 
-# `analysis` and `verifiers` pull in OpenCV and scikit-learn: imported where they are used,
+# `run_tables` and `verifiers` pull in OpenCV and scikit-learn: imported where they are used,
 # so a stage notebook that only loads a sequence stays light.
 
 PathLike = str | os.PathLike[str]
@@ -71,7 +70,7 @@ def missing_methods(output_dir: PathLike, methods: SequenceType[str]) -> list[st
     return [
         m
         for m in method_registry.expand_methods(list(methods))
-        if not (pipeline.method_dir(Path(output_dir), m) / "pairs.csv").is_file()
+        if not (method_outputs.method_dir(Path(output_dir), m) / "pairs.csv").is_file()
     ]
 
 
@@ -79,7 +78,7 @@ def stale_results(output_dir: PathLike) -> bool:
     """True when ``results.csv`` is missing or does not list exactly the methods with a ``pairs.csv``."""
     path = Path(output_dir) / "results.csv"
     evaluated = set(pd.read_csv(path)["method"]) if path.is_file() else set()
-    return evaluated != set(pipeline.methods_with_results(Path(output_dir)))
+    return evaluated != set(scoring.methods_with_results(Path(output_dir)))
 
 
 def load_sequence(params_file: PathLike, **overrides: Any) -> tuple[dict[str, Any], Sequence]:
@@ -112,10 +111,10 @@ def require_results(
         return output_dir
     if compute_missing:
         if evaluate:
-            from gvbench_nb.evaluation import analysis
+            from gvbench_nb.evaluation import run_tables
 
-            return analysis.ensure_results(params_file, methods, **overrides)
-        from gvbench_nb.verification import verifiers
+            return run_tables.ensure_results(params_file, methods, **overrides)
+        from gvbench_nb.studies import verifiers
 
         for method in missing:
             verifiers.ensure_method_results(params_file, method, **overrides)
@@ -127,9 +126,9 @@ def require_results(
         )
     raise ResultsMissingError(
         f"{output_dir / 'results.csv'} does not list exactly the methods with a pairs.csv there "
-        f"({', '.join(pipeline.methods_with_results(output_dir))}): pass compute_missing=True to evaluate them "
+        f"({', '.join(scoring.methods_with_results(output_dir))}): pass compute_missing=True to evaluate them "
         "here (reads only pairs.csv), or run them again with "
-        f"`{run_command(params_file, pipeline.methods_with_results(output_dir), **overrides)}`."
+        f"`{run_command(params_file, scoring.methods_with_results(output_dir), **overrides)}`."
     )
 
 
@@ -146,14 +145,14 @@ def load_results(
     (``require_results``; ``compute_missing=True`` runs what is missing); ``[]`` checks
     nothing, as the report does, which reads only finished runs.
     """
-    from gvbench_nb.evaluation import analysis
+    from gvbench_nb.evaluation import run_tables
 
     folders = as_list(output_dirs)
     for params_file in as_list(params_files):
         require_results(params_file, methods, compute_missing=compute_missing)
     figures = Path(figures_dir)
     figures.mkdir(parents=True, exist_ok=True)
-    return AnalysisInputs(folders, analysis.load_results(folders), figures)
+    return AnalysisInputs(folders, run_tables.load_results(folders), figures)
 
 
 def describe(results: pd.DataFrame) -> str:
@@ -193,7 +192,6 @@ def open_verifier_bench(
     names the command. ``classifier`` overrides the in-domain Doppelgangers training
     (``size``, ``epochs``, ``max_train_pairs``); ``split_options`` go to ``place_disjoint_split``.
     """
-    from gvbench_nb.verification import verifiers
 
     results_dir = Path(results_dir).resolve()
     if params_file:
@@ -210,5 +208,7 @@ def open_verifier_bench(
             f"{results_dir} has no results of {method}: run it on that sequence first "
             f"(python -m gvbench_nb run PARAMS --methods {method} --output-dir {results_dir})"
         )
+    from gvbench_nb.studies import verifiers
+
     overrides = {"doppelgangers-in-domain": dict(classifier)} if classifier else None
     return verifiers.open_bench(results_dir, method, output_dir, cache_dir, overrides=overrides, **split_options)

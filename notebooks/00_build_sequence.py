@@ -25,9 +25,10 @@ import matplotlib.pyplot as plt
 import pandas as pd
 from IPython.display import Markdown, display
 
-from gvbench_nb import config
-from gvbench_nb.data import builders as build
-from gvbench_nb.reporting import plots
+from gvbench_nb.evaluation import plots
+from gvbench_nb.runner import config
+from gvbench_nb.runner import sequence_build as build
+from gvbench_nb.studies import build_sequence as build_study
 
 # %% tags=["parameters"]
 # a params YAML with pairs_builder: retrieval
@@ -59,10 +60,10 @@ display(Markdown(build.card_markdown(card)))
 # least one true pair in the pair file.
 
 # %%
-curves = build.recall_curves(params, compare_descriptors)
+curves = build_study.recall_curves(params, compare_descriptors)
 display(curves.pivot(index="k", columns="descriptor", values="recall").round(3).T)
 queries = curves.queries_evaluated.iloc[0]
-figure = build.plot_recall_curves(curves, title=f"{card['sequence']}: retrieval recall@k ({queries} queries)")
+figure = build_study.plot_recall_curves(curves, title=f"{card['sequence']}: retrieval recall@k ({queries} queries)")
 plots.save(figure, figures / "build_recall_at_k.png")
 plt.show()
 
@@ -73,8 +74,8 @@ plt.show()
 
 # %%
 candidates = pd.read_csv(card["files"]["candidates"])
-shown = build.strip_queries(candidates, strip_count)
-figure = build.candidate_strips(
+shown = build_study.strip_queries(candidates, strip_count)
+figure = build_study.candidate_strips(
     params["image_root"],
     candidates,
     shown,

@@ -25,7 +25,7 @@ import pandas as pd
 
 from gvbench_nb import notebook
 from gvbench_nb.data import sequences
-from gvbench_nb.reporting import plots
+from gvbench_nb.evaluation import plots
 
 # %% tags=["parameters"]
 # a params YAML (paths inside are relative to it); a run passes its params.resolved.yaml

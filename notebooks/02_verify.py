@@ -22,8 +22,9 @@ from pathlib import Path
 
 import matplotlib.pyplot as plt
 
-from gvbench_nb import notebook, pipeline
-from gvbench_nb.reporting import plots
+from gvbench_nb import notebook
+from gvbench_nb.evaluation import plots
+from gvbench_nb.runner import method_outputs, method_runs
 
 # %% tags=["parameters"]
 params_file = "../params/sample.yaml"
@@ -40,8 +41,8 @@ output_dir = None
 # %%
 params, sequence = notebook.load_sequence(params_file, limit=limit, output_dir=output_dir, profile=profile)
 out = Path(params["output_dir"])
-table = pipeline.run_method_of_params(params, sequence, method)
-written = pipeline.method_dir(out, method) / "pairs.csv"
+table = method_runs.run_method_of_params(params, sequence, method)
+written = method_outputs.method_dir(out, method) / "pairs.csv"
 run = f"{method} ({params['profile']}) on {sequence.name}"
 print(f"{run}: {len(table)} pairs -> {written}")
 table.head()

@@ -23,8 +23,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 from IPython.display import display
 
-from gvbench_nb import config, pipeline
-from gvbench_nb.reporting import plots
+from gvbench_nb.evaluation import plots
+from gvbench_nb.runner import config, scoring
 
 # %% tags=["parameters"]
 params_file = "../params/sample.yaml"
@@ -39,7 +39,7 @@ output_dir = None
 # %%
 params = config.load_params(params_file, output_dir=output_dir)
 out = Path(params["output_dir"])
-results = pipeline.evaluate(out, methods)
+results = scoring.evaluate(out, methods)
 print(f"results table: {out / 'results.csv'}")
 display(results)
 
@@ -49,7 +49,7 @@ display(results)
 # accepts more loop closures without a false one.
 
 # %%
-tables = {m: pipeline.load_pairs_table(out, m) for m in results["method"]}
+tables = {m: scoring.load_pairs_table(out, m) for m in results["method"]}
 figure = plots.pr_curves(tables, title=f"{params['sequence']}: precision-recall (dot: MR)")
 plots.save(figure, out / "pr_curves.png")
 plt.show()

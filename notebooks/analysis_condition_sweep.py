@@ -36,8 +36,8 @@ from pathlib import Path
 import matplotlib.pyplot as plt
 from IPython.display import display
 
-from gvbench_nb.analyses import condition_sweep
-from gvbench_nb.reporting import plots
+from gvbench_nb.evaluation import plots
+from gvbench_nb.studies import condition_sweep
 
 # %% tags=["parameters"]
 methods = ["sift-nn"]  # names from `python -m gvbench_nb methods`

@@ -30,9 +30,8 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import plots
-from gvbench_nb.verification import verifiers
+from gvbench_nb.evaluation import plots
+from gvbench_nb.studies import doppelgangers, results_table, verifier_inputs, verifiers
 
 # %% tags=["parameters"]
 # with compute_missing, runs `method` when results_dir lacks its pairs.csv (None: never)
@@ -81,7 +80,7 @@ print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
 # ranges must not overlap.
 
 # %%
-verifiers.split_summary(bench.pairs, bench.pairs["split"])
+verifier_inputs.split_summary(bench.pairs, bench.pairs["split"])
 
 # %% [markdown]
 # Score the test split with GV, the official classifier and the in-domain one (trained
@@ -89,7 +88,7 @@ verifiers.split_summary(bench.pairs, bench.pairs["split"])
 # epochs, a loss that does not fall means the in-domain classifier learned little.
 
 # %%
-names = [verifiers.PAPER_VERIFIER, "doppelgangers", "doppelgangers-in-domain"]
+names = [verifier_inputs.PAPER_VERIFIER, "doppelgangers", "doppelgangers-in-domain"]
 results, tables, boot = bench.evaluate(names, "test", n_resamples)
 official = results.set_index("verifier").loc["doppelgangers"]
 if official["status"] != "ok":
@@ -115,8 +114,8 @@ pd.DataFrame(info["history"], index=epochs_run)
 # differ.
 
 # %%
-paper = analysis.load_paper_table()
-comparison = verifiers.doppelgangers_comparison(results, paper, bench.cached.sequence)
+paper = results_table.load_paper_table()
+comparison = doppelgangers.doppelgangers_comparison(results, paper, bench.cached.sequence)
 comparison.to_csv(figures / "doppelgangers_vs_gv.csv", index=False)
 print(
     f"AP / MR in % (ours: {bench.cached.label}, test split, 95% CI from "

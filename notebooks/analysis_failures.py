@@ -27,8 +27,8 @@ import pandas as pd
 from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import analysis_plots, plots
+from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.studies import failures
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
@@ -58,14 +58,14 @@ print(notebook.describe(results))
 # %%
 runs, near_misses = [], []
 for folder in output_dirs:
-    tables = analysis.load_pairs_tables(folder)
-    run = analysis.load_run(folder, next(iter(tables)))
+    tables = run_tables.load_pairs_tables(folder)
+    run = run_tables.load_run(folder, next(iter(tables)))
     sequence, image_root = run["sequence"], run["image_root"]
-    failures = analysis.failures_table(tables, k, image_root)
+    failures = failures.failures_table(tables, k, image_root)
     runs.append((folder, sequence, image_root, failures))
     for method, table in tables.items():
-        offsets = analysis.ground_truth_offsets(table, image_root)
-        near = analysis.near_miss_false_positives(table, offsets, near_top_k, low=near_low, high=near_high)
+        offsets = failures.ground_truth_offsets(table, image_root)
+        near = failures.near_miss_false_positives(table, offsets, near_top_k, low=near_low, high=near_high)
         near_misses.append({"sequence": sequence, "method": method, **near})
 near_misses = pd.DataFrame(near_misses)
 near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
@@ -89,7 +89,7 @@ for _, sequence, _, failures in runs:
 for folder, sequence, image_root, failures in runs:
     for (method, kind), rows in failures.groupby(["method", "kind"], sort=False):
         what = kind.replace("_", " ")
-        figure = analysis_plots.failure_pairs(
+        figure = failures.failure_pairs(
             rows,
             folder,
             method,

@@ -24,8 +24,8 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import analysis_plots, plots
+from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.studies import inlier_histograms
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
@@ -49,7 +49,7 @@ print(notebook.describe(results))
 
 # %%
 # (sequence, {method: pairs table}) of every output folder
-tables = [(notebook.sequence_of(results, folder), analysis.load_pairs_tables(folder)) for folder in output_dirs]
+tables = [(notebook.sequence_of(results, folder), run_tables.load_pairs_tables(folder)) for folder in output_dirs]
 
 # %% [markdown]
 # One row a run: true and false pairs, the share of each with zero inliers, the top
@@ -58,7 +58,7 @@ tables = [(notebook.sequence_of(results, folder), analysis.load_pairs_tables(fol
 
 # %%
 pd.concat(
-    [analysis.inlier_overlap_table(runs).assign(sequence=sequence) for sequence, runs in tables],
+    [inlier_histograms.inlier_overlap_table(runs).assign(sequence=sequence) for sequence, runs in tables],
     ignore_index=True,
 )
 
@@ -69,6 +69,8 @@ pd.concat(
 
 # %%
 for sequence, runs in tables:
-    figure = analysis_plots.normalised_inlier_histograms(runs, title=f"{sequence}: normalised inliers, true vs false")
+    figure = inlier_histograms.normalised_inlier_histograms(
+        runs, title=f"{sequence}: normalised inliers, true vs false"
+    )
     plots.save(figure, figures / f"normalised_inliers_{sequence}.png")
     plt.show()

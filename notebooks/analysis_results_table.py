@@ -26,8 +26,8 @@ import matplotlib.pyplot as plt
 from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import analysis_plots, plots
+from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.studies import results_table, runtime_vs_mr
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
@@ -57,13 +57,13 @@ print(notebook.describe(results))
 # column for the best method of a sequence and metric.
 
 # %%
-paper = analysis.load_paper_table(paper_table)
-repository = analysis.load_repository_table()
+paper = results_table.load_paper_table(paper_table)
+repository = results_table.load_repository_table()
 print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found")
-joined = analysis.join_paper_table(results, paper, repository)
-wide = analysis.results_table(joined)
+joined = results_table.join_paper_table(results, paper, repository)
+wide = results_table.results_table(joined)
 joined.to_csv(figures / "results_with_paper.csv", index=False)
-analysis.style_results_table(wide)
+results_table.style_results_table(wide)
 
 # %% [markdown]
 # For context, the published tables (GV-Bench official sequences; values as published)
@@ -73,11 +73,11 @@ analysis.style_results_table(wide)
 
 # %%
 ran = results["method"].unique()
-for table, source in ((paper, analysis.PAPER_LABEL), (repository, analysis.REPOSITORY_LABEL)):
+for table, source in ((paper, run_tables.PAPER_LABEL), (repository, run_tables.REPOSITORY_LABEL)):
     if len(table) and table["method"].isin(ran).any():
         display(Markdown(f"**{source}**"))
-        published = analysis.paper_reference_table(table, ran, source=source)
-        display(analysis.style_results_table(published))
+        published = results_table.paper_reference_table(table, ran, source=source)
+        display(results_table.style_results_table(published))
     else:
         print(f"no {source} values for these methods")
 
@@ -87,7 +87,7 @@ for table, source in ((paper, analysis.PAPER_LABEL), (repository, analysis.REPOS
 # runs on the same device.
 
 # %%
-runtime = analysis.runtime_table(results)
+runtime = runtime_vs_mr.runtime_table(results)
 runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]
 
 # %% [markdown]
@@ -97,7 +97,7 @@ runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]
 # changes most from one sequence to another.
 
 # %%
-figure = analysis_plots.max_recall_radar(
+figure = results_table.max_recall_radar(
     joined,
     title="max recall at 100% precision (ours: solid, paper profile / dash-dot, "
     "repository profile; published: dashed, paper / dotted, GV-Bench repository)",

@@ -24,8 +24,8 @@ import matplotlib.pyplot as plt
 from IPython.display import display
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import analysis_plots, plots
+from gvbench_nb.evaluation import plots
+from gvbench_nb.studies import runtime_vs_mr
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
@@ -53,7 +53,7 @@ print(notebook.describe(results))
 # stage columns add up to `seconds_per_pair`.
 
 # %%
-runtime = analysis.runtime_table(results)
+runtime = runtime_vs_mr.runtime_table(results)
 display(runtime)
 
 # %% [markdown]
@@ -65,7 +65,7 @@ captions = {}
 for sequence, group in runtime.groupby("sequence", sort=False):
     folder = results.loc[results["sequence"] == sequence, "output_dir"].iloc[0]
     methods = list(group["method"])
-    description = analysis.run_description(folder, methods, cache_dir)
+    description = runtime_vs_mr.run_description(folder, methods, cache_dir)
     captions[sequence] = f"{sequence}: {description}"
     print(captions[sequence])
 
@@ -76,7 +76,7 @@ for sequence, group in runtime.groupby("sequence", sort=False):
 
 # %%
 for sequence, group in runtime.groupby("sequence", sort=False):
-    figure = analysis_plots.seconds_per_pair_stacked(group, caption=captions[sequence])
+    figure = runtime_vs_mr.seconds_per_pair_stacked(group, caption=captions[sequence])
     plots.save(figure, figures / f"seconds_per_pair_{sequence}.png")
     plt.show()
 
@@ -86,6 +86,6 @@ for sequence, group in runtime.groupby("sequence", sort=False):
 
 # %%
 for sequence, group in runtime.groupby("sequence", sort=False):
-    figure = analysis_plots.fps_vs_max_recall(group, caption=captions[sequence])
+    figure = runtime_vs_mr.fps_vs_max_recall(group, caption=captions[sequence])
     plots.save(figure, figures / f"fps_vs_max_recall_{sequence}.png")
     plt.show()

@@ -26,8 +26,8 @@ import pandas as pd
 from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import analysis_plots, plots
+from gvbench_nb.evaluation import bootstrap, plots, run_tables
+from gvbench_nb.studies import uncertainty
 
 # %% tags=["parameters"]
 output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
@@ -54,8 +54,8 @@ print(notebook.describe(results))
 # %%
 boots = []  # (sequence, bootstrap) of every output folder
 for folder in output_dirs:
-    tables = analysis.load_pairs_tables(folder)
-    boots.append((notebook.sequence_of(results, folder), analysis.bootstrap(tables, n_resamples, seed)))
+    tables = run_tables.load_pairs_tables(folder)
+    boots.append((notebook.sequence_of(results, folder), bootstrap.bootstrap(tables, n_resamples, seed)))
 for sequence, boot in boots:
     print(f"{sequence}: {boot.n_queries} queries, {boot.n_pairs} pairs, {n_resamples} resamples")
 
@@ -78,7 +78,7 @@ display(intervals)
 
 # %%
 for sequence, _ in boots:
-    figure = analysis_plots.bootstrap_intervals(
+    figure = uncertainty.bootstrap_intervals(
         intervals[intervals["sequence"] == sequence],
         title=f"{sequence}: 95% bootstrap intervals",
     )

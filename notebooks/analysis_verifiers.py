@@ -30,8 +30,8 @@ import pandas as pd
 from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
-from gvbench_nb.reporting import analysis_plots, plots
-from gvbench_nb.verification import verifiers
+from gvbench_nb.evaluation import plots
+from gvbench_nb.studies import uncertainty, verifier_inputs, verifiers
 
 # %% tags=["parameters"]
 # with compute_missing, runs `method` when results_dir lacks its pairs.csv (None: never)
@@ -81,7 +81,7 @@ print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
 # ranges must not overlap.
 
 # %%
-verifiers.split_summary(bench.pairs, bench.pairs["split"])
+verifier_inputs.split_summary(bench.pairs, bench.pairs["split"])
 
 # %% [markdown]
 # AP and MR in % with their 95% intervals of every verifier on the test split, its
@@ -102,7 +102,7 @@ verifiers.verifier_table(results)
 # %%
 ok = results[results["status"] == "ok"].sort_values("max_recall", ascending=False)
 intervals = boot.intervals().set_index("method").loc[ok["verifier"]].reset_index()
-figure = analysis_plots.bootstrap_intervals(intervals, title=f"{bench.cached.label}, test split: verifiers (95% CI)")
+figure = uncertainty.bootstrap_intervals(intervals, title=f"{bench.cached.label}, test split: verifiers (95% CI)")
 plots.save(figure, figures / "verifiers_ci.png")
 plt.show()
 

@@ -31,7 +31,8 @@ from pathlib import Path
 from IPython.display import display
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import analysis, explore
+from gvbench_nb.evaluation import run_tables
+from gvbench_nb.studies import explore_pairs as explore
 
 # %% tags=["parameters"]
 params_file = "../params/sample.yaml"  # the sequence: a params YAML whose output_dir holds the runs
@@ -54,7 +55,7 @@ out = notebook.require_results(
 )
 figures = Path(figures_dir) if figures_dir else out / "explore"
 tables = explore.load_tables(out, methods)
-run = analysis.load_run(out, next(iter(tables)))
+run = run_tables.load_run(out, next(iter(tables)))
 print(f"{run['sequence']}: {len(next(iter(tables.values())))} pairs; methods {', '.join(tables)} ({out})")
 
 

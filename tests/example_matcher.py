@@ -1,5 +1,5 @@
 """An example matcher written outside the package: this one file, plus one method entry
-(``methods.register_method`` or a line in ``methods.METHODS``), is all a sparse matcher
+(``methods.register_method`` or an entry a profile in ``protocol/recipes/``), is all a sparse matcher
 needs. ``tests/test_extending.py`` registers it and runs it end to end; docs/extending.md
 walks through it.
 

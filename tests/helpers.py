@@ -9,8 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gvbench_nb import pipeline
 from gvbench_nb.protocol import metrics
+from gvbench_nb.runner import method_outputs
 
 
 def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:
@@ -51,7 +51,7 @@ def with_outlier_matches(rng, p0, p1, n_outliers: int):
 def check_stage_outputs(output_dir: Path, method: str, sequence_pairs: list) -> pd.DataFrame:
     """What 02_verify and 03_evaluate wrote for ``method``, against the sequence's pairs
     (``sequences.Pair``, in order); returns results.csv's row of the method."""
-    pairs = pd.read_csv(pipeline.method_dir(output_dir, method) / "pairs.csv")
+    pairs = pd.read_csv(method_outputs.method_dir(output_dir, method) / "pairs.csv")
     assert len(pairs) == len(sequence_pairs)
     assert list(zip(pairs["query"], pairs["reference"], pairs["label"])) == [
         (p.query, p.reference, p.label) for p in sequence_pairs

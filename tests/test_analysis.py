@@ -10,9 +10,10 @@ import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb import pipeline
-from gvbench_nb.evaluation import analysis
+from gvbench_nb.evaluation import bootstrap, run_tables
 from gvbench_nb.protocol import metrics
+from gvbench_nb.runner import method_outputs, method_runs, scoring
+from gvbench_nb.studies import failures, inlier_histograms, results_table, runtime_vs_mr
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
@@ -42,7 +43,7 @@ def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, sep
 # ------------------------------------------------------------ best per column --
 def test_best_per_column_marks_all_ties_and_never_nan():
     table = pd.DataFrame({"a": [0.5, 0.9, 0.9], "b": [np.nan, 0.1, 0.2], "c": [np.nan, np.nan, np.nan]})
-    best = analysis.best_per_column(table)
+    best = run_tables.best_per_column(table)
     assert best["a"].tolist() == [False, True, True]
     assert best["b"].tolist() == [False, False, True]
     assert not best["c"].any()
@@ -50,10 +51,10 @@ def test_best_per_column_marks_all_ties_and_never_nan():
 
 def test_best_per_column_lower_is_better_per_column():
     table = pd.DataFrame({"max_recall": [0.2, 0.4], "seconds_per_pair": [0.3, 0.1]})
-    best = analysis.best_per_column(table, {"seconds_per_pair": False})
+    best = run_tables.best_per_column(table, {"seconds_per_pair": False})
     assert best["max_recall"].tolist() == [False, True]
     assert best["seconds_per_pair"].tolist() == [False, True]
-    assert analysis.best_per_column(table, False)["max_recall"].tolist() == [True, False]
+    assert run_tables.best_per_column(table, False)["max_recall"].tolist() == [True, False]
 
 
 # ------------------------------------------------------------ the paper's table --
@@ -63,7 +64,7 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
         "method,sequence,ap,max_recall\nSIFT+NN,night,62.1,8.7\nNotOurs+XX,night,97.9,18.2\n"
         "SIFT+NN,day,98.1,36.0\nDISK+LG,night,81.4,25.0\n"
     )
-    paper = analysis.load_paper_table(path)
+    paper = results_table.load_paper_table(path)
     assert paper.loc[paper.paper_name == "SIFT+NN", "method"].unique().tolist() == ["sift-nn"]
     assert paper.loc[paper.paper_name == "NotOurs+XX", "method"].isna().all()  # not one of ours
     results = pd.DataFrame(
@@ -75,24 +76,24 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
             "max_recall": [0.1, 0.2],
         }
     )
-    joined = analysis.join_paper_table(results, paper)
+    joined = results_table.join_paper_table(results, paper)
     assert set(joined["source"]) == {"ours", "paper"}
     theirs = joined[joined.source == "paper"]
     # Only methods and sequences we ran; % turned into fractions.
     assert theirs[["method", "sequence"]].values.tolist() == [["sift-nn", "night"]]
     assert theirs["ap"].iloc[0] == pytest.approx(0.621)
     assert theirs["max_recall"].iloc[0] == pytest.approx(0.087)
-    wide = analysis.results_table(joined)
+    wide = results_table.results_table(joined)
     assert ("night", "ap", "paper") in wide.columns and ("night", "ap", "ours") in wide.columns
     assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "max_recall", "paper")] == pytest.approx(0.087)
     assert np.isnan(wide.loc[("disk-nn (DISK+NN)", "paper"), ("night", "ap", "paper")])
-    text = analysis.text_results_table(wide)
+    text = results_table.text_results_table(wide)
     assert text.loc[("disk-nn (DISK+NN)", "paper"), ("night", "max_recall", "ours")] == "20.0*"
     assert text.loc[("disk-nn (DISK+NN)", "paper"), ("night", "ap", "paper")] == "-"
 
 
 def test_missing_paper_table_is_empty_not_an_error(tmp_path):
-    assert analysis.load_paper_table(tmp_path / "absent.csv").empty
+    assert results_table.load_paper_table(tmp_path / "absent.csv").empty
 
 
 # ------------------------------------------------------------------ failures --
@@ -100,15 +101,15 @@ def test_top_false_positives_and_negatives_with_frame_offsets():
     queries = [f"night/Image{i:03d}.jpg" for i in (10, 10, 10, 20, 20, 20)]
     references = [f"day/Image{j:03d}.jpg" for j in (10, 14, 40, 21, 23, 20)]
     table = pairs_frame(queries, references, [1, 0, 0, 1, 0, 1], [50, 30, 30, 3, 44, 0])
-    false_positives = analysis.top_false_positives(table, 2)
+    false_positives = failures.top_false_positives(table, 2)
     assert false_positives["pair_index"].tolist() == [4, 1]  # 44, then the first of the tied 30s
-    assert analysis.top_false_negatives(table, 2)["pair_index"].tolist() == [5, 3]
-    offsets = analysis.ground_truth_offsets(table)
+    assert failures.top_false_negatives(table, 2)["pair_index"].tolist() == [5, 3]
+    offsets = failures.ground_truth_offsets(table)
     assert offsets["frame_offset"].tolist() == [0, 4, 30, 1, 3, 0]
-    failures = analysis.failures_table({"m": table}, k=2)
-    fp = failures[failures.kind == "false_positive"]
+    failed = failures.failures_table({"m": table}, k=2)
+    fp = failed[failed.kind == "false_positive"]
     assert fp["frame_offset"].tolist() == [3, 4] and fp["rank"].tolist() == [1, 2]
-    near = analysis.near_miss_false_positives(table, offsets, top_k=2, low=3, high=5)
+    near = failures.near_miss_false_positives(table, offsets, top_k=2, low=3, high=5)
     assert near["near_in_top"] == 2 and near["near_share_all_false"] == pytest.approx(2 / 3)
 
 
@@ -128,26 +129,26 @@ def test_pose_offsets_from_poses_csv(tmp_path):
         )
     pd.DataFrame(rows).to_csv(tmp_path / "poses.csv", index=False)
     table = pairs_frame(["night/000.png"] * 2, ["day/001.png", "day/002.png"], [1, 0], [5, 1])
-    offsets = analysis.ground_truth_offsets(table, tmp_path)
+    offsets = failures.ground_truth_offsets(table, tmp_path)
     assert offsets["distance_m"].tolist() == pytest.approx([3.0, 0.0])
     assert offsets["heading_deg"].tolist() == pytest.approx([0.0, 90.0])
     assert offsets["frame_offset"].tolist() == [1, 2]
     with pytest.raises(KeyError, match="no pose"):
-        analysis.ground_truth_offsets(pairs_frame(["night/009.png"], ["day/001.png"], [1], [1]), tmp_path)
+        failures.ground_truth_offsets(pairs_frame(["night/009.png"], ["day/001.png"], [1], [1]), tmp_path)
 
 
 # ------------------------------------------------------------------- inliers --
 def test_normalised_inliers_and_overlap_summary():
     table = pairs_frame(["q"] * 6, list("abcdef"), [1, 1, 1, 0, 0, 1], [40, 10, 0, 10, 5, 0])
-    assert analysis.normalised_inliers(table).tolist() == pytest.approx([1, 0.25, 0, 0.25, 0.125, 0])
-    summary = analysis.inlier_overlap_summary(table)
+    assert inlier_histograms.normalised_inliers(table).tolist() == pytest.approx([1, 0.25, 0, 0.25, 0.125, 0])
+    summary = inlier_histograms.inlier_overlap_summary(table)
     assert summary["true_zero_inliers"] == pytest.approx(0.5)
     assert summary["top_false_score"] == 10 and summary["top_false_normalised"] == pytest.approx(0.25)
     # Strictly above the top false pair is exactly what MR can reach.
     assert summary["true_above_top_false"] == pytest.approx(
         metrics.max_recall_at_full_precision(table["label"], table["score"])
     )
-    assert analysis.normalised_inliers(table.assign(num_inliers=0)).tolist() == [0] * 6
+    assert inlier_histograms.normalised_inliers(table.assign(num_inliers=0)).tolist() == [0] * 6
 
 
 # ------------------------------------------------------------------ bootstrap --
@@ -159,7 +160,7 @@ def test_weighted_metrics_equal_sklearn_on_repeated_pairs():
         labels = rng.integers(0, 2, n)
         scores = rng.integers(0, 5, n).astype(float)  # many ties, as inlier counts have
         weights = rng.integers(0, 3, (4, n))
-        ap, max_recall = analysis.weighted_ap_max_recall(labels, scores, weights)
+        ap, max_recall = bootstrap.weighted_ap_max_recall(labels, scores, weights)
         for row in range(4):
             repeated = np.repeat(np.arange(n), weights[row])
             lab, s = labels[repeated], scores[repeated]
@@ -173,7 +174,7 @@ def test_weighted_metrics_equal_sklearn_on_repeated_pairs():
 
 def test_query_resample_weights_keep_a_query_together():
     codes = np.array([0, 0, 0, 1, 1, 2])
-    weights = analysis.query_resample_weights(codes, 50, seed=1)
+    weights = bootstrap.query_resample_weights(codes, 50, seed=1)
     assert weights.shape == (50, 6)
     assert (weights[:, 0] == weights[:, 1]).all() and (weights[:, 3] == weights[:, 4]).all()
     # Each resample draws exactly n_queries queries.
@@ -183,9 +184,9 @@ def test_query_resample_weights_keep_a_query_together():
 def test_bootstrap_is_deterministic_by_seed():
     table = grouped_scores(np.random.default_rng(0), 30, 5)
     tables = {"a": table, "b": table.assign(score=table["score"] * 0.5 + np.random.default_rng(1).normal(size=150))}
-    first = analysis.bootstrap(tables, 100, seed=7)
-    again = analysis.bootstrap(tables, 100, seed=7)
-    other = analysis.bootstrap(tables, 100, seed=8)
+    first = bootstrap.bootstrap(tables, 100, seed=7)
+    again = bootstrap.bootstrap(tables, 100, seed=7)
+    other = bootstrap.bootstrap(tables, 100, seed=8)
     pd.testing.assert_frame_equal(first.intervals(), again.intervals())
     pd.testing.assert_frame_equal(first.pairwise(), again.pairwise())
     assert not first.samples["ap"].equals(other.samples["ap"])
@@ -199,7 +200,7 @@ def test_bootstrap_ci_covers_the_true_ap_about_95_percent():
     covered, widths = 0, []
     for _ in range(100):
         sample = grouped_scores(rng, 50, 4)
-        interval = analysis.bootstrap({"m": sample}, 200, seed=int(rng.integers(1 << 31))).intervals()
+        interval = bootstrap.bootstrap({"m": sample}, 200, seed=int(rng.integers(1 << 31))).intervals()
         ap = interval[interval.metric == "ap"].iloc[0]
         covered += ap["low"] <= true_ap <= ap["high"]
         widths.append(ap["high"] - ap["low"])
@@ -212,7 +213,7 @@ def test_bootstrap_ranking_significant_only_when_it_should_be():
     rng = np.random.default_rng(5)
     table = grouped_scores(rng, 60, 5, separation=0.3)
     perfect = table.assign(score=table["label"] * 10.0 + rng.random(len(table)))
-    result = analysis.bootstrap({"weak": table, "perfect": perfect, "same": table.copy()}, 300, seed=0)
+    result = bootstrap.bootstrap({"weak": table, "perfect": perfect, "same": table.copy()}, 300, seed=0)
     pairs = result.pairwise("max_recall").set_index(["method_a", "method_b"])
     assert pairs.loc[("perfect", "weak"), "a_better"]
     assert not pairs.loc[("weak", "perfect"), "a_better"]
@@ -228,17 +229,17 @@ def test_bootstrap_scores_all_resamples_in_one_vectorised_pass(monkeypatch):
     # What keeps 1000 resamples fast, without a clock: the metric runs once a method for all
     # resamples (plus once for the estimate), however many resamples there are.
     calls = []
-    weighted = analysis.weighted_ap_max_recall
+    weighted = bootstrap.weighted_ap_max_recall
 
     def counting(labels, scores, weights):
         calls.append(weights.shape[0])
         return weighted(labels, scores, weights)
 
-    monkeypatch.setattr(analysis, "weighted_ap_max_recall", counting)
+    monkeypatch.setattr(bootstrap, "weighted_ap_max_recall", counting)
     table = grouped_scores(np.random.default_rng(0), 200, 10)
     for n_resamples in (10, 1000):
         calls.clear()
-        result = analysis.bootstrap({"a": table, "b": table.assign(score=-table["score"])}, n_resamples, seed=0)
+        result = bootstrap.bootstrap({"a": table, "b": table.assign(score=-table["score"])}, n_resamples, seed=0)
         assert sorted(calls) == [1, 1, n_resamples, n_resamples]
         assert all(len(samples) == n_resamples for samples in result.samples.values())
 
@@ -246,14 +247,14 @@ def test_bootstrap_scores_all_resamples_in_one_vectorised_pass(monkeypatch):
 def test_bootstrap_refuses_methods_on_different_pairs():
     table = grouped_scores(np.random.default_rng(0), 10, 4)
     with pytest.raises(ValueError, match="scored different pairs"):
-        analysis.bootstrap({"a": table, "b": table.iloc[:-3]}, 10)
+        bootstrap.bootstrap({"a": table, "b": table.iloc[:-3]}, 10)
 
 
 # ---------------------------------------------------------------- results I/O --
 def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="repository"):
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     table = table.assign(extract_seconds=0.1, match_seconds=0.2, verify_seconds=0.05)
-    folder = pipeline.method_dir(output_dir, method)
+    folder = method_outputs.method_dir(output_dir, method)
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
     (folder / "run.json").write_text(
@@ -280,14 +281,14 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise AssertionError("run_method must not run when pairs.csv exists")
 
-    monkeypatch.setattr(pipeline, "run_method", refuse)
-    assert analysis.ensure_results(params, ["sift-nn"]) == output_dir
-    results = analysis.load_results(analysis.find_output_dirs(tmp_path))
+    monkeypatch.setattr(method_runs, "run_method", refuse)
+    assert run_tables.ensure_results(params, ["sift-nn"]) == output_dir
+    results = run_tables.load_results(run_tables.find_output_dirs(tmp_path))
     assert results["method"].tolist() == ["sift-nn"]
     assert results["max_recall"].iloc[0] == pytest.approx(0.5)
     assert results["fps"].iloc[0] == pytest.approx(1 / 0.35)
     with pytest.raises(FileNotFoundError, match="results.csv"):
-        analysis.find_output_dirs(tmp_path, ["absent"])
+        run_tables.find_output_dirs(tmp_path, ["absent"])
 
 
 # -------------------------------------------------------------------- report --
@@ -298,7 +299,7 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
 
     output_dir = tmp_path / "outputs" / "toy"
     write_fake_run(output_dir, profile="paper")
-    pipeline.evaluate(output_dir)
+    scoring.evaluate(output_dir)
     from gvbench_nb import reference_values
 
     toy_paper = pd.DataFrame(
@@ -340,10 +341,10 @@ def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
     results = pd.DataFrame(
         {"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8], "max_recall": [0.1]}
     )
-    paper = analysis.load_paper_table(tmp_path / "absent.csv")
-    joined = analysis.join_paper_table(results, paper)
-    assert joined["source"].tolist() == [analysis.OURS_LABEL]
-    assert analysis.results_table(joined).shape == (1, 2)
+    paper = results_table.load_paper_table(tmp_path / "absent.csv")
+    joined = results_table.join_paper_table(results, paper)
+    assert joined["source"].tolist() == [run_tables.OURS_LABEL]
+    assert results_table.results_table(joined).shape == (1, 2)
 
 
 # ------------------------------------------------------- profiles never mix --
@@ -366,10 +367,10 @@ def two_profile_results() -> pd.DataFrame:
 
 
 def test_results_table_keeps_one_row_a_method_and_profile():
-    joined = analysis.join_paper_table(
-        two_profile_results(), analysis.load_paper_table(), analysis.load_repository_table()
+    joined = results_table.join_paper_table(
+        two_profile_results(), results_table.load_paper_table(), results_table.load_repository_table()
     )
-    wide = analysis.results_table(joined)
+    wide = results_table.results_table(joined)
     assert list(wide.index) == [
         ("sift-nn (SIFT+NN)", "paper"),
         ("sift-nn (SIFT+NN)", "repository"),
@@ -380,8 +381,8 @@ def test_results_table_keeps_one_row_a_method_and_profile():
     # Published values only beside the same protocol: the paper's 62.1 % in the paper row,
     # the repository's 0.6136 in the repository row, never the other way round.
     assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "paper")] == pytest.approx(0.621)
-    assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", analysis.REPOSITORY_LABEL)])
-    assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", analysis.REPOSITORY_LABEL)] == pytest.approx(
+    assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", run_tables.REPOSITORY_LABEL)])
+    assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", run_tables.REPOSITORY_LABEL)] == pytest.approx(
         0.6136
     )
     assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "paper")])
@@ -390,7 +391,7 @@ def test_results_table_keeps_one_row_a_method_and_profile():
         "ours (paper profile)",
         "ours (repository profile)",
         "paper",
-        analysis.REPOSITORY_LABEL,
+        run_tables.REPOSITORY_LABEL,
     }
 
 
@@ -398,29 +399,31 @@ def test_the_same_run_twice_in_one_table_is_an_error():
     results = pd.concat([two_profile_results(), two_profile_results().iloc[[1]]], ignore_index=True)
     results["output_dir"] = ["a", "a", "a", "b"]
     with pytest.raises(ValueError, match=r"night/repository/sift-nn in a; night/repository/sift-nn in b"):
-        analysis.join_paper_table(results, analysis.load_paper_table())
+        results_table.join_paper_table(results, results_table.load_paper_table())
 
 
 def test_results_without_profile_say_what_to_do():
     with pytest.raises(ValueError, match="no profile column"):
-        analysis.join_paper_table(two_profile_results().drop(columns="profile"), analysis.load_paper_table())
+        results_table.join_paper_table(two_profile_results().drop(columns="profile"), results_table.load_paper_table())
 
 
 def test_radar_and_bars_label_every_line_with_its_profile():
     import matplotlib
 
     matplotlib.use("Agg")
-    from gvbench_nb.reporting import analysis_plots
+    from gvbench_nb.studies import results_table
 
     results = pd.concat(
         [two_profile_results().assign(sequence=s) for s in ("day", "night", "season")], ignore_index=True
     )
-    joined = analysis.join_paper_table(results, analysis.load_paper_table(), analysis.load_repository_table())
-    labels = analysis_plots.max_recall_radar(joined).axes[0].get_legend_handles_labels()[1]
+    joined = results_table.join_paper_table(
+        results, results_table.load_paper_table(), results_table.load_repository_table()
+    )
+    labels = results_table.max_recall_radar(joined).axes[0].get_legend_handles_labels()[1]
     assert "sift-nn (ours (paper profile))" in labels and "sift-nn (ours (repository profile))" in labels
-    assert "sift-nn (paper)" in labels and f"sift-nn ({analysis.REPOSITORY_LABEL})" in labels
+    assert "sift-nn (paper)" in labels and f"sift-nn ({run_tables.REPOSITORY_LABEL})" in labels
     assert not any(label.endswith("(ours)") for label in labels)
-    bars = analysis_plots.max_recall_radar(joined[joined.sequence == "night"])
+    bars = results_table.max_recall_radar(joined[joined.sequence == "night"])
     ticks = [t.get_text() for t in bars.axes[0].get_yticklabels()]
     assert ticks[:2] == ["sift-nn (ours (paper profile))", "sift-nn (ours (repository profile))"]
 
@@ -429,35 +432,34 @@ def test_runtime_figures_and_histograms_name_the_profile():
     import matplotlib
 
     matplotlib.use("Agg")
-    from gvbench_nb.reporting import analysis_plots
 
-    runtime = analysis.runtime_table(two_profile_results())
-    stacked = analysis_plots.seconds_per_pair_stacked(runtime)
+    runtime = runtime_vs_mr.runtime_table(two_profile_results())
+    stacked = runtime_vs_mr.seconds_per_pair_stacked(runtime)
     assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == [
         "sift-nn [paper]",
         "sift-nn [repository]",
         "disk-lg [repository]",
     ]
-    scatter = analysis_plots.fps_vs_max_recall(runtime)
+    scatter = runtime_vs_mr.fps_vs_max_recall(runtime)
     assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     tables = {
         "sift-nn (paper)": table.assign(profile="paper"),
         "sift-nn (repository)": table.assign(profile="repository"),
     }
-    figure = analysis_plots.normalised_inlier_histograms(tables)
+    figure = inlier_histograms.normalised_inlier_histograms(tables)
     assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper) [paper]", "sift-nn (repository) [repository]"]
     with pytest.raises(ValueError, match="mixes profiles"):
-        analysis_plots.normalised_inlier_histograms(
+        inlier_histograms.normalised_inlier_histograms(
             {"sift-nn": pd.concat([tables["sift-nn (paper)"], tables["sift-nn (repository)"]])}
         )
 
 
 def test_reference_tables_ship_with_the_package_and_map_names():
-    paper = analysis.load_paper_table()
+    paper = results_table.load_paper_table()
     assert paper.set_index(["paper_name", "sequence"]).loc[("SIFT+NN", "day"), "ap"] == pytest.approx(0.981)
     assert paper.loc[paper.paper_name == "Doppelgangers", "method"].isna().all()
-    repository = analysis.load_repository_table()
+    repository = results_table.load_repository_table()
     by_name = repository.drop_duplicates("paper_name").set_index("paper_name")["method"]
     assert by_name["superpoint-lg"] == "sp-lg" and by_name["xfeat"] == "xfeat-nn" and by_name["disk-lg"] == "disk-lg"
     assert pd.isna(by_name["master"]) and pd.isna(by_name["sift-lg"])

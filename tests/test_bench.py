@@ -1,7 +1,6 @@
 """The bench: both pipelines agree on scores, mismatches fail loudly, the arithmetic of
 summaries, scaling and estimates is right."""
 
-import argparse
 from pathlib import Path
 
 import numpy as np
@@ -206,12 +205,9 @@ def test_scaling_table_sums_the_measured_stage_costs(shared_data):
     )
 
 
-def test_add_command_registers_bench():
-    parser = argparse.ArgumentParser()
-    bench.add_command(parser.add_subparsers(dest="command"))
-    args = parser.parse_args(
+def test_the_bench_parser_reads_its_options():
+    args = bench.build_parser().parse_args(
         [
-            "bench",
             "p.yaml",
             "--methods",
             "sift-nn,disk-lg",
@@ -234,16 +230,14 @@ def test_add_command_registers_bench():
 
 
 def test_bench_takes_jobs_and_estimate_names_the_lists_before_any_timing(tmp_path, monkeypatch, capsys):
-    from gvbench_nb import cli
-
     monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
-    assert cli.build_parser().parse_args(["bench", "p.yaml"]).jobs == 2  # the bench's own default
-    assert cli.build_parser().parse_args(["bench", "p.yaml", "--jobs", "1"]).jobs == 1
+    assert bench.build_parser().parse_args(["p.yaml"]).jobs == 2  # the bench's own default
+    assert bench.build_parser().parse_args(["p.yaml", "--jobs", "1"]).jobs == 1
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
     timed = []
     monkeypatch.setattr(bench, "bench_method", lambda *args, **kwargs: timed.append(args))
-    for argv in (["bench", "--estimate"], ["bench", "params/sample.yaml", "--estimate"]):
-        assert cli.main(argv) == 2
+    for argv in (["--estimate"], ["params/sample.yaml", "--estimate"]):
+        assert bench.main(argv) == 2
         error = capsys.readouterr().err.strip()
         assert error == (
             "error: bench --estimate needs the official pair lists, and day.txt, night.txt, nordland.txt, "

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb.evaluation import analysis, intervals
+from gvbench_nb.evaluation import bootstrap, intervals, run_tables
 from gvbench_nb.protocol import metrics
 
 
@@ -49,8 +49,8 @@ def test_intervals_resample_queries_not_pairs():
     assert (row["n_queries"], row["n_pairs"], row["n_resamples"]) == (40, 120, 300)
 
     # The same data resampled pair by pair: the intervals this test rules out are wide.
-    by_pair = analysis.query_resample_weights(np.arange(len(table)), 300, seed=0)
-    ap, max_recall = analysis.weighted_ap_max_recall(table["label"].to_numpy(), table["score"].to_numpy(), by_pair)
+    by_pair = bootstrap.query_resample_weights(np.arange(len(table)), 300, seed=0)
+    ap, max_recall = bootstrap.weighted_ap_max_recall(table["label"].to_numpy(), table["score"].to_numpy(), by_pair)
     assert np.nanpercentile(ap, 97.5) - np.nanpercentile(ap, 2.5) > 0.05
     assert np.nanpercentile(max_recall, 97.5) - np.nanpercentile(max_recall, 2.5) > 0.1
 
@@ -68,7 +68,7 @@ def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
     better = noisy_queries(1)
     # Every false pair moves up: no pair order improves, so B is at best equal on any draw.
     worse = better.assign(score=better["score"] + 0.1 * (1 - better["label"]))
-    boot = analysis.bootstrap({"better": better, "worse": worse}, 500, seed=0)
+    boot = bootstrap.bootstrap({"better": better, "worse": worse}, 500, seed=0)
     table = intervals.intervals_of(boot).set_index("method")
     assert table.loc["worse", "ap_high"] > table.loc["better", "ap_low"]  # the intervals alone: a tie
     shares = intervals.paired_shares(boot, "ap").iloc[0]
@@ -78,14 +78,14 @@ def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
     assert shares["verdict"] == "better > worse"
 
     # Drawn apart (an unpaired bootstrap), the same two methods would read as a tie.
-    apart = analysis.bootstrap({"worse": worse}, 500, seed=1).samples["ap"]["worse"]
+    apart = bootstrap.bootstrap({"worse": worse}, 500, seed=1).samples["ap"]["worse"]
     assert np.mean(boot.samples["ap"]["better"].to_numpy() > apart.to_numpy()) < 0.8
 
 
 def test_same_ranking_is_tied_in_every_paired_resample():
     table = noisy_queries(2)
     rescaled = table.assign(score=2 * table["score"] + 1)  # the same order of pairs
-    boot = analysis.bootstrap({"a": table, "b": rescaled}, 300, seed=0)
+    boot = bootstrap.bootstrap({"a": table, "b": rescaled}, 300, seed=0)
     for metric in ("ap", "max_recall"):
         shares = intervals.paired_shares(boot, metric).iloc[0]
         assert shares["tied"] == 1.0
@@ -96,12 +96,12 @@ def test_same_ranking_is_tied_in_every_paired_resample():
 def test_ranking_in_either_direction_and_ties_between():
     table = noisy_queries(3)
     perfect = table.assign(score=table["label"] * 10.0)
-    boot = analysis.bootstrap({"weak": table, "perfect": perfect}, 300, seed=0)
+    boot = bootstrap.bootstrap({"weak": table, "perfect": perfect}, 300, seed=0)
     shares = intervals.paired_shares(boot, "max_recall").iloc[0]
     assert (shares["first"], shares["second"], shares["verdict"]) == ("perfect", "weak", "perfect > weak")
     assert shares["first_value"] == 1.0
     # The leader on all pairs is listed first even when it is given second.
-    reversed_boot = analysis.bootstrap({"perfect": perfect, "weak": table}, 300, seed=0)
+    reversed_boot = bootstrap.bootstrap({"perfect": perfect, "weak": table}, 300, seed=0)
     assert intervals.paired_shares(reversed_boot, "max_recall").iloc[0]["first"] == "perfect"
 
 
@@ -125,7 +125,7 @@ def test_interval_columns_keyed_by_method():
 def test_refuses_methods_with_different_labels():
     table = noisy_queries(5)
     relabelled = table.assign(label=1 - table["label"])
-    with pytest.raises(analysis.IncomparableRunsError, match="label 300 of the same pairs differently"):
+    with pytest.raises(run_tables.IncomparableRunsError, match="label 300 of the same pairs differently"):
         intervals.query_intervals({"a": table, "b": relabelled}, 100)
-    with pytest.raises(analysis.IncomparableRunsError, match="scored different pairs"):
+    with pytest.raises(run_tables.IncomparableRunsError, match="scored different pairs"):
         intervals.query_intervals({"a": table, "b": table.iloc[:-5]}, 100)

@@ -1,4 +1,4 @@
-"""Building sequences by retrieval + a label rule (gvbench_nb.data.builders) on tiny made-up traversals.
+"""Building sequences by retrieval + a label rule (gvbench_nb.runner.sequence_build) on tiny made-up traversals.
 
 Local descriptors are written straight into the feature cache, so no image is
 extracted: place p's images share descriptors drawn around place p's own centres,
@@ -16,9 +16,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import config, pipeline
-from gvbench_nb.data import builders as build
 from gvbench_nb.data import sequences
+from gvbench_nb.runner import config, image_features
+from gvbench_nb.runner import sequence_build as build
+from gvbench_nb.studies import build_sequence as build_study
 
 NUM_FRAMES = 8
 DIM = 16
@@ -48,7 +49,7 @@ def make_traversals(
 ) -> None:
     """Image files (tiny placeholders) and their cached local descriptors."""
     options = build.parse_options({"query_folder": "x", "reference_folders": ["y"]})
-    store = pipeline.feature_store(cache_dir, build.local_feature_conf(options, profile))
+    store = image_features.feature_store(cache_dir, build.local_feature_conf(options, profile))
     rng = np.random.default_rng(7)
     with store.writer() as writer:
         for folder in folders:
@@ -58,7 +59,7 @@ def make_traversals(
                 cv2.imwrite(str(root / name), np.full((8, 8), 40 * frame % 255, np.uint8))
                 descriptors = place_descriptors(frame, rng, design)
                 writer.put(
-                    pipeline.image_key(root, name),
+                    image_features.image_key(root, name),
                     {
                         "keypoints": np.zeros((len(descriptors), 2), np.float32),
                         "scores": np.ones(len(descriptors), np.float32),
@@ -193,11 +194,11 @@ def test_best_experience_table_keeps_each_query_best_pair() -> None:
     scores = pd.DataFrame(
         {"query": candidates["query"], "reference": candidates["reference"], "score": [5, 40, 12, 12]}
     )
-    best = build.best_experience_table(candidates, scores)
+    best = build_study.best_experience_table(candidates, scores)
     assert best["experience"].tolist() == ["dusk", "day"]  # q1: a tie goes to the better rank
     assert best["label"].tolist() == [1, 1]
     with pytest.raises(build.BuildError, match="no 'score' for candidate pair q1 dusk/b"):
-        build.best_experience_table(candidates, scores.iloc[:3])
+        build_study.best_experience_table(candidates, scores.iloc[:3])
 
 
 # ------------------------------------------------------------------ metadata + pose rule
@@ -294,7 +295,7 @@ def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytes
 def test_recall_curves_are_monotone_and_reach_the_card(tiny: Path) -> None:
     params = config.load_build_params(write_params(tiny))
     card = build.build_sequence(params, progress=False)
-    curves = build.recall_curves(params, ["vlad", "bow"], progress=False)
+    curves = build_study.recall_curves(params, ["vlad", "bow"], progress=False)
     assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3
     for _, group in curves.groupby("descriptor"):
         assert np.all(np.diff(group["recall"]) >= 0)

@@ -9,7 +9,8 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gvbench_nb import cli, pipeline
+from gvbench_nb import cli
+from gvbench_nb.runner import method_outputs
 
 
 def noisy_table(seed: int = 0, n_queries: int = 50, per_query: int = 4) -> pd.DataFrame:
@@ -32,7 +33,7 @@ def noisy_table(seed: int = 0, n_queries: int = 50, per_query: int = 4) -> pd.Da
 
 
 def write_run(output_dir, method: str, table: pd.DataFrame, profile: str = "repository") -> None:
-    folder = pipeline.method_dir(output_dir, method)
+    folder = method_outputs.method_dir(output_dir, method)
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
     conf = {"method": method, "paper_name": method.upper(), "profile": profile}

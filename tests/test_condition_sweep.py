@@ -1,4 +1,4 @@
-"""Tests for the controlled condition sweep (gvbench_nb.analyses.condition_sweep)."""
+"""Tests for the controlled condition sweep (gvbench_nb.studies.condition_sweep)."""
 
 from __future__ import annotations
 
@@ -10,9 +10,9 @@ import numpy as np
 import pandas as pd
 import pytest
 
-from gvbench_nb import pipeline
-from gvbench_nb.analyses import condition_sweep as cs
 from gvbench_nb.data import synthetic
+from gvbench_nb.runner import method_runs
+from gvbench_nb.studies import condition_sweep as cs
 
 TINY = {"n_frames": 6, "image_size": (240, 180), "seed": 0}  # 6 queries x 6 pairs: seconds
 
@@ -76,7 +76,7 @@ def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path, mo
     def must_not_run(*args, **kwargs):
         raise AssertionError("run_method was called for a finished cell")
 
-    monkeypatch.setattr(pipeline, "run_method", must_not_run)
+    monkeypatch.setattr(method_runs, "run_method", must_not_run)
     again = cs.run_sweep(sweep_dir, ["sift-nn"], strengths=(0.0, 1.0), threads=1, progress=False, **TINY)
     pd.testing.assert_frame_equal(again, sweep)
     assert {p: p.stat().st_mtime_ns for p in (sweep_dir / "images").rglob("*.png")} == images

@@ -14,8 +14,9 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import cli, config
+from gvbench_nb import cli
 from gvbench_nb.data import fetch as data
+from gvbench_nb.runner import config
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 

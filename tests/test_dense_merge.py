@@ -8,11 +8,12 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import methods, pipeline
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import matching as matchers
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.matching.loftr import LoFTRMatcher, merge_dense_matches, swapped_dense_call
+from gvbench_nb.runner import method_runs, pair_matching
 
 
 def hloc_merge_reference(pairs, raw, max_keypoints):
@@ -189,25 +190,25 @@ def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkey
     conf = methods.resolve_method("loftr", "paper")
     monkeypatch.setattr(matchers, "build_matcher", lambda matcher_conf, device: _FakeDense())
     out = tmp_path / "out"
-    pipeline.match_and_verify(sequence, conf, tmp_path / "cache", out, "cpu", progress=False)
-    table = pipeline.pairs_table(sequence, conf, tmp_path / "cache", out, seed=0)
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", out, "cpu", progress=False)
+    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", out, seed=0)
 
-    raw = pipeline.raw_dense_store(out, conf)
-    entries = [raw.read(pipeline.pair_key(root, p.query, p.reference, 0)) for p in pairs]
+    raw = pair_matching.raw_dense_store(out, conf)
+    entries = [raw.read(pair_matching.pair_key(root, p.query, p.reference, 0)) for p in pairs]
     keypoints, merged = merge_dense_matches(
         [(p.query, p.reference) for p in pairs], [(e["points0"], e["points1"], e["scores"]) for e in entries]
     )
     assert table["num_matches"].tolist() == [len(m) for m, _ in merged]
-    stored = pipeline.match_store(out, conf).read(pipeline.pair_key(root, "q.png", "b.png", 0))
+    stored = pair_matching.match_store(out, conf).read(pair_matching.pair_key(root, "q.png", "b.png", 0))
     np.testing.assert_array_equal(stored["points0"], keypoints["q.png"][merged[1][0][:, 0]])
 
     # The merged results hold for this pair list only: another one is refused by name.
     shorter = Sequence(name="dense", image_root=root, pairs=pairs[:1])
     with pytest.raises(ValueError, match="merged over another pair list"):
-        pipeline.pairs_table(shorter, conf, tmp_path / "cache", out, seed=0)
+        method_runs.pairs_table(shorter, conf, tmp_path / "cache", out, seed=0)
 
 
 def test_loftr_conf_merges_as_hloc_conf_loftr():
-    options = pipeline.dense_merge_options(methods.resolve_method("loftr", "paper")["matcher"])
+    options = pair_matching.dense_merge_options(methods.resolve_method("loftr", "paper")["matcher"])
     assert options == {"max_keypoints": 8192, "cell_size": 1, "max_error": 1}
     assert registry.resolve_type("matcher type", "loftr", matchers.MATCHER_TYPES) is LoFTRMatcher

@@ -6,9 +6,9 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import config, pipeline
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, write_pairs
-from gvbench_nb.speed import distributed
+from gvbench_nb.runner import config, distributed, image_features, method_runs, scoring
 
 METHOD, PROFILE = "sift-nn", "repository"
 
@@ -53,7 +53,7 @@ def without_timings(table: pd.DataFrame) -> pd.DataFrame:
 @pytest.fixture(scope="module")
 def unsharded(shared_data, tmp_path_factory) -> pd.DataFrame:
     params = make_params(shared_data, tmp_path_factory.mktemp("runs") / "unsharded")
-    pipeline.run_method(
+    method_runs.run_method(
         config.prepare_sequence(params),
         METHOD,
         PROFILE,
@@ -61,7 +61,7 @@ def unsharded(shared_data, tmp_path_factory) -> pd.DataFrame:
         Path(params["cache_dir"]),
         progress=False,
     )
-    return pipeline.load_pairs_table(Path(params["output_dir"]), METHOD)
+    return scoring.load_pairs_table(Path(params["output_dir"]), METHOD)
 
 
 @pytest.mark.slow
@@ -71,7 +71,7 @@ def test_shards_run_by_hand_then_merged_equal_the_unsharded_run(shared_data, uns
     for index in (2, 0, 1):  # any order
         distributed.run_shard(params, index, 3, threads=1, progress=False)
     results = distributed.merge_runs(params)
-    merged = pipeline.load_pairs_table(Path(params["output_dir"]), METHOD)
+    merged = scoring.load_pairs_table(Path(params["output_dir"]), METHOD)
     assert len(merged) == 12 and merged["num_inliers"].max() > 0
     pd.testing.assert_frame_equal(without_timings(merged), without_timings(unsharded))
     assert results["n_pairs"].tolist() == [12]
@@ -84,16 +84,16 @@ def test_shards_run_by_hand_then_merged_equal_the_unsharded_run(shared_data, uns
 def test_dask_local_cluster_run_equals_the_unsharded_run(shared_data, unsharded, tmp_path):
     params = make_params(shared_data, tmp_path / "dask")
     results = distributed.run_sharded(params, n_shards=3, n_workers=2, processes=False, threads=1, progress=False)
-    merged = pipeline.load_pairs_table(Path(params["output_dir"]), METHOD)
+    merged = scoring.load_pairs_table(Path(params["output_dir"]), METHOD)
     pd.testing.assert_frame_equal(without_timings(merged), without_timings(unsharded))
     assert results.set_index("method").loc[METHOD, "ap"] == pytest.approx(
-        pipeline.evaluate(Path(params["output_dir"]), [METHOD], write=False)["ap"].iat[0]
+        scoring.evaluate(Path(params["output_dir"]), [METHOD], write=False)["ap"].iat[0]
     )
     run = pd.read_json(Path(params["output_dir"]) / METHOD / "run.json", typ="series")
     assert [s["shard"] for s in run["this_run"]["shards"]] == ["0/3", "1/3", "2/3"]
     # Every image was extracted exactly once across the extraction shards.
-    store = pipeline.feature_store(
-        Path(params["cache_dir"]), pipeline.method_registry.resolve_method(METHOD, PROFILE)["extractor"]
+    store = image_features.feature_store(
+        Path(params["cache_dir"]), methods.resolve_method(METHOD, PROFILE)["extractor"]
     )
     assert len(store) == len(config.prepare_sequence(params).images)
 

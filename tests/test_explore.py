@@ -11,9 +11,10 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import cli, config, explore_lab, pipeline
-from gvbench_nb.evaluation import analysis, explore
-from gvbench_nb.reporting import plots
+from gvbench_nb import cli, explore_lab
+from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.runner import config, method_runs
+from gvbench_nb.studies import explore_pairs as explore
 
 NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
 METHODS = ["sift-nn", "orb-nn"]
@@ -44,7 +45,7 @@ def tiny_run(tmp_path_factory) -> Path:
     loaded = config.load_params(path)
     sequence = config.prepare_sequence(loaded)
     for method in METHODS:
-        pipeline.run_method(
+        method_runs.run_method(
             sequence,
             method,
             "repository",
@@ -238,10 +239,10 @@ def test_explore_refuses_a_folder_that_is_no_finished_run_in_one_sentence(tmp_pa
 def test_the_recorded_cache_is_found_without_cache_dir(tmp_path):
     out = tmp_path / "outputs" / "seq"
     out.mkdir(parents=True)
-    assert analysis.resolve_cache_dir(out) == tmp_path / "outputs" / "cache"  # no record: the default
+    assert run_tables.resolve_cache_dir(out) == tmp_path / "outputs" / "cache"  # no record: the default
     (out / "params.resolved.yaml").write_text(f"sequence: seq\ncache_dir: {tmp_path / 'elsewhere'}\n")
-    assert analysis.resolve_cache_dir(out) == tmp_path / "elsewhere"
-    assert analysis.resolve_cache_dir(out, tmp_path / "given") == tmp_path / "given"
+    assert run_tables.resolve_cache_dir(out) == tmp_path / "elsewhere"
+    assert run_tables.resolve_cache_dir(out, tmp_path / "given") == tmp_path / "given"
 
 
 def test_explore_refuses_a_busy_port_before_writing_anything(tiny_run, capsys):

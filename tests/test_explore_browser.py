@@ -21,8 +21,9 @@ import pytest
 import yaml
 from test_report_browser import chromium  # noqa: F401  (the fixture: Chromium's path and playwright)
 
-from gvbench_nb import config, explore_lab, pipeline
-from gvbench_nb.evaluation import explore
+from gvbench_nb import explore_lab
+from gvbench_nb.runner import config, method_runs
+from gvbench_nb.studies import explore_pairs as explore
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 METHODS = ["sift-nn", "orb-nn"]
@@ -50,7 +51,7 @@ def run_folder(chromium, tmp_path_factory) -> Path:  # noqa: F811
     sequence = config.prepare_sequence(loaded)
     out = Path(loaded["output_dir"])
     for method in METHODS:
-        pipeline.run_method(
+        method_runs.run_method(
             sequence, method, "repository", out, Path(loaded["cache_dir"]), device="cpu", progress=False
         )
     config.write_resolved_params(loaded, out)

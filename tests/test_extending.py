@@ -8,10 +8,11 @@ from pathlib import Path
 import pandas as pd
 import pytest
 
-from gvbench_nb import methods, pipeline
+from gvbench_nb import methods
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Sequence, read_pairs
 from gvbench_nb.protocol import registry
+from gvbench_nb.runner import method_runs, scoring
 
 HERE = Path(__file__).resolve().parent
 
@@ -19,14 +20,21 @@ HERE = Path(__file__).resolve().parent
 @pytest.fixture
 def example_method(monkeypatch: pytest.MonkeyPatch) -> str:
     monkeypatch.syspath_prepend(str(HERE))  # where example_matcher.py lives, as a user's own folder would
-    monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))  # the registration ends with the test
-    # The one entry: the sift-opencv extractor conf and the example file's class as the matcher type.
-    methods.register_method(
-        "sift-example", extractor="sift-opencv", matcher={"type": "example_matcher:MutualNearestNeighbourMatcher"}
-    )
+    isolate_recipes(monkeypatch)
+    # The one entry: sift-opencv-nn's extractor and the example file's class as the matcher type.
+    extractor = methods.resolve_method("sift-opencv-nn", "repository")["extractor"]
+    example = {"type": "example_matcher:MutualNearestNeighbourMatcher"}
+    methods.register_method("sift-example", {"repository": {"extractor": extractor, "matcher": example}})
     # The built-in matcher with the same rule (mutual nearest neighbour, no ratio test), to compare.
-    methods.register_method("sift-mutual", extractor="sift-opencv", matcher="nn-mutual")
+    mutual = {"type": "nn", "mutual": True, "ratio_threshold": None, "distance_threshold": None}
+    methods.register_method("sift-mutual", {"repository": {"extractor": extractor, "matcher": mutual}})
     return "sift-example"
+
+
+def isolate_recipes(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Registrations end with the test."""
+    for profile in list(methods.RECIPES):
+        monkeypatch.setitem(methods.RECIPES, profile, dict(methods.RECIPES[profile]))
 
 
 @pytest.fixture(scope="module")
@@ -39,13 +47,15 @@ def tiny_sample(tmp_path_factory: pytest.TempPathFactory) -> Sequence:
 @pytest.mark.slow
 def test_a_matcher_from_one_file_runs_end_to_end(example_method: str, tiny_sample: Sequence, tmp_path: Path) -> None:
     out, cache = tmp_path / "out", tmp_path / "cache"
-    table = pipeline.run_method(tiny_sample, example_method, "repository", out, cache, device="cpu", progress=False)
-    built_in = pipeline.run_method(tiny_sample, "sift-mutual", "repository", out, cache, device="cpu", progress=False)
+    table = method_runs.run_method(tiny_sample, example_method, "repository", out, cache, device="cpu", progress=False)
+    built_in = method_runs.run_method(
+        tiny_sample, "sift-mutual", "repository", out, cache, device="cpu", progress=False
+    )
     assert len(table) == len(tiny_sample.pairs)
     assert table["num_matches"].sum() > 0
     pd.testing.assert_series_equal(table["num_matches"], built_in["num_matches"])
     pd.testing.assert_series_equal(table["num_inliers"], built_in["num_inliers"])
-    results = pipeline.evaluate(out, [example_method, "sift-mutual"])
+    results = scoring.evaluate(out, [example_method, "sift-mutual"])
     assert list(results["method"]) == [example_method, "sift-mutual"]
     assert results["ap"].nunique() == 1
     assert (out / example_method / "pairs.csv").is_file()
@@ -59,8 +69,9 @@ def test_the_conf_records_the_example_type(example_method: str) -> None:
 
 
 def test_a_misspelled_type_gets_one_did_you_mean(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))
-    methods.register_method("orb-typo", extractor="orb", matcher={"type": "nn-hamming-typo"})
+    isolate_recipes(monkeypatch)
+    extractor = methods.resolve_method("orb-nn")["extractor"]
+    methods.register_method("orb-typo", {"paper": {"extractor": extractor, "matcher": {"type": "nn-hamming-typo"}}})
     with pytest.raises(registry.UnknownNameError, match="unknown matcher type 'nn-hamming-typo'.*Known: nn, lightglue"):
         from gvbench_nb.protocol.matching import build_matcher
 
@@ -68,9 +79,20 @@ def test_a_misspelled_type_gets_one_did_you_mean(monkeypatch: pytest.MonkeyPatch
 
 
 def test_a_taken_name_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(methods, "METHODS", dict(methods.METHODS))
+    isolate_recipes(monkeypatch)
     with pytest.raises(ValueError, match="method name 'sift-nn' is taken"):
-        methods.register_method("sift-nn", extractor="sift", matcher="nn-ratio")
+        methods.register_method("sift-nn", {"paper": methods.RECIPES["paper"]["sift-nn"]})
+
+
+def test_a_method_registered_under_one_profile_is_refused_by_name_under_the_other(monkeypatch):
+    isolate_recipes(monkeypatch)
+    recipe = methods.RECIPES["paper"]["sift-nn"]
+    methods.register_method(
+        "sift-paper-only", {"paper": {"extractor": recipe["extractor"], "matcher": recipe["matcher"]}}
+    )
+    assert methods.resolve_method("sift-paper-only", "paper")["verifier"] == recipe["verifier"]
+    with pytest.raises(registry.UnknownNameError, match="'sift-paper-only' has no recipe under profile 'repository'"):
+        methods.resolve_method("sift-paper-only", "repository")
 
 
 def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, tmp_path: Path) -> None:
@@ -85,10 +107,10 @@ def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, 
         "seed": 0,
         "verifier": {"method": "USAC_MAGSAC"},
     }
-    table = pipeline.run_method_of_params(params, tiny_sample, "orb-nn", progress=False)
+    table = method_runs.run_method_of_params(params, tiny_sample, "orb-nn", progress=False)
     run = json.loads((out / "orb-nn" / "run.json").read_text())
     assert run["conf"]["verifier"]["method"] == "USAC_MAGSAC"
-    default = pipeline.run_method(
+    default = method_runs.run_method(
         tiny_sample, "orb-nn", "repository", tmp_path / "default", cache, device="cpu", progress=False
     )
     assert (table["num_matches"] == default["num_matches"]).all()  # same matches, another fit
@@ -97,7 +119,7 @@ def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, 
 
 
 def test_verifier_overrides_are_checked_with_a_did_you_mean(tmp_path: Path) -> None:
-    from gvbench_nb import config
+    from gvbench_nb.runner import config
 
     path = tmp_path / "p.yaml"
     path.write_text(

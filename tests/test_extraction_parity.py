@@ -15,10 +15,11 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb import methods, pipeline
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import features as extractors
 from gvbench_nb.protocol import images
+from gvbench_nb.runner import image_features, method_runs, pair_matching
 
 GARDENS_POINT_IMAGES = [
     "night_right/Image050.jpg",
@@ -170,15 +171,17 @@ def test_colmap_sift_passes_max_keypoints_to_pycolmap():
     # detections (finishing that octave; two orientations can share a position): a cap of 50
     # keeps a few dozen positions of the uncapped set.
     image = _textured(480, 640, seed=5)[..., 0].astype(np.float32)
-    uncapped = extractors.build_extractor(methods.EXTRACTORS["sift"], torch.device("cpu"))(image)
-    capped = extractors.build_extractor({**methods.EXTRACTORS["sift"], "max_keypoints": 50}, torch.device("cpu"))(image)
+    uncapped = extractors.build_extractor(methods.RECIPES["paper"]["sift-nn"]["extractor"], torch.device("cpu"))(image)
+    capped = extractors.build_extractor(
+        {**methods.RECIPES["paper"]["sift-nn"]["extractor"], "max_keypoints": 50}, torch.device("cpu")
+    )(image)
     all_positions = {tuple(p) for p in uncapped["keypoints"].tolist()}
     positions = {tuple(p) for p in capped["keypoints"].tolist()}
     assert positions <= all_positions and 50 <= len(positions) < len(all_positions) / 10
 
 
 def test_colmap_sift_refuses_a_colour_image_saying_what_to_set():
-    extractor = extractors.build_extractor(methods.EXTRACTORS["sift"], torch.device("cpu"))
+    extractor = extractors.build_extractor(methods.RECIPES["paper"]["sift-nn"]["extractor"], torch.device("cpu"))
     with pytest.raises(ValueError, match="'grayscale': True"):
         extractor(np.zeros((32, 32, 3), np.float32))
 
@@ -192,22 +195,22 @@ def test_float16_storage_rounds_float_arrays_and_keeps_integers():
         "descriptors": rng.random((20, 128), np.float32),
     }
     image, scale = np.zeros((540, 960), np.float32), np.ones(2, np.float32)
-    stored = pipeline.stored_features(features, image, scale, store_float16=True)
+    stored = image_features.stored_features(features, image, scale, store_float16=True)
     for key in ("keypoints", "scores", "descriptors"):
         assert stored[key].dtype == np.float16
         np.testing.assert_array_equal(stored[key], features[key].astype(np.float16))
     assert stored["image_size"].dtype == np.int64
-    binary = pipeline.stored_features(
+    binary = image_features.stored_features(
         {**features, "descriptors": rng.integers(0, 256, (20, 32), dtype=np.uint8)}, image, scale, store_float16=True
     )
     assert binary["descriptors"].dtype == np.uint8
-    unrounded = pipeline.stored_features(features, image, scale, store_float16=False)
+    unrounded = image_features.stored_features(features, image, scale, store_float16=False)
     assert unrounded["keypoints"].dtype == np.float32
 
 
 def test_store_float16_is_in_every_paper_extractor_conf_and_in_its_hash():
-    for name in methods.EXTRACTORS:
-        assert methods.EXTRACTORS[name]["store_float16"] is True, name
+    for name, recipe in methods.RECIPES["paper"].items():
+        assert recipe["extractor"] is None or recipe["extractor"]["store_float16"] is True, name
     conf = methods.resolve_method("sift-nn", "paper")["extractor"]
     assert methods.conf_hash(conf) != methods.conf_hash({**conf, "store_float16": False})
 
@@ -219,11 +222,13 @@ def test_matching_reads_the_float16_cache(tmp_path):
         cv2.imwrite(str(root / name), _textured(240, 320, seed=seed))
     sequence = Sequence(name="tiny", image_root=root, pairs=[Pair("a.png", "b.png", 1)])
     conf = methods.resolve_method("sift-nn", "paper")
-    pipeline.extract_features(sequence, conf["extractor"], tmp_path / "cache", "cpu", progress=False)
-    stored = pipeline.feature_store(tmp_path / "cache", conf["extractor"]).read(pipeline.image_key(root, "a.png"))
+    image_features.extract_features(sequence, conf["extractor"], tmp_path / "cache", "cpu", progress=False)
+    stored = image_features.feature_store(tmp_path / "cache", conf["extractor"]).read(
+        image_features.image_key(root, "a.png")
+    )
     assert stored["keypoints"].dtype == np.float16 and stored["descriptors"].dtype == np.float16
-    pipeline.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", "cpu", progress=False)
-    table = pipeline.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", "cpu", progress=False)
+    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
     assert table["num_matches"][0] == len(stored["keypoints"])  # identical images match every keypoint
 
 
@@ -235,10 +240,10 @@ def test_paper_sift_keypoint_counts_equal_pycolmap_with_hloc_settings_on_gardens
     pairs = [Pair(GARDENS_POINT_IMAGES[0], name, 0) for name in GARDENS_POINT_IMAGES[1:]]
     sequence = Sequence(name="gardens_point_parity", image_root=root, pairs=pairs)
     conf = methods.resolve_method("sift-nn", "paper")["extractor"]
-    pipeline.extract_features(sequence, conf, tmp_path / "cache", "cpu", progress=False)
-    store = pipeline.feature_store(tmp_path / "cache", conf)
+    image_features.extract_features(sequence, conf, tmp_path / "cache", "cpu", progress=False)
+    store = image_features.feature_store(tmp_path / "cache", conf)
     for name in GARDENS_POINT_IMAGES:
-        ours = store.read(pipeline.image_key(root, name))
+        ours = store.read(image_features.image_key(root, name))
         image, scale = hloc_prepare(root / name, True, 1600)
         keypoints, _, descriptors = hloc_dog(image)
         assert len(ours["keypoints"]) == len(keypoints), name

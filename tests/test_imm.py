@@ -18,9 +18,10 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import imm, methods, pipeline
+from gvbench_nb import imm, methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol.images import load_for_extraction
+from gvbench_nb.runner import method_runs, pair_matching, scoring
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
     sys.modules.get("vismatch"), types.SimpleNamespace
@@ -100,7 +101,7 @@ def test_missing_vismatch_fails_before_any_work_saying_what_to_install(no_vismat
         methods.require("imm:sift-nn")
     sequence = Sequence("s", tmp_path, [Pair("a.png", "b.png", 1)])  # no images: nothing may be read
     with pytest.raises(imm.ImmUnavailableError, match="make setup-imm"):
-        pipeline.run_method(sequence, "imm:sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+        method_runs.run_method(sequence, "imm:sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     assert not (tmp_path / "out").exists()
 
 
@@ -213,42 +214,45 @@ def test_pipeline_runs_an_imm_matcher_cached_per_pair(fake_vismatch, tmp_path):
     sequence = fake_sequence(tmp_path)
     conf = methods.resolve_method("imm:fake-nn", "paper")
     conf["verifier"].update(FORK_VERIFIER)
-    counts = pipeline.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    counts = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
     assert counts == {"pairs": 2, "cached": 0, "matched": 2}
     # Our loader's 512x288 RGB image reached vismatch as its own loader gives it: float C x H x W in [0, 1].
     shape, dtype, low, high = FakeMatcher.seen[0]
     assert shape == (3, 288, 512) and str(dtype) == "torch.float32" and 0.0 <= low < high <= 1.0
-    table = pipeline.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
+    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
     assert table["num_matches"].tolist() == [60, 60]
     assert (table["num_inliers"] < 60).all()
     # Stored points are in original pixels: x scaled by 960 / 512, with pixel centres kept.
-    store = pipeline.match_store(tmp_path / "out", conf)
-    entry = store.read(pipeline.pair_key(sequence.image_root, "q.png", "r.png", 0))
+    store = pair_matching.match_store(tmp_path / "out", conf)
+    entry = store.read(pair_matching.pair_key(sequence.image_root, "q.png", "r.png", 0))
     assert entry["inlier_mask"][:50].all()  # every planted match
     rng = np.random.default_rng(0)
     expected = rng.uniform([0, 0], [500, 280], size=(60, 2)).astype(np.float32)
     np.testing.assert_allclose(entry["points0"], (expected + 0.5) * [960 / 512, 540 / 288] - 0.5, rtol=1e-5)
     # A rerun resumes (nothing matched); a changed matcher conf recomputes.
-    again = pipeline.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    again = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
     assert again == {"pairs": 2, "cached": 2, "matched": 0}
     conf["matcher"]["max_num_keypoints"] = 1024
-    changed = pipeline.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    changed = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
     assert changed == {"pairs": 2, "cached": 0, "matched": 2}
 
 
 def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
     sequence = fake_sequence(tmp_path)
-    table = pipeline.run_method(sequence, "imm:fake-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    table = method_runs.run_method(
+        sequence, "imm:fake-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False
+    )
     assert set(table["method"]) == {"imm:fake-nn"}
-    results = pipeline.evaluate(tmp_path / "out")
+    results = scoring.evaluate(tmp_path / "out")
     assert results["method"].tolist() == ["imm:fake-nn"]
     assert results["paper_name"].tolist() == ["vismatch fake-nn"]
-    from gvbench_nb.evaluation import analysis
+    from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.studies import results_table, runtime_vs_mr
 
-    assert "resized to 512x288" in analysis.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
-    joined = analysis.join_paper_table(results, analysis.load_paper_table(Path("/nonexistent.csv")))
-    assert analysis.results_table(joined).index.tolist() == [("imm:fake-nn (vismatch fake-nn)", "paper")]
-    lines = analysis.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
+    assert "resized to 512x288" in runtime_vs_mr.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
+    joined = results_table.join_paper_table(results, results_table.load_paper_table(Path("/nonexistent.csv")))
+    assert results_table.results_table(joined).index.tolist() == [("imm:fake-nn (vismatch fake-nn)", "paper")]
+    lines = run_tables.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
     assert lines["points0"].shape == (60, 2) and lines["inlier_mask"].sum() == table["num_inliers"].iloc[0]
 
 
@@ -285,8 +289,8 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
     sequence = gardens_point_pairs(shared_data)
     conf = methods.resolve_method("imm:sift-nn", "paper")
     conf["verifier"].update(FORK_VERIFIER)
-    pipeline.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
-    ours = pipeline.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    ours = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
 
     theirs = get_matcher("sift-nn", device="cpu", max_num_keypoints=2048)
     theirs.compute_ransac = fork_ransac
@@ -315,7 +319,7 @@ def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(share
     sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
     import peer_vismatch
 
-    from gvbench_nb import config
+    from gvbench_nb.runner import config
 
     monkeypatch.setenv("GVBENCH_DATA", str(shared_data))
     params = config.load_params(

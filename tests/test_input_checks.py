@@ -24,10 +24,11 @@ import numpy as np
 import pytest
 import yaml
 
-from gvbench_nb import cli, config, pipeline
-from gvbench_nb.data import builders
+from gvbench_nb import cli
 from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
+from gvbench_nb.runner import config, image_features
+from gvbench_nb.runner import sequence_build as builders
 
 pytestmark = pytest.mark.reliability
 
@@ -244,11 +245,11 @@ def add_frame(root: Path, cache_dir: Path, folder: str, frame: int, shade: int =
     name = f"{folder}/Image{frame:03d}.png"
     cv2.imwrite(str(root / name), np.full((8, 8), (40 * frame + shade) % 255, np.uint8))
     options = builders.parse_options({"query_folder": "night", "reference_folders": ["day"]})
-    store = pipeline.feature_store(cache_dir, builders.local_feature_conf(options, "repository"))
+    store = image_features.feature_store(cache_dir, builders.local_feature_conf(options, "repository"))
     descriptors = place_descriptors(frame, shade)
     with store.writer() as writer:
         writer.put(
-            pipeline.image_key(root, name),
+            image_features.image_key(root, name),
             {
                 "keypoints": np.zeros((len(descriptors), 2), np.float32),
                 "scores": np.ones(len(descriptors), np.float32),

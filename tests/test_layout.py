@@ -1,5 +1,6 @@
-"""The package's layout holds: no import circles (imports inside functions count too), and
-every stage folder the docs name exists."""
+"""The package's layout holds: no import circles (imports inside functions count too), data
+flows one way through the layers (no import runs back up), the protocol imports nothing else of
+the package and stays small, and every folder the docs name exists."""
 
 from __future__ import annotations
 
@@ -7,7 +8,24 @@ import ast
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parent.parent / "gvbench_nb"
-STAGES = ("protocol", "protocol/features", "protocol/matching", "data", "verification", "evaluation", "analyses", "reporting", "speed", "runner")
+STAGES = ("protocol", "protocol/features", "protocol/matching", "protocol/recipes", "data", "runner")
+STAGES += ("evaluation", "verification", "studies", "reporting", "speed")
+# Bottom to top: a room (a top-level module or folder of the package) imports only rooms of its
+# own layer or below. data -> protocol -> runner -> evaluation and studies -> reporting and the CLI.
+LAYERS = (
+    ("gvbench_nb", "io_utils", "arguments"),  # the package face names only its version
+    ("protocol",),
+    ("data", "imm"),
+    ("methods", "reference_values"),
+    ("runner",),
+    ("evaluation", "verification"),
+    ("studies",),
+    ("reporting", "notebook"),
+    ("explore_lab",),
+    ("cli", "__main__"),
+    ("speed",),  # the bench: a program of its own that nothing imports
+)
+PROTOCOL_LINES = 3200  # about 3,000 (with the recipes' references): a reviewer reads it against hloc in one sitting
 
 
 def module_name(path: Path) -> str:
@@ -86,3 +104,55 @@ def test_the_cycle_check_finds_a_circle() -> None:
 def test_each_stage_is_a_folder_of_the_package() -> None:
     for stage in STAGES:
         assert (PACKAGE / stage / "__init__.py").is_file(), stage
+
+
+def room(module: str) -> str:
+    """The top-level module or folder of the package a module belongs to."""
+    return module.split(".")[1] if "." in module else module
+
+
+def imports_back_up(graph: dict[str, set[str]], layers: tuple[tuple[str, ...], ...]) -> list[str]:
+    """Imports from a room to a room of a higher layer, and rooms no layer names."""
+    layer_of = {name: i for i, names in enumerate(layers) for name in names}
+    found = []
+    for module, targets in graph.items():
+        if room(module) not in layer_of:
+            found.append(f"{module}: its room {room(module)!r} is in no layer")
+            continue
+        for target in targets:
+            if room(target) in layer_of and layer_of[room(target)] > layer_of[room(module)]:
+                found.append(f"{module} -> {target}")
+    return sorted(found)
+
+
+def test_no_import_runs_back_up_the_layers() -> None:
+    graph = import_graph()
+    assert imports_back_up(graph, LAYERS) == []
+    rooms: dict[str, set[str]] = {}
+    for module, targets in graph.items():
+        rooms.setdefault(room(module), set()).update(room(t) for t in targets if room(t) != room(module))
+    for target in {t for ts in rooms.values() for t in ts}:
+        rooms.setdefault(target, set())
+    assert cycles(rooms) == []  # rooms of one layer do not import each other in a loop either
+
+
+def test_the_layer_check_finds_an_import_back_up() -> None:
+    graph = {"gvbench_nb.protocol.images": {"gvbench_nb.runner.store"}, "gvbench_nb.runner.store": set()}
+    assert imports_back_up(graph, (("protocol",), ("runner",))) == [
+        "gvbench_nb.protocol.images -> gvbench_nb.runner.store"
+    ]
+
+
+def test_the_protocol_imports_nothing_else_of_the_package_and_stays_small() -> None:
+    graph = import_graph()
+    outside = {
+        f"{module} -> {target}"
+        for module, targets in graph.items()
+        if room(module) == "protocol"
+        for target in targets
+        if room(target) != "protocol"
+    }
+    assert outside == set()
+    files = [*(PACKAGE / "protocol").rglob("*.py"), *(PACKAGE / "protocol").rglob("*.yaml")]
+    lines = sum(len(path.read_text().splitlines()) for path in files)
+    assert lines <= PROTOCOL_LINES, f"protocol/ holds {lines} lines"

@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from gvbench_nb import methods
-from gvbench_nb.pipeline import PreparedCache
 from gvbench_nb.protocol import features as extractors
 from gvbench_nb.protocol import images
 from gvbench_nb.protocol import matching as matchers
+from gvbench_nb.runner.pair_matching import PreparedCache
 
 # Two true pairs (many matches: LightGlue runs deep and prunes) and false pairs (it stops early).
 IMAGES = [

@@ -9,10 +9,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gvbench_nb import pipeline
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.pipeline import FeatureCache
-from gvbench_nb.store import ShardedStore
+from gvbench_nb.runner import image_features, method_runs, pair_matching
+from gvbench_nb.runner.pair_matching import FeatureCache
+from gvbench_nb.runner.store import ShardedStore
 
 
 def test_reading_every_entry_keeps_a_bounded_number_of_shards_open(tmp_path):
@@ -82,10 +82,10 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
     sequence.image_root.mkdir(parents=True, exist_ok=True)
     for index, name in enumerate(sequence.images):
         (sequence.image_root / name).write_bytes(f"image {index}".encode())
-    with pipeline.feature_store(cache_dir, conf["extractor"]).writer(flush_every=16) as writer:
+    with image_features.feature_store(cache_dir, conf["extractor"]).writer(flush_every=16) as writer:
         for name in sequence.images:  # noisy copies of one set: every pair has ~200 matches to hold or drop
             writer.put(
-                pipeline.image_key(sequence.image_root, name),
+                image_features.image_key(sequence.image_root, name),
                 {
                     "keypoints": rng.uniform(0, 500, (200, 2)).astype(np.float32),
                     "scores": np.ones(200, np.float32),
@@ -95,8 +95,8 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
                 {"seconds": 0.01},
             )
     tracemalloc.start()
-    pipeline.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, workers=1)
-    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed=0)
+    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, workers=1)
+    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed=0)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert len(table) == len(sequence.pairs) and table["num_matches"].min() > 150

@@ -6,15 +6,16 @@ from pathlib import Path
 import pytest
 import torch
 
-from gvbench_nb import methods, pipeline
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import weights
+from gvbench_nb.runner import method_runs
 
 PAPER_METHODS = ["sift-nn", "sp-nn", "sp-sg", "disk-nn", "disk-lg", "loftr"]
 
 
-@pytest.mark.parametrize("name", list(methods.METHODS))
-@pytest.mark.parametrize("profile", list(methods.PROFILES))
+@pytest.mark.parametrize("name", methods.method_names())
+@pytest.mark.parametrize("profile", list(methods.RECIPES))
 def test_every_method_resolves_with_its_checkpoints_known(name, profile):
     conf = methods.resolve_method(name, profile)
     assert conf["profile"] == profile and conf["method"] == name
@@ -23,8 +24,8 @@ def test_every_method_resolves_with_its_checkpoints_known(name, profile):
 
 
 def test_the_paper_methods_and_the_modern_ones_are_registered():
-    assert [m for m in methods.METHODS if methods.METHODS[m]["in_paper"]] == PAPER_METHODS
-    assert {"sp-lg", "aliked-nn", "aliked-lg", "xfeat-nn", "xfeat-lg", "orb-nn"} <= set(methods.METHODS)
+    assert [m for m in methods.method_names() if methods.RECIPES["paper"][m]["in_paper"]] == PAPER_METHODS
+    assert {"sp-lg", "aliked-nn", "aliked-lg", "xfeat-nn", "xfeat-lg", "orb-nn"} <= set(methods.method_names())
 
 
 def test_repository_profile_changes_the_cache_identity():
@@ -43,7 +44,7 @@ def test_unknown_method_lists_the_valid_names():
 def test_missing_weights_fail_before_any_work(empty_hub, tmp_path):
     sequence = Sequence("s", tmp_path / "images", [Pair("a.png", "b.png", 1)])
     with pytest.raises(weights.MissingWeightsError) as error:
-        pipeline.run_method(sequence, "sp-sg", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+        method_runs.run_method(sequence, "sp-sg", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     message = str(error.value)
     for expected in (
         "superpoint_v1.pth",
@@ -59,7 +60,7 @@ def test_results_lists_every_method_without_results_with_the_files_it_needs(empt
     from gvbench_nb.cli import not_run_table
 
     table = not_run_table({"sift-nn", "disk-nn"}).set_index("method")
-    assert set(table.index) == set(methods.METHODS) - {"sift-nn", "disk-nn"}
+    assert set(table.index) == set(methods.method_names()) - {"sift-nn", "disk-nn"}
     assert table.loc["orb-nn", "status"] == "weights present, not run"  # ORB needs no weights
     assert "`disk_lightglue_v0-1_arxiv-pth`" in table.loc["disk-lg", "status"]
     assert "`superglue_outdoor.pth` from https://" in table.loc["sp-sg", "status"]
@@ -94,7 +95,7 @@ def shared_cache(tmp_path_factory) -> Path:
     "method",
     [
         m
-        for m in methods.METHODS
+        for m in methods.method_names()
         if not methods.required_checkpoints(m) or all(weights.is_present(c) for c in methods.required_checkpoints(m))
     ],
 )
@@ -105,7 +106,7 @@ def test_available_methods_score_true_pairs_above_far_false_pairs(shared_data, s
             pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
     sequence = Sequence("gp_test", shared_data / "gardens_point", pairs)
     profile = "paper" if method in ("sift-nn", "orb-nn") else "repository"  # learned models at 512x288 keep CI short
-    table = pipeline.run_method(sequence, method, profile, tmp_path / "out", shared_cache, progress=False)
+    table = method_runs.run_method(sequence, method, profile, tmp_path / "out", shared_cache, progress=False)
     true_mean = table.loc[table.label == 1, "score"].mean()
     false_mean = table.loc[table.label == 0, "score"].mean()
     assert true_mean > false_mean, table[["query", "reference", "label", "score"]]

@@ -10,9 +10,10 @@ import pandas as pd
 import pytest
 from test_analysis import write_fake_run
 
-from gvbench_nb import notebook, pipeline
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.verification import verifiers
+from gvbench_nb import notebook
+from gvbench_nb.evaluation import run_tables
+from gvbench_nb.runner import method_runs, scoring
+from gvbench_nb.studies import verifiers
 
 
 @pytest.fixture
@@ -29,7 +30,7 @@ def toy(tmp_path: Path, monkeypatch) -> tuple[Path, Path]:
     def refuse(*args, **kwargs):
         raise AssertionError("the pipeline ran although the notebook did not ask")
 
-    monkeypatch.setattr(pipeline, "run_method", refuse)
+    monkeypatch.setattr(method_runs, "run_method", refuse)
     return params, output_dir
 
 
@@ -52,10 +53,10 @@ def test_compute_missing_runs_only_what_is_missing(toy, monkeypatch):
     def fake_ensure(params_file, methods, **overrides):
         ran.append(list(methods))
         write_fake_run(output_dir)
-        pipeline.evaluate(output_dir)
+        scoring.evaluate(output_dir)
         return output_dir
 
-    monkeypatch.setattr(analysis, "ensure_results", fake_ensure)
+    monkeypatch.setattr(run_tables, "ensure_results", fake_ensure)
     inputs = notebook.load_results(
         str(output_dir), output_dir / "analysis", str(params), ["sift-nn"], compute_missing=True
     )
@@ -73,7 +74,7 @@ def test_a_results_table_behind_its_pairs_is_refused_not_rewritten(toy):
     params, output_dir = toy
     write_fake_run(output_dir)
     write_fake_run(output_dir, method="orb-nn")
-    pipeline.evaluate(output_dir, ["sift-nn"])  # results.csv lacks orb-nn
+    scoring.evaluate(output_dir, ["sift-nn"])  # results.csv lacks orb-nn
     before = (output_dir / "results.csv").read_text()
     with pytest.raises(notebook.ResultsMissingError, match="does not list exactly"):
         notebook.require_results(params, ["sift-nn"])
@@ -87,7 +88,7 @@ def test_no_params_files_reads_finished_runs_only(toy):
     with pytest.raises(FileNotFoundError, match="results.csv is missing"):
         notebook.load_results([output_dir], output_dir / "analysis", [], ["sift-nn"])
     write_fake_run(output_dir)
-    pipeline.evaluate(output_dir)
+    scoring.evaluate(output_dir)
     assert len(notebook.load_results([output_dir], output_dir / "analysis", None).results) == 1
     with pytest.raises(notebook.ResultsMissingError, match="add it to output_dirs"):
         notebook.sequence_of(notebook.load_results([output_dir], output_dir / "analysis").results, "elsewhere")

@@ -12,9 +12,10 @@ import pandas as pd
 import pytest
 from helpers import check_stage_outputs
 
-from gvbench_nb import config, methods, pipeline
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence, read_pairs
-from gvbench_nb.store import ShardedStore
+from gvbench_nb.runner import concurrency, config, image_features, method_runs, scoring
+from gvbench_nb.runner.store import ShardedStore
 
 PAIRS_COLUMNS = {
     "query",
@@ -42,25 +43,25 @@ def gardens_point(shared_data: Path, queries=(40, 120), far=60) -> Sequence:
 @pytest.mark.real_data
 def test_second_run_extracts_and_matches_nothing(shared_data, tmp_path):
     sequence = gardens_point(shared_data)
-    first = pipeline.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    first = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 8, "cached": 0, "extracted": 8}
-    second = pipeline.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    second = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 8, "cached": 8, "extracted": 0}
     assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}
     pd.testing.assert_frame_equal(first, second)
     assert set(first.columns) >= PAIRS_COLUMNS
     # Another method with the same extractor conf reuses the cached features.
-    pipeline.run_method(sequence, "orb-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
+    method_runs.run_method(sequence, "orb-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     assert len(list((tmp_path / "cache" / "features").iterdir())) == 2  # sift + orb, once each
 
 
 @pytest.mark.real_data
 def test_extraction_time_is_amortised_over_the_pairs_of_each_image(shared_data, tmp_path):
     sequence = gardens_point(shared_data)
-    table = pipeline.run_method(sequence, "sift-nn", "paper", tmp_path / "o", tmp_path / "c", progress=False)
-    store = pipeline.feature_store(tmp_path / "c", methods.resolve_method("sift-nn")["extractor"])
+    table = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "o", tmp_path / "c", progress=False)
+    store = image_features.feature_store(tmp_path / "c", methods.resolve_method("sift-nn")["extractor"])
     total = sum(float(store.read(k)["attr:seconds"]) for k in store.keys())
     assert table["extract_seconds"].sum() == pytest.approx(total, rel=1e-6)
 
@@ -93,7 +94,7 @@ def test_prefetch_preserves_order_and_surfaces_errors_in_place():
             raise OSError("bad image 3")
         return i * 10
 
-    results = list(pipeline.prefetch(range(8), load, depth=4, workers=3))
+    results = list(concurrency.prefetch(range(8), load, depth=4, workers=3))
     assert [item for item, _ in results] == list(range(8))
     assert [r for i, r in results if i != 3] == [0, 10, 20, 40, 50, 60, 70]
     assert isinstance(results[3][1], OSError)
@@ -164,15 +165,15 @@ def test_run_method_after_compute_method_records_that_work_without_torch(tmp_pat
     """What ``run`` does: the work in one process, then each notebook's run_method finds it cached."""
     sequence = tiny_sequence(tmp_path / "data")
     out, cache = tmp_path / "out", tmp_path / "cache"
-    work = pipeline.compute_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
+    work = method_runs.compute_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
     assert work["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
     assert not (out / "sift-nn" / "pairs.csv").exists()  # only run_method writes results
     code = (
         "import sys, json; from pathlib import Path\n"
-        "from gvbench_nb import pipeline\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
+        "from gvbench_nb.runner import method_runs\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
         f"root = Path({str(tmp_path / 'data')!r})\n"
         "sequence = Sequence('tiny', root, read_pairs(root / 'pairs.txt')[:6])\n"
-        f"pipeline.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
+        f"method_runs.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
         "device='cpu', progress=False)\n"
         "print(json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))"
     )
@@ -187,30 +188,30 @@ def test_run_method_after_compute_method_records_that_work_without_torch(tmp_pat
     assert done.stdout.strip().splitlines()[-1] == "[]"
     run = json.loads((out / "sift-nn" / "run.json").read_text())
     assert run["this_run"] == work["this_run"] and run["environment"] == work["environment"]
-    assert not (out / "sift-nn" / pipeline.WORK_RECORD).exists()
-    first = pipeline.load_pairs_table(out, "sift-nn")
+    assert not (out / "sift-nn" / method_runs.WORK_RECORD).exists()
+    first = scoring.load_pairs_table(out, "sift-nn")
 
     # Used once: the next run records that it found everything cached, as any rerun does.
-    again = pipeline.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
+    again = method_runs.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
     run = pd.read_json(out / "sift-nn" / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
-    pd.testing.assert_frame_equal(first, pipeline.load_pairs_table(out, "sift-nn"))
+    pd.testing.assert_frame_equal(first, scoring.load_pairs_table(out, "sift-nn"))
     assert len(again) == 6
 
 
 def test_a_work_record_of_another_device_request_or_process_is_not_used(tmp_path):
     sequence = tiny_sequence(tmp_path / "data")
     out, cache = tmp_path / "out", tmp_path / "cache"
-    record = out / "orb-nn" / pipeline.WORK_RECORD
-    pipeline.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
-    pipeline.run_method(sequence, "orb-nn", "repository", out, cache, device="auto", progress=False)
+    record = out / "orb-nn" / method_runs.WORK_RECORD
+    method_runs.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    method_runs.run_method(sequence, "orb-nn", "repository", out, cache, device="auto", progress=False)
     run = json.loads((out / "orb-nn" / "run.json").read_text())
     assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}  # its own (cached) pass
 
     # Left by a run that stopped before its notebook: not this run's work.
-    work = pipeline.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    work = method_runs.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
     record.write_text(json.dumps({**json.loads(record.read_text()), "pid": -1, "this_run": {"stale": True}}))
-    pipeline.run_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
+    method_runs.run_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
     run = json.loads((out / "orb-nn" / "run.json").read_text())
     assert run["this_run"]["extraction"] == work["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
     assert "stale" not in run["this_run"]

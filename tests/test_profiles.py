@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from gvbench_nb import config, methods
+from gvbench_nb import methods
 from gvbench_nb.protocol import images, ransac
+from gvbench_nb.runner import config
 
 
 # ------------------------------------------------------------ few-matches rule --
@@ -147,10 +148,22 @@ def test_repository_profile_is_the_benchmark_repository_protocol():
     sift = methods.resolve_method("sift-nn", "repository")
     assert sift["extractor"]["max_keypoints"] == 2048 and sift["extractor"]["root_sift"] is False
     assert (sift["matcher"]["ratio_threshold"], sift["matcher"]["mutual"]) == (0.75, False)
-    for name in methods.METHODS:
+    for name in methods.method_names():
         extractor = methods.resolve_method(name, "repository")["extractor"]
         if extractor is not None:
             assert extractor["store_float16"] is False, name
+
+
+def test_repository_superglue_is_image_matching_toolboxs_as_its_config_sets_it():
+    # The fork's SP+SG is image-matching-toolbox's SuperGlue (configs/superglue.yml: 20 Sinkhorn
+    # iterations) on Magic Leap's SuperPoint with its own keypoint threshold (0.005), run on the
+    # 512x288 grey image as it is: not LightGlue's SuperPoint (threshold 0.0005, input resized to 1024).
+    conf = methods.resolve_method("sp-sg", "repository")
+    assert conf["matcher"]["sinkhorn_iterations"] == 20
+    assert conf["extractor"]["keypoint_threshold"] == 0.005
+    assert "model_input_long_side" not in conf["extractor"] and conf["extractor"]["resize_to"] == [512, 288]
+    lightglue_superpoint = methods.resolve_method("sp-lg", "repository")["extractor"]
+    assert (lightglue_superpoint["keypoint_threshold"], lightglue_superpoint["model_input_long_side"]) == (0.0005, 1024)
 
 
 def test_the_fast_profile_is_gone_with_a_pointer_to_repository(tmp_path):
@@ -308,14 +321,14 @@ def test_repository_sift_matches_raw_descriptors_by_opencv_l2():
 
 
 def test_a_run_of_another_profile_says_it_replaces_the_folders_results(tmp_path):
-    from gvbench_nb import pipeline
+    from gvbench_nb.runner import method_outputs
 
     for method, profile in (("sift-nn", "repository"), ("orb-nn", "paper")):
         (tmp_path / method).mkdir()
         (tmp_path / method / "run.json").write_text(json.dumps({"conf": {"profile": profile}}))
     (tmp_path / "xfeat-nn").mkdir()
     (tmp_path / "xfeat-nn" / "run.json").write_text("{not json")  # unreadable: nothing to replace
-    assert pipeline.replaced_profiles(tmp_path, ["sift-nn", "orb-nn", "xfeat-nn", "disk-nn"], "paper") == {
+    assert method_outputs.replaced_profiles(tmp_path, ["sift-nn", "orb-nn", "xfeat-nn", "disk-nn"], "paper") == {
         "sift-nn": "repository"
     }
 

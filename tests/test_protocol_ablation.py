@@ -26,7 +26,7 @@ import protocol_ablation
 )
 def test_each_variant_changes_one_key_of_the_paper_conf_and_restores_it(variant, method, part, key, value):
     before = methods.resolve_method(method, "paper")
-    tables = copy.deepcopy((methods.EXTRACTORS, methods.MATCHERS, methods.VERIFIER_PROFILES))
+    tables = copy.deepcopy(methods.RECIPES)
     with protocol_ablation.VARIANTS[variant](method) as ran:
         during = methods.resolve_method(ran, "paper")
     assert during[part][key] == value != before[part].get(key, "rows_and_columns")
@@ -37,7 +37,7 @@ def test_each_variant_changes_one_key_of_the_paper_conf_and_restores_it(variant,
         if (before[name] or {}).get(k) != (during[name] or {}).get(k)
     ]
     assert changed == [(part, key)]
-    assert tables == (methods.EXTRACTORS, methods.MATCHERS, methods.VERIFIER_PROFILES)
+    assert tables == methods.RECIPES
     assert methods.resolve_method(method, "paper") == before
 
 

@@ -29,17 +29,27 @@ import pandas as pd
 import pytest
 import torch
 
-from gvbench_nb import config, methods, pipeline
+import gvbench_nb
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, PairFileError, Sequence, parse_pairs, read_pairs
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import ImageReadError, read_image
 from gvbench_nb.protocol.metrics import MetricsUndefinedError
-from gvbench_nb.runner import record
-from gvbench_nb.store import ShardedStore, StoreCorruptError
+from gvbench_nb.runner import (
+    concurrency,
+    config,
+    image_features,
+    method_outputs,
+    method_runs,
+    pair_matching,
+    record,
+    scoring,
+)
+from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
 
-PACKAGE_DIR = Path(pipeline.__file__).resolve().parent
+PACKAGE_DIR = Path(gvbench_nb.__file__).resolve().parent
 METHOD = "sift-nn"
 PROFILE = "paper"
 FRAMES = list(range(0, 200, 10))  # 20 queries, 20 references -> 40 images
@@ -59,7 +69,7 @@ def frame_pairs() -> list[Pair]:
 
 
 def one_thread(n_threads: int | None = None) -> None:
-    """Stand-in for ``pipeline.configure_threads``: on tiny images (and a shared, busy
+    """Stand-in for ``concurrency.configure_threads``: on tiny images (and a shared, busy
     machine) one thread is about twice as fast as all cores; scores do not change."""
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
@@ -69,7 +79,7 @@ def one_thread(n_threads: int | None = None) -> None:
 def single_thread():
     threads = torch.get_num_threads()
     with pytest.MonkeyPatch.context() as patch:
-        patch.setattr(pipeline, "configure_threads", one_thread)
+        patch.setattr(concurrency, "configure_threads", one_thread)
         yield
     torch.set_num_threads(threads)
 
@@ -96,7 +106,7 @@ def sequence(small_root) -> Sequence:
 def baseline(single_thread, sequence, tmp_path_factory) -> dict[str, Path]:
     """One uninterrupted run from scratch: what every other run must reproduce."""
     base = tmp_path_factory.mktemp("baseline")
-    pipeline.run_method(sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False)
+    method_runs.run_method(sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False)
     return {"out": base / "out", "cache": base / "cache"}
 
 
@@ -105,7 +115,8 @@ import json, os, signal, sys
 from pathlib import Path
 
 spec = json.loads(Path(sys.argv[1]).read_text())
-from gvbench_nb import pipeline, store
+from gvbench_nb.runner import store
+from gvbench_nb.runner import concurrency, image_features, method_outputs, method_runs, pair_matching, scoring
 from gvbench_nb.data.sequences import Pair, Sequence
 
 def one_thread(n_threads=None):  # as the tests' in-process runs (speed only)
@@ -113,7 +124,7 @@ def one_thread(n_threads=None):  # as the tests' in-process runs (speed only)
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
 
-pipeline.configure_threads = one_thread
+concurrency.configure_threads = one_thread
 stage, _, count = (spec.get("kill") or "").partition(":")
 seen = [0]
 
@@ -160,7 +171,7 @@ if spec.get("go_file"):  # start together with another process
         time.sleep(0.005)
 
 sequence = Sequence(spec["name"], Path(spec["image_root"]), [Pair(*p) for p in spec["pairs"]])
-pipeline.run_method(sequence, spec["method"], spec["profile"], Path(spec["output_dir"]), Path(spec["cache_dir"]),
+method_runs.run_method(sequence, spec["method"], spec["profile"], Path(spec["output_dir"]), Path(spec["cache_dir"]),
                     device="cpu", progress=False)
 print("finished")
 """
@@ -215,7 +226,7 @@ def finish(child: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str
 
 
 def run_json(output_dir: Path) -> dict:
-    return json.loads((pipeline.method_dir(output_dir, METHOD) / "run.json").read_text())
+    return json.loads((method_outputs.method_dir(output_dir, METHOD) / "run.json").read_text())
 
 
 def rows_without_timings(path: Path) -> list[list[str]]:
@@ -227,8 +238,8 @@ def rows_without_timings(path: Path) -> list[list[str]]:
 
 
 def assert_same_pairs(output_dir: Path, baseline_out: Path) -> None:
-    produced = rows_without_timings(pipeline.method_dir(output_dir, METHOD) / "pairs.csv")
-    expected = rows_without_timings(pipeline.method_dir(baseline_out, METHOD) / "pairs.csv")
+    produced = rows_without_timings(method_outputs.method_dir(output_dir, METHOD) / "pairs.csv")
+    expected = rows_without_timings(method_outputs.method_dir(baseline_out, METHOD) / "pairs.csv")
     assert len(produced) == N_PAIRS + 1
     assert produced == expected
 
@@ -268,8 +279,10 @@ def assert_store_matches(store: ShardedStore, reference: ShardedStore) -> None:
 
 
 def stores(work: Path) -> tuple[ShardedStore, ShardedStore]:
-    conf = pipeline.method_registry.resolve_method(METHOD, PROFILE)
-    return pipeline.feature_store(work / "cache", conf["extractor"]), pipeline.match_store(work / "out", conf)
+    conf = methods.resolve_method(METHOD, PROFILE)
+    return image_features.feature_store(work / "cache", conf["extractor"]), pair_matching.match_store(
+        work / "out", conf
+    )
 
 
 # -------------------------------------------------------- 1. bad input, clear error --
@@ -361,24 +374,24 @@ def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_comp
         Pair("night_right/Image010.jpg", "day_right/Image000.jpg", 0),
     ]
     out, cache = tmp_path / "out", tmp_path / "cache"
-    pipeline.run_method(Sequence("s", root, good), METHOD, PROFILE, out, cache, device="cpu", progress=False)
-    assert (pipeline.method_dir(out, METHOD) / "pairs.csv").is_file()
+    method_runs.run_method(Sequence("s", root, good), METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    assert (method_outputs.method_dir(out, METHOD) / "pairs.csv").is_file()
 
     broken = root / "day_right" / "Image010.jpg"
     _truncated(small_root / "day_right" / "Image010.jpg", broken)
     bad_pair = Pair("night_right/Image020.jpg", "day_right/Image010.jpg", 0)
     bigger = Sequence("s", root, good + [Pair("night_right/Image020.jpg", "day_right/Image000.jpg", 0), bad_pair])
     with pytest.raises(ImageReadError) as error:
-        pipeline.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
+        method_runs.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
     message = str(error.value)
     assert str(broken) in message and "sequence 's'" in message
     assert "pair 3: night_right/Image020.jpg day_right/Image010.jpg" in message
     # The previous run's results are gone, not left to pass for this run's.
-    assert not (pipeline.method_dir(out, METHOD) / "pairs.csv").exists()
-    assert pipeline.methods_with_results(out) == []
+    assert not (method_outputs.method_dir(out, METHOD) / "pairs.csv").exists()
+    assert scoring.methods_with_results(out) == []
     # What was extracted before the error is kept: after the fix only the repaired image is extracted.
     shutil.copy(small_root / "day_right" / "Image010.jpg", broken)
-    pipeline.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    method_runs.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
     assert run_json(out)["this_run"]["extraction"] == {"images": 5, "cached": 4, "extracted": 1}
 
 
@@ -415,11 +428,11 @@ def test_crlf_bom_and_tabs_are_accepted_and_line_numbers_stay_right(tmp_path):
 
 def _evaluate_with_labels(baseline_out: Path, tmp_path: Path, label: int) -> Path:
     out = tmp_path / f"only_{label}"
-    folder = pipeline.method_dir(out, METHOD)
+    folder = method_outputs.method_dir(out, METHOD)
     folder.mkdir(parents=True)
-    table = pipeline.load_pairs_table(baseline_out, METHOD)
+    table = scoring.load_pairs_table(baseline_out, METHOD)
     table[table["label"] == label].to_csv(folder / "pairs.csv", index=False)
-    shutil.copy(pipeline.method_dir(baseline_out, METHOD) / "run.json", folder / "run.json")
+    shutil.copy(method_outputs.method_dir(baseline_out, METHOD) / "run.json", folder / "run.json")
     return out
 
 
@@ -428,8 +441,8 @@ def _evaluate_with_labels(baseline_out: Path, tmp_path: Path, label: int) -> Pat
 def test_a_sequence_without_positives_or_negatives_is_an_error_not_nan(baseline, tmp_path, label, missing):
     out = _evaluate_with_labels(baseline["out"], tmp_path, label)
     with pytest.raises(MetricsUndefinedError, match=f"with no {missing}: AP and MR are undefined") as error:
-        pipeline.evaluate(out)
-    assert str(pipeline.method_dir(out, METHOD) / "pairs.csv") in str(error.value)
+        scoring.evaluate(out)
+    assert str(method_outputs.method_dir(out, METHOD) / "pairs.csv") in str(error.value)
     assert not (out / "results.csv").exists()
 
 
@@ -546,13 +559,15 @@ def test_a_killed_run_resumes_and_ends_identical(
     half_written = list(features.folder.glob(".shard-*.tmp"))
     assert len(half_written) == (1 if kill.startswith("flush") else 0)
     # No results that look complete; any half-written file is a hidden temporary one.
-    folder = pipeline.method_dir(tmp_path / "out", METHOD)
+    folder = method_outputs.method_dir(tmp_path / "out", METHOD)
     assert not (folder / "pairs.csv").exists()
-    assert pipeline.methods_with_results(tmp_path / "out") == []
+    assert scoring.methods_with_results(tmp_path / "out") == []
     visible = [p for p in folder.rglob("*") if p.is_file() and not p.name.startswith(".")] if folder.exists() else []
     assert all(p.suffix in (".h5", ".json") for p in visible), visible
 
-    pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False)
+    method_runs.run_method(
+        sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False
+    )
     this_run = run_json(tmp_path / "out")["this_run"]
     assert extracted_again + matched_again < 40 + N_PAIRS  # finished work was kept, not redone
     assert this_run["extraction"] == {"images": 40, "cached": 40 - extracted_again, "extracted": extracted_again}
@@ -608,13 +623,15 @@ def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_two_runs_from_scratch_give_identical_pairs_and_results(sequence, baseline, tmp_path):
-    pipeline.run_method(sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False)
+    method_runs.run_method(
+        sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False
+    )
     assert_same_pairs(tmp_path / "out", baseline["out"])
-    first = (pipeline.method_dir(baseline["out"], METHOD) / "pairs.csv").read_text().splitlines()
-    second = (pipeline.method_dir(tmp_path / "out", METHOD) / "pairs.csv").read_text().splitlines()
+    first = (method_outputs.method_dir(baseline["out"], METHOD) / "pairs.csv").read_text().splitlines()
+    second = (method_outputs.method_dir(tmp_path / "out", METHOD) / "pairs.csv").read_text().splitlines()
     # Byte-identical apart from the three trailing timing fields of each row.
     assert [line.rsplit(",", 3)[0] for line in first] == [line.rsplit(",", 3)[0] for line in second]
-    results = [pipeline.evaluate(out, write=False) for out in (baseline["out"], tmp_path / "out")]
+    results = [scoring.evaluate(out, write=False) for out in (baseline["out"], tmp_path / "out")]
     scores = ["sequence", "method", "n_pairs", "n_positives", "ap", "max_recall"]
     pd.testing.assert_frame_equal(results[0][scores], results[1][scores])
     assert 0 < results[0].loc[0, "ap"] <= 1
@@ -639,24 +656,24 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
-    table = pipeline.run_method(
+    table = method_runs.run_method(
         sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False, workers=2
     )
     assert run_json(tmp_path / "out")["this_run"]["workers"] == 2
-    expected = pipeline.load_pairs_table(baseline["out"], METHOD)
+    expected = scoring.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
     pd.testing.assert_frame_equal(table[columns], expected[columns])
     conf = methods.resolve_method(METHOD, PROFILE)
     ours, theirs = (
-        pipeline.feature_store(cache, conf["extractor"]) for cache in (tmp_path / "cache", baseline["cache"])
+        image_features.feature_store(cache, conf["extractor"]) for cache in (tmp_path / "cache", baseline["cache"])
     )
     assert sorted(ours.keys()) == sorted(theirs.keys()) and len(ours) == 40
     for key in ours.keys():
         for name in ("keypoints", "descriptors", "scores", "image_size"):
             np.testing.assert_array_equal(ours.read(key)[name], theirs.read(key)[name])
-    mine, reference = (pipeline.match_store(out, conf) for out in (tmp_path / "out", baseline["out"]))
+    mine, reference = (pair_matching.match_store(out, conf) for out in (tmp_path / "out", baseline["out"]))
     for pair in sequence.pairs[::7]:
-        key = pipeline.pair_key(sequence.image_root, pair.query, pair.reference, 0)
+        key = pair_matching.pair_key(sequence.image_root, pair.query, pair.reference, 0)
         for name in ("matches", "inlier_mask"):
             np.testing.assert_array_equal(mine.read(key)[name], reference.read(key)[name])
 
@@ -664,14 +681,14 @@ def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
 def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
     monkeypatch.setenv("GVBENCH_WORKERS", "3")  # the old name is no longer read
-    assert pipeline.worker_count() == 1
+    assert concurrency.worker_count() == 1
     monkeypatch.setenv("GVBENCH_JOBS", "3")
-    assert pipeline.worker_count() == 3 and pipeline.worker_count(2) == 2
+    assert concurrency.worker_count() == 3 and concurrency.worker_count(2) == 2
     with pytest.raises(ValueError, match=r"--jobs or \$GVBENCH_JOBS"):
-        pipeline.worker_count(0)
+        concurrency.worker_count(0)
     monkeypatch.setenv("GVBENCH_JOBS", "two")
     with pytest.raises(ValueError, match=r"got 'two' \(--jobs or \$GVBENCH_JOBS\)"):
-        pipeline.worker_count()
+        concurrency.worker_count()
 
 
 def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the_variable(monkeypatch, capsys):
@@ -680,7 +697,7 @@ def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
     monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
     args = cli.build_parser().parse_args(["run", "p.yaml", "--jobs", "2", "--dask-workers", "3"])
-    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and pipeline.worker_count() == 2
+    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and concurrency.worker_count() == 2
     assert args.dask_workers == 3  # the Dask cluster's size: another name, another number
     monkeypatch.delenv("GVBENCH_JOBS")
     assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None
@@ -699,7 +716,7 @@ def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the
 
 def test_the_old_variable_gets_one_line_naming_its_successor(monkeypatch, capsys):
     from gvbench_nb import cli
-    from gvbench_nb.speed import jobs
+    from gvbench_nb.runner import jobs
 
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
     monkeypatch.setenv("GVBENCH_WORKERS", "2")
@@ -715,10 +732,10 @@ def test_the_old_variable_gets_one_line_naming_its_successor(monkeypatch, capsys
 @pytest.mark.real_data
 def test_scores_do_not_depend_on_the_order_pairs_run_in(sequence, baseline, tmp_path):
     reversed_sequence = Sequence(sequence.name, sequence.image_root, sequence.pairs[::-1])
-    table = pipeline.run_method(
+    table = method_runs.run_method(
         reversed_sequence, METHOD, PROFILE, tmp_path / "out", baseline["cache"], device="cpu", progress=False
     )
-    expected = pipeline.load_pairs_table(baseline["out"], METHOD)
+    expected = scoring.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
     pd.testing.assert_frame_equal(table[columns].iloc[::-1].reset_index(drop=True), expected[columns])
 

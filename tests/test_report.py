@@ -12,15 +12,16 @@ import pytest
 import yaml
 
 from gvbench_nb import cli
-from gvbench_nb.evaluation import analysis
-from gvbench_nb.reporting import plots, report
+from gvbench_nb.evaluation import plots
+from gvbench_nb.reporting import report
+from gvbench_nb.studies import results_table
 
 
 def wide_table(paper: pd.DataFrame, profile: str = "paper") -> pd.DataFrame:
     results = pd.DataFrame(
         {"method": ["sift-nn"], "sequence": ["toy"], "profile": [profile], "ap": [0.8], "max_recall": [0.1]}
     )
-    return analysis.results_table(analysis.join_paper_table(results, paper, pd.DataFrame()))
+    return results_table.results_table(results_table.join_paper_table(results, paper, pd.DataFrame()))
 
 
 def test_table_note_explains_only_the_columns_the_table_has():

@@ -24,7 +24,7 @@ import pytest
 import yaml
 from helpers import check_stage_outputs
 
-from gvbench_nb import cli, config, pipeline
+from gvbench_nb import cli, methods
 from gvbench_nb.data.sequences import (
     Pair,
     PairFileError,
@@ -37,7 +37,8 @@ from gvbench_nb.data.sequences import (
 )
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import ImageReadError, read_image
-from gvbench_nb.store import ShardedStore, StoreCorruptError
+from gvbench_nb.runner import config, image_features, method_runs, pair_matching, scoring
+from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
 
@@ -86,7 +87,7 @@ PAIRS = [
 
 def run(root: Path, work: Path, pairs: list[Pair] = PAIRS, seed: int = 0) -> pd.DataFrame:
     sequence = Sequence("photos", root, list(pairs))
-    return pipeline.run_method(
+    return method_runs.run_method(
         sequence, METHOD, PROFILE, work / "out", work / "cache", device="cpu", seed=seed, progress=False, threads=1
     )
 
@@ -140,14 +141,14 @@ def test_another_seed_is_verified_again(root, tmp_path):
 
 
 def test_content_keys_follow_the_bytes_not_the_name(root, tmp_path):
-    key = pipeline.image_key(root, "query/a.png")
-    assert key == pipeline.content_key(root / "query" / "a.png")
+    key = image_features.image_key(root, "query/a.png")
+    assert key == image_features.content_key(root / "query" / "a.png")
     assert key.startswith("blake2b-") and str(root) not in key
-    assert pipeline.image_key(shutil.copytree(root, tmp_path / "copy"), "query/a.png") == key
+    assert image_features.image_key(shutil.copytree(root, tmp_path / "copy"), "query/a.png") == key
     (root / "query" / "a.png").write_bytes((root / "query" / "b.png").read_bytes())
-    assert pipeline.image_key(root, "query/a.png") != key
+    assert image_features.image_key(root, "query/a.png") != key
     with pytest.raises(ImageReadError, match="image not found: .*missing.png; check image_root"):
-        pipeline.image_key(root, "missing.png")
+        image_features.image_key(root, "missing.png")
 
 
 # ----------------------------------------- 3: builder-built pair files and run.json --
@@ -209,7 +210,7 @@ def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root
     pairs_file = write_pairs(tmp_path / "pairs.txt", PAIRS)
     params = config.load_params(_params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache")))
     sequence = config.prepare_sequence(params)
-    pipeline.run_method(
+    method_runs.run_method(
         sequence,
         METHOD,
         PROFILE,
@@ -376,7 +377,7 @@ def test_a_run_that_fails_leaves_the_previous_results_whole_and_says_where_its_w
     params_path = _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "work" / "cache"))
     out = tmp_path / "work" / "out"
     run_first = run(root, tmp_path / "work")  # an earlier finished run in the same folder
-    pipeline.evaluate(out)
+    scoring.evaluate(out)
     before = {p: p.read_bytes() for p in (out / METHOD / "pairs.csv", out / METHOD / "run.json", out / "results.csv")}
     assert len(run_first) == 4
 
@@ -413,9 +414,7 @@ def _dataset_offset(shard: Path, name: str) -> tuple[int, int]:
 
 def test_bytes_overwritten_inside_a_feature_shard_raise_store_corrupt_naming_it(root, tmp_path):
     run(root, tmp_path / "work")
-    store = pipeline.feature_store(
-        tmp_path / "work" / "cache", pipeline.method_registry.resolve_method(METHOD)["extractor"]
-    )
+    store = image_features.feature_store(tmp_path / "work" / "cache", methods.resolve_method(METHOD)["extractor"])
     shard = store.shards()[0]
     offset, size = _dataset_offset(shard, "keypoints")
     data = bytearray(shard.read_bytes())
@@ -429,7 +428,7 @@ def test_bytes_overwritten_inside_a_feature_shard_raise_store_corrupt_naming_it(
 
 def test_an_attribute_changed_inside_a_match_shard_is_detected(root, tmp_path):
     run(root, tmp_path / "work")
-    store = pipeline.match_store(tmp_path / "work" / "out", pipeline.method_registry.resolve_method(METHOD))
+    store = pair_matching.match_store(tmp_path / "work" / "out", methods.resolve_method(METHOD))
     shard = store.shards()[0]
     with h5py.File(shard, "r+") as handle:  # a tool "fixing" an inlier count in place
         group = next(iter(handle.values()))

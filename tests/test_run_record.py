@@ -23,11 +23,11 @@ import pytest
 import yaml
 from test_results_never_wrong import write_root
 
-from gvbench_nb import cli, config, pipeline
+from gvbench_nb import cli
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
-from gvbench_nb.evaluation import analysis
+from gvbench_nb.evaluation import run_tables
 from gvbench_nb.protocol.metrics import evaluate_scores
-from gvbench_nb.runner import record
+from gvbench_nb.runner import config, method_outputs, method_runs, record, scoring
 
 pytestmark = pytest.mark.reliability
 
@@ -45,9 +45,9 @@ def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None
     params = config.load_params(parameters["params_file"])
     if name == "02_verify.ipynb":
         sequence = config.prepare_sequence(params)
-        pipeline.run_method_of_params(params, sequence, parameters["method"], progress=False)
+        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
     elif name == "03_evaluate.ipynb":
-        pipeline.evaluate(Path(params["output_dir"]), parameters.get("methods"))
+        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
     output_path.write_text(json.dumps({"executed": name}))
 
 
@@ -221,7 +221,7 @@ def test_a_run_on_another_pair_file_into_a_folder_holding_other_methods_is_refus
 def test_results_refuses_a_folder_whose_methods_scored_different_labels_naming_them(tmp_path, root, capsys):
     out, cache = tmp_path / "out", tmp_path / "cache"
     for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):  # the library writes in place
-        pipeline.run_method(
+        method_runs.run_method(
             Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
         )
     code, out_text, err = run_cli(capsys, "results", str(out))
@@ -233,11 +233,11 @@ def test_the_report_never_scores_one_method_against_another_methods_labels(tmp_p
     out, cache = tmp_path / "out", tmp_path / "cache"
     tables = {}
     for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):
-        tables[method] = pipeline.run_method(
+        tables[method] = method_runs.run_method(
             Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
         )
-    with pytest.raises(pipeline.ResultsError, match="label 4 of the same pairs differently"):
-        analysis.align_tables(tables)
+    with pytest.raises(method_outputs.ResultsError, match="label 4 of the same pairs differently"):
+        run_tables.align_tables(tables)
 
 
 def test_a_label_edited_after_the_run_makes_results_refuse_naming_the_file(tmp_path, root, capsys, notebooks_here):
@@ -346,7 +346,7 @@ def test_the_folder_table_lists_every_method_run_one_at_a_time(tmp_path, root, c
     assert sorted(results["method"]) == ["orb-nn", "sift-opencv-nn"]
     assert "orb-nn" in out and "sift-opencv-nn" in out  # the table `run` prints is the folder's
     kept = json.loads((tmp_path / "out" / "orb-nn" / "run.json").read_text())
-    assert kept["binding"]["pairs_digest"] == pipeline.pairs_digest((p.query, p.reference, p.label) for p in PAIRS)
+    assert kept["binding"]["pairs_digest"] == scoring.pairs_digest((p.query, p.reference, p.label) for p in PAIRS)
 
 
 # ------------------------------------------------------------------- timers --
@@ -395,13 +395,13 @@ def test_ctrl_c_during_a_run_keeps_the_published_results(tmp_path, root):
 
 
 def test_the_explore_notebook_refuses_methods_scored_on_different_labels(tmp_path, root):
-    from gvbench_nb.evaluation import explore
+    from gvbench_nb.studies import explore_pairs as explore
 
     out, cache = tmp_path / "out", tmp_path / "cache"
     for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):
-        pipeline.run_method(
+        method_runs.run_method(
             Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
         )
-    with pytest.raises(pipeline.ResultsError, match="scored on different pairs or labels"):
+    with pytest.raises(method_outputs.ResultsError, match="scored on different pairs or labels"):
         explore.load_tables(out)
     assert list(explore.load_tables(out, ["orb-nn"])) == ["orb-nn"]

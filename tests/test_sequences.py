@@ -2,7 +2,6 @@ from pathlib import Path
 
 import pytest
 
-from gvbench_nb import config
 from gvbench_nb.data.sequences import (
     Pair,
     PairFileError,
@@ -14,6 +13,7 @@ from gvbench_nb.data.sequences import (
     summarize,
     write_pairs,
 )
+from gvbench_nb.runner import config
 
 # Pairs, positives and queries as the GV-Bench README states them.
 OFFICIAL = {

@@ -14,7 +14,8 @@ import pytest
 import yaml
 from helpers import check_stage_outputs
 
-from gvbench_nb import cli, config
+from gvbench_nb import cli
+from gvbench_nb.runner import config
 
 LIMIT = 24  # pairs of the sample; its first 24 hold true and false ones
 METHOD = "sift-nn"

@@ -11,15 +11,15 @@ import pytest
 from helpers import with_outlier_matches
 from test_verify import two_view_scene  # the shared synthetic two-view scene
 
-from gvbench_nb import pipeline
 from gvbench_nb.data.sequences import Pair, Sequence, frame_index, frame_tolerance_pairs
 from gvbench_nb.protocol.ransac import ESTIMATORS
-from gvbench_nb.verification import verifiers
+from gvbench_nb.runner import method_runs
+from gvbench_nb.studies import verifier_inputs, verifiers
 
 
-def as_pair(points0: np.ndarray, points1: np.ndarray, n_keypoints: int = 1000) -> verifiers.PairMatches:
+def as_pair(points0: np.ndarray, points1: np.ndarray, n_keypoints: int = 1000) -> verifier_inputs.PairMatches:
     scores = np.ones(len(points0))
-    return verifiers.PairMatches(
+    return verifier_inputs.PairMatches(
         points0, points1, scores, np.zeros(len(points0), bool), n_keypoints, n_keypoints, (640, 480), (640, 480)
     )
 
@@ -39,7 +39,7 @@ def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
 def test_every_fundamental_estimator_returns_the_planted_inliers(estimator):
     p0, p1, truth = two_view_scene()
     conf = verifiers.gv_conf("fundamental", estimator, "inliers")
-    mask, fitted = verifiers.fit_inliers(as_pair(p0, p1), conf, seed=0)
+    mask, fitted = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
     assert fitted == len(p0)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
     assert (mask & ~truth).sum() <= 3  # a random match may fall near its epipolar line
@@ -49,15 +49,17 @@ def test_every_fundamental_estimator_returns_the_planted_inliers(estimator):
 def test_homography_on_a_planar_scene_returns_the_planted_inliers(estimator):
     p0, p1, truth = planar_scene()
     conf = verifiers.gv_conf("homography", estimator, "inliers")
-    mask, _ = verifiers.fit_inliers(as_pair(p0, p1), conf, seed=0)
+    mask, _ = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
     assert (mask & ~truth).sum() <= 2
 
 
 def test_homography_rejects_a_non_planar_scene_more_than_the_fundamental_matrix():
     p0, p1, truth = two_view_scene(seed=2)
-    h_mask, _ = verifiers.fit_inliers(as_pair(p0, p1), verifiers.gv_conf("homography", "FM_RANSAC", "inliers"), 0)
-    f_mask, _ = verifiers.fit_inliers(as_pair(p0, p1), verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers"), 0)
+    h_mask, _ = verifier_inputs.fit_inliers(as_pair(p0, p1), verifiers.gv_conf("homography", "FM_RANSAC", "inliers"), 0)
+    f_mask, _ = verifier_inputs.fit_inliers(
+        as_pair(p0, p1), verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers"), 0
+    )
     assert h_mask.sum() < 0.8 * f_mask.sum()
 
 
@@ -65,8 +67,8 @@ def test_normalised_scores_follow_their_definitions():
     p0, p1, truth = two_view_scene(n_inliers=80, n_outliers=20)
     pair = as_pair(p0, p1, n_keypoints=400)
     pair.num_keypoints1 = 200  # the smaller count divides
-    mask, fitted = verifiers.fit_inliers(pair, verifiers.gv_conf("fundamental", "USAC_MAGSAC", "inliers"), 0)
-    features = verifiers.gv_features(pair, mask, fitted)
+    mask, fitted = verifier_inputs.fit_inliers(pair, verifiers.gv_conf("fundamental", "USAC_MAGSAC", "inliers"), 0)
+    features = verifier_inputs.gv_features(pair, mask, fitted)
     assert features["inliers"] == mask.sum()
     assert features["inlier_ratio"] == pytest.approx(mask.sum() / 100)
     assert features["inliers_over_keypoints"] == pytest.approx(mask.sum() / 200)
@@ -76,7 +78,9 @@ def test_normalised_scores_follow_their_definitions():
 def test_registry_has_every_combination_and_the_paper_verifier():
     gv = [name for name, conf in verifiers.VERIFIERS.items() if conf["type"] == "gv"]
     assert len(gv) == 4 * 2 * 3
-    assert verifiers.VERIFIERS[verifiers.PAPER_VERIFIER] == verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers")
+    assert verifiers.VERIFIERS[verifier_inputs.PAPER_VERIFIER] == verifiers.gv_conf(
+        "fundamental", "FM_RANSAC", "inliers"
+    )
     with pytest.raises(KeyError, match="Known: "):
         verifiers.resolve_verifier("gv-F-ransack-inliers")
 
@@ -100,7 +104,7 @@ def test_sue_adapter_on_hand_made_positions():
             "score": [50, 50, 50, 0, 50, 50, 0, 0],
         }
     )
-    out = verifiers.sue_pair_scores(table, slope=10.0, top_k=10)
+    out = verifier_inputs.sue_pair_scores(table, slope=10.0, top_k=10)
     # a: weights 1, 1, 1, e^-10 (distance 1 at slope 10) on frames 10, 11, 12, 90, normalised.
     w = np.array([1, 1, 1, np.exp(-10.0)])
     w /= w.sum()
@@ -120,8 +124,8 @@ def test_sue_adapter_uses_only_the_top_k():
     table = pd.DataFrame(
         {"query": ["a"] * 3, "reference": ["r/000.png", "r/001.png", "r/199.png"], "score": [10, 10, 9]}
     )
-    near = verifiers.sue_pair_scores(table, slope=10.0, top_k=2)
-    spread = verifiers.sue_pair_scores(table, slope=10.0, top_k=3)
+    near = verifier_inputs.sue_pair_scores(table, slope=10.0, top_k=2)
+    spread = verifier_inputs.sue_pair_scores(table, slope=10.0, top_k=3)
     assert near.loc[0, "query_sue"] == pytest.approx(0.25)
     assert spread.loc[0, "query_sue"] > 100
 
@@ -137,7 +141,7 @@ def gardens_like_pairs(n_frames: int = 200, tolerance: int = 2) -> pd.DataFrame:
 @pytest.mark.parametrize("tolerance,gap", [(2, 20), (2, 4), (4, 8)])
 def test_split_shares_no_place(tolerance, gap):
     pairs = gardens_like_pairs(tolerance=tolerance)
-    split = verifiers.place_disjoint_split(pairs, gap_frames=gap, tolerance=tolerance)
+    split = verifier_inputs.place_disjoint_split(pairs, gap_frames=gap, tolerance=tolerance)
 
     def places(name: str) -> set[int]:
         part = pairs[split == name]
@@ -153,7 +157,7 @@ def test_split_shares_no_place(tolerance, gap):
 
 def test_split_default_ranges_on_gardens_point():
     pairs = gardens_like_pairs()
-    split = verifiers.place_disjoint_split(pairs)
+    split = verifier_inputs.place_disjoint_split(pairs)
     train = pairs[split == "train"]
     test = pairs[split == "test"]
     assert pd.concat([train["query"], train["reference"]]).map(frame_index).max() <= 89
@@ -162,7 +166,7 @@ def test_split_default_ranges_on_gardens_point():
 
 def test_split_refuses_a_gap_narrower_than_a_place():
     with pytest.raises(ValueError, match="widen the gap"):
-        verifiers.place_disjoint_split(gardens_like_pairs(), gap_frames=3, tolerance=2)
+        verifier_inputs.place_disjoint_split(gardens_like_pairs(), gap_frames=3, tolerance=2)
 
 
 # --------------------------------------------------------- learned combination --
@@ -170,7 +174,7 @@ def test_logistic_combination_fits_predicts_and_is_deterministic():
     rng = np.random.default_rng(0)
     labels = pd.Series(np.r_[np.ones(60), np.zeros(60)].astype(int))
     features = pd.DataFrame(
-        {name: rng.normal(0, 1, 120) + 1.5 * labels * (i == 0) for i, name in enumerate(verifiers.FEATURES)}
+        {name: rng.normal(0, 1, 120) + 1.5 * labels * (i == 0) for i, name in enumerate(verifier_inputs.FEATURES)}
     )
     conf = verifiers.resolve_verifier("learned_combination")
     first = verifiers.fit_combination(features[:80], labels[:80], conf)
@@ -179,7 +183,7 @@ def test_logistic_combination_fits_predicts_and_is_deterministic():
     assert probability.shape == (40, 2)
     np.testing.assert_array_equal(probability, second.predict_proba(features[80:].to_numpy()))
     coefficients = first[-1].coef_
-    assert coefficients.shape == (1, len(verifiers.FEATURES))
+    assert coefficients.shape == (1, len(verifier_inputs.FEATURES))
     assert np.argmax(np.abs(coefficients)) == 0  # the informative feature dominates
     with pytest.raises(ValueError, match="true and false"):
         verifiers.fit_combination(features[:10], pd.Series(np.ones(10, int)), conf)
@@ -196,22 +200,22 @@ def cached_run(shared_data: Path, tmp_path_factory) -> Path:
         for r, label in ((q, 1), (q + 1, 1), (q + 40 if q < 100 else q - 40, 0)):
             pairs.append(Pair(f"night_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
     sequence = Sequence("gp_verifiers", shared_data / "gardens_point", pairs)
-    pipeline.run_method(sequence, "sift-nn", "paper", root / "out", root / "cache", progress=False)
+    method_runs.run_method(sequence, "sift-nn", "paper", root / "out", root / "cache", progress=False)
     return root
 
 
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
-    cached = verifiers.CachedMatches(cached_run / "out", "sift-nn", cached_run / "cache")
-    conf = verifiers.resolve_verifier(verifiers.PAPER_VERIFIER)
-    table = verifiers.gv_feature_table(cached, cached.pairs, conf, progress=False)
+    cached = verifier_inputs.CachedMatches(cached_run / "out", "sift-nn", cached_run / "cache")
+    conf = verifiers.resolve_verifier(verifier_inputs.PAPER_VERIFIER)
+    table = verifier_inputs.gv_feature_table(cached, cached.pairs, conf, progress=False)
     np.testing.assert_array_equal(table["num_inliers"].to_numpy(), cached.pairs["num_inliers"].to_numpy())
     assert cached.pairs["num_inliers"].max() > 0  # the comparison is not 0 == 0
     # Another seed may move RANSAC's result: the equality above really uses the run's seeds.
     query, reference = cached.pairs["query"][0], cached.pairs["reference"][0]
     pair = cached.pair(query, reference)
-    mask, _ = verifiers.fit_inliers(pair, conf, cached.pair_seed(query, reference))
+    mask, _ = verifier_inputs.fit_inliers(pair, conf, cached.pair_seed(query, reference))
     np.testing.assert_array_equal(mask, pair.inlier_mask)
     cached.close()
 

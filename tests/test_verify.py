@@ -2,8 +2,7 @@ import numpy as np
 import pytest
 from helpers import with_outlier_matches
 
-from gvbench_nb.methods import VERIFIER
-from gvbench_nb.protocol import ransac
+from gvbench_nb.protocol import ransac, recipes
 from gvbench_nb.protocol.ransac import ESTIMATORS, fundamental_inliers, verify_matches
 
 
@@ -44,7 +43,7 @@ def test_score_filter_drops_low_confidence_matches_before_ransac():
     p0, p1, truth = two_view_scene(n_inliers=100, n_outliers=0)
     matches = np.c_[np.arange(100), np.arange(100)]
     scores = np.where(np.arange(100) < 50, 0.9, 0.4)  # half below the 0.5 filter
-    result = verify_matches(p0, p1, matches, scores, VERIFIER)
+    result = verify_matches(p0, p1, matches, scores, recipes.recipe("sift-nn", "paper")["verifier"])
     assert result["num_matches"] == 100 and result["num_matches_filtered"] == 50
     assert result["num_inliers"] >= 45 and not result["inlier_mask"][50:].any()
 

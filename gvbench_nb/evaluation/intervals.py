@@ -1,6 +1,6 @@
 """AP and MR with bootstrap intervals over queries, and paired rankings of methods.
 
-Both read the per-method pair tables of output folders and run ``analysis.bootstrap``:
+Both read the per-method pair tables of output folders and run ``bootstrap.bootstrap``:
 queries are drawn with replacement (all pairs of a query together, since a query's pairs
 share its image and are not independent) and every method is scored on the same draws,
 so "A beats B" is counted resample by resample. The resampling unit is named in every
@@ -16,8 +16,8 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 
-from gvbench_nb import pipeline
-from gvbench_nb.evaluation import analysis
+from gvbench_nb.evaluation import bootstrap, run_tables
+from gvbench_nb.runner import method_outputs, scoring
 
 RESAMPLING_UNIT = "query"
 LEVEL = 0.95  # the intervals' coverage
@@ -30,16 +30,16 @@ def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[st
     """Which of ``output_dirs`` holds each method's finished results; a method in two is refused."""
     found: dict[str, Path] = {}
     for folder in map(Path, output_dirs):
-        pipeline.check_results_finished(folder)
-        ran = pipeline.methods_with_results(folder)
+        method_outputs.check_results_finished(folder)
+        ran = scoring.methods_with_results(folder)
         if not ran:
             what = "does not exist" if not folder.exists() else "holds no method results (<method>/pairs.csv)"
-            raise pipeline.ResultsError(
+            raise method_outputs.ResultsError(
                 f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
             )
         for method in ran:
             if method in found:
-                raise analysis.IncomparableRunsError(
+                raise run_tables.IncomparableRunsError(
                     f"method {method!r} has results in both {found[method]} and {folder}; "
                     "pass only one of the two folders"
                 )
@@ -57,11 +57,11 @@ def folder_tables(
     wanted = list(methods) if methods else list(found)
     absent = [m for m in wanted if m not in found]
     if absent:
-        raise pipeline.ResultsError(
+        raise method_outputs.ResultsError(
             f"no results for method {absent[0]!r} in {', '.join(map(str, folders))}; run it on the same pairs first"
         )
-    tables = {m: pipeline.load_pairs_table(found[m], m) for m in wanted}
-    analysis.align_tables(tables)
+    tables = {m: scoring.load_pairs_table(found[m], m) for m in wanted}
+    run_tables.align_tables(tables)
     return tables
 
 
@@ -74,16 +74,16 @@ def query_intervals(
 
     Deterministic for a seed; the same draws serve every method.
     """
-    return intervals_of(analysis.bootstrap(tables, n_resamples, seed), level)
+    return intervals_of(bootstrap.bootstrap(tables, n_resamples, seed), level)
 
 
-def intervals_of(boot: analysis.Bootstrap, level: float = LEVEL) -> pd.DataFrame:
+def intervals_of(boot: bootstrap.Bootstrap, level: float = LEVEL) -> pd.DataFrame:
     """``query_intervals``' table from a bootstrap already drawn (so shares and intervals share its draws)."""
     long = boot.intervals(level).set_index(["method", "metric"])
     rows = []
     for method in boot.methods:
         row: dict[str, object] = {"method": method}
-        for metric in analysis.METRICS:
+        for metric in run_tables.METRICS:
             row[metric] = float(long.loc[(method, metric), "estimate"])
             row[f"{metric}_low"] = float(long.loc[(method, metric), "low"])
             row[f"{metric}_high"] = float(long.loc[(method, metric), "high"])
@@ -109,11 +109,11 @@ def interval_columns(
     """
     frames = [query_intervals({method: table}, n_resamples, seed, level) for method, table in tables.items()]
     if not frames:
-        raise analysis.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")
+        raise run_tables.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")
     return pd.concat(frames, ignore_index=True).set_index("method")[list(INTERVAL_COLUMNS)]
 
 
-def paired_shares(boot: analysis.Bootstrap, metric: str, ranked_share: float = RANKED_SHARE) -> pd.DataFrame:
+def paired_shares(boot: bootstrap.Bootstrap, metric: str, ranked_share: float = RANKED_SHARE) -> pd.DataFrame:
     """Every pair of methods once, the one with the higher value on all pairs first:
     the share of paired resamples in which the first beats the second, is tied with it,
     or loses, and the verdict.
@@ -121,8 +121,8 @@ def paired_shares(boot: analysis.Bootstrap, metric: str, ranked_share: float = R
     A resample where both are equal (frequent for MR) counts for neither, so a ranking
     needs ``ranked_share`` strict wins in one direction; anything else is a tie.
     """
-    if metric not in analysis.METRICS:
-        raise ValueError(f"unknown metric {metric!r}: use one of {', '.join(analysis.METRICS)}")
+    if metric not in run_tables.METRICS:
+        raise ValueError(f"unknown metric {metric!r}: use one of {', '.join(run_tables.METRICS)}")
     samples = boot.samples[metric]
     estimates = boot.estimates[metric]
     rows = []

@@ -46,7 +46,9 @@ def paper_table() -> pd.DataFrame:
     from gvbench_nb import methods as method_registry
 
     raw = _read("paper_table.csv").rename(columns={"method": "reference_name"})
-    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.METHODS.items() if conf["in_paper"]}
+    by_paper_name = {
+        conf["paper_name"]: name for name, conf in method_registry.RECIPES["paper"].items() if conf["in_paper"]
+    }
     raw["method"] = raw["reference_name"].map(by_paper_name)
     for metric in METRICS:
         raw[metric] = raw[metric] / 100.0

@@ -40,22 +40,22 @@ def resample_count(text: str) -> int:
 
 
 def command_compare(args: argparse.Namespace) -> int:
-    from gvbench_nb import pipeline
-    from gvbench_nb.evaluation import analysis, intervals
+    from gvbench_nb.evaluation import bootstrap, intervals, run_tables
     from gvbench_nb.reporting.tables import markdown_table
+    from gvbench_nb.runner import method_outputs
 
     folders = [Path(f) for f in args.output_dirs]
     where = ", ".join(map(str, folders))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
     tables = intervals.folder_tables(folders, methods)
     if len(tables) < 2:
-        raise analysis.IncomparableRunsError(
+        raise run_tables.IncomparableRunsError(
             f"{where} holds results of one method only ({', '.join(tables)}); "
             "run another method on the same pairs, or name two or more with --methods"
         )
-    boot = analysis.bootstrap(tables, args.resamples, args.seed)
+    boot = bootstrap.bootstrap(tables, args.resamples, args.seed)
     found = intervals.method_folders(folders)
-    runs = {m: json.loads((pipeline.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
+    runs = {m: json.loads((method_outputs.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
     table = intervals.intervals_of(boot)
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])
     sequences = ", ".join(dict.fromkeys(run["sequence"] for run in runs.values()))
@@ -66,7 +66,7 @@ def command_compare(args: argparse.Namespace) -> int:
     )
     columns = ["method", "profile", "ap", "ap_low", "ap_high", "max_recall", "max_recall_low", "max_recall_high"]
     print(show(table[columns]))
-    for metric in [args.metric] if args.metric else list(analysis.METRICS):
+    for metric in [args.metric] if args.metric else list(run_tables.METRICS):
         print(
             f"\n{metric}: share of the same {args.resamples} query resamples in which the first beats the second "
             f"(tied: both equal); ranked when one side wins in >= {100 * intervals.RANKED_SHARE:.0f} % of them, "

@@ -16,7 +16,7 @@ if TYPE_CHECKING:
 NOTEBOOKS_DIR = Path(__file__).resolve().parents[2] / "notebooks"
 KERNEL_NAME = "python3"
 # What every stage notebook's setup cell imports; a started kernel loads them while it waits.
-PRELOAD = ("pandas", "matplotlib.pyplot", "gvbench_nb.pipeline", "gvbench_nb.reporting.plots")
+PRELOAD = ("pandas", "matplotlib.pyplot", "gvbench_nb.runner.method_runs", "gvbench_nb.evaluation.plots")
 
 
 class KernelPool:

@@ -18,9 +18,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from gvbench_nb import config
 from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.reporting.execute import execute_notebook
+from gvbench_nb.runner import config
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -115,13 +115,14 @@ def _relative(path: Path, start: Path) -> str:
 
 def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[ExecutedNotebook]) -> str:
     """The index page: combined results table, key figures, links (all relative)."""
-    from gvbench_nb.evaluation import analysis
+    from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.studies import results_table
 
-    results = analysis.load_results(output_dirs)
-    paper = analysis.load_paper_table()
-    repository = analysis.load_repository_table()
-    wide = analysis.results_table(analysis.join_paper_table(results, paper, repository))
-    table_html = analysis.style_results_table(wide).to_html()
+    results = run_tables.load_results(output_dirs)
+    paper = results_table.load_paper_table()
+    repository = results_table.load_repository_table()
+    wide = results_table.results_table(results_table.join_paper_table(results, paper, repository))
+    table_html = results_table.style_results_table(wide).to_html()
     paper_note = table_note(wide, paper_found=len(paper) > 0)
     parts = [
         "<!DOCTYPE html><html><head><meta charset='utf-8'><title>gvbench-nb report</title>",
@@ -140,7 +141,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         parts.append(f"<h3>Max recall across sequences</h3><img src='{_relative(radar, report_dir)}'>")
     curves = pr_curve_figures(report_dir, output_dirs)
     if curves:
-        from gvbench_nb.reporting import plots
+        from gvbench_nb.evaluation import plots
 
         styles = {"-": "solid", "--": "dashed", ":": "dotted"}
         profiles = ", ".join(
@@ -180,23 +181,23 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
 
 def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
     """The results table's header text: its rows, and only the kinds of columns it has."""
-    from gvbench_nb.evaluation import analysis
+    from gvbench_nb.evaluation import run_tables
 
     sources = set(wide.columns.get_level_values("source"))
-    notes = [f"One row a (method, profile); <b>{analysis.OURS_LABEL}</b> columns are our runs, in that profile."]
-    if analysis.PAPER_LABEL in sources:
+    notes = [f"One row a (method, profile); <b>{run_tables.OURS_LABEL}</b> columns are our runs, in that profile."]
+    if run_tables.PAPER_LABEL in sources:
         notes.append(
-            f"Columns labelled <b>{analysis.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
+            f"Columns labelled <b>{run_tables.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
             "values, beside our paper-profile runs, where the paper has that method and sequence."
         )
-    if analysis.REPOSITORY_LABEL in sources:
+    if run_tables.REPOSITORY_LABEL in sources:
         notes.append(
-            f"<b>{analysis.REPOSITORY_LABEL}</b> columns (grey italics) are that repository's published values, "
+            f"<b>{run_tables.REPOSITORY_LABEL}</b> columns (grey italics) are that repository's published values, "
             "beside our repository-profile runs, where it has that method and sequence."
         )
     if not paper_found:
         notes.append("The paper's table was not found: no published values are shown.")
-    elif not sources & {analysis.PAPER_LABEL, analysis.REPOSITORY_LABEL}:
+    elif not sources & {run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL}:
         notes.append("No published values exist for these methods, sequences and profiles.")
     return " ".join(notes)
 
@@ -207,15 +208,15 @@ def pr_curve_figures(report_dir: Path, output_dirs: list[Path]) -> dict[str, Pat
     import matplotlib.pyplot as plt
     import pandas as pd
 
-    from gvbench_nb import pipeline
-    from gvbench_nb.reporting import plots
+    from gvbench_nb.evaluation import plots
+    from gvbench_nb.runner import scoring
 
     by_sequence: dict[str, dict[tuple[str, str], pd.DataFrame]] = {}
     for folder in output_dirs:
         results = pd.read_csv(folder / "results.csv")
         for row in results.drop_duplicates("method").itertuples():
             tables = by_sequence.setdefault(str(row.sequence), {})
-            tables[(str(row.method), str(row.profile))] = pipeline.load_pairs_table(folder, str(row.method))
+            tables[(str(row.method), str(row.profile))] = scoring.load_pairs_table(folder, str(row.method))
     written = {}
     for sequence, tables in by_sequence.items():
         figure = plots.pr_curves_by_profile(tables, title=f"{sequence}: precision-recall (dot: MR)")
@@ -282,12 +283,12 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
 
 
 def command_report(args: argparse.Namespace) -> int:
-    from gvbench_nb.evaluation import analysis
+    from gvbench_nb.evaluation import run_tables
 
     root = Path(args.outputs_root)
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
     try:
-        output_dirs = analysis.find_output_dirs(root, sequences)
+        output_dirs = run_tables.find_output_dirs(root, sequences)
     except FileNotFoundError as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

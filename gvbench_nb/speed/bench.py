@@ -14,7 +14,7 @@ seeded per pair, so they must) and writes:
 * ``<bench_dir>/scaling_<sequence>_<method>.csv``: cost against pairs and unique images;
 * optionally the prefetch-overlap measurement and a cProfile report.
 
-``python -m gvbench_nb bench --estimate`` turns the summary into an estimate of the six
+``python -m gvbench_nb.speed --estimate`` turns the summary into an estimate of the six
 official sequences from their pair lists. Every number comes from a measurement
 written by this module; none is typed in.
 """
@@ -39,12 +39,12 @@ import pandas as pd
 from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb import pipeline
 from gvbench_nb.data.sequences import Sequence, read_pairs
 from gvbench_nb.io_utils import atomic_write_csv
 from gvbench_nb.protocol.images import load_for_extraction, to_original_pixels
 from gvbench_nb.protocol.ransac import verify_matches
-from gvbench_nb.speed.jobs import add_jobs_argument
+from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, scoring
+from gvbench_nb.runner.jobs import add_jobs_argument
 
 if TYPE_CHECKING:
     import torch
@@ -80,7 +80,7 @@ def environment_row(device: torch.device) -> dict[str, Any]:
         "device_name": (
             torch.cuda.get_device_name(device)
             if device.type == "cuda"
-            else pipeline.environment_info(device)["device_name"]
+            else concurrency.environment_info(device)["device_name"]
         ),
         "torch_threads": torch.get_num_threads(),
         "opencv_threads": cv2.getNumThreads(),
@@ -101,7 +101,7 @@ def run_cached_pipeline(
     workers: int | None = None,
 ) -> tuple[pd.DataFrame, dict[str, float]]:
     """Our pipeline from a cold cache in ``work_dir``, ``workers`` images or pairs at a
-    time (``pipeline.worker_count``): per-pair table and stage seconds (totals).
+    time (``concurrency.worker_count``): per-pair table and stage seconds (totals).
 
     ``extract`` is the wall time of extraction (decoding overlapped by the prefetcher);
     ``match``/``verify`` are the per-pair timers' sums, which overlap (matching runs a pair
@@ -111,11 +111,11 @@ def run_cached_pipeline(
     cache_dir, output_dir = Path(work_dir) / "cache", Path(work_dir) / "out"
     start = time.perf_counter()
     if not method_registry.is_dense(conf):
-        pipeline.extract_features(sequence, conf["extractor"], cache_dir, device, progress=False, workers=workers)
+        image_features.extract_features(sequence, conf["extractor"], cache_dir, device, progress=False, workers=workers)
     extracted = time.perf_counter()
-    pipeline.match_and_verify(sequence, conf, cache_dir, output_dir, device, seed, progress=False, workers=workers)
+    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device, seed, progress=False, workers=workers)
     matched = time.perf_counter()
-    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
+    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed)
     wall = time.perf_counter() - start
     match, verify = float(table["match_seconds"].sum()), float(table["verify_seconds"].sum())
     seconds = {
@@ -130,9 +130,9 @@ def run_cached_pipeline(
 
 
 def _extract_image(path: Path, extractor_conf: dict[str, Any], extractor: Callable) -> dict[str, np.ndarray]:
-    """One image's features exactly as ``pipeline.extract_features`` stores them."""
+    """One image's features exactly as ``image_features.extract_features`` stores them."""
     image, scale = load_for_extraction(path, extractor_conf)
-    return pipeline.stored_features(extractor(image), image, scale, extractor_conf.get("store_float16", False))
+    return image_features.stored_features(extractor(image), image, scale, extractor_conf.get("store_float16", False))
 
 
 def _dense_pair(
@@ -177,7 +177,7 @@ def run_per_pair_pipeline(
             extracted = time.perf_counter()
             matches, match_scores = matcher(features0, features1)
             points0, points1 = features0["keypoints"], features1["keypoints"]
-            sizes = pipeline.image_sizes(features0, features1)
+            sizes = pair_matching.image_sizes(features0, features1)
         matched = time.perf_counter()
         verified = verify_matches(
             points0,
@@ -185,7 +185,7 @@ def run_per_pair_pipeline(
             matches,
             match_scores,
             conf["verifier"],
-            seed=pipeline.pair_seed(seed, pair.query, pair.reference),
+            seed=pair_matching.pair_seed(seed, pair.query, pair.reference),
             image_sizes=sizes,
         )
         done = time.perf_counter()
@@ -431,7 +431,7 @@ def scaling_table(
             if conf["extractor"]
             else dict.fromkeys(largest.images, 0.0)
         )
-        full = pipeline.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out", seed)
+        full = method_runs.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out", seed)
     environment = environment_row(resolved)
     rows = []
     for limit in limits:
@@ -468,10 +468,10 @@ def scaling_table(
 
 def _image_seconds(sequence: Sequence, conf: dict[str, Any], cache_dir: Path) -> dict[str, float]:
     """Measured extractor seconds of each unique image (the cache's per-entry timer)."""
-    store = pipeline.feature_store(cache_dir, conf["extractor"])
+    store = image_features.feature_store(cache_dir, conf["extractor"])
     store.refresh()
     seconds = {
-        name: float(store.read(pipeline.image_key(sequence.image_root, name))["attr:seconds"])
+        name: float(store.read(image_features.image_key(sequence.image_root, name))["attr:seconds"])
         for name in sequence.images
     }
     store.close()
@@ -507,7 +507,7 @@ def measure_prefetch_overlap(sequence: Sequence, method: str, profile: str, devi
     del images
     with tempfile.TemporaryDirectory(prefix="gvbench-overlap-") as work_dir:
         started = time.perf_counter()
-        pipeline.extract_features(sequence, extractor_conf, Path(work_dir), resolved, progress=False, workers=1)
+        image_features.extract_features(sequence, extractor_conf, Path(work_dir), resolved, progress=False, workers=1)
         prefetched = time.perf_counter() - started
     return {
         "sequence": sequence.name,
@@ -608,11 +608,11 @@ def costs_from_runs(output_dir: Path) -> pd.DataFrame:
     """The same costs from the per-pair timers of finished runs (``<output_dir>/<method>/pairs.csv``),
     for every method that ran. The per-pair pipeline is then estimated as two extractions
     and one match a pair (without decoding, which the bench measures)."""
-    from gvbench_nb.evaluation.analysis import load_run
+    from gvbench_nb.evaluation.run_tables import load_run
 
     rows = []
-    for method in pipeline.methods_with_results(output_dir):
-        table = pipeline.load_pairs_table(output_dir, method)
+    for method in scoring.methods_with_results(output_dir):
+        table = scoring.load_pairs_table(output_dir, method)
         n_images = len(set(table["query"]) | set(table["reference"]))
         # A pair's extract_seconds is its images' times shared among their pairs: the sum is the total.
         per_image = float(table["extract_seconds"].sum()) / n_images
@@ -668,12 +668,12 @@ def print_estimate(
 ) -> pd.DataFrame:
     """Print (and write ``estimate.csv``) the official-sequence estimate from ``summary.csv``
     and, with ``runs`` (a sequence output folder), from every method that ran there."""
-    from gvbench_nb.config import data_dir
+    from gvbench_nb.runner.config import data_dir
 
     summary_path = Path(bench_dir) / "summary.csv"
     if not summary_path.is_file() and runs is None:
         raise FileNotFoundError(
-            f"no bench summary at {summary_path}: run `python -m gvbench_nb bench PARAMS` "
+            f"no bench summary at {summary_path}: run `python -m gvbench_nb.speed PARAMS` "
             "first, or give --runs outputs/<sequence>"
         )
     if gt_dir is None:
@@ -702,7 +702,7 @@ def print_estimate(
 
 def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int | None) -> pd.DataFrame:
     """Time the condition sweep's renderer and write ``render.csv`` (one row a setting)."""
-    from gvbench_nb.analyses.condition_sweep import time_render
+    from gvbench_nb.studies.condition_sweep import time_render
 
     table = time_render(n_frames=n_frames, repeats=repeats, workers=workers)
     _merge_csv(Path(bench_dir) / "render.csv", table, ["setting", "n_frames", "image_size", "workers"])
@@ -721,15 +721,17 @@ def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int
 
 
 # ------------------------------------------------------------------------- CLI --
-def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:
-    """Register ``bench`` on the CLI's subparsers."""
-    bench = subparsers.add_parser(
-        "bench",
-        help="time our cached pipeline against the per-pair reference pipeline on the same pairs",
-        description="Runs both pipelines on the same pairs (cold cache in a temporary folder each repeat), "
-        "fails if any pair's num_inliers differ, and writes per-repeat, summary and scaling "
-        "CSVs. With --estimate alone (no params), prints the official-sequence estimate "
-        "from the summary.",
+def build_parser() -> argparse.ArgumentParser:
+    """``python -m gvbench_nb.speed``: the bench, a program of its own beside the package's CLI."""
+    bench = argparse.ArgumentParser(
+        prog="python -m gvbench_nb.speed",
+        description="Time our cached pipeline against the per-pair reference pipeline on the same pairs: "
+        "both run on the same pairs (cold cache in a temporary folder each repeat), the bench fails if any "
+        "pair's num_inliers differ, and writes per-repeat, summary and scaling CSVs. With --estimate alone "
+        "(no params), prints the official-sequence estimate from the summary.",
+    )
+    bench.add_argument(
+        "--debug", action="store_true", help="show the full traceback of an error instead of its one-line message"
     )
     bench.add_argument("params", nargs="?", help="params YAML, e.g. params/gardens_point.yaml")
     bench.add_argument("--methods", help="comma-separated method names (default: the params')")
@@ -774,11 +776,17 @@ def add_command(subparsers: argparse._SubParsersAction) -> argparse.ArgumentPars
     return bench
 
 
+def main(argv: list[str] | None = None) -> int:
+    from gvbench_nb import cli
+
+    return cli.main(argv, build_parser, "gvbench_nb.speed")
+
+
 def command_bench(args: argparse.Namespace) -> int:
     import torch
 
-    from gvbench_nb import config
     from gvbench_nb.protocol.features.base import resolve_device
+    from gvbench_nb.runner import config
 
     bench_dir = Path(args.bench_dir)
     if args.estimate:  # before any timing: the estimate at the end would fail without them
@@ -796,7 +804,7 @@ def command_bench(args: argparse.Namespace) -> int:
     params = config.load_params(args.params, methods=args.methods, profile=args.profile, device=args.device)
     full = config.prepare_sequence(params)  # the limit applies below (scaling needs the longer prefix)
     sequence = full.limited(args.limit)
-    pipeline.configure_threads(args.threads)
+    concurrency.configure_threads(args.threads)
     profile, device, seed = params["profile"], params["device"], params["seed"]
     print(
         f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} unique images, profile {profile}, "

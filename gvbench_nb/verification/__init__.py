@@ -1,1 +1,2 @@
-"""Verification: the RANSAC fit every run uses, and the verifiers compared after a run."""
+"""Verifiers beyond the protocol's RANSAC, compared after a run (``studies/verifiers.py``): the
+Doppelgangers classifier and SUE. The protocol's own verification is ``protocol/ransac.py``."""

@@ -66,7 +66,7 @@ def hamming_distances(
     ``np.bitwise_count`` counts the bits of their XOR; rows go in blocks so that the temporary
     word matrix stays at ``rows_per_block * N1`` words (cache-sized) whatever the number of descriptors.
     numpy's ufuncs release the GIL, so the blocks are spread over ``threads`` threads (default
-    OpenCV's thread count, which ``pipeline.configure_threads`` sets with torch's): a pair's
+    OpenCV's thread count, which the runner's ``concurrency.configure_threads`` sets with torch's): a pair's
     matching then uses the cores the L2 matcher's product uses.
     """
     n_bytes = descriptors0.shape[1]

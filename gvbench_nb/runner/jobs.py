@@ -1,6 +1,6 @@
-"""``--jobs N``: how many images, then pairs, a run processes at once (``pipeline.worker_count``).
+"""``--jobs N``: how many images, then pairs, a run processes at once (``concurrency.worker_count``).
 
-One name for one concept: the flag of ``run`` and ``bench`` and the environment variable
+One name for one concept: the flag of ``run`` and of the bench (``python -m gvbench_nb.speed``) and the environment variable
 $GVBENCH_JOBS that ``run`` exports for its notebook kernels. A Dask cluster's size is
 another thing, ``run --dask-workers``.
 """
@@ -12,7 +12,7 @@ import os
 import sys
 
 from gvbench_nb.arguments import whole_number_at_least
-from gvbench_nb.pipeline import JOBS_ENV, RENAMED_ENV
+from gvbench_nb.runner.concurrency import JOBS_ENV, RENAMED_ENV
 
 _hinted: set[str] = set()
 

@@ -19,7 +19,7 @@ from typing import Any
 import yaml
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data import builders, fetch
+from gvbench_nb.data import fetch
 from gvbench_nb.data.sequences import (
     Pair,
     Sequence,
@@ -30,8 +30,9 @@ from gvbench_nb.data.sequences import (
 from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import path_problem
+from gvbench_nb.runner import sequence_build as builders
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
 REQUIRED_KEYS = ("sequence", "pairs", "image_root", "methods", "profile", "output_dir")
 OPTIONAL_KEYS: dict[str, Any] = {

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
@@ -219,3 +220,13 @@ def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, column
     figure.legend(handles, labels, loc="upper center", ncol=len(labels), frameon=False)
     figure.tight_layout(rect=(0, 0, 1, 1 - 0.6 / (3 * nrows + 0.6)))
     return figure
+
+
+def run_label(method: str, profile: str, sequence: str | None = None) -> str:
+    """'method [profile]' (and the sequence when given): how a run is named in figures."""
+    return f"{method} [{profile}]" + (f" ({sequence})" if sequence else "")
+
+
+def method_colours(methods: SequenceType[str]) -> dict[str, tuple]:
+    palette = plt.get_cmap("tab10")
+    return {m: palette(i % 10) for i, m in enumerate(methods)}

@@ -38,13 +38,13 @@ import pandas as pd
 from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb import pipeline
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import read_image
 from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.runner import method_outputs, method_runs
 
 SWEEP_COLUMNS = [
     "condition",
@@ -330,7 +330,7 @@ def run_sweep(
     ``profile`` is one profile for every method or a mapping method -> profile.
     Strength 0 is always included and is one ``clear`` run shared by the conditions
     (its images are identical).  ``threads`` caps torch/OpenCV threads (fewer than the cores can be faster on a busy machine; see
-    ``pipeline.configure_threads``).  Returns the rows of the requested cells, in condition,
+    ``concurrency.configure_threads``).  Returns the rows of the requested cells, in condition,
     profile, method, strength order.
     """
     out_dir = Path(out_dir)
@@ -381,7 +381,7 @@ def _run_cell(
     render_query(sweep_route, conditions[0], strength)
     sequence = sweep_route.sequence(conditions[0], strength)
     run_dir = out_dir / "runs" / profile / cell_name(conditions[0], strength)
-    table = pipeline.run_method(
+    table = method_runs.run_method(
         sequence,
         method,
         profile,
@@ -392,7 +392,7 @@ def _run_cell(
         progress=progress,
         threads=threads,
     )
-    where = str(pipeline.method_dir(run_dir, method) / "pairs.csv")
+    where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")
     return [_cell_row(sweep_route, table, condition, strength, method, profile, where) for condition in conditions]
 
 

@@ -10,7 +10,7 @@ files, so any number of processes may fill the same cache and match store):
    ``extract_features`` (a no-op once phase 1 is done; fills in anything missing
    when shards run on their own) and ``match_and_verify``;
 3. merge: ``pairs_table`` of the FULL sequence, ``run.json`` and ``pairs.csv``, then
-   ``evaluate``. RANSAC is seeded per pair (``pipeline.pair_seed``), so the merged
+   ``evaluate``. RANSAC is seeded per pair (``pair_matching.pair_seed``), so the merged
    table equals an unsharded run's, timing columns aside.
 
 ``run_sharded`` drives all three on a Dask ``LocalCluster`` (default) or an existing
@@ -31,8 +31,8 @@ from typing import Any
 import pandas as pd
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb import pipeline
 from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.runner import concurrency, image_features, method_outputs, method_runs, pair_matching, scoring
 
 
 class ShardError(RuntimeError):
@@ -77,8 +77,8 @@ def extract_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    pipeline.configure_threads(threads)
-    return pipeline.extract_features(
+    concurrency.configure_threads(threads)
+    return image_features.extract_features(
         sequence,
         extractor_conf,
         Path(cache_dir),
@@ -108,8 +108,8 @@ def match_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    pipeline.configure_threads(threads)
-    if count > 1 and method_registry.is_dense(conf) and pipeline.dense_merge_options(conf["matcher"]) is not None:
+    concurrency.configure_threads(threads)
+    if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
         raise ValueError(
             f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
             "so its pairs cannot be matched in shards; run it with one matching shard"
@@ -118,12 +118,14 @@ def match_shard(
     resolved = resolve_device(device)
     started = time.perf_counter()
     extraction = (
-        pipeline.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
+        image_features.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
         if conf["extractor"]
         else {"images": 0, "cached": 0, "extracted": 0}
     )
     extracted = time.perf_counter()
-    matching = pipeline.match_and_verify(shard, conf, Path(cache_dir), Path(output_dir), resolved, seed, progress=False)
+    matching = pair_matching.match_and_verify(
+        shard, conf, Path(cache_dir), Path(output_dir), resolved, seed, progress=False
+    )
     return {
         "shard": f"{index}/{count}",
         "extraction": extraction,
@@ -135,10 +137,12 @@ def match_shard(
 
 # ------------------------------------------------------------------------- merge --
 def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Pair]:
-    store = pipeline.match_store(output_dir, conf)
+    store = pair_matching.match_store(output_dir, conf)
     store.refresh()
     missing = [
-        p for p in sequence.pairs if pipeline.pair_key(sequence.image_root, p.query, p.reference, seed) not in store
+        p
+        for p in sequence.pairs
+        if pair_matching.pair_key(sequence.image_root, p.query, p.reference, seed) not in store
     ]
     store.close()
     return missing
@@ -163,28 +167,28 @@ def merge_method(
         first = sequence.pairs.index(missing[0])
         raise ShardError(
             f"cannot merge {conf['method']} on {sequence.name}: {len(missing)} of {len(sequence.pairs)} pairs have "
-            f"no result in {pipeline.match_store(output_dir, conf).folder} (first: pair {first}, "
+            f"no result in {pair_matching.match_store(output_dir, conf).folder} (first: pair {first}, "
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
-    table = pipeline.pairs_table(sequence, conf, cache_dir, output_dir, seed)
-    pipeline.write_method_outputs(
-        pipeline.method_dir(output_dir, conf["method"]),
+    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed)
+    method_runs.write_method_outputs(
+        method_outputs.method_dir(output_dir, conf["method"]),
         sequence,
         conf,
         seed,
-        pipeline.environment_info(resolve_device(device)),
+        concurrency.environment_info(resolve_device(device)),
         {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
         table,
     )
-    pipeline.record_method_in_place(output_dir, conf["method"], sequence)
+    method_runs.record_method_in_place(output_dir, conf["method"], sequence)
     return table
 
 
 def _remove_stale_results(output_dir: Path, method: str) -> None:
     # As run_method does: a failed run must not leave an old pairs.csv looking like its result.
     for stale in ("pairs.csv", "run.json"):
-        (pipeline.method_dir(output_dir, method) / stale).unlink(missing_ok=True)
+        (method_outputs.method_dir(output_dir, method) / stale).unlink(missing_ok=True)
 
 
 def _require_weights(params: dict[str, Any]) -> None:
@@ -201,7 +205,7 @@ def run_shard(
     Shards may run at the same time on machines sharing the cache and output folders,
     or one after another; ``merge_runs`` then writes the results.
     """
-    from gvbench_nb.config import prepare_sequence
+    from gvbench_nb.runner.config import prepare_sequence
 
     _require_weights(params)
     sequence = prepare_sequence(params)
@@ -234,7 +238,7 @@ def run_shard(
 
 def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] | None = None) -> pd.DataFrame:
     """Merge every method of a params file, then evaluate (``run --merge``)."""
-    from gvbench_nb.config import prepare_sequence
+    from gvbench_nb.runner.config import prepare_sequence
 
     sequence = prepare_sequence(params)
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
@@ -243,7 +247,7 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
         merge_method(
             sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
         )
-    return pipeline.evaluate(output_dir, params["methods"])
+    return scoring.evaluate(output_dir, params["methods"])
 
 
 # -------------------------------------------------------------------------- Dask --
@@ -283,7 +287,7 @@ def run_many(
     from distributed import wait
     from tqdm import tqdm
 
-    from gvbench_nb.config import prepare_sequence
+    from gvbench_nb.runner.config import prepare_sequence
 
     if n_shards < 1:
         raise ValueError(f"n_shards must be at least 1, got {n_shards}")
@@ -381,13 +385,13 @@ def run_sharded(
 # -------------------------------------------------------------------------- CLI --
 def add_run_arguments(run: argparse.ArgumentParser) -> None:
     """The ``run`` command's --jobs and scale-out options (cli.py calls this on its ``run`` parser)."""
-    from gvbench_nb.speed.jobs import add_jobs_argument
+    from gvbench_nb.runner.jobs import add_jobs_argument
 
     add_jobs_argument(
         run,
         None,
         "images, then pairs, processed at once (default: $GVBENCH_JOBS, else 1). 2 is faster on two or "
-        "more cores (see `bench`), but each image's and pair's timer then includes waiting for the shared "
+        "more cores (see `python -m gvbench_nb.speed`), but each image's and pair's timer then includes waiting for the shared "
         "cores: keep 1 for the runtime analyses",
     )
     group = run.add_argument_group("scale-out (no notebooks; results as `run` writes them)")

@@ -1,6 +1,6 @@
 """One pair across methods, from what the runs wrote (``pairs.csv`` and the match stores):
 which pair to look at, its score and the rank of that score among each method's scores.
-``notebooks/explore_pairs.ipynb`` is thin over these functions and ``analysis.match_lines``.
+``notebooks/explore_pairs.ipynb`` is thin over these functions and ``run_tables.match_lines``.
 """
 
 from __future__ import annotations
@@ -15,8 +15,9 @@ from typing import Any
 
 import pandas as pd
 
-from gvbench_nb import pipeline
-from gvbench_nb.evaluation import analysis
+from gvbench_nb.evaluation import run_tables
+from gvbench_nb.runner import method_outputs, scoring
+from gvbench_nb.studies import failures
 
 PICKS = ("index", "false_positive", "false_negative")
 VIEW_COLUMNS = [
@@ -40,16 +41,16 @@ def load_tables(
 ) -> dict[str, pd.DataFrame]:
     """``pairs.csv`` of each method (default: every method with results in ``output_dir``), as a
     run published them, from inputs unchanged since, every method on the same pairs and labels."""
-    methods = list(methods) if methods else pipeline.methods_with_results(Path(output_dir))
+    methods = list(methods) if methods else scoring.methods_with_results(Path(output_dir))
     if not methods:
-        raise pipeline.ResultsError(
+        raise method_outputs.ResultsError(
             f"{output_dir} holds no method results (<method>/pairs.csv); run a method "
             "first (python -m gvbench_nb run PARAMS --methods NAME)"
         )
-    pipeline.check_results_current(Path(output_dir), methods)
-    tables = {method: pipeline.load_pairs_table(Path(output_dir), method) for method in methods}
-    digests = pd.DataFrame({"method": list(tables), "pairs_digest": map(pipeline.table_pairs_digest, tables.values())})
-    pipeline.check_one_binding(Path(output_dir), digests)
+    scoring.check_results_current(Path(output_dir), methods)
+    tables = {method: scoring.load_pairs_table(Path(output_dir), method) for method in methods}
+    digests = pd.DataFrame({"method": list(tables), "pairs_digest": map(scoring.table_pairs_digest, tables.values())})
+    scoring.check_one_binding(Path(output_dir), digests)
     return tables
 
 
@@ -84,7 +85,7 @@ def choose_pair(
         raise ValueError(
             f"pick_method {method!r} is not among the methods shown ({', '.join(tables)}); add it to methods"
         )
-    ranked = (analysis.top_false_positives if pick == "false_positive" else analysis.top_false_negatives)(
+    ranked = (failures.top_false_positives if pick == "false_positive" else failures.top_false_negatives)(
         tables[method], int(pick_rank)
     )
     if len(ranked) < int(pick_rank):
@@ -163,10 +164,10 @@ def use_widgets(controls: str = "auto") -> bool:
 def default_methods(params_file: str | os.PathLike[str], output_dir: str | os.PathLike[str] | None = None) -> list[str]:
     """Every method with results in the params' output folder (``output_dir`` when given),
     in registry order; ``['sift-nn']`` when it holds none, so the error names a command to make it."""
-    from gvbench_nb import config
+    from gvbench_nb.runner import config
 
     folder = Path(output_dir) if output_dir else Path(config.load_params(params_file)["output_dir"])
-    return pipeline.methods_with_results(folder) or ["sift-nn"]
+    return scoring.methods_with_results(folder) or ["sift-nn"]
 
 
 VIEWS = ("table", "matches", "scores")  # what the notebook shows of one pair, top to bottom
@@ -178,7 +179,7 @@ def figure_image(figure: Any, path: Path) -> Any:
     import matplotlib.pyplot as plt
     from IPython.display import Image
 
-    from gvbench_nb.reporting import plots
+    from gvbench_nb.evaluation import plots
 
     plots.save(figure, path)
     plt.close(figure)
@@ -194,19 +195,19 @@ def pair_views(
 ) -> dict[str, Any]:
     """Every view of one pair (``VIEWS``): the table across methods, the matches figure and the
     score histograms; each is also written to ``figures_dir`` (CSV, PNG)."""
+    from gvbench_nb.evaluation import plots
     from gvbench_nb.protocol.images import read_image
-    from gvbench_nb.reporting import plots
 
     figures = Path(figures_dir)
     figures.mkdir(parents=True, exist_ok=True)
     view = pair_across_methods(tables, pair_index)
     view.to_csv(figures / "explore_pair.csv", index=False)
-    run = analysis.load_run(output_dir, str(view["method"].iloc[0]))
+    run = run_tables.load_run(output_dir, str(view["method"].iloc[0]))
     first = view.iloc[0]
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
     lines = {
-        method: analysis.match_lines(output_dir, method, first["query"], first["reference"], cache_dir)
+        method: run_tables.match_lines(output_dir, method, first["query"], first["reference"], cache_dir)
         for method in view["method"]
     }
     kind = "true" if first["label"] == 1 else "false"

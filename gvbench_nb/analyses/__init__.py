@@ -1,1 +1,0 @@
-"""Analyses that run their own experiments (the synthetic condition sweep)."""

@@ -1,0 +1,252 @@
+"""The paper's analyses, computed only from written results.
+
+Everything here reads what runs wrote - ``<output_dir>/results.csv``,
+``<output_dir>/<method>/pairs.csv`` and ``run.json``, the match stores and the
+feature cache - and never recomputes features. The analysis notebooks
+(``notebooks/analysis_*.ipynb``) and ``python -m gvbench_nb report`` are thin over
+these functions; the figures live in ``analysis_plots.py``.
+
+Units: ``ap`` and ``max_recall`` are fractions in [0, 1] everywhere, ours and the
+published ones alike (the paper's table, in %, is divided by 100 when read); tables meant
+for people format them as %. Rows are keyed and labelled by (sequence, profile, method):
+two protocols' numbers never share a row or a line.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+import yaml
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb import reference_values
+from gvbench_nb.runner import config, image_features, method_outputs, method_runs, pair_matching, scoring
+
+METRICS = ("ap", "max_recall")
+
+
+PAPER_LABEL = reference_values.PAPER_LABEL  # how the paper's numbers are named in every table and figure
+
+
+REPOSITORY_LABEL = reference_values.REPOSITORY_LABEL  # and the GV-Bench repository's
+
+
+OURS_LABEL = "ours"
+
+
+RUN_KEY = ["sequence", "profile", "method"]  # what identifies a run in every table and figure
+
+
+TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair")
+
+
+# ------------------------------------------------------------ finding results --
+def ensure_results(
+    params_file: str | os.PathLike[str], methods: SequenceType[str] = ("sift-nn",), **overrides: Any
+) -> Path:
+    """Run only the ``methods`` whose ``pairs.csv`` is missing, then make ``results.csv`` current.
+
+    What an analysis notebook runs when it asks (``notebook.load_results(...,
+    compute_missing=True)``): with everything present it does nothing but (when needed)
+    re-evaluate. ``overrides`` go to ``config.load_params``
+    (e.g. ``output_dir``, ``limit``). Returns the output folder.
+    """
+    params = config.load_params(params_file, **overrides)
+    output_dir = Path(params["output_dir"])
+    missing = [
+        m
+        for m in method_registry.expand_methods(list(methods))
+        if not (method_outputs.method_dir(output_dir, m) / "pairs.csv").is_file()
+    ]
+    if missing:
+        sequence = config.prepare_sequence(params)
+        for method in missing:
+            method_runs.run_method_of_params(params, sequence, method)
+    results_path = output_dir / "results.csv"
+    have = set(scoring.methods_with_results(output_dir))
+    evaluated = set(pd.read_csv(results_path)["method"]) if results_path.is_file() else set()
+    if missing or have != evaluated:
+        scoring.evaluate(output_dir)
+    return output_dir
+
+
+def find_output_dirs(
+    root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs", sequences: SequenceType[str] | None = None
+) -> list[Path]:
+    """Sequence output folders under ``root`` holding a ``results.csv`` (sorted by name).
+
+    With ``sequences``, exactly those folders (``root/<name>``); a missing one is an error.
+    """
+    root = Path(root)
+    if sequences:
+        folders = [root / name for name in sequences]
+        absent = [str(f) for f in folders if not (f / "results.csv").is_file()]
+        if absent:
+            raise FileNotFoundError(
+                f"no results.csv in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)"
+            )
+        return folders
+    return sorted(p.parent for p in root.glob("*/results.csv"))
+
+
+def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
+    """``results.csv`` of several output folders, one table (plus an ``output_dir`` column)."""
+    frames = []
+    for folder in output_dirs:
+        path = Path(folder) / "results.csv"
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"{path} is missing: evaluate that output folder first "
+                "(python -m gvbench_nb run PARAMS, or analysis.ensure_results)"
+            )
+        frame = pd.read_csv(path)
+        # Read only what a run published, unedited, from inputs unchanged since, on one set of pairs.
+        scoring.check_results_current(Path(folder), frame["method"], tables=["results.csv"])
+        if "pairs_digest" in frame and frame["pairs_digest"].nunique() > 1:
+            scoring.check_one_binding(Path(folder), frame)
+        frames.append(frame.assign(output_dir=str(Path(folder))))
+    if not frames:
+        raise ValueError("no output folders given: pass at least one folder holding results.csv")
+    results = pd.concat(frames, ignore_index=True)
+    if "fps" not in results:
+        results["fps"] = 1.0 / results["seconds_per_pair"]
+    return results
+
+
+def load_run(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
+    path = method_outputs.method_dir(Path(output_dir), method) / "run.json"
+    if not path.is_file():
+        raise FileNotFoundError(f"{path} is missing: run {method!r} on that sequence first")
+    return json.loads(path.read_text())
+
+
+def load_pairs_tables(
+    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
+) -> dict[str, pd.DataFrame]:
+    """Every method's ``pairs.csv`` of one output folder (default: all with results)."""
+    methods = list(methods) if methods else scoring.methods_with_results(Path(output_dir))
+    return {m: scoring.load_pairs_table(Path(output_dir), m) for m in methods}
+
+
+# ------------------------------------------------------------------ the table --
+def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool] = True) -> pd.DataFrame:
+    """True where a cell holds its column's best value; ties are all marked, NaN never.
+
+    ``higher_is_better`` may be one flag or a flag per column (e.g. seconds: lower).
+    """
+    marks = pd.DataFrame(False, index=table.index, columns=table.columns)
+    for column in table.columns:
+        values = pd.to_numeric(table[column], errors="coerce")
+        if values.notna().sum() == 0:
+            continue
+        higher = higher_is_better if isinstance(higher_is_better, bool) else higher_is_better.get(column, True)
+        best = values.max() if higher else values.min()
+        marks[column] = values == best
+    return marks
+
+
+def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
+    """The feature cache of an output folder: ``cache_dir`` when given, else the one its run
+    recorded (``cache_dir`` in ``<output_dir>/params.resolved.yaml``), else the params'
+    default ``<output_dir>/../cache`` (a folder written without ``run``)."""
+    if cache_dir:
+        return Path(cache_dir)
+    recorded = Path(output_dir) / config.RESOLVED_PARAMS_NAME
+    if recorded.is_file():
+        params = yaml.safe_load(recorded.read_text(encoding="utf-8")) or {}
+        if isinstance(params, dict) and params.get("cache_dir"):
+            return Path(params["cache_dir"])
+    return Path(output_dir).parent / "cache"
+
+
+def match_lines(
+    output_dir: str | os.PathLike[str],
+    method: str,
+    query: str,
+    reference: str,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, np.ndarray]:
+    """Matched points of one pair (original pixels) and its inlier mask, from the stores.
+
+    Reads the run's match store and, for detector-based methods, the keypoints in the
+    feature cache (``<output_dir>/../cache`` unless ``cache_dir``); dense matchers
+    store their matched points with the matches.
+    """
+    output_dir = Path(output_dir)
+    run = load_run(output_dir, method)
+    matches = pair_matching.match_store(output_dir, run["conf"])
+    key = pair_matching.pair_key(Path(run["image_root"]), query, reference, int(run["seed"]))
+    if key not in matches:
+        raise KeyError(f"pair {query} {reference} is not in the match store {matches.folder} of {method!r}")
+    entry = matches.read(key)
+    matches.close()
+    inlier_mask = entry["inlier_mask"].astype(bool)
+    if "points0" in entry:  # dense matcher
+        return {"points0": entry["points0"], "points1": entry["points1"], "inlier_mask": inlier_mask}
+    features = image_features.feature_store(resolve_cache_dir(output_dir, cache_dir), run["conf"]["extractor"])
+    image_root = Path(run["image_root"])
+    try:
+        points0 = features.read(image_features.image_key(image_root, query))["keypoints"]
+        points1 = features.read(image_features.image_key(image_root, reference))["keypoints"]
+    except KeyError as error:
+        raise KeyError(
+            f"{error}; the run's cache {features.folder.parent.parent} does not hold that pair's features: "
+            "rerun its method (python -m gvbench_nb run PARAMS --methods NAME) to fill it"
+        ) from None
+    finally:
+        features.close()
+    pair_matches = entry["matches"].astype(int).reshape(-1, 2)
+    # float32: the cache may hold float16 keypoints (as hloc stores them).
+    return {
+        "points0": points0[pair_matches[:, 0]].astype(np.float32),
+        "points1": points1[pair_matches[:, 1]].astype(np.float32),
+        "inlier_mask": inlier_mask,
+    }
+
+
+class IncomparableRunsError(method_outputs.ResultsError, ValueError):
+    """Methods' results that cannot be compared pair by pair: different pairs or labels."""
+
+
+def align_tables(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """One row a pair: query, reference, label and a ``score:<method>`` column per method.
+
+    All methods must have scored the same pairs under the same labels (a bootstrap
+    compares them pair by pair).
+    """
+    if not tables:
+        raise IncomparableRunsError("no methods to compare: pass at least one pairs table")
+    methods = list(tables)
+    base = tables[methods[0]][["query", "reference", "label"]].copy()
+    keys = set(zip(base["query"], base["reference"]))
+    for method in methods:
+        table = tables[method]
+        other = set(zip(table["query"], table["reference"]))
+        if other != keys:
+            raise IncomparableRunsError(
+                f"methods {methods[0]!r} and {method!r} scored different pairs ({len(keys - other)} only in the first, "
+                f"{len(other - keys)} only in the second); rerun them on the same pairs (same --limit)"
+            )
+        base = base.merge(
+            table[["query", "reference", "label", "score"]].rename(
+                columns={"label": "label:other", "score": f"score:{method}"}
+            ),
+            on=["query", "reference"],
+            how="left",
+            validate="one_to_one",
+        )
+        relabelled = base["label"].to_numpy() != base.pop("label:other").to_numpy()
+        if relabelled.any():
+            first = base[relabelled].iloc[0]
+            raise IncomparableRunsError(
+                f"methods {methods[0]!r} and {method!r} label {int(relabelled.sum())} of the same pairs differently "
+                f"(e.g. {first['query']} {first['reference']}); rerun them with the same pair file and label rule"
+            )
+    return base

@@ -1,0 +1,130 @@
+"""How many threads and jobs a run uses, the prefetching executor, and the machine it ran on."""
+
+from __future__ import annotations
+
+import os
+import platform
+import sys
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import cv2
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+
+# torch and the model modules (extractors, matchers) are imported by the functions that
+# run models: a notebook or command that only reads results never pays for them.
+T = TypeVar("T")
+
+
+R = TypeVar("R")
+
+
+def configure_threads(n_threads: int | None = None) -> int:
+    """Set torch's and OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else
+    every core. On a machine shared with other work, fewer threads than cores can be
+    much faster (small matrix products then wait on busy cores); scores do not change."""
+    import torch
+
+    n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    return n
+
+
+JOBS_ENV = "GVBENCH_JOBS"  # the run's parallelism, as `run --jobs` and the bench's `--jobs` set it
+
+
+RENAMED_ENV = {"GVBENCH_WORKERS": JOBS_ENV}  # an old name, no longer read: the CLI names its successor
+
+
+def worker_count(workers: int | None = None) -> int:
+    """How many images are extracted, and pairs matched and verified, at once (the run's
+    jobs): ``workers``, else $GVBENCH_JOBS (what ``--jobs`` sets), else 1.
+
+    With 1, one image (decoded ahead) and one pair (verified while the next is matched)
+    are in flight, so the per-image and per-pair timers are close to each item's own
+    cost, which the runtime analyses report. With 2 on a 2-core CPU, throughput rises
+    (measured by the bench, ``python -m gvbench_nb.speed``) but the timers include waiting for the shared cores. Scores
+    are the same either way.
+    """
+    text = os.environ.get(JOBS_ENV) or "1"
+    try:
+        n = workers if workers is not None else int(text)
+    except ValueError:
+        n = 0
+    if n < 1:
+        given = n if workers is not None else repr(text)
+        raise ValueError(f"jobs must be a whole number of at least 1, got {given} (--jobs or ${JOBS_ENV})")
+    return n
+
+
+def prefetch(
+    items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers: int = 2
+) -> Iterator[tuple[T, R | BaseException]]:
+    """Yield (item, load(item)) in order while the next ``depth`` loads run in threads.
+
+    Decoding and resizing (OpenCV releases the GIL) then overlap the model's compute.
+    A failed load is yielded as its exception, in its place, for the caller to raise
+    with context.
+    """
+    iterator = iter(items)
+    pending: list[tuple[T, Future[R]]] = []
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for item in iterator:
+            pending.append((item, pool.submit(load, item)))
+            if len(pending) >= depth:
+                break
+        while pending:
+            item, future = pending.pop(0)
+            try:
+                result: R | BaseException = future.result()
+            except Exception as error:  # surfaced in order by the caller
+                result = error
+            next_item = next(iterator, None)
+            if next_item is not None:
+                pending.append((next_item, pool.submit(load, next_item)))
+            yield item, result
+
+
+def cpu_name() -> str:
+    """The CPU model (for timings to say what they were measured on)."""
+    try:
+        with open("/proc/cpuinfo", encoding="utf-8") as handle:
+            for line in handle:
+                if line.startswith("model name"):
+                    return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
+def _version(module: str) -> str:
+    """A module's ``__version__``, without importing it when it is not loaded yet (importing
+    kornia only to read its version takes longer than a small run's work)."""
+    if module in sys.modules:
+        return sys.modules[module].__version__
+    from importlib.metadata import version
+
+    return version(module)
+
+
+def environment_info(device: torch.device) -> dict[str, Any]:
+    import torch
+
+    info = {
+        "device": str(device),
+        "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
+        "cpu_count": os.cpu_count(),
+        "torch": torch.__version__,
+        "kornia": _version("kornia"),
+        "opencv": cv2.__version__,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "platform": platform.platform(),
+    }
+    return info

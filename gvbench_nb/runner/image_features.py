@@ -1,0 +1,181 @@
+"""Features once per unique image content: the content-keyed feature cache and its extraction loop."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+import time
+from collections.abc import Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from tqdm import tqdm
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.protocol.images import (
+    ImageReadError,
+    load_for_extraction,
+    to_original_pixels,
+)
+from gvbench_nb.runner import concurrency
+from gvbench_nb.runner.store import ShardedStore
+
+if TYPE_CHECKING:
+    import torch
+
+
+# ---------------------------------------------------------------- feature cache --
+def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedStore:
+    """The cache folder of one extractor conf: ``<cache_dir>/features/<name>-<hash>``."""
+    return ShardedStore(
+        Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}"
+    )
+
+
+# (resolved path, size, mtime_ns, inode, device) -> content key: a file is hashed again
+# only when one of those changes, so a run hashes each image once.
+_content_keys: dict[tuple[str, int, int, int, int], str] = {}
+
+
+_content_keys_lock = threading.Lock()
+
+
+def content_key(path: str | os.PathLike[str]) -> str:
+    """``blake2b-<hex>`` of a file's bytes: the cache key of what the file holds, not where it is."""
+    path = Path(path)
+    try:
+        stat = path.stat()
+    except OSError:
+        stat = None
+    if stat is None or not path.is_file():
+        what = "is a folder, not an image file" if path.is_dir() else "not found"
+        raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
+    memo = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_dev)
+    with _content_keys_lock:
+        known = _content_keys.get(memo)
+    if known is not None:
+        return known
+    digest = hashlib.blake2b(digest_size=20)
+    try:
+        with open(path, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
+    key = f"blake2b-{digest.hexdigest()}"
+    with _content_keys_lock:
+        _content_keys[memo] = key
+    return key
+
+
+def image_key(image_root: Path, name: str) -> str:
+    """Feature-cache key of image ``name``: its content, so a replaced image or another
+    root is extracted again while identical files (any sequence, any path) share an entry.
+    The extractor conf is the store's folder name (``feature_store``)."""
+    return content_key(Path(image_root) / name)
+
+
+def first_pair_using(sequence: Sequence, name: str) -> str:
+    """'pair N: query reference' of the first pair that uses image ``name`` (for errors)."""
+    index, pair = next((i, p) for i, p in enumerate(sequence.pairs) if name in (p.query, p.reference))
+    return f"pair {index}: {pair.query} {pair.reference}"
+
+
+def stored_features(
+    features: dict[str, np.ndarray], image: np.ndarray, scale: np.ndarray, store_float16: bool = False
+) -> dict[str, np.ndarray]:
+    """What the cache holds for one image: keypoints in original pixels, scores,
+    descriptors and the original (width, height).
+
+    ``store_float16`` (the extractor conf's key): float32 arrays are stored as float16, as
+    hloc's ``extract_features.main(as_half=True)`` stores them, so matching reads the
+    rounded values; integer arrays (binary descriptors, the size) stay as they are.
+    """
+    stored = {
+        "keypoints": to_original_pixels(features["keypoints"], scale),
+        "scores": features["scores"],
+        "descriptors": features["descriptors"],
+        "image_size": np.round(np.array(image.shape[1::-1]) * scale).astype(np.int64),
+    }
+    if store_float16:
+        stored = {k: v.astype(np.float16) if v.dtype == np.float32 else v for k, v in stored.items()}
+    return stored
+
+
+def extract_features(
+    sequence: Sequence,
+    extractor_conf: dict[str, Any],
+    cache_dir: Path,
+    device: torch.device | str = "auto",
+    progress: bool = True,
+    flush_every: int = 16,
+    images: list[str] | None = None,
+    workers: int | None = None,
+) -> dict[str, int]:
+    """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
+    not yet in the cache, ``workers`` images at a time (default ``worker_count()``).
+    Returns counts."""
+    store = feature_store(cache_dir, extractor_conf)
+    store.refresh()
+    wanted: dict[str, str] = {}
+    for name in sequence.images if images is None else images:
+        try:
+            wanted.setdefault(image_key(sequence.image_root, name), name)
+        except ImageReadError as error:
+            raise ImageReadError(
+                f"{error} (image {name!r} of sequence {sequence.name!r}, {first_pair_using(sequence, name)})"
+            ) from None
+    todo = [key for key in wanted if key not in store]
+    counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
+    if not todo:
+        return counts
+    from gvbench_nb.protocol.features import build_extractor
+    from gvbench_nb.protocol.features.base import resolve_device
+
+    extractor = build_extractor(extractor_conf, resolve_device(device))
+
+    def load(key: str) -> tuple[np.ndarray, np.ndarray]:
+        try:
+            return load_for_extraction(Path(sequence.image_root) / wanted[key], extractor_conf)
+        except Exception as error:  # whatever decoding raised, it is this image's fault
+            if isinstance(error, ImageReadError):
+                raise
+            raise ImageReadError(str(error)) from error
+
+    def extract(loaded: tuple[np.ndarray, np.ndarray]) -> tuple[dict[str, np.ndarray], float]:
+        image, scale = loaded
+        start = time.perf_counter()
+        features = extractor(image)
+        stored = stored_features(features, image, scale, extractor_conf.get("store_float16", False))
+        return stored, time.perf_counter() - start
+
+    workers = concurrency.worker_count(workers)
+    # One worker: decoding runs ahead in threads while this thread extracts. Several:
+    # each worker decodes and extracts its own image (OpenCV and torch release the GIL).
+    # Either way results come back in order and only this thread writes the store.
+    if workers == 1:
+        results: Iterable[tuple[str, Any]] = (
+            (key, loaded if isinstance(loaded, BaseException) else extract(loaded))
+            for key, loaded in concurrency.prefetch(todo, load)
+        )
+    else:
+        results = concurrency.prefetch(todo, lambda key: extract(load(key)), depth=2 * workers, workers=workers)
+    bar = tqdm(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
+    with store.writer(flush_every) as writer:
+        for key, extracted in results:
+            if isinstance(extracted, ImageReadError):
+                raise ImageReadError(
+                    f"{extracted} (image {wanted[key]!r} of sequence {sequence.name!r}, "
+                    f"{first_pair_using(sequence, wanted[key])})"
+                ) from extracted
+            if isinstance(extracted, BaseException):
+                raise extracted
+            features, seconds = extracted
+            writer.put(key, features, {"seconds": seconds})
+            counts["extracted"] += 1
+            bar.update()
+    bar.close()
+    return counts

@@ -1,0 +1,305 @@
+"""Run one method on a sequence: compute (resumable), record what was computed, and write
+its per-pair table.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import json
+import os
+import time
+from collections import Counter
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pandas as pd
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.protocol.images import (
+    ImageReadError,
+)
+from gvbench_nb.runner import concurrency, image_features, method_outputs, pair_matching, record, scoring
+
+if TYPE_CHECKING:
+    pass
+
+
+def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> pd.DataFrame:
+    """The per-pair table of a finished run, built only from the stores."""
+    matches = pair_matching.match_store(output_dir, conf)
+    matches.refresh()
+    dense = method_registry.is_dense(conf)
+    uses = Counter(name for pair in sequence.pairs for name in (pair.query, pair.reference))
+    image_info: dict[str, tuple[int, float]] = {}
+    if not dense:
+        features = image_features.feature_store(cache_dir, conf["extractor"])
+        features.refresh()
+        for name in uses:
+            entry = features.read(
+                image_features.image_key(sequence.image_root, name), fields=("keypoints",)
+            )  # not descriptors
+            image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
+        features.close()
+    keys = pair_matching.pair_keys(sequence, seed)
+    rows = []
+    for index, pair in enumerate(sequence.pairs):
+        entry = matches.read(keys[pair], fields=())  # the counts and timers only
+        if dense:
+            pair_matching.check_merged_over(entry, sequence, keys, matches.folder)
+        if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
+            keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
+            extract_seconds = 0.0
+        else:
+            keypoints_query, keypoints_reference = image_info[pair.query][0], image_info[pair.reference][0]
+            # Extraction is amortised: each image's time is shared among the pairs that use it.
+            extract_seconds = sum(image_info[n][1] / uses[n] for n in (pair.query, pair.reference))
+        rows.append(
+            {
+                "pair_index": index,
+                "query": pair.query,
+                "reference": pair.reference,
+                "label": pair.label,
+                "method": conf["method"],
+                "profile": conf["profile"],
+                "num_keypoints_query": keypoints_query,
+                "num_keypoints_reference": keypoints_reference,
+                "num_matches": int(entry["attr:num_matches"]),
+                "num_matches_filtered": int(entry["attr:num_matches_filtered"]),
+                "num_inliers": int(entry["attr:num_inliers"]),
+                "score": int(entry["attr:num_inliers"]),
+                "extract_seconds": extract_seconds,
+                "match_seconds": float(entry["attr:match_seconds"]),
+                "verify_seconds": float(entry["attr:verify_seconds"]),
+            }
+        )
+    matches.close()
+    return pd.DataFrame(rows, columns=method_outputs.PAIRS_COLUMNS)
+
+
+def has_pending_work(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> bool:
+    """Whether some image of ``sequence`` lacks its features or some pair its verified
+    matches, for the method ``conf`` (without building any model)."""
+    try:
+        if not method_registry.is_dense(conf):
+            features = image_features.feature_store(cache_dir, conf["extractor"])
+            features.refresh()
+            if any(image_features.image_key(sequence.image_root, name) not in features for name in sequence.images):
+                return True
+        matches = pair_matching.match_store(output_dir, conf)
+        matches.refresh()
+        keys = pair_matching.pair_keys(sequence, seed)
+        return any(keys[pair] not in matches for pair in sequence.pairs)
+    except ImageReadError:  # the computing stages name the image and its pair
+        return True
+
+
+WORK_RECORD = ".computed.json"  # in a method folder: what ``compute_method`` did, until ``run_method`` records it
+
+
+def _work_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
+    """What a work record must match to stand for a run: the same sequence, pairs, conf, seed and device request."""
+    identity = {
+        "sequence": sequence.name,
+        "image_root": str(sequence.image_root),
+        "n_pairs": len(sequence.pairs),
+        "pairs": sequence.origin,
+        "conf": conf,
+        "seed": seed,
+        "device": str(device),
+    }
+    return json.loads(json.dumps(identity, sort_keys=True, default=str))  # as it reads back from JSON
+
+
+def compute_method(
+    sequence: Sequence,
+    method: str,
+    profile: str,
+    output_dir: Path,
+    cache_dir: Path,
+    device: str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    threads: int | None = None,
+    workers: int | None = None,
+    verifier: dict[str, Any] | None = None,
+) -> dict[str, Any]:
+    """Extract and match what the caches lack for one method on a sequence (``run_method``'s
+    work, without writing ``pairs.csv`` or ``run.json``). Returns the run record's
+    ``environment`` and ``this_run`` and keeps them in the method folder (``WORK_RECORD``),
+    so the ``run_method`` that follows (the 02_verify notebook of a ``run``) records this
+    work and needs neither torch nor any model."""
+    conf = method_registry.resolve_method(method, profile, verifier)
+    method_registry.require(method, profile)
+    record.claim(output_dir)  # its stores and work record go into the folder: only into one that is the package's
+    from gvbench_nb.protocol.features.base import resolve_device
+
+    resolved_device = resolve_device(device)
+    concurrency.configure_threads(threads)
+    started = time.perf_counter()
+    workers = concurrency.worker_count(workers)
+    extraction = (
+        image_features.extract_features(
+            sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers
+        )
+        if conf["extractor"]
+        else {"images": 0, "cached": 0, "extracted": 0}
+    )
+    extracted = time.perf_counter()
+    matching = pair_matching.match_and_verify(
+        sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers
+    )
+    finished = time.perf_counter()
+    work = {
+        "identity": _work_identity(sequence, conf, seed, device),
+        "pid": os.getpid(),
+        "environment": concurrency.environment_info(resolved_device),
+        "this_run": {
+            "extraction": extraction,
+            "matching": matching,
+            "workers": workers,
+            "extract_wall_seconds": extracted - started,
+            "match_verify_wall_seconds": finished - extracted,
+        },
+    }
+    atomic_write_json(method_outputs.method_dir(output_dir, method) / WORK_RECORD, work)
+    return work
+
+
+def _read_work_record(folder: Path, identity: dict[str, Any]) -> dict[str, Any] | None:
+    """The work record of this sequence, conf, seed and device request, written by this
+    process or its parent (the ``run`` whose notebook this is); a record left by a run that
+    stopped before its notebook is not this run's work."""
+    try:
+        work = json.loads((folder / WORK_RECORD).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+    if work.get("identity") != identity or work.get("pid") not in (os.getpid(), os.getppid()):
+        return None
+    return work
+
+
+def run_method(
+    sequence: Sequence,
+    method: str,
+    profile: str,
+    output_dir: Path,
+    cache_dir: Path,
+    device: str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    threads: int | None = None,
+    workers: int | None = None,
+    verifier: dict[str, Any] | None = None,
+) -> pd.DataFrame:
+    """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
+    ``verifier``: overrides of the profile's verifier conf (``methods.resolve_method``).
+    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_JOBS or 1).
+
+    Missing weights fail here, before any work. Finished work found in the caches is
+    reused, so an interrupted run resumes. When every image and pair is cached and
+    ``compute_method`` recorded that work for this sequence, conf, seed and device, that
+    record is used and neither torch nor a model is loaded.
+    """
+    conf = method_registry.resolve_method(method, profile, verifier)
+    method_registry.require(method, profile)
+    folder = method_outputs.method_dir(output_dir, method)
+    # Outside a run's stage (a notebook run on its own), the method writes its results into the
+    # output folder in place: only into a folder that is the package's, and one writer at a time
+    # while the results are written. The stores are filled first, by any number of processes at
+    # once (they are safe for that).
+    in_place = not record.is_stage(output_dir)
+    written = [f"{method}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+    if in_place:
+        record.claim(output_dir)
+        record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
+    with record.pending(output_dir if in_place else None, written):
+        # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
+        method_outputs.claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
+        work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
+        if work is None or has_pending_work(sequence, conf, cache_dir, output_dir, seed):
+            work = compute_method(
+                sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
+            )
+        lock = record.FolderLock(output_dir) if in_place else None
+        if lock is not None:
+            lock.acquire(wait_seconds=600)
+        try:
+            table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
+            write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
+            # The record is used once: a later run that finds everything cached records that.
+            (folder / WORK_RECORD).unlink(missing_ok=True)
+            if in_place:
+                record_method_in_place(output_dir, method, sequence)
+        finally:
+            if lock is not None:
+                lock.release()
+    return table
+
+
+def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) -> None:
+    """Enter a method's finished outputs, written in place, in the folder's record."""
+    with record.editing(output_dir) as entry:
+        written = [f"{method}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+        entry["files"].update({name: record.file_sha256(Path(output_dir) / name) for name in written})
+        entry["methods"][method] = {**scoring.sequence_binding(sequence), "files": written}
+
+
+def write_method_outputs(
+    folder: Path,
+    sequence: Sequence,
+    conf: dict[str, Any],
+    seed: int,
+    environment: dict[str, Any],
+    this_run: dict[str, Any],
+    table: pd.DataFrame,
+) -> None:
+    """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
+    finished run, ``methods_with_results``), then the unfinished marker removed."""
+    from gvbench_nb import __version__
+
+    atomic_write_json(
+        folder / "run.json",
+        {
+            "sequence": sequence.name,
+            "image_root": str(sequence.image_root),
+            "n_pairs": len(sequence.pairs),
+            "pairs": sequence.origin,
+            "binding": scoring.sequence_binding(sequence),
+            "conf": conf,
+            "seed": seed,
+            "package_version": __version__,
+            "run_id": record.stage_run_id(folder.parent),
+            "environment": environment,
+            "this_run": this_run,
+            "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        },
+    )
+    atomic_write_csv(folder / "pairs.csv", table)
+    (folder / method_outputs.UNFINISHED_MARKER).unlink(missing_ok=True)
+
+
+# ------------------------------------------------------------------- evaluation --
+def params_arguments(params: dict[str, Any]) -> dict[str, Any]:
+    """What a loaded params file sets for ``run_method`` and ``compute_method``: profile, output and
+    cache folders, device, seed and verifier overrides."""
+    return {
+        "profile": params["profile"],
+        "output_dir": Path(params["output_dir"]),
+        "cache_dir": Path(params["cache_dir"]),
+        "device": params["device"],
+        "seed": params["seed"],
+        "verifier": params.get("verifier") or None,
+    }
+
+
+def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
+    """``run_method`` with what a loaded params file sets: profile, output and cache folders,
+    device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
+    return run_method(sequence, method, **params_arguments(params), **options)
+
+
+def compute_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> dict[str, Any]:
+    """``compute_method`` with what a loaded params file sets, as ``run_method_of_params`` runs it."""
+    return compute_method(sequence, method, **params_arguments(params), **options)

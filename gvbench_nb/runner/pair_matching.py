@@ -1,0 +1,520 @@
+"""Match each pair and verify it: memory-bounded feature caches, the sparse loop, the dense loop with
+hloc's merging, and the content-keyed match store the results come from.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+import time
+import zlib
+from collections import OrderedDict
+from collections.abc import Callable, Iterator
+from concurrent.futures import Future
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, cast
+
+import numpy as np
+from tqdm import tqdm
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.protocol.images import (
+    ImageReadError,
+    load_for_extraction,
+    to_original_pixels,
+)
+from gvbench_nb.protocol.ransac import verify_matches
+from gvbench_nb.runner import concurrency, image_features, method_outputs, record
+from gvbench_nb.runner.store import ShardedStore
+
+if TYPE_CHECKING:
+    import torch
+
+    from gvbench_nb.protocol.matching.base import PreparedMatcher
+
+
+# ---------------------------------------------------------- matching + verifying --
+class PreparedCache:
+    """Per-image matcher states by image name, least recently used first out once they
+    hold more than ``max_bytes`` (the newest state always stays). Thread-safe: a thread
+    that asks for an image another thread is preparing waits for that state."""
+
+    def __init__(self, prepare: Callable[[dict[str, np.ndarray]], Any], max_bytes: int = 1 << 30):
+        self.prepare, self.max_bytes = prepare, max_bytes
+        self._states: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self._pending: dict[str, Future] = {}
+        self._bytes = 0
+        self._lock = threading.Lock()
+
+    def get(self, name: str, features: dict[str, np.ndarray]) -> Any:
+        with self._lock:
+            if name in self._states:
+                self._states.move_to_end(name)
+                return self._states[name][0]
+            pending = self._pending.get(name)
+            if pending is None:
+                mine = self._pending[name] = Future()
+        if pending is not None:
+            return pending.result()  # re-raises the preparing thread's error
+        try:
+            state = self.prepare(features)
+        except BaseException as error:
+            with self._lock:
+                del self._pending[name]
+            mine.set_exception(error)
+            raise
+        size = state.nbytes() if state is not None else 0
+        with self._lock:
+            del self._pending[name]
+            self._states[name] = (state, size)
+            self._bytes += size
+            while self._bytes > self.max_bytes and len(self._states) > 1:
+                _, (_, dropped) = self._states.popitem(last=False)
+                self._bytes -= dropped
+        mine.set_result(state)
+        return state
+
+    def __len__(self) -> int:
+        return len(self._states)
+
+
+class FeatureCache:
+    """Feature dicts by image name, read on first use; least recently used first out once
+    they hold more than ``max_bytes`` (the newest always stays). Not thread-safe: callers lock."""
+
+    def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
+        self.read, self.max_bytes = read, max_bytes
+        self._entries: OrderedDict[str, tuple[dict[str, np.ndarray], int]] = OrderedDict()
+        self.nbytes = 0
+
+    def get(self, name: str) -> dict[str, np.ndarray]:
+        if name in self._entries:
+            self._entries.move_to_end(name)
+            return self._entries[name][0]
+        entry = self.read(name)
+        size = sum(value.nbytes for value in entry.values() if isinstance(value, np.ndarray))
+        self._entries[name] = (entry, size)
+        self.nbytes += size
+        while self.nbytes > self.max_bytes and len(self._entries) > 1:
+            self.nbytes -= self._entries.popitem(last=False)[1][1]
+        return entry
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+
+def pair_key(image_root: Path, query: str, reference: str, seed: int) -> str:
+    """Match-store key of a pair: both images' content keys (a changed image or root
+    matches again), their names and the seed (which seed its RANSAC: ``pair_seed``).
+    The extractor, matcher and verifier confs are the store's folder name (``match_store``);
+    dense matchers have no feature entry, and the content keys serve them the same way."""
+    return "\t".join(
+        [
+            query,
+            reference,
+            image_features.image_key(image_root, query),
+            image_features.image_key(image_root, reference),
+            f"seed={seed}",
+        ]
+    )
+
+
+def pair_keys(sequence: Sequence, seed: int) -> dict[Any, str]:
+    """``pair_key`` of every pair; a missing or unreadable image is named with its pair."""
+    keys = {}
+    for index, pair in enumerate(sequence.pairs):
+        try:
+            keys[pair] = pair_key(sequence.image_root, pair.query, pair.reference, seed)
+        except ImageReadError as error:
+            raise ImageReadError(
+                f"{error} (pair {index}: {pair.query} {pair.reference} of sequence {sequence.name!r})"
+            ) from None
+    return keys
+
+
+def pair_seed(seed: int, query: str, reference: str) -> int:
+    """RANSAC seed of one pair: the same whatever order or shard the pair runs in."""
+    return zlib.crc32(f"{seed}\t{query}\t{reference}".encode()) & 0x7FFFFFFF
+
+
+def stores_folder(output_dir: Path) -> Path:
+    """Where a run's match stores live: its output folder, also while the run's results are
+    staged (``record.open_stage``): stores are caches every run of the folder shares, keyed by
+    content; only results wait in the stage to be published whole."""
+    output_dir = Path(output_dir)
+    if record.is_stage(output_dir):
+        return output_dir.parent
+    return output_dir
+
+
+def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
+    """Per-pair matches and inlier masks of one method conf (a changed conf starts afresh)."""
+    matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
+    return ShardedStore(
+        method_outputs.method_dir(stores_folder(output_dir), conf["method"])
+        / f"matches-{method_registry.conf_hash(matching_conf)}"
+    )
+
+
+def match_and_verify(
+    sequence: Sequence,
+    conf: dict[str, Any],
+    cache_dir: Path,
+    output_dir: Path,
+    device: torch.device | str = "auto",
+    seed: int = 0,
+    progress: bool = True,
+    flush_every: int = 64,
+    workers: int | None = None,
+) -> dict[str, int]:
+    """Match and verify every pair not yet in the method's match store, ``workers``
+    pairs at a time (default: ``worker_count()``; dense matchers run one pair at a time)."""
+    matches = match_store(output_dir, conf)
+    matches.refresh()
+    keys = pair_keys(sequence, seed)
+    todo = [p for p in sequence.pairs if keys[p] not in matches]
+    counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
+    if not todo:
+        return counts
+    from gvbench_nb.protocol.features.base import resolve_device
+    from gvbench_nb.protocol.matching import build_matcher
+
+    matcher = build_matcher(conf["matcher"], resolve_device(device))
+    if method_registry.is_dense(conf):
+        _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every, output_dir)
+        counts["matched"] = len(todo)
+        return counts
+    features = image_features.feature_store(cache_dir, conf["extractor"])
+    reading = (
+        threading.Lock()
+    )  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
+
+    def read(name: str) -> dict[str, np.ndarray]:
+        key = image_features.image_key(sequence.image_root, name)
+        if key not in features:
+            raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
+        return features.read(key)
+
+    # A query's candidates are consecutive and references recur: recently read features are
+    # kept, up to a memory bound that does not grow with the sequence.
+    recent = FeatureCache(read)
+
+    def load(name: str) -> dict[str, np.ndarray]:
+        with reading:
+            return recent.get(name)
+
+    # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
+    # matching/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
+    # the first pair using an image is charged for preparing it.
+    prepared = (
+        PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
+    )
+
+    def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
+        features0, features1 = load(pair.query), load(pair.reference)
+        start = time.perf_counter()
+        if prepared is not None:
+            pair_matches, match_scores = cast("PreparedMatcher", matcher).match_prepared(
+                prepared.get(pair.query, features0), prepared.get(pair.reference, features1)
+            )
+        else:
+            pair_matches, match_scores = matcher(features0, features1)
+        return features0, features1, pair_matches, match_scores, time.perf_counter() - start
+
+    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
+        features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
+        verified, verify_seconds = _verify_pair(
+            pair,
+            conf,
+            seed,
+            features0["keypoints"],
+            features1["keypoints"],
+            pair_matches,
+            match_scores,
+            image_sizes(features0, features1),
+        )
+        return pair_matches, match_scores, verified, match_seconds, verify_seconds
+
+    workers = concurrency.worker_count(workers)
+    bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+    with matches.writer(flush_every) as writer:
+        if workers == 1:
+            # Matching runs one pair ahead in a worker thread while this thread verifies
+            # and writes the previous one: torch and OpenCV release the GIL, so
+            # verification overlaps matching. The store is written from this thread only.
+            for pair, matched in concurrency.prefetch(todo, match_pair, depth=2, workers=1):
+                if isinstance(matched, BaseException):
+                    raise matched
+                features0, features1, pair_matches, match_scores, match_seconds = matched
+                _verify_and_store(
+                    writer,
+                    pair,
+                    keys[pair],
+                    conf,
+                    seed,
+                    features0["keypoints"],
+                    features1["keypoints"],
+                    pair_matches,
+                    match_scores,
+                    {"matches": pair_matches.astype(np.int32)},
+                    match_seconds,
+                    image_sizes(features0, features1),
+                )
+                counts["matched"] += 1
+                bar.update()
+        else:
+            # Several pairs at once, each matched then verified in its own thread; results
+            # come back in order and are written from this thread only.
+            for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * workers, workers=workers):
+                if isinstance(done, BaseException):
+                    raise done
+                pair_matches, match_scores, verified, match_seconds, verify_seconds = done
+                _store_verified(
+                    writer,
+                    keys[pair],
+                    pair_matches,
+                    match_scores,
+                    verified,
+                    {"matches": pair_matches.astype(np.int32)},
+                    match_seconds,
+                    verify_seconds,
+                )
+                counts["matched"] += 1
+                bar.update()
+    bar.close()
+    return counts
+
+
+def image_sizes(features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> tuple[Any, Any]:
+    """Original (width, height) of both images of a pair, from their cached features."""
+    return features0.get("image_size"), features1.get("image_size")
+
+
+def _verify_and_store(
+    writer: Any,
+    pair: Any,
+    key: str,
+    conf: dict[str, Any],
+    seed: int,
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    pair_matches: np.ndarray,
+    match_scores: np.ndarray,
+    arrays: dict[str, np.ndarray],
+    match_seconds: float,
+    sizes: tuple[Any, Any] = (None, None),
+) -> None:
+    """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
+    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores, sizes)
+    _store_verified(writer, key, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
+
+
+def _verify_pair(
+    pair: Any,
+    conf: dict[str, Any],
+    seed: int,
+    keypoints0: np.ndarray,
+    keypoints1: np.ndarray,
+    pair_matches: np.ndarray,
+    match_scores: np.ndarray,
+    sizes: tuple[Any, Any] = (None, None),
+) -> tuple[dict[str, Any], float]:
+    """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
+    start = time.perf_counter()
+    verified = verify_matches(
+        keypoints0,
+        keypoints1,
+        pair_matches,
+        match_scores,
+        conf["verifier"],
+        seed=pair_seed(seed, pair.query, pair.reference),
+        image_sizes=sizes,
+    )
+    return verified, time.perf_counter() - start
+
+
+def _store_verified(
+    writer: Any,
+    key: str,
+    pair_matches: np.ndarray,
+    match_scores: np.ndarray,
+    verified: dict[str, Any],
+    arrays: dict[str, np.ndarray],
+    match_seconds: float,
+    verify_seconds: float,
+    extra_attrs: dict[str, Any] | None = None,
+) -> None:
+    """Commit one verified pair: its matches, inlier mask, counts and timings."""
+    writer.put(
+        key,
+        {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
+        {
+            "num_matches": verified["num_matches"],
+            "num_matches_filtered": verified["num_matches_filtered"],
+            "num_inliers": verified["num_inliers"],
+            "match_seconds": match_seconds,
+            "verify_seconds": verify_seconds,
+            **(extra_attrs or {}),
+        },
+    )
+
+
+def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
+    """The keypoint-merging options of a dense matcher conf (``merge_dense_matches``), or
+    None when its raw matches are verified pair by pair."""
+    if matcher_conf.get("merge_max_keypoints") is None:
+        return None
+    return {
+        "max_keypoints": matcher_conf["merge_max_keypoints"],
+        "cell_size": matcher_conf["merge_cell_size"],
+        "max_error": matcher_conf["merge_max_error"],
+    }
+
+
+def pair_list_hash(keys: dict[Any, str]) -> str:
+    """Identity of a sequence's pair list (its pairs' keys in order): merged dense keypoints
+    depend on every pair."""
+    return hashlib.sha1("\n".join(keys.values()).encode()).hexdigest()[:10]
+
+
+def raw_dense_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
+    """A dense matcher's raw matches a pair (original pixels), before merging."""
+    folder = method_outputs.method_dir(stores_folder(output_dir), conf["method"])
+    return ShardedStore(folder / f"raw-{method_registry.conf_hash(conf['matcher'])}")
+
+
+def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any, str], where: Path) -> None:
+    """Merged dense results hold for the pair list they were merged over only."""
+    merged_over = entry.get("attr:merged_over")
+    if merged_over is not None and str(merged_over) != pair_list_hash(keys):
+        raise ValueError(
+            f"the dense matches in {where} were merged over another pair list than sequence "
+            f"{sequence.name!r} has now ({len(sequence.pairs)} pairs); delete that folder or use another output_dir"
+        )
+
+
+def _match_dense_pairs(
+    sequence: Sequence,
+    todo: list,
+    keys: dict[Any, str],
+    conf: dict[str, Any],
+    matcher: Callable,
+    matches: ShardedStore,
+    seed: int,
+    progress: bool,
+    flush_every: int,
+    output_dir: Path | None = None,
+) -> None:
+    """Dense matchers (LoFTR, ``imm:`` methods) see both images of every pair: no per-image cache.
+    Decoding overlaps compute through the same prefetching loader.
+
+    With merging options (``dense_merge_options``), as hloc's ``match_dense``: every pair of
+    the sequence is matched first (its raw points kept in ``raw_dense_store``, so a rerun
+    resumes), then the keypoints of each image are merged across all pairs
+    (``matchers.merge_dense_matches``) and each pair is verified on its merged matches."""
+
+    def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        image0, scale0 = load_for_extraction(sequence.image_root / pair.query, conf["matcher"])
+        image1, scale1 = load_for_extraction(sequence.image_root / pair.reference, conf["matcher"])
+        return image0, scale0, image1, scale1
+
+    def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:
+        """Each pair's points in original pixels, both images' original sizes, scores, seconds."""
+        bar = tqdm(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+        for pair, loaded in concurrency.prefetch(pairs, load_pair):
+            if isinstance(loaded, BaseException):
+                raise ImageReadError(f"{loaded} (pair {pair.query} {pair.reference} of {sequence.name!r})") from loaded
+            image0, scale0, image1, scale1 = loaded
+            start = time.perf_counter()
+            points0, points1, match_scores = matcher(image0, image1)
+            points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
+            seconds = time.perf_counter() - start
+            sizes = (np.round(np.array(image0.shape[1::-1]) * scale0), np.round(np.array(image1.shape[1::-1]) * scale1))
+            yield pair, points0, points1, sizes, match_scores, seconds
+            bar.update()
+        bar.close()
+
+    from gvbench_nb.protocol.matching.loftr import merge_dense_matches
+
+    merge = dense_merge_options(conf["matcher"])
+    if merge is None:
+        with matches.writer(flush_every) as writer:
+            for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(todo):
+                identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
+                _verify_and_store(
+                    writer,
+                    pair,
+                    keys[pair],
+                    conf,
+                    seed,
+                    points0,
+                    points1,
+                    identity,
+                    match_scores,
+                    {"points0": points0, "points1": points1},
+                    match_seconds,
+                    sizes,
+                )
+        return
+
+    if output_dir is None:
+        raise ValueError("merging dense matches needs the output_dir holding the raw matches")
+    for key in matches.keys():
+        check_merged_over(matches.read(key, fields=()), sequence, keys, matches.folder)
+    raw = raw_dense_store(output_dir, conf)
+    raw.refresh()
+    with raw.writer(flush_every) as writer:
+        for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(
+            [p for p in sequence.pairs if keys[p] not in raw]
+        ):
+            writer.put(
+                keys[pair],
+                {
+                    "points0": points0,
+                    "points1": points1,
+                    "scores": match_scores.astype(np.float32),
+                    "image_size0": np.asarray(sizes[0]),
+                    "image_size1": np.asarray(sizes[1]),
+                },
+                {"match_seconds": match_seconds},
+            )
+    raw.refresh()
+    entries = [raw.read(keys[p]) for p in sequence.pairs]
+    raw.close()
+    start = time.perf_counter()
+    keypoints, merged = merge_dense_matches(
+        [(p.query, p.reference) for p in sequence.pairs],
+        [(e["points0"], e["points1"], e["scores"]) for e in entries],
+        **merge,
+    )
+    merge_seconds = (time.perf_counter() - start) / max(len(sequence.pairs), 1)  # shared by every pair
+    merged_over = pair_list_hash(keys)
+    wanted = {keys[p] for p in todo}
+    with matches.writer(flush_every) as writer:
+        for pair, entry, (pair_matches, match_scores) in zip(sequence.pairs, entries, merged):
+            if keys[pair] not in wanted:
+                continue
+            points0 = keypoints[pair.query][pair_matches[:, 0]]
+            points1 = keypoints[pair.reference][pair_matches[:, 1]]
+            verified, verify_seconds = _verify_pair(
+                pair,
+                conf,
+                seed,
+                points0,
+                points1,
+                np.repeat(np.arange(len(points0))[:, None], 2, axis=1),
+                match_scores,
+                (entry["image_size0"], entry["image_size1"]),
+            )
+            _store_verified(
+                writer,
+                keys[pair],
+                pair_matches,
+                match_scores,
+                verified,
+                {"points0": points0, "points1": points1},
+                float(entry["attr:match_seconds"]) + merge_seconds,
+                verify_seconds,
+                {"merged_over": merged_over},
+            )

@@ -1,0 +1,200 @@
+"""From per-pair tables to results: what each method's results are bound to (pairs, labels,
+images), AP/MR per method, and the checks that a table is still the one its inputs made.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from collections.abc import Iterable
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import pandas as pd
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.io_utils import atomic_write_csv
+from gvbench_nb.protocol.images import (
+    ImageReadError,
+)
+from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.runner import image_features, method_outputs, record
+
+if TYPE_CHECKING:
+    pass
+
+
+def pairs_digest(rows: Iterable[tuple[str, str, int]]) -> str:
+    """SHA-256 of the (query, reference, label) rows a method scored, in order: two tables with
+    the same digest were scored on the same pairs with the same labels."""
+    text = "".join(f"{query}\t{reference}\t{int(label)}\n" for query, reference, label in rows)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+def table_pairs_digest(table: pd.DataFrame) -> str:
+    return pairs_digest(zip(table["query"], table["reference"], table["label"]))
+
+
+def images_digest(image_root: Path, names: Iterable[str]) -> str:
+    """BLAKE2b of the images' names and content keys: changes when any image's bytes change."""
+    digest = hashlib.blake2b(digest_size=20)
+    for name in sorted(set(names)):
+        digest.update(f"{name}\t{image_features.image_key(image_root, name)}\n".encode())
+    return digest.hexdigest()
+
+
+def sequence_binding(sequence: Sequence) -> dict[str, Any]:
+    """What a method's results are bound to: the pairs and labels scored, the images' contents,
+    and the pair file they came from (as it was then)."""
+    return {
+        "pairs_digest": pairs_digest((p.query, p.reference, p.label) for p in sequence.pairs),
+        "images_digest": images_digest(sequence.image_root, sequence.images),
+        "n_pairs": len(sequence.pairs),
+        "pairs_file": sequence.origin.get("pairs_file"),
+        "pairs_sha256": sequence.origin.get("pairs_sha256"),
+    }
+
+
+def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
+    path = method_outputs.method_dir(output_dir, method) / "pairs.csv"
+    if not path.is_file():
+        raise method_outputs.ResultsError(f"no results for method {method!r}: {path} is missing; run the method first")
+    return pd.read_csv(path, keep_default_na=False)
+
+
+def methods_with_results(output_dir: Path) -> list[str]:
+    """Methods that have a finished ``pairs.csv``, in registry order, then any others."""
+    found = {p.parent.name for p in Path(output_dir).glob("*/pairs.csv")}
+    ordered = [m for m in method_registry.method_names() if m in found]
+    return ordered + sorted(found - set(ordered))
+
+
+def timers_source(run: dict[str, Any]) -> str:
+    """Whose timers a method's seconds are: ``this run`` (it computed every image and pair),
+    ``cached`` (every one came from the cache: the seconds are those of the runs that computed
+    them) or ``partly cached``."""
+    this_run = run.get("this_run", {})
+    extraction, matching = this_run.get("extraction", {}), this_run.get("matching", {})
+    reused = extraction.get("cached", 0) + matching.get("cached", 0)
+    computed = extraction.get("extracted", 0) + matching.get("matched", 0)
+    if not reused:
+        return "this run"
+    return "cached" if not computed else "partly cached"
+
+
+def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = True) -> pd.DataFrame:
+    """AP, MR and seconds per pair for every method with results; writes ``results.csv``.
+
+    Every method must have scored the same pairs with the same labels (``pairs_digest``, from
+    the pairs tables themselves): a table that mixes pair files is refused, naming the rows."""
+    output_dir = Path(output_dir)
+    methods = methods or methods_with_results(output_dir)
+    if not methods:
+        what = "does not exist" if not output_dir.exists() else "holds no method results (<method>/pairs.csv)"
+        raise method_outputs.ResultsError(
+            f"{output_dir} {what}; give the output_dir of a finished run, or run a method first "
+            "(python -m gvbench_nb run PARAMS)"
+        )
+    rows = []
+    for method in methods:
+        table = load_pairs_table(output_dir, method)
+        run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text())
+        metrics = evaluate_scores(
+            table["label"].to_numpy(),
+            table["score"].to_numpy(),
+            where=f"{method_outputs.method_dir(output_dir, method) / 'pairs.csv'}",
+        )
+        rows.append(
+            {
+                "sequence": run["sequence"],
+                "method": method,
+                "paper_name": run["conf"]["paper_name"],
+                "profile": run["conf"]["profile"],
+                **metrics,
+                "extract_seconds_per_pair": table["extract_seconds"].mean(),
+                "match_seconds_per_pair": table["match_seconds"].mean(),
+                "verify_seconds_per_pair": table["verify_seconds"].mean(),
+                "seconds_per_pair": (
+                    table["extract_seconds"] + table["match_seconds"] + table["verify_seconds"]
+                ).mean(),
+                "device": run["environment"]["device"],
+                # >1: the seconds above include waiting for cores shared by concurrent images/pairs
+                "workers": run.get("this_run", {}).get("workers", 1),  # runs written before workers existed: 1
+                "timers": timers_source(run),
+                "pairs_digest": table_pairs_digest(table)[:12],
+                "finished_at": run.get("finished_at"),
+            }
+        )
+    results = pd.DataFrame(rows)
+    check_one_binding(output_dir, results)
+    if write:
+        if not record.is_stage(output_dir):
+            record.claim(output_dir)
+        record.save_checked(output_dir / "results.csv", lambda path: atomic_write_csv(path, results))
+    return results
+
+
+def check_one_binding(output_dir: Path, results: pd.DataFrame) -> None:
+    """Refuse a results table whose methods scored different pairs or labels, naming the rows."""
+    groups = results.groupby("pairs_digest", sort=False)["method"].apply(list)
+    if len(groups) > 1:
+        described = "; ".join(f"{', '.join(names)}: pairs {digest}" for digest, names in groups.items())
+        raise method_outputs.ResultsError(
+            f"{output_dir}: its methods were scored on different pairs or labels ({described}), so their AP and MR "
+            "do not compare; rerun them on one pair file, or give each pair file its own output_dir"
+        )
+
+
+def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
+    """Methods whose inputs changed since they ran: method -> what changed (the pair file's
+    SHA-256, or the images' contents); inputs no longer there to check are not reported."""
+    changed = {}
+    for method in methods:
+        run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+        pairs = run.get("pairs") or {}
+        pairs_file = pairs.get("pairs_file")
+        if pairs_file and Path(pairs_file).is_file() and record.file_sha256(pairs_file) != pairs.get("pairs_sha256"):
+            changed[method] = f"the pair file {pairs_file} changed"
+            continue
+        recorded = (run.get("binding") or {}).get("images_digest")
+        root = Path(run.get("image_root", ""))
+        if recorded and root.is_dir():
+            table = load_pairs_table(output_dir, method)
+            try:
+                now = images_digest(root, [*table["query"], *table["reference"]])
+            except ImageReadError:
+                changed[method] = f"an image under {root} is gone"
+                continue
+            if now != recorded:
+                changed[method] = f"images under {root} changed"
+    return changed
+
+
+def check_results_current(output_dir: Path, methods: Iterable[str], tables: Iterable[str] = ()) -> None:
+    """Raise unless ``methods``' results in ``output_dir`` are what a finished run published
+    (the folder's record), unedited (their files' SHA-256 are the record's; ``tables``: more such
+    files, e.g. ``results.csv``), from a pair file and images unchanged since."""
+    output_dir = Path(output_dir)
+    methods = list(methods)
+    record.check_published(output_dir)
+    names = [f"{m}/{name}" for m in methods for name in method_outputs.FINISHED_OUTPUTS] + list(tables)
+    edited = record.changed_files(output_dir, names)
+    if edited:
+        raise record.RecordError(
+            f"{output_dir}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a "
+            f"run's; run those methods again (python -m gvbench_nb run PARAMS --output-dir {output_dir}) after "
+            "moving the edited files away"
+        )
+    check_inputs_unchanged(output_dir, methods)
+
+
+def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
+    """``ResultsError`` naming the methods whose pair file or images changed since they ran."""
+    changed = changed_inputs(output_dir, methods)
+    if changed:
+        described = "; ".join(f"{method}: {why}" for method, why in changed.items())
+        raise method_outputs.ResultsError(
+            f"{output_dir}: results computed from inputs that have changed since ({described}); run those methods "
+            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {output_dir})"
+        )

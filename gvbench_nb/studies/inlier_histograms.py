@@ -1,0 +1,110 @@
+"""What notebooks/analysis_inlier_histograms.ipynb computes and draws: each method's inlier counts,
+normalised, for true and false pairs, and how far the two overlap.
+"""
+
+from __future__ import annotations
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from gvbench_nb.evaluation import plots
+
+
+# ------------------------------------------------------------------- inliers --
+def normalised_inliers(table: pd.DataFrame) -> pd.Series:
+    """Inliers / the method's largest inlier count (the paper's normalisation; 0 when all are 0)."""
+    largest = table["num_inliers"].max()
+    return table["num_inliers"] / largest if largest > 0 else table["num_inliers"] * 0.0
+
+
+def normalised_inlier_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    """Long table: method, pair_index, label, num_inliers, normalised_inliers."""
+    frames = [
+        t[["pair_index", "label", "num_inliers"]].assign(method=m, normalised_inliers=normalised_inliers(t))
+        for m, t in tables.items()
+    ]
+    return pd.concat(frames, ignore_index=True)
+
+
+def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
+    """What caps MR: the top false pair's score and the true pairs that do not beat it.
+
+    ``true_above_top_false`` is the share of true pairs scoring strictly above every
+    false pair - the recall reachable at 100% precision, i.e. MR.
+    """
+    true_scores = table.loc[table["label"] == 1, "score"].to_numpy(dtype=float)
+    false_scores = table.loc[table["label"] == 0, "score"].to_numpy(dtype=float)
+    if len(true_scores) == 0 or len(false_scores) == 0:
+        raise ValueError("need both true and false pairs to describe their overlap")
+    top_false = float(false_scores.max())
+    largest = float(table["score"].max()) or 1.0
+    return {
+        "n_true": int(len(true_scores)),
+        "n_false": int(len(false_scores)),
+        "true_zero_inliers": float(np.mean(true_scores == 0)),
+        "false_zero_inliers": float(np.mean(false_scores == 0)),
+        "top_false_score": top_false,
+        "top_false_normalised": top_false / largest,
+        "true_above_top_false": float(np.mean(true_scores > top_false)),
+        "true_in_overlap": float(np.mean(true_scores <= top_false)),
+    }
+
+
+def inlier_overlap_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
+    return pd.DataFrame([{"method": m, **inlier_overlap_summary(t)} for m, t in tables.items()])
+
+
+def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "", bins: int = 30) -> plt.Figure:
+    """Normalised inlier counts of true vs false pairs, one panel a run (Figs. 6, 8, 9), titled
+    with its method and profile (from the table's ``profile`` column).
+
+    Shaded: above the top false pair's score, where every true pair counts towards MR;
+    annotated: the share of true pairs with zero inliers (unreachable at any threshold).
+    """
+    n = len(tables)
+    columns = min(n, 3)
+    rows = int(np.ceil(n / columns))
+    figure, axes = plt.subplots(rows, columns, figsize=(4.6 * columns, 3.2 * rows), squeeze=False)
+    edges = np.linspace(0, 1, bins + 1)
+    for axis, (method, table) in zip(axes.ravel(), tables.items()):
+        normalised = normalised_inliers(table)
+        summary = inlier_overlap_summary(table)
+        for label, name, colour in ((1, "true", "tab:green"), (0, "false", "tab:red")):
+            axis.hist(
+                normalised[table["label"] == label],
+                bins=edges,
+                color=colour,
+                alpha=0.55,
+                label=f"{name} ({int((table['label'] == label).sum())})",
+                density=True,
+            )
+        top = summary["top_false_normalised"]
+        axis.axvspan(top, 1.0, color="tab:blue", alpha=0.08)
+        axis.axvline(top, color="tab:blue", linestyle="--", linewidth=1)
+        axis.text(
+            0.98,
+            0.95,
+            f"true pairs above top false: {summary['true_above_top_false']:.1%} (= MR)\n"
+            f"true pairs with 0 inliers: {summary['true_zero_inliers']:.1%}",
+            transform=axis.transAxes,
+            ha="right",
+            va="top",
+            fontsize=7,
+            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+        )
+        profiles = table["profile"].unique() if "profile" in table else []
+        if len(profiles) > 1:
+            raise ValueError(
+                f"the pairs table of {method!r} mixes profiles {sorted(profiles)}; "
+                "give each profile's table its own key"
+            )
+        panel = plots.run_label(method, profiles[0]) if len(profiles) else method
+        axis.set(title=panel, xlabel="inliers / method's max inliers", ylabel="density")
+        axis.legend(fontsize=7, loc="center right")
+    for axis in axes.ravel()[n:]:
+        axis.axis("off")
+    if title:
+        figure.suptitle(title)
+    figure.tight_layout()
+    return figure

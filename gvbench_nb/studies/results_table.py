@@ -1,0 +1,260 @@
+"""What notebooks/analysis_results_table.ipynb computes and draws: our results beside the paper's and
+the GV-Bench repository's published tables (always labelled as theirs), and the max-recall chart.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
+from pathlib import Path
+from typing import Any
+
+import matplotlib.pyplot as plt
+import numpy as np
+import pandas as pd
+
+from gvbench_nb import methods as method_registry
+from gvbench_nb import reference_values
+from gvbench_nb.evaluation import plots, run_tables
+
+
+def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame:
+    """The paper's AP/MR (published in %) as fractions, with our method names where we have them.
+
+    Default: the table shipped in ``gvbench_nb/reference_values``; ``path``: a file in the
+    same format (``method,sequence,ap,max_recall`` in %), empty when it does not exist.
+    Columns: paper_name, method (ours, or None for methods we do not implement),
+    sequence, ap, max_recall.
+    """
+    columns = ["paper_name", "method", "sequence", *run_tables.METRICS]
+    if path is None:
+        return reference_values.paper_table().rename(columns={"reference_name": "paper_name"})[columns]
+    path = Path(path)
+    if not path.is_file():
+        return pd.DataFrame(columns=columns)
+    raw = pd.read_csv(path)
+    expected = {"method", "sequence", *run_tables.METRICS}
+    if not expected <= set(raw.columns):
+        raise ValueError(f"{path}: expected columns {sorted(expected)}, got {list(raw.columns)}")
+    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.RECIPES["paper"].items()}
+    table = raw.rename(columns={"method": "paper_name"})
+    table["method"] = table["paper_name"].map(by_paper_name)
+    for metric in run_tables.METRICS:
+        table[metric] = table[metric] / 100.0
+    return table[columns]
+
+
+def load_repository_table() -> pd.DataFrame:
+    """The GV-Bench repository's published AP/MR (fractions), its matcher names as ``paper_name``
+    and ours as ``method`` where they are the same method (``reference_values.REPOSITORY_METHODS``)."""
+    return reference_values.repository_table().rename(columns={"reference_name": "paper_name"})
+
+
+def source_label(source: str, profile: str | None = None) -> str:
+    """How a row's values are named in tables and figures: ours always with the profile."""
+    return f"{run_tables.OURS_LABEL} ({profile} profile)" if source == run_tables.OURS_LABEL else source
+
+
+def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
+    """Rows of ``results`` sharing (sequence, profile, method) with another row."""
+    return results[results.duplicated(run_tables.RUN_KEY, keep=False)]
+
+
+def join_paper_table(
+    results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
+) -> pd.DataFrame:
+    """Long table of ours and the published values, one row a (method, profile, sequence, source).
+
+    ``source`` is ``ours``, ``paper`` or ``GV-Bench repository``; ``profile`` is the
+    protocol the values come from: ours, the run's profile; the paper's table, ``paper``
+    (the hloc chain); the repository's, ``repository``. Published values are kept only
+    beside a run of the same method, sequence and profile, so no row sets one protocol's
+    numbers next to another's. ``label`` names the source for figures ("ours (paper profile)").
+    Two runs with the same (sequence, profile, method) are an error, not a silent choice.
+    """
+    if "profile" not in results:
+        raise ValueError(
+            "the results have no profile column: evaluate the runs again "
+            "(python -m gvbench_nb run PARAMS) so results.csv records each run's profile"
+        )
+    twice = duplicated_runs(results)
+    if not twice.empty:
+        where = twice.get("output_dir", pd.Series(["?"] * len(twice), index=twice.index))
+        runs = "; ".join(f"{r.sequence}/{r.profile}/{r.method} in {w}" for r, w in zip(twice.itertuples(), where))
+        raise ValueError(
+            f"the same (sequence, profile, method) appears more than once: {runs}; pass only one output folder for each"
+        )
+    ours = results[["method", "profile", "sequence", *run_tables.METRICS]].copy()
+    ours["paper_name"] = ours["method"].map(method_registry.paper_name)
+    ours["source"] = run_tables.OURS_LABEL
+    ran = set(zip(ours["method"], ours["sequence"], ours["profile"]))
+    frames = [ours]
+    for table, source, profile in (
+        (paper, run_tables.PAPER_LABEL, "paper"),
+        (repository, run_tables.REPOSITORY_LABEL, "repository"),
+    ):
+        if table is None or table.empty:
+            continue
+        # A boolean array, not a list: an empty list would select no columns instead of no rows.
+        keep = np.array([(m, s, profile) in ran for m, s in zip(table["method"], table["sequence"])], dtype=bool)
+        frames.append(table[keep].assign(source=source, profile=profile))
+    columns = ["method", "paper_name", "profile", "sequence", "source", *run_tables.METRICS]
+    joined = pd.concat([f[columns] for f in frames], ignore_index=True)
+    joined["label"] = [source_label(src, prof) for src, prof in zip(joined["source"], joined["profile"])]
+    return joined
+
+
+def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.METRICS) -> pd.DataFrame:
+    """Wide table: one row a (method, profile); columns (sequence, metric, source), ours beside
+    the published values of the same protocol.
+
+    Rows, sequences keep first-seen order; a published column exists only where it has values.
+    """
+    wide = joined.pivot_table(
+        index=["method", "profile"], columns=["sequence", "source"], values=list(metrics), aggfunc="first"
+    )
+    wide = wide.reorder_levels([1, 0, 2], axis=1)
+    sequence_order = list(dict.fromkeys(joined["sequence"]))
+    row_order = [r for r in dict.fromkeys(zip(joined["method"], joined["profile"])) if r in wide.index]
+    source_order = [run_tables.OURS_LABEL, run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL]
+    keys = [(s, m, src) for s in sequence_order for m in metrics for src in source_order if (s, m, src) in wide.columns]
+    wide = wide.loc[row_order, keys]
+    wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
+    wide.index = pd.MultiIndex.from_tuples(
+        [(f"{m} ({method_registry.paper_name(m)})", p) for m, p in wide.index], names=["method", "profile"]
+    )
+    return wide
+
+
+def paper_reference_table(
+    paper: pd.DataFrame, methods: Iterable[str] | None = None, source: str = run_tables.PAPER_LABEL
+) -> pd.DataFrame:
+    """A published table (all its sequences) for ``methods`` (its own names kept for the
+    methods we do not implement when ``methods`` is None), columns (sequence, metric, source)."""
+    if methods is not None:
+        paper = paper[paper["method"].isin(list(methods))]
+    wide = paper.assign(source=source).pivot_table(
+        index="paper_name", columns=["sequence", "source"], values=list(run_tables.METRICS), aggfunc="first"
+    )
+    wide = wide.reorder_levels([1, 0, 2], axis=1)
+    keys = [
+        (s, m, source)
+        for s in dict.fromkeys(paper["sequence"])
+        for m in run_tables.METRICS
+        if (s, m, source) in wide.columns
+    ]
+    wide = wide.loc[list(dict.fromkeys(paper["paper_name"])), keys]
+    wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
+    return wide
+
+
+def style_results_table(wide: pd.DataFrame) -> Any:
+    """The wide table as a pandas Styler: values in %, each column's best in bold,
+    the published columns (paper, GV-Bench repository) in grey italics."""
+    best = run_tables.best_per_column(wide)
+
+    def css(_: pd.DataFrame) -> pd.DataFrame:
+        styles = pd.DataFrame("", index=wide.index, columns=wide.columns)
+        for column in wide.columns:
+            paper = column[-1] in (run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL)
+            base = "color: #666; font-style: italic;" if paper else ""
+            styles[column] = [base + ("font-weight: bold;" if b else "") for b in best[column]]
+        return styles
+
+    return wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}").apply(css, axis=None)
+
+
+def text_results_table(wide: pd.DataFrame) -> pd.DataFrame:
+    """The wide table as strings in %, the best of each column marked with ``*``."""
+    best = run_tables.best_per_column(wide)
+    text = wide.map(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}")
+    return text.where(~best, text + "*")
+
+
+SOURCE_STYLE = {
+    run_tables.OURS_LABEL: {"linestyle": "-", "alpha": 0.9},
+    run_tables.PAPER_LABEL: {"linestyle": "--", "alpha": 0.6},
+    run_tables.REPOSITORY_LABEL: {"linestyle": ":", "alpha": 0.6},
+}
+
+
+# Ours under a second profile is told apart from the first by its line, as the label says.
+OURS_PROFILE_STYLE = {"paper": "-", "repository": "-."}
+
+
+def _line_style(source: str, profile: str) -> dict:
+    style = dict(SOURCE_STYLE[source])
+    if source == run_tables.OURS_LABEL:
+        style["linestyle"] = OURS_PROFILE_STYLE.get(profile, "-")
+    return style
+
+
+def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
+    """MR of every (method, profile) across sequences (the paper's Fig. 1): ours solid (the
+    repository profile dash-dotted), the paper's dashed, the GV-Bench repository's dotted;
+    every line's label names its source and profile.
+
+    A radar needs three sequences or more; with fewer the same values are drawn as bars.
+    """
+    sequences = list(dict.fromkeys(joined["sequence"]))
+    methods = list(dict.fromkeys(joined["method"]))
+    colours = plots.method_colours(methods)
+    if len(sequences) < 3:
+        return _max_recall_bars(joined, sequences, methods, colours, title)
+    angles = np.linspace(0, 2 * np.pi, len(sequences), endpoint=False)
+    figure, axis = plt.subplots(figsize=(6.5, 6.5), subplot_kw={"projection": "polar"})
+    for (method, profile, source), group in joined.groupby(["method", "profile", "source"], sort=False):
+        values = group.set_index("sequence")["max_recall"].reindex(sequences).to_numpy(dtype=float)
+        if np.isnan(values).all():
+            continue
+        closed = np.r_[values, values[:1]]
+        axis.plot(
+            np.r_[angles, angles[:1]],
+            closed,
+            color=colours[method],
+            marker="o",
+            markersize=3,
+            label=f"{method} ({source_label(source, profile)})",
+            **_line_style(source, profile),
+        )
+    axis.set_xticks(angles, sequences)
+    axis.set_ylim(0, max(0.05, float(np.nanmax(joined["max_recall"])) * 1.1))
+    axis.set_title(title or "max recall at 100% precision across sequences", pad=20)
+    axis.legend(loc="upper left", bbox_to_anchor=(1.05, 1.0), fontsize=8)
+    return figure
+
+
+def _max_recall_bars(
+    joined: pd.DataFrame, sequences: list[str], methods: list[str], colours: dict, title: str
+) -> plt.Figure:
+    """One bar a (method, profile, source) and sequence, each labelled with its source and profile."""
+    rows = list(dict.fromkeys(zip(joined["method"], joined["profile"], joined["source"])))
+    figure, axes = plt.subplots(
+        1, len(sequences), figsize=(4.5 * len(sequences), 0.4 * len(rows) + 2), squeeze=False, sharex=True
+    )
+    for axis, sequence in zip(axes[0], sequences):
+        data = joined[joined["sequence"] == sequence]
+        for row, (method, profile, source) in enumerate(rows):
+            value = data[(data.method == method) & (data.profile == profile) & (data.source == source)]["max_recall"]
+            if value.empty:
+                continue
+            axis.barh(
+                row,
+                value.iloc[0],
+                height=0.8,
+                color=colours[method],
+                hatch=None if source == run_tables.OURS_LABEL else "//",
+                alpha=SOURCE_STYLE[source]["alpha"],
+                edgecolor="black",
+                linewidth=0.4,
+            )
+            axis.text(value.iloc[0], row, f" {100 * value.iloc[0]:.1f}%", va="center", fontsize=7)
+        axis.set_yticks(range(len(rows)), [f"{m} ({source_label(src, p)})" for m, p, src in rows], fontsize=7)
+        axis.invert_yaxis()
+        axis.set(title=sequence, xlabel="max recall at 100% precision", xlim=(0, 1.15))
+    figure.suptitle(
+        (title + "\n" if title else "") + "(a radar needs 3+ sequences: bars; hatched: published)", fontsize=10
+    )
+    figure.tight_layout()
+    return figure

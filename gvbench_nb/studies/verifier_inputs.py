@@ -1,0 +1,364 @@
+"""What the verifier comparison reads from a run: each pair's cached matches, a place-disjoint
+train/test split, and the scores each verifier computes from the matches (GV features, SUE,
+Doppelgangers' classifier inputs).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import lru_cache
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import pandas as pd
+from tqdm import tqdm
+
+from gvbench_nb.data.sequences import frame_index
+from gvbench_nb.evaluation import run_tables
+from gvbench_nb.protocol.ransac import filter_and_fit
+from gvbench_nb.runner import image_features, pair_matching, scoring
+from gvbench_nb.verification.sue import sue as spatial_uncertainty
+
+# ------------------------------------------------------------------ registry --
+ESTIMATOR_SHORT_NAMES: dict[str, str] = {
+    "FM_RANSAC": "ransac",
+    "USAC_DEFAULT": "degensac",
+    "USAC_ACCURATE": "lo-ransac",
+    "USAC_MAGSAC": "magsac",
+}
+MODEL_SHORT_NAMES: dict[str, str] = {"fundamental": "F", "homography": "H"}
+PAPER_VERIFIER = "gv-F-ransac-inliers"
+# ------------------------------------------------------------------- split --
+SPLIT_TRAIN, SPLIT_TEST, SPLIT_DROPPED = "train", "test", "dropped"
+
+
+# A homography needs 4 matches, a fundamental matrix 8 (fewer: no model, score 0).
+MIN_MATCHES = {"fundamental": 8, "homography": 4}
+
+
+# Per-pair features of the learned combination (see ``gv_features``).
+FEATURES = ("log_inliers", "log_matches", "inlier_ratio", "inliers_over_keypoints", "inlier_hull_area", "inlier_spread")
+
+
+def place_disjoint_split(
+    pairs: pd.DataFrame,
+    train_fraction: float = 0.45,
+    gap_frames: int = 20,
+    tolerance: int = 2,
+    position: Callable[[str], int] = frame_index,
+) -> pd.Series:
+    """'train' / 'test' / 'dropped' for each pair, so no place is in both splits.
+
+    Frames span [lo, hi] (queries and references together, n = hi - lo + 1). Train
+    holds the pairs whose query AND reference lie in [lo, lo + floor(train_fraction n) - 1],
+    test those with both in [train_end + gap_frames + 1, hi]; any pair touching the
+    gap or the other range is dropped. Frames i (train) and j (test) then differ by
+    more than ``gap_frames`` >= 2 * ``tolerance``, so the places i +- tolerance and
+    j +- tolerance never overlap. Gardens Point (frames 0-199), defaults: train
+    0-89, test 110-199.
+    """
+    if gap_frames < 2 * tolerance:
+        raise ValueError(
+            f"gap_frames={gap_frames} < 2 * tolerance ({2 * tolerance}): a place of tolerance "
+            f"{tolerance} frames could then reach both splits; widen the gap"
+        )
+    query_frames = pairs["query"].map(position).to_numpy()
+    reference_frames = pairs["reference"].map(position).to_numpy()
+    lo = int(min(query_frames.min(), reference_frames.min()))
+    hi = int(max(query_frames.max(), reference_frames.max()))
+    train_end = lo + int(np.floor(train_fraction * (hi - lo + 1))) - 1
+    test_start = train_end + gap_frames + 1
+    if train_end < lo or test_start > hi:
+        raise ValueError(
+            f"frames {lo}-{hi} leave no room for train (to {train_end}) and test (from {test_start}); "
+            "lower gap_frames or change train_fraction"
+        )
+    in_train = (query_frames <= train_end) & (reference_frames <= train_end)
+    in_test = (query_frames >= test_start) & (reference_frames >= test_start)
+    split = np.where(in_train, SPLIT_TRAIN, np.where(in_test, SPLIT_TEST, SPLIT_DROPPED))
+    return pd.Series(split, index=pairs.index, name="split")
+
+
+def split_summary(pairs: pd.DataFrame, split: pd.Series, position: Callable[[str], int] = frame_index) -> pd.DataFrame:
+    """Pairs, positives, queries and the frame range of each split (for the notebooks)."""
+    rows = []
+    for name in (SPLIT_TRAIN, SPLIT_TEST, SPLIT_DROPPED):
+        part = pairs[split == name]
+        frames = pd.concat([part["query"], part["reference"]]).map(position) if len(part) else pd.Series([], dtype=int)
+        rows.append(
+            {
+                "split": name,
+                "pairs": len(part),
+                "positives": int(part["label"].sum()),
+                "queries": part["query"].nunique(),
+                "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-",
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+# ----------------------------------------------------------- cached matches --
+@dataclass
+class PairMatches:
+    """One pair's cached matches in original pixels, row i of points0 matched to row i of points1."""
+
+    points0: np.ndarray  # (M, 2)
+    points1: np.ndarray  # (M, 2)
+    match_scores: np.ndarray  # (M,)
+    inlier_mask: np.ndarray  # (M,) the run's FM_RANSAC inliers
+    num_keypoints0: int
+    num_keypoints1: int
+    image_size0: tuple[int, int]  # (width, height)
+    image_size1: tuple[int, int]
+
+
+class CachedMatches:
+    """Read access to one finished run's matches (``<output_dir>/<method>``), never re-matching.
+
+    Sparse methods: matched keypoints from the feature cache (``cache_dir``, default
+    ``<output_dir>/../cache``) indexed by the stored ``matches``; dense methods: the
+    stored ``points0/points1`` (keypoints = matches there, as in ``pairs.csv``).
+    """
+
+    def __init__(
+        self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
+    ) -> None:
+        self.output_dir = Path(output_dir)
+        self.method = method
+        self.run = run_tables.load_run(self.output_dir, method)
+        self.conf = self.run["conf"]
+        self.seed = int(self.run["seed"])
+        self.sequence = self.run["sequence"]
+        self.image_root = Path(self.run["image_root"])
+        self.pairs = scoring.load_pairs_table(self.output_dir, method)
+        self.matches = pair_matching.match_store(self.output_dir, self.conf)
+        self.features = (
+            image_features.feature_store(
+                run_tables.resolve_cache_dir(self.output_dir, cache_dir), self.conf["extractor"]
+            )
+            if self.conf["extractor"]
+            else None
+        )
+        self._read_features = lru_cache(maxsize=512)(self._features_of)
+        self._read_image = lru_cache(maxsize=48)(self._image_of)
+
+    @property
+    def label(self) -> str:
+        """'<method> (<profile>) on <sequence>': what every number of these matches came from."""
+        return f"{self.method} ({self.conf['profile']}) on {self.sequence}"
+
+    def _features_of(self, name: str) -> tuple[np.ndarray, tuple[int, int]]:
+        assert self.features is not None
+        key = image_features.image_key(self.image_root, name)
+        if key not in self.features:
+            raise KeyError(
+                f"features of {name!r} are not in {self.features.folder}; pass cache_dir= the run's "
+                "cache folder (its params' cache_dir)"
+            )
+        entry = self.features.read(key)
+        # float32: the cache may hold float16 (as hloc stores it), whose squares overflow in statistics.
+        return (
+            np.asarray(entry["keypoints"], dtype=np.float32),
+            (int(entry["image_size"][0]), int(entry["image_size"][1])),
+        )
+
+    def _image_of(self, name: str) -> np.ndarray:
+        path = self.image_root / name
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise FileNotFoundError(f"cannot read image {path} (run {self.output_dir / self.method})")
+        return image
+
+    def image(self, name: str) -> np.ndarray:
+        """The BGR image (as ``cv2.imread``), cached for the pairs that share it."""
+        return self._read_image(name)
+
+    def pair(self, query: str, reference: str) -> PairMatches:
+        key = pair_matching.pair_key(self.image_root, query, reference, self.seed)
+        if key not in self.matches:
+            raise KeyError(
+                f"pair {query} {reference} is not in the match store {self.matches.folder}; "
+                f"rerun {self.method!r} on these pairs"
+            )
+        entry = self.matches.read(key)
+        scores = np.asarray(entry["match_scores"], dtype=np.float64).reshape(-1)
+        inlier_mask = np.asarray(entry["inlier_mask"], dtype=bool).reshape(-1)
+        if "points0" in entry:  # dense matcher: its matched points are its keypoints
+            p0, p1 = entry["points0"].reshape(-1, 2), entry["points1"].reshape(-1, 2)
+            size0 = self.image(query).shape[1::-1]
+            size1 = self.image(reference).shape[1::-1]
+            return PairMatches(p0, p1, scores, inlier_mask, len(p0), len(p1), tuple(size0), tuple(size1))
+        keypoints0, size0 = self._read_features(query)
+        keypoints1, size1 = self._read_features(reference)
+        index = np.asarray(entry["matches"], dtype=np.int64).reshape(-1, 2)
+        return PairMatches(
+            keypoints0[index[:, 0]],
+            keypoints1[index[:, 1]],
+            scores,
+            inlier_mask,
+            len(keypoints0),
+            len(keypoints1),
+            size0,
+            size1,
+        )
+
+    def pair_seed(self, query: str, reference: str) -> int:
+        """The RANSAC seed the run used for this pair."""
+        return pair_matching.pair_seed(self.seed, query, reference)
+
+    def close(self) -> None:
+        self.matches.close()
+        if self.features is not None:
+            self.features.close()
+
+
+def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
+    """(inlier mask over all the pair's matches, number of matches that entered the fit).
+
+    ``ransac.filter_and_fit``, the run's own step, so FM_RANSAC with the run's seed gives the
+    stored mask.
+    """
+    return filter_and_fit(
+        pair.points0,
+        pair.points1,
+        pair.match_scores,
+        model=conf["model"],
+        method=conf["estimator"],
+        threshold_px=conf["threshold_px"],
+        confidence=conf["confidence"],
+        max_iters=conf["max_iters"],
+        min_matches=conf["min_matches"],
+        min_match_score=conf["min_match_score"],
+        few_matches=conf.get("few_matches", "zero"),
+        seed=seed,
+    )
+
+
+def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:
+    """Area of the convex hull of ``points`` over the image area (0 for fewer than 3 points)."""
+    if len(points) < 3:
+        return 0.0
+    hull = cv2.convexHull(np.asarray(points, dtype=np.float32).reshape(-1, 1, 2))
+    return float(cv2.contourArea(hull)) / float(image_size[0] * image_size[1])
+
+
+def gv_features(pair: PairMatches, inlier_mask: np.ndarray, num_fitted: int) -> dict[str, float]:
+    """Per-pair GV numbers: counts, both normalised scores and where the inliers lie.
+
+    ``inlier_hull_area``: the smaller of the two images' inlier convex-hull areas, as
+    a fraction of the image; ``inlier_spread``: the smaller of the two images' mean
+    per-axis std of the inlier coordinates, over the image diagonal.
+    """
+    n_inliers = int(inlier_mask.sum())
+    inliers0, inliers1 = pair.points0[inlier_mask], pair.points1[inlier_mask]
+
+    def spread(points: np.ndarray, size: tuple[int, int]) -> float:
+        return float(points.std(axis=0).mean() / np.hypot(*size)) if len(points) >= 2 else 0.0
+
+    return {
+        "num_matches": float(num_fitted),
+        "num_inliers": float(n_inliers),
+        "inliers": float(n_inliers),
+        "inlier_ratio": n_inliers / num_fitted if num_fitted else 0.0,
+        "inliers_over_keypoints": n_inliers / max(min(pair.num_keypoints0, pair.num_keypoints1), 1),
+        "log_inliers": float(np.log1p(n_inliers)),
+        "log_matches": float(np.log1p(num_fitted)),
+        "inlier_hull_area": min(
+            hull_area_fraction(inliers0, pair.image_size0), hull_area_fraction(inliers1, pair.image_size1)
+        ),
+        "inlier_spread": min(spread(inliers0, pair.image_size0), spread(inliers1, pair.image_size1)),
+    }
+
+
+def gv_feature_table(
+    cached: CachedMatches, pairs: pd.DataFrame, conf: dict[str, Any], progress: bool = True
+) -> pd.DataFrame:
+    """``gv_features`` of every pair (query, reference order kept), fitting once a pair with its run seed."""
+    rows = []
+    desc = f"{MODEL_SHORT_NAMES[conf['model']]}-{ESTIMATOR_SHORT_NAMES[conf['estimator']]}"
+    for query, reference in tqdm(
+        zip(pairs["query"], pairs["reference"]),
+        total=len(pairs),
+        desc=desc,
+        disable=not progress,
+        unit="pair",
+        leave=False,
+    ):
+        pair = cached.pair(query, reference)
+        mask, num_fitted = fit_inliers(pair, conf, cached.pair_seed(query, reference))
+        rows.append({"query": query, "reference": reference, **gv_features(pair, mask, num_fitted)})
+    return pd.DataFrame(rows, index=pairs.index)
+
+
+# ----------------------------------------------------------------------- SUE --
+def sue_pair_scores(
+    table: pd.DataFrame, slope: float = 10.0, top_k: int = 10, position: Callable[[str], int] = frame_index
+) -> pd.DataFrame:
+    """SUE of each query's GV-ranked candidates, turned into a per-pair score.
+
+    ``table`` has query, reference and ``score`` (the base GV score, >= 0). For each query:
+    1. rank its candidates by score (the "retrieval" ranking; ties by reference name)
+       and keep the top ``top_k``;
+    2. distances d_i = 1 - s_i / max_j s_j (0 for the best; all 0 when no candidate
+       has a score, so the weights are uniform), positions p_i = frame index;
+    3. query SUE = the weighted positional variance (``sue.sue`` with ``slope``), in frames^2;
+    4. every pair of the query scores  score / (1 + sqrt(SUE)): its GV score
+       discounted by the positional std of where the query's GV evidence points.
+    A query whose strong candidates agree on one place keeps its scores; one whose
+    evidence is split between distant places is discounted. Returns a frame with
+    ``query_sue`` and ``score`` aligned to ``table``'s index.
+    """
+    query_sue = pd.Series(np.nan, index=table.index)
+    for _, group in table.groupby("query", sort=False):
+        ranked = group.assign(_name=group["reference"]).sort_values(["score", "_name"], ascending=[False, True])
+        top = ranked.head(top_k)
+        scores = top["score"].to_numpy(dtype=np.float64)
+        best = scores.max()
+        distances = 1.0 - scores / best if best > 0 else np.zeros_like(scores)
+        positions = top["reference"].map(position).to_numpy(dtype=np.float64)
+        query_sue[group.index] = float(spatial_uncertainty(distances[None], positions[None], slope)[0])
+    score = table["score"].to_numpy(dtype=np.float64) / (1.0 + np.sqrt(query_sue.to_numpy()))
+    return pd.DataFrame({"query_sue": query_sue, "score": score}, index=table.index)
+
+
+# --------------------------------------------------------------- Doppelgangers --
+def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, progress: bool = True) -> np.ndarray:
+    """(N, 10, S, S) classifier inputs built from the cached matches (``build_input``, pipeline's way:
+    the classifier selects its own "matches" with confidence > 0.8 and F-RANSAC in its frame)."""
+    from gvbench_nb.verification.doppelgangers import build_input
+
+    inputs = []
+    for query, reference in tqdm(
+        zip(pairs["query"], pairs["reference"]),
+        total=len(pairs),
+        desc=f"doppelgangers inputs {size}px",
+        disable=not progress,
+        unit="pair",
+        leave=False,
+    ):
+        pair = cached.pair(query, reference)
+        inputs.append(
+            build_input(
+                cached.image(query), cached.image(reference), pair.points0, pair.points1, pair.match_scores, None, size
+            )
+        )
+    return np.stack(inputs) if inputs else np.zeros((0, 10, size, size), np.float32)
+
+
+def balanced_subset(labels: np.ndarray, max_pairs: int | None, seed: int) -> np.ndarray:
+    """Indices of at most ``max_pairs`` pairs, half true half false where possible (seeded);
+    all indices when ``max_pairs`` is None or not smaller than the set."""
+    labels = np.asarray(labels).astype(int)
+    if max_pairs is None or max_pairs >= len(labels):
+        return np.arange(len(labels))
+    rng = np.random.default_rng(seed)
+    positives, negatives = np.flatnonzero(labels == 1), np.flatnonzero(labels == 0)
+    n_negative = min(len(negatives), max_pairs // 2)
+    n_positive = min(len(positives), max_pairs - n_negative)
+    n_negative = min(len(negatives), max_pairs - n_positive)
+    chosen = np.r_[rng.choice(positives, n_positive, replace=False), rng.choice(negatives, n_negative, replace=False)]
+    return np.sort(chosen)

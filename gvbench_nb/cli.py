@@ -12,8 +12,8 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
+from gvbench_nb import run_and_publish
 from gvbench_nb.arguments import whole_number_at_least
-from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
 from gvbench_nb.reporting.tables import markdown_table
 
 DESCRIPTION = """\
@@ -22,6 +22,7 @@ gvbench-nb: benchmark local feature matching for geometric verification of loop 
 the methods and the profile; results land in <output_dir>/<method>/pairs.csv and
 <output_dir>/results.csv (AP and max recall at 100% precision), beside the executed notebooks.
 """
+
 
 EPILOG = """\
 Run it with the project's venv: .venv/bin/python -m gvbench_nb (or `source .venv/bin/activate`
@@ -56,197 +57,6 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
     print("  ".join(c.ljust(widths[c]) for c in columns))
     for row in rows:
         print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
-
-
-def execute_run_notebooks(
-    jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path, compute: Callable[[str], None]
-) -> None:
-    """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
-    01_sequence at once; each method's 02_verify once ``compute(method)`` has filled its
-    caches here (torch is imported once for all methods; the notebook's own run then finds
-    every image and pair cached); 03_evaluate once every 02_verify has finished (it reads
-    their pairs.csv only), while 01_sequence may still run.
-
-    Errors are raised in job order, as when the notebooks ran one after another. A method
-    whose computation fails here is left to its notebook, which resumes from the caches and,
-    failing the same way, keeps the traceback; the methods after it are not started.
-    """
-    from concurrent.futures import Future, ThreadPoolExecutor, wait
-
-    def execute(job: tuple[str, str, dict[str, Any]]) -> None:
-        # Lines, not a bar: notebooks overlap each other and the stages' own progress bars.
-        source, target, parameters = job
-        print(f"executing {source} -> {output_dir / target}", flush=True)
-        execute_notebook(source, output_dir / target, parameters)
-
-    def failed(futures: list[Future]) -> bool:
-        return any(future.done() and future.exception() is not None for future in futures)
-
-    def finish(futures: list[Future]) -> None:
-        for future in futures:  # in job order: the first failing notebook's error is raised
-            future.result()
-
-    # Every notebook's kernel is started ahead (``kernels_ahead``), while this process computes.
-    with kernels_ahead(len(jobs)), ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
-        started: list[Future] = []
-        verifying: list[Future] = []
-        try:
-            for job in jobs[:-1]:
-                if failed(started):
-                    finish(started)  # a notebook failed: raise its error before more work
-                method = job[2].get("method")
-                if method is not None:
-                    try:
-                        compute(method)
-                    except Exception:
-                        finish(started)  # earlier notebooks' errors first
-                        execute(job)  # raises this method's error from its notebook
-                        continue
-                started.append(pool.submit(execute, job))
-                if method is not None:
-                    verifying.append(started[-1])
-            wait(verifying)
-            if failed(started):
-                finish(started)
-            started.append(pool.submit(execute, jobs[-1]))
-            finish(started)
-        finally:
-            for future in started:
-                future.cancel()
-
-
-# What a run publishes besides each method's files (``run_files``); anything else a stage holds
-# is checked against the folder's record when it is published.
-RUN_FILES = (
-    "params.resolved.yaml",
-    "01_sequence.ipynb",
-    "sequence_positives_per_query.png",
-    "sequence_examples.png",
-    "03_evaluate.ipynb",
-    "results.csv",
-    "pr_curves.png",
-)
-
-
-def run_files(methods: list[str]) -> list[str]:
-    """The files a run of ``methods`` publishes in its output folder."""
-    per_method = [
-        name
-        for m in methods
-        for name in (f"02_verify_{m}.ipynb", f"inliers_{m}.png", f"{m}/pairs.csv", f"{m}/run.json")
-    ]
-    return [*RUN_FILES, *per_method]
-
-
-def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config, distributed, method_outputs, method_runs, record, scoring
-
-    params = run_params_of_args(args)
-    # Weights, vismatch, the device, the folders and every image were checked before any work
-    # (``check_before_work``): nothing half-runs.
-    output_dir = Path(params["output_dir"])
-    # Whose folder it is, before anything is written there.
-    record.check_owned(output_dir)
-    sequence = config.prepare_sequence(params)
-    sequence.check_images()
-    config.check_writable_folder(params, "output_dir")
-    config.check_writable_folder(params, "cache_dir")
-    record.claim(output_dir)
-    if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
-        return distributed.run_from_cli(args, params)
-    lock = record.FolderLock(output_dir)
-    lock.acquire()  # one run writes a folder at a time: a second is refused here
-    stage = None
-    try:
-        record.finish_publishing(output_dir)
-        kept, bindings = kept_methods(output_dir, params["methods"], scoring.sequence_binding(sequence))
-        record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
-        for method, previous in method_outputs.replaced_profiles(
-            output_dir, params["methods"], params["profile"]
-        ).items():
-            print(
-                f"note: {method_outputs.method_dir(output_dir, method)} holds {previous}-profile results; this "
-                f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)",
-                file=sys.stderr,
-            )
-        # The run writes its results into a stage of its own and publishes them whole when it
-        # succeeds; the methods it does not run are carried over, so the folder's table lists them all.
-        stage = record.open_stage(output_dir)
-        record.carry(output_dir, stage, kept)
-        resolved = str(config.write_resolved_params({**params, "output_dir": str(stage)}, stage))
-        common = {"params_file": resolved}
-        jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
-        jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m}) for m in params["methods"]]
-        jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
-        print(
-            f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
-            f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}"
-            + (f" (kept from earlier runs: {', '.join(kept)})" if kept else "")
-        )
-        # The notebooks' params (the stage's resolved file) make the sequence they run, so the caches are filled for it.
-        run_params = config.load_params(resolved)
-        run_sequence = config.prepare_sequence(run_params)
-
-        def compute(method: str) -> None:
-            method_runs.compute_method_of_params(run_params, run_sequence, method)
-
-        execute_run_notebooks(jobs, stage, compute)
-        config.write_resolved_params(params, stage)  # as published: the output folder's own paths
-        for method in params["methods"]:
-            bindings[method] = scoring.sequence_binding(run_sequence)
-        record.publish(output_dir, stage, bindings)
-    except Exception:
-        if stage is not None and stage.is_dir():
-            print(
-                f"the run did not finish: {output_dir} still holds the previous run's results; this run's partial "
-                f"work and executed notebooks are in {stage}",
-                file=sys.stderr,
-            )
-        raise
-    finally:
-        lock.release()
-    print_run_results(output_dir)
-    return 0
-
-
-def kept_methods(
-    output_dir: Path, methods: list[str], binding: dict[str, Any]
-) -> tuple[list[str], dict[str, dict[str, Any]]]:
-    """The methods an output folder holds that this run does not rerun, with their bindings;
-    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
-    from gvbench_nb.runner import record
-
-    published = (record.read_record(output_dir) or {}).get("methods", {})
-    kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
-    other = [
-        m
-        for m, entry in kept.items()
-        if (entry.get("pairs_digest"), entry.get("images_digest"))
-        != (binding["pairs_digest"], binding["images_digest"])
-    ]
-    if other:
-        raise record.RecordError(
-            f"{output_dir} holds results of {', '.join(other)} computed on other pairs, labels or images than this "
-            f"run's ({binding['pairs_file']}); run them again with this run (--methods "
-            f"{','.join([*methods, *other])}) or give another --output-dir"
-        )
-    return list(kept), kept
-
-
-def print_run_results(output_dir: Path) -> None:
-    """The folder's results table as ``run`` ends, with a note on timers taken from the cache."""
-    import pandas as pd
-
-    results = pd.read_csv(output_dir / "results.csv")
-    columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
-    print(results[columns].to_string(index=False))
-    reused = results.loc[results["timers"] != "this run", "method"].tolist()
-    if reused:
-        print(
-            f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "
-            "that computed them (timers column), not this run's"
-        )
-    print(f"results table: {output_dir / 'results.csv'}")
 
 
 def command_results(args: argparse.Namespace) -> int:
@@ -395,8 +205,8 @@ def positive_int(text: str) -> int:
 def command_build(args: argparse.Namespace) -> int:
     import sys
 
-    from gvbench_nb.runner import config
-    from gvbench_nb.runner import sequence_build as builders
+    from gvbench_nb.data import build_inputs
+    from gvbench_nb.runner import config, sequence_build
 
     try:
         params = config.load_build_params(
@@ -405,11 +215,11 @@ def command_build(args: argparse.Namespace) -> int:
             top_n=args.top_n,
             pairs=str(Path(args.pairs).resolve()) if args.pairs else None,
         )
-        card = builders.build_sequence(params)
-    except (builders.BuildError, config.ParamsError) as error:
+        card = sequence_build.build_sequence(params)
+    except (build_inputs.BuildError, config.ParamsError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    print(builders.card_markdown(card))
+    print(sequence_build.card_markdown(card))
     print(f"pairs: {card['files']['pairs']}\ncard: {card['files']['card_json']}")
     return 0
 
@@ -556,7 +366,7 @@ def build_parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
-    run.set_defaults(handler=command_run)
+    run.set_defaults(handler=run_and_publish.command_run)
     distributed.add_run_arguments(run)  # --jobs; --shard I/N, --merge, --dask, --scheduler, --shards, --dask-workers
 
     results = commands.add_parser(
@@ -607,28 +417,12 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
-    """The params of a ``run`` command line: its params file with the options applied
-    (paths typed on the command line are relative to the current folder)."""
-    from gvbench_nb.runner import config
-
-    absolute = lambda path: str(Path(path).resolve()) if path else None
-    return config.load_params(
-        args.params,
-        methods=args.methods,
-        limit=args.limit,
-        profile=args.profile,
-        output_dir=absolute(args.output_dir),
-        image_root=absolute(args.image_root),
-    )
-
-
 def check_before_work(args: argparse.Namespace) -> None:
     """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
     if getattr(args, "command", None) == "run":
         from gvbench_nb.runner import config
 
-        config.check_run_inputs(run_params_of_args(args), images=not getattr(args, "merge", False))
+        config.check_run_inputs(run_and_publish.run_params_of_args(args), images=not getattr(args, "merge", False))
 
 
 def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:
@@ -728,7 +522,7 @@ USER_ERRORS = (
     ("gvbench_nb.runner.method_outputs", "ResultsError"),
     ("gvbench_nb.data.fetch", "DataError"),
     ("gvbench_nb.imm", "ImmUnavailableError"),
-    ("gvbench_nb.runner.sequence_build", "BuildError"),
+    ("gvbench_nb.data.build_inputs", "BuildError"),
     ("gvbench_nb.runner.record", "RecordError"),
     ("gvbench_nb.protocol.registry", "UnknownNameError"),
 )

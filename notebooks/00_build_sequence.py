@@ -26,8 +26,7 @@ import pandas as pd
 from IPython.display import Markdown, display
 
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import config
-from gvbench_nb.runner import sequence_build as build
+from gvbench_nb.runner import config, sequence_build
 from gvbench_nb.studies import build_sequence as build_study
 
 # %% tags=["parameters"]
@@ -49,9 +48,9 @@ output_dir = None  # figures go here; default: the params file's output_dir
 # %%
 params = config.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
 figures = Path(params["output_dir"])
-card = build.build_sequence(params)
-build.check_card(card["files"]["pairs"])  # the card's counts are the pair file's
-display(Markdown(build.card_markdown(card)))
+card = sequence_build.build_sequence(params)
+sequence_build.check_card(card["files"]["pairs"])  # the card's counts are the pair file's
+display(Markdown(sequence_build.card_markdown(card)))
 
 # %% [markdown]
 # Recall@k of each descriptor in `compare_descriptors` on the same queries: the share of

@@ -10,7 +10,8 @@ import torch
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.speed import bench
+from gvbench_nb.speed import __main__ as speed_cli
+from gvbench_nb.speed import bench, estimate
 
 
 def few_pairs(shared_data: Path) -> Sequence:
@@ -132,10 +133,10 @@ def test_bench_csvs_keep_other_runs_and_replace_the_same_run(tmp_path):
     path = tmp_path / "summary.csv"
     keys = ["sequence", "method", "profile", "n_pairs"]
     first = bench.summarize_bench(timing_rows([10.0], [2.0]))
-    bench._merge_csv(path, first, keys)
+    bench.merge_csv(path, first, keys)
     paper = first.assign(profile="paper")
-    bench._merge_csv(path, paper, keys)
-    again = bench._merge_csv(path, first.assign(speedup=7.0), keys)
+    bench.merge_csv(path, paper, keys)
+    again = bench.merge_csv(path, first.assign(speedup=7.0), keys)
     assert sorted(again["profile"]) == ["paper", "repository"]
     assert again.set_index("profile").loc["repository", "speedup"] == 7.0
 
@@ -143,7 +144,7 @@ def test_bench_csvs_keep_other_runs_and_replace_the_same_run(tmp_path):
 def test_estimate_scales_measured_costs_by_images_and_pairs():
     summary = bench.summarize_bench(timing_rows([10.0], [2.0]))
     sizes = pd.DataFrame([{"sequence": "day", "n_pairs": 3600, "n_images": 720, "uses_per_image": 10.0}])
-    row = bench.estimate_official_runtime(bench.costs_from_bench(summary), sizes).iloc[0]
+    row = estimate.estimate_official_runtime(estimate.costs_from_bench(summary), sizes).iloc[0]
     per_image = 0.5 / 10 * 100 / 40
     assert row["cached_hours"] == pytest.approx((720 * per_image + 3600 * 0.35 / 10) / 3600)  # the wall, not the sum
     assert row["per_pair_hours"] == pytest.approx(3600 / 2.0 / 3600)
@@ -169,20 +170,20 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
         (tmp_path / method / "run.json").write_text(
             json.dumps({"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"})
         )
-    costs = bench.costs_from_runs(tmp_path).set_index("method")
+    costs = estimate.costs_from_runs(tmp_path).set_index("method")
     assert list(costs.index) == ["sift-nn", "xfeat-nn"]  # registry order
     assert costs.loc["sift-nn", "extract_seconds_per_image"] == pytest.approx(4 * 0.4 / 4)
     assert costs.loc["sift-nn", "cached_seconds_per_pair"] == pytest.approx(0.2 + 0.05)
     assert costs.loc["sift-nn", "per_pair_seconds_per_pair"] == pytest.approx(2 * 0.4 + 0.25)
     sizes = pd.DataFrame([{"sequence": "day", "n_pairs": 3600, "n_images": 720, "uses_per_image": 10.0}])
-    row = bench.estimate_official_runtime(costs.reset_index(), sizes).iloc[0]
+    row = estimate.estimate_official_runtime(costs.reset_index(), sizes).iloc[0]
     assert row["source"] == "run" and row["cached_hours"] == pytest.approx((720 * 0.4 + 3600 * 0.25) / 3600)
 
 
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_official_sizes_count_unique_images(shared_data):
-    sizes = bench.official_sequence_sizes(shared_data / "gvbench_gt").set_index("sequence")
+    sizes = estimate.official_sequence_sizes(shared_data / "gvbench_gt").set_index("sequence")
     assert list(sizes.index) == list(bench.OFFICIAL_SEQUENCES)
     assert sizes.loc["uacampus", "n_pairs"] == sum(
         1 for line in (shared_data / "gvbench_gt" / "uacampus.txt").read_text().splitlines() if line.strip()
@@ -206,7 +207,7 @@ def test_scaling_table_sums_the_measured_stage_costs(shared_data):
 
 
 def test_the_bench_parser_reads_its_options():
-    args = bench.build_parser().parse_args(
+    args = speed_cli.build_parser().parse_args(
         [
             "p.yaml",
             "--methods",
@@ -226,18 +227,18 @@ def test_the_bench_parser_reads_its_options():
         2,
         "repository",
     )
-    assert args.handler is bench.command_bench
+    assert args.handler is speed_cli.command_bench
 
 
 def test_bench_takes_jobs_and_estimate_names_the_lists_before_any_timing(tmp_path, monkeypatch, capsys):
     monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
-    assert bench.build_parser().parse_args(["p.yaml"]).jobs == 2  # the bench's own default
-    assert bench.build_parser().parse_args(["p.yaml", "--jobs", "1"]).jobs == 1
+    assert speed_cli.build_parser().parse_args(["p.yaml"]).jobs == 2  # the bench's own default
+    assert speed_cli.build_parser().parse_args(["p.yaml", "--jobs", "1"]).jobs == 1
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
     timed = []
     monkeypatch.setattr(bench, "bench_method", lambda *args, **kwargs: timed.append(args))
     for argv in (["--estimate"], ["params/sample.yaml", "--estimate"]):
-        assert bench.main(argv) == 2
+        assert speed_cli.main(argv) == 2
         error = capsys.readouterr().err.strip()
         assert error == (
             "error: bench --estimate needs the official pair lists, and day.txt, night.txt, nordland.txt, "

@@ -16,9 +16,8 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb.data import sequences
-from gvbench_nb.runner import config, image_features
-from gvbench_nb.runner import sequence_build as build
+from gvbench_nb.data import build_inputs, sequences
+from gvbench_nb.runner import config, image_features, sequence_build
 from gvbench_nb.studies import build_sequence as build_study
 
 NUM_FRAMES = 8
@@ -48,8 +47,8 @@ def make_traversals(
     root: Path, cache_dir: Path, folders: list[str], design: str = "vlad", profile: str = "repository"
 ) -> None:
     """Image files (tiny placeholders) and their cached local descriptors."""
-    options = build.parse_options({"query_folder": "x", "reference_folders": ["y"]})
-    store = image_features.feature_store(cache_dir, build.local_feature_conf(options, profile))
+    options = build_inputs.parse_options({"query_folder": "x", "reference_folders": ["y"]})
+    store = image_features.feature_store(cache_dir, sequence_build.local_feature_conf(options, profile))
     rng = np.random.default_rng(7)
     with store.writer() as writer:
         for folder in folders:
@@ -105,7 +104,7 @@ def tiny(tmp_path: Path) -> Path:
 
 
 def built(tmp_path: Path, **options: object) -> dict:
-    return build.build_sequence(config.load_build_params(write_params(tmp_path, **options)), progress=False)
+    return sequence_build.build_sequence(config.load_build_params(write_params(tmp_path, **options)), progress=False)
 
 
 # ------------------------------------------------------------------ files and card
@@ -123,12 +122,12 @@ def test_pair_file_round_trips_and_card_counts_match(tiny: Path) -> None:
     assert card["counts"] == {k: v for k, v in summary.items() if k != "sequence"}
     assert json.loads(Path(card["files"]["card_json"]).read_text())["counts"] == card["counts"]
     assert f"| pairs | {len(pairs)} |" in Path(card["files"]["card_markdown"]).read_text()
-    build.check_card(card["files"]["pairs"])
+    sequence_build.check_card(card["files"]["pairs"])
     # an edited pair file no longer matches its card
     lines = Path(card["files"]["pairs"]).read_text().splitlines()
     Path(card["files"]["pairs"]).write_text("\n".join(lines[:-1]) + "\n")
-    with pytest.raises(build.BuildError, match="card counts differ"):
-        build.check_card(card["files"]["pairs"])
+    with pytest.raises(build_inputs.BuildError, match="card counts differ"):
+        sequence_build.check_card(card["files"]["pairs"])
 
 
 @pytest.mark.parametrize("descriptor, num_words", [("vlad", 4), ("bow", 2 * NUM_FRAMES)])
@@ -162,7 +161,7 @@ def test_same_seed_same_sequence_other_seed_other_queries(tiny: Path) -> None:
     assert first["counts"]["n_queries"] == 4
     params = config.load_build_params(write_params(tiny, num_queries=4))
     params["seed"] = 1
-    other = build.build_sequence(params, progress=False)
+    other = sequence_build.build_sequence(params, progress=False)
     assert len(queries(other)) == 4 and queries(other) != first_queries
 
 
@@ -197,7 +196,7 @@ def test_best_experience_table_keeps_each_query_best_pair() -> None:
     best = build_study.best_experience_table(candidates, scores)
     assert best["experience"].tolist() == ["dusk", "day"]  # q1: a tie goes to the better rank
     assert best["label"].tolist() == [1, 1]
-    with pytest.raises(build.BuildError, match="no 'score' for candidate pair q1 dusk/b"):
+    with pytest.raises(build_inputs.BuildError, match="no 'score' for candidate pair q1 dusk/b"):
         build_study.best_experience_table(candidates, scores.iloc[:3])
 
 
@@ -211,7 +210,7 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
 
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(80, 60))
-    options = build.parse_options(
+    options = build_inputs.parse_options(
         {
             "query_folder": "night",
             "reference_folders": ["day"],
@@ -226,9 +225,9 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
             },
         }
     )
-    inputs = build.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "repository"}, options)
+    inputs = build_inputs.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "repository"}, options)
     assert inputs.rule_params == {"max_distance_m": 8.0, "max_heading_deg": 40.0}
-    truth = build.ground_truth(inputs)
+    truth = sequence_build.ground_truth(inputs)
     night, day = inputs.query.names, inputs.experiences["day"].names
     given = sequences.read_pairs(root / "pairs.txt")
     ours = [bool(truth[night.index(p.query), day.index(p.reference)]) for p in given]
@@ -239,14 +238,16 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
 def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
     (tiny / "images" / "meta.csv").write_text("name,x,y\nImage000.png,0,0\n")
     spec = {"csv": "meta.csv", "heading": None}
-    options = build.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": spec})
-    with pytest.raises(build.BuildError, match=r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"):
-        build.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
-    options = build.parse_options(
+    options = build_inputs.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": spec})
+    with pytest.raises(
+        build_inputs.BuildError, match=r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"
+    ):
+        build_inputs.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
+    options = build_inputs.parse_options(
         {"query_folder": "night", "reference_folders": ["day"], "metadata": {"csv": "meta.csv"}}
     )
-    with pytest.raises(build.BuildError, match=r"missing column\(s\) \['heading'\]"):
-        build.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
+    with pytest.raises(build_inputs.BuildError, match=r"missing column\(s\) \['heading'\]"):
+        build_inputs.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
 
 
 # ------------------------------------------------------------------ options and CLI
@@ -271,8 +272,8 @@ def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
     ],
 )
 def test_bad_options_say_what_is_wrong(options: dict, message: str) -> None:
-    with pytest.raises(build.BuildError, match=message):
-        build.parse_options(options)
+    with pytest.raises(build_inputs.BuildError, match=message):
+        build_inputs.parse_options(options)
 
 
 def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -294,7 +295,7 @@ def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytes
 
 def test_recall_curves_are_monotone_and_reach_the_card(tiny: Path) -> None:
     params = config.load_build_params(write_params(tiny))
-    card = build.build_sequence(params, progress=False)
+    card = sequence_build.build_sequence(params, progress=False)
     curves = build_study.recall_curves(params, ["vlad", "bow"], progress=False)
     assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3
     for _, group in curves.groupby("descriptor"):

@@ -25,10 +25,10 @@ import pytest
 import yaml
 
 from gvbench_nb import cli
+from gvbench_nb.data import build_inputs
 from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
-from gvbench_nb.runner import config, image_features
-from gvbench_nb.runner import sequence_build as builders
+from gvbench_nb.runner import config, image_features, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -244,8 +244,8 @@ def add_frame(root: Path, cache_dir: Path, folder: str, frame: int, shade: int =
     (root / folder).mkdir(parents=True, exist_ok=True)
     name = f"{folder}/Image{frame:03d}.png"
     cv2.imwrite(str(root / name), np.full((8, 8), (40 * frame + shade) % 255, np.uint8))
-    options = builders.parse_options({"query_folder": "night", "reference_folders": ["day"]})
-    store = image_features.feature_store(cache_dir, builders.local_feature_conf(options, "repository"))
+    options = build_inputs.parse_options({"query_folder": "night", "reference_folders": ["day"]})
+    store = image_features.feature_store(cache_dir, sequence_build.local_feature_conf(options, "repository"))
     descriptors = place_descriptors(frame, shade)
     with store.writer() as writer:
         writer.put(

@@ -22,6 +22,7 @@ LAYERS = (
     ("studies",),
     ("reporting", "notebook"),
     ("explore_lab",),
+    ("run_and_publish",),
     ("cli", "__main__"),
     ("speed",),  # the bench: a program of its own that nothing imports
 )

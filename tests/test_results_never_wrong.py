@@ -24,7 +24,7 @@ import pytest
 import yaml
 from helpers import check_stage_outputs
 
-from gvbench_nb import cli, methods
+from gvbench_nb import cli, methods, run_and_publish
 from gvbench_nb.data.sequences import (
     Pair,
     PairFileError,
@@ -261,7 +261,7 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
                 ]
             ).to_csv(output_path.parent / "results.csv")
 
-    monkeypatch.setattr(cli, "execute_notebook", fake_execute)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", fake_execute)
     out = tmp_path / "elsewhere"
     assert (
         cli.main(
@@ -339,12 +339,12 @@ def test_a_method_that_fails_in_the_command_fails_in_its_notebook_and_stops_the_
         if method == "b":
             raise RuntimeError("b failed")
 
-    monkeypatch.setattr(cli, "execute_notebook", fake_execute)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", fake_execute)
     jobs = [("01_sequence.ipynb", "01_sequence.ipynb", {})]
     jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in "abc"]
     jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {}))
     with pytest.raises(RuntimeError, match="in its notebook too"):
-        cli.execute_run_notebooks(jobs, tmp_path, compute)
+        run_and_publish.execute_run_notebooks(jobs, tmp_path, compute)
     assert computed == ["a", "b"]
     assert sorted(executed) == ["01_sequence.ipynb", "02_verify_a.ipynb", "02_verify_b.ipynb"]
 
@@ -361,11 +361,11 @@ def test_evaluate_waits_for_every_verify_notebook_but_not_for_the_sequence_noteb
         if output_path.name == "03_evaluate.ipynb":
             sequence_may_finish.set()
 
-    monkeypatch.setattr(cli, "execute_notebook", fake_execute)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", fake_execute)
     jobs = [("01_sequence.ipynb", "01_sequence.ipynb", {})]
     jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in "ab"]
     jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {}))
-    cli.execute_run_notebooks(jobs, tmp_path, lambda method: None)
+    run_and_publish.execute_run_notebooks(jobs, tmp_path, lambda method: None)
     assert events[-2:] == ["03_evaluate.ipynb", "01_sequence.ipynb"]
     assert sorted(events[:2]) == ["02_verify_a.ipynb", "02_verify_b.ipynb"]
 
@@ -384,7 +384,7 @@ def test_a_run_that_fails_leaves_the_previous_results_whole_and_says_where_its_w
     def kernel_dies(name, output_path, parameters):
         raise RuntimeError("the kernel died")
 
-    monkeypatch.setattr(cli, "execute_notebook", kernel_dies)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", kernel_dies)
     capsys.readouterr()
     with pytest.raises(RuntimeError, match="kernel died"):
         cli.main(["run", str(params_path), "--output-dir", str(out)])

@@ -23,7 +23,7 @@ import pytest
 import yaml
 from test_results_never_wrong import write_root
 
-from gvbench_nb import cli
+from gvbench_nb import cli, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.protocol.metrics import evaluate_scores
@@ -53,7 +53,7 @@ def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None
 
 @pytest.fixture
 def notebooks_here(monkeypatch):
-    monkeypatch.setattr(cli, "execute_notebook", in_process_notebooks)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
 
 
 @pytest.fixture
@@ -262,7 +262,7 @@ def test_an_image_replaced_after_the_run_makes_results_refuse(tmp_path, root, ca
 def test_a_failed_rerun_leaves_the_folder_as_the_last_good_run_published_it(
     tmp_path, root, capsys, monkeypatch, failing
 ):
-    monkeypatch.setattr(cli, "execute_notebook", in_process_notebooks)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
     path = params_file(tmp_path)
     assert run_cli(capsys, "run", str(path))[0] == 0
     before = {k: v for k, v in snapshot(tmp_path / "out").items() if "/matches-" not in k}
@@ -273,7 +273,7 @@ def test_a_failed_rerun_leaves_the_folder_as_the_last_good_run_published_it(
             raise RuntimeError(f"{name} failed")
         in_process_notebooks(name, output_path, parameters)
 
-    monkeypatch.setattr(cli, "execute_notebook", fails_in)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", fails_in)
     with pytest.raises(RuntimeError, match="failed"):
         cli.main(["run", str(path)])
     err = capsys.readouterr().err
@@ -287,7 +287,7 @@ def test_a_failed_rerun_leaves_the_folder_as_the_last_good_run_published_it(
     }
     assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0
     # The next good run clears the failed run's stage.
-    monkeypatch.setattr(cli, "execute_notebook", in_process_notebooks)
+    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
     assert run_cli(capsys, "run", str(path))[0] == 0
     assert not stage.exists()
 

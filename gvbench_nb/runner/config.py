@@ -19,7 +19,7 @@ from typing import Any
 import yaml
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data import fetch
+from gvbench_nb.data import build_inputs, fetch
 from gvbench_nb.data.sequences import (
     Pair,
     Sequence,
@@ -30,7 +30,7 @@ from gvbench_nb.data.sequences import (
 from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import path_problem
-from gvbench_nb.runner import sequence_build as builders
+from gvbench_nb.runner import sequence_build
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -204,14 +204,14 @@ def load_build_params(
 ) -> dict[str, Any]:
     """``load_params`` of a ``pairs_builder: retrieval`` file, with build overrides."""
     params = load_params(params_file, pairs=pairs, **overrides)
-    if params["pairs_builder"] != builders.BUILDER_NAME:
-        raise builders.BuildError(
+    if params["pairs_builder"] != sequence_build.BUILDER_NAME:
+        raise build_inputs.BuildError(
             f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
-            f"building needs pairs_builder: {builders.BUILDER_NAME} with its builder_options"
+            f"building needs pairs_builder: {sequence_build.BUILDER_NAME} with its builder_options"
         )
     options = dict(params["builder_options"])
     options.update({k: v for k, v in (("descriptor", descriptor), ("top_n", top_n)) if v is not None})
-    builders.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
+    build_inputs.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
     params["builder_options"] = options
     return params
 
@@ -306,7 +306,7 @@ def build_frame_tolerance(params: dict[str, Any]) -> None:
 
 def build_retrieval(params: dict[str, Any]) -> None:
     """GV-Bench's way: top-N retrieval by a global descriptor, labelled by a rule (``build.py``)."""
-    builders.build_retrieval_pairs(params)
+    sequence_build.build_retrieval_pairs(params)
 
 
 PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
@@ -325,15 +325,15 @@ def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
 def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
     """What a builder's output depends on, as JSON would read it back: the builder, its
     options, the seed, the image root and (retrieval) what it read there
-    (``builders.inputs_digest``: the image folders' listings, the metadata and label files)."""
+    (``build_inputs.inputs_digest``: the image folders' listings, the metadata and label files)."""
     stamp = {
         "pairs_builder": params["pairs_builder"],
         "builder_options": params["builder_options"],
         "seed": params["seed"],
         "image_root": params["image_root"],
     }
-    if params["pairs_builder"] == builders.BUILDER_NAME and params["image_root"] is not None:
-        stamp["inputs"] = builders.inputs_digest(params["image_root"], params["builder_options"])
+    if params["pairs_builder"] == sequence_build.BUILDER_NAME and params["image_root"] is not None:
+        stamp["inputs"] = build_inputs.inputs_digest(params["image_root"], params["builder_options"])
     return json.loads(json.dumps(stamp, sort_keys=True, default=str))
 
 
@@ -550,10 +550,10 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
     root = _check_image_root(params)
     builder = params["pairs_builder"]
     options = params["builder_options"]
-    if builder == builders.BUILDER_NAME:
+    if builder == sequence_build.BUILDER_NAME:
         try:
-            parsed = builders.parse_options(options, f"{blame(params, 'builder_options')}: builder_options")
-        except builders.BuildError as error:
+            parsed = build_inputs.parse_options(options, f"{blame(params, 'builder_options')}: builder_options")
+        except build_inputs.BuildError as error:
             raise ParamsError(str(error)) from None
         for folder in (parsed.query_folder, *parsed.reference_folders):
             if not (root / folder).is_dir() and not options.get("render_sample"):

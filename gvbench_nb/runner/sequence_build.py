@@ -52,18 +52,16 @@ import json
 import time
 from collections.abc import Mapping
 from collections.abc import Sequence as SequenceType
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pandas as pd
 
-from gvbench_nb.data import retrieval
+from gvbench_nb.data import build_inputs, retrieval
 from gvbench_nb.data.sequences import (
     Pair,
     Sequence,
-    frame_index,
     read_pairs,
     summarize,
     write_pairs,
@@ -72,11 +70,10 @@ from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_writ
 from gvbench_nb.protocol import registry
 
 BUILDER_NAME = "retrieval"
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
-# Local features a vlad/bow descriptor aggregates -> the method whose extractor conf it
-# reuses, so the feature cache is shared with that method's runs.
-LOCAL_FEATURE_METHODS = {"sift": "sift-nn", "orb": "orb-nn"}
+
+
 CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "label"]
+
 
 MULTI_EXPERIENCE_NOTE = (
     "Every reference experience competes for the same top-N slots, so the pair file lists candidates from "
@@ -85,341 +82,17 @@ MULTI_EXPERIENCE_NOTE = (
 )
 
 
-class BuildError(ValueError):
-    """Retrieval build options or inputs are wrong: says which, where, and what to do."""
-
-
-# ============================================================================ options
-
-
-@dataclass(frozen=True)
-class MetadataSpec:
-    """Per-image metadata from a CSV (path relative to image_root), one row an image.
-
-    ``name``: the column holding the image path relative to image_root (a bare file
-    name is looked up inside the traversal's folder); ``position``: columns in metres
-    (2 or 3); ``heading``: degrees (optional); ``frame``: a frame-number column
-    (optional; default: parsed from the name, ``sequences.frame_index``).
-    """
-
-    csv: str
-    name: str = "name"
-    position: tuple[str, ...] = ("x", "y")
-    heading: str | None = "heading"
-    frame: str | None = None
-
-
-@dataclass(frozen=True)
-class RetrievalOptions:
-    """The ``builder_options`` of ``pairs_builder: retrieval``.
-
-    query_folder        folder (under image_root) of the query traversal
-    reference_folders   one or more reference folders ("experiences")
-    descriptor          a name in ``retrieval.GLOBAL_DESCRIPTORS``: netvlad, vlad, bow
-    descriptor_options  {descriptor name: its keyword arguments}, e.g. {vlad: {num_words: 64}};
-                        kept per name so that switching descriptor keeps each one's own
-    local_features      vlad/bow only: 'sift' or 'orb' (the sift-nn / orb-nn extractor)
-    feature_profile     profile of that extractor; null = the params' profile
-    top_n               candidates a query (GV-Bench: 20)
-    num_queries         null = every query frame, else a seeded random subset of that size
-    label_rule          a name in ``retrieval.LABEL_RULES``: pose, frame_tolerance, manual
-    label_params        the rule's parameters (override its defaults)
-    label_params_file   JSON file (relative to image_root) whose mapping, or its
-                        ``params`` mapping, supplies the rule parameters it names
-                        (the sample's generator.json); label_params win
-    metadata            null = frame numbers from the names, else a ``MetadataSpec`` mapping
-    render_sample       render the embedded synthetic sample into image_root first
-    """
-
-    query_folder: str
-    reference_folders: tuple[str, ...]
-    descriptor: str = "vlad"
-    descriptor_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
-    local_features: str = "sift"
-    feature_profile: str | None = None
-    top_n: int = 20
-    num_queries: int | None = None
-    label_rule: str = "frame_tolerance"
-    label_params: Mapping[str, Any] = field(default_factory=dict)
-    label_params_file: str | None = None
-    metadata: MetadataSpec | None = None
-    render_sample: bool = False
-
-
-def _unknown_keys(given: Mapping[str, Any], valid: SequenceType[str], where: str) -> None:
-    unknown = [k for k in given if k not in valid]
-    if unknown:
-        raise BuildError(
-            f"{where}: unknown key(s) {registry.unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}"
-        )
-
-
-def _metadata_spec(raw: Any, where: str) -> MetadataSpec | None:
-    if raw is None:
-        return None
-    if not isinstance(raw, Mapping) or "csv" not in raw:
-        raise BuildError(f"{where}: metadata must be null or a mapping with at least 'csv', got {raw!r}")
-    _unknown_keys(raw, list(MetadataSpec.__dataclass_fields__), f"{where} metadata")
-    values = dict(raw)
-    if "position" in values:
-        position = values["position"]
-        position = [position] if isinstance(position, str) else list(position)
-        if not 1 <= len(position) <= 3:
-            raise BuildError(f"{where}: metadata position must name 1 to 3 columns, got {position!r}")
-        values["position"] = tuple(position)
-    return MetadataSpec(**values)
-
-
-def parse_options(raw: Mapping[str, Any], where: str = "builder_options") -> RetrievalOptions:
-    """Validated ``RetrievalOptions`` from a params file's ``builder_options``."""
-    _unknown_keys(raw, list(RetrievalOptions.__dataclass_fields__), where)
-    for key in ("query_folder", "reference_folders"):
-        if key not in raw:
-            raise BuildError(f"{where}: missing {key!r} (folders under image_root, e.g. night_right / [day_right])")
-    values = dict(raw)
-    references = values["reference_folders"]
-    values["reference_folders"] = (references,) if isinstance(references, str) else tuple(references)
-    if not values["reference_folders"] or len(set(values["reference_folders"])) != len(values["reference_folders"]):
-        raise BuildError(f"{where}: reference_folders must list distinct folders, got {references!r}")
-    values["metadata"] = _metadata_spec(values.get("metadata"), where)
-    options = RetrievalOptions(**values)
-    registry.lookup("descriptor", options.descriptor, retrieval.GLOBAL_DESCRIPTORS, where, error=BuildError)
-    for name, descriptor_conf in options.descriptor_options.items():
-        if name not in retrieval.GLOBAL_DESCRIPTORS or not isinstance(descriptor_conf, Mapping):
-            raise BuildError(
-                f"{where}: descriptor_options maps descriptor names ({', '.join(retrieval.GLOBAL_DESCRIPTORS)}) "
-                f"to their options, e.g. {{vlad: {{num_words: 64}}}}; got {name!r}: {descriptor_conf!r}"
-            )
-    if options.local_features not in LOCAL_FEATURE_METHODS:
-        raise BuildError(
-            f"{where}: local_features must be one of {', '.join(LOCAL_FEATURE_METHODS)}, got {options.local_features!r}"
-        )
-    registry.lookup("label_rule", options.label_rule, retrieval.LABEL_RULES, where, error=BuildError)
-    if not isinstance(options.top_n, int) or isinstance(options.top_n, bool) or options.top_n < 1:
-        raise BuildError(f"{where}: top_n must be a positive integer, got {options.top_n!r}")
-    if options.num_queries is not None and (not isinstance(options.num_queries, int) or options.num_queries < 1):
-        raise BuildError(f"{where}: num_queries must be a positive integer or null, got {options.num_queries!r}")
-    if options.query_folder in options.reference_folders:
-        raise BuildError(f"{where}: the query folder {options.query_folder!r} is also a reference folder")
-    return options
-
-
-# ============================================================================ traversals
-
-
-@dataclass(frozen=True)
-class Traversal:
-    """One image folder: names relative to image_root (sorted) and its frame table."""
-
-    folder: str
-    names: list[str]
-    table: dict[str, np.ndarray]
-
-    def rows(self, rows: np.ndarray) -> Traversal:
-        """The traversal restricted to ``rows`` (in that order)."""
-        return Traversal(self.folder, [self.names[i] for i in rows], {k: v[rows] for k, v in self.table.items()})
-
-
-def list_images(image_root: Path, folder: str) -> list[str]:
-    """Image paths ``folder/file`` relative to image_root, sorted."""
-    directory = Path(image_root) / folder
-    if not directory.is_dir():
-        raise BuildError(f"image folder not found: {directory} (image_root {image_root}, folder {folder!r})")
-    names = sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-    if not names:
-        raise BuildError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {directory}")
-    return names
-
-
-def inputs_digest(image_root: str | Path, options: Mapping[str, Any]) -> dict[str, str | None]:
-    """What a retrieval build read, as one BLAKE2b digest a file or folder: each image
-    folder's listing (every image's name, size, mtime and inode: the pipeline's rule for when
-    a file is hashed again), the metadata CSV and the label_params_file. A frame added,
-    removed or replaced changes its folder's digest. Read from the raw options, so a stamp
-    can be compared before they are parsed; a folder or file that is not there is None."""
-    import hashlib
-    import os
-
-    def digest(entries: list[tuple[str, os.stat_result]]) -> str:
-        blake = hashlib.blake2b(digest_size=16)
-        for name, info in sorted(entries, key=lambda entry: entry[0]):
-            blake.update(f"{name}\0{info.st_size}\0{info.st_mtime_ns}\0{info.st_ino}\n".encode())
-        return blake.hexdigest()
-
-    def folder_digest(folder: Path) -> str | None:
-        try:
-            with os.scandir(folder) as listing:
-                entries = [
-                    (entry.name, entry.stat())
-                    for entry in listing
-                    if Path(entry.name).suffix.lower() in IMAGE_EXTENSIONS and entry.is_file()
-                ]
-        except OSError:
-            return None
-        return digest(entries)
-
-    def file_digest(path: Path) -> str | None:
-        try:
-            return digest([(path.name, path.stat())])
-        except OSError:
-            return None
-
-    root = Path(image_root)
-    references = options.get("reference_folders") or ()
-    folders = [options.get("query_folder"), *([references] if isinstance(references, str) else references)]
-    found: dict[str, str | None] = {
-        f"folder:{folder}": folder_digest(root / folder) for folder in folders if isinstance(folder, str)
-    }
-    metadata = options.get("metadata")
-    for name in (metadata.get("csv") if isinstance(metadata, Mapping) else None, options.get("label_params_file")):
-        if isinstance(name, str):
-            found[f"file:{name}"] = file_digest(root / name)
-    return found
-
-
-def _frames_from_names(names: list[str]) -> np.ndarray | None:
-    try:
-        return np.array([frame_index(n) for n in names], dtype=np.int64)
-    except ValueError:
-        return None  # only a rule that reads frames needs them; it then says so
-
-
-def _read_metadata(image_root: Path, spec: MetadataSpec) -> pd.DataFrame:
-    path = Path(image_root) / spec.csv
-    if not path.is_file():
-        raise BuildError(f"metadata CSV not found: {path} (builder_options metadata.csv is relative to image_root)")
-    table = pd.read_csv(path)
-    wanted = [spec.name, *spec.position] + [c for c in (spec.heading, spec.frame) if c]
-    missing = [c for c in wanted if c not in table.columns]
-    if missing:
-        raise BuildError(
-            f"{path}: missing column(s) {missing}; it has {list(table.columns)} "
-            "(set builder_options metadata.name/position/heading/frame to its column names)"
-        )
-    return table.set_index(table[spec.name].astype(str), drop=False)
-
-
-def load_traversal(
-    image_root: Path, folder: str, metadata: pd.DataFrame | None, spec: MetadataSpec | None
-) -> Traversal:
-    """A folder's images and their frame table (frames, and positions/headings from metadata)."""
-    names = list_images(image_root, folder)
-    frames = _frames_from_names(names)
-    if metadata is None or spec is None:
-        table = retrieval.frame_table(names, frames if frames is not None else np.arange(len(names)))
-        if frames is None:
-            del table["frame"]
-        return Traversal(folder, names, table)
-    # A CSV may name images relative to image_root or by file name inside the folder.
-    keys = [n if n in metadata.index else n.split("/", 1)[1] for n in names]
-    absent = [n for n, k in zip(names, keys) if k not in metadata.index]
-    if absent:
-        raise BuildError(
-            f"{len(absent)} image(s) of {folder!r} have no row in the metadata CSV {spec.csv} "
-            f"(column {spec.name!r}), e.g. {absent[:3]}"
-        )
-    rows = metadata.loc[keys]
-    if len(rows) != len(names):  # a name on several rows (bare file names shared by traversals)
-        raise BuildError(
-            f"images of {folder!r} match several rows of the metadata CSV {spec.csv} (column {spec.name!r}); "
-            "name each image once, by its path relative to image_root"
-        )
-    if spec.frame:
-        frames = rows[spec.frame].to_numpy(np.int64)
-    table = retrieval.frame_table(
-        names,
-        frames if frames is not None else np.arange(len(names)),
-        positions=rows[list(spec.position)].to_numpy(np.float64),
-        headings=rows[spec.heading].to_numpy(np.float64) if spec.heading else None,
-    )
-    if frames is None:
-        del table["frame"]
-    return Traversal(folder, names, table)
-
-
-def resolve_label_params(options: RetrievalOptions, image_root: Path) -> dict[str, Any]:
-    """The rule's parameters: its defaults, then ``label_params_file``, then ``label_params``."""
-    rule = retrieval.get_label_rule(options.label_rule)
-    merged = dict(rule.default_params)
-    if options.label_params_file:
-        path = Path(image_root) / options.label_params_file
-        if not path.is_file():
-            raise BuildError(f"label_params_file not found: {path} (relative to image_root)")
-        loaded = json.loads(path.read_text(encoding="utf-8"))
-        loaded = loaded.get("params", loaded)
-        merged.update({k: v for k, v in loaded.items() if k in rule.default_params})
-    unknown = set(options.label_params) - set(rule.default_params)
-    if unknown:
-        raise BuildError(
-            f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}"
-        )
-    merged.update(options.label_params)
-    return merged
-
-
-# ============================================================================ descriptors
-
-
-@dataclass
-class BuildInputs:
-    """Everything a build needs, resolved from params: traversals, chosen queries and
-    where local features live. ``local`` caches local descriptors once read."""
-
-    params: dict[str, Any]
-    options: RetrievalOptions
-    image_root: Path
-    query: Traversal  # the chosen query rows only
-    query_rows: np.ndarray  # their rows in the full query traversal
-    num_query_frames: int
-    experiences: dict[str, Traversal]
-    rule_params: dict[str, Any]
-    local: dict[str, np.ndarray] = field(default_factory=dict)
-
-    @property
-    def reference_names(self) -> list[str]:
-        return [n for t in self.experiences.values() for n in t.names]
-
-    def descriptor_options(self, descriptor: str) -> dict[str, Any]:
-        return dict(self.options.descriptor_options.get(descriptor, {}))
-
-
-def prepare_inputs(params: Mapping[str, Any], options: RetrievalOptions | None = None) -> BuildInputs:
-    """Resolve a loaded params dict (``config.load_params``) into ``BuildInputs``."""
-    options = options or parse_options(
-        params.get("builder_options") or {}, f"{params.get('params_file', '<params>')}: builder_options"
-    )
-    image_root = Path(params["image_root"])
-    if options.render_sample:
-        from gvbench_nb.data import synthetic
-
-        synthetic.generate_sample(image_root, seed=params.get("seed", 0))
-    metadata = _read_metadata(image_root, options.metadata) if options.metadata else None
-    query = load_traversal(image_root, options.query_folder, metadata, options.metadata)
-    experiences = {f: load_traversal(image_root, f, metadata, options.metadata) for f in options.reference_folders}
-    rows = retrieval.choose_queries(len(query.names), options.num_queries, params.get("seed", 0))
-    return BuildInputs(
-        dict(params),
-        options,
-        image_root,
-        query.rows(rows),
-        rows,
-        len(query.names),
-        experiences,
-        resolve_label_params(options, image_root),
-    )
-
-
-def local_feature_conf(options: RetrievalOptions, profile: str) -> dict[str, Any]:
+def local_feature_conf(options: build_inputs.RetrievalOptions, profile: str) -> dict[str, Any]:
     """The extractor conf of ``local_features`` (identical to its method's, so the cache is shared)."""
     from gvbench_nb import methods
 
-    return methods.resolve_method(LOCAL_FEATURE_METHODS[options.local_features], options.feature_profile or profile)[
-        "extractor"
-    ]
+    return methods.resolve_method(
+        build_inputs.LOCAL_FEATURE_METHODS[options.local_features], options.feature_profile or profile
+    )["extractor"]
 
 
 def load_local_descriptors(
-    inputs: BuildInputs, names: SequenceType[str], progress: bool = True
+    inputs: build_inputs.BuildInputs, names: SequenceType[str], progress: bool = True
 ) -> dict[str, np.ndarray]:
     """Local descriptors ``{name: (N, D)}`` from the feature cache, extracting missing images first."""
     from gvbench_nb.runner import image_features
@@ -440,12 +113,15 @@ def load_local_descriptors(
 
 
 def global_descriptors(
-    inputs: BuildInputs, descriptor: str, descriptor_options: Mapping[str, Any] | None = None, progress: bool = True
+    inputs: build_inputs.BuildInputs,
+    descriptor: str,
+    descriptor_options: Mapping[str, Any] | None = None,
+    progress: bool = True,
 ) -> retrieval.GlobalDescriptors:
     """Rows for the chosen queries and every reference (experiences in order, stacked).
 
     vlad/bow fit their vocabulary on all reference experiences together (the map)."""
-    method = registry.lookup("descriptor", descriptor, retrieval.GLOBAL_DESCRIPTORS, error=BuildError)
+    method = registry.lookup("descriptor", descriptor, retrieval.GLOBAL_DESCRIPTORS, error=build_inputs.BuildError)
     options = dict(descriptor_options or {})
     references, queries = inputs.reference_names, inputs.query.names
     if method.inputs == "images":
@@ -466,10 +142,7 @@ def global_descriptors(
     )
 
 
-# ============================================================================ retrieval + labels
-
-
-def ground_truth(inputs: BuildInputs) -> np.ndarray:
+def ground_truth(inputs: build_inputs.BuildInputs) -> np.ndarray:
     """(Q, R) bool: the rule on every chosen query x every reference (experiences stacked)."""
     blocks = [
         retrieval.ground_truth_matrix(inputs.options.label_rule, inputs.rule_params, inputs.query.table, t.table)
@@ -478,7 +151,9 @@ def ground_truth(inputs: BuildInputs) -> np.ndarray:
     return np.concatenate(blocks, axis=1)
 
 
-def retrieve(inputs: BuildInputs, descriptors: retrieval.GlobalDescriptors, n: int) -> retrieval.Candidates:
+def retrieve(
+    inputs: build_inputs.BuildInputs, descriptors: retrieval.GlobalDescriptors, n: int
+) -> retrieval.Candidates:
     """Top-n candidates a chosen query over every experience."""
     rows: dict[str, np.ndarray] = {}
     start = 0
@@ -488,7 +163,7 @@ def retrieve(inputs: BuildInputs, descriptors: retrieval.GlobalDescriptors, n: i
     return retrieval.retrieve_top_n_experiences(descriptors.query, rows, n)
 
 
-def stacked_indices(inputs: BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
+def stacked_indices(inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
     """(Q, n) candidate columns in the stacked reference order of ``ground_truth``."""
     offsets, start = {}, 0
     for folder, traversal in inputs.experiences.items():
@@ -498,7 +173,7 @@ def stacked_indices(inputs: BuildInputs, candidates: retrieval.Candidates) -> np
     return columns.reshape(len(inputs.query.names), -1)
 
 
-def label_candidates(inputs: BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
+def label_candidates(inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
     """(P,) labels of candidate pairs, by the rule applied experience by experience."""
     labels = np.zeros(len(candidates), dtype=bool)
     for folder, traversal in inputs.experiences.items():
@@ -510,7 +185,9 @@ def label_candidates(inputs: BuildInputs, candidates: retrieval.Candidates) -> n
     return labels
 
 
-def candidate_frame(inputs: BuildInputs, candidates: retrieval.Candidates, labels: np.ndarray) -> pd.DataFrame:
+def candidate_frame(
+    inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates, labels: np.ndarray
+) -> pd.DataFrame:
     """One row a candidate pair with image names: query, experience, reference, rank, similarity, label."""
     return pd.DataFrame(
         {
@@ -530,9 +207,6 @@ def recall_ks(top_n: int) -> list[int]:
     return sorted({k for k in (1, 5, top_n) if k <= top_n})
 
 
-# ============================================================================ card
-
-
 def card_paths(pairs_path: str | Path) -> dict[str, Path]:
     """Files written beside a pair file ``<stem>.txt``."""
     pairs_path = Path(pairs_path)
@@ -546,7 +220,7 @@ def card_paths(pairs_path: str | Path) -> dict[str, Path]:
 
 
 def make_card(
-    inputs: BuildInputs,
+    inputs: build_inputs.BuildInputs,
     frame: pd.DataFrame,
     truth: np.ndarray,
     recall: dict[str, float],
@@ -586,7 +260,7 @@ def make_card(
             "extractor": feature_conf["name"],
             "profile": options.feature_profile or inputs.params["profile"],
             "conf_hash": conf_hash(feature_conf),
-            "shared_with_method": LOCAL_FEATURE_METHODS[options.local_features],
+            "shared_with_method": build_inputs.LOCAL_FEATURE_METHODS[options.local_features],
         },
         "top_n": options.top_n,
         "label_rule": options.label_rule,
@@ -645,13 +319,10 @@ def card_markdown(card: Mapping[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-# ============================================================================ entry points
-
-
 def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> dict[str, Any]:
     """Build the pair file of a loaded params dict (``pairs_builder: retrieval``) and
     its card; returns the card. Overwrites ``build_params['pairs']`` and the card files."""
-    inputs = prepare_inputs(build_params)
+    inputs = build_inputs.prepare_inputs(build_params)
     options = inputs.options
     started = time.perf_counter()
     descriptors = global_descriptors(
@@ -693,9 +364,6 @@ def build_retrieval_pairs(params: dict[str, Any]) -> None:
     build_sequence(params)
 
 
-# ============================================================================ params + CLI
-
-
 def read_card(pairs_path: str | Path) -> dict[str, Any]:
     return json.loads(card_paths(pairs_path)["card_json"].read_text(encoding="utf-8"))
 
@@ -706,7 +374,6 @@ def check_card(pairs_path: str | Path) -> None:
     counts = summarize(Sequence(card["sequence"] or "build", Path("."), read_pairs(pairs_path)))
     wrong = {k: (card["counts"][k], v) for k, v in counts.items() if k != "sequence" and card["counts"].get(k) != v}
     if wrong:
-        raise BuildError(f"{pairs_path}: card counts differ from the pair file (card, file): {wrong}; rebuild it")
-
-
-# ============================================================================ figures
+        raise build_inputs.BuildError(
+            f"{pairs_path}: card counts differ from the pair file (card, file): {wrong}; rebuild it"
+        )

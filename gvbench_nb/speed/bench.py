@@ -21,7 +21,6 @@ written by this module; none is typed in.
 
 from __future__ import annotations
 
-import argparse
 import cProfile
 import datetime as _dt
 import io
@@ -39,29 +38,47 @@ import pandas as pd
 from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data.sequences import Sequence, read_pairs
+from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv
 from gvbench_nb.protocol.images import load_for_extraction, to_original_pixels
 from gvbench_nb.protocol.ransac import verify_matches
-from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, scoring
-from gvbench_nb.runner.jobs import add_jobs_argument
+from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching
 
 if TYPE_CHECKING:
     import torch
 
+
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
+
+
 DEFAULT_BENCH_DIR = PROJECT_ROOT / "outputs" / "bench"
+
+
 DEFAULT_SCALING_LIMITS = (50, 100, 200, 400)
+
+
 # Ours runs two jobs (images or pairs at a time) when benched: on two cores that used them
 # better than one model call with two threads for sift-nn (README); for LightGlue not consistently.
 DEFAULT_BENCH_JOBS = 2
+
+
 # The speed-up over the per-pair pipeline this package is built to reach on a CPU, per method.
 SPEEDUP_TARGETS: dict[str, float] = {"sift-nn": 5.0, "disk-lg": 3.0}
+
+
 OFFICIAL_SEQUENCES = ("day", "night", "nordland", "season", "uacampus", "weather")
+
+
 CACHED, PER_PAIR = "cached", "per_pair"  # the two pipelines, as named in every CSV
+
+
 STAGES = ("extract", "match", "verify", "other")
+
+
 # Timer sums per stage, and the wall time of matching + verification (they overlap in ours).
 TIMED = STAGES + ("match_verify_wall",)
+
+
 GPU_NOTE = "These figures are this CPU's. On a machine with a CUDA GPU, `bench` (device auto or cuda) measures the GPU."
 
 
@@ -352,7 +369,7 @@ def summarize_bench(rows: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(summaries)
 
 
-def _merge_csv(path: Path, new: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
+def merge_csv(path: Path, new: pd.DataFrame, keys: list[str]) -> pd.DataFrame:
     """Replace the rows of ``path`` that share ``keys`` with ``new`` (other runs stay)."""
     if path.is_file():
         old = pd.read_csv(path, keep_default_na=False)
@@ -547,165 +564,12 @@ def profile_pipeline(
     return report.getvalue()
 
 
-# ------------------------------------------------------------------- estimates --
-def require_official_lists(gt_dir: Path) -> None:
-    """The estimate counts the official sequences' pairs: their lists must be in ``gt_dir``."""
-    from gvbench_nb.data.fetch import DataError
-
-    missing = [name for name in OFFICIAL_SEQUENCES if not (Path(gt_dir) / f"{name}.txt").is_file()]
-    if missing:
-        raise DataError(
-            f"bench --estimate needs the official pair lists, and {', '.join(f'{m}.txt' for m in missing)} "
-            f"{'is' if len(missing) == 1 else 'are'} missing from {gt_dir}: run `python -m gvbench_nb data fetch gvbench-lists` "
-            "(or set GVBENCH_DATA to the folder holding gvbench_gt/)"
-        )
-
-
-def official_sequence_sizes(gt_dir: Path) -> pd.DataFrame:
-    """Pairs and unique images of each official sequence, counted from its pair list."""
-    require_official_lists(gt_dir)
-    rows = []
-    for name in OFFICIAL_SEQUENCES:
-        pairs = read_pairs(Path(gt_dir) / f"{name}.txt")
-        images = {p for pair in pairs for p in (pair.query, pair.reference)}
-        rows.append(
-            {
-                "sequence": name,
-                "n_pairs": len(pairs),
-                "n_images": len(images),
-                "uses_per_image": 2 * len(pairs) / len(images),
-            }
-        )
-    return pd.DataFrame(rows)
-
-
-def costs_from_bench(summary: pd.DataFrame) -> pd.DataFrame:
-    """Per (method, profile): measured seconds per unique image (extraction) and per pair
-    (ours: matching and verification, overlapped, plus overhead; the per-pair pipeline:
-    everything). From the largest bench run of each."""
-    latest = summary.sort_values("n_pairs").groupby(["method", "profile"], sort=False).tail(1)
-    rows = []
-    for _, measured in latest.iterrows():
-        # Summaries written before matching overlapped verification have no wall column.
-        wall_column = f"{CACHED}_match_verify_wall_seconds_per_pair"
-        stages = ("match_verify_wall", "other") if pd.notna(measured.get(wall_column)) else ("match", "verify", "other")
-        rows.append(
-            {
-                "method": measured["method"],
-                "profile": measured["profile"],
-                "source": "bench",
-                "extract_seconds_per_image": measured["cached_extract_seconds_per_image"],
-                "cached_seconds_per_pair": sum(measured[f"{CACHED}_{s}_seconds_per_pair"] for s in stages),
-                "per_pair_seconds_per_pair": 1.0 / measured["per_pair_pairs_per_second"],
-                "measured_on": f"bench: {measured['sequence']} ({measured['n_pairs']} pairs), {measured['device_name']}, "
-                f"{measured['cpu_count']} CPUs, load {measured['loadavg_1m_start']}",
-            }
-        )
-    return pd.DataFrame(rows)
-
-
-def costs_from_runs(output_dir: Path) -> pd.DataFrame:
-    """The same costs from the per-pair timers of finished runs (``<output_dir>/<method>/pairs.csv``),
-    for every method that ran. The per-pair pipeline is then estimated as two extractions
-    and one match a pair (without decoding, which the bench measures)."""
-    from gvbench_nb.evaluation.run_tables import load_run
-
-    rows = []
-    for method in scoring.methods_with_results(output_dir):
-        table = scoring.load_pairs_table(output_dir, method)
-        n_images = len(set(table["query"]) | set(table["reference"]))
-        # A pair's extract_seconds is its images' times shared among their pairs: the sum is the total.
-        per_image = float(table["extract_seconds"].sum()) / n_images
-        per_pair = float((table["match_seconds"] + table["verify_seconds"]).mean())
-        run = load_run(output_dir, method)
-        rows.append(
-            {
-                "method": method,
-                "profile": table["profile"].iat[0],
-                "source": "run",
-                "extract_seconds_per_image": per_image,
-                "cached_seconds_per_pair": per_pair,
-                "per_pair_seconds_per_pair": 2 * per_image + per_pair,
-                "measured_on": f"run: {Path(output_dir).name} ({len(table)} pairs), "
-                f"{run['environment']['device_name']}, finished {run['finished_at']}",
-            }
-        )
-    return pd.DataFrame(rows)
-
-
-def estimate_official_runtime(costs: pd.DataFrame, sizes: pd.DataFrame) -> pd.DataFrame:
-    """Hours of each official sequence x costed (method, profile), both pipelines.
-
-    Ours: unique images x seconds per image + pairs x our seconds per pair. The per-pair
-    pipeline: pairs x its seconds per pair.
-    """
-    rows = []
-    for _, cost in costs.iterrows():
-        for _, size in sizes.iterrows():
-            cached_seconds = (
-                size["n_images"] * cost["extract_seconds_per_image"] + size["n_pairs"] * cost["cached_seconds_per_pair"]
-            )
-            reference_seconds = size["n_pairs"] * cost["per_pair_seconds_per_pair"]
-            rows.append(
-                {
-                    "sequence": size["sequence"],
-                    "method": cost["method"],
-                    "profile": cost["profile"],
-                    "source": cost["source"],
-                    "n_pairs": size["n_pairs"],
-                    "n_images": size["n_images"],
-                    "cached_hours": cached_seconds / 3600,
-                    "per_pair_hours": reference_seconds / 3600,
-                    "speedup": reference_seconds / cached_seconds,
-                    "measured_on": cost["measured_on"],
-                }
-            )
-    return pd.DataFrame(rows)
-
-
-def print_estimate(
-    bench_dir: Path = DEFAULT_BENCH_DIR, gt_dir: Path | None = None, runs: Path | None = None
-) -> pd.DataFrame:
-    """Print (and write ``estimate.csv``) the official-sequence estimate from ``summary.csv``
-    and, with ``runs`` (a sequence output folder), from every method that ran there."""
-    from gvbench_nb.runner.config import data_dir
-
-    summary_path = Path(bench_dir) / "summary.csv"
-    if not summary_path.is_file() and runs is None:
-        raise FileNotFoundError(
-            f"no bench summary at {summary_path}: run `python -m gvbench_nb.speed PARAMS` "
-            "first, or give --runs outputs/<sequence>"
-        )
-    if gt_dir is None:
-        gt_dir = data_dir() / "gvbench_gt"
-    sizes = official_sequence_sizes(gt_dir)
-    costs = [costs_from_bench(pd.read_csv(summary_path, keep_default_na=False))] if summary_path.is_file() else []
-    if runs is not None:
-        costs.append(costs_from_runs(Path(runs)))
-    estimate = estimate_official_runtime(pd.concat(costs, ignore_index=True), sizes)
-    atomic_write_csv(Path(bench_dir) / "estimate.csv", estimate)
-    print("Official sequences (from their pair lists):")
-    print(sizes.to_string(index=False, float_format=lambda v: f"{v:.2f}"))
-    totals = estimate.groupby(["source", "method", "profile"], sort=False)[["cached_hours", "per_pair_hours"]].sum()
-    print("\nEstimated hours on this CPU (extraction cost per image and matching cost per pair as measured):")
-    print(estimate.drop(columns="measured_on").to_string(index=False, float_format=lambda v: f"{v:.2f}"))
-    print("\nAll six sequences, per method:")
-    print(totals.to_string(float_format=lambda v: f"{v:.2f}"))
-    print(
-        "\nCaveats: measured on Gardens Point (960x540 images); the official images differ in size "
-        "(extraction scales roughly with pixels, matching with keypoints), and the machine was shared "
-        "(load averages in summary.csv). Treat these as order-of-magnitude figures."
-    )
-    print(GPU_NOTE)
-    return estimate
-
-
 def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int | None) -> pd.DataFrame:
     """Time the condition sweep's renderer and write ``render.csv`` (one row a setting)."""
     from gvbench_nb.studies.condition_sweep import time_render
 
     table = time_render(n_frames=n_frames, repeats=repeats, workers=workers)
-    _merge_csv(Path(bench_dir) / "render.csv", table, ["setting", "n_frames", "image_size", "workers"])
+    merge_csv(Path(bench_dir) / "render.csv", table, ["setting", "n_frames", "image_size", "workers"])
     print(
         f"render time of one {n_frames}-frame query traversal ({table['image_size'].iat[0]}, "
         f"{table['workers'].iat[0]} worker threads, median of {repeats}; scene built once in "
@@ -718,142 +582,3 @@ def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int
     )
     print(f"written to {Path(bench_dir) / 'render.csv'}\n")
     return table
-
-
-# ------------------------------------------------------------------------- CLI --
-def build_parser() -> argparse.ArgumentParser:
-    """``python -m gvbench_nb.speed``: the bench, a program of its own beside the package's CLI."""
-    bench = argparse.ArgumentParser(
-        prog="python -m gvbench_nb.speed",
-        description="Time our cached pipeline against the per-pair reference pipeline on the same pairs: "
-        "both run on the same pairs (cold cache in a temporary folder each repeat), the bench fails if any "
-        "pair's num_inliers differ, and writes per-repeat, summary and scaling CSVs. With --estimate alone "
-        "(no params), prints the official-sequence estimate from the summary.",
-    )
-    bench.add_argument(
-        "--debug", action="store_true", help="show the full traceback of an error instead of its one-line message"
-    )
-    bench.add_argument("params", nargs="?", help="params YAML, e.g. params/gardens_point.yaml")
-    bench.add_argument("--methods", help="comma-separated method names (default: the params')")
-    bench.add_argument("--limit", type=int, help="only the first N pairs, as in `run` (default: every pair)")
-    bench.add_argument("--repeats", type=int, default=3, help="repeats per method; medians reported (default 3)")
-    bench.add_argument("--profile", help="'paper' or 'repository' (default: the params')")
-    bench.add_argument("--device", help="override the params' device")
-    bench.add_argument(
-        "--threads",
-        type=int,
-        help="torch and OpenCV threads for both pipelines (default: every core; on a loaded "
-        "machine fewer threads than cores avoids spin-waiting, see the report)",
-    )
-    add_jobs_argument(
-        bench,
-        DEFAULT_BENCH_JOBS,
-        f"images or pairs our pipeline runs at once, as `run --jobs` (default here {DEFAULT_BENCH_JOBS}; "
-        "`run`'s is $GVBENCH_JOBS, else 1); the per-pair pipeline runs one pair at a time",
-    )
-    bench.add_argument("--bench-dir", default=str(DEFAULT_BENCH_DIR), help="where CSVs go (default outputs/bench)")
-    bench.add_argument(
-        "--scaling",
-        default=",".join(map(str, DEFAULT_SCALING_LIMITS)),
-        help="pair counts of the scaling table, or 'none' (default 50,100,200,400)",
-    )
-    bench.add_argument("--overlap", action="store_true", help="also measure whether prefetching hides decoding")
-    bench.add_argument("--cprofile", action="store_true", help="also write a cProfile report of our pipeline")
-    bench.add_argument("--estimate", action="store_true", help="print the official-sequence estimate at the end")
-    bench.add_argument(
-        "--runs",
-        help="with --estimate: also cost every method that ran in this sequence output "
-        "folder, from its per-pair timers (e.g. outputs/gardens_point)",
-    )
-    bench.add_argument(
-        "--render",
-        action="store_true",
-        help="time rendering one synthetic query traversal, clear and under each condition at "
-        "strength 1 (writes render.csv); needs no params",
-    )
-    bench.add_argument("--frames", type=int, default=100, help="frames of the --render traversal (default 100)")
-    bench.set_defaults(handler=command_bench)
-    return bench
-
-
-def main(argv: list[str] | None = None) -> int:
-    from gvbench_nb import cli
-
-    return cli.main(argv, build_parser, "gvbench_nb.speed")
-
-
-def command_bench(args: argparse.Namespace) -> int:
-    import torch
-
-    from gvbench_nb.protocol.features.base import resolve_device
-    from gvbench_nb.runner import config
-
-    bench_dir = Path(args.bench_dir)
-    if args.estimate:  # before any timing: the estimate at the end would fail without them
-        require_official_lists(config.data_dir() / "gvbench_gt")
-    if args.render:
-        print_render_time(bench_dir, args.frames, args.repeats, args.threads)
-    if args.params is None:
-        if not (args.estimate or args.render):
-            raise config.ParamsError("bench needs a params file (or --estimate or --render alone)")
-        if args.estimate:
-            print_estimate(bench_dir, runs=args.runs)
-        return 0
-    if args.repeats < 1:
-        raise config.ParamsError(f"--repeats must be at least 1, got {args.repeats}")
-    params = config.load_params(args.params, methods=args.methods, profile=args.profile, device=args.device)
-    full = config.prepare_sequence(params)  # the limit applies below (scaling needs the longer prefix)
-    sequence = full.limited(args.limit)
-    concurrency.configure_threads(args.threads)
-    profile, device, seed = params["profile"], params["device"], params["seed"]
-    print(
-        f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} unique images, profile {profile}, "
-        f"torch threads {torch.get_num_threads()}, OpenCV threads {cv2.getNumThreads()}, "
-        f"{os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f}"
-    )
-    for method in params["methods"]:
-        rows = bench_method(sequence, method, profile, args.repeats, device, seed, workers=args.jobs)
-        _merge_csv(bench_dir / f"{sequence.name}_{method}.csv", rows, ["profile", "n_pairs"])
-        summary = summarize_bench(rows)
-        _merge_csv(bench_dir / "summary.csv", summary, ["sequence", "method", "profile", "n_pairs"])
-        print_summary(summary)
-        if args.scaling != "none":
-            limits = tuple(int(v) for v in args.scaling.split(","))
-            per_image = summary[f"{PER_PAIR}_extract_seconds_per_pair"].iat[0] / 2
-            scaling = scaling_table(full, method, profile, limits, device, seed, per_image)
-            _merge_csv(bench_dir / f"scaling_{sequence.name}_{method}.csv", scaling, ["profile", "n_pairs"])
-            print(f"\nscaling ({method}, {profile}; stage sums of one cold run on {max(limits)} pairs):")
-            print(
-                scaling[
-                    [
-                        "n_pairs",
-                        "n_images",
-                        "uses_per_image",
-                        "extract_seconds",
-                        "match_seconds",
-                        "verify_seconds",
-                        "total_seconds",
-                        "per_pair_total_seconds",
-                        "speedup_from_stage_sums",
-                    ]
-                ].to_string(index=False, float_format=lambda v: f"{v:.3f}")
-            )
-        if args.overlap and not method_registry.is_dense(method_registry.resolve_method(method, profile)):
-            overlap = pd.DataFrame([measure_prefetch_overlap(sequence, method, profile, device)])
-            _merge_csv(bench_dir / "overlap.csv", overlap, ["sequence", "method", "profile", "n_images"])
-            print(
-                "\nprefetch overlap:\n" + overlap.iloc[:, :9].to_string(index=False, float_format=lambda v: f"{v:.3f}")
-            )
-        if args.cprofile:
-            report = profile_pipeline(sequence, method, profile, device, seed)
-            path = bench_dir / f"cprofile_{sequence.name}_{method}_{profile}.txt"
-            path.parent.mkdir(parents=True, exist_ok=True)
-            path.write_text(report)
-            print(f"\ncProfile report: {path}")
-    print(f"\nCSVs in {bench_dir}: {sequence.name}_<method>.csv, summary.csv, scaling_{sequence.name}_<method>.csv")
-    if args.estimate:
-        print()
-        print_estimate(bench_dir, runs=args.runs)
-    else:
-        print(GPU_NOTE if resolve_device(device).type != "cuda" else "")
-    return 0

@@ -11,7 +11,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from gvbench_nb.data import retrieval
+from gvbench_nb.data import build_inputs, retrieval
 from gvbench_nb.runner import sequence_build
 
 
@@ -26,7 +26,7 @@ def recall_curves(
 
     ``descriptors``: names (each with the params' ``descriptor_options`` for it) or
     ``{name: descriptor options}``."""
-    inputs = sequence_build.prepare_inputs(build_params)
+    inputs = build_inputs.prepare_inputs(build_params)
     if not isinstance(descriptors, Mapping):
         descriptors = {n: inputs.descriptor_options(n) for n in descriptors}
     truth = sequence_build.ground_truth(inputs)
@@ -58,7 +58,7 @@ def best_experience_table(candidates: pd.DataFrame, pairs_table: pd.DataFrame, s
     scored = candidates.merge(pairs_table[["query", "reference", score]], on=["query", "reference"], how="left")
     if scored[score].isna().any():
         missing = scored[scored[score].isna()].iloc[0]
-        raise sequence_build.BuildError(
+        raise build_inputs.BuildError(
             f"no {score!r} for candidate pair {missing['query']} {missing['reference']} in the pairs table; "
             "run the method on the built pair file first (without --limit)"
         )

@@ -77,7 +77,7 @@ test-fast: setup
 	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow" tests
 
 # The reference tier: Magic Leap's SuperPoint and SuperGlue, cvg's LightGlue and
-# image-matching-models' OpenCV matchers run beside ours (tests/test_reference_parity.py); it
+# image-matching-models' OpenCV matchers run beside ours (tests/protocol/test_reference_parity.py); it
 # needs the opt-in venv above, and skips elsewhere.
 test-reference: setup-imm
 	GVBENCH_DATA=$(TEST_DATA) $(IMM_VENV)/bin/python -m pytest -m reference tests

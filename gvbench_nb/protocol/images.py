@@ -126,7 +126,7 @@ def read_image(path: str | os.PathLike[str], grayscale: bool = False, exif_orien
     if data.size == 0:
         raise ImageReadError(f"image file is empty (0 bytes): {path}; {_REPLACE_HINT}")
     # OpenCV returns None for truncated JPEG and PNG data rather than a grey-filled image
-    # (tests/test_reliability.py checks it); the first bytes show what the file really is.
+    # (tests/runner/test_reliability.py checks it); the first bytes show what the file really is.
     # Grayscale is decoded as grayscale (hloc's cv2.IMREAD_GRAYSCALE: a JPEG's luma as
     # libjpeg computes it, which a cvtColor of the colour image misses by up to 2 levels);
     # ANYDEPTH keeps 16-bit files 16-bit for the conversion below. OpenCV turns the image by

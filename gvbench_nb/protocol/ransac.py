@@ -50,7 +50,7 @@ def fundamental_inliers(
     submission period, Jan-Mar 2024, and the GV-Bench repository's current code).
     OpenCV's RANSAC and USAC estimators sample from a fixed internal seed, so the
     result depends only on the pair, not on the order or shard pairs run in
-    (tests/test_reliability.py checks it); ``seed`` is kept for estimators that
+    (tests/runner/test_reliability.py checks it); ``seed`` is kept for estimators that
     honour ``cv2.setRNGSeed``.
     """
     registry.check_choice("few_matches rule", few_matches, FEW_MATCHES_RULES, "the verifier conf")

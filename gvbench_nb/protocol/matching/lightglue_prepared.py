@@ -8,7 +8,7 @@ layer-0 cross block's query/key and value projections. ``prepare_image`` compute
 those for one image; ``match_prepared`` runs the rest for a pair. Both call kornia's
 own modules with the same tensors, in the same order, as ``kornia.feature.LightGlue``
 does for one pair (``_forward`` with a batch of one, kornia 0.9), so the matches and
-scores are bit-identical to ``LightGlue.forward`` (tests/test_lightglue_prepared.py
+scores are bit-identical to ``LightGlue.forward`` (tests/protocol/test_lightglue_prepared.py
 checks this on real images, with early stopping and point pruning).
 
 GV-Bench's sequences use each image in ~10-20 pairs, so that share of LightGlue's work is

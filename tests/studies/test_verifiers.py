@@ -8,8 +8,7 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-from helpers import with_outlier_matches
-from test_verify import two_view_scene  # the shared synthetic two-view scene
+from helpers import two_view_scene, with_outlier_matches
 
 from gvbench_nb.data.sequences import Pair, Sequence, frame_index, frame_tolerance_pairs
 from gvbench_nb.protocol.ransac import ESTIMATORS

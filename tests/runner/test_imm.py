@@ -29,7 +29,7 @@ HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinsta
 needs_vismatch = pytest.mark.skipif(
     not HAVE_VISMATCH,
     reason="vismatch is not installed: run these in the opt-in venv (make setup-imm; "
-    ".venv-imm/bin/python -m pytest tests/test_imm.py)",
+    ".venv-imm/bin/python -m pytest tests/runner/test_imm.py)",
 )
 
 # The benchmark fork's RANSAC (GV-Bench main.py's ransac_kwargs; image-matching-models branch
@@ -116,7 +116,7 @@ def test_methods_command_says_how_to_enable_imm_without_vismatch():
         capture_output=True,
         text=True,
         check=True,
-        cwd=Path(__file__).resolve().parent.parent,
+        cwd=Path(__file__).resolve().parents[2],
     ).stdout
     assert "imm:<name>" in out and "make setup-imm" in out
 
@@ -316,14 +316,14 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
 
 @pytest.mark.real_data
 def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(shared_data, tmp_path, monkeypatch):
-    sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import peer_vismatch
 
     from gvbench_nb.runner import config
 
     monkeypatch.setenv("GVBENCH_DATA", str(shared_data))
     params = config.load_params(
-        Path(__file__).resolve().parent.parent / "params" / "gardens_point.yaml",
+        Path(__file__).resolve().parents[2] / "params" / "gardens_point.yaml",
         limit=7,
         profile="repository",
         output_dir=str(tmp_path / "out"),

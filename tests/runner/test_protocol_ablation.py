@@ -11,7 +11,7 @@ import pytest
 
 from gvbench_nb import methods
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import protocol_ablation
 
 

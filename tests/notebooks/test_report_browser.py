@@ -19,7 +19,7 @@ import pytest
 
 from gvbench_nb.reporting import report
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
 METHODS = "sift-nn,orb-nn"
 PROFILE = "repository"
 LIMIT = "24"  # 24 pairs, 9 of them true: enough for every analysis notebook, seconds to run

@@ -7,7 +7,7 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-PACKAGE = Path(__file__).resolve().parent.parent / "gvbench_nb"
+PACKAGE = Path(__file__).resolve().parents[2] / "gvbench_nb"
 STAGES = ("protocol", "protocol/features", "protocol/matching", "protocol/recipes", "data", "runner")
 STAGES += ("evaluation", "verification", "studies", "reporting", "speed")
 # Bottom to top: a room (a top-level module or folder of the package) imports only rooms of its

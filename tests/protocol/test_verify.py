@@ -1,24 +1,9 @@
 import numpy as np
 import pytest
-from helpers import with_outlier_matches
+from helpers import two_view_scene
 
 from gvbench_nb.protocol import ransac, recipes
 from gvbench_nb.protocol.ransac import ESTIMATORS, fundamental_inliers, verify_matches
-
-
-def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
-    """Points of a non-planar scene seen by two cameras, plus random outlier matches."""
-    rng = np.random.default_rng(seed)
-    points = np.c_[rng.uniform(-4, 4, n_inliers), rng.uniform(-3, 3, n_inliers), rng.uniform(6, 20, n_inliers)]
-    K = np.array([[500.0, 0, 320], [0, 500, 240], [0, 0, 1]])
-    angle = np.deg2rad(8)
-    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
-    t = np.array([1.0, 0.1, 0.3])
-    project = lambda X: (X @ K.T)[:, :2] / (X @ K.T)[:, 2:]
-    p0, p1 = project(points), project(points @ R.T + t)
-    p0 = p0 + rng.normal(0, 0.3, p0.shape)
-    p1 = p1 + rng.normal(0, 0.3, p1.shape)
-    return with_outlier_matches(rng, p0, p1, n_outliers)
 
 
 @pytest.mark.parametrize("method", list(ESTIMATORS))

@@ -11,7 +11,7 @@ from pathlib import Path
 import jupytext
 import pytest
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 IPYNB = sorted(NOTEBOOKS.glob("*.ipynb"))
 SYNC = "run `jupytext --sync notebooks/{name}` (the newer file of the two wins)"
 

@@ -16,7 +16,7 @@ from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.runner import config, method_runs
 from gvbench_nb.studies import explore_pairs as explore
 
-NOTEBOOKS = Path(__file__).resolve().parent.parent / "notebooks"
+NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
 METHODS = ["sift-nn", "orb-nn"]
 
 

@@ -18,7 +18,7 @@ from gvbench_nb import cli
 from gvbench_nb.data import fetch as data
 from gvbench_nb.runner import config
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
 
 class FileServer:

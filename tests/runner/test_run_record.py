@@ -21,7 +21,7 @@ from pathlib import Path
 import pandas as pd
 import pytest
 import yaml
-from test_results_never_wrong import write_root
+from test_fault_injection import write_root
 
 from gvbench_nb import cli, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs

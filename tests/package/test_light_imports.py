@@ -15,7 +15,7 @@ from typing import Any
 import pandas as pd
 import pytest
 
-PROJECT = Path(__file__).resolve().parent.parent
+PROJECT = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "kornia", "sklearn", "seaborn", "matplotlib")
 
 

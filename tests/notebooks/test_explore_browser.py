@@ -25,7 +25,7 @@ from gvbench_nb import explore_lab
 from gvbench_nb.runner import config, method_runs
 from gvbench_nb.studies import explore_pairs as explore
 
-PROJECT_ROOT = Path(__file__).resolve().parent.parent
+PROJECT_ROOT = Path(__file__).resolve().parents[2]
 METHODS = ["sift-nn", "orb-nn"]
 TIMEOUT_MS = 60_000
 

@@ -1,6 +1,6 @@
 """An example matcher written outside the package: this one file, plus one method entry
 (``methods.register_method`` or an entry a profile in ``protocol/recipes/``), is all a sparse matcher
-needs. ``tests/test_extending.py`` registers it and runs it end to end; docs/extending.md
+needs. ``tests/runner/test_extending.py`` registers it and runs it end to end; docs/extending.md
 walks through it.
 
 A matcher class is built as ``Class(conf, device)`` and called on two feature dicts

@@ -32,7 +32,7 @@ from gvbench_nb.runner import config, image_features, sequence_build
 
 pytestmark = pytest.mark.reliability
 
-PROJECT = Path(__file__).resolve().parent.parent
+PROJECT = Path(__file__).resolve().parents[2]
 METHOD = "sift-nn"
 PAIRS = [
     Pair("query/a.png", "reference/a.png", 1),

@@ -1,10 +1,8 @@
-"""The paper's analyses, computed only from written results.
+"""Reading written runs: the tables every analysis starts from, computed only from what runs wrote.
 
-Everything here reads what runs wrote - ``<output_dir>/results.csv``,
-``<output_dir>/<method>/pairs.csv`` and ``run.json``, the match stores and the
-feature cache - and never recomputes features. The analysis notebooks
-(``notebooks/analysis_*.ipynb``) and ``python -m gvbench_nb report`` are thin over
-these functions; the figures live in ``analysis_plots.py``.
+Everything here reads ``<output_dir>/results.csv``, ``<output_dir>/<method>/pairs.csv`` and
+``run.json``, the match stores and the feature cache, and never recomputes features. Each
+analysis notebook's own computation and figures are its study module (``studies/``).
 
 Units: ``ap`` and ``max_recall`` are fractions in [0, 1] everywhere, ours and the
 published ones alike (the paper's table, in %, is divided by 100 when read); tables meant

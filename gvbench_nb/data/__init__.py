@@ -1,1 +1,1 @@
-"""Sequences and their data: pair lists, images, pair builders, retrieval, synthetic routes, fetching."""
+"""Sequences and their data: pair lists, a built sequence's inputs, retrieval, synthetic routes, fetching."""

@@ -1,1 +1,2 @@
-"""Evaluation: AP and max recall, results tables and the bootstrap, read from written results."""
+"""Evaluation over written runs: reading their tables, the bootstrap over queries and its
+intervals, and the shared figures (PR curves). AP and MR themselves are ``protocol/metrics.py``."""

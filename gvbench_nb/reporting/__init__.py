@@ -1,1 +1,1 @@
-"""Reporting: figures, the analysis notebooks and the HTML report."""
+"""Reporting: executing notebooks (a kernel pool), the HTML report, and ``compare`` across runs."""

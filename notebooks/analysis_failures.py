@@ -61,8 +61,8 @@ for folder in output_dirs:
     tables = run_tables.load_pairs_tables(folder)
     run = run_tables.load_run(folder, next(iter(tables)))
     sequence, image_root = run["sequence"], run["image_root"]
-    failures = failures.failures_table(tables, k, image_root)
-    runs.append((folder, sequence, image_root, failures))
+    failed = failures.failures_table(tables, k, image_root)
+    runs.append((folder, sequence, image_root, failed))
     for method, table in tables.items():
         offsets = failures.ground_truth_offsets(table, image_root)
         near = failures.near_miss_false_positives(table, offsets, near_top_k, low=near_low, high=near_high)
@@ -76,8 +76,8 @@ near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
 # is a near miss of the labels rather than of the verifier.
 
 # %%
-for _, sequence, _, failures in runs:
-    display(Markdown(f"## {sequence}"), failures)
+for _, sequence, _, failed in runs:
+    display(Markdown(f"## {sequence}"), failed)
 
 # %% [markdown]
 # The same pairs drawn query left, reference right, inlier matches green and outliers
@@ -86,8 +86,8 @@ for _, sequence, _, failures in runs:
 # images the method found little to match in.
 
 # %%
-for folder, sequence, image_root, failures in runs:
-    for (method, kind), rows in failures.groupby(["method", "kind"], sort=False):
+for folder, sequence, image_root, failed in runs:
+    for (method, kind), rows in failed.groupby(["method", "kind"], sort=False):
         what = kind.replace("_", " ")
         figure = failures.failure_pairs(
             rows,

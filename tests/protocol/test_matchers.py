@@ -190,3 +190,51 @@ def test_empty_and_single_column_inputs():
 def test_unknown_metric_is_named():
     with pytest.raises(ValueError, match="unknown metric 'cosine'"):
         nearest_neighbour_matches(torch.ones((2, 4)), torch.ones((2, 4)), metric="cosine")
+
+
+# hloc/match_features.py (the authors' fork, gvbench@427cc99) as (mutual, ratio, distance):
+# L46-53 confs["NN-superpoint"], L54-61 confs["NN-ratio"], L62-68 confs["NN-mutual"]. The
+# repository's xfeat-nn is XFeat.match(min_cossim=-1) (the fork's xfeat.py:L51): mutual nearest
+# neighbours, every similarity accepted, which is NN-mutual's rule.
+HLOC_NN_CONFS = {
+    "NN-superpoint": (True, None, 0.7),
+    "NN-ratio": (True, 0.8, None),
+    "NN-mutual": (True, None, None),
+}
+NN_RECIPES = [
+    ("paper", "sift-nn", "NN-ratio"),
+    ("paper", "disk-nn", "NN-ratio"),
+    ("paper", "sift-opencv-nn", "NN-ratio"),
+    ("paper", "sp-nn", "NN-superpoint"),
+    ("repository", "sp-nn", "NN-superpoint"),
+    ("paper", "aliked-nn", "NN-mutual"),
+    ("paper", "xfeat-nn", "NN-mutual"),
+    ("repository", "aliked-nn", "NN-mutual"),
+    ("repository", "xfeat-nn", "NN-mutual"),
+]
+
+
+@pytest.mark.parametrize("profile, method, hloc_conf", NN_RECIPES)
+def test_nn_recipes_match_as_hlocs_confs(profile, method, hloc_conf):
+    """Each NN recipe's matcher gives hloc's matches under the conf it names, on descriptors
+    where another ratio (0.75, 0.85), distance (0.65, 0.75) or no mutual check gives others."""
+    from gvbench_nb import methods
+    from gvbench_nb.protocol.matching import build_matcher
+
+    rng = np.random.default_rng(5)
+    descriptors1 = _unit(rng.normal(size=(80, 16))).astype(np.float32)
+    parents = rng.integers(0, 80, 160)
+    descriptors0 = _unit(descriptors1[parents] + 0.2 * rng.normal(size=(160, 16))).astype(np.float32)
+    distance = _l2_distance(descriptors0, descriptors1)
+    mutual, ratio, threshold = HLOC_NN_CONFS[hloc_conf]
+    expected = hloc_matches(distance, mutual, ratio, threshold)
+    assert len(expected) > 10
+    others = [(False, ratio, threshold)]
+    others += [(mutual, r, threshold) for r in (0.75, 0.85) if ratio is not None]
+    others += [(mutual, ratio, d) for d in (0.65, 0.75) if threshold is not None]
+    for other in others:
+        assert not np.array_equal(hloc_matches(distance, *other), expected), other
+
+    matcher = build_matcher(methods.resolve_method(method, profile)["matcher"], torch.device("cpu"))
+    matches, _ = matcher({"descriptors": descriptors0}, {"descriptors": descriptors1})
+    np.testing.assert_array_equal(matches, expected)

@@ -60,3 +60,29 @@ def test_pr_curve_ends_at_precision_one_recall_zero_and_rejects_nan():
     assert curve["precision"][-1] == 1.0 and curve["recall"][-1] == 0.0
     with pytest.raises(ValueError, match="NaN"):
         pr_curve(np.array([1, 0]), np.array([np.nan, 1.0]))
+
+
+def released_evaluation(labels: np.ndarray, inliers: np.ndarray) -> tuple[float, float]:
+    """GV-Bench@e10a93a eval.py:L246-251: AP and the PR curve of inliers / max(inliers);
+    L21-24 max_recall: the largest recall where precision == 1.0."""
+    from sklearn.metrics import precision_recall_curve
+
+    normalised = inliers / max(inliers)
+    precision, recall, _ = precision_recall_curve(labels, normalised)
+    return float(average_precision_score(labels, normalised)), float(np.max(recall[np.where(precision == 1.0)]))
+
+
+def test_metrics_equal_the_released_evaluation_without_its_division():
+    rng = np.random.default_rng(4)
+    labels = rng.integers(0, 2, 400)
+    inliers = rng.integers(0, 40, 400) + 15 * labels * rng.integers(0, 2, 400)
+    inliers[np.argmax(inliers)] += 100  # one large count: the division moves every score
+    result = evaluate_scores(labels, inliers)
+    ap, max_recall = released_evaluation(labels, inliers)
+    assert result["ap"] == pytest.approx(ap, abs=1e-12) and result["max_recall"] == pytest.approx(max_recall)
+    assert 0 < result["max_recall"] < 1
+    # Every pair at 0 inliers: the released code divides 0 by 0; ours ranks the ties as one.
+    zeros = np.zeros(400, int)
+    with np.errstate(invalid="ignore"), pytest.raises(ValueError):
+        released_evaluation(labels, zeros)
+    assert evaluate_scores(labels, zeros)["ap"] == pytest.approx(labels.mean())

@@ -345,3 +345,56 @@ def test_cli_notes_a_profile_replaced_in_one_output_folder(tmp_path, capsys):
     assert cli.main([*common, "--profile", "paper"]) == 0
     err = capsys.readouterr().err
     assert f"note: {tmp_path / 'orb-nn'} holds repository-profile results; this paper-profile run replaces them" in err
+
+
+def pil_bilinear(channel: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """PIL's BILINEAR on a float channel: the algorithm of torchvision's Resize(antialias=True)."""
+    return np.asarray(Image.fromarray(channel.astype(np.float32), mode="F").resize(size, Image.BILINEAR))
+
+
+def test_repository_lightglue_image_is_the_forks_float_chain_rounded_once(tmp_path):
+    """The fork's base_matcher.py:L47-49 (ToTensor of PIL's RGB, Resize((288, 512),
+    antialias=True)), then cvg/LightGlue's extractor input (utils.py ImagePreprocessor, resize
+    1024 on the long side, bilinear): all in float. Ours is that image made 8-bit once, at
+    the end: within half a grey level of it everywhere."""
+    rng = np.random.default_rng(7)
+    rgb = cv2.resize(rng.random((30, 50, 3)).astype(np.float32), (960, 540), interpolation=cv2.INTER_CUBIC)
+    rgb = (np.clip(rgb + 0.2 * rng.random((540, 960, 3)), 0, 1) * 255).astype(np.uint8)
+    path = tmp_path / "frame.png"
+    Image.fromarray(rgb).save(path)
+    unit = rgb.astype(np.float32) / 255
+    theirs = np.stack(
+        [pil_bilinear(pil_bilinear(unit[..., c], (512, 288)), (1024, 576)) for c in range(3)], axis=-1
+    )
+    ours, _ = images.load_for_extraction(path, methods.resolve_method("disk-lg", "repository")["extractor"])
+    assert ours.shape == (576, 1024, 3) and np.array_equal(ours, np.round(ours))
+    assert np.abs(ours - theirs * 255).max() <= 0.5 + 1e-2
+
+
+def test_repository_loftr_image_is_the_forks_grey_512x288(tmp_path):
+    """The fork's loftr.py:L13 tfm.Grayscale (0.2989 R + 0.587 G + 0.114 B) of the resized
+    512x288 image (base_matcher.py:L49), no further resize; ours within half a grey level
+    plus OpenCV's grey weights (0.299, 0.587, 0.114: at most 0.03 levels apart)."""
+    rng = np.random.default_rng(8)
+    rgb = (rng.random((540, 960, 3)) * 255).astype(np.uint8)
+    path = tmp_path / "frame.png"
+    Image.fromarray(rgb).save(path)
+    resized = np.stack([pil_bilinear(rgb[..., c] / np.float32(255), (512, 288)) for c in range(3)], axis=-1)
+    theirs = resized @ np.array([0.2989, 0.587, 0.114], np.float32) * 255
+    ours, scale = images.load_for_extraction(path, methods.resolve_method("loftr", "repository")["matcher"])
+    assert ours.shape == (288, 512)
+    assert np.abs(ours - theirs).max() <= 0.5 + 0.03
+    np.testing.assert_allclose(scale, [960 / 512, 540 / 288], rtol=1e-6)
+
+
+def test_repository_ratio_test_keeps_no_match_against_a_single_descriptor():
+    """The fork's handcrafted.py:L47 unpacks two neighbours a row (``for m, n in raw_matches``),
+    which fails when the other image has one descriptor; we keep no match there. A single
+    descriptor on the query side has two neighbours and matches as the fork's loop does."""
+    rng = np.random.default_rng(9)
+    many = np.floor(rng.random((30, 128)) * 100).astype(np.float32)
+    one = many[:1] + 1
+    assert len(cv2.BFMatcher(cv2.NORM_L2).knnMatch(many, one, k=2)[0]) == 1  # one neighbour only
+    assert repository_matches("sift-nn", many, one) == []
+    expected = opencv_knn_ratio(one, many, cv2.NORM_L2)
+    assert expected == [(0, 0)] and repository_matches("sift-nn", one, many) == expected

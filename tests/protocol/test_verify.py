@@ -77,3 +77,67 @@ def test_a_degenerate_pair_that_usac_raises_on_is_a_pair_without_a_model():
             points0, points1, threshold_px=1.0, method="USAC_DEFAULT", max_iters=10000, few_matches=rule
         )
         assert mask.sum() == expected
+
+
+# --------------------------------------------------- the references' own OpenCV calls --
+def noisy_scene(n_inliers: int, n_outliers: int, seed: int, noise: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    points0, points1, _ = two_view_scene(n_inliers=n_inliers, n_outliers=n_outliers, seed=seed)
+    return points0, points1 + np.random.default_rng(seed).normal(0, noise, points1.shape)
+
+
+def reference_ransac(points0: np.ndarray, points1: np.ndarray, *args) -> np.ndarray:
+    import cv2
+
+    _, mask = cv2.findFundamentalMat(points0.astype(np.float64), points1.astype(np.float64), cv2.FM_RANSAC, *args)
+    return mask.ravel().astype(bool)
+
+
+def all_matches(n: int) -> np.ndarray:
+    return np.repeat(np.arange(n)[:, None], 2, axis=1)
+
+
+# Two scenes, each with the (threshold, confidence, iterations) that would give other inliers
+# there: in the first RANSAC's confidence decides, in the second its iteration cap.
+PAPER_SCENES = [(120, 80, 0, (3.0, 0.95, 1000)), (80, 80, 2, (3.0, 0.99, 2000))]
+
+
+@pytest.mark.parametrize("n_inliers, n_outliers, seed, changed", PAPER_SCENES)
+def test_paper_verifier_makes_the_released_evaluations_call(n_inliers, n_outliers, seed, changed):
+    """GV-Bench@e10a93a eval.py:L134: cv2.findFundamentalMat(p0, p1, cv2.FM_RANSAC, 3.0), OpenCV's
+    defaults otherwise, on the stored keypoints (original pixels)."""
+    points0, points1 = noisy_scene(n_inliers, n_outliers, seed)
+    expected = reference_ransac(points0, points1, 3.0)
+    conf = recipes.recipe("sift-nn", "paper")["verifier"]
+    sizes = (np.array([640, 480]), np.array([640, 480]))
+    result = verify_matches(points0, points1, all_matches(len(points0)), np.ones(len(points0)), conf, image_sizes=sizes)
+    np.testing.assert_array_equal(result["inlier_mask"], expected)
+    # The case tells the settings apart.
+    for other in (changed, (2.5, 0.99, 1000)):
+        assert np.any(reference_ransac(points0, points1, *other) != expected), other
+
+
+@pytest.mark.parametrize("seed", [2, 3])
+def test_repository_verifier_fits_as_the_fork_does_on_512x288(seed):
+    """The fork's base_matcher.py:L104 cv2.findFundamentalMat(FM_RANSAC, 3, 0.95, 2000) (GV-Bench
+    main.py:L113-116) on the keypoints of the 512x288 images; our cache holds them in original
+    pixels (here 1280x960), mapped there by the extraction's (k + 0.5) * scale - 0.5."""
+    small0, small1 = noisy_scene(80, 80, seed)
+    expected = reference_ransac(small0, small1, 3.0, 0.95, 2000)
+    scale = np.array([1280 / 512, 960 / 288])
+    original0, original1 = (small0 + 0.5) * scale - 0.5, (small1 + 0.5) * scale - 0.5
+    conf = recipes.recipe("sift-nn", "repository")["verifier"]
+    sizes = (np.array([1280, 960]), np.array([1280, 960]))
+    result = verify_matches(
+        original0, original1, all_matches(len(small0)), np.zeros(len(small0)), conf, image_sizes=sizes
+    )
+    np.testing.assert_array_equal(result["inlier_mask"], expected)
+    for changed in [(3.0, 0.99, 2000), (3.0, 0.95, 1000), (2.5, 0.95, 2000)]:
+        assert np.any(reference_ransac(small0, small1, *changed) != expected), changed
+
+
+def test_score_filter_keeps_only_scores_above_one_half():
+    """GV-Bench@e10a93a eval.py:L92 ``matches[scores > 0.5]``: a score of exactly 0.5 is dropped."""
+    p0, p1, _ = two_view_scene(n_inliers=40, n_outliers=0)
+    scores = np.where(np.arange(40) < 20, 0.5, np.nextafter(0.5, 1.0))
+    result = verify_matches(p0, p1, all_matches(40), scores, recipes.recipe("disk-lg", "paper")["verifier"])
+    assert result["num_matches_filtered"] == 20 and not result["inlier_mask"][:20].any()

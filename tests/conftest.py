@@ -28,6 +28,17 @@ SHARED_OUTPUTS_LOCK = Path(tempfile.gettempdir()) / (
 )
 
 
+# The longest tests of `make test` (pytest --durations on the 2-core machine).
+LONGEST = (
+    "test_available_methods_score_true_pairs_above_far_false_pairs[disk-nn]",
+    "test_available_methods_score_true_pairs_above_far_false_pairs[disk-lg]",
+    "test_per_pair_pipeline_and_ours_give_identical_scores[disk-lg]",
+    "test_available_methods_score_true_pairs_above_far_false_pairs[aliked-nn]",
+    "test_available_methods_score_true_pairs_above_far_false_pairs[aliked-lg]",
+    "test_prepared_matches_equal_kornia_bit_for_bit",
+)
+
+
 def pytest_configure(config: pytest.Config) -> None:
     if os.environ.get("PYTEST_XDIST_WORKER"):
         # One torch/OpenCV thread a worker: two workers on two cores, each spinning two threads,
@@ -46,12 +57,15 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
         if item.path.suffix == ".ipynb":  # nbmake runs each notebook with its default params
             item.add_marker(pytest.mark.shared_outputs)
     if os.environ.get("PYTEST_XDIST_WORKER"):
-        # Long work first, so that no worker is left with it while the others idle: the tests
-        # of the shared outputs (one at a time), then the slow tests; order within each kept.
+        # Long work first, so that no worker is left with it while the others idle: the few
+        # tests that run learned models on whole sequences (minutes each, `--durations`), the
+        # tests of the shared outputs (one at a time), then the slow tests; order within each kept.
         def rank(item: pytest.Item) -> int:
-            if item.get_closest_marker(SHARED_OUTPUTS) is not None:
+            if any(name in item.nodeid for name in LONGEST):
                 return 0
-            return 1 if item.get_closest_marker("slow") is not None else 2
+            if item.get_closest_marker(SHARED_OUTPUTS) is not None:
+                return 1
+            return 2 if item.get_closest_marker("slow") is not None else 3
 
         items.sort(key=rank)
 

@@ -14,7 +14,7 @@ import pytest
 import yaml
 from helpers import check_stage_outputs
 
-from gvbench_nb import cli
+from gvbench_nb.reporting import execute
 from gvbench_nb.runner import config
 
 LIMIT = 24  # pairs of the sample; its first 24 hold true and false ones
@@ -43,9 +43,9 @@ def stage_run(sample_params) -> Path:
     """01_sequence, 02_verify and 03_evaluate executed on LIMIT sample pairs; the output folder."""
     out = sample_params.parent / "out"
     common = {"params_file": str(sample_params), "limit": LIMIT}
-    cli.execute_notebook("01_sequence.ipynb", out / "01_sequence.ipynb", common)
-    cli.execute_notebook("02_verify.ipynb", out / "02_verify.ipynb", {**common, "method": METHOD})
-    cli.execute_notebook("03_evaluate.ipynb", out / "03_evaluate.ipynb", {"params_file": str(sample_params)})
+    execute.execute_notebook("01_sequence.ipynb", out / "01_sequence.ipynb", common)
+    execute.execute_notebook("02_verify.ipynb", out / "02_verify.ipynb", {**common, "method": METHOD})
+    execute.execute_notebook("03_evaluate.ipynb", out / "03_evaluate.ipynb", {"params_file": str(sample_params)})
     return out
 
 
@@ -70,13 +70,15 @@ def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sa
 def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path):
     results = pd.read_csv(stage_run / "results.csv").set_index("method")
     read_only = {"output_dirs": [str(stage_run)], "params_files": [], "output_dir": str(tmp_path)}
-    cli.execute_notebook("analysis_uncertainty.ipynb", tmp_path / "uncertainty.ipynb", {**read_only, "n_resamples": 50})
+    execute.execute_notebook(
+        "analysis_uncertainty.ipynb", tmp_path / "uncertainty.ipynb", {**read_only, "n_resamples": 50}
+    )
     intervals = pd.read_csv(tmp_path / "bootstrap_intervals.csv").set_index(["method", "metric"])
     for metric in ("ap", "max_recall"):
         low, estimate, high = intervals.loc[(METHOD, metric), ["low", "estimate", "high"]]
         assert estimate == pytest.approx(results.loc[METHOD, metric], rel=1e-5)
         assert 0 <= low <= high <= 1
-    cli.execute_notebook("analysis_results_table.ipynb", tmp_path / "results_table.ipynb", read_only)
+    execute.execute_notebook("analysis_results_table.ipynb", tmp_path / "results_table.ipynb", read_only)
     joined = pd.read_csv(tmp_path / "results_with_paper.csv")
     ours = joined[joined["source"] == "ours"].set_index("method")
     assert list(ours.index) == [METHOD]
@@ -99,7 +101,7 @@ def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_no
     params = tmp_path / "empty.yaml"
     params.write_text(yaml.safe_dump(raw))
     with pytest.raises(PapermillExecutionError) as failure:
-        cli.execute_notebook(
+        execute.execute_notebook(
             "analysis_inlier_histograms.ipynb",
             tmp_path / "histograms.ipynb",
             {"output_dirs": [str(empty)], "params_files": [str(params)], "output_dir": str(tmp_path / "figures")},

@@ -12,7 +12,7 @@ from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import matching as matchers
 from gvbench_nb.protocol import registry
-from gvbench_nb.protocol.matching.loftr import LoFTRMatcher, merge_dense_matches, swapped_dense_call
+from gvbench_nb.protocol.matching.loftr import LoFTRMatcher, loftr_call, merge_dense_matches
 from gvbench_nb.runner import method_runs, pair_matching
 
 
@@ -161,11 +161,29 @@ def test_loftr_runs_on_the_swapped_pair_and_returns_points_in_our_order():
         }
 
     image0, image1 = torch.full((1, 1, 8, 8), 1.0), torch.full((1, 1, 8, 8), 3.0)
-    points0, points1, confidence = swapped_dense_call(model, image0, image1)
+    points0, points1, confidence = loftr_call(model, image0, image1)
     assert seen["image0"] is image1 and seen["image1"] is image0
     np.testing.assert_array_equal(points0, [[2.0, 2.0]])  # our image 0 was the network's second
     np.testing.assert_array_equal(points1, [[3.0, 3.0]])
     np.testing.assert_array_equal(confidence, np.float32([0.7]))
+
+
+def test_the_repository_runs_loftr_on_the_pair_as_it_is():
+    # The fork's matching/im_models/loftr.py hands LoFTR image0 and image1 in the pair's order;
+    # hloc's matchers/loftr.py swaps them. The recipes say which each profile does.
+    seen = {}
+
+    def model(data):
+        seen.update(data)
+        return {"keypoints0": torch.zeros(1, 2), "keypoints1": torch.ones(1, 2), "confidence": torch.tensor([0.5])}
+
+    image0, image1 = torch.zeros(1, 1, 8, 8), torch.ones(1, 1, 8, 8)
+    points0, points1, _ = loftr_call(model, image0, image1, swap_images=False)
+    assert seen["image0"] is image0 and seen["image1"] is image1
+    np.testing.assert_array_equal(points0, [[0.0, 0.0]])
+    np.testing.assert_array_equal(points1, [[1.0, 1.0]])
+    assert methods.resolve_method("loftr", "repository")["matcher"]["swap_images"] is False
+    assert methods.resolve_method("loftr", "paper")["matcher"]["swap_images"] is True
 
 
 class _FakeDense:

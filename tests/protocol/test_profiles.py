@@ -363,9 +363,7 @@ def test_repository_lightglue_image_is_the_forks_float_chain_rounded_once(tmp_pa
     path = tmp_path / "frame.png"
     Image.fromarray(rgb).save(path)
     unit = rgb.astype(np.float32) / 255
-    theirs = np.stack(
-        [pil_bilinear(pil_bilinear(unit[..., c], (512, 288)), (1024, 576)) for c in range(3)], axis=-1
-    )
+    theirs = np.stack([pil_bilinear(pil_bilinear(unit[..., c], (512, 288)), (1024, 576)) for c in range(3)], axis=-1)
     ours, _ = images.load_for_extraction(path, methods.resolve_method("disk-lg", "repository")["extractor"])
     assert ours.shape == (576, 1024, 3) and np.array_equal(ours, np.round(ours))
     assert np.abs(ours - theirs * 255).max() <= 0.5 + 1e-2

@@ -14,17 +14,27 @@ if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this m
     pass
 
 
-def swapped_dense_call(
-    model: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]], image0: torch.Tensor, image1: torch.Tensor
+def loftr_call(
+    model: Callable[[dict[str, torch.Tensor]], dict[str, torch.Tensor]],
+    image0: torch.Tensor,
+    image1: torch.Tensor,
+    swap_images: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """LoFTR run as hloc runs it (``hloc/matchers/loftr.py``): the network sees image 1 as
-    its first image and image 0 as its second (its fine stage refines the second image's
-    points, so hloc's image 0 is the refined one); the points come back in our order.
-    Returns (points in image 0, points in image 1, confidences)."""
-    output = model({"image0": image1, "image1": image0})
+    """LoFTR on a pair; returns (points in image 0, points in image 1, confidences).
+
+    ``swap_images``: run it as hloc runs it (``hloc/matchers/loftr.py``): the network sees image 1
+    as its first image and image 0 as its second (its fine stage refines the second image's
+    points, so hloc's image 0 is the refined one); the points come back in our order. The
+    GV-Bench repository's fork (``matching/im_models/loftr.py``) passes the pair as it is."""
+    if not swap_images:
+        output = model({"image0": image0, "image1": image1})
+        first, second = output["keypoints0"], output["keypoints1"]
+    else:
+        output = model({"image0": image1, "image1": image0})
+        first, second = output["keypoints1"], output["keypoints0"]
     return (
-        output["keypoints1"].cpu().numpy().astype(np.float32),
-        output["keypoints0"].cpu().numpy().astype(np.float32),
+        first.cpu().numpy().astype(np.float32),
+        second.cpu().numpy().astype(np.float32),
         output["confidence"].cpu().numpy().astype(np.float32),
     )
 
@@ -34,7 +44,7 @@ class LoFTRMatcher:
     preprocessing: grayscale, longest side <= 1024, both sides floored to a multiple of 8.
 
     Takes two prepared grayscale images (float32, 0..255), runs them swapped as hloc does
-    (``swapped_dense_call``) and returns points in their pixels and confidences; the
+    or as they are (``swap_images``, ``loftr_call``) and returns points in their pixels and confidences; the
     pipeline merges them across pairs (``merge_dense_matches``). The official checkpoint
     is loaded here with ``weights_only=True``.
     """
@@ -46,6 +56,7 @@ class LoFTRMatcher:
 
         (path,) = weights.require(*conf["checkpoints"])
         self.device = device
+        self.swap_images = conf.get("swap_images", True)
         self.model = LoFTR(pretrained=None)
         self.model.coarse_matching.thr = conf.get("coarse_threshold", 0.2)
         checkpoint = weights.load_checkpoint(path)
@@ -59,7 +70,7 @@ class LoFTRMatcher:
         def tensor(image: np.ndarray) -> torch.Tensor:
             return torch.from_numpy(image).float().div(255.0)[None, None].to(self.device)
 
-        return swapped_dense_call(self.model, tensor(image0), tensor(image1))
+        return loftr_call(self.model, tensor(image0), tensor(image1), self.swap_images)
 
 
 def _cell_centres(points: np.ndarray, size: float) -> np.ndarray:

@@ -282,7 +282,8 @@ def score_pairs(
     """Each pair matched by ``match`` (or taken from ``matches_of``), its scores passed through
     ``transform_scores``, then verified as the package verifies. Returns the pairs table
     (query, reference, label, num_matches, num_matches_filtered, num_inliers, score) and each
-    pair's filtered matches (the (i, j) rows that entered the fit)."""
+    pair's filtered matches (those that entered the fit) as (x0, y0, x1, y1) rows in original
+    pixels rounded to whole pixels, so that readings with different keypoints compare too."""
     rows, kept = [], []
     verifier = conf["verifier"]
     for index, pair in enumerate(tqdm(sequence.pairs, desc=desc, unit="pair", leave=False)):
@@ -301,7 +302,8 @@ def score_pairs(
         )
         threshold = verifier.get("min_match_score")
         keep = np.ones(len(pair_matches), bool) if threshold is None else np.asarray(scores) > threshold
-        kept.append(pair_matches[keep])
+        kept_matches = pair_matches[keep]
+        kept.append(np.round(np.hstack([f0["keypoints"][kept_matches[:, 0]], f1["keypoints"][kept_matches[:, 1]]])))
         rows.append(
             {
                 "query": pair.query,
@@ -317,7 +319,8 @@ def score_pairs(
 
 
 def changes(ours: tuple[pd.DataFrame, list[np.ndarray]], theirs: tuple[pd.DataFrame, list[np.ndarray]]) -> dict:
-    """Filtered matches added or removed (pairs touched) and inlier counts changed (pairs touched)."""
+    """Filtered matches added or removed, by their keypoints' positions (pairs touched), and
+    inliers added or removed, by count (pairs touched)."""
     changed_matches = [
         len({tuple(m) for m in a.tolist()} ^ {tuple(m) for m in b.tolist()}) for a, b in zip(ours[1], theirs[1])
     ]
@@ -363,6 +366,7 @@ class Context:
     cvg_path: str | None
     device: str = "cpu"
     _matchers: dict[str, Any] = field(default_factory=dict)
+    _ours: dict[str, dict[int, Matches]] = field(default_factory=dict)
 
     def extract(self, conf: dict[str, Any], cache_dir: Path | None = None) -> Callable[[str], Features]:
         cache_dir = cache_dir or self.cache_dir
@@ -376,6 +380,18 @@ class Context:
         if key not in self._matchers:
             self._matchers[key] = build_matcher(conf["matcher"], torch.device(self.device))
         return self._matchers[key]
+
+    def ours(self, conf: dict[str, Any], features: Callable[[str], Features], call: Matcher) -> dict[int, Matches]:
+        """Our matches of every pair under one (extractor, matcher) conf, computed once a run."""
+        key = methods.conf_hash({k: conf[k] for k in ("extractor", "matcher")})
+        if key not in self._ours:
+            self._ours[key] = match_all(self.sequence, features, call, f"{conf['method']} ours")
+        return self._ours[key]
+
+
+def match_all(sequence: Sequence, features: Callable[[str], Features], call: Matcher, desc: str) -> dict[int, Matches]:
+    pairs = tqdm(sequence.pairs, desc=desc, unit="pair", leave=False)
+    return {i: call(features(p.query), features(p.reference)) for i, p in enumerate(pairs)}
 
 
 def matcher_call(matcher: Any) -> Matcher:
@@ -405,15 +421,11 @@ def run_row(row: str, method: str, ctx: Context) -> tuple[dict[str, Any], tuple,
     matcher = ctx.matcher(conf)
     ours_call = matcher_call(matcher)
     seq, seed = ctx.sequence, ctx.seed
+    ours = score_pairs(seq, conf, features, ours_call, seed, matches_of=ctx.ours(conf, features, ours_call))
     if row == "score-float16":
-        matched = {
-            i: ours_call(features(p.query), features(p.reference))
-            for i, p in enumerate(tqdm(seq.pairs, desc=f"{method} ours", leave=False))
-        }
-        ours = score_pairs(seq, conf, features, ours_call, seed, matches_of=matched, desc="verify ours")
+        matched = ctx.ours(conf, features, ours_call)
         theirs = score_pairs(seq, conf, features, ours_call, seed, float16_scores, matched, "verify reference")
     elif row == "descriptors-as-stored":
-        ours = score_pairs(seq, conf, features, ours_call, seed, desc=f"{method} ours")
         if conf["matcher"]["type"] == "lightglue":
             theirs = ours
             note = "our LightGlue reads the stored descriptors as they are: both readings are one computation"
@@ -421,7 +433,6 @@ def run_row(row: str, method: str, ctx: Context) -> tuple[dict[str, Any], tuple,
             with descriptors_as_stored():
                 theirs = score_pairs(seq, conf, features, ours_call, seed, desc=f"{method} reference")
     elif row == "lightglue-input-size":
-        ours = score_pairs(seq, conf, features, ours_call, seed, desc=f"{method} ours")
         framed: dict[str, Features] = {}
 
         def in_frame(name: str) -> Features:
@@ -429,24 +440,14 @@ def run_row(row: str, method: str, ctx: Context) -> tuple[dict[str, Any], tuple,
                 framed[name] = in_input_frame(features(name))
             return framed[name]
 
-        reference_call = matcher_call(matcher)
-
-        def match_in_frame(f0: Features, f1: Features) -> Matches:
-            return reference_call(f0, f1)
-
         # The matcher sees the input-frame features; verification reads the stored ones.
-        matched = {
-            i: match_in_frame(in_frame(p.query), in_frame(p.reference))
-            for i, p in enumerate(tqdm(seq.pairs, desc=f"{method} reference", leave=False))
-        }
+        matched = match_all(seq, in_frame, matcher_call(matcher), f"{method} reference")
         theirs = score_pairs(seq, conf, features, ours_call, seed, matches_of=matched, desc="verify reference")
     elif row == "float-images":
-        ours = score_pairs(seq, conf, features, ours_call, seed, desc=f"{method} ours")
         with float_images():
             float_features = ctx.extract(conf, ctx.cache_dir / "float-images")
         theirs = score_pairs(seq, conf, float_features, matcher_call(matcher), seed, desc=f"{method} reference")
     elif row == "cvg-lightglue":
-        ours = score_pairs(seq, conf, features, ours_call, seed, desc=f"{method} kornia")
         cvg = CvgLightGlue(conf["matcher"], cvg_lightglue_file(ctx.cvg_path))
         theirs = score_pairs(seq, conf, features, cvg, seed, desc=f"{method} cvg")
         note = f"cvg's file: {cvg_lightglue_file(ctx.cvg_path)}"

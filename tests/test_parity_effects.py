@@ -98,10 +98,10 @@ def test_query_subset_keeps_every_nth_query_with_all_its_pairs():
 
 def test_changes_count_matches_and_inliers_per_pair():
     table = pd.DataFrame({"num_inliers": [10, 0, 3]})
-    ours = (table, [np.array([[0, 1], [2, 3]]), np.zeros((0, 2), int), np.array([[1, 1]])])
+    ours = (table, [np.array([[0, 1, 5, 5], [2, 3, 6, 6]]), np.zeros((0, 4)), np.array([[1, 1, 1, 1]])])
     theirs = (
         table.assign(num_inliers=[8, 0, 3]),
-        [np.array([[0, 1]]), np.zeros((0, 2), int), np.array([[1, 2]])],
+        [np.array([[0, 1, 5, 5]]), np.zeros((0, 4)), np.array([[1, 1, 1, 2]])],
     )
     assert parity_effects.changes(ours, theirs) == {
         "matches_changed": 3,

@@ -278,7 +278,7 @@ def score_pairs(
     transform_scores: Callable[[np.ndarray], np.ndarray] | None = None,
     matches_of: dict[int, Matches] | None = None,
     desc: str = "match",
-) -> tuple[pd.DataFrame, list[np.ndarray]]:
+) -> tuple[pd.DataFrame, list[tuple[np.ndarray, np.ndarray]]]:
     """Each pair matched by ``match`` (or taken from ``matches_of``), its scores passed through
     ``transform_scores``, then verified as the package verifies. Returns the pairs table
     (query, reference, label, num_matches, num_matches_filtered, num_inliers, score) and each
@@ -302,8 +302,8 @@ def score_pairs(
         )
         threshold = verifier.get("min_match_score")
         keep = np.ones(len(pair_matches), bool) if threshold is None else np.asarray(scores) > threshold
-        kept_matches = pair_matches[keep]
-        kept.append(np.round(np.hstack([f0["keypoints"][kept_matches[:, 0]], f1["keypoints"][kept_matches[:, 1]]])))
+        positions = np.round(np.hstack([f0["keypoints"][pair_matches[:, 0]], f1["keypoints"][pair_matches[:, 1]]]))
+        kept.append((positions, keep))
         rows.append(
             {
                 "query": pair.query,
@@ -318,16 +318,21 @@ def score_pairs(
     return pd.DataFrame(rows), kept
 
 
-def changes(ours: tuple[pd.DataFrame, list[np.ndarray]], theirs: tuple[pd.DataFrame, list[np.ndarray]]) -> dict:
-    """Filtered matches added or removed, by their keypoints' positions (pairs touched), and
-    inliers added or removed, by count (pairs touched)."""
-    changed_matches = [
-        len({tuple(m) for m in a.tolist()} ^ {tuple(m) for m in b.tolist()}) for a, b in zip(ours[1], theirs[1])
-    ]
+def changes(ours: tuple[pd.DataFrame, list], theirs: tuple[pd.DataFrame, list]) -> dict[str, int]:
+    """Matches added or removed, by their keypoints' positions, before the score filter (raw)
+    and after it, with the pairs touched; inliers added or removed, by count, and the pairs touched."""
+
+    def changed(a: np.ndarray, b: np.ndarray) -> int:
+        return len({tuple(m) for m in a.tolist()} ^ {tuple(m) for m in b.tolist()})
+
+    raw = [changed(a, b) for (a, _), (b, _) in zip(ours[1], theirs[1])]
+    filtered = [changed(a[keep_a], b[keep_b]) for (a, keep_a), (b, keep_b) in zip(ours[1], theirs[1])]
     inlier_change = (theirs[0]["num_inliers"] - ours[0]["num_inliers"]).abs()
     return {
-        "matches_changed": int(sum(changed_matches)),
-        "pairs_matches_changed": int(sum(c > 0 for c in changed_matches)),
+        "raw_matches_changed": int(sum(raw)),
+        "pairs_raw_matches_changed": int(sum(c > 0 for c in raw)),
+        "matches_changed": int(sum(filtered)),
+        "pairs_matches_changed": int(sum(c > 0 for c in filtered)),
         "inliers_changed": int(inlier_change.sum()),
         "pairs_inliers_changed": int((inlier_change > 0).sum()),
     }

@@ -98,12 +98,15 @@ def test_query_subset_keeps_every_nth_query_with_all_its_pairs():
 
 def test_changes_count_matches_and_inliers_per_pair():
     table = pd.DataFrame({"num_inliers": [10, 0, 3]})
-    ours = (table, [np.array([[0, 1, 5, 5], [2, 3, 6, 6]]), np.zeros((0, 4)), np.array([[1, 1, 1, 1]])])
-    theirs = (
-        table.assign(num_inliers=[8, 0, 3]),
-        [np.array([[0, 1, 5, 5]]), np.zeros((0, 4)), np.array([[1, 1, 1, 2]])],
-    )
+    positions = [np.array([[0, 1, 5, 5], [2, 3, 6, 6]]), np.zeros((0, 4)), np.array([[1, 1, 1, 1]])]
+    ours = (table, [(p, np.ones(len(p), bool)) for p in positions])
+    # The same raw matches; the score filter of the reading drops one of the first pair's.
+    theirs = (table.assign(num_inliers=[8, 0, 3]), [(p, np.ones(len(p), bool)) for p in positions])
+    theirs[1][0] = (positions[0], np.array([True, False]))
+    theirs[1][2] = (np.array([[1, 1, 1, 2]]), np.array([True]))
     assert parity_effects.changes(ours, theirs) == {
+        "raw_matches_changed": 2,
+        "pairs_raw_matches_changed": 1,
         "matches_changed": 3,
         "pairs_matches_changed": 2,
         "inliers_changed": 2,

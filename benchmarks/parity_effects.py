@@ -461,6 +461,16 @@ def run_row(row: str, method: str, ctx: Context) -> tuple[dict[str, Any], tuple,
     return conf, ours, theirs, note
 
 
+def write_csv(lines: list[dict[str, Any]], path: Path) -> pd.DataFrame:
+    frame = pd.DataFrame(lines).convert_dtypes()
+    for column in frame.columns:
+        if frame[column].dtype.kind == "f" or str(frame[column].dtype).startswith("Float"):
+            frame[column] = frame[column].round(4)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    frame.to_csv(path, index=False)
+    return frame
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("params", help="params YAML, e.g. params/gardens_point.yaml")
@@ -522,12 +532,8 @@ def main(argv: list[str] | None = None) -> int:
                 }
             )
             print(pd.DataFrame(lines[-2:]).drop(columns=["pairs", "note"]).round(4).to_string(index=False), flush=True)
-    frame = pd.DataFrame(lines).convert_dtypes()
-    for column in frame.columns:
-        if frame[column].dtype.kind == "f" or str(frame[column].dtype).startswith("Float"):
-            frame[column] = frame[column].round(4)
-    out.mkdir(parents=True, exist_ok=True)
-    frame.to_csv(out / args.output_name, index=False)
+            write_csv(lines, out / args.output_name)  # after each method: an interrupted run keeps its rows
+    frame = write_csv(lines, out / args.output_name)
     print(
         frame.drop(columns=["pairs", "note"], errors="ignore")
         .astype(object)

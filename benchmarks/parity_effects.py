@@ -46,6 +46,7 @@ import importlib.util
 import sys
 import types
 from collections.abc import Callable, Iterator
+from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -56,11 +57,13 @@ import pandas as pd
 import torch
 from tqdm import tqdm
 
-from gvbench_nb import config, methods, pipeline, weights
-from gvbench_nb.data import images
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.evaluation import analysis, metrics
-from gvbench_nb.verification.ransac import to_verifier_frame, verify_matches
+from gvbench_nb.evaluation import bootstrap as resampling
+from gvbench_nb.protocol import images, metrics, weights
+from gvbench_nb.protocol.ransac import to_verifier_frame, verify_matches
+from gvbench_nb.protocol.recipes import conf_hash
+from gvbench_nb.runner import concurrency, config, image_features, pair_matching
 
 Features = dict[str, np.ndarray]
 Matches = tuple[np.ndarray, np.ndarray]
@@ -92,12 +95,12 @@ def descriptors_as_stored() -> Iterator[None]:
         torch.nn.functional.normalize = normalize
 
 
-def in_input_frame(features: Features, size: tuple[int, int] = methods.REPOSITORY_IMAGE_SIZE) -> Features:
+def in_input_frame(features: Features, size: SequenceType[int]) -> Features:
     """One image's features as cvg's ``match_pair`` hands them to LightGlue in the repository's
     code: keypoints in the pixels of the ``size`` (width, height) input, and that size."""
     frame = {"coordinates": "resize_to", "resize_to": list(size)}
     keypoints = to_verifier_frame(features["keypoints"], features["image_size"], frame)
-    return {**features, "keypoints": keypoints.astype(np.float32), "image_size": np.array(size, np.int64)}
+    return {**features, "keypoints": keypoints.astype(np.float32), "image_size": np.array(list(size), np.int64)}
 
 
 def load_float_as_repository(path: str | Path, conf: dict[str, Any]) -> tuple[np.ndarray, np.ndarray]:
@@ -131,14 +134,14 @@ def load_float_as_repository(path: str | Path, conf: dict[str, Any]) -> tuple[np
 @contextlib.contextmanager
 def float_images() -> Iterator[None]:
     """The package's extraction with the float image chain in place of the 8-bit one."""
-    if not hasattr(pipeline, "load_for_extraction"):
-        raise RuntimeError("pipeline no longer reads images through load_for_extraction; update this script")
-    saved = pipeline.load_for_extraction
-    pipeline.load_for_extraction = load_float_as_repository  # type: ignore[assignment]
+    if not hasattr(image_features, "load_for_extraction"):
+        raise RuntimeError("image_features no longer reads images through load_for_extraction; update this script")
+    saved = image_features.load_for_extraction
+    image_features.load_for_extraction = load_float_as_repository  # type: ignore[assignment]
     try:
         yield
     finally:
-        pipeline.load_for_extraction = saved  # type: ignore[assignment]
+        image_features.load_for_extraction = saved  # type: ignore[assignment]
 
 
 def cvg_lightglue_file(given: str | None) -> Path:
@@ -263,9 +266,9 @@ def query_subset(sequence: Sequence, step: int) -> Sequence:
 
 
 def read_features(sequence: Sequence, extractor_conf: dict[str, Any], cache_dir: Path) -> Callable[[str], Features]:
-    store = pipeline.feature_store(cache_dir, extractor_conf)
+    store = image_features.feature_store(cache_dir, extractor_conf)
     store.refresh()
-    cache = pipeline.FeatureCache(lambda name: store.read(pipeline.image_key(sequence.image_root, name)))
+    cache = pair_matching.FeatureCache(lambda name: store.read(image_features.image_key(sequence.image_root, name)))
     return cache.get
 
 
@@ -297,8 +300,8 @@ def score_pairs(
             pair_matches,
             scores,
             verifier,
-            seed=pipeline.pair_seed(seed, pair.query, pair.reference),
-            image_sizes=pipeline.image_sizes(f0, f1),
+            seed=pair_matching.pair_seed(seed, pair.query, pair.reference),
+            image_sizes=pair_matching.image_sizes(f0, f1),
         )
         threshold = verifier.get("min_match_score")
         keep = np.ones(len(pair_matches), bool) if threshold is None else np.asarray(scores) > threshold
@@ -354,7 +357,7 @@ def change_interval(ours: pd.DataFrame, theirs: pd.DataFrame, resamples: int, se
     """95 % percentile interval of reference - ours (AP and MR) over paired query resamples."""
     if resamples == 0:
         return {}
-    boot = analysis.bootstrap({"ours": ours, "reference": theirs}, n_resamples=resamples, seed=seed)
+    boot = resampling.bootstrap({"ours": ours, "reference": theirs}, n_resamples=resamples, seed=seed)
     out = {}
     for metric in ("ap", "max_recall"):
         difference = (boot.samples[metric]["reference"] - boot.samples[metric]["ours"]).dropna().to_numpy()
@@ -375,20 +378,20 @@ class Context:
 
     def extract(self, conf: dict[str, Any], cache_dir: Path | None = None) -> Callable[[str], Features]:
         cache_dir = cache_dir or self.cache_dir
-        pipeline.extract_features(self.sequence, conf["extractor"], cache_dir, device=self.device, workers=1)
+        image_features.extract_features(self.sequence, conf["extractor"], cache_dir, device=self.device, workers=1)
         return read_features(self.sequence, conf["extractor"], cache_dir)
 
     def matcher(self, conf: dict[str, Any]) -> Any:
-        from gvbench_nb.matching import build_matcher
+        from gvbench_nb.protocol.matching import build_matcher
 
-        key = methods.conf_hash(conf["matcher"])
+        key = conf_hash(conf["matcher"])
         if key not in self._matchers:
             self._matchers[key] = build_matcher(conf["matcher"], torch.device(self.device))
         return self._matchers[key]
 
     def ours(self, conf: dict[str, Any], features: Callable[[str], Features], call: Matcher) -> dict[int, Matches]:
         """Our matches of every pair under one (extractor, matcher) conf, computed once a run."""
-        key = methods.conf_hash({k: conf[k] for k in ("extractor", "matcher")})
+        key = conf_hash({k: conf[k] for k in ("extractor", "matcher")})
         if key not in self._ours:
             self._ours[key] = match_all(self.sequence, features, call, f"{conf['method']} ours")
         return self._ours[key]
@@ -442,7 +445,7 @@ def run_row(row: str, method: str, ctx: Context) -> tuple[dict[str, Any], tuple,
 
         def in_frame(name: str) -> Features:
             if name not in framed:
-                framed[name] = in_input_frame(features(name))
+                framed[name] = in_input_frame(features(name), conf["verifier"]["resize_to"])
             return framed[name]
 
         # The matcher sees the input-frame features; verification reads the stored ones.
@@ -490,7 +493,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown row {unknown[0]!r}; choose from {', '.join(ROWS)}")
     if args.query_step < 1 or args.resamples < 0:
         parser.error("--query-step must be at least 1 and --resamples at least 0")
-    pipeline.configure_threads(args.threads)
+    concurrency.configure_threads(args.threads)
     params = config.load_params(args.params, profile="paper")
     full = config.prepare_sequence(params)
     sequence = query_subset(full, args.query_step)

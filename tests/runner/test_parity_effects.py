@@ -12,18 +12,19 @@ import pandas as pd
 import pytest
 import torch
 
-from gvbench_nb import methods, pipeline, weights
-from gvbench_nb.data import images
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.matching import build_matcher
+from gvbench_nb.protocol import images, weights
+from gvbench_nb.protocol.matching import build_matcher
+from gvbench_nb.runner import image_features
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
 import parity_effects
 
 
 def test_float16_scores_move_scores_just_above_the_filter_below_it():
     scores = np.array([0.50005, 0.5002, 0.6, 0.4, 0.49999], np.float32)
-    threshold = methods.VERIFIER["min_match_score"]
+    threshold = methods.resolve_method("aliked-lg", "paper")["verifier"]["min_match_score"]
     ours, theirs = scores > threshold, parity_effects.float16_scores(scores) > threshold
     assert ours.tolist() == [True, True, True, False, False]
     assert theirs.tolist() == [False, False, True, False, False]
@@ -52,7 +53,7 @@ def lightglue_normalised(keypoints: np.ndarray, size: np.ndarray) -> np.ndarray:
 def test_input_frame_moves_what_lightglue_sees(original, largest_gap):
     keypoints = np.array([[0.0, 0.0], [100.5, 50.25], [original[0] - 1.0, original[1] - 1.0]], np.float32)
     features = {"keypoints": keypoints, "descriptors": np.zeros((3, 4), np.float32), "image_size": np.array(original)}
-    framed = parity_effects.in_input_frame(features)
+    framed = parity_effects.in_input_frame(features, (512, 288))
     assert framed["image_size"].tolist() == [512, 288]
     back = (framed["keypoints"].astype(np.float64) + 0.5) * np.array(original) / [512, 288] - 0.5
     np.testing.assert_allclose(back, keypoints, atol=1e-3)
@@ -80,10 +81,10 @@ def test_float_images_keep_what_ours_rounds(tmp_path):
         difference = np.abs(floating - rounded)
         assert difference.max() <= 0.5 + 1e-3
         assert (difference > 0.01).mean() > 0.5
-    loader = pipeline.load_for_extraction
+    loader = image_features.load_for_extraction
     with parity_effects.float_images():
-        assert pipeline.load_for_extraction is parity_effects.load_float_as_repository
-    assert pipeline.load_for_extraction is loader
+        assert image_features.load_for_extraction is parity_effects.load_float_as_repository
+    assert image_features.load_for_extraction is loader
     with pytest.raises(ValueError):
         parity_effects.load_float_as_repository(path, methods.resolve_method("xfeat-nn", "paper")["extractor"])
 

@@ -187,7 +187,7 @@ def test_imm_xfeat_builds_offline_from_the_linked_weights_without_the_hub_banner
     probe = (
         "import numpy as np\n"
         "from gvbench_nb import methods\n"
-        "from gvbench_nb.protocol.matching import imm\n"
+        "from gvbench_nb import imm\n"
         "print(imm.link_local_weights()['vismatch/xfeat/xfeat.pt'])\n"
         "matcher = imm.ImmPairMatcher(methods.resolve_method('imm:xfeat', 'repository')['matcher'], 'cpu')\n"
         "image = np.random.default_rng(0).integers(0, 255, (288, 512, 3), dtype=np.uint8)\n"

@@ -58,7 +58,7 @@ def register_method(name: str, profiles: dict[str, dict[str, Any]]) -> None:
             if whole[kind] is not None:
                 whole[kind].setdefault("name", name)
                 whole[kind].setdefault("checkpoints", [])
-        whole.setdefault("verifier", recipes.recipe(method_names()[0], profile)["verifier"])
+        whole.setdefault("verifier", recipes.profile_verifier(profile))
         RECIPES[profile][name] = {key: whole[key] for key in recipes.RECIPE_KEYS}
 
 
@@ -120,7 +120,7 @@ def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] |
     check_profile(profile)
     if imm.is_imm(name):
         whole = {"paper_name": imm.paper_name(name), "extractor": None, "matcher": imm.matcher_conf(name, None)}
-        base_verifier = recipes.recipe(method_names()[0], profile)["verifier"]
+        base_verifier = recipes.profile_verifier(profile)
     else:
         if name not in RECIPES[profile]:
             known = method_names()

@@ -55,6 +55,12 @@ def recipe(name: str, profile: str = "paper") -> dict[str, Any]:
     return copy.deepcopy(RECIPES[profile][name])
 
 
+def profile_verifier(profile: str) -> dict[str, Any]:
+    """A copy of the verifier every recipe of ``profile`` writes (its first recipe's)."""
+    check_profile(profile)
+    return copy.deepcopy(next(iter(RECIPES[profile].values()))["verifier"])
+
+
 def conf_hash(conf: dict[str, Any]) -> str:
     """Short stable hash of a conf (its cache identity)."""
     return hashlib.sha1(json.dumps(conf, sort_keys=True).encode()).hexdigest()[:10]

@@ -118,6 +118,7 @@ def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] |
     stronger verifier than the paper's reaches ``pairs.csv`` and ``results.csv``; the verifier
     conf is part of the match folder's hash, so its results never mix with the default's."""
     check_profile(profile)
+    whole: dict[str, Any]
     if imm.is_imm(name):
         whole = {"paper_name": imm.paper_name(name), "extractor": None, "matcher": imm.matcher_conf(name, None)}
         base_verifier = recipes.profile_verifier(profile)

@@ -33,6 +33,8 @@ MAX_KEYPOINTS = 1024
 
 def features_of(shared_data: Path, method: str, names: list[str] = IMAGES) -> tuple[dict, list[dict]]:
     conf = methods.resolve_method(method, "repository")
+    if conf["extractor"].get("model_input_long_side"):  # a quarter of the pixels: the split is what is compared
+        conf["extractor"]["model_input_long_side"] = 512
     extractor = extractors.build_extractor(conf["extractor"], torch.device("cpu"))
     features = []
     for name in names:

@@ -44,8 +44,10 @@ def day_pairs(shared_data: Path) -> Sequence:
 def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path, method):
     sequence = day_pairs(shared_data) if method == "sift-nn" else few_pairs(shared_data)
     conf = methods.resolve_method(method, "repository")
-    if method == "disk-lg":  # half the keypoints, a quarter of LightGlue's attention: the same comparison
+    if method == "disk-lg":  # half the keypoints, a quarter of LightGlue's attention, DISK on a quarter of
+        # the pixels (512 on the long side, not 1024): the same comparison
         conf["extractor"]["max_keypoints"] = 1024
+        conf["extractor"]["model_input_long_side"] = 512
     ours, our_seconds = bench.run_cached_pipeline(sequence, conf, tmp_path, torch.device("cpu"), seed=3)
     reference, reference_seconds = bench.run_per_pair_pipeline(sequence, conf, torch.device("cpu"), seed=3)
     bench.check_same_scores(ours, reference, "test")  # raises on any difference

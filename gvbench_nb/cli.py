@@ -39,16 +39,16 @@ examples:
   python -m gvbench_nb methods
   .venv-imm/bin/python -m gvbench_nb run params/gardens_point.yaml --methods imm:sift-nn,imm:orb-nn
   python -m gvbench_nb weights --link
-  python -m gvbench_nb run params/gardens_point.yaml --jobs 2
+  python -m gvbench_nb run params/gardens_point.yaml --jobs 1
 
 environment:
   GVBENCH_DATA     the data folder: what ${GVBENCH_DATA} stands for in params and where `data fetch`
                    puts datasets (default: a per-user cache folder, printed by `data list`)
-  GVBENCH_THREADS  torch and OpenCV threads (default: every core)
-  GVBENCH_JOBS     images, then pairs, processed at once (default 1), as `run --jobs` sets it.
-                   2 is faster on two or more cores (see `python -m gvbench_nb.speed`), but each image's and pair's
-                   timer then includes waiting for the shared cores: keep 1 for the runtime
-                   analyses. (`run --dask-workers` is the size of a Dask cluster instead.)
+  GVBENCH_JOBS     images, then pairs, processed at once, as `run --jobs` sets it (default: every
+                   core this process may use). Each image's and pair's timer is its job's own time;
+                   `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is
+                   the size of a Dask cluster instead.)
+  GVBENCH_THREADS  torch, OpenCV and BLAS threads a job (default: the cores shared by the jobs)
 """
 
 

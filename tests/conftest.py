@@ -46,8 +46,9 @@ LONGEST = (
 def pytest_configure(config: pytest.Config) -> None:
     if os.environ.get("PYTEST_XDIST_WORKER"):
         # One torch/OpenCV thread a worker: two workers on two cores, each spinning two threads,
-        # would wait on each other. Runs (and their notebook kernels) read GVBENCH_THREADS.
+        # would wait on each other. Runs (and their notebook kernels) read GVBENCH_THREADS and GVBENCH_JOBS.
         os.environ.setdefault("GVBENCH_THREADS", "1")
+        os.environ.setdefault("GVBENCH_JOBS", "1")  # and one job a run: the workers are the cores' jobs
         os.environ.setdefault("OMP_NUM_THREADS", "1")
         import cv2
         import torch

@@ -24,15 +24,31 @@ T = TypeVar("T")
 R = TypeVar("R")
 
 
-def configure_threads(n_threads: int | None = None) -> int:
-    """Set torch's and OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else
-    every core. On a machine shared with other work, fewer threads than cores can be
-    much faster (small matrix products then wait on busy cores); scores do not change."""
-    import torch
+def available_cores() -> int:
+    """The cores this process may run on: its CPU affinity (what a container, taskset or a batch
+    scheduler grants), else the machine's count."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS and Windows have no affinity call
+        return os.cpu_count() or 1
 
-    n = n_threads or int(os.environ.get("GVBENCH_THREADS") or 0) or os.cpu_count() or 1
+
+THREADS_ENV = "GVBENCH_THREADS"  # threads a job: torch, OpenCV and numpy's BLAS
+
+
+def configure_threads(n_threads: int | None = None, jobs: int = 1) -> int:
+    """Set torch's, OpenCV's and numpy's BLAS thread counts, the one place a run sets them:
+    ``n_threads``, else $GVBENCH_THREADS, else the available cores shared by ``jobs`` (every
+    core's worth: two jobs on two cores run one thread each, not two that would wait on each
+    other). On a machine shared with other work, fewer threads than cores can be much faster
+    (small matrix products then wait on busy cores); scores do not change."""
+    import torch
+    from threadpoolctl import threadpool_limits
+
+    n = n_threads or int(os.environ.get(THREADS_ENV) or 0) or max(1, available_cores() // max(jobs, 1))
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    threadpool_limits(n)  # numpy's BLAS (the OpenCV-rule L2 products); kept for the process
     return n
 
 
@@ -44,17 +60,16 @@ RENAMED_ENV = {"GVBENCH_WORKERS": JOBS_ENV}  # an old name, no longer read: the 
 
 def worker_count(workers: int | None = None) -> int:
     """How many images are extracted, and pairs matched and verified, at once (the run's
-    jobs): ``workers``, else $GVBENCH_JOBS (what ``--jobs`` sets), else 1.
+    jobs): ``workers``, else $GVBENCH_JOBS (what ``--jobs`` sets), else every available core
+    (``available_cores``), each job on its own threads (``configure_threads``).
 
-    With 1, one image (decoded ahead) and one pair (verified while the next is matched)
-    are in flight, so the per-image and per-pair timers are close to each item's own
-    cost, which the runtime analyses report. With 2 on a 2-core CPU, throughput rises
-    (measured by the bench, ``python -m gvbench_nb.speed``) but the timers include waiting for the shared cores. Scores
-    are the same either way.
+    Each image's and pair's timer is its own wall time on its job's threads: with one job a
+    core, close to that item's cost on one core (the jobs share memory bandwidth); with
+    ``--jobs 1`` on every core's threads. Scores are the same either way (tested).
     """
-    text = os.environ.get(JOBS_ENV) or "1"
+    text = os.environ.get(JOBS_ENV) or ""
     try:
-        n = workers if workers is not None else int(text)
+        n = workers if workers is not None else int(text) if text else available_cores()
     except ValueError:
         n = 0
     if n < 1:

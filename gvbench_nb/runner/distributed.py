@@ -77,7 +77,8 @@ def extract_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    concurrency.configure_threads(threads)
+    jobs = concurrency.worker_count()
+    concurrency.configure_threads(threads, jobs)
     return image_features.extract_features(
         sequence,
         extractor_conf,
@@ -85,6 +86,7 @@ def extract_shard(
         resolve_device(device),
         progress=False,
         images=sequence.images[index::count],
+        workers=jobs,
     )
 
 
@@ -108,7 +110,7 @@ def match_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    concurrency.configure_threads(threads)
+    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.worker_count())
     if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
         raise ValueError(
             f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
@@ -390,9 +392,8 @@ def add_run_arguments(run: argparse.ArgumentParser) -> None:
     add_jobs_argument(
         run,
         None,
-        "images, then pairs, processed at once (default: $GVBENCH_JOBS, else 1). 2 is faster on two or "
-        "more cores (see `python -m gvbench_nb.speed`), but each image's and pair's timer then includes waiting for the shared "
-        "cores: keep 1 for the runtime analyses",
+        "images, then pairs, processed at once, each on its own threads (default: $GVBENCH_JOBS, else every "
+        "core this process may use); each image's and pair's timer is its job's own time",
     )
     group = run.add_argument_group("scale-out (no notebooks; results as `run` writes them)")
     group.add_argument("--shard", metavar="I/N", help="run only shard I of N (0-based) here; then --merge")

@@ -136,9 +136,10 @@ def compute_method(
     from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)
-    concurrency.configure_threads(threads)
-    started = time.perf_counter()
     workers = concurrency.worker_count(workers)
+    # Dense matchers take one pair at a time: their one job gets every core's threads.
+    threads = concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else workers)
+    started = time.perf_counter()
     extraction = (
         image_features.extract_features(
             sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers
@@ -159,6 +160,7 @@ def compute_method(
             "extraction": extraction,
             "matching": matching,
             "workers": workers,
+            "threads": threads,
             "extract_wall_seconds": extracted - started,
             "match_verify_wall_seconds": finished - extracted,
         },
@@ -195,7 +197,7 @@ def run_method(
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
     ``verifier``: overrides of the profile's verifier conf (``methods.resolve_method``).
-    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_JOBS or 1).
+    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_JOBS, else every core).
 
     Missing weights fail here, before any work. Finished work found in the caches is
     reused, so an interrupted run resumes. When every image and pair is cached and

@@ -44,7 +44,7 @@ def build_parser() -> argparse.ArgumentParser:
         parser,
         bench.DEFAULT_BENCH_JOBS,
         f"images or pairs our pipeline runs at once, as `run --jobs` (default here {bench.DEFAULT_BENCH_JOBS}; "
-        "`run`'s is $GVBENCH_JOBS, else 1); the per-pair pipeline runs one pair at a time",
+        "`run`'s is $GVBENCH_JOBS, else every core); the per-pair pipeline runs one pair at a time",
     )
     parser.add_argument(
         "--bench-dir", default=str(bench.DEFAULT_BENCH_DIR), help="where CSVs go (default outputs/bench)"

@@ -4,6 +4,7 @@ its verification in resized coordinates."""
 from __future__ import annotations
 
 import json
+import math
 
 import cv2
 import numpy as np
@@ -318,6 +319,59 @@ def test_repository_sift_matches_raw_descriptors_by_opencv_l2():
     expected = opencv_knn_ratio(random0, random1, cv2.NORM_L2)
     assert len(expected) > 50
     assert repository_matches("sift-nn", random0, random1) == expected
+
+
+def test_repository_sift_float32_product_equals_opencv_where_roots_tie():
+    """Whole SIFT-like descriptors take the float32 product (``exact_in_float32``); the nearest
+    comes from the product and only two roots a row are taken. OpenCV roots every distance in
+    float32, where two squared distances can round to one root: there the nearest is a tie, the
+    ratio test fails, and both drop the row."""
+    from gvbench_nb.protocol.matching.nearest_neighbour import exact_in_float32
+
+    rng = np.random.default_rng(11)
+    # OpenCV's SIFT descriptors: whole numbers, norm about 512.
+    random0 = rng.random((300, 128)) ** 3
+    random0 = np.round(random0 / np.linalg.norm(random0, axis=1, keepdims=True) * 512).astype(np.float32)
+    random1 = np.clip(random0[rng.permutation(300)[:250]] + rng.integers(-30, 31, (250, 128)), 0, 255)
+    random1 = random1.astype(np.float32)
+    assert exact_in_float32(random0) and exact_in_float32(random1)
+    expected = opencv_knn_ratio(random0, random1, cv2.NORM_L2)
+    assert len(expected) > 50
+    assert repository_matches("sift-nn", random0, random1) == expected
+
+    # Two train descriptors at squared distances 2^22 + m and 2^22 + m + 1 from the query, whose
+    # float32 roots are equal (m found below): OpenCV sees a tie, the product a nearest.
+    m = next(
+        m for m in range(4_000_000, 4_190_000) if np.sqrt(np.float32(4194304 + m)) == np.sqrt(np.float32(4194305 + m))
+    )
+    query = np.zeros((1, 128), np.float32)
+    query[0, 0] = 2048  # squared norm 2^22, orthogonal to both train descriptors
+
+    def with_squared_norm(target: int, first: int = 1) -> np.ndarray:
+        row, left, slot = np.zeros(128, np.float32), target, first
+        while left:  # whole components, largest first, whose squares add up to the target
+            row[slot] = math.isqrt(left)
+            left -= int(row[slot]) ** 2
+            slot += 1
+        return row
+
+    far = np.zeros(128, np.float32)
+    far[100] = 2048  # 2^23 away: farther than both
+    train = np.stack([with_squared_norm(m + 1), with_squared_norm(m), far])
+    assert exact_in_float32(query) and exact_in_float32(train)
+    pairs = cv2.BFMatcher(cv2.NORM_L2).knnMatch(query, train, k=2)
+    assert pairs[0][0].distance == pairs[0][1].distance  # the tie OpenCV sees
+    assert repository_matches("sift-nn", query, train) == opencv_knn_ratio(query, train, cv2.NORM_L2) == []
+    # Squared distances 27 and 48: the roots' ratio is 0.75 exactly, but in float32 the first is
+    # below 0.75 times the second (float64 roots would drop the match): OpenCV keeps it, and so do we.
+    assert np.sqrt(np.float32(27)) < 0.75 * np.float64(np.sqrt(np.float32(48))) and not np.sqrt(27) < 0.75 * np.sqrt(48)
+    origin, ratio_edge = np.zeros((1, 128), np.float32), np.stack([with_squared_norm(27), with_squared_norm(48)])
+    assert repository_matches("sift-nn", origin, ratio_edge) == opencv_knn_ratio(origin, ratio_edge, cv2.NORM_L2)
+    assert opencv_knn_ratio(origin, ratio_edge, cv2.NORM_L2) == [(0, 0)]
+    near = query[0].copy()
+    near[0] = 2047  # 1 away: a clear nearest, both keep it
+    close = np.stack([train[0], train[1], near])
+    assert repository_matches("sift-nn", query, close) == opencv_knn_ratio(query, close, cv2.NORM_L2) == [(0, 2)]
 
 
 def test_a_run_of_another_profile_says_it_replaces_the_folders_results(tmp_path):

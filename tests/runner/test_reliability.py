@@ -68,11 +68,15 @@ def frame_pairs() -> list[Pair]:
     return pairs
 
 
-def one_thread(n_threads: int | None = None) -> None:
+CONFIGURE_THREADS = concurrency.configure_threads
+
+
+def one_thread(n_threads: int | None = None, jobs: int = 1) -> int:
     """Stand-in for ``concurrency.configure_threads``: on tiny images (and a shared, busy
     machine) one thread is about twice as fast as all cores; scores do not change."""
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    return 1
 
 
 @pytest.fixture(scope="module", autouse=True)
@@ -106,7 +110,9 @@ def sequence(small_root) -> Sequence:
 def baseline(single_thread, sequence, tmp_path_factory) -> dict[str, Path]:
     """One uninterrupted run from scratch: what every other run must reproduce."""
     base = tmp_path_factory.mktemp("baseline")
-    method_runs.run_method(sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False)
+    method_runs.run_method(
+        sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False, workers=1
+    )
     return {"out": base / "out", "cache": base / "cache"}
 
 
@@ -119,10 +125,11 @@ from gvbench_nb.runner import store
 from gvbench_nb.runner import concurrency, image_features, method_outputs, method_runs, pair_matching, scoring
 from gvbench_nb.data.sequences import Pair, Sequence
 
-def one_thread(n_threads=None):  # as the tests' in-process runs (speed only)
+def one_thread(n_threads=None, jobs=1):  # as the tests' in-process runs (speed only)
     import cv2, torch
     torch.set_num_threads(1)
     cv2.setNumThreads(1)
+    return 1
 
 concurrency.configure_threads = one_thread
 stage, _, count = (spec.get("kill") or "").partition(":")
@@ -681,7 +688,7 @@ def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
 def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
     monkeypatch.setenv("GVBENCH_WORKERS", "3")  # the old name is no longer read
-    assert concurrency.worker_count() == 1
+    assert concurrency.worker_count() == concurrency.available_cores() == len(os.sched_getaffinity(0))
     monkeypatch.setenv("GVBENCH_JOBS", "3")
     assert concurrency.worker_count() == 3 and concurrency.worker_count(2) == 2
     with pytest.raises(ValueError, match=r"--jobs or \$GVBENCH_JOBS"):
@@ -689,6 +696,26 @@ def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
     monkeypatch.setenv("GVBENCH_JOBS", "two")
     with pytest.raises(ValueError, match=r"got 'two' \(--jobs or \$GVBENCH_JOBS\)"):
         concurrency.worker_count()
+
+
+def test_threads_a_job_share_the_cores_between_the_jobs_in_torch_opencv_and_blas(monkeypatch):
+    """The real ``configure_threads`` (this module's runs use the ``one_thread`` stand-in)."""
+    from threadpoolctl import threadpool_info
+
+    monkeypatch.delenv("GVBENCH_THREADS", raising=False)
+    monkeypatch.setattr(concurrency, "available_cores", lambda: 4)
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    try:
+        assert CONFIGURE_THREADS(jobs=2) == 2
+        assert torch.get_num_threads() == cv2.getNumThreads() == 2
+        assert {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"} <= {2}
+        assert CONFIGURE_THREADS(jobs=8) == 1  # never fewer than one a job
+        assert CONFIGURE_THREADS(3, jobs=2) == 3  # asked for
+        monkeypatch.setenv("GVBENCH_THREADS", "2")
+        assert CONFIGURE_THREADS(jobs=4) == 2
+    finally:
+        CONFIGURE_THREADS(before[0])
+        cv2.setNumThreads(before[1])
 
 
 def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the_variable(monkeypatch, capsys):

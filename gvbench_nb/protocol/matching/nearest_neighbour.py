@@ -257,6 +257,56 @@ def l2_distances_as_opencv(descriptors0: np.ndarray, descriptors1: np.ndarray) -
     return np.sqrt(np.maximum(squared, 0.0).astype(np.float32))
 
 
+# Whole, non-negative descriptors whose squared norms stay within 2^22 (OpenCV's SIFT: about
+# 512^2 = 2^18) have products, norms and squared distances that are integers below 2^24: float32
+# holds every partial sum exactly, whatever order the BLAS adds in.
+EXACT_FLOAT32_SQUARED_NORM = float(1 << 22)
+
+
+def exact_in_float32(descriptors: np.ndarray) -> bool:
+    """Whether ``two_nearest_l2_as_opencv`` may take its float32 path for these descriptors."""
+    if descriptors.size == 0 or descriptors.dtype.kind not in "fiu":
+        return False
+    values = np.asarray(descriptors, dtype=np.float32)
+    return bool(
+        values.min() >= 0
+        and np.array_equal(values, np.rint(values))
+        and np.einsum("ij,ij->i", values, values, dtype=np.float64).max() <= EXACT_FLOAT32_SQUARED_NORM
+    )
+
+
+def two_nearest_l2_as_opencv(
+    descriptors0: np.ndarray, descriptors1: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's nearest column and the two smallest distances of the row, as
+    ``_two_nearest(l2_distances_as_opencv(...))`` gives them (float32 roots, as float64).
+
+    For whole descriptors (``exact_in_float32``) the product runs in float32, exactly: the
+    nearest column maximises a.b - |b|^2 / 2 (the squared distance less the row's |a|^2, halved),
+    and only the two smallest squared distances of a row are rooted. A float32 root can round two
+    different squared distances to one value; then the row's two smallest roots are equal, the
+    ratio test fails, and which of them is called nearest does not matter. Other descriptors take
+    the float64 distances."""
+    if not (exact_in_float32(descriptors0) and exact_in_float32(descriptors1)) or len(descriptors1) < 2:
+        return _two_nearest(l2_distances_as_opencv(descriptors0, descriptors1))
+    a = np.asarray(descriptors0, dtype=np.float32)
+    b = np.asarray(descriptors1, dtype=np.float32)
+    half_norms1 = 0.5 * np.einsum("ij,ij->i", b, b)
+    gain = a @ b.T
+    gain -= half_norms1[None, :]
+    rows = np.arange(len(a))
+    nearest = gain.argmax(axis=1)
+    best = gain[rows, nearest].astype(np.float64)
+    gain[rows, nearest] = -np.inf
+    runner_up = gain.max(axis=1).astype(np.float64)
+    norms0 = np.einsum("ij,ij->i", a, a).astype(np.float64)
+
+    def root(squared: np.ndarray) -> np.ndarray:
+        return np.sqrt(np.maximum(squared, 0.0).astype(np.float32)).astype(np.float64)
+
+    return nearest, root(norms0 - 2 * best), root(norms0 - 2 * runner_up)
+
+
 def knn_ratio_matches(distance: np.ndarray, ratio_threshold: float) -> tuple[np.ndarray, np.ndarray]:
     """The repository's rule on a distance matrix: each row's nearest column, kept when its
     distance is strictly below ``ratio_threshold`` times the row's second-nearest (compared in
@@ -266,7 +316,13 @@ def knn_ratio_matches(distance: np.ndarray, ratio_threshold: float) -> tuple[np.
     Returns (matches (M, 2) int64, nearest distances (M,) float64)."""
     if distance.shape[0] == 0 or distance.shape[1] < 2:
         return np.zeros((0, 2), np.int64), np.zeros((0,), np.float64)
-    nearest, first, second = _two_nearest(distance)
+    return knn_ratio_of_nearest(*_two_nearest(distance), ratio_threshold)
+
+
+def knn_ratio_of_nearest(
+    nearest: np.ndarray, first: np.ndarray, second: np.ndarray, ratio_threshold: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """``knn_ratio_matches`` given each row's nearest column and two smallest distances."""
     keep = first < ratio_threshold * second
     rows = np.flatnonzero(keep)
     return np.stack([rows, nearest[rows]], axis=1).astype(np.int64), first[rows]
@@ -290,12 +346,16 @@ class NearestNeighbourMatcher:
         if len(descriptors0) == 0 or len(descriptors1) == 0:
             return empty_matches()
         hamming = self.conf.get("metric", "l2") == "hamming"
-        distance = (
-            hamming_distances(descriptors0, descriptors1)
-            if hamming
-            else l2_distances_as_opencv(descriptors0, descriptors1)
-        )
-        matches, first = knn_ratio_matches(distance, self.conf["ratio_threshold"])
+        if hamming:
+            matches, first = knn_ratio_matches(
+                hamming_distances(descriptors0, descriptors1), self.conf["ratio_threshold"]
+            )
+        elif len(descriptors1) < 2:
+            return empty_matches()  # no second neighbour (``knn_ratio_matches``)
+        else:
+            matches, first = knn_ratio_of_nearest(
+                *two_nearest_l2_as_opencv(descriptors0, descriptors1), self.conf["ratio_threshold"]
+            )
         if hamming:
             return matches, (1 - first / (8 * descriptors0.shape[1])).astype(np.float32)
         a = descriptors0[matches[:, 0]].astype(np.float64)

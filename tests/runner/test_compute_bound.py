@@ -1,0 +1,40 @@
+"""benchmarks/compute_bound.py: the one-core run's timers, summed and shared over the cores."""
+
+import sys
+from pathlib import Path
+
+import pandas as pd
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import compute_bound
+
+
+@pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample
+@pytest.mark.slow
+def test_the_bound_is_the_one_core_work_shared_over_the_cores(tmp_path, capsys):
+    code = compute_bound.main(
+        [
+            "params/sample.yaml",
+            "--method",
+            "orb-nn",
+            "--limit",
+            "12",
+            "--cores",
+            "3",
+            "--peer-seconds",
+            "9",
+            "--out",
+            str(tmp_path),
+        ]
+    )
+    assert code == 0
+    row = pd.read_csv(tmp_path / "compute_bound.csv").iloc[0]
+    pairs = pd.read_csv(tmp_path / "run" / "output" / "orb-nn" / "pairs.csv")
+    run = pd.read_json(tmp_path / "run" / "output" / "orb-nn" / "run.json", typ="series")
+    assert run["this_run"]["workers"] == 1 and run["this_run"]["threads"] == 1  # one job on one thread
+    assert row["n_pairs"] == len(pairs) == 12
+    work = sum(pairs[name].sum() for name in compute_bound.TIMERS)
+    assert row["one_core_work_seconds"] == pytest.approx(work, abs=0.01) and work > 0
+    assert row["bound_wall_seconds"] == pytest.approx(work / 3, abs=0.01)
+    assert row["largest_speedup_over_peer"] == pytest.approx(9 / (work / 3), rel=0.01)

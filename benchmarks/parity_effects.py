@@ -250,7 +250,7 @@ def applies(row: str, conf: dict[str, Any]) -> str | None:
         matcher["type"] == "lightglue" or (matcher["type"] == "nn" and matcher.get("metric", "l2") == "l2")
     ):
         return "not an L2 nearest-neighbour or LightGlue method"
-    if kind == "learned" and extractor["type"] in ("sift", "opencv_sift", "orb"):
+    if kind == "learned" and extractor["type"] in ("colmap_sift", "opencv_sift", "opencv_orb"):
         return "an OpenCV extractor: its 8-bit chain is the repository's"
     return None
 

@@ -154,6 +154,7 @@ def not_run_table(ran: set[str]) -> Any:
 
 def command_methods(args: argparse.Namespace) -> int:
     from gvbench_nb import imm, methods
+    from gvbench_nb.protocol import recipes
 
     if args.name:
         import yaml
@@ -161,6 +162,8 @@ def command_methods(args: argparse.Namespace) -> int:
         methods.expand_methods([args.name])  # a typo gets its did-you-mean before anything prints
         conf = methods.resolve_method(args.name, args.profile)
         print(f"# {args.name} under the {args.profile} profile (its cache identity: {methods.conf_hash(conf)})")
+        if args.name in recipes.RECIPES[args.profile]:  # a registered or imm: method has no reference lines
+            print("\n".join(recipes.reference_lines(args.name, args.profile)))
         print(yaml.safe_dump({args.name: conf}, sort_keys=False, default_flow_style=False), end="")
         return 0
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])

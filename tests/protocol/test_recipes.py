@@ -67,11 +67,11 @@ HLOC_DISK = {
 
 
 def test_paper_extractors_are_hlocs_confs():
-    assert_holds(paper("sift-nn")["extractor"], {**HLOC_SIFT, **HLOC_DOG, "type": "sift"}, "sift")
+    assert_holds(paper("sift-nn")["extractor"], {**HLOC_SIFT, **HLOC_DOG, "type": "colmap_sift"}, "sift")
     for name in ("sp-nn", "sp-sg", "sp-lg"):
-        assert_holds(paper(name)["extractor"], {**HLOC_SUPERPOINT_MAX, "type": "superpoint"}, name)
+        assert_holds(paper(name)["extractor"], {**HLOC_SUPERPOINT_MAX, "type": "magicleap_superpoint"}, name)
     for name in ("disk-nn", "disk-lg"):
-        assert_holds(paper(name)["extractor"], {**HLOC_DISK, "type": "disk"}, name)
+        assert_holds(paper(name)["extractor"], {**HLOC_DISK, "type": "kornia_disk"}, name)
 
 
 def test_paper_sift_cap_is_pycolmaps_default():
@@ -87,7 +87,7 @@ def test_paper_matchers_are_hlocs_confs():
     # hloc/matchers/superglue.py:L14 match_threshold 0.2.
     assert_holds(
         paper("sp-sg")["matcher"],
-        {"type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2},
+        {"type": "magicleap_superglue", "weights": "outdoor", "sinkhorn_iterations": 50, "match_threshold": 0.2},
         "sp-sg",
     )
     # hloc/match_features.py:L31-37 confs["disk+lightglue"]; hloc/matchers/lightglue.py:L7-11
@@ -96,7 +96,7 @@ def test_paper_matchers_are_hlocs_confs():
     assert_holds(
         paper("disk-lg")["matcher"],
         {
-            "type": "lightglue",
+            "type": "kornia_lightglue",
             "features": "disk",
             "depth_confidence": 0.95,
             "width_confidence": 0.99,
@@ -109,7 +109,7 @@ def test_paper_matchers_are_hlocs_confs():
     assert_holds(
         paper("loftr")["matcher"],
         {
-            "type": "loftr",
+            "type": "kornia_loftr",
             "weights": "outdoor",
             "grayscale": True,
             "resize_max": 1024,
@@ -212,7 +212,7 @@ def test_repository_superglue_is_image_matching_toolboxs_sat_config():
     recipe = repository("sp-sg")
     assert_holds(
         recipe["matcher"],
-        {"type": "superglue", "weights": "outdoor", "sinkhorn_iterations": 20, "match_threshold": 0.2},
+        {"type": "magicleap_superglue", "weights": "outdoor", "sinkhorn_iterations": 20, "match_threshold": 0.2},
         "sp-sg",
     )
     assert_holds(recipe["extractor"], {"nms_radius": 4, "keypoint_threshold": 0.005, "grayscale": True}, "sp-sg")
@@ -320,3 +320,20 @@ def test_disk_pads_its_input_to_a_multiple_of_16(profile):
         DISK.from_pretrained("depth")(torch.zeros(1, 3, 50, 70), n=10, pad_if_not_divisible=False)
     keypoints = extractor(image)["keypoints"]
     assert len(keypoints) > 0 and (keypoints < [70, 50]).all()
+
+
+@pytest.mark.parametrize(
+    ("profile", "implementation", "reference"),
+    [
+        ("paper", "type: colmap_sift", "extractors/dog.py:L20 COLMAP SIFT via pycolmap"),
+        ("repository", "type: opencv_sift", "handcrafted.py:L68 SiftNNMatcher: OpenCV SIFT"),
+    ],
+)
+def test_a_printed_recipe_names_its_implementation_and_its_reference_lines(capsys, profile, implementation, reference):
+    from gvbench_nb import cli
+
+    assert cli.main(["methods", "sift-nn", "--profile", profile]) == 0
+    printed = capsys.readouterr().out
+    assert implementation in printed and reference in printed
+    # The verifier's reference, written once in the file's header, is printed with every recipe.
+    assert "verifier (every recipe)" in printed

@@ -63,7 +63,7 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
     conf = {
         "method": "fake-nn",
         "profile": "test",
-        "extractor": {"type": "sift", "name": "fake"},
+        "extractor": {"type": "colmap_sift", "name": "fake"},
         "matcher": {"type": "nn", "metric": "l2", "mutual": True, "ratio_threshold": 0.8},
         "verifier": {
             "type": "fundamental",

@@ -17,13 +17,13 @@ if TYPE_CHECKING:
     import torch
 
 EXTRACTOR_TYPES: dict[str, str] = {
-    "sift": "gvbench_nb.protocol.features.sift:ColmapSiftExtractor",
+    "colmap_sift": "gvbench_nb.protocol.features.sift:ColmapSiftExtractor",
     "opencv_sift": "gvbench_nb.protocol.features.sift:OpenCVSiftExtractor",
-    "orb": "gvbench_nb.protocol.features.orb:OrbExtractor",
-    "disk": "gvbench_nb.protocol.features.disk:DiskExtractor",
-    "aliked": "gvbench_nb.protocol.features.aliked:AlikedExtractor",
-    "xfeat": "gvbench_nb.protocol.features.xfeat:XFeatExtractor",
-    "superpoint": "gvbench_nb.protocol.features.superpoint:SuperPointExtractor",
+    "opencv_orb": "gvbench_nb.protocol.features.orb:OrbExtractor",
+    "kornia_disk": "gvbench_nb.protocol.features.disk:DiskExtractor",
+    "kornia_aliked": "gvbench_nb.protocol.features.aliked:AlikedExtractor",
+    "kornia_xfeat": "gvbench_nb.protocol.features.xfeat:XFeatExtractor",
+    "magicleap_superpoint": "gvbench_nb.protocol.features.superpoint:SuperPointExtractor",
 }
 
 

@@ -18,9 +18,9 @@ if TYPE_CHECKING:
 
 MATCHER_TYPES: dict[str, str] = {
     "nn": "gvbench_nb.protocol.matching.nearest_neighbour:NearestNeighbourMatcher",
-    "lightglue": "gvbench_nb.protocol.matching.lightglue:LightGlueMatcher",
-    "superglue": "gvbench_nb.protocol.matching.superglue:SuperGlueMatcher",
-    "loftr": "gvbench_nb.protocol.matching.loftr:LoFTRMatcher",
+    "kornia_lightglue": "gvbench_nb.protocol.matching.lightglue:LightGlueMatcher",
+    "magicleap_superglue": "gvbench_nb.protocol.matching.superglue:SuperGlueMatcher",
+    "kornia_loftr": "gvbench_nb.protocol.matching.loftr:LoFTRMatcher",
 }
 
 

@@ -538,18 +538,6 @@ def retrieve_top_n_experiences(
     )
 
 
-def candidates_from_ranking(indices: np.ndarray, similarities: np.ndarray, experience: str = "reference") -> Candidates:
-    """Single-experience ``retrieve_top_n`` output as a ``Candidates`` table."""
-    num_queries, width = indices.shape
-    return Candidates(
-        query=np.repeat(np.arange(num_queries), width),
-        experience=np.full(num_queries * width, experience, dtype=object),
-        reference=indices.reshape(-1).astype(np.int64),
-        rank=np.tile(np.arange(width), num_queries),
-        similarity=np.asarray(similarities, np.float32).reshape(-1),
-    )
-
-
 @dataclass(frozen=True)
 class BestExperience:
     """Per query (rows sorted by query id): the highest-scoring pair over all experiences."""

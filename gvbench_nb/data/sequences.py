@@ -240,9 +240,6 @@ class Sequence:
             raise ValueError(f"limit must be a positive number of pairs, got {limit}")
         return Sequence(self.name, self.image_root, self.pairs[:limit], {**self.origin, "limit": limit})
 
-    def missing_images(self) -> list[str]:
-        return list(self.image_problems())
-
     def image_problems(self) -> dict[str, str]:
         """Image path -> what keeps it from being read (``io_utils.path_problem``), for every
         image of the pairs that is not a readable regular file."""

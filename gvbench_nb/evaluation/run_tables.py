@@ -101,8 +101,7 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
         path = Path(folder) / "results.csv"
         if not path.is_file():
             raise FileNotFoundError(
-                f"{path} is missing: evaluate that output folder first "
-                "(python -m gvbench_nb run PARAMS, or analysis.ensure_results)"
+                f"{path} is missing: evaluate that output folder first (python -m gvbench_nb run PARAMS)"
             )
         frame = pd.read_csv(path)
         # Read only what a run published, unedited, from inputs unchanged since, on one set of pairs.

@@ -18,15 +18,6 @@ def normalised_inliers(table: pd.DataFrame) -> pd.Series:
     return table["num_inliers"] / largest if largest > 0 else table["num_inliers"] * 0.0
 
 
-def normalised_inlier_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
-    """Long table: method, pair_index, label, num_inliers, normalised_inliers."""
-    frames = [
-        t[["pair_index", "label", "num_inliers"]].assign(method=m, normalised_inliers=normalised_inliers(t))
-        for m, t in tables.items()
-    ]
-    return pd.concat(frames, ignore_index=True)
-
-
 def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
     """What caps MR: the top false pair's score and the true pairs that do not beat it.
 

@@ -1,6 +1,6 @@
 """What every extractor shares: the feature dict it returns, the device, image tensors.
 
-An extractor takes an image prepared by ``data.images.load_for_extraction`` (grayscale
+An extractor takes an image prepared by ``protocol.images.load_for_extraction`` (grayscale
 (H, W) or RGB (H, W, 3), float32 in 0..255) and returns numpy arrays: ``keypoints`` (N, 2)
 float32 (x, y) in that image's pixels, ``scores`` (N,) float32, ``descriptors`` (N, D)
 float32 (uint8 for binary descriptors).

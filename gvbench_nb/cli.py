@@ -154,7 +154,6 @@ def not_run_table(ran: set[str]) -> Any:
 
 def command_methods(args: argparse.Namespace) -> int:
     from gvbench_nb import imm, methods
-    from gvbench_nb.protocol import recipes
 
     if args.name:
         import yaml
@@ -162,8 +161,8 @@ def command_methods(args: argparse.Namespace) -> int:
         methods.expand_methods([args.name])  # a typo gets its did-you-mean before anything prints
         conf = methods.resolve_method(args.name, args.profile)
         print(f"# {args.name} under the {args.profile} profile (its cache identity: {methods.conf_hash(conf)})")
-        if args.name in recipes.RECIPES[args.profile]:  # a registered or imm: method has no reference lines
-            print("\n".join(recipes.reference_lines(args.name, args.profile)))
+        if args.name in methods.RECIPES[args.profile]:  # a registered or imm: method has no reference lines
+            print("\n".join(methods.reference_lines(args.name, args.profile)))
         print(yaml.safe_dump({args.name: conf}, sort_keys=False, default_flow_style=False), end="")
         return 0
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
@@ -432,7 +431,8 @@ def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:
     """The line Ctrl-C prints: the same command resumes from the caches."""
     import shlex
 
-    command = shlex.join([Path(sys.executable).name, "-m", module, *argv])
+    program = [module] if module.endswith(".py") else ["-m", module]  # a script (benchmarks/) or a module
+    command = shlex.join([Path(sys.executable).name, *program, *argv])
     return f"interrupted; what was finished is kept: run the same command to resume: {command}"
 
 
@@ -477,7 +477,7 @@ def main(
     module: str = "gvbench_nb",
 ) -> int:
     """Run a command line; ``parser`` builds another program's parser (``module``, e.g.
-    ``python -m gvbench_nb.speed``) that shares this one's error messages and Ctrl-C handling."""
+    ``python benchmarks/speed.py``) that shares this one's error messages and Ctrl-C handling."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in argv:  # Python's KeyboardInterrupt, with its traceback
         return run_command(argv, parser, module)

@@ -9,7 +9,9 @@ which weights a method needs and expands ``all`` / ``all-available``.
 from __future__ import annotations
 
 import copy
+import itertools
 import math
+from pathlib import Path
 from typing import Any
 
 from gvbench_nb import imm
@@ -138,6 +140,17 @@ def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] |
         "matcher": whole["matcher"],
         "verifier": {**base_verifier, **copy.deepcopy(verifier or {})},
     }
+
+
+def reference_lines(name: str, profile: str) -> list[str]:
+    """The comment lines a profile's recipe file holds for ``name``: the file's header (its sources
+    and the verifier every recipe shares), then the references written above the recipe itself."""
+    check_profile(profile)
+    lines = (Path(recipes.__file__).parent / f"{profile}.yaml").read_text().splitlines()
+    header = list(itertools.takewhile(lambda line: line.startswith("#"), lines))
+    start = lines.index(f"{name}:") + 1 if f"{name}:" in lines else len(lines)
+    own = [line.strip() for line in itertools.takewhile(lambda line: line.strip().startswith("#"), lines[start:])]
+    return [*header, *own]
 
 
 def is_dense(conf: dict[str, Any]) -> bool:

@@ -1,6 +1,6 @@
 """``--jobs N``: how many images, then pairs, a run processes at once (``concurrency.worker_count``).
 
-One name for one concept: the flag of ``run`` and of the bench (``python -m gvbench_nb.speed``) and the environment variable
+One name for one concept: the flag of ``run`` and of the bench (``python benchmarks/speed.py``) and the environment variable
 $GVBENCH_JOBS that ``run`` exports for its notebook kernels. A Dask cluster's size is
 another thing, ``run --dask-workers``.
 """

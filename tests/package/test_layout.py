@@ -9,7 +9,7 @@ from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[2] / "gvbench_nb"
 STAGES = ("protocol", "protocol/features", "protocol/matching", "protocol/recipes", "data", "runner")
-STAGES += ("evaluation", "verification", "studies", "reporting", "speed")
+STAGES += ("evaluation", "verification", "studies", "reporting")
 # Bottom to top: a room (a top-level module or folder of the package) imports only rooms of its
 # own layer or below. data -> protocol -> runner -> evaluation and studies -> reporting and the CLI.
 LAYERS = (
@@ -24,7 +24,6 @@ LAYERS = (
     ("explore_lab",),
     ("run_and_publish",),
     ("cli", "__main__"),
-    ("speed",),  # the bench: a program of its own that nothing imports
 )
 PROTOCOL_LINES = 3200  # about 3,000 (with the recipes' references): a reviewer reads it against hloc in one sitting
 

@@ -1,6 +1,7 @@
 """The bench: both pipelines agree on scores, mismatches fail loudly, the arithmetic of
 summaries, scaling and estimates is right."""
 
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -10,8 +11,11 @@ import torch
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.speed import __main__ as speed_cli
-from gvbench_nb.speed import bench, estimate
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+import speed as speed_cli
+import speed_bench as bench
+import speed_estimate as estimate
 
 
 def few_pairs(shared_data: Path) -> Sequence:

@@ -72,7 +72,9 @@ def test_a_misspelled_type_gets_one_did_you_mean(monkeypatch: pytest.MonkeyPatch
     isolate_recipes(monkeypatch)
     extractor = methods.resolve_method("orb-nn")["extractor"]
     methods.register_method("orb-typo", {"paper": {"extractor": extractor, "matcher": {"type": "nn-hamming-typo"}}})
-    with pytest.raises(registry.UnknownNameError, match="unknown matcher type 'nn-hamming-typo'.*Known: nn, kornia_lightglue"):
+    with pytest.raises(
+        registry.UnknownNameError, match="unknown matcher type 'nn-hamming-typo'.*Known: nn, kornia_lightglue"
+    ):
         from gvbench_nb.protocol.matching import build_matcher
 
         build_matcher(methods.resolve_method("orb-typo")["matcher"], "cpu")  # type: ignore[arg-type]

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import cv2
@@ -210,7 +211,8 @@ def test_breaking_strength_exactly_at_half_is_not_below() -> None:
 
 @pytest.mark.slow
 def test_render_timing_covers_clear_each_condition_and_all_three(tmp_path):
-    from gvbench_nb.speed import bench
+    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
+    import speed_bench as bench
 
     table = bench.print_render_time(tmp_path, n_frames=2, repeats=1, workers=1)
     assert table["setting"].tolist() == ["clear", "illumination", "season", "weather", "all three"]

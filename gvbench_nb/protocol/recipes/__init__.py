@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import copy
 import hashlib
-import itertools
 import json
 from pathlib import Path
 from typing import Any
@@ -54,17 +53,6 @@ def recipe(name: str, profile: str = "paper") -> dict[str, Any]:
     if name not in RECIPES[profile]:
         raise registry.UnknownNameError(registry.unknown_name_message("method", name, list(RECIPES[profile])))
     return copy.deepcopy(RECIPES[profile][name])
-
-
-def reference_lines(name: str, profile: str) -> list[str]:
-    """The comment lines the recipe file holds for ``name``: the file's header (its sources and
-    the verifier every recipe shares), then the references written above the recipe itself."""
-    check_profile(profile)
-    lines = (Path(__file__).parent / f"{profile}.yaml").read_text().splitlines()
-    header = list(itertools.takewhile(lambda line: line.startswith("#"), lines))
-    start = lines.index(f"{name}:") + 1 if f"{name}:" in lines else len(lines)
-    own = [line.strip() for line in itertools.takewhile(lambda line: line.strip().startswith("#"), lines[start:])]
-    return [*header, *own]
 
 
 def profile_verifier(profile: str) -> dict[str, Any]:

@@ -8,12 +8,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 import pandas as pd
+import speed_bench as bench
+from speed_bench import CACHED
 
 from gvbench_nb.data.sequences import read_pairs
 from gvbench_nb.io_utils import atomic_write_csv
 from gvbench_nb.runner import scoring
-from gvbench_nb.speed import bench
-from gvbench_nb.speed.bench import CACHED
 
 if TYPE_CHECKING:
     pass
@@ -145,7 +145,7 @@ def print_estimate(
     summary_path = Path(bench_dir) / "summary.csv"
     if not summary_path.is_file() and runs is None:
         raise FileNotFoundError(
-            f"no bench summary at {summary_path}: run `python -m gvbench_nb.speed PARAMS` "
+            f"no bench summary at {summary_path}: run `python benchmarks/speed.py PARAMS` "
             "first, or give --runs outputs/<sequence>"
         )
     if gt_dir is None:

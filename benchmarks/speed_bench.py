@@ -14,7 +14,7 @@ seeded per pair, so they must) and writes:
 * ``<bench_dir>/scaling_<sequence>_<method>.csv``: cost against pairs and unique images;
 * optionally the prefetch-overlap measurement and a cProfile report.
 
-``python -m gvbench_nb.speed --estimate`` turns the summary into an estimate of the six
+``python benchmarks/speed.py --estimate`` turns the summary into an estimate of the six
 official sequences from their pair lists. Every number comes from a measurement
 written by this module; none is typed in.
 """

@@ -1,4 +1,4 @@
-"""``python -m gvbench_nb.speed``: the bench (``bench.py``) and its estimate (``estimate.py``)."""
+"""``python benchmarks/speed.py``: the bench (``speed_bench.py``) and its estimate (``speed_estimate.py``)."""
 
 from __future__ import annotations
 
@@ -9,17 +9,18 @@ from pathlib import Path
 
 import cv2
 import pandas as pd
+import speed_bench as bench
+import speed_estimate as estimate
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.runner import concurrency
 from gvbench_nb.runner.jobs import add_jobs_argument
-from gvbench_nb.speed import bench, estimate
 
 
 def build_parser() -> argparse.ArgumentParser:
-    """``python -m gvbench_nb.speed``: the bench, a program of its own beside the package's CLI."""
+    """``python benchmarks/speed.py``: the bench, a program of its own beside the package's CLI."""
     parser = argparse.ArgumentParser(
-        prog="python -m gvbench_nb.speed",
+        prog="python benchmarks/speed.py",
         description="Time our cached pipeline against the per-pair reference pipeline on the same pairs: "
         "both run on the same pairs (cold cache in a temporary folder each repeat), the bench fails if any "
         "pair's num_inliers differ, and writes per-repeat, summary and scaling CSVs. With --estimate alone "
@@ -76,7 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     from gvbench_nb import cli
 
-    return cli.main(argv, build_parser, "gvbench_nb.speed")
+    return cli.main(argv, build_parser, "benchmarks/speed.py")
 
 
 def command_bench(args: argparse.Namespace) -> int:

@@ -12,7 +12,7 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import run_and_publish
+from gvbench_nb import GVBenchError, run_and_publish, user_error_names
 from gvbench_nb.arguments import whole_number_at_least
 from gvbench_nb.reporting.tables import markdown_table
 
@@ -508,30 +508,8 @@ def run_command(
         return code
 
 
-# Errors a user can cause: (module, class). A class is looked up only when its module is
-# already imported: an error can only be raised by a module that is loaded, and importing
-# the others (papermill, OpenCV, h5py) to answer a typo would take seconds.
-USER_ERRORS = (
-    ("gvbench_nb.runner.config", "ParamsError"),
-    ("gvbench_nb.data.sequences", "PairFileError"),
-    ("gvbench_nb.protocol.weights", "MissingWeightsError"),
-    ("gvbench_nb.protocol.weights", "WeightsLayoutError"),
-    ("gvbench_nb.protocol.metrics", "MetricsUndefinedError"),
-    ("gvbench_nb.protocol.images", "ImageReadError"),
-    ("gvbench_nb.runner.distributed", "ShardError"),
-    ("gvbench_nb.runner.store", "StoreCorruptError"),
-    ("gvbench_nb.runner.store", "StoreWriteError"),
-    ("gvbench_nb.io_utils", "WriteFailedError"),
-    ("gvbench_nb.runner.method_outputs", "ResultsError"),
-    ("gvbench_nb.data.fetch", "DataError"),
-    ("gvbench_nb.imm", "ImmUnavailableError"),
-    ("gvbench_nb.data.build_inputs", "BuildError"),
-    ("gvbench_nb.runner.record", "RecordError"),
-    ("gvbench_nb.protocol.registry", "UnknownNameError"),
-)
-
-
 def _loaded_classes(names: SequenceType[tuple[str, str]]) -> tuple[type, ...]:
+    """The classes of ``names`` whose modules are imported (importing papermill to answer a typo takes seconds)."""
     found = (getattr(sys.modules[module], name, None) for module, name in names if module in sys.modules)
     return tuple(c for c in found if isinstance(c, type))
 
@@ -557,7 +535,7 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
         # The failing cell's own error, without the notebook machinery around it; an error
         # the user can cause (a full disk, a bad image) reads as it would outside a notebook.
         count = getattr(error, "exec_count", None)
-        if getattr(error, "ename", None) in {name for _, name in USER_ERRORS}:
+        if getattr(error, "ename", None) in user_error_names():
             return (
                 f"error: {getattr(error, 'evalue', '')} (the executed notebook in the output folder keeps the traceback)",
                 2,
@@ -567,7 +545,7 @@ def user_error(error: BaseException) -> tuple[str, int] | None:
             f"{getattr(error, 'evalue', '')}\n"
             "the executed notebook (with the full traceback) is in the output folder"
         ), 1
-    if isinstance(error, _loaded_classes(USER_ERRORS)):
+    if isinstance(error, GVBenchError):
         return f"error: {error}", 2
     from gvbench_nb.io_utils import WRITE_FAILURES
 

@@ -28,6 +28,8 @@ from typing import Any
 
 import numpy as np
 
+from gvbench_nb import GVBenchError
+
 PREFIX = "imm:"
 
 # Not `pip install vismatch`: it needs torch 2.14.1 and kornia < 0.8.3, which would replace the
@@ -76,7 +78,7 @@ OUR_NAMES: dict[str, str] = {
 }
 
 
-class ImmUnavailableError(ImportError):
+class ImmUnavailableError(GVBenchError, ImportError):
     """vismatch is not installed, or does not know a matcher name, or cannot build it."""
 
 

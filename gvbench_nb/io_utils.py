@@ -15,6 +15,8 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from gvbench_nb import GVBenchError
+
 if TYPE_CHECKING:  # pandas is imported by whoever passes a frame
     import pandas as pd
 
@@ -22,7 +24,7 @@ _UMASK = os.umask(0o022)
 os.umask(_UMASK)  # read once: os.umask can only be read by setting it
 
 
-class WriteFailedError(OSError):
+class WriteFailedError(GVBenchError, OSError):
     """A file could not be written for want of room (disk full, quota, file size limit)."""
 
     def __str__(self) -> str:

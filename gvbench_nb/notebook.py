@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 import pandas as pd
 
+from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.runner import config, method_outputs, record, scoring
@@ -32,7 +33,7 @@ PathLike = str | os.PathLike[str]
 RUN_OPTIONS = {"output_dir": "--output-dir", "profile": "--profile", "limit": "--limit"}
 
 
-class ResultsMissingError(FileNotFoundError):
+class ResultsMissingError(GVBenchError, FileNotFoundError):
     """Results a notebook reads are not there (and it did not ask to compute them)."""
 
 

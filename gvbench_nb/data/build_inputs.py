@@ -15,6 +15,7 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.data import retrieval
 from gvbench_nb.data.sequences import (
     frame_index,
@@ -28,7 +29,7 @@ LOCAL_FEATURE_METHODS = {"sift": "sift-nn", "orb": "orb-nn"}
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
 
 
-class BuildError(ValueError):
+class BuildError(GVBenchError, ValueError):
     """Retrieval build options or inputs are wrong: says which, where, and what to do."""
 
 

@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 
 MANIFEST_PATH = Path(__file__).resolve().parent / "datasets.json"
@@ -35,7 +36,7 @@ ATTEMPTS = 4  # a cut connection is resumed this many times before the fetch giv
 IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".ppm", ".bmp"}
 
 
-class DataError(RuntimeError):
+class DataError(GVBenchError, RuntimeError):
     """A dataset cannot be fetched or checked; the message says which file, where and what to do."""
 
 

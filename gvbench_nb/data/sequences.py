@@ -26,11 +26,12 @@ from pathlib import Path, PurePosixPath
 
 import pandas as pd
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.protocol.images import path_problem
 
 
-class PairFileError(ValueError):
+class PairFileError(GVBenchError, ValueError):
     """A pair file line is malformed, duplicated or points outside the image root."""
 
 

@@ -10,6 +10,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 
 
@@ -52,7 +53,7 @@ def path_problem(path: str | os.PathLike[str]) -> str | None:
     return "is not a regular file"
 
 
-class ImageReadError(OSError):
+class ImageReadError(GVBenchError, OSError):
     """An image is missing, empty, truncated or not an image."""
 
 

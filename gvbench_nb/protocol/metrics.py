@@ -6,11 +6,13 @@ from typing import Any
 
 import numpy as np
 
+from gvbench_nb import GVBenchError
+
 # scikit-learn is imported by the functions that use it: importing it takes longer than
 # a small run's evaluation, and the modules that import this one do not all evaluate.
 
 
-class MetricsUndefinedError(ValueError):
+class MetricsUndefinedError(GVBenchError, ValueError):
     """AP and MR are undefined: the pairs have no positives or no negatives."""
 
 

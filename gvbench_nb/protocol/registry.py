@@ -13,10 +13,12 @@ import importlib
 from collections.abc import Iterable, Mapping
 from typing import Any, TypeVar
 
+from gvbench_nb import GVBenchError
+
 T = TypeVar("T")
 
 
-class UnknownNameError(KeyError):
+class UnknownNameError(GVBenchError, KeyError):
     """A name that is not in its table."""
 
     def __str__(self) -> str:  # KeyError quotes its message; ours reads as a sentence

@@ -19,17 +19,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 
 if TYPE_CHECKING:  # torch is imported where checkpoints are loaded: listing and checking them stays light
     import torch
 
 
-class MissingWeightsError(FileNotFoundError):
+class MissingWeightsError(GVBenchError, FileNotFoundError):
     """A checkpoint a method needs is not on disk."""
 
 
-class WeightsLayoutError(ValueError):
+class WeightsLayoutError(GVBenchError, ValueError):
     """A checkpoint's tensors do not match the module they are loaded into."""
 
 

@@ -18,6 +18,7 @@ from typing import Any
 
 import yaml
 
+from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data import build_inputs, fetch
 from gvbench_nb.data.sequences import (
@@ -48,7 +49,7 @@ OPTIONAL_KEYS: dict[str, Any] = {
 PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
 
 
-class ParamsError(ValueError):
+class ParamsError(GVBenchError, ValueError):
     """A params file is malformed: missing, misspelled or invalid keys or values."""
 
 

@@ -30,12 +30,13 @@ from typing import Any
 
 import pandas as pd
 
+from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.runner import concurrency, image_features, method_outputs, method_runs, pair_matching, scoring
 
 
-class ShardError(RuntimeError):
+class ShardError(GVBenchError, RuntimeError):
     """A shard failed, or the merge found pairs that no shard has finished."""
 
 

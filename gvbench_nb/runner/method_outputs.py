@@ -12,6 +12,7 @@ from collections.abc import Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.io_utils import atomic_write_json
 
 if TYPE_CHECKING:
@@ -47,7 +48,7 @@ UNFINISHED_MARKER = ".unfinished.json"  # in a method folder while a run is maki
 FINISHED_OUTPUTS = ("pairs.csv", "run.json")
 
 
-class ResultsError(FileNotFoundError):
+class ResultsError(GVBenchError, FileNotFoundError):
     """An output folder holds no results, or a method's results are unfinished or partial."""
 
 

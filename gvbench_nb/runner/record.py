@@ -22,7 +22,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import __version__
+from gvbench_nb import GVBenchError, __version__
 from gvbench_nb.io_utils import atomic_write_json, file_sha256, fsync_folder
 
 RECORD_NAME = "gvbench-run.json"
@@ -38,7 +38,7 @@ WORKING_FILES = (STAGE_MARKER, ".computed.json", ".unfinished.json")
 OWN_NAMES = (RECORD_NAME, LOCK_NAME, HOLDER_NAME, RECORD_LOCK_NAME)
 
 
-class RecordError(ValueError):
+class RecordError(GVBenchError, ValueError):
     """An output folder cannot be written: not the package's, held by another run, or changed by hand."""
 
 

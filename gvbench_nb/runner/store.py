@@ -24,6 +24,7 @@ from urllib.parse import quote, unquote
 import h5py
 import numpy as np
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.io_utils import WRITE_FAILURES, fsync_folder
 
 SHARD_SUFFIX = ".h5"
@@ -45,11 +46,11 @@ def _process_alive(pid: int) -> bool:
     return True
 
 
-class StoreCorruptError(OSError):
+class StoreCorruptError(GVBenchError, OSError):
     """A committed shard cannot be read, or its bytes no longer match their checksums."""
 
 
-class StoreWriteError(OSError):
+class StoreWriteError(GVBenchError, OSError):
     """A shard could not be written (disk full, quota, file size limit); nothing of it is kept."""
 
 

@@ -37,6 +37,7 @@ import numpy as np
 import pandas as pd
 from tqdm import tqdm
 
+from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Pair, Sequence
@@ -66,7 +67,7 @@ CLEAR_FOLDER = "query_clear"
 NOT_REACHED = "not reached"
 
 
-class SweepError(ValueError):
+class SweepError(GVBenchError, ValueError):
     """A sweep's inputs are inconsistent (other route in the folder, bad strengths...)."""
 
 

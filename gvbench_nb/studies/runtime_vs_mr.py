@@ -69,6 +69,8 @@ def run_description(
         profiles.add(run["conf"]["profile"])
         # Dense matchers (no extractor) resize inside the matcher conf.
         resizing = run["conf"].get("extractor") or run["conf"]["matcher"]
+        if resizing is None:  # imported scores: no image was read here
+            continue
         resize = resizing.get("resize_max")
         size = image_size_of_run(output_dir, method, run, run_tables.resolve_cache_dir(output_dir, cache_dir))
         native = f"{size[0]}x{size[1]}" if size else "?"

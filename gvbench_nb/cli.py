@@ -422,6 +422,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_data_command(commands)
     add_build_command(commands)
     add_score_file_commands(commands, results)
+    add_weights_fetch_command(weights_parser)
     report.add_command(commands)
     explore_lab.add_command(commands)
     compare.add_command(commands)
@@ -463,6 +464,31 @@ def add_score_file_commands(commands: Any, results: argparse.ArgumentParser) -> 
         choices=["npy"],
         help="also write each method's pairs as the GV-Bench authors' <sequence>_<method>.npy in its folder",
     )
+
+
+def command_weights_fetch(args: argparse.Namespace) -> int:
+    from gvbench_nb.data import weights_fetch
+
+    for name in args.names:
+        print(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
+    return 0
+
+
+def add_weights_fetch_command(weights_parser: argparse.ArgumentParser) -> None:
+    """``weights fetch NAME... [--from DIR] [--sha256 HEX]``."""
+    parser = weights_parser.add_subparsers(dest="weights_command", metavar="SUBCOMMAND").add_parser(
+        "fetch",
+        help="download checkpoints (or take them from a folder), SHA-256 checked, under the names the models load",
+        description="Fetch each named checkpoint (names: `python -m gvbench_nb weights`) from its official URL, or "
+        "from --from DIR holding the file under the name the model loads or the URL's name (e.g. "
+        "superpoint_lightglue.pth), into the weights folder under the name the model loads, and print its "
+        "licence. No official source publishes a SHA-256 for these files: the file is checked against --sha256 "
+        "when given, else against the hash recorded at its first fetch (the first fetch records it).",
+    )
+    parser.add_argument("names", nargs="+", metavar="NAME", help="checkpoint names, e.g. lightglue_superpoint")
+    parser.add_argument("--from", dest="source_dir", metavar="DIR", help="a folder holding the downloaded files")
+    parser.add_argument("--sha256", help="the SHA-256 the file must have (one NAME)")
+    parser.set_defaults(handler=command_weights_fetch)
 
 
 def check_before_work(args: argparse.Namespace) -> None:

@@ -131,7 +131,7 @@ def _labels(values: np.ndarray, where: str) -> np.ndarray:
 def read_table(path: Path) -> pd.DataFrame:
     """A table ``query reference label score``: CSV or whitespace, with or without that header;
     a path holding spaces is written in double quotes (as in GV-Bench's pair files)."""
-    rows = []
+    rows: list[list[str]] = []
     for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):

@@ -22,7 +22,8 @@ from gvbench_nb.runner import image_features, scoring
 def runtime_table(results: pd.DataFrame) -> pd.DataFrame:
     """Seconds per pair split by stage (extraction amortised over the pairs using an
     image), total, FPS = 1 / seconds per pair, and MR - one row a (sequence, method)."""
-    table = results[
+    measured = results[results["seconds_per_pair"].notna()]  # imported scores: no seconds were measured here
+    table = measured[
         ["sequence", "method", "profile", "device", *run_tables.TIME_COLUMNS, "seconds_per_pair", "max_recall", "ap"]
     ].copy()
     table["fps"] = 1.0 / table["seconds_per_pair"]

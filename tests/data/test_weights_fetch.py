@@ -8,6 +8,8 @@ import hashlib
 import io
 import tarfile
 
+import pytest
+
 from gvbench_nb import cli
 from gvbench_nb.data import weights_fetch
 from gvbench_nb.protocol import weights
@@ -34,6 +36,7 @@ def test_a_file_under_its_url_name_is_saved_under_the_name_the_model_loads(empty
     assert run_cli(capsys, "lightglue_superpoint", "--sha256", sha256(data))[1].count("is there") == 1
 
 
+@pytest.mark.reliability
 def test_a_file_whose_hash_differs_is_refused_and_not_saved(empty_hub, tmp_path, capsys):
     (tmp_path / "superpoint_v1.pth").write_bytes(b"not the file")
     code, _, err = run_cli(capsys, "superpoint_v1", "--from", str(tmp_path), "--sha256", sha256(b"the file"))
@@ -41,6 +44,7 @@ def test_a_file_whose_hash_differs_is_refused_and_not_saved(empty_hub, tmp_path,
     assert not (empty_hub / "superpoint_v1.pth").exists() and not list(empty_hub.glob(".*.partial"))
 
 
+@pytest.mark.reliability
 def test_without_a_published_hash_the_first_fetch_records_it_and_later_ones_are_checked(empty_hub, tmp_path, capsys):
     first, second = tmp_path / "first", tmp_path / "second"
     first.mkdir(), second.mkdir()

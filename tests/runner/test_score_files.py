@@ -101,6 +101,7 @@ class RunsCode:
         return os.system, (f"touch {self.marker}",)
 
 
+@pytest.mark.reliability
 def test_a_npy_whose_pickle_would_run_code_is_refused_without_running_it(tmp_path, capsys):
     marker = tmp_path / "ran"
     source = authors_npy(tmp_path / "evil.npy", gt=[RunsCode(marker)] * 6)
@@ -143,6 +144,7 @@ def test_tables_import_as_csv_with_a_header_and_as_whitespace_with_quoted_paths(
     assert scoring.load_pairs_table(tmp_path / "from-text", "from-text")["query"].tolist() == spaced
 
 
+@pytest.mark.reliability
 def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, capsys):
     out = tmp_path / "out"
     bad_label = tmp_path / "bad.txt"
@@ -178,6 +180,7 @@ def sample_params(tmp_path: Path) -> Path:
     return path
 
 
+@pytest.mark.reliability
 def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_same_ap_and_mr(
     tmp_path, capsys, notebooks_here
 ):

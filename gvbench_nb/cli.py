@@ -467,8 +467,10 @@ def add_score_file_commands(commands: Any, results: argparse.ArgumentParser) -> 
 
 
 def command_weights_fetch(args: argparse.Namespace) -> int:
-    from gvbench_nb.data import weights_fetch
+    from gvbench_nb.data import fetch, weights_fetch
 
+    if args.sha256 and len(args.names) > 1:
+        raise fetch.DataError("--sha256 is the hash of one file: give one NAME with it (or run one fetch a NAME)")
     for name in args.names:
         print(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
     return 0

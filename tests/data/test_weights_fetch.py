@@ -86,3 +86,8 @@ def test_the_doppelgangers_checkpoint_is_taken_from_its_archive(empty_hub, tmp_p
     code, _, err = run_cli(capsys, "doppelgangers_classifier_loftr", "--from", str(tmp_path), "--sha256", sha256(data))
     assert code == 0, err
     assert (empty_hub / "doppelgangers_classifier_loftr.pt").read_bytes() == data
+
+
+def test_one_hash_for_several_files_is_refused(empty_hub, capsys):
+    code, _, err = run_cli(capsys, "superpoint_v1", "loftr_outdoor", "--sha256", sha256(b"x"))
+    assert code == 2 and "give one NAME" in err

@@ -80,7 +80,7 @@ def command_results(args: argparse.Namespace) -> int:
         tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
         results = results.join(intervals.interval_columns(tables), on="method")
         runs = [json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
-        environment = runs[0]["environment"]
+        measured = [run for run in runs if "imported" not in run]  # imported scores say nothing of this machine
         finished = max(run["finished_at"] for run in runs)
         columns = [
             "method",
@@ -101,10 +101,15 @@ def command_results(args: argparse.Namespace) -> int:
             "timers",
             "pairs_digest",
         ]
+        environment = measured[0]["environment"] if measured else None
         print(
-            f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, device {environment['device']} "
-            f"({environment['device_name']}, {environment['cpu_count']} cores), torch {environment['torch']}, "
-            f"kornia {environment['kornia']}, opencv {environment['opencv']}\n"
+            f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, "
+            + (
+                f"device {environment['device']} ({environment['device_name']}, {environment['cpu_count']} cores), "
+                f"torch {environment['torch']}, kornia {environment['kornia']}, opencv {environment['opencv']}\n"
+                if environment
+                else "imported scores only\n"
+            )
         )
         print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
         print(
@@ -120,6 +125,11 @@ def command_results(args: argparse.Namespace) -> int:
             )
         for method, why in unfinished.items():
             print(f"not finished: {method}: {why}")
+        if args.export == "npy":
+            from gvbench_nb.runner import score_files
+
+            for method in results["method"]:
+                print(f"{method}: {score_files.export_npy(folder, method)}")
         if args.all_methods:
             others = not_run_table(set(results["method"]))
             if len(others):
@@ -413,10 +423,76 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_data_command(commands)
     add_build_command(commands)
+    add_score_file_commands(commands, results)
+    add_weights_fetch_command(weights_parser)
     report.add_command(commands)
     explore_lab.add_command(commands)
     compare.add_command(commands)
     return parser
+
+
+# ------------------------------------------------ scores from elsewhere, weights fetch --
+def command_import_scores(args: argparse.Namespace) -> int:
+    from gvbench_nb.runner import score_files
+
+    row = score_files.import_scores(args.file, args.sequence, args.method, args.output_dir)
+    print(
+        f"{args.method}: {row['n_pairs']} pairs ({row['n_positives']} true), AP {row['ap']:.4f}, "
+        f"MR {row['max_recall']:.4f} -> {Path(args.output_dir) / args.method}"
+    )
+    for key, value in row["stated"].items():
+        print(f"  the file states {key} {value:.4f} (recomputed here from its pairs: {row[key]:.4f})")
+    return 0
+
+
+def add_score_file_commands(commands: Any, results: argparse.ArgumentParser) -> None:
+    """``import-scores FILE`` and ``results --export npy``: per-pair scores in and out."""
+    parser = commands.add_parser(
+        "import-scores",
+        help="publish per-pair scores computed elsewhere as a method of an output folder",
+        description="Read the GV-Bench authors' per-pair .npy ($seq_$feature_$match.npy) or a table "
+        "'query reference label score' (CSV or whitespace, header optional) and publish it as METHOD in "
+        "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
+        "it like a run. Its run.json names the file and its SHA-256. A .npy pickling anything but plain "
+        "data is refused without running it.",
+    )
+    parser.add_argument("file", help="the .npy or the table of scores")
+    parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")
+    parser.add_argument("--method", required=True, help="the method's name (its folder), e.g. sp-sg-authors")
+    parser.add_argument("--output-dir", required=True, help="the output folder to publish it in")
+    parser.set_defaults(handler=command_import_scores)
+    results.add_argument(
+        "--export",
+        choices=["npy"],
+        help="also write each method's pairs as the GV-Bench authors' <sequence>_<method>.npy in its folder",
+    )
+
+
+def command_weights_fetch(args: argparse.Namespace) -> int:
+    from gvbench_nb.data import fetch, weights_fetch
+
+    if args.sha256 and len(args.names) > 1:
+        raise fetch.DataError("--sha256 is the hash of one file: give one NAME with it (or run one fetch a NAME)")
+    for name in args.names:
+        print(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
+    return 0
+
+
+def add_weights_fetch_command(weights_parser: argparse.ArgumentParser) -> None:
+    """``weights fetch NAME... [--from DIR] [--sha256 HEX]``."""
+    parser = weights_parser.add_subparsers(dest="weights_command", metavar="SUBCOMMAND").add_parser(
+        "fetch",
+        help="download checkpoints (or take them from a folder), SHA-256 checked, under the names the models load",
+        description="Fetch each named checkpoint (names: `python -m gvbench_nb weights`) from its official URL, or "
+        "from --from DIR holding the file under the name the model loads or the URL's name (e.g. "
+        "superpoint_lightglue.pth), into the weights folder under the name the model loads, and print its "
+        "licence. No official source publishes a SHA-256 for these files: the file is checked against --sha256 "
+        "when given, else against the hash recorded at its first fetch (the first fetch records it).",
+    )
+    parser.add_argument("names", nargs="+", metavar="NAME", help="checkpoint names, e.g. lightglue_superpoint")
+    parser.add_argument("--from", dest="source_dir", metavar="DIR", help="a folder holding the downloaded files")
+    parser.add_argument("--sha256", help="the SHA-256 the file must have (one NAME)")
+    parser.set_defaults(handler=command_weights_fetch)
 
 
 def check_before_work(args: argparse.Namespace) -> None:

@@ -174,11 +174,11 @@ def kept_methods(
 
     published = (record.read_record(output_dir) or {}).get("methods", {})
     kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
-    other = [
+    other = [  # an imported method read no images (images_digest None): its pairs and labels bind it
         m
         for m, entry in kept.items()
-        if (entry.get("pairs_digest"), entry.get("images_digest"))
-        != (binding["pairs_digest"], binding["images_digest"])
+        if entry.get("pairs_digest") != binding["pairs_digest"]
+        or entry.get("images_digest") not in (None, binding["images_digest"])
     ]
     if other:
         raise record.RecordError(

@@ -58,7 +58,10 @@ print(notebook.describe(results))
 # %%
 runs, near_misses = [], []
 for folder in output_dirs:
-    tables = run_tables.load_pairs_tables(folder)
+    measured = run_tables.measured_methods(folder)
+    if not measured:  # imported scores only: no matches to draw
+        continue
+    tables = run_tables.load_pairs_tables(folder, measured)
     run = run_tables.load_run(folder, next(iter(tables)))
     sequence, image_root = run["sequence"], run["image_root"]
     failed = failures.failures_table(tables, k, image_root)

@@ -54,7 +54,7 @@ def data_dir() -> Path:
 class DataFile:
     path: str  # relative to the dataset's folder (and so to a mirror's folder of the same name)
     source: str  # relative to the dataset's base_url
-    bytes: int
+    bytes: int | None  # None: not known beforehand (a checkpoint), so a cut download starts again
     sha256: str
 
 
@@ -72,7 +72,7 @@ class Dataset:
 
     @property
     def total_bytes(self) -> int:
-        return sum(f.bytes for f in self.files)
+        return sum(f.bytes or 0 for f in self.files)
 
     def url(self, item: DataFile) -> str:
         return self.base_url + urllib.parse.quote(item.source)
@@ -166,7 +166,7 @@ def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any, fol
     connected = False  # whether any attempt reached the source: offline, rerunning cannot help
     for _ in range(ATTEMPTS):
         have = partial.stat().st_size if partial.is_file() else 0
-        if have > item.bytes:  # not a prefix of the file: start again
+        if have and (item.bytes is None or have > item.bytes):  # not a prefix of the file: start again
             partial.unlink()
             bar.update(-have)
             have = 0
@@ -201,7 +201,7 @@ def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any, fol
         except (urllib.error.URLError, http.client.HTTPException, OSError) as error:
             last_problem = str(getattr(error, "reason", None) or error) or type(error).__name__
             continue  # a cut connection: resume from what arrived
-        if partial.is_file() and partial.stat().st_size >= item.bytes:
+        if partial.is_file() and partial.stat().st_size >= (item.bytes or 0):
             return
         last_problem = "the connection closed early"
     kept = partial.stat().st_size if partial.is_file() else 0

@@ -132,6 +132,11 @@ def load_pairs_tables(
     return {m: scoring.load_pairs_table(Path(output_dir), m) for m in methods}
 
 
+def measured_methods(output_dir: str | os.PathLike[str]) -> list[str]:
+    """The methods of a folder whose pairs were matched here: imported scores have no matches to draw."""
+    return [m for m in scoring.methods_with_results(Path(output_dir)) if "imported" not in load_run(output_dir, m)]
+
+
 # ------------------------------------------------------------------ the table --
 def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool] = True) -> pd.DataFrame:
     """True where a cell holds its column's best value; ties are all marked, NaN never.

@@ -60,7 +60,11 @@ def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     path = method_outputs.method_dir(output_dir, method) / "pairs.csv"
     if not path.is_file():
         raise method_outputs.ResultsError(f"no results for method {method!r}: {path} is missing; run the method first")
-    return pd.read_csv(path, keep_default_na=False)
+    # Names stay strings whatever they read ("NA", "null"); an empty measurement is missing
+    # (the seconds and counts of imported scores, which no run here measured).
+    names = {"query", "reference", "method", "profile"}
+    measured = {column: [""] for column in method_outputs.PAIRS_COLUMNS if column not in names}
+    return pd.read_csv(path, keep_default_na=False, na_values=measured)
 
 
 def methods_with_results(output_dir: Path) -> list[str]:

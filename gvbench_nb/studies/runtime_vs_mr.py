@@ -22,7 +22,8 @@ from gvbench_nb.runner import image_features, scoring
 def runtime_table(results: pd.DataFrame) -> pd.DataFrame:
     """Seconds per pair split by stage (extraction amortised over the pairs using an
     image), total, FPS = 1 / seconds per pair, and MR - one row a (sequence, method)."""
-    table = results[
+    measured = results[results["seconds_per_pair"].notna()]  # imported scores: no seconds were measured here
+    table = measured[
         ["sequence", "method", "profile", "device", *run_tables.TIME_COLUMNS, "seconds_per_pair", "max_recall", "ap"]
     ].copy()
     table["fps"] = 1.0 / table["seconds_per_pair"]
@@ -69,6 +70,8 @@ def run_description(
         profiles.add(run["conf"]["profile"])
         # Dense matchers (no extractor) resize inside the matcher conf.
         resizing = run["conf"].get("extractor") or run["conf"]["matcher"]
+        if resizing is None:  # imported scores: no image was read here
+            continue
         resize = resizing.get("resize_max")
         size = image_size_of_run(output_dir, method, run, run_tables.resolve_cache_dir(output_dir, cache_dir))
         native = f"{size[0]}x{size[1]}" if size else "?"

@@ -850,7 +850,13 @@ def test_the_package_has_no_code_execution_paths():
         for source in sorted(PACKAGE_DIR.rglob("*.py"))
         for hit in unsafe_code(source.read_text(encoding="utf-8"))
     ]
-    assert hits == []
+    # The one pickle reader: an Unpickler whose find_class admits numpy's array and scalar builders
+    # only (tests/runner/test_score_files.py feeds it a file whose pickle would run code).
+    restricted = [
+        h for h in hits if h.startswith("gvbench_nb/runner/score_files.py:") and h.endswith(": import pickle")
+    ]
+    assert len(restricted) == 1 and [h for h in hits if h not in restricted] == []
+    assert "find_class" in (PACKAGE_DIR / "runner" / "score_files.py").read_text(encoding="utf-8")
     # A plain-text grep agrees (docstrings may mention eval() of modules, hence the lookbehind).
     for source in PACKAGE_DIR.rglob("*.py"):
         text = source.read_text(encoding="utf-8")

@@ -1,0 +1,281 @@
+"""Per-pair scores computed elsewhere, in and out: the GV-Bench authors' ``.npy`` (a pickled dict,
+``$seq_$feature_$match.npy``, documented in their repository's ``.asset/replicate.md``) and a plain
+table ``query reference label score`` (CSV or whitespace).
+
+``import_scores`` publishes such a file as one method of an output folder, through the run record
+like a run (``record.publish``), so every reader takes it for a result; its ``run.json`` says it
+was imported, from which file and that file's SHA-256. ``export_npy`` writes a method's pairs back
+in the authors' format. The ``.npy`` is read by an unpickler that builds only numpy arrays and
+scalars besides Python's plain data: a pickle naming anything else is refused before it runs.
+"""
+
+from __future__ import annotations
+
+import csv
+import datetime as _dt
+import importlib
+import io
+import json
+import pickle
+import shlex
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from gvbench_nb import GVBenchError, __version__
+from gvbench_nb import methods as method_registry
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, file_sha256
+from gvbench_nb.protocol.metrics import evaluate_scores, pr_curve
+from gvbench_nb.runner import method_outputs, record, scoring
+
+TABLE_COLUMNS = ["query", "reference", "label", "score"]
+IMPORTED_PROFILE = "imported"  # the profile column of an imported method: we did not run its chain
+# What a pickled numpy array, numpy scalar or dtype needs (numpy 1 writes numpy.core, numpy 2 numpy._core).
+_NUMPY_GLOBALS = {
+    ("numpy", "ndarray"): np.ndarray,
+    ("numpy", "dtype"): np.dtype,
+}
+_CORE = "numpy._core" if int(np.__version__.split(".")[0]) >= 2 else "numpy.core"
+for _spelling in ("numpy.core", "numpy._core"):
+    for _module, _name in (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer")):
+        _NUMPY_GLOBALS[(f"{_spelling}.{_module}", _name)] = getattr(
+            importlib.import_module(f"{_CORE}.{_module}"), _name
+        )
+
+
+class ScoreFileError(GVBenchError, ValueError):
+    """A score file cannot be imported: unreadable, not plain data, or its columns do not fit."""
+
+
+class _PlainDataUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        try:
+            return _NUMPY_GLOBALS[(module, name)]
+        except KeyError:
+            raise pickle.UnpicklingError(f"{module}.{name}") from None
+
+
+def load_authors_npy(path: Path) -> dict[str, Any]:
+    """The dict an ``np.save(path, {...})`` wrote, built without running anything the file names."""
+    with open(path, "rb") as handle:
+        try:
+            version = np.lib.format.read_magic(handle)
+            read_header = {(1, 0): np.lib.format.read_array_header_1_0, (2, 0): np.lib.format.read_array_header_2_0}
+            _, _, dtype = read_header[version](handle)
+        except (ValueError, KeyError, EOFError) as error:
+            raise ScoreFileError(f"{path} is not a .npy file numpy 1 or 2 writes ({error})") from None
+        if not dtype.hasobject:
+            raise ScoreFileError(f"{path} holds a plain {dtype} array, not the GV-Bench dict of per-pair outputs")
+        try:
+            loaded = _PlainDataUnpickler(io.BytesIO(handle.read())).load()
+        except pickle.UnpicklingError as error:
+            raise ScoreFileError(
+                f"{path} holds a pickled {error}, which is not plain data (arrays, lists, dicts, strings, numbers), "
+                "so it was refused without running it; ask for the file again or import a table "
+                "'query reference label score' instead"
+            ) from None
+        except Exception as error:  # a truncated or garbled pickle
+            raise ScoreFileError(f"{path}: its pickled data cannot be read ({type(error).__name__}: {error})") from None
+    value = loaded.item() if isinstance(loaded, np.ndarray) and loaded.shape == () else loaded
+    if not isinstance(value, dict):
+        raise ScoreFileError(
+            f"{path} holds a pickled {type(value).__name__}, not the GV-Bench dict of per-pair outputs"
+        )
+    return value
+
+
+def _inlier_counts(inliers: Any) -> np.ndarray:
+    """The authors' ``inliers``: one array of inlier point rows a pair, or (their multiprocess
+    evaluation) one count a pair."""
+    if isinstance(inliers, np.ndarray) and inliers.dtype != object:
+        return inliers.astype(np.float64).ravel()
+    return np.array([len(item) if np.ndim(item) else float(item) for item in inliers], dtype=np.float64)
+
+
+def authors_table(values: dict[str, Any], where: str) -> tuple[pd.DataFrame, dict[str, Any]]:
+    """(query, reference, label, score, num_inliers) from the authors' dict, and what it states
+    about itself (AP, MR). The score is the inlier count where the file has it, else ``prob``
+    (the counts divided by their maximum: the same ranking, so the same AP and MR)."""
+    missing = [key for key in ("qImages", "rImages", "gt") if key not in values]
+    if missing or not ("inliers" in values or "prob" in values):
+        raise ScoreFileError(
+            f"{where} lacks {', '.join(missing) or 'inliers and prob'}: the GV-Bench .npy holds qImages, rImages, "
+            "gt and inliers (or prob), one entry a pair"
+        )
+    lengths = {key: len(values[key]) for key in ("qImages", "rImages", "gt", "inliers", "prob") if key in values}
+    if len(set(lengths.values())) != 1:
+        raise ScoreFileError(f"{where}: its per-pair entries differ in length ({lengths}); the file is damaged")
+    counts = _inlier_counts(values["inliers"]) if "inliers" in values else None
+    score = counts if counts is not None else np.asarray(values["prob"], dtype=np.float64).ravel()
+    table = pd.DataFrame({"query": list(map(str, values["qImages"])), "reference": list(map(str, values["rImages"]))})
+    table["label"] = _labels(np.asarray(values["gt"]).ravel(), where)
+    table["score"] = score
+    table["num_inliers"] = counts if counts is not None else np.nan
+    stated = {"ap": values.get("average_precision"), "max_recall": values.get("Max Recall")}
+    return table, {k: float(v) for k, v in stated.items() if v is not None}
+
+
+def _labels(values: np.ndarray, where: str) -> np.ndarray:
+    try:
+        numbers = values.astype(np.float64)  # ints, bools and numeric strings alike
+    except (TypeError, ValueError):
+        numbers = np.array([np.nan])
+    if not np.isin(numbers, (0, 1)).all():
+        raise ScoreFileError(f"{where}: labels must be 0 or 1 (found {sorted(set(map(str, values)))[:5]})")
+    return numbers.astype(np.int64)
+
+
+def read_table(path: Path) -> pd.DataFrame:
+    """A table ``query reference label score``: CSV or whitespace, with or without that header;
+    a path holding spaces is written in double quotes (as in GV-Bench's pair files)."""
+    rows: list[list[str]] = []
+    for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+        line = raw.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            fields = [f.strip() for f in next(csv.reader([line]))] if "," in line else shlex.split(line)
+        except ValueError as error:  # an unclosed quote
+            raise ScoreFileError(f"{path}:{number}: {error}; close the quote around the path") from None
+        if not rows and [f.lower() for f in fields] == TABLE_COLUMNS:
+            continue
+        if len(fields) != 4:
+            raise ScoreFileError(
+                f"{path}:{number}: expected 4 fields 'query reference label score', got {len(fields)} in {line[:80]!r}; "
+                'write a path holding spaces in double quotes, "like this.jpg"'
+            )
+        rows.append(fields)
+    table = pd.DataFrame(rows, columns=TABLE_COLUMNS)
+    table["score"] = pd.to_numeric(table["score"], errors="coerce")
+    if table["score"].isna().any():
+        bad = rows[int(np.flatnonzero(table["score"].isna())[0])]
+        raise ScoreFileError(f"{path}: score {bad[3]!r} of pair {bad[0]} {bad[1]} is not a number")
+    table["label"] = _labels(table["label"].to_numpy(), str(path))
+    table["num_inliers"] = np.nan
+    return table
+
+
+def read_scores(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any], str]:
+    """(table, what the file states about itself, its format) of a score file."""
+    path = Path(path)
+    if not path.is_file():
+        raise ScoreFileError(f"{path} does not exist; give the .npy or the table of scores to import")
+    if path.suffix == ".npy":
+        table, stated = authors_table(load_authors_npy(path), str(path))
+        return table, stated, "gvbench-npy"
+    return read_table(path), {}, "table"
+
+
+def _pairs_csv(table: pd.DataFrame, method: str) -> pd.DataFrame:
+    out = pd.DataFrame(dict.fromkeys(method_outputs.PAIRS_COLUMNS, np.nan), index=table.index)
+    out["pair_index"] = np.arange(len(table))
+    for column in ("query", "reference", "label", "score", "num_inliers"):
+        out[column] = table[column].to_numpy()
+    out["method"], out["profile"] = method, IMPORTED_PROFILE
+    return out
+
+
+def import_scores(path: str | Path, sequence: str, method: str, output_dir: str | Path) -> dict[str, Any]:
+    """Publish a score file as ``method`` of ``output_dir`` (beside the folder's other methods
+    when they scored the same pairs and labels); returns its row of the results table."""
+    path, output_dir = Path(path).resolve(), Path(output_dir)
+    if not method or method.startswith(".") or "/" in method or method in record.OWN_NAMES:
+        raise ScoreFileError(
+            f"--method {method!r} cannot name a method folder; give a plain name such as sp-sg-authors"
+        )
+    table, stated, kind = read_scores(path)
+    evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy(), where=str(path))  # AP and MR defined
+    binding = {
+        "pairs_digest": scoring.table_pairs_digest(table),
+        "images_digest": None,  # no images were read: the binding is the pairs and labels alone
+        "n_pairs": len(table),
+        "pairs_file": None,
+        "pairs_sha256": None,
+    }
+    record.check_owned(output_dir)
+    record.claim(output_dir)
+    with record.FolderLock(output_dir):
+        record.finish_publishing(output_dir)
+        published = record.read_record(output_dir) or {"methods": {}, "files": {}}
+        kept = {m: {k: v for k, v in e.items() if k != "files"} for m, e in published["methods"].items() if m != method}
+        other = [m for m, entry in kept.items() if entry.get("pairs_digest") != binding["pairs_digest"]]
+        if other:
+            raise ScoreFileError(
+                f"{output_dir} holds {', '.join(other)}, scored on other pairs or labels than {path}; import it into "
+                "another --output-dir"
+            )
+        stage = record.open_stage(output_dir)
+        for name in published["files"]:  # the folder's other files stay: the stage is its whole next state
+            if name != "results.csv" and name not in record.method_files([name], method):
+                (stage / name).parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy2(output_dir / name, stage / name)
+        folder = method_outputs.method_dir(stage, method)
+        atomic_write_json(folder / "run.json", _run_record(path, kind, stated, sequence, method, binding, stage))
+        atomic_write_csv(folder / "pairs.csv", _pairs_csv(table, method))
+        results = scoring.evaluate(stage, [*kept, method])
+        record.publish(output_dir, stage, {**kept, method: binding})
+    return results.set_index("method").loc[method].to_dict() | {"stated": stated}
+
+
+def _run_record(
+    path: Path, kind: str, stated: dict[str, Any], sequence: str, method: str, binding: dict[str, Any], stage: Path
+) -> dict[str, Any]:
+    known = method in method_registry.method_names()
+    return {
+        "sequence": sequence,
+        "image_root": "",  # no images were read
+        "n_pairs": binding["n_pairs"],
+        "pairs": {"pairs_file": None, "pairs_sha256": None, "imported_from": str(path)},
+        "binding": binding,
+        "conf": {
+            "paper_name": f"{method_registry.paper_name(method) if known else method} (imported)",
+            "profile": IMPORTED_PROFILE,
+            "extractor": None,
+            "matcher": None,
+        },
+        "seed": None,
+        "package_version": __version__,
+        "run_id": record.stage_run_id(stage),
+        "environment": {"device": "imported"},
+        "this_run": {},
+        "imported": {"file": str(path), "sha256": file_sha256(path), "format": kind, "stated": stated},
+        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+    }
+
+
+def export_npy(output_dir: str | Path, method: str) -> Path:
+    """Write a method's pairs as the authors' ``<sequence>_<method>.npy`` in its folder: their keys,
+    with ``inliers`` one count a pair (as their multiprocess evaluation writes it) and no
+    ``all_matches`` (the match coordinates are not in pairs.csv)."""
+    output_dir = Path(output_dir)
+    table = scoring.load_pairs_table(output_dir, method)
+    run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+    labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
+    prob = scores / scores.max() if scores.max() > 0 else scores
+    metrics = evaluate_scores(labels, prob, where=f"{output_dir / method / 'pairs.csv'}")
+    curve = pr_curve(labels, prob)
+    inliers = table["num_inliers"].to_numpy(dtype=np.float64)
+    values = {
+        "prob": prob,
+        "qImages": table["query"].astype(str).tolist(),
+        "rImages": table["reference"].astype(str).tolist(),
+        "gt": labels.tolist(),
+        "inliers": inliers.astype(np.int64) if np.isfinite(inliers).all() else scores,
+        "precision": curve["precision"],
+        "recall": curve["recall"],
+        "TH": curve["thresholds"],
+        "average_precision": metrics["ap"],
+        "Max Recall": metrics["max_recall"],
+    }
+    target = method_outputs.method_dir(output_dir, method) / f"{run['sequence']}_{method}.npy"
+
+    def write(path: Path) -> None:
+        temporary = path.with_name(f".{path.name}.tmp")
+        with open(temporary, "wb") as handle:
+            np.save(handle, np.array(values, dtype=object), allow_pickle=True)
+        temporary.replace(path)
+
+    return record.save_checked(target, write)

@@ -1,0 +1,228 @@
+"""Scores computed elsewhere, in and out: ``import-scores`` (the GV-Bench authors' per-pair .npy
+and plain tables) and ``results --export npy``.
+
+The authors' files are built here in the format their repository documents (``.asset/replicate.md``:
+``np.save`` of a dict with qImages, rImages, gt, inliers, prob, precision, recall, TH,
+average_precision, Max Recall; their single-process evaluation keeps each pair's inlier point rows
+in ``inliers``, their multiprocess one the counts). Runs go through ``cli.main`` with the stage
+notebooks computed in this process, on a small render of the synthetic ``sample`` route.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from sklearn.metrics import average_precision_score, precision_recall_curve
+from test_run_record import in_process_notebooks, one_sentence, run_cli, snapshot
+
+from gvbench_nb import run_and_publish
+from gvbench_nb.data import synthetic
+from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.runner import scoring
+
+QUERIES = [f"night/{i:03d}.png" for i in (0, 0, 1, 1, 2, 2)]
+REFERENCES = [f"day/{i:03d}.png" for i in (0, 5, 1, 6, 2, 7)]
+LABELS = [1, 0, 1, 0, 1, 0]
+INLIERS = [40, 12, 9, 15, 30, 3]  # a false pair above a true one: MR below 1
+
+
+@pytest.fixture
+def notebooks_here(monkeypatch):
+    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
+
+
+def authors_npy(path: Path, inliers_as: str = "points", **changes) -> Path:
+    """An .npy as the authors' evaluation writes it (their keys; our numbers)."""
+    counts = np.array(INLIERS)
+    prob = counts / counts.max()
+    precision, recall, thresholds = precision_recall_curve(LABELS, prob)
+    rng = np.random.default_rng(0)
+    values = {
+        "prob": prob,
+        "qImages": list(QUERIES),
+        "rImages": list(REFERENCES),
+        "gt": list(LABELS),
+        "inliers": [rng.random((n, 4)).astype(np.float32) for n in INLIERS] if inliers_as == "points" else counts,
+        "all_matches": [rng.random((n + 5, 4)).astype(np.float32) for n in INLIERS],
+        "precision": precision,
+        "recall": recall,
+        "TH": thresholds,
+        "average_precision": np.float64(average_precision_score(LABELS, prob)),
+        "Max Recall": float(recall[precision == 1.0].max()),
+    }
+    if inliers_as == "absent":
+        del values["inliers"]
+    values.update(changes)
+    np.save(path, values, allow_pickle=True)
+    return path
+
+
+def results_row(capsys, folder: Path, method: str) -> dict:
+    code, _, err = run_cli(capsys, "results", str(folder))
+    assert code == 0, err
+    table = scoring.evaluate(folder, write=False).set_index("method")
+    return table.loc[method].to_dict()
+
+
+@pytest.mark.parametrize("inliers_as", ["points", "counts", "absent"])
+def test_the_authors_npy_imports_with_their_ap_and_mr(tmp_path, capsys, inliers_as):
+    source = authors_npy(tmp_path / "night_superpoint_superglue.npy", inliers_as)
+    out = tmp_path / "out"
+    code, said, err = run_cli(
+        capsys, "import-scores", str(source), "--sequence", "night", "--method", "sp-sg", "--output-dir", str(out)
+    )
+    assert code == 0, err
+    expected = evaluate_scores(np.array(LABELS), np.array(INLIERS, dtype=float))
+    assert 0 < expected["max_recall"] < 1 and expected["ap"] < 1
+    row = results_row(capsys, out, "sp-sg")
+    assert (row["ap"], row["max_recall"], row["n_pairs"]) == (expected["ap"], expected["max_recall"], 6)
+    assert row["profile"] == "imported" and row["paper_name"] == "SP+SG (imported)"
+    assert f"the file states ap {expected['ap']:.4f}" in said
+    run = json.loads((out / "sp-sg" / "run.json").read_text())
+    assert run["imported"]["sha256"] == hashlib.sha256(source.read_bytes()).hexdigest()
+    assert run["imported"]["file"] == str(source) and run["sequence"] == "night"
+    table = scoring.load_pairs_table(out, "sp-sg")
+    assert table["query"].tolist() == QUERIES and table["reference"].tolist() == REFERENCES
+    if inliers_as != "absent":
+        assert table["num_inliers"].tolist() == INLIERS
+
+
+class RunsCode:
+    def __init__(self, marker: Path):
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+@pytest.mark.reliability
+def test_a_npy_whose_pickle_would_run_code_is_refused_without_running_it(tmp_path, capsys):
+    marker = tmp_path / "ran"
+    source = authors_npy(tmp_path / "evil.npy", gt=[RunsCode(marker)] * 6)
+    out = tmp_path / "out"
+    code, _, err = run_cli(
+        capsys, "import-scores", str(source), "--sequence", "night", "--method", "x", "--output-dir", str(out)
+    )
+    assert code == 2 and "posix.system" in one_sentence(err) and "refused without running it" in err
+    assert not marker.exists() and not out.exists()
+    np.load(source, allow_pickle=True)  # numpy's own loader does run it: the file is what the test says
+    assert marker.exists()
+
+
+def test_tables_import_as_csv_with_a_header_and_as_whitespace_with_quoted_paths(tmp_path, capsys):
+    scores = [0.9, 0.2, 0.35, 0.4, 0.8, 0.1]
+    csv = tmp_path / "scores.csv"
+    csv.write_text(
+        "query,reference,label,score\n"
+        + "".join(f"{q},{r},{lab},{s}\n" for q, r, lab, s in zip(QUERIES, REFERENCES, LABELS, scores))
+    )
+    spaced = [q.replace("night/", "night run/") for q in QUERIES]
+    text = tmp_path / "scores.txt"
+    text.write_text("".join(f'"{q}" {r}  {lab}\t{s}\n' for q, r, lab, s in zip(spaced, REFERENCES, LABELS, scores)))
+    expected = evaluate_scores(np.array(LABELS), np.array(scores))
+    for source, method in ((csv, "from-csv"), (text, "from-text")):
+        code, _, err = run_cli(
+            capsys,
+            "import-scores",
+            str(source),
+            "--sequence",
+            "s",
+            "--method",
+            method,
+            "--output-dir",
+            str(tmp_path / method),
+        )
+        assert code == 0, err
+        row = results_row(capsys, tmp_path / method, method)
+        assert (row["ap"], row["max_recall"]) == (expected["ap"], expected["max_recall"])
+    assert scoring.load_pairs_table(tmp_path / "from-text", "from-text")["query"].tolist() == spaced
+
+
+@pytest.mark.reliability
+def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, capsys):
+    out = tmp_path / "out"
+    bad_label = tmp_path / "bad.txt"
+    bad_label.write_text("q r 2 5\nq s 0 1\n")
+    short = authors_npy(tmp_path / "short.npy", gt=LABELS[:4])
+    for source, words in (
+        (bad_label, "labels must be 0 or 1"),
+        (short, "differ in length"),
+        (tmp_path / "no.npy", "does not exist"),
+    ):
+        code, _, err = run_cli(
+            capsys, "import-scores", str(source), "--sequence", "s", "--method", "m", "--output-dir", str(out)
+        )
+        assert code == 2 and words in one_sentence(err), err
+    assert not out.exists()
+
+
+def sample_params(tmp_path: Path) -> Path:
+    root = tmp_path / "sample"
+    synthetic.generate_sample(root, n_frames=8, image_size=(320, 240))
+    params = {
+        "sequence": "sample",
+        "image_root": str(root),
+        "pairs": str(root / "pairs.txt"),
+        "methods": ["orb-nn"],
+        "profile": "repository",
+        "output_dir": str(tmp_path / "out"),
+        "cache_dir": str(tmp_path / "cache"),
+        "device": "cpu",
+    }
+    path = tmp_path / "sample.yaml"
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+@pytest.mark.reliability
+def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_same_ap_and_mr(
+    tmp_path, capsys, notebooks_here
+):
+    params = sample_params(tmp_path)
+    out = tmp_path / "out"
+    assert run_cli(capsys, "run", str(params))[0] == 0
+    code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
+    assert code == 0, err
+    exported = out / "orb-nn" / "sample_orb-nn.npy"
+    assert f"orb-nn: {exported}" in said
+    shared = np.load(exported, allow_pickle=True).item()  # as the authors' code reads it
+    ran = scoring.load_pairs_table(out, "orb-nn")
+    assert shared["qImages"] == ran["query"].tolist() and shared["gt"] == ran["label"].tolist()
+    assert shared["inliers"].tolist() == ran["num_inliers"].tolist()
+    assert shared["average_precision"] == average_precision_score(ran["label"], ran["score"])
+
+    # Back into the run's own folder (beside orb-nn) and into a folder of its own.
+    for folder in (out, tmp_path / "back"):
+        code, _, err = run_cli(
+            capsys,
+            "import-scores",
+            str(exported),
+            "--sequence",
+            "sample",
+            "--method",
+            "orb-nn-back",
+            "--output-dir",
+            str(folder),
+        )
+        assert code == 0, err
+        back, original = results_row(capsys, folder, "orb-nn-back"), results_row(capsys, out, "orb-nn")
+        assert (back["ap"], back["max_recall"]) == (original["ap"], original["max_recall"])
+        assert 0 < original["max_recall"] < 1
+    assert (out / "params.resolved.yaml").is_file()  # the run's other files stay beside the import
+
+    # A later run of the folder keeps the imported method, and a folder of other labels refuses it.
+    assert run_cli(capsys, "run", str(params))[0] == 0
+    assert results_row(capsys, out, "orb-nn-back")["ap"] == original["ap"]
+    flipped = authors_npy(tmp_path / "other.npy")
+    before = snapshot(out)
+    code, _, err = run_cli(
+        capsys, "import-scores", str(flipped), "--sequence", "sample", "--method", "other", "--output-dir", str(out)
+    )
+    assert code == 2 and "scored on other pairs or labels" in one_sentence(err)
+    assert snapshot(out) == before

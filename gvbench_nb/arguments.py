@@ -1,8 +1,10 @@
-"""What the commands' options share: argparse types that read a bounded whole number."""
+"""What the commands' options and the params share: argparse types that read a bounded whole number,
+and the did-you-mean of unknown keys."""
 
 from __future__ import annotations
 
 import argparse
+import difflib
 
 
 def whole_number_at_least(text: str, minimum: int, what: str) -> int:
@@ -15,3 +17,12 @@ def whole_number_at_least(text: str, minimum: int, what: str) -> int:
     if value < minimum:
         raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
     return value
+
+
+def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
+    """``'limt' (did you mean 'limit'?), 'x'``: each unknown key with its closest valid one."""
+    hints = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, valid, n=1)
+        hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return ", ".join(hints)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb import imm
+from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.protocol import recipes, registry, weights
 from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
 
@@ -94,7 +95,7 @@ def check_verifier_overrides(overrides: dict[str, Any]) -> None:
     unknown = [key for key in overrides if key not in verifier_keys()]
     if unknown:
         raise ValueError(
-            f"unknown key(s) {registry.unknown_keys_hint(unknown, verifier_keys())}; valid: {', '.join(verifier_keys())}"
+            f"unknown key(s) {unknown_keys_hint(unknown, verifier_keys())}; valid: {', '.join(verifier_keys())}"
         )
     for key, (check, what) in VERIFIER_RANGES.items():
         if key in overrides and not check(overrides[key]):

@@ -16,6 +16,7 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb import GVBenchError
+from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.data import retrieval
 from gvbench_nb.data.sequences import (
     frame_index,
@@ -91,7 +92,7 @@ def _unknown_keys(given: Mapping[str, Any], valid: SequenceType[str], where: str
     unknown = [k for k in given if k not in valid]
     if unknown:
         raise BuildError(
-            f"{where}: unknown key(s) {registry.unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}"
+            f"{where}: unknown key(s) {unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}"
         )
 
 

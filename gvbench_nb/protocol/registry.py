@@ -77,12 +77,3 @@ def resolve_type(kind: str, type_name: str, types: Mapping[str, str], where: str
     """The class for a conf's ``type``: a registered short name or a ``module:Class`` reference."""
     reference = type_name if ":" in type_name else lookup(kind, type_name, types, where)
     return load_reference(reference)
-
-
-def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
-    """``'limt' (did you mean 'limit'?), 'x'``: each unknown key with its closest valid one."""
-    hints = []
-    for key in unknown:
-        close = difflib.get_close_matches(key, valid, n=1)
-        hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
-    return ", ".join(hints)

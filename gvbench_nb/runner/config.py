@@ -20,6 +20,7 @@ import yaml
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
+from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.data import build_inputs, fetch
 from gvbench_nb.data.sequences import (
     Pair,
@@ -146,9 +147,7 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     unknown = [k for k in raw if k not in valid]
     if unknown:
-        raise ParamsError(
-            f"{path}: unknown key(s) {registry.unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}"
-        )
+        raise ParamsError(f"{path}: unknown key(s) {unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
     missing = [k for k in REQUIRED_KEYS if k not in raw]
     if missing:
         raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
@@ -505,9 +504,7 @@ def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
     known = ["query_folder", "reference_folder", *rule]
     unknown = [k for k in options if k not in known]
     if unknown:
-        raise ParamsError(
-            f"{where}: unknown option(s) {registry.unknown_keys_hint(unknown, known)}; known: {', '.join(known)}"
-        )
+        raise ParamsError(f"{where}: unknown option(s) {unknown_keys_hint(unknown, known)}; known: {', '.join(known)}")
     for key in ("query_folder", "reference_folder"):
         if not isinstance(options.get(key), str) or not options[key]:
             raise ParamsError(f"{where}: {key} must name a folder of images under image_root, got {options.get(key)!r}")

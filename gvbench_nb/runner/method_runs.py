@@ -86,7 +86,9 @@ def result_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device:
     return json.loads(json.dumps(identity, default=str))  # as it reads back from JSON
 
 
-def finished_table(folder: Path, sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> pd.DataFrame | None:
+def finished_table(
+    folder: Path, sequence: Sequence, conf: dict[str, Any], seed: int, device: str
+) -> pd.DataFrame | None:
     """The per-pair table ``folder`` holds when its finished result is of this sequence, conf,
     seed and device request (``result_identity``), else None."""
     try:
@@ -117,7 +119,7 @@ def compute_method(
     work, without writing ``pairs.csv`` or ``run.json``); the run record's ``environment`` and ``this_run``."""
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
-    record.claim(output_dir)  # its stores and work record go into the folder: only into one that is the package's
+    record.claim(output_dir)  # its stores go into the folder: only into one that is the package's
     from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)

@@ -1,5 +1,5 @@
 """Where a run's peak memory grows with the pairs: the peak resident memory of one method's
-extraction, matching and pairs table (``compute_method`` then ``run_method``, no notebooks) on
+extraction, matching and pairs table (``run_method``, as ``run`` calls it, no notebooks) on
 the first N pairs, with the recent-features cache at its default bound and at a smaller one.
 Each measurement is its own process (a fresh peak), in fresh output and cache folders.
 
@@ -31,7 +31,6 @@ def measure(params_file: str, method: str, pairs: int, cache_mib: int) -> int:
             params_file, limit=pairs, output_dir=str(Path(folder) / "out"), cache_dir=str(Path(folder) / "cache")
         )
         sequence = config.prepare_sequence(params)
-        method_runs.compute_method_of_params(params, sequence, method, progress=False)
         method_runs.run_method_of_params(params, sequence, method, progress=False)
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
 

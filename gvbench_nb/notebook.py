@@ -29,6 +29,8 @@ if TYPE_CHECKING:
 # so a stage notebook that only loads a sequence stays light.
 
 PathLike = str | os.PathLike[str]
+# The params file a stage notebook reads when given none (where JupyterLab and nbmake run it with its defaults).
+DEFAULT_PARAMS_FILE = config.PROJECT_ROOT / "params" / "sample.yaml"
 # load_params keys a notebook may override -> the `run` option that does the same.
 RUN_OPTIONS = {"output_dir": "--output-dir", "profile": "--profile", "limit": "--limit"}
 
@@ -82,10 +84,38 @@ def stale_results(output_dir: PathLike) -> bool:
     return evaluated != set(scoring.methods_with_results(Path(output_dir)))
 
 
-def load_sequence(params_file: PathLike, **overrides: Any) -> tuple[dict[str, Any], Sequence]:
-    """The params file (``overrides`` that are not None replace its keys) and its sequence;
-    the pair file is made first when the params build it (``config.prepare_sequence``)."""
-    params = config.load_params(params_file, **overrides)
+def params_keys(namespace: dict[str, Any]) -> dict[str, Any]:
+    """The params-file keys a notebook's parameters set (not None), from its ``globals()``."""
+    keys = [*config.REQUIRED_KEYS, *config.OPTIONAL_KEYS]
+    return {key: namespace[key] for key in keys if namespace.get(key) is not None}
+
+
+def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
+    """A stage notebook's params: ``params_file`` with ``keys`` (not None) replacing its own.
+
+    Without ``params_file``, a ``sequence`` names it: the file of the repository's params/
+    of that sequence (papermill's ``-f params/NAME.yaml`` passes its keys, ``sequence``
+    among them); else params/sample.yaml.
+    """
+    given = {key: value for key, value in keys.items() if value is not None}
+    if params_file is None and "sequence" in given:
+        folder = DEFAULT_PARAMS_FILE.parent
+        named = [
+            p for p in sorted(folder.glob("*.yaml")) if config.read_yaml_mapping(p).get("sequence") == given["sequence"]
+        ]
+        if not named:
+            raise config.ParamsError(
+                f"no params file in {folder} is of sequence {given['sequence']!r}: pass the params file of these "
+                "parameters with them (-p params_file PATH); relative paths are read from its folder"
+            )
+        params_file = named[0]
+    return config.load_params(params_file or DEFAULT_PARAMS_FILE, **given)
+
+
+def load_sequence(params_file: PathLike | None, **overrides: Any) -> tuple[dict[str, Any], Sequence]:
+    """The params (``load_params``) and their sequence; the pair file is made first when the
+    params build it (``config.prepare_sequence``)."""
+    params = load_params(params_file, **overrides)
     sequence = config.prepare_sequence(params)
     record.claim(params["output_dir"])  # the notebook writes its figures and tables there
     return params, sequence

@@ -18,14 +18,15 @@ def execute_run_notebooks(
     jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path, compute: Callable[[str], None]
 ) -> None:
     """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
-    01_sequence at once; each method's 02_verify once ``compute(method)`` has filled its
-    caches here (torch is imported once for all methods; the notebook's own run then finds
-    every image and pair cached); 03_evaluate once every 02_verify has finished (it reads
-    their pairs.csv only), while 01_sequence may still run.
+    01_sequence at once; each method's 02_verify once ``compute(method)`` has written its
+    result here (torch is imported once for all methods; the notebook's ``run_method`` then
+    finds the result done); 03_evaluate once every 02_verify has finished (it reads their
+    pairs.csv only), while 01_sequence may still run.
 
     Errors are raised in job order, as when the notebooks ran one after another. A method
-    whose computation fails here is left to its notebook, which resumes from the caches and,
-    failing the same way, keeps the traceback; the methods after it are not started.
+    whose computation fails here is left to its notebook, whose ``run_method`` does the same
+    work (resuming from the caches) and, failing the same way, keeps the traceback; the
+    methods after it are not started.
     """
     from concurrent.futures import Future, ThreadPoolExecutor, wait
 
@@ -115,7 +116,8 @@ def command_run(args: argparse.Namespace) -> int:
     stage = None
     try:
         record.finish_publishing(output_dir)
-        kept, bindings = kept_methods(output_dir, params["methods"], scoring.sequence_binding(sequence))
+        binding = scoring.sequence_binding(sequence)
+        kept, bindings = kept_methods(output_dir, params["methods"], binding)
         record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
         for method, previous in method_outputs.replaced_profiles(
             output_dir, params["methods"], params["profile"]
@@ -129,27 +131,27 @@ def command_run(args: argparse.Namespace) -> int:
         # succeeds; the methods it does not run are carried over, so the folder's table lists them all.
         stage = record.open_stage(output_dir)
         record.carry(output_dir, stage, kept)
-        resolved = str(config.write_resolved_params({**params, "output_dir": str(stage)}, stage))
-        common = {"params_file": resolved}
+        # The params are resolved once: the notebooks load them from the stage, with the same sequence.
+        run_params = {**params, "output_dir": str(stage)}
+        common = {"params_file": str(config.write_resolved_params(run_params, stage))}
         jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
-        jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m}) for m in params["methods"]]
+        jobs += [
+            ("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m, "jobs": args.jobs})
+            for m in params["methods"]
+        ]
         jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
         print(
             f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
             f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}"
             + (f" (kept from earlier runs: {', '.join(kept)})" if kept else "")
         )
-        # The notebooks' params (the stage's resolved file) make the sequence they run, so the caches are filled for it.
-        run_params = config.load_params(resolved)
-        run_sequence = config.prepare_sequence(run_params)
 
         def compute(method: str) -> None:
-            method_runs.compute_method_of_params(run_params, run_sequence, method)
+            method_runs.run_method_of_params(run_params, sequence, method, workers=args.jobs)
 
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
-        for method in params["methods"]:
-            bindings[method] = scoring.sequence_binding(run_sequence)
+        bindings.update(dict.fromkeys(params["methods"], binding))
         record.publish(output_dir, stage, bindings)
     except Exception:
         if stage is not None and stage.is_dir():

@@ -20,6 +20,7 @@
 
 # %%
 from pathlib import Path
+from typing import Optional
 
 import matplotlib.pyplot as plt
 import pandas as pd
@@ -31,13 +32,13 @@ from gvbench_nb.studies import build_sequence as build_study
 
 # %% tags=["parameters"]
 # a params YAML with pairs_builder: retrieval
-params_file = "../params/sample_retrieval.yaml"
-descriptor = None  # 'vlad', 'bow' or 'netvlad'; default: the params'
-top_n = None  # candidates a query; default: the params'
+params_file: str = "../params/sample_retrieval.yaml"
+descriptor: Optional[str] = None  # 'vlad', 'bow' or 'netvlad'; default: the params'
+top_n: Optional[int] = None  # candidates a query; default: the params'
 # recall@k figure, each with the params' descriptor_options (netvlad: weights, slow)
-compare_descriptors = ["vlad", "bow"]
-strip_count = 4  # queries shown with their top candidates
-output_dir = None  # figures go here; default: the params file's output_dir
+compare_descriptors: list = ["vlad", "bow"]
+strip_count: int = 4  # queries shown with their top candidates
+output_dir: Optional[str] = None  # figures go here; default: the params file's output_dir
 
 # %% [markdown]
 # The card of the pair file just built: its queries, pairs and positives (true loop

@@ -19,6 +19,7 @@
 
 # %%
 from pathlib import Path
+from typing import Optional
 
 import matplotlib.pyplot as plt
 import pandas as pd
@@ -28,20 +29,33 @@ from gvbench_nb.data import sequences
 from gvbench_nb.evaluation import plots
 
 # %% tags=["parameters"]
-# a params YAML (paths inside are relative to it); a run passes its params.resolved.yaml
-params_file = "../params/sample.yaml"
-limit = None  # first N pairs only
-output_dir = None  # default: the params file's output_dir
+params_file: Optional[str] = None  # a params YAML; None: the repository's params/sample.yaml
+# Each key of a params file (`papermill -f PARAMS.yaml` passes them all), replacing params_file's;
+# None: params_file's. Relative paths are relative to params_file's folder, as in the file.
+sequence: Optional[str] = None
+description: Optional[str] = None
+pairs_builder: Optional[str] = None
+builder_options: Optional[dict] = None
+image_root: Optional[str] = None
+pairs: Optional[str] = None
+methods: Optional[list] = None
+profile: Optional[str] = None  # 'paper' or 'repository'
+output_dir: Optional[str] = None
+cache_dir: Optional[str] = None
+limit: Optional[int] = None  # first N pairs only
+seed: Optional[int] = None
+device: Optional[str] = None  # 'auto' (cuda when present), 'cpu' or 'cuda'
+verifier: Optional[dict] = None
 
 # %% [markdown]
-# The sequence's counts: pairs, true pairs (positives) and false ones, queries and
+# The sequence's counts: pair_table, true pairs (positives) and false ones, queries and
 # images. Check that every query has candidates and most have a positive: a query
-# without one contributes only false pairs.
+# without one contributes only false pair_table.
 
 # %%
-params, sequence = notebook.load_sequence(params_file, limit=limit, output_dir=output_dir)
+params, seq = notebook.load_sequence(params_file, **notebook.params_keys(globals()))
 figures = Path(params["output_dir"])
-pd.Series(sequences.summarize(sequence), name=sequence.name).to_frame()
+pd.Series(sequences.summarize(seq), name=seq.name).to_frame()
 
 # %% [markdown]
 # How many true references each query has. A bar at 0 counts the queries whose
@@ -49,9 +63,9 @@ pd.Series(sequences.summarize(sequence), name=sequence.name).to_frame()
 # closure.
 
 # %%
-pairs = sequence.to_frame()
-sequence.check_images()  # names the first missing image and its pair
-figure = plots.positives_per_query(pairs, title=f"{sequence.name}: true references a query")
+pair_table = seq.to_frame()
+seq.check_images()  # names the first missing image and its pair
+figure = plots.positives_per_query(pair_table, title=f"{seq.name}: true references a query")
 plots.save(figure, figures / "sequence_positives_per_query.png")
 plt.show()
 
@@ -61,11 +75,11 @@ plt.show()
 # pairs are what verification must reject.
 
 # %%
-examples = pd.concat([pairs[pairs.label == 1].head(2), pairs[pairs.label == 0].tail(2)])
+examples = pd.concat([pair_table[pair_table.label == 1].head(2), pair_table[pair_table.label == 0].tail(2)])
 figure = plots.example_pairs(
-    sequence.image_root,
+    seq.image_root,
     examples,
-    title=f"{sequence.name}: example pairs (query | reference)",
+    title=f"{seq.name}: example pairs (query | reference)",
 )
 plots.save(figure, figures / "sequence_examples.png")
 plt.show()

@@ -19,6 +19,7 @@
 
 # %%
 from pathlib import Path
+from typing import Optional
 
 import matplotlib.pyplot as plt
 
@@ -27,11 +28,25 @@ from gvbench_nb.evaluation import plots
 from gvbench_nb.runner import method_outputs, method_runs
 
 # %% tags=["parameters"]
-params_file = "../params/sample.yaml"
-method = "sift-nn"  # a name from `python -m gvbench_nb methods`
-profile = None  # 'paper' or 'repository'; default: the params file's
-limit = None
-output_dir = None
+params_file: Optional[str] = None  # a params YAML; None: the repository's params/sample.yaml
+method: str = "sift-nn"  # a name from `python -m gvbench_nb methods`
+jobs: Optional[int] = None  # images, then pairs, processed at once; None: $GVBENCH_JOBS, else every core
+# Each key of a params file (`papermill -f PARAMS.yaml` passes them all), replacing params_file's;
+# None: params_file's. Relative paths are relative to params_file's folder, as in the file.
+sequence: Optional[str] = None
+description: Optional[str] = None
+pairs_builder: Optional[str] = None
+builder_options: Optional[dict] = None
+image_root: Optional[str] = None
+pairs: Optional[str] = None
+methods: Optional[list] = None
+profile: Optional[str] = None  # 'paper' or 'repository'
+output_dir: Optional[str] = None
+cache_dir: Optional[str] = None
+limit: Optional[int] = None  # first N pairs only
+seed: Optional[int] = None
+device: Optional[str] = None  # 'auto' (cuda when present), 'cpu' or 'cuda'
+verifier: Optional[dict] = None
 
 # %% [markdown]
 # Run the method on every pair and write its table; the first rows follow. Each row is
@@ -39,11 +54,11 @@ output_dir = None
 # each stage took.
 
 # %%
-params, sequence = notebook.load_sequence(params_file, limit=limit, output_dir=output_dir, profile=profile)
+params, seq = notebook.load_sequence(params_file, **notebook.params_keys(globals()))
 out = Path(params["output_dir"])
-table = method_runs.run_method_of_params(params, sequence, method)
+table = method_runs.run_method_of_params(params, seq, method, workers=jobs)
 written = method_outputs.method_dir(out, method) / "pairs.csv"
-run = f"{method} ({params['profile']}) on {sequence.name}"
+run = f"{method} ({params['profile']}) on {seq.name}"
 print(f"{run}: {len(table)} pairs -> {written}")
 table.head()
 
@@ -60,6 +75,6 @@ table.groupby("label")[["num_matches", "num_inliers"]].describe().transpose()
 # threshold separates them; MR counts the true pairs that score above every false pair.
 
 # %%
-figure = plots.inlier_histogram(table, title=f"{method} on {sequence.name}")
+figure = plots.inlier_histogram(table, title=f"{method} on {seq.name}")
 plots.save(figure, out / f"inliers_{method}.png")
 plt.show()

@@ -19,17 +19,33 @@
 
 # %%
 from pathlib import Path
+from typing import Optional
 
 import matplotlib.pyplot as plt
 from IPython.display import display
 
+from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import config, scoring
+from gvbench_nb.runner import scoring
 
 # %% tags=["parameters"]
-params_file = "../params/sample.yaml"
-methods = None  # default: every method with results in output_dir
-output_dir = None
+params_file: Optional[str] = None  # a params YAML; None: the repository's params/sample.yaml
+# Each key of a params file (`papermill -f PARAMS.yaml` passes them all), replacing params_file's;
+# None: params_file's. Relative paths are relative to params_file's folder, as in the file.
+sequence: Optional[str] = None
+description: Optional[str] = None
+pairs_builder: Optional[str] = None
+builder_options: Optional[dict] = None
+image_root: Optional[str] = None
+pairs: Optional[str] = None
+methods: Optional[list] = None  # the methods evaluated; None: every method with results in output_dir
+profile: Optional[str] = None  # 'paper' or 'repository'
+output_dir: Optional[str] = None
+cache_dir: Optional[str] = None
+limit: Optional[int] = None  # first N pairs only
+seed: Optional[int] = None
+device: Optional[str] = None  # 'auto' (cuda when present), 'cpu' or 'cuda'
+verifier: Optional[dict] = None
 
 # %% [markdown]
 # One row a method: pairs, positives, AP, max recall at 100 % precision (MR) and seconds
@@ -37,7 +53,7 @@ output_dir = None
 # share of true loop closures accepted before the first false one.
 
 # %%
-params = config.load_params(params_file, output_dir=output_dir)
+params = notebook.load_params(params_file, **notebook.params_keys(globals()))
 out = Path(params["output_dir"])
 results = scoring.evaluate(out, methods)
 print(f"results table: {out / 'results.csv'}")

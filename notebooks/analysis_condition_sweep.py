@@ -32,6 +32,7 @@
 
 # %%
 from pathlib import Path
+from typing import Optional, Union
 
 import matplotlib.pyplot as plt
 from IPython.display import display
@@ -40,17 +41,17 @@ from gvbench_nb.evaluation import plots
 from gvbench_nb.studies import condition_sweep
 
 # %% tags=["parameters"]
-methods = ["sift-nn"]  # names from `python -m gvbench_nb methods`
-profile = "paper"  # 'paper' or 'repository' for all, or a mapping method -> profile
-conditions = ["illumination", "season", "weather"]
-strengths = [0.0, 0.5, 1.0]  # 0 (clear) is always included
+methods: list = ["sift-nn"]  # names from `python -m gvbench_nb methods`
+profile: Union[str, dict] = "paper"  # 'paper' or 'repository' for all, or a mapping method -> profile
+conditions: list = ["illumination", "season", "weather"]
+strengths: list = [0.0, 0.5, 1.0]  # 0 (clear) is always included
 # route length; from ~20 frames the repeated façade block (look-alike pairs) is in it
-n_frames = 20
-image_size = [320, 240]  # (width, height) of the renders
-seed = 0
+n_frames: int = 20
+image_size: list = [320, 240]  # (width, height) of the renders
+seed: int = 0
 # torch/OpenCV threads (None: every core); one is fastest on a small busy machine
-threads = 1
-output_dir = "../outputs/condition_sweep_nbmake"
+threads: Optional[int] = 1
+output_dir: str = "../outputs/condition_sweep_nbmake"
 
 # %% [markdown]
 # Run every (condition, strength, method) cell not yet in `sweep.csv`, then show the

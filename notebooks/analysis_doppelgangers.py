@@ -25,6 +25,7 @@
 
 # %%
 from pathlib import Path
+from typing import Optional
 
 import matplotlib.pyplot as plt
 import pandas as pd
@@ -35,27 +36,27 @@ from gvbench_nb.studies import doppelgangers, results_table, verifier_inputs, ve
 
 # %% tags=["parameters"]
 # with compute_missing, runs `method` when results_dir lacks its pairs.csv (None: never)
-params_file = "../params/sample.yaml"
+params_file: Optional[str] = "../params/sample.yaml"
 # the run folder holding <method>/pairs.csv and its match store
-results_dir = "../outputs/sample"
-method = "sift-nn"  # whose cached matches every verifier re-scores
-profile = None  # profile of that run when params_file must make it; None: the params'
+results_dir: str = "../outputs/sample"
+method: str = "sift-nn"  # whose cached matches every verifier re-scores
+profile: Optional[str] = None  # profile of that run when params_file must make it; None: the params'
 # True: run `method` with params_file when its pairs.csv is missing; False: an error
 # naming the command that makes it
-compute_missing = False
-cache_dir = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
-output_dir = "../outputs/sample/verifiers"  # verifiers.csv, weights, figures
+compute_missing: bool = False
+cache_dir: Optional[str] = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
+output_dir: str = "../outputs/sample/verifiers"  # verifiers.csv, weights, figures
 # Place-disjoint split (frame ranges with a gap); tolerance = the largest frame offset
 # of a true pair.
-train_fraction = 0.4
-gap_frames = 8
-tolerance = 4
+train_fraction: float = 0.4
+gap_frames: int = 8
+tolerance: int = 4
 # In-domain Doppelgangers training (tiny by default: the notebook runs in seconds on
 # a CPU).
-size = 64
-epochs = 1
-max_train_pairs = 32
-n_resamples = 1000  # query-bootstrap resamples for the 95% CIs
+size: int = 64
+epochs: int = 1
+max_train_pairs: int = 32
+n_resamples: int = 1000  # query-bootstrap resamples for the 95% CIs
 
 # %%
 bench = notebook.open_verifier_bench(

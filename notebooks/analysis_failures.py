@@ -22,6 +22,8 @@
 # the ground-truth threshold are the label ambiguity the paper discusses.
 
 # %%
+from typing import Optional
+
 import matplotlib.pyplot as plt
 import pandas as pd
 from IPython.display import Markdown, display
@@ -31,19 +33,19 @@ from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.studies import failures
 
 # %% tags=["parameters"]
-output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+output_dirs: list = ["../outputs/sample"]  # sequence output folders holding results.csv
 # params files whose output folders must hold ensure_methods' results ([]: no check)
-params_files = ["../params/sample.yaml"]
-ensure_methods = ["sift-nn"]
+params_files: list = ["../params/sample.yaml"]
+ensure_methods: list = ["sift-nn"]
 # True: run ensure_methods where their pairs.csv is missing; False: an error naming
 # the command that makes them
-compute_missing = False
-output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
-k = 3  # pairs drawn a method and kind
-near_low = 3  # false positives this many frames from the query or more ...
-near_high = 5  # ... up to this many are 'just outside' the ground-truth threshold
-near_top_k = 20  # how many top false positives are checked for near misses
-cache_dir = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
+compute_missing: bool = False
+output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+k: int = 3  # pairs drawn a method and kind
+near_low: int = 3  # false positives this many frames from the query or more ...
+near_high: int = 5  # ... up to this many are 'just outside' the ground-truth threshold
+near_top_k: int = 20  # how many top false positives are checked for near misses
+cache_dir: Optional[str] = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
 
 # %%
 output_dirs, results, figures = notebook.load_results(

@@ -28,14 +28,14 @@ from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.studies import inlier_histograms
 
 # %% tags=["parameters"]
-output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+output_dirs: list = ["../outputs/sample"]  # sequence output folders holding results.csv
 # params files whose output folders must hold ensure_methods' results ([]: no check)
-params_files = ["../params/sample.yaml"]
-ensure_methods = ["sift-nn"]
+params_files: list = ["../params/sample.yaml"]
+ensure_methods: list = ["sift-nn"]
 # True: run ensure_methods where their pairs.csv is missing; False: an error naming
 # the command that makes them
-compute_missing = False
-output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+compute_missing: bool = False
+output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 
 # %%
 output_dirs, results, figures = notebook.load_results(

@@ -22,6 +22,8 @@
 # those of the repository profile. Then MR across sequences (the paper's Fig. 1).
 
 # %%
+from typing import Optional
+
 import matplotlib.pyplot as plt
 from IPython.display import Markdown, display
 
@@ -30,16 +32,16 @@ from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.studies import results_table, runtime_vs_mr
 
 # %% tags=["parameters"]
-output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+output_dirs: list = ["../outputs/sample"]  # sequence output folders holding results.csv
 # params files whose output folders must hold ensure_methods' results ([]: no check)
-params_files = ["../params/sample.yaml"]
-ensure_methods = ["sift-nn"]
+params_files: list = ["../params/sample.yaml"]
+ensure_methods: list = ["sift-nn"]
 # True: run ensure_methods where their pairs.csv is missing; False: an error naming
 # the command that makes them
-compute_missing = False
-output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+compute_missing: bool = False
+output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 # a paper_table.csv of your own; None: the one shipped in gvbench_nb/reference_values
-paper_table = None
+paper_table: Optional[str] = None
 
 # %%
 output_dirs, results, figures = notebook.load_results(

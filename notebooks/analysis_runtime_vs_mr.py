@@ -20,6 +20,8 @@
 # paper's Fig. 7). The device, profile and image size come from each run's `run.json`.
 
 # %%
+from typing import Optional
+
 import matplotlib.pyplot as plt
 from IPython.display import display
 
@@ -28,15 +30,17 @@ from gvbench_nb.evaluation import plots
 from gvbench_nb.studies import runtime_vs_mr
 
 # %% tags=["parameters"]
-output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+output_dirs: list = ["../outputs/sample"]  # sequence output folders holding results.csv
 # params files whose output folders must hold ensure_methods' results ([]: no check)
-params_files = ["../params/sample.yaml"]
-ensure_methods = ["sift-nn"]
+params_files: list = ["../params/sample.yaml"]
+ensure_methods: list = ["sift-nn"]
 # True: run ensure_methods where their pairs.csv is missing; False: an error naming
 # the command that makes them
-compute_missing = False
-output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
-cache_dir = None  # feature cache (for image sizes); None: the one the run recorded (params.resolved.yaml)
+compute_missing: bool = False
+output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+cache_dir: Optional[str] = (
+    None  # feature cache (for image sizes); None: the one the run recorded (params.resolved.yaml)
+)
 
 # %%
 output_dirs, results, figures = notebook.load_results(

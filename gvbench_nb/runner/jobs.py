@@ -1,7 +1,8 @@
 """``--jobs N``: how many images, then pairs, a run processes at once (``concurrency.worker_count``).
 
 One name for one concept: the flag of ``run`` and of the bench (``python benchmarks/speed.py``) and the environment variable
-$GVBENCH_JOBS that ``run`` exports for its notebook kernels. A Dask cluster's size is
+$GVBENCH_JOBS that ``run`` exports for the processes it starts (``run`` passes it to its
+notebooks as their ``jobs`` parameter). A Dask cluster's size is
 another thing, ``run --dask-workers``.
 """
 
@@ -36,8 +37,8 @@ def jobs_value(text: str) -> int | None:
 
 
 class ExportJobs(argparse.Action):
-    """Keep --jobs and export it as $GVBENCH_JOBS: the run's notebooks execute in kernels
-    started from this process, which read the number there."""
+    """Keep --jobs and export it as $GVBENCH_JOBS, which the processes this one starts (a
+    Dask cluster's workers, a shard's) read."""
 
     def __call__(self, parser, namespace, values, option_string=None):
         os.environ[JOBS_ENV] = str(values)

@@ -6,24 +6,17 @@ from __future__ import annotations
 
 import datetime as _dt
 import json
-import os
 import time
 from collections import Counter
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pandas as pd
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
-from gvbench_nb.protocol.images import (
-    ImageReadError,
-)
 from gvbench_nb.runner import concurrency, image_features, method_outputs, pair_matching, record, scoring
-
-if TYPE_CHECKING:
-    pass
 
 
 def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> pd.DataFrame:
@@ -78,38 +71,35 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
     return pd.DataFrame(rows, columns=method_outputs.PAIRS_COLUMNS)
 
 
-def has_pending_work(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> bool:
-    """Whether some image of ``sequence`` lacks its features or some pair its verified
-    matches, for the method ``conf`` (without building any model)."""
-    try:
-        if not method_registry.is_dense(conf):
-            features = image_features.feature_store(cache_dir, conf["extractor"])
-            features.refresh()
-            if any(image_features.image_key(sequence.image_root, name) not in features for name in sequence.images):
-                return True
-        matches = pair_matching.match_store(output_dir, conf)
-        matches.refresh()
-        keys = pair_matching.pair_keys(sequence, seed)
-        return any(keys[pair] not in matches for pair in sequence.pairs)
-    except ImageReadError:  # the computing stages name the image and its pair
-        return True
-
-
-WORK_RECORD = ".computed.json"  # in a method folder: what ``compute_method`` did, until ``run_method`` records it
-
-
-def _work_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
-    """What a work record must match to stand for a run: the same sequence, pairs, conf, seed and device request."""
+def result_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
+    """What a method's finished result stands for, as its ``run.json`` records it: the sequence
+    and image folder, the pairs, labels and images scored (``scoring.sequence_binding``), the
+    resolved conf, the seed and the device asked for."""
     identity = {
         "sequence": sequence.name,
         "image_root": str(sequence.image_root),
-        "n_pairs": len(sequence.pairs),
-        "pairs": sequence.origin,
+        "binding": scoring.sequence_binding(sequence),
         "conf": conf,
         "seed": seed,
-        "device": str(device),
+        "device_request": str(device),
     }
-    return json.loads(json.dumps(identity, sort_keys=True, default=str))  # as it reads back from JSON
+    return json.loads(json.dumps(identity, default=str))  # as it reads back from JSON
+
+
+def finished_table(
+    folder: Path, sequence: Sequence, conf: dict[str, Any], seed: int, device: str
+) -> pd.DataFrame | None:
+    """The per-pair table ``folder`` holds when its finished result is of this sequence, conf,
+    seed and device request (``result_identity``), else None."""
+    try:
+        run = json.loads((folder / "run.json").read_text(encoding="utf-8"))
+        identity = result_identity(sequence, conf, seed, device)
+    except (OSError, ValueError):  # no result, or an image gone: the work names it and its pair
+        return None
+    done = isinstance(run, dict) and all(run.get(key) == value for key, value in identity.items())
+    if not done or (folder / method_outputs.UNFINISHED_MARKER).exists() or not (folder / "pairs.csv").is_file():
+        return None
+    return pd.read_csv(folder / "pairs.csv", keep_default_na=False)
 
 
 def compute_method(
@@ -126,13 +116,10 @@ def compute_method(
     verifier: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Extract and match what the caches lack for one method on a sequence (``run_method``'s
-    work, without writing ``pairs.csv`` or ``run.json``). Returns the run record's
-    ``environment`` and ``this_run`` and keeps them in the method folder (``WORK_RECORD``),
-    so the ``run_method`` that follows (the 02_verify notebook of a ``run``) records this
-    work and needs neither torch nor any model."""
+    work, without writing ``pairs.csv`` or ``run.json``); the run record's ``environment`` and ``this_run``."""
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
-    record.claim(output_dir)  # its stores and work record go into the folder: only into one that is the package's
+    record.claim(output_dir)  # its stores go into the folder: only into one that is the package's
     from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)
@@ -152,9 +139,7 @@ def compute_method(
         sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers
     )
     finished = time.perf_counter()
-    work = {
-        "identity": _work_identity(sequence, conf, seed, device),
-        "pid": os.getpid(),
+    return {
         "environment": concurrency.environment_info(resolved_device),
         "this_run": {
             "extraction": extraction,
@@ -165,21 +150,6 @@ def compute_method(
             "match_verify_wall_seconds": finished - extracted,
         },
     }
-    atomic_write_json(method_outputs.method_dir(output_dir, method) / WORK_RECORD, work)
-    return work
-
-
-def _read_work_record(folder: Path, identity: dict[str, Any]) -> dict[str, Any] | None:
-    """The work record of this sequence, conf, seed and device request, written by this
-    process or its parent (the ``run`` whose notebook this is); a record left by a run that
-    stopped before its notebook is not this run's work."""
-    try:
-        work = json.loads((folder / WORK_RECORD).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
-    if work.get("identity") != identity or work.get("pid") not in (os.getpid(), os.getppid()):
-        return None
-    return work
 
 
 def run_method(
@@ -199,14 +169,17 @@ def run_method(
     ``verifier``: overrides of the profile's verifier conf (``methods.resolve_method``).
     ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_JOBS, else every core).
 
+    A finished result of the same pairs, labels, images, conf, seed and device request in
+    ``output_dir`` is returned as it is (``finished_table``): nothing is computed or written.
     Missing weights fail here, before any work. Finished work found in the caches is
-    reused, so an interrupted run resumes. When every image and pair is cached and
-    ``compute_method`` recorded that work for this sequence, conf, seed and device, that
-    record is used and neither torch nor a model is loaded.
+    reused, so an interrupted run resumes.
     """
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     folder = method_outputs.method_dir(output_dir, method)
+    done = finished_table(folder, sequence, conf, seed, device)
+    if done is not None:  # e.g. a run's 02_verify notebook, after the run computed the method
+        return done
     # Outside a run's stage (a notebook run on its own), the method writes its results into the
     # output folder in place: only into a folder that is the package's, and one writer at a time
     # while the results are written. The stores are filled first, by any number of processes at
@@ -219,19 +192,15 @@ def run_method(
     with record.pending(output_dir if in_place else None, written):
         # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
         method_outputs.claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
-        work = _read_work_record(folder, _work_identity(sequence, conf, seed, device))
-        if work is None or has_pending_work(sequence, conf, cache_dir, output_dir, seed):
-            work = compute_method(
-                sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
-            )
+        work = compute_method(
+            sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
+        )
         lock = record.FolderLock(output_dir) if in_place else None
         if lock is not None:
             lock.acquire(wait_seconds=600)
         try:
             table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-            write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table)
-            # The record is used once: a later run that finds everything cached records that.
-            (folder / WORK_RECORD).unlink(missing_ok=True)
+            write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table, device)
             if in_place:
                 record_method_in_place(output_dir, method, sequence)
         finally:
@@ -256,6 +225,7 @@ def write_method_outputs(
     environment: dict[str, Any],
     this_run: dict[str, Any],
     table: pd.DataFrame,
+    device: str = "auto",
 ) -> None:
     """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
     finished run, ``methods_with_results``), then the unfinished marker removed."""
@@ -264,13 +234,9 @@ def write_method_outputs(
     atomic_write_json(
         folder / "run.json",
         {
-            "sequence": sequence.name,
-            "image_root": str(sequence.image_root),
+            **result_identity(sequence, conf, seed, device),
             "n_pairs": len(sequence.pairs),
             "pairs": sequence.origin,
-            "binding": scoring.sequence_binding(sequence),
-            "conf": conf,
-            "seed": seed,
             "package_version": __version__,
             "run_id": record.stage_run_id(folder.parent),
             "environment": environment,
@@ -300,8 +266,3 @@ def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str
     """``run_method`` with what a loaded params file sets: profile, output and cache folders,
     device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
     return run_method(sequence, method, **params_arguments(params), **options)
-
-
-def compute_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> dict[str, Any]:
-    """``compute_method`` with what a loaded params file sets, as ``run_method_of_params`` runs it."""
-    return compute_method(sequence, method, **params_arguments(params), **options)

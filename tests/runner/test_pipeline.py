@@ -46,6 +46,7 @@ def test_second_run_extracts_and_matches_nothing(shared_data, tmp_path):
     first = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 8, "cached": 0, "extracted": 8}
+    (tmp_path / "out" / "sift-nn" / "run.json").unlink()  # else the finished result is found done
     second = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 8, "cached": 8, "extracted": 0}
@@ -161,21 +162,20 @@ def tiny_sequence(root: Path) -> Sequence:
     return Sequence("tiny", root, read_pairs(root / "pairs.txt")[:6])
 
 
-def test_run_method_after_compute_method_records_that_work_without_torch(tmp_path):
-    """What ``run`` does: the work in one process, then each notebook's run_method finds it cached."""
+def test_run_method_finds_its_finished_result_done_without_torch_and_redoes_another(tmp_path):
+    """What ``run`` does: the method computed in one process, then its notebook's run_method finds it done."""
     sequence = tiny_sequence(tmp_path / "data")
     out, cache = tmp_path / "out", tmp_path / "cache"
-    work = method_runs.compute_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
-    assert work["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
-    assert not (out / "sift-nn" / "pairs.csv").exists()  # only run_method writes results
+    first = method_runs.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
+    written = {name: (out / "sift-nn" / name).read_bytes() for name in ("pairs.csv", "run.json")}
     code = (
         "import sys, json; from pathlib import Path\n"
         "from gvbench_nb.runner import method_runs\nfrom gvbench_nb.data.sequences import Sequence, read_pairs\n"
         f"root = Path({str(tmp_path / 'data')!r})\n"
         "sequence = Sequence('tiny', root, read_pairs(root / 'pairs.txt')[:6])\n"
-        f"method_runs.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
+        f"table = method_runs.run_method(sequence, 'sift-nn', 'repository', Path({str(out)!r}), Path({str(cache)!r}), "
         "device='cpu', progress=False)\n"
-        "print(json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))"
+        "print(len(table), json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))"
     )
     done = subprocess.run(
         [sys.executable, "-c", code],
@@ -185,33 +185,13 @@ def test_run_method_after_compute_method_records_that_work_without_torch(tmp_pat
         env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)},
     )
     assert done.returncode == 0, done.stderr[-2000:]
-    assert done.stdout.strip().splitlines()[-1] == "[]"
+    assert done.stdout.strip().splitlines()[-1] == "6 []"
+    assert {name: (out / "sift-nn" / name).read_bytes() for name in written} == written  # found, not rewritten
+
+    # Another device request (or seed, conf, pairs, labels, images) is another result: made again, from the caches.
+    again = method_runs.run_method(sequence, "sift-nn", "repository", out, cache, device="auto", progress=False)
     run = json.loads((out / "sift-nn" / "run.json").read_text())
-    assert run["this_run"] == work["this_run"] and run["environment"] == work["environment"]
-    assert not (out / "sift-nn" / method_runs.WORK_RECORD).exists()
-    first = scoring.load_pairs_table(out, "sift-nn")
-
-    # Used once: the next run records that it found everything cached, as any rerun does.
-    again = method_runs.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
-    run = pd.read_json(out / "sift-nn" / "run.json", typ="series")
-    assert run["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
-    pd.testing.assert_frame_equal(first, scoring.load_pairs_table(out, "sift-nn"))
-    assert len(again) == 6
-
-
-def test_a_work_record_of_another_device_request_or_process_is_not_used(tmp_path):
-    sequence = tiny_sequence(tmp_path / "data")
-    out, cache = tmp_path / "out", tmp_path / "cache"
-    record = out / "orb-nn" / method_runs.WORK_RECORD
-    method_runs.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
-    method_runs.run_method(sequence, "orb-nn", "repository", out, cache, device="auto", progress=False)
-    run = json.loads((out / "orb-nn" / "run.json").read_text())
-    assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}  # its own (cached) pass
-
-    # Left by a run that stopped before its notebook: not this run's work.
-    work = method_runs.compute_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
-    record.write_text(json.dumps({**json.loads(record.read_text()), "pid": -1, "this_run": {"stale": True}}))
-    method_runs.run_method(sequence, "orb-nn", "repository", out, cache, device="cpu", progress=False)
-    run = json.loads((out / "orb-nn" / "run.json").read_text())
-    assert run["this_run"]["extraction"] == work["this_run"]["extraction"] == {"images": 7, "cached": 7, "extracted": 0}
-    assert "stale" not in run["this_run"]
+    assert run["device_request"] == "auto" and run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}
+    pd.testing.assert_frame_equal(first, again)
+    shorter = method_runs.run_method(sequence.limited(4), "sift-nn", "repository", out, cache, progress=False)
+    assert len(shorter) == 4 and len(scoring.load_pairs_table(out, "sift-nn")) == 4

@@ -1,0 +1,89 @@
+"""The stage notebooks under plain papermill, as a user runs them from any folder: with
+``-p params_file``, with ``-f PARAMS.yaml`` (the file's keys as parameters) and with no
+parameters (the sample); ``--help-notebook`` shows each parameter's type."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import papermill
+import pytest
+
+from gvbench_nb import notebook
+from gvbench_nb.runner import config
+
+STAGES = ("01_sequence", "02_verify", "03_evaluate")
+NOTEBOOKS = config.PROJECT_ROOT / "notebooks"
+
+
+def test_the_stage_notebooks_take_every_params_key_as_a_typed_parameter():
+    keys = {"params_file", *config.REQUIRED_KEYS, *config.OPTIONAL_KEYS}
+    for stage in STAGES:
+        parameters = papermill.inspect_notebook(str(NOTEBOOKS / f"{stage}.ipynb"))
+        assert set(parameters) >= keys, stage
+        untyped = [name for name, p in parameters.items() if p["inferred_type_name"] in ("None", "NoneType")]
+        assert untyped == [], stage
+
+
+def test_a_params_files_keys_read_as_that_file_from_any_folder(monkeypatch, tmp_path):
+    monkeypatch.chdir(tmp_path)
+    gardens = config.PROJECT_ROOT / "params" / "gardens_point.yaml"
+    keys = config.read_yaml_mapping(gardens)  # what `papermill -f params/gardens_point.yaml` passes
+    as_keys = notebook.load_params(None, **keys, limit=4)
+    as_file = config.load_params(gardens, limit=4)
+    assert {k: as_keys[k] for k in config.PATH_KEYS} == {k: as_file[k] for k in config.PATH_KEYS}
+    assert as_keys["pairs"] == str(config.PROJECT_ROOT / "outputs" / "pairs" / "gardens_point.txt")
+    assert as_keys["pairs_builder"] == "frame_tolerance" and as_keys["limit"] == 4
+    # No parameters: the repository's sample, wherever the notebook runs.
+    assert notebook.load_params(None)["params_file"] == str(config.PROJECT_ROOT / "params" / "sample.yaml")
+    with pytest.raises(config.ParamsError, match="no params file in .* is of sequence 'mine'.*-p params_file"):
+        notebook.load_params(None, **{**keys, "sequence": "mine"})
+
+
+def papermill_cli(cwd: Path, stage: str, output: Path, *arguments: str) -> subprocess.CompletedProcess:
+    notebook_path = os.path.relpath(NOTEBOOKS / f"{stage}.ipynb", cwd)
+    done = subprocess.run(
+        [sys.executable, "-m", "papermill", notebook_path, str(output), *arguments],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", "GVBENCH_JOBS": "1"},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    assert "unknown parameter" not in done.stderr
+    return done
+
+
+@pytest.mark.slow
+@pytest.mark.shared_outputs  # the sample renders its images into the repository's outputs/
+@pytest.mark.parametrize("folder", ["repository", "tmp"])
+def test_papermill_runs_the_stage_notebooks_as_they_are_from_the_repository_and_tmp(folder, tmp_path):
+    cwd = config.PROJECT_ROOT if folder == "repository" else tmp_path
+    params = os.path.relpath(config.PROJECT_ROOT / "params" / "sample.yaml", cwd)
+    out, cache = tmp_path / "out", tmp_path / "cache"
+    elsewhere = [
+        "-p",
+        "method",
+        "orb-nn",
+        "-p",
+        "limit",
+        "4",
+        "-p",
+        "output_dir",
+        str(out),
+        "-p",
+        "cache_dir",
+        str(cache),
+    ]
+    papermill_cli(cwd, "02_verify", tmp_path / "p.ipynb", "-p", "params_file", params, *elsewhere)
+    written = (out / "orb-nn" / "pairs.csv").read_bytes()
+    assert written.count(b"\n") == 1 + 4
+    papermill_cli(cwd, "02_verify", tmp_path / "f.ipynb", "-f", params, *elsewhere)
+    assert (out / "orb-nn" / "pairs.csv").read_bytes() == written  # the same params: the result found done
+    papermill_cli(cwd, "01_sequence", tmp_path / "none.ipynb")  # no parameters: the sample
+    sample_out = Path(config.load_params(config.PROJECT_ROOT / "params" / "sample.yaml")["output_dir"])
+    assert (sample_out / "sequence_examples.png").is_file()

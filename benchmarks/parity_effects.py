@@ -240,14 +240,14 @@ def applies(row: str, conf: dict[str, Any]) -> str | None:
     kind = ROWS[row].needs
     if extractor is None:
         return "no stored features"
-    if kind == "lightglue" and matcher["type"] != "lightglue":
+    if kind == "lightglue" and matcher["type"] != "kornia_lightglue":
         return "not a LightGlue method"
     if kind == "cvg_lightglue" and (
-        matcher["type"] != "lightglue" or matcher.get("features") not in ("disk", "aliked")
+        matcher["type"] != "kornia_lightglue" or matcher.get("features") not in ("disk", "aliked")
     ):
         return "not a LightGlue method cvg's package has weights for here (disk, aliked)"
     if kind == "nn_or_lightglue" and not (
-        matcher["type"] == "lightglue" or (matcher["type"] == "nn" and matcher.get("metric", "l2") == "l2")
+        matcher["type"] == "kornia_lightglue" or (matcher["type"] == "nn" and matcher.get("metric", "l2") == "l2")
     ):
         return "not an L2 nearest-neighbour or LightGlue method"
     if kind == "learned" and extractor["type"] in ("colmap_sift", "opencv_sift", "opencv_orb"):
@@ -434,7 +434,7 @@ def run_row(row: str, method: str, ctx: Context) -> tuple[dict[str, Any], tuple,
         matched = ctx.ours(conf, features, ours_call)
         theirs = score_pairs(seq, conf, features, ours_call, seed, float16_scores, matched, "verify reference")
     elif row == "descriptors-as-stored":
-        if conf["matcher"]["type"] == "lightglue":
+        if conf["matcher"]["type"] == "kornia_lightglue":
             theirs = ours
             note = "our LightGlue reads the stored descriptors as they are: both readings are one computation"
         else:

@@ -97,7 +97,7 @@ def applies(variant: str, method: str, largest_side: int) -> str | None:
     if variant == "opencv-sift" and method != "sift-nn":
         return "SIFT only"
     if variant == "no-resize-max":
-        if extractor is None or extractor["type"] != "disk":
+        if extractor is None or extractor["type"] != "kornia_disk":
             return "DISK only"
         if largest_side <= extractor["resize_max"]:
             return f"not exercised: no image above {extractor['resize_max']} px"

@@ -408,12 +408,14 @@ def build_parser() -> argparse.ArgumentParser:
     # Commands that live beside the modules they drive.
     from gvbench_nb import explore_lab
     from gvbench_nb.reporting import compare, report
+    from gvbench_nb.studies import deployment
 
     add_data_command(commands)
     add_build_command(commands)
     report.add_command(commands)
     explore_lab.add_command(commands)
     compare.add_command(commands)
+    deployment.add_command(commands)
     return parser
 
 

@@ -153,6 +153,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
             f"{profiles}; the dot is the max recall at 100% precision.</p>"
         )
         parts.extend(f"<img src='{_relative(path, report_dir)}'>" for path in curves.values())
+    parts.extend(paper_sections(report_dir, output_dirs))
     parts.append("<h2>Notebooks</h2><ul>")
     for item in executed:
         label = f"{item.sequence or 'all sequences'}: {item.notebook.stem}"
@@ -244,6 +245,57 @@ def _sequence_name(output_dir: Path) -> str:
     return str(names[0]) if len(names) else output_dir.name
 
 
+# Run once across every sequence: the paper's tables and figures, and the deployment questions.
+PAPER_NOTEBOOKS = ("analysis_paper.ipynb", "analysis_deployment.ipynb")
+PAPER_FIGURES = {
+    "Fig. 1: max recall at 100% precision as the paper published it": "published_max_recall_radar_paper.png",
+    "The same, as the GV-Bench repository published it (its own code)": "published_max_recall_radar_repository.png",
+    "Fig. 8's grouping: each method across sequences (ours)": "method_across_sequences.png",
+}
+
+
+def paper_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
+    """The across-sequences notebooks of the paper's items and of deployment, as report jobs."""
+    parameters = {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}
+    return [(name, report_dir / name, dict(parameters), "") for name in PAPER_NOTEBOOKS]
+
+
+def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
+    """Table II, Table III, Fig. 1 (published values alone), Fig. 8, and deployment: the threshold
+    transfer figure and the loop-closure table the deployment notebook wrote."""
+    import pandas as pd
+
+    from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.studies import paper
+
+    summary = paper.summary_text(paper.sequence_summary(output_dirs))
+    parts = [
+        "<h2 id='paper'>The paper's tables and figures</h2>",
+        "<h3 id='table-ii'>Table II: the sequences</h3><p>Each run's pairs and each official list found, "
+        f"<b>{paper.RUN_COUNTED}</b> / <b>{paper.COUNTED}</b>, beside <b>{paper.PAPER_TEXT}</b>: they differ "
+        "(Nordland's list 1,407 queries / 28,124 pairs, its text 1,415 / 28,300; UAcampus's list 640 x 15 = "
+        "9,600, its text 647 x top-10). '-': not stated.</p>",
+        summary.to_html(index=False, classes="table-ii"),
+        "<h3 id='table-iii'>Table III: AP and MR (%), ours, with their average over the sequences</h3>",
+        paper.style_table_iii(paper.table_iii(run_tables.load_results(output_dirs))).to_html(),
+    ]
+    for caption, name in PAPER_FIGURES.items():
+        if (report_dir / name).is_file():
+            parts.append(f"<h3>{html.escape(caption)}</h3><img src='{name}'>")
+    parts.append("<h2 id='deployment'>Deployment: a threshold fixed on one sequence, used on another</h2>")
+    if (report_dir / "threshold_transfer.png").is_file():
+        parts.append("<img src='threshold_transfer.png'>")
+    loops = report_dir / "loop_closures.csv"
+    if loops.is_file():
+        parts.append(
+            "<p>Per query, the best-scoring candidate after GV: recall@1, and the queries closing a true or a "
+            "false loop at the threshold fixed on <i>calibration</i> (retrieval recall@1 only where the pair "
+            "file keeps the retrieval order).</p>"
+        )
+        parts.append(pd.read_csv(loops).to_html(index=False, float_format=lambda v: f"{v:.3f}", na_rep="-"))
+    return parts
+
+
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
     from tqdm import tqdm
@@ -271,6 +323,7 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
                     _sequence_name(folder),
                 )
             )
+    jobs += paper_jobs(report_dir, output_dirs)
     executed = []
     for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {target}")

@@ -15,6 +15,7 @@ import argparse
 import os
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pandas as pd
@@ -65,6 +66,7 @@ class DeploymentInputs:
         self.results = run_tables.load_results(folders)
         self.tables: dict[str, dict[str, pd.DataFrame]] = {}
         self.keeps_retrieval_order: dict[str, bool] = {}
+        self.profiles = {(r.sequence, r.method): r.profile for r in self.results.itertuples()}
         for folder in folders:
             rows = self.results[self.results["output_dir"] == str(folder)]
             sequence = str(rows["sequence"].iloc[0])
@@ -87,7 +89,8 @@ class DeploymentInputs:
 
 def transfer_table(inputs: DeploymentInputs, calibrations: Iterable[str] | None = None) -> pd.DataFrame:
     """One row a (method, calibration sequence, target sequence): the calibration's oracle
-    threshold and what it accepts on the target. The diagonal is MR itself."""
+    threshold and what it accepts on the target. The diagonal is MR itself. A threshold goes
+    only to a run of the same method under the same profile."""
     rows = []
     for method in inputs.methods():
         for calibration in calibrations or inputs.sequences:
@@ -95,17 +98,23 @@ def transfer_table(inputs: DeploymentInputs, calibrations: Iterable[str] | None 
                 continue
             source = inputs.tables[calibration][method]
             threshold = oracle_threshold(source["label"], source["score"])
+            profile = inputs.profiles[(calibration, method)]
             for target, tables in inputs.tables.items():
-                if method in tables:
+                if method in tables and inputs.profiles[(target, method)] == profile:
                     applied = apply_threshold(tables[method]["label"], tables[method]["score"], threshold)
-                    rows.append({"method": method, "calibration": calibration, "target": target,
-                                 "threshold": threshold, **applied})  # fmt: skip
+                    rows.append({"method": method, "profile": profile, "calibration": calibration,
+                                 "target": target, "threshold": threshold, **applied})  # fmt: skip
     return pd.DataFrame(rows)
 
 
-def transfer_matrix(table: pd.DataFrame, method: str) -> pd.DataFrame:
-    """One method's matrix, calibration rows by target columns: 'precision / recall / false loops'."""
-    rows = table[table["method"] == method]
+def runs(table: pd.DataFrame) -> list[tuple[str, str]]:
+    """The (method, profile) of a transfer table, in order: one matrix each."""
+    return list(dict.fromkeys(zip(table["method"], table["profile"])))
+
+
+def transfer_matrix(table: pd.DataFrame, method: str, profile: str) -> pd.DataFrame:
+    """One run's matrix, calibration rows by target columns: 'precision / recall / false loops'."""
+    rows = table[(table["method"] == method) & (table["profile"] == profile)]
     cells = [
         f"{'-' if np.isnan(r.precision) else f'{r.precision:.3f}'} / {r.recall:.3f} / {r.false_loops}"
         for r in rows.itertuples()
@@ -149,6 +158,7 @@ def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.D
         rows.append(
             {
                 "method": row.method,
+                "profile": row.profile,
                 "calibration": row.calibration,
                 "target": row.target,
                 "n_queries": len(outcomes),
@@ -169,8 +179,8 @@ def transfer_text(inputs: DeploymentInputs, calibrations: list[str]) -> str:
         "Each method's threshold of 100% precision on the calibration sequence (the one MR is read at), "
         "applied to each target: precision / recall / false loops accepted ('-': nothing accepted).\n"
     ]
-    for method in dict.fromkeys(table["method"]):
-        parts.append(f"{method}\n{transfer_matrix(table, method).to_string()}\n")
+    for method, profile in runs(table):
+        parts.append(f"{method} ({profile} profile)\n{transfer_matrix(table, method, profile).to_string()}\n")
     loops = loop_closure_table(table, inputs)
     parts.append(
         "Loop closures: each query keeps its best-scoring candidate. recall_at_1_gv: its share of the queries "
@@ -180,6 +190,31 @@ def transfer_text(inputs: DeploymentInputs, calibrations: list[str]) -> str:
     )
     parts.append(loops.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     return "\n".join(parts)
+
+
+def transfer_figure(table: pd.DataFrame) -> Any:
+    """Recall of every transfer, a panel a (method, profile) (calibration rows, target columns), each cell
+    annotated with its false loops; the diagonal is MR."""
+    import matplotlib.pyplot as plt
+
+    panels = runs(table)
+    figure, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels) + 1, 4.2), squeeze=False)
+    figure.subplots_adjust(wspace=0.9)
+    for axis, (method, profile) in zip(axes[0], panels):
+        rows = table[(table["method"] == method) & (table["profile"] == profile)]
+        recall = rows.pivot(index="calibration", columns="target", values="recall")
+        false_loops = rows.pivot(index="calibration", columns="target", values="false_loops")
+        image = axis.imshow(recall.to_numpy(dtype=float), vmin=0, vmax=1, cmap="viridis")
+        for (i, j), value in np.ndenumerate(recall.to_numpy(dtype=float)):
+            text = f"R {value:.2f}\n{int(false_loops.iat[i, j])} false"
+            axis.text(j, i, text, ha="center", va="center", fontsize=8, color="white" if value < 0.6 else "black")
+        axis.set_xticks(range(recall.shape[1]), recall.columns, rotation=30, ha="right", fontsize=8)
+        axis.set_yticks(range(recall.shape[0]), recall.index, fontsize=8)
+        axis.set(title=f"{method} ({profile} profile)", xlabel="deployed on (target)")
+    axes[0][0].set_ylabel("threshold fixed on (calibration)")
+    figure.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="recall at the transferred threshold")
+    figure.suptitle("Threshold transfer: recall and false loops accepted (diagonal: MR)", fontsize=10)
+    return figure
 
 
 def command_transfer(args: argparse.Namespace) -> int:

@@ -260,6 +260,70 @@ def paper_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
     return [(name, report_dir / name, dict(parameters), "") for name in PAPER_NOTEBOOKS]
 
 
+VERIFIER_METHOD = "sift-nn"  # whose cached matches the verifier pages re-score
+VERIFIERS_FOLDER = "verifiers"  # the verifier notebooks' output folder in a run folder, as they default
+
+
+def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
+    """The studies' pages, where their inputs exist: the verifier comparison and Doppelgangers
+    where a folder's sift-nn matches were compared (``<folder>/verifiers/verifiers.csv``: their
+    training and predictions, minutes on a CPU, are reused), the sequence build of a
+    retrieval-built folder, and every condition sweep (a folder holding ``sweep.csv``) beside the
+    sequence folders, with the parameters it was run with (so nothing is computed anew)."""
+    import json
+
+    import yaml
+
+    jobs = []
+    for folder in output_dirs:
+        target, sequence = report_dir / folder.name, _sequence_name(folder)
+        verifiers = folder / VERIFIERS_FOLDER
+        if (verifiers / "verifiers.csv").is_file() and (folder / VERIFIER_METHOD / "pairs.csv").is_file():
+            # Into the study's own folder: its trained weights and predictions are reused, not redone.
+            parameters = {"params_file": None, "results_dir": str(folder), "method": VERIFIER_METHOD}
+            for name in ("analysis_verifiers.ipynb", "analysis_doppelgangers.ipynb"):
+                jobs.append((name, target / name, {**parameters, "output_dir": str(verifiers)}, sequence))
+        params_file = _run_params_file(folder)
+        params = yaml.safe_load(params_file.read_text(encoding="utf-8")) if params_file else {}
+        if (params or {}).get("pairs_builder") == "retrieval":
+            descriptor = (params.get("builder_options") or {}).get("descriptor", "vlad")
+            build = {"params_file": str(params_file), "compare_descriptors": [descriptor]}
+            build["output_dir"] = str(target / "build")
+            jobs.append(("00_build_sequence.ipynb", target / "00_build_sequence.ipynb", build, sequence))
+    for sweep in sorted({p.parent for d in output_dirs for p in d.parent.glob("*/sweep.csv")}):
+        import pandas as pd
+
+        cells = pd.read_csv(sweep / "sweep.csv")
+        route = json.loads((sweep / "images" / "route.json").read_text(encoding="utf-8"))
+        parameters = {
+            "methods": list(dict.fromkeys(cells["method"])),
+            "profile": dict(zip(cells["method"], cells["profile"])),
+            "conditions": list(dict.fromkeys(cells["condition"])),
+            "strengths": sorted({float(s) for s in cells["strength"]}),
+            "n_frames": route["n_frames"],
+            "image_size": route["image_size"],
+            "seed": route["seed"],
+            "output_dir": str(sweep),
+        }
+        target = report_dir / f"sweep_{sweep.name}" / "analysis_condition_sweep.ipynb"
+        jobs.append(("analysis_condition_sweep.ipynb", target, parameters, f"sweep {sweep.name}"))
+    return jobs
+
+
+def _run_params_file(folder: Path) -> Path | None:
+    """The params a folder's run used: its ``params.resolved.yaml``, else the file its first
+    method's record names (a sharded run writes no resolved copy), when it still exists."""
+    import json
+
+    resolved = folder / config.RESOLVED_PARAMS_NAME
+    if resolved.is_file():
+        return resolved
+    for run in sorted(folder.glob("*/run.json")):
+        named = (json.loads(run.read_text(encoding="utf-8")).get("pairs") or {}).get("params_file")
+        return Path(named) if named and Path(named).is_file() else None
+    return None
+
+
 def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
     """Table II, Table III, Fig. 1 (published values alone), Fig. 8, and deployment: the threshold
     transfer figure and the loop-closure table the deployment notebook wrote."""
@@ -323,7 +387,7 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
                     _sequence_name(folder),
                 )
             )
-    jobs += paper_jobs(report_dir, output_dirs)
+    jobs += paper_jobs(report_dir, output_dirs) + study_jobs(report_dir, output_dirs)
     executed = []
     for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {target}")

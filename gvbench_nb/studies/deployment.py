@@ -91,9 +91,16 @@ def transfer_table(inputs: DeploymentInputs, calibrations: Iterable[str] | None 
     """One row a (method, calibration sequence, target sequence): the calibration's oracle
     threshold and what it accepts on the target. The diagonal is MR itself. A threshold goes
     only to a run of the same method under the same profile."""
+    calibrations = list(calibrations or inputs.sequences)
+    unknown = [c for c in calibrations if c not in inputs.tables]
+    if unknown:
+        raise run_tables.IncomparableRunsError(
+            f"calibration sequence(s) {', '.join(unknown)} not among the folders read "
+            f"({', '.join(inputs.sequences)}); name one of those, or add its output folder"
+        )
     rows = []
     for method in inputs.methods():
-        for calibration in calibrations or inputs.sequences:
+        for calibration in calibrations:
             if method not in inputs.tables[calibration]:
                 continue
             source = inputs.tables[calibration][method]

@@ -63,7 +63,8 @@ def sequence_summary(
     ``lists_dir`` (default: the data folder's; ``<name>.txt``, skipped when absent), and the paper's text values of the same
     official sequences, each row labelled by its source (condition as the paper's sources name it)."""
     rows = []
-    results = run_tables.load_results(list(output_dirs))
+    folders = list(output_dirs)
+    results = run_tables.load_results(folders) if folders else pd.DataFrame(columns=["output_dir"])
     for folder, group in results.groupby("output_dir", sort=False):
         table = run_tables.load_pairs_tables(folder, [group["method"].iloc[0]])[group["method"].iloc[0]]
         rows.append(count_pairs(str(group["sequence"].iloc[0]), table, RUN_COUNTED))
@@ -91,7 +92,7 @@ def summary_text(summary: pd.DataFrame) -> pd.DataFrame:
         return "-" if pd.isna(value) else f"{int(value):,}"
 
     text = summary.assign(**{c: summary[c].map(number) for c in ("queries", "pairs", "positives")})
-    return text.fillna("-").replace("", "-")
+    return text.astype(object).fillna("-").replace("", "-")
 
 
 def table_iii(results: pd.DataFrame) -> pd.DataFrame:

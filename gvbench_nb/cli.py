@@ -36,6 +36,7 @@ examples:
   python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile repository
   python -m gvbench_nb results outputs/sample --markdown
   python -m gvbench_nb build params/gardens_point_retrieval.yaml
+  python -m gvbench_nb transfer outputs/gardens_point outputs/gardens_point_viewpoint --every
   python -m gvbench_nb methods
   .venv-imm/bin/python -m gvbench_nb run params/gardens_point.yaml --methods imm:sift-nn,imm:orb-nn
   python -m gvbench_nb weights --link

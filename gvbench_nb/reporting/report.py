@@ -16,7 +16,7 @@ import html
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.reporting.execute import execute_notebook
@@ -274,13 +274,13 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
 
     import yaml
 
-    jobs = []
+    jobs: list[tuple[str, Path, dict[str, Any], str]] = []
     for folder in output_dirs:
         target, sequence = report_dir / folder.name, _sequence_name(folder)
         verifiers = folder / VERIFIERS_FOLDER
         if (verifiers / "verifiers.csv").is_file() and (folder / VERIFIER_METHOD / "pairs.csv").is_file():
             # Into the study's own folder: its trained weights and predictions are reused, not redone.
-            parameters = {"params_file": None, "results_dir": str(folder), "method": VERIFIER_METHOD}
+            parameters: dict[str, Any] = {"params_file": None, "results_dir": str(folder), "method": VERIFIER_METHOD}
             for name in ("analysis_verifiers.ipynb", "analysis_doppelgangers.ipynb"):
                 jobs.append((name, target / name, {**parameters, "output_dir": str(verifiers)}, sequence))
         params_file = _run_params_file(folder)
@@ -295,7 +295,7 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
 
         cells = pd.read_csv(sweep / "sweep.csv")
         route = json.loads((sweep / "images" / "route.json").read_text(encoding="utf-8"))
-        parameters = {
+        sweep_parameters = {
             "methods": list(dict.fromkeys(cells["method"])),
             "profile": dict(zip(cells["method"], cells["profile"])),
             "conditions": list(dict.fromkeys(cells["condition"])),
@@ -306,7 +306,7 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
             "output_dir": str(sweep),
         }
         target = report_dir / f"sweep_{sweep.name}" / "analysis_condition_sweep.ipynb"
-        jobs.append(("analysis_condition_sweep.ipynb", target, parameters, f"sweep {sweep.name}"))
+        jobs.append(("analysis_condition_sweep.ipynb", target, sweep_parameters, f"sweep {sweep.name}"))
     return jobs
 
 

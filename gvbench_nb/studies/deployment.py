@@ -236,8 +236,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``transfer CALIBRATION_DIR TARGET_DIR [...]``."""
     parser = subparsers.add_parser(
         "transfer",
-        help="fix each method's 100%-precision threshold on one sequence and apply it to others",
-        description="For each method, the inlier threshold that gives 100%% precision on the calibration "
+        help="fix each method's 100%%-precision threshold on one sequence and apply it to others",
+        description="For each method, the inlier threshold that gives 100% precision on the calibration "
         "folder's sequence (the one MR is read at) applied to each target folder: precision, recall and "
         "false loops accepted, as a matrix over sequences; then, per query, recall@1 after GV re-ranking "
         "and the queries that would close a false loop. Reads only finished runs.",

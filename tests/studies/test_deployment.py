@@ -109,6 +109,7 @@ def test_transfer_reads_finished_runs_and_prints_the_matrix(tmp_path, capsys):
     assert loops.loc[("day", "day"), "recall_at_1_retrieval"] == 1.0  # retrieval-built: file order kept
     assert cli.main(["transfer", str(tmp_path / "day"), str(tmp_path / "night")]) == 0
     printed = capsys.readouterr().out
+    assert "transfer" in cli.build_parser().format_help()  # its help line formats
     assert "day (threshold 6)" in printed and "0.500 / 0.500 / 1" in printed and "1.000 / 1.000 / 0" in printed
 
 

@@ -26,7 +26,8 @@ from gvbench_nb.studies import results_table
 COUNTED = "counted from the list"
 RUN_COUNTED = "counted from the run"
 PAPER_TEXT = "paper (text)"
-SUMMARY_COLUMNS = ["sequence", "source", "traverse", "condition", "viewpoint", "queries", "pairs", "positives"]
+COUNTS = ["queries", "candidates", "pairs", "positives"]  # candidates: a query's
+SUMMARY_COLUMNS = ["sequence", "source", "traverse", "condition", "viewpoint", *COUNTS]
 AVERAGE = "Average"
 PLACE_STYLES = {1: "font-weight: bold;", 2: "text-decoration: underline;", 3: "font-style: italic;"}
 
@@ -39,11 +40,14 @@ def count_pairs(sequence: str, table: pd.DataFrame, source: str) -> dict[str, An
     """One summary row of a (query, reference, label) table; traverse: query folder vs reference folders."""
     queries = sorted({_folder(q) for q in table["query"]})
     references = sorted({_folder(r) for r in table["reference"]})
+    per_query = table.groupby("query").size()
+    low, high = int(per_query.min()), int(per_query.max())
     return {
         "sequence": sequence,
         "source": source,
         "traverse": f"{', '.join(queries)} vs {', '.join(references)}",
         "queries": table["query"].nunique(),
+        "candidates": str(low) if low == high else f"{low}-{high}",
         "pairs": len(table),
         "positives": int(table["label"].sum()),
     }
@@ -78,7 +82,7 @@ def sequence_summary(
             pairs = pd.read_csv(path, sep=r"\s+", header=None, names=["query", "reference", "label"])
             rows.append(count_pairs(name, pairs, COUNTED))
     conditions = reference_values.paper_sequences().set_index("sequence")[["condition", "viewpoint"]]
-    summary = pd.DataFrame(rows, columns=["sequence", "source", "traverse", "queries", "pairs", "positives"])
+    summary = pd.DataFrame(rows, columns=["sequence", "source", "traverse", *COUNTS])
     summary = pd.concat([summary.join(conditions, on="sequence"), text.assign(source=PAPER_TEXT)], ignore_index=True)
     order = {name: i for i, name in enumerate(dict.fromkeys(summary["sequence"]))}
     summary = summary.sort_values(["sequence", "source"], key=lambda c: c.map(order) if c.name == "sequence" else c)
@@ -92,6 +96,7 @@ def summary_text(summary: pd.DataFrame) -> pd.DataFrame:
         return "-" if pd.isna(value) else f"{int(value):,}"
 
     text = summary.assign(**{c: summary[c].map(number) for c in ("queries", "pairs", "positives")})
+    text["candidates"] = [c if isinstance(c, str) else number(c) for c in summary["candidates"]]
     return text.astype(object).fillna("-").replace("", "-")
 
 

@@ -46,7 +46,9 @@ def test_table_ii_counts_the_list_beside_the_papers_text(tmp_path):
     summary = paper.sequence_summary([], tmp_path).set_index(["sequence", "source"])
     counted = summary.loc[("nordland", paper.COUNTED)]
     assert (counted.traverse, counted.queries, counted.pairs, counted.positives) == ("s1 vs s2", 3, 5, 2)
+    assert counted.candidates == "1-2"
     text = summary.loc[("nordland", paper.PAPER_TEXT)]
     assert (text.queries, text.pairs) == (1415, 28300) and counted.condition == text.condition == "seasonal"
     assert ("uacampus", paper.COUNTED) not in summary.index  # no list there: only the paper's text
+    assert summary.loc[("uacampus", paper.PAPER_TEXT), "candidates"] == 10
     assert paper.summary_text(summary.reset_index()).iloc[0]["pairs"] == "5"

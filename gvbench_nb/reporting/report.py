@@ -290,7 +290,9 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
             build = {"params_file": str(params_file), "compare_descriptors": [descriptor]}
             build["output_dir"] = str(target / "build")
             jobs.append(("00_build_sequence.ipynb", target / "00_build_sequence.ipynb", build, sequence))
-    for sweep in sorted({p.parent for d in output_dirs for p in d.parent.glob("*/sweep.csv")}):
+    for sweep in sorted({p.parent.parent for d in output_dirs for p in d.parent.glob("*/images/route.json")}):
+        if not (sweep / "sweep.csv").is_file():
+            continue
         import pandas as pd
 
         cells = pd.read_csv(sweep / "sweep.csv")

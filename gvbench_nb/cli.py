@@ -36,6 +36,7 @@ examples:
   python -m gvbench_nb run params/day.yaml --image-root /data/gvbench --profile repository
   python -m gvbench_nb results outputs/sample --markdown
   python -m gvbench_nb build params/gardens_point_retrieval.yaml
+  python -m gvbench_nb transfer outputs/gardens_point outputs/gardens_point_viewpoint --every
   python -m gvbench_nb methods
   .venv-imm/bin/python -m gvbench_nb run params/gardens_point.yaml --methods imm:sift-nn,imm:orb-nn
   python -m gvbench_nb weights --link
@@ -420,6 +421,7 @@ def build_parser() -> argparse.ArgumentParser:
     # Commands that live beside the modules they drive.
     from gvbench_nb import explore_lab
     from gvbench_nb.reporting import compare, report
+    from gvbench_nb.studies import deployment
 
     add_data_command(commands)
     add_build_command(commands)
@@ -428,6 +430,7 @@ def build_parser() -> argparse.ArgumentParser:
     report.add_command(commands)
     explore_lab.add_command(commands)
     compare.add_command(commands)
+    deployment.add_command(commands)
     return parser
 
 

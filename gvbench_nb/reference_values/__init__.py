@@ -5,6 +5,11 @@
 * ``gvbench_repo_table.csv``: the table of the GV-Bench repository's README, AP and MR as
   fractions, by its matcher names (image-matching-models); produced by its current code
   (our ``repository`` profile). The two are not comparable with each other.
+* ``paper_sequences.csv``: the sequence summary as the paper's text gives it (Nordland 1,415
+  queries and 28,300 pairs, UAcampus 647 queries with their top 10), and each sequence's
+  condition as the GV-Bench project page names it (illumination: night, uacampus; seasonal:
+  season, nordland; weather; day the baseline). Blank: not stated in these sources. The official
+  lists differ (``studies.paper.sequence_summary`` counts them).
 
 Both loaders return fractions, with our method name where one of ours is the same method.
 """
@@ -33,8 +38,7 @@ REPOSITORY_METHODS: dict[str, str] = {
 
 
 def _read(name: str) -> pd.DataFrame:
-    with resources.files(__name__).joinpath(name).open("r", encoding="utf-8") as handle:
-        table = pd.read_csv(handle)
+    table = _read_csv(name)
     expected = {"sequence", *METRICS}
     if not expected <= set(table.columns):
         raise ValueError(f"{name}: expected columns {sorted(expected)}, got {list(table.columns)}")
@@ -60,3 +64,13 @@ def repository_table() -> pd.DataFrame:
     raw = _read("gvbench_repo_table.csv").rename(columns={"matcher": "reference_name"})
     raw["method"] = raw["reference_name"].map(REPOSITORY_METHODS)
     return raw[COLUMNS]
+
+
+def paper_sequences() -> pd.DataFrame:
+    """The paper's text values of its sequences (``paper_sequences.csv``); NaN where not stated."""
+    return _read_csv("paper_sequences.csv")
+
+
+def _read_csv(name: str) -> pd.DataFrame:
+    with resources.files(__name__).joinpath(name).open("r", encoding="utf-8") as handle:
+        return pd.read_csv(handle)

@@ -16,7 +16,7 @@ import html
 import sys
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.reporting.execute import execute_notebook
@@ -153,6 +153,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
             f"{profiles}; the dot is the max recall at 100% precision.</p>"
         )
         parts.extend(f"<img src='{_relative(path, report_dir)}'>" for path in curves.values())
+    parts.extend(paper_sections(report_dir, output_dirs))
     parts.append("<h2>Notebooks</h2><ul>")
     for item in executed:
         label = f"{item.sequence or 'all sequences'}: {item.notebook.stem}"
@@ -244,6 +245,123 @@ def _sequence_name(output_dir: Path) -> str:
     return str(names[0]) if len(names) else output_dir.name
 
 
+# Run once across every sequence: the paper's tables and figures, and the deployment questions.
+PAPER_NOTEBOOKS = ("analysis_paper.ipynb", "analysis_deployment.ipynb")
+PAPER_FIGURES = {
+    "Fig. 1: max recall at 100% precision as the paper published it": "published_max_recall_radar_paper.png",
+    "The same, as the GV-Bench repository published it (its own code)": "published_max_recall_radar_repository.png",
+    "Fig. 8's grouping: each method across sequences (ours)": "method_across_sequences.png",
+}
+
+
+def paper_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
+    """The across-sequences notebooks of the paper's items and of deployment, as report jobs."""
+    parameters = {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}
+    return [(name, report_dir / name, dict(parameters), "") for name in PAPER_NOTEBOOKS]
+
+
+VERIFIER_METHOD = "sift-nn"  # whose cached matches the verifier pages re-score
+VERIFIERS_FOLDER = "verifiers"  # the verifier notebooks' output folder in a run folder, as they default
+
+
+def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
+    """The studies' pages, where their inputs exist: the verifier comparison and Doppelgangers
+    where a folder's sift-nn matches were compared (``<folder>/verifiers/verifiers.csv``: their
+    training and predictions, minutes on a CPU, are reused), the sequence build of a
+    retrieval-built folder, and every condition sweep (a folder holding ``sweep.csv``) beside the
+    sequence folders, with the parameters it was run with (so nothing is computed anew)."""
+    import json
+
+    import yaml
+
+    jobs: list[tuple[str, Path, dict[str, Any], str]] = []
+    for folder in output_dirs:
+        target, sequence = report_dir / folder.name, _sequence_name(folder)
+        verifiers = folder / VERIFIERS_FOLDER
+        if (verifiers / "verifiers.csv").is_file() and (folder / VERIFIER_METHOD / "pairs.csv").is_file():
+            # Into the study's own folder: its trained weights and predictions are reused, not redone.
+            parameters: dict[str, Any] = {"params_file": None, "results_dir": str(folder), "method": VERIFIER_METHOD}
+            for name in ("analysis_verifiers.ipynb", "analysis_doppelgangers.ipynb"):
+                jobs.append((name, target / name, {**parameters, "output_dir": str(verifiers)}, sequence))
+        params_file = _run_params_file(folder)
+        params = yaml.safe_load(params_file.read_text(encoding="utf-8")) if params_file else {}
+        if (params or {}).get("pairs_builder") == "retrieval":
+            descriptor = (params.get("builder_options") or {}).get("descriptor", "vlad")
+            build = {"params_file": str(params_file), "compare_descriptors": [descriptor]}
+            build["output_dir"] = str(target / "build")
+            jobs.append(("00_build_sequence.ipynb", target / "00_build_sequence.ipynb", build, sequence))
+    for sweep in sorted({p.parent.parent for d in output_dirs for p in d.parent.glob("*/images/route.json")}):
+        if not (sweep / "sweep.csv").is_file():
+            continue
+        import pandas as pd
+
+        cells = pd.read_csv(sweep / "sweep.csv")
+        route = json.loads((sweep / "images" / "route.json").read_text(encoding="utf-8"))
+        sweep_parameters = {
+            "methods": list(dict.fromkeys(cells["method"])),
+            "profile": dict(zip(cells["method"], cells["profile"])),
+            "conditions": list(dict.fromkeys(cells["condition"])),
+            "strengths": sorted({float(s) for s in cells["strength"]}),
+            "n_frames": route["n_frames"],
+            "image_size": route["image_size"],
+            "seed": route["seed"],
+            "output_dir": str(sweep),
+        }
+        target = report_dir / f"sweep_{sweep.name}" / "analysis_condition_sweep.ipynb"
+        jobs.append(("analysis_condition_sweep.ipynb", target, sweep_parameters, f"sweep {sweep.name}"))
+    return jobs
+
+
+def _run_params_file(folder: Path) -> Path | None:
+    """The params a folder's run used: its ``params.resolved.yaml``, else the file its first
+    method's record names (a sharded run writes no resolved copy), when it still exists."""
+    import json
+
+    resolved = folder / config.RESOLVED_PARAMS_NAME
+    if resolved.is_file():
+        return resolved
+    for run in sorted(folder.glob("*/run.json")):
+        named = (json.loads(run.read_text(encoding="utf-8")).get("pairs") or {}).get("params_file")
+        return Path(named) if named and Path(named).is_file() else None
+    return None
+
+
+def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
+    """Table II, Table III, Fig. 1 (published values alone), Fig. 8, and deployment: the threshold
+    transfer figure and the loop-closure table the deployment notebook wrote."""
+    import pandas as pd
+
+    from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.studies import paper
+
+    summary = paper.summary_text(paper.sequence_summary(output_dirs))
+    parts = [
+        "<h2 id='paper'>The paper's tables and figures</h2>",
+        "<h3 id='table-ii'>Table II: the sequences</h3><p>Each run's pairs and each official list found, "
+        f"<b>{paper.RUN_COUNTED}</b> / <b>{paper.COUNTED}</b>, beside <b>{paper.PAPER_TEXT}</b>: they differ "
+        "(Nordland's list 1,407 queries / 28,124 pairs, its text 1,415 / 28,300; UAcampus's list 640 x 15 = "
+        "9,600, its text 647 x top-10). '-': not stated.</p>",
+        summary.to_html(index=False, classes="table-ii"),
+        "<h3 id='table-iii'>Table III: AP and MR (%), ours, with their average over the sequences</h3>",
+        paper.style_table_iii(paper.table_iii(run_tables.load_results(output_dirs))).to_html(),
+    ]
+    for caption, name in PAPER_FIGURES.items():
+        if (report_dir / name).is_file():
+            parts.append(f"<h3>{html.escape(caption)}</h3><img src='{name}'>")
+    parts.append("<h2 id='deployment'>Deployment: a threshold fixed on one sequence, used on another</h2>")
+    if (report_dir / "threshold_transfer.png").is_file():
+        parts.append("<img src='threshold_transfer.png'>")
+    loops = report_dir / "loop_closures.csv"
+    if loops.is_file():
+        parts.append(
+            "<p>Per query, the best-scoring candidate after GV: recall@1, and the queries closing a true or a "
+            "false loop at the threshold fixed on <i>calibration</i> (retrieval recall@1 only where the pair "
+            "file keeps the retrieval order).</p>"
+        )
+        parts.append(pd.read_csv(loops).to_html(index=False, float_format=lambda v: f"{v:.3f}", na_rep="-"))
+    return parts
+
+
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
     from tqdm import tqdm
@@ -271,6 +389,7 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
                     _sequence_name(folder),
                 )
             )
+    jobs += paper_jobs(report_dir, output_dirs) + study_jobs(report_dir, output_dirs)
     executed = []
     for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {target}")

@@ -16,13 +16,15 @@ from pathlib import Path
 from urllib.parse import unquote, urldefrag, urljoin, urlparse
 
 import pytest
+import yaml
 
-from gvbench_nb.reporting import report
+from gvbench_nb.reporting import execute, report
+from gvbench_nb.studies import condition_sweep
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 METHODS = "sift-nn,orb-nn"
 PROFILE = "repository"
-LIMIT = "24"  # 24 pairs, 9 of them true: enough for every analysis notebook, seconds to run
+LIMIT = "24"  # pairs of the second sequence: enough for every analysis notebook, seconds to run
 
 
 def pinned(package: str) -> str:
@@ -59,11 +61,32 @@ def report_index(chromium, tmp_path_factory) -> Path:
         f"image_root: {root / 'data'}\npairs: {root / 'data' / 'pairs.txt'}\n"
         f"methods: [{METHODS}]\nprofile: {PROFILE}\noutput_dir: {root / 'outputs' / 'sample'}\nseed: 0\n"
     )
+    # A second sequence of the same images, built by retrieval: the transfer matrix has two rows
+    # and the build page its input.
+    retrieval = root / "sample_retrieval.yaml"
+    built = yaml.safe_load((PROJECT_ROOT / "params" / "sample_retrieval.yaml").read_text())
+    built.update(image_root=str(root / "data"), pairs=str(root / "retrieval_pairs.txt"), profile=PROFILE)
+    built.update(output_dir=str(root / "outputs" / "sample_retrieval"), methods=METHODS.split(","))
+    retrieval.write_text(yaml.safe_dump(built))
     # One shard and its merge write what a plain run writes, without the run's own notebooks,
     # which the report does not read.
-    base = ["run", str(params), "--methods", METHODS, "--limit", LIMIT]
-    assert cli.main([*base, "--shard", "0/1"]) == 0
-    assert cli.main([*base, "--merge"]) == 0
+    # The sample whole (240 pairs): the verifiers' place-disjoint split needs its 30 queries.
+    for path, limit in ((params, []), (retrieval, ["--limit", LIMIT])):
+        base = ["run", str(path), "--methods", METHODS, *limit]
+        assert cli.main([*base, "--shard", "0/1"]) == 0
+        assert cli.main([*base, "--merge"]) == 0
+    # The verifiers compared on the sample's sift-nn matches (the verifier pages' input), and a
+    # tiny condition sweep beside the runs (the sweep page's).
+    sample = root / "outputs" / "sample"
+    verifiers = {"params_file": None, "results_dir": str(sample), "method": "sift-nn"}
+    target = sample / report.VERIFIERS_FOLDER
+    execute.execute_notebook(
+        "analysis_verifiers.ipynb", target / "verifiers.ipynb", {**verifiers, "output_dir": str(target)}
+    )
+    condition_sweep.run_sweep(
+        root / "outputs" / "sweep", ["orb-nn"], conditions=["illumination"], strengths=[1.0], n_frames=8,
+        profile=PROFILE, image_size=(160, 120), threads=1, progress=False,
+    )  # fmt: skip
     assert cli.main(["report", "--outputs-root", str(root / "outputs"), "--output-dir", str(root / "report")]) == 0
     return root / "report" / "index.html"
 
@@ -116,21 +139,48 @@ def check_report(browser, index: Path) -> None:
     sources = page.evaluate("[...document.images].map(i => i.getAttribute('src'))")
     assert "max_recall_radar.png" in sources and "pr_curves_sample.png" in sources
     assert {f"sample/{name.format(sequence='sample')}" for name in report.KEY_FIGURES} <= set(sources)
+    # The paper's figures (Fig. 1 of the published values alone, Fig. 8's grouping) and deployment's.
+    assert set(report.PAPER_FIGURES.values()) | {"threshold_transfer.png"} <= set(sources)
     assert page.locator(".error").count() == 0, "a notebook failed: " + page.locator(".error").first.inner_text()
-    # Every table has a 'profile' header and names the run's profile on each of its data rows.
-    tables = page.evaluate("""[...document.querySelectorAll('table')].map(t => ({
+    check_paper_tables(page)
+    # Every table of runs has a 'profile' header and names the run's profile on each of its data rows.
+    tables = page.evaluate("""[...document.querySelectorAll('table:not(.table-ii)')].map(t => ({
         headers: [...t.querySelectorAll('thead th')].map(c => c.innerText.trim()),
         rows: [...t.querySelectorAll('tbody tr')].map(r => [...r.cells].map(c => c.innerText.trim()))}))""")
-    assert len(tables) == 2  # the results table and the sample's bootstrap intervals
+    # the results table, Table III, the loop closures and each sequence's bootstrap intervals
+    assert len(tables) == 5
     for table in tables:
         assert "profile" in table["headers"], table["headers"]
         assert table["rows"] and all(PROFILE in row for row in table["rows"]), table["rows"]
     page.close()
-    # The notebooks it links to: the one across sequences and the sample's own.
-    assert len(linked) == 1 + len(report.PER_SEQUENCE_NOTEBOOKS)
+    # The notebooks it links to: those across sequences, each sequence's own and the studies'
+    # pages whose inputs exist: the verifiers and Doppelgangers where the sample's were compared,
+    # the build of the retrieval-built sequence, the sweep.
+    names = [target.name for target in linked]
+    assert len(linked) == 1 + len(report.PAPER_NOTEBOOKS) + 2 * len(report.PER_SEQUENCE_NOTEBOOKS) + 2 + 1 + 1
+    for name in ("analysis_verifiers", "analysis_doppelgangers", "00_build_sequence", "analysis_condition_sweep"):
+        assert f"{name}.html" in names, names
     for target in linked:
         notebook_page, _ = check_page(browser, target.as_uri())
         # Outputs only: no code cell's source is on the page.
         assert notebook_page.locator(".jp-InputArea-editor").count() == 0, target
         assert notebook_page.locator(".jp-OutputArea").count() > 0, target
         notebook_page.close()
+
+
+def check_paper_tables(page) -> None:
+    """Table II shows the counted and the paper's text values, each labelled; Table III has its
+    Average column and marks the 1st (bold), 2nd (underlined) and 3rd (italic) of a column."""
+    summary = page.evaluate("""[...document.querySelectorAll('table.table-ii tbody tr')]
+        .map(r => [...r.cells].map(c => c.innerText.trim()))""")
+    sources = {row[1] for row in summary}
+    assert {"counted from the run", "paper (text)"} <= sources, sources
+    assert ["nordland", "paper (text)", "-", "seasonal", "-", "1,415", "-", "28,300", "-"] in summary
+    heading = page.locator("#table-iii")
+    table = heading.locator("xpath=following-sibling::table[1]")
+    assert "Average" in table.locator("thead").inner_text()
+    styles = table.evaluate("""t => [...t.querySelectorAll('tbody td')].map(c => {
+        const s = getComputedStyle(c); return [c.innerText.trim(), s.fontWeight, s.textDecorationLine, s.fontStyle]})""")
+    # Two methods on each column: a 1st (bold) and a 2nd (underlined) where they differ.
+    assert any(weight == "700" for _, weight, _, _ in styles)
+    assert any(line == "underline" for _, _, line, _ in styles)

@@ -88,7 +88,8 @@ def test_report_on_a_run_with_its_own_cache_dir_hides_code_and_shows_pr_curves(t
     assert "failed:" not in index and code == 0
     assert "src='pr_curves_sample.png'" in index and (report_dir / "pr_curves_sample.png").is_file()
     pages = sorted(report_dir.rglob("*.html"))
-    assert len(pages) == 2 + len(report.PER_SEQUENCE_NOTEBOOKS)  # index, the table, the sequence's
+    # index, the table, the sequence's, the paper's and deployment's
+    assert len(pages) == 2 + len(report.PER_SEQUENCE_NOTEBOOKS) + len(report.PAPER_NOTEBOOKS)
     for page in pages:
         if page.name != "index.html":
             text = page.read_text()

@@ -1,0 +1,248 @@
+"""What notebooks/analysis_deployment.ipynb and ``python -m gvbench_nb transfer`` compute: an
+inlier threshold fixed on one sequence and used on another, as a SLAM system must.
+
+MR is recall at an oracle threshold chosen with the labels in hand. Here each method's oracle
+threshold of a calibration sequence (the one MR is read at: ``oracle_threshold``) is applied to
+every target sequence: precision, recall and the false loops it accepts there. At the loop-closure
+level each query keeps its best-scoring candidate (GV re-ranks the retrieval candidates): recall@1
+after GV, against the retrieval order where the pair file keeps it (a ``retrieval``-built pair
+file lists a query's candidates best first), and the queries that close a false loop.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from collections.abc import Iterable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pandas as pd
+
+from gvbench_nb.evaluation import run_tables
+
+RETRIEVAL_BUILDER = "retrieval"  # the pairs builder whose pair files keep the retrieval order
+
+
+def oracle_threshold(labels: np.ndarray, scores: np.ndarray) -> float:
+    """The smallest score above every false pair's score: the threshold MR is read at.
+
+    ``metrics.max_recall_at_full_precision`` takes the largest recall among the PR curve's
+    thresholds (the scores) with precision 1; precision is 1 exactly when the threshold is
+    above every false score, and recall falls as the threshold rises, so that threshold is
+    the smallest score above the largest false one. A true pair tied with a false one lies
+    below it. With no such score, nothing passes at precision 1: infinity.
+    """
+    labels = np.asarray(labels).astype(bool)
+    scores = np.asarray(scores, dtype=np.float64)
+    highest_false = scores[~labels].max() if (~labels).any() else -np.inf
+    above = scores[scores > highest_false]
+    return float(above.min()) if len(above) else float("inf")
+
+
+def apply_threshold(labels: np.ndarray, scores: np.ndarray, threshold: float) -> dict[str, float]:
+    """Pairs accepted at ``score >= threshold``: precision (NaN when none is), recall, false loops."""
+    labels = np.asarray(labels).astype(bool)
+    accepted = np.asarray(scores, dtype=np.float64) >= threshold
+    true_accepted = int((accepted & labels).sum())
+    false_accepted = int((accepted & ~labels).sum())
+    n_accepted = true_accepted + false_accepted
+    return {
+        "precision": true_accepted / n_accepted if n_accepted else float("nan"),
+        "recall": true_accepted / int(labels.sum()) if labels.any() else float("nan"),
+        "false_loops": false_accepted,
+        "n_accepted": n_accepted,
+    }
+
+
+class DeploymentInputs:
+    """Every folder's pairs tables by sequence, read through the readers ``results`` shares:
+    ``run_tables.load_results`` refuses a folder whose results are not a finished run's,
+    edited since or computed from inputs that changed."""
+
+    def __init__(self, output_dirs: Iterable[str | os.PathLike[str]]):
+        folders = [Path(f) for f in output_dirs]
+        self.results = run_tables.load_results(folders)
+        self.tables: dict[str, dict[str, pd.DataFrame]] = {}
+        self.keeps_retrieval_order: dict[str, bool] = {}
+        self.profiles = {(r.sequence, r.method): r.profile for r in self.results.itertuples()}
+        for folder in folders:
+            rows = self.results[self.results["output_dir"] == str(folder)]
+            sequence = str(rows["sequence"].iloc[0])
+            if sequence in self.tables:
+                raise run_tables.IncomparableRunsError(
+                    f"{folder}: sequence {sequence!r} is given twice; pass one output folder a sequence"
+                )
+            methods = list(rows["method"])
+            self.tables[sequence] = run_tables.load_pairs_tables(folder, methods)
+            builder = (run_tables.load_run(folder, methods[0]).get("pairs") or {}).get("pairs_builder")
+            self.keeps_retrieval_order[sequence] = builder == RETRIEVAL_BUILDER
+
+    @property
+    def sequences(self) -> list[str]:
+        return list(self.tables)
+
+    def methods(self) -> list[str]:
+        return list(dict.fromkeys(m for tables in self.tables.values() for m in tables))
+
+
+def transfer_table(inputs: DeploymentInputs, calibrations: Iterable[str] | None = None) -> pd.DataFrame:
+    """One row a (method, calibration sequence, target sequence): the calibration's oracle
+    threshold and what it accepts on the target. The diagonal is MR itself. A threshold goes
+    only to a run of the same method under the same profile."""
+    calibrations = list(calibrations or inputs.sequences)
+    unknown = [c for c in calibrations if c not in inputs.tables]
+    if unknown:
+        raise run_tables.IncomparableRunsError(
+            f"calibration sequence(s) {', '.join(unknown)} not among the folders read "
+            f"({', '.join(inputs.sequences)}); name one of those, or add its output folder"
+        )
+    rows = []
+    for method in inputs.methods():
+        for calibration in calibrations:
+            if method not in inputs.tables[calibration]:
+                continue
+            source = inputs.tables[calibration][method]
+            threshold = oracle_threshold(source["label"], source["score"])
+            profile = inputs.profiles[(calibration, method)]
+            for target, tables in inputs.tables.items():
+                if method in tables and inputs.profiles[(target, method)] == profile:
+                    applied = apply_threshold(tables[method]["label"], tables[method]["score"], threshold)
+                    rows.append({"method": method, "profile": profile, "calibration": calibration,
+                                 "target": target, "threshold": threshold, **applied})  # fmt: skip
+    return pd.DataFrame(rows)
+
+
+def runs(table: pd.DataFrame) -> list[tuple[str, str]]:
+    """The (method, profile) of a transfer table, in order: one matrix each."""
+    return list(dict.fromkeys(zip(table["method"], table["profile"])))
+
+
+def transfer_matrix(table: pd.DataFrame, method: str, profile: str) -> pd.DataFrame:
+    """One run's matrix, calibration rows by target columns: 'precision / recall / false loops'."""
+    rows = table[(table["method"] == method) & (table["profile"] == profile)]
+    cells = [
+        f"{'-' if np.isnan(r.precision) else f'{r.precision:.3f}'} / {r.recall:.3f} / {r.false_loops}"
+        for r in rows.itertuples()
+    ]
+    matrix = rows.assign(cell=cells).pivot(index="calibration", columns="target", values="cell")
+    order = list(dict.fromkeys(rows["calibration"]))
+    thresholds = rows.drop_duplicates("calibration").set_index("calibration")["threshold"]
+    matrix = matrix.loc[order, list(dict.fromkeys(rows["target"]))]
+    matrix.index = [f"{c} (threshold {thresholds[c]:g})" for c in order]
+    matrix.index.name, matrix.columns.name = "calibration", "target"
+    return matrix
+
+
+def query_outcomes(table: pd.DataFrame, threshold: float) -> pd.DataFrame:
+    """One row a query: is its first candidate (file order) true, is its best-scoring one true
+    (ties keep file order), and does the best one pass ``threshold``."""
+    ordered = table.sort_values("pair_index", kind="stable") if "pair_index" in table else table
+    grouped = ordered.groupby("query", sort=False)
+    first = grouped["label"].first().astype(bool)
+    best = ordered.loc[grouped["score"].idxmax()].set_index("query")
+    return pd.DataFrame(
+        {
+            "has_true": grouped["label"].max().astype(bool),
+            "first_true": first,
+            "best_true": best["label"].astype(bool),
+            "best_passes": best["score"] >= threshold,
+        }
+    )
+
+
+def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.DataFrame:
+    """Per (method, calibration, target): recall@1 after GV re-ranking and before it (where the
+    pair file keeps the retrieval order), over the queries with a true candidate, and the queries
+    whose best candidate passes the transferred threshold, a true or a false loop."""
+    rows = []
+    for row in transfer.itertuples():
+        outcomes = query_outcomes(inputs.tables[row.target][row.method], row.threshold)
+        findable = outcomes[outcomes["has_true"]]
+        closed = outcomes[outcomes["best_passes"]]
+        kept = inputs.keeps_retrieval_order[row.target]
+        rows.append(
+            {
+                "method": row.method,
+                "profile": row.profile,
+                "calibration": row.calibration,
+                "target": row.target,
+                "n_queries": len(outcomes),
+                "queries_with_true": len(findable),
+                "recall_at_1_gv": findable["best_true"].mean() if len(findable) else float("nan"),
+                "recall_at_1_retrieval": findable["first_true"].mean() if kept and len(findable) else float("nan"),
+                "true_loops_closed": int(closed["best_true"].sum()),
+                "false_loops_closed": int((~closed["best_true"]).sum()),
+            }
+        )
+    return pd.DataFrame(rows)
+
+
+def transfer_text(inputs: DeploymentInputs, calibrations: list[str]) -> str:
+    """What ``transfer`` prints: a matrix a method, then the loop-closure table."""
+    table = transfer_table(inputs, calibrations)
+    parts = [
+        "Each method's threshold of 100% precision on the calibration sequence (the one MR is read at), "
+        "applied to each target: precision / recall / false loops accepted ('-': nothing accepted).\n"
+    ]
+    for method, profile in runs(table):
+        parts.append(f"{method} ({profile} profile)\n{transfer_matrix(table, method, profile).to_string()}\n")
+    loops = loop_closure_table(table, inputs)
+    parts.append(
+        "Loop closures: each query keeps its best-scoring candidate. recall_at_1_gv: its share of the queries "
+        "with a true candidate whose best is true; recall_at_1_retrieval: the same for the first candidate, "
+        "where the pair file keeps the retrieval order (NaN: it does not); *_loops_closed: queries whose best "
+        "candidate passes the calibration's threshold.\n"
+    )
+    parts.append(loops.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    return "\n".join(parts)
+
+
+def transfer_figure(table: pd.DataFrame) -> Any:
+    """Recall of every transfer, a panel a (method, profile) (calibration rows, target columns), each cell
+    annotated with its false loops; the diagonal is MR."""
+    import matplotlib.pyplot as plt
+
+    panels = runs(table)
+    figure, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels) + 1, 4.2), squeeze=False)
+    figure.subplots_adjust(wspace=0.9)
+    for axis, (method, profile) in zip(axes[0], panels):
+        rows = table[(table["method"] == method) & (table["profile"] == profile)]
+        recall = rows.pivot(index="calibration", columns="target", values="recall")
+        false_loops = rows.pivot(index="calibration", columns="target", values="false_loops")
+        image = axis.imshow(recall.to_numpy(dtype=float), vmin=0, vmax=1, cmap="viridis")
+        for (i, j), value in np.ndenumerate(recall.to_numpy(dtype=float)):
+            text = f"R {value:.2f}\n{int(false_loops.iat[i, j])} false"
+            axis.text(j, i, text, ha="center", va="center", fontsize=8, color="white" if value < 0.6 else "black")
+        axis.set_xticks(range(recall.shape[1]), recall.columns, rotation=30, ha="right", fontsize=8)
+        axis.set_yticks(range(recall.shape[0]), recall.index, fontsize=8)
+        axis.set(title=f"{method} ({profile} profile)", xlabel="deployed on (target)")
+    axes[0][0].set_ylabel("threshold fixed on (calibration)")
+    figure.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="recall at the transferred threshold")
+    figure.suptitle("Threshold transfer: recall and false loops accepted (diagonal: MR)", fontsize=10)
+    return figure
+
+
+def command_transfer(args: argparse.Namespace) -> int:
+    folders = [args.calibration_dir, *args.target_dirs]
+    inputs = DeploymentInputs(folders)
+    calibrations = inputs.sequences if args.every else inputs.sequences[:1]
+    print(transfer_text(inputs, calibrations))
+    return 0
+
+
+def add_command(subparsers: argparse._SubParsersAction) -> None:
+    """Register ``transfer CALIBRATION_DIR TARGET_DIR [...]``."""
+    parser = subparsers.add_parser(
+        "transfer",
+        help="fix each method's 100%%-precision threshold on one sequence and apply it to others",
+        description="For each method, the inlier threshold that gives 100% precision on the calibration "
+        "folder's sequence (the one MR is read at) applied to each target folder: precision, recall and "
+        "false loops accepted, as a matrix over sequences; then, per query, recall@1 after GV re-ranking "
+        "and the queries that would close a false loop. Reads only finished runs.",
+    )
+    parser.add_argument("calibration_dir", help="output folder of the sequence the thresholds are fixed on")
+    parser.add_argument("target_dirs", nargs="+", metavar="target_dir", help="output folders to deploy on")
+    parser.add_argument("--every", action="store_true", help="calibrate on every folder given, not only the first")
+    parser.set_defaults(handler=command_transfer)

@@ -1,0 +1,83 @@
+# ---
+# jupyter:
+#   jupytext:
+#     formats: ipynb,py:percent
+#     text_representation:
+#       extension: .py
+#       format_name: percent
+#       format_version: '1.3'
+#       jupytext_version: 1.19.6
+#   kernelspec:
+#     display_name: Python 3
+#     language: python
+#     name: python3
+# ---
+
+# %% [markdown]
+# # Deployment: a threshold fixed before the place is seen
+# MR is the recall at an oracle threshold, chosen per sequence with the labels in hand. A
+# SLAM system fixes its inlier threshold first. Here each method's threshold of 100%
+# precision on one sequence (the one MR is read at) is applied to every other: precision,
+# recall and the false loops it accepts. Then, per query, GV re-ranks the candidates:
+# recall@1 after GV, and the queries that would close a false loop.
+
+# %%
+import matplotlib.pyplot as plt
+from IPython.display import Markdown, display
+
+from gvbench_nb import notebook
+from gvbench_nb.evaluation import plots
+from gvbench_nb.studies import deployment
+
+# %% tags=["parameters"]
+# sequence output folders holding results.csv (one a sequence); each calibrates every one
+output_dirs = ["../outputs/sample"]
+# params files whose output folders must hold ensure_methods' results ([]: no check)
+params_files = ["../params/sample.yaml"]
+ensure_methods = ["sift-nn"]
+# True: run ensure_methods where their pairs.csv is missing; False: an error naming
+# the command that makes them
+compute_missing = False
+output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+calibrations = None  # sequences the thresholds are fixed on; None: every one
+
+# %%
+output_dirs, results, figures = notebook.load_results(
+    output_dirs,
+    output_dir,
+    params_files,
+    ensure_methods,
+    compute_missing=compute_missing,
+)
+inputs = deployment.DeploymentInputs(output_dirs)
+print(notebook.describe(results))
+
+# %% [markdown]
+# One matrix a method: the threshold fixed on the row's sequence, applied to the column's.
+# Each cell is precision / recall / false loops accepted ('-': nothing passes). The
+# diagonal is MR (precision 1, no false loop); off it, a false loop is a wrecked map.
+# Also written to `transfer.csv`.
+
+# %%
+transfer = deployment.transfer_table(inputs, calibrations)
+transfer.to_csv(figures / "transfer.csv", index=False)
+for method, profile in deployment.runs(transfer):
+    display(Markdown(f"**{method}** ({profile} profile)"), deployment.transfer_matrix(transfer, method, profile))
+
+# %%
+figure = deployment.transfer_figure(transfer)
+plots.save(figure, figures / "threshold_transfer.png")
+plt.show()
+
+# %% [markdown]
+# The loop-closure level: each query keeps its best-scoring candidate (ties keep the pair
+# file's order). `recall_at_1_gv`: the share of queries with a true candidate whose best
+# is true; `recall_at_1_retrieval`: the same for the first candidate, where the pair file
+# keeps the retrieval order (a `retrieval`-built sequence; empty otherwise, as for
+# rule-built sequences); `true_loops_closed` / `false_loops_closed`: queries whose best
+# candidate passes the threshold fixed on `calibration`. Also written to `loop_closures.csv`.
+
+# %%
+loops = deployment.loop_closure_table(transfer, inputs)
+loops.to_csv(figures / "loop_closures.csv", index=False)
+loops.style.format(precision=3, na_rep="-").hide(axis="index")

@@ -1,0 +1,137 @@
+"""Threshold transfer and the loop-closure level, on hand-made tables whose answers are worked
+out below by hand, and the reader's refusals (those of ``results``)."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pandas as pd
+import pytest
+
+from gvbench_nb import cli
+from gvbench_nb.protocol import metrics
+from gvbench_nb.runner import method_outputs, record, scoring
+from gvbench_nb.studies import deployment
+
+# Calibration: the false scores are 7, 3, 2; the scores above 7 are 10 and 12, so the threshold is
+# 10; the true pair scored 7 ties the highest false one and stays below it.
+CALIBRATION = {"label": [1, 1, 1, 0, 0, 1, 0], "score": [10, 7, 5, 7, 3, 12, 2]}
+# Target at threshold 10: accepted 11 (true), 10 (false), 15 (false), 10 (true): precision 2/4,
+# recall 2/3, two false loops.
+TARGET = {"label": [1, 0, 1, 0, 1], "score": [11, 10, 9, 15, 10]}
+
+
+def test_oracle_threshold_is_the_smallest_score_above_every_false_one():
+    assert deployment.oracle_threshold(CALIBRATION["label"], CALIBRATION["score"]) == 10
+    assert deployment.oracle_threshold([1, 0], [4, 4]) == float("inf")  # a tie at the top: nothing passes
+    assert deployment.oracle_threshold([1, 0, 1], [2.5, 1.0, 1.5]) == 1.5
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_the_threshold_gives_mr_on_its_own_sequence(seed):
+    # The rule agrees with MR as metrics.py computes it (scikit-learn's PR curve), ties included.
+    rng = np.random.default_rng(seed)
+    labels = rng.integers(0, 2, 60)
+    labels[:2] = (0, 1)
+    scores = rng.integers(0, 12, 60) + 4 * labels
+    threshold = deployment.oracle_threshold(labels, scores)
+    applied = deployment.apply_threshold(labels, scores, threshold)
+    assert applied["recall"] == pytest.approx(metrics.max_recall_at_full_precision(labels, scores))
+    assert applied["false_loops"] == 0
+
+
+def test_transferred_threshold_counts_what_it_accepts_on_the_target():
+    applied = deployment.apply_threshold(TARGET["label"], TARGET["score"], 10)
+    assert applied == {"precision": 0.5, "recall": pytest.approx(2 / 3), "false_loops": 2, "n_accepted": 4}
+    nothing = deployment.apply_threshold(TARGET["label"], TARGET["score"], float("inf"))
+    assert np.isnan(nothing["precision"]) and nothing["recall"] == 0 and nothing["false_loops"] == 0
+
+
+def pairs_table(queries, labels, scores) -> pd.DataFrame:
+    return pd.DataFrame(
+        {
+            "pair_index": range(len(queries)),
+            "query": queries,
+            "reference": [f"r{i}" for i in range(len(queries))],
+            "label": labels,
+            "score": scores,
+        }
+    )
+
+
+def test_query_outcomes_rerank_by_score_and_keep_file_order_on_ties():
+    # q0: retrieval puts a false first (score 3), GV ranks the true (9) first.
+    # q1: the true is first, but a false scores higher (8 > 6): GV puts the false first.
+    # q2: no true candidate. q3: both score 5; the first in file order (true) stays first.
+    table = pairs_table(
+        ["q0", "q0", "q1", "q1", "q2", "q3", "q3"],
+        [0, 1, 1, 0, 0, 1, 0],
+        [3, 9, 6, 8, 2, 5, 5],
+    )
+    outcomes = deployment.query_outcomes(table, threshold=6)
+    assert outcomes["has_true"].tolist() == [True, True, False, True]
+    assert outcomes["first_true"].tolist() == [False, True, False, True]
+    assert outcomes["best_true"].tolist() == [True, False, False, True]
+    assert outcomes["best_passes"].tolist() == [True, True, False, False]
+
+
+def write_run(folder, sequence: str, labels, scores, builder: str = "frame_tolerance") -> None:
+    """A finished method's files as a run writes them, evaluated into a published results.csv."""
+    queries = [f"q{i // 2}" for i in range(len(labels))]
+    table = pairs_table(queries, labels, scores).assign(extract_seconds=0.1, match_seconds=0.1, verify_seconds=0.1)
+    method_dir = method_outputs.method_dir(folder, "sift-nn")
+    method_dir.mkdir(parents=True)
+    table.to_csv(method_dir / "pairs.csv", index=False)
+    run = {
+        "sequence": sequence,
+        "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
+        "environment": {"device": "cpu"},
+        "pairs": {"pairs_builder": builder},
+    }
+    (method_dir / "run.json").write_text(json.dumps(run))
+    scoring.evaluate(folder)
+
+
+def test_transfer_reads_finished_runs_and_prints_the_matrix(tmp_path, capsys):
+    # day: false 4, 1; true 9, 6 -> threshold 6. night at 6: true 7 and false 8 pass.
+    write_run(tmp_path / "day", "day", [1, 0, 1, 0], [9, 4, 6, 1], builder="retrieval")
+    write_run(tmp_path / "night", "night", [0, 1, 1, 0], [8, 7, 2, 3])
+    inputs = deployment.DeploymentInputs([tmp_path / "day", tmp_path / "night"])
+    table = deployment.transfer_table(inputs)
+    night = table[(table.calibration == "day") & (table.target == "night")].iloc[0]
+    assert (night.threshold, night.precision, night.recall, night.false_loops) == (6, 0.5, 0.5, 1)
+    loops = deployment.loop_closure_table(table, inputs).set_index(["calibration", "target"])
+    # night, q0: best is the false 8 (passes 6): a false loop; q1: best is the false 3 (below 6).
+    assert loops.loc[("day", "night"), "false_loops_closed"] == 1
+    assert loops.loc[("day", "night"), "recall_at_1_gv"] == 0.0
+    assert np.isnan(loops.loc[("day", "night"), "recall_at_1_retrieval"])  # rule-built: no retrieval order
+    assert loops.loc[("day", "day"), "recall_at_1_retrieval"] == 1.0  # retrieval-built: file order kept
+    assert cli.main(["transfer", str(tmp_path / "day"), str(tmp_path / "night")]) == 0
+    printed = capsys.readouterr().out
+    assert "transfer" in cli.build_parser().format_help()  # its help line formats
+    assert "day (threshold 6)" in printed and "0.500 / 0.500 / 1" in printed and "1.000 / 1.000 / 0" in printed
+
+
+def test_transfer_refuses_what_results_refuses(tmp_path, capsys):
+    write_run(tmp_path / "day", "day", [1, 0, 1, 0], [9, 4, 6, 1])
+    write_run(tmp_path / "night", "night", [0, 1, 1, 0], [8, 7, 2, 3])
+    # night's pair file changed since its run: its scores are no longer of its pairs.
+    pair_file = tmp_path / "night.txt"
+    pair_file.write_text("q0 r0 1\n")
+    run_json = method_outputs.method_dir(tmp_path / "night", "sift-nn") / "run.json"
+    run = json.loads(run_json.read_text())
+    run["pairs"].update(pairs_file=str(pair_file), pairs_sha256="0" * 64)
+    run_json.write_text(json.dumps(run))
+    with pytest.raises(method_outputs.ResultsError, match="the pair file"):
+        deployment.DeploymentInputs([tmp_path / "day", tmp_path / "night"])
+    (tmp_path / "day" / record.RECORD_NAME).unlink()  # and a folder no run published
+    with pytest.raises(record.RecordError, match="no run wrote it|holds no"):
+        deployment.DeploymentInputs([tmp_path / "day"])
+    capsys.readouterr()
+    for folder in ("night", "day"):
+        assert cli.main(["results", str(tmp_path / folder)]) == 2
+        assert cli.main(["transfer", str(tmp_path / folder), str(tmp_path / folder)]) == 2
+    message = capsys.readouterr().err.strip().splitlines()
+    assert len(message) == 4 and all(line.startswith("error: ") for line in message)
+    assert message[0] == message[1] and message[2] == message[3]

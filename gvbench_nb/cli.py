@@ -49,6 +49,7 @@ environment:
                    `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is
                    the size of a Dask cluster instead.)
   GVBENCH_THREADS  torch, OpenCV and BLAS threads a job (default: the cores shared by the jobs)
+  GVBENCH_MAX_PIXELS  the largest image read, in pixels (default 64,000,000; checked from the header)
 """
 
 
@@ -66,14 +67,8 @@ def command_results(args: argparse.Namespace) -> int:
 
     for folder in args.output_dirs:
         folder = Path(folder)
-        if not folder.is_dir():
-            scoring.evaluate(folder, write=False)  # says the folder does not exist
-        record.check_published(folder)
+        finished_methods = scoring.readable_methods(folder)
         unfinished = method_outputs.unfinished_methods(folder)
-        finished_methods = [m for m in scoring.methods_with_results(folder) if m not in unfinished]
-        if not finished_methods:
-            method_outputs.check_results_finished(folder)  # names the unfinished methods, if any
-        scoring.check_results_current(folder, finished_methods)
         results = scoring.evaluate(folder, finished_methods, write=False)
         from gvbench_nb.evaluation import intervals
 
@@ -510,6 +505,7 @@ def run_command(
 # the others (papermill, OpenCV, h5py) to answer a typo would take seconds.
 USER_ERRORS = (
     ("gvbench_nb.runner.config", "ParamsError"),
+    ("gvbench_nb.runner.input_checks", "SettingError"),
     ("gvbench_nb.data.sequences", "PairFileError"),
     ("gvbench_nb.protocol.weights", "MissingWeightsError"),
     ("gvbench_nb.protocol.weights", "WeightsLayoutError"),

@@ -95,7 +95,7 @@ def run_files(methods: list[str]) -> list[str]:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config, distributed, method_outputs, method_runs, record, scoring
+    from gvbench_nb.runner import config, distributed, input_checks, method_outputs, method_runs, record, scoring
 
     params = run_params_of_args(args)
     # Weights, vismatch, the device, the folders and every image were checked before any work
@@ -107,6 +107,8 @@ def command_run(args: argparse.Namespace) -> int:
     sequence.check_images()
     config.check_writable_folder(params, "output_dir")
     config.check_writable_folder(params, "cache_dir")
+    # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
+    damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
     record.claim(output_dir)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         return distributed.run_from_cli(args, params)
@@ -149,7 +151,7 @@ def command_run(args: argparse.Namespace) -> int:
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
         for method in params["methods"]:
-            bindings[method] = scoring.sequence_binding(run_sequence)
+            bindings[method] = scoring.sequence_binding(run_sequence) | ({"damaged_images": damaged} if damaged else {})
         record.publish(output_dir, stage, bindings)
     except Exception:
         if stage is not None and stage.is_dir():

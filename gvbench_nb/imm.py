@@ -1,7 +1,7 @@
 """Any image-matching-models (``vismatch`` on PyPI) matcher as a pair matcher: methods ``imm:<name>``.
 
 A method ``imm:sift-nn`` runs vismatch's ``sift-nn`` inside our pipeline: our sequences and
-pair files, our image loading (``images.load_for_extraction`` with the matcher conf below),
+pair files, vismatch's own image loading (``ImmPairMatcher.load``, at the matcher conf's size),
 vismatch's matched keypoints BEFORE its own RANSAC (``BaseMatcher._forward``, with the
 in-image check its ``forward`` applies), then our verification, stores and metrics. It runs as a dense matcher (one pair at a time, cached per
 pair), since a vismatch matcher takes two images.

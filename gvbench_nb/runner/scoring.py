@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
@@ -202,7 +203,7 @@ def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
 
 
 def readable_methods(
-    output_dir: str | Path, methods: SequenceType[str] | None = None, tables: Iterable[str] = ()
+    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None, tables: Iterable[str] = ()
 ) -> list[str]:
     """The one test every reader of results runs at its entry, before any work or file (``results``,
     ``compare``, ``report``, ``explore``, the analysis notebooks): the folder holds a published

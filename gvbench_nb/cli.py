@@ -415,8 +415,16 @@ def build_parser() -> argparse.ArgumentParser:
 def check_before_work(args: argparse.Namespace) -> None:
     """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
     if getattr(args, "command", None) == "run":
-        from gvbench_nb.runner import config
+        from gvbench_nb.runner import config, distributed
 
+        try:  # the scale-out options, before the params and any folder
+            if args.shard:
+                distributed.parse_shard(args.shard)
+        except ValueError as error:
+            raise config.ParamsError(str(error)) from None
+        for flag, value in (("--shards", args.shards), ("--dask-workers", args.dask_workers)):
+            if value is not None and value < 1:
+                raise config.ParamsError(f"{flag} must be a whole number of at least 1, got {value}")
         config.check_run_inputs(run_and_publish.run_params_of_args(args), images=not getattr(args, "merge", False))
 
 

@@ -89,7 +89,8 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
         if first is not None:  # block or flow style ({a: 1, a: 2} holds both on one line)
             source = getattr(loader, "source_name", key_node.start_mark.name)
             raise ParamsError(
-                f"{source}:{line}: key {key!r} is given twice (first on line {first}); "
+                f"{source}:{line}: key {key!r} is given twice (first on "
+                f"{'the same line' if first == line else f'line {first}'}); "
                 "YAML would silently keep the last one, so keep only the one you mean"
             )
     return loader.construct_mapping(node, deep=deep)

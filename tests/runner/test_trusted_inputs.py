@@ -266,3 +266,10 @@ def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)))
     assert code == 2 and name in one_sentence(err) and repr(value) in err
     assert written(tmp_path) == []
+
+
+@pytest.mark.parametrize("option", [["--shard", "5/2"], ["--shard", "x"], ["--dask", "--shards", "0"]])
+def test_a_bad_scale_out_option_is_one_sentence_naming_it_before_any_folder(tmp_path, images, capsys, option):
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)), *option)
+    assert code == 2 and option[-2] in one_sentence(err)
+    assert written(tmp_path) == []

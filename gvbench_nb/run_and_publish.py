@@ -212,12 +212,16 @@ def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
     (paths typed on the command line are relative to the current folder)."""
     from gvbench_nb.runner import config
 
-    absolute = lambda path: str(Path(path).resolve()) if path else None
+    def absolute(path: str | None, flag: str) -> str | None:
+        if path is not None and not path.strip():  # "" would silently mean the params file's folder
+            raise config.ParamsError(f"{flag} is empty; give a folder, or leave {flag} out to use the params file's")
+        return str(Path(path).resolve()) if path else None
+
     return config.load_params(
         args.params,
         methods=args.methods,
         limit=args.limit,
         profile=args.profile,
-        output_dir=absolute(args.output_dir),
-        image_root=absolute(args.image_root),
+        output_dir=absolute(args.output_dir, "--output-dir"),
+        image_root=absolute(args.image_root, "--image-root"),
     )

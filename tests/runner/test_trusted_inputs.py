@@ -66,6 +66,18 @@ def test_two_images_of_one_content_are_a_self_pair_refused_with_file_and_line(
     assert written(tmp_path) == []
 
 
+def test_the_same_two_images_under_other_names_are_a_duplicate_pair_refused_with_file_and_line(
+    tmp_path, images, capsys, notebooks_here
+):
+    shutil.copyfile(images / "reference" / "b.png", images / "reference" / "b-copy.png")
+    path = params_file(tmp_path, pairs=[*PAIRS, Pair("reference/b-copy.png", "query/b.png", 1)])
+    code, _, err = run_cli(capsys, "run", str(path))
+    assert code == 2 and written(tmp_path) == []
+    pairs = tmp_path / "params-pairs.txt"
+    assert f"{pairs}:5: duplicate pair by content: reference/b-copy.png query/b.png holds the same two" in err
+    assert f"query/b.png reference/b.png ({pairs}:3;" in one_sentence(err)
+
+
 # ---------------------------------------------------------- damaged images --
 def damaged_jpeg(images: Path) -> Path:
     """``reference/c.jpg``: a JPEG of a photo with 200 bytes of its entropy-coded data zeroed."""
@@ -270,8 +282,11 @@ def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
     assert written(tmp_path) == []
 
 
-@pytest.mark.parametrize("option", [["--shard", "5/2"], ["--shard", "x"], ["--dask", "--shards", "0"]])
-def test_a_bad_scale_out_option_is_one_sentence_naming_it_before_any_folder(tmp_path, images, capsys, option):
+@pytest.mark.parametrize(
+    "option",
+    [["--shard", "5/2"], ["--shard", "x"], ["--dask", "--shards", "0"], ["--output-dir", ""], ["--image-root", " "]],
+)
+def test_a_bad_run_option_is_one_sentence_naming_it_before_any_folder(tmp_path, images, capsys, option):
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)), *option)
     assert code == 2 and option[-2] in one_sentence(err)
     assert written(tmp_path) == []

@@ -83,7 +83,7 @@ def costs_from_runs(output_dir: Path) -> pd.DataFrame:
     from gvbench_nb.evaluation.run_tables import load_run
 
     rows = []
-    for method in scoring.methods_with_results(output_dir):
+    for method in scoring.readable_methods(output_dir):  # what `results` refuses, the estimate refuses
         table = scoring.load_pairs_table(output_dir, method)
         n_images = len(set(table["query"]) | set(table["reference"]))
         # A pair's extract_seconds is its images' times shared among their pairs: the sum is the total.

@@ -50,6 +50,7 @@ environment:
                    `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is
                    the size of a Dask cluster instead.)
   GVBENCH_THREADS  torch, OpenCV and BLAS threads a job (default: the cores shared by the jobs)
+  GVBENCH_MAX_PIXELS  the largest image read, in pixels (default 64,000,000; checked from the header)
 """
 
 
@@ -67,14 +68,8 @@ def command_results(args: argparse.Namespace) -> int:
 
     for folder in args.output_dirs:
         folder = Path(folder)
-        if not folder.is_dir():
-            scoring.evaluate(folder, write=False)  # says the folder does not exist
-        record.check_published(folder)
+        finished_methods = scoring.readable_methods(folder)
         unfinished = method_outputs.unfinished_methods(folder)
-        finished_methods = [m for m in scoring.methods_with_results(folder) if m not in unfinished]
-        if not finished_methods:
-            method_outputs.check_results_finished(folder)  # names the unfinished methods, if any
-        scoring.check_results_current(folder, finished_methods)
         results = scoring.evaluate(folder, finished_methods, write=False)
         from gvbench_nb.evaluation import intervals
 
@@ -501,8 +496,16 @@ def add_weights_fetch_command(weights_parser: argparse.ArgumentParser) -> None:
 def check_before_work(args: argparse.Namespace) -> None:
     """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
     if getattr(args, "command", None) == "run":
-        from gvbench_nb.runner import config
+        from gvbench_nb.runner import config, distributed
 
+        try:  # the scale-out options, before the params and any folder
+            if args.shard:
+                distributed.parse_shard(args.shard)
+        except ValueError as error:
+            raise config.ParamsError(str(error)) from None
+        for flag, value in (("--shards", args.shards), ("--dask-workers", args.dask_workers)):
+            if value is not None and value < 1:
+                raise config.ParamsError(f"{flag} must be a whole number of at least 1, got {value}")
         config.check_run_inputs(run_and_publish.run_params_of_args(args), images=not getattr(args, "merge", False))
 
 

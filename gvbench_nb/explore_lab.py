@@ -53,13 +53,7 @@ def check_run_folder(output_dir: Path) -> list[str]:
             f"{output_dir} has no {config.RESOLVED_PARAMS_NAME}, so it is not the output folder of a run; "
             "give the folder a run wrote (python -m gvbench_nb run PARAMS prints it)"
         )
-    methods = scoring.methods_with_results(output_dir)
-    if not methods:
-        raise method_outputs.ResultsError(
-            f"{output_dir} holds no finished method (<method>/pairs.csv); finish its run first "
-            f"(python -m gvbench_nb run {record})"
-        )
-    return methods
+    return scoring.readable_methods(output_dir)  # what `results` refuses, explore refuses
 
 
 def working_notebook(output_dir: Path, source: Path = SOURCE_NOTEBOOK) -> dict[str, Any]:

@@ -1,7 +1,7 @@
 """Any image-matching-models (``vismatch`` on PyPI) matcher as a pair matcher: methods ``imm:<name>``.
 
 A method ``imm:sift-nn`` runs vismatch's ``sift-nn`` inside our pipeline: our sequences and
-pair files, our image loading (``images.load_for_extraction`` with the matcher conf below),
+pair files, vismatch's own image loading (``ImmPairMatcher.load``, at the matcher conf's size),
 vismatch's matched keypoints BEFORE its own RANSAC (``BaseMatcher._forward``, with the
 in-image check its ``forward`` applies), then our verification, stores and metrics. It runs as a dense matcher (one pair at a time, cached per
 pair), since a vismatch matcher takes two images.
@@ -49,6 +49,7 @@ MATCHER_DEFAULTS: dict[str, Any] = {
     "resize_force": False,
     "max_num_keypoints": 2048,
     "checkpoints": [],
+    "loader": "vismatch",  # the images as vismatch's own loader makes them (``ImmPairMatcher.load``)
 }
 
 # Files vismatch's matchers load from <torch hub dir>/checkpoints at first use (its LightGlue
@@ -295,9 +296,10 @@ def _link_into_snapshot(repo: str, name: str, source: Path) -> str:
 class ImmPairMatcher:
     """A vismatch matcher called on two prepared images: matched points before its RANSAC.
 
-    Images come as our loader gives them (uint8 RGB, H x W x 3) and go to vismatch as it
-    loads them itself (float C x H x W in [0, 1]); points come back in those images' pixels,
-    scored by vismatch's per-match confidence where the matcher gives one, else 1.
+    Images are loaded by vismatch's own loader (``load``: Pillow's RGB, torchvision's float
+    [0, 1] tensor resized with antialiasing, never made 8-bit), as its matchers see them in its
+    own loop; points come back in those images' pixels, scored by vismatch's per-match
+    confidence where the matcher gives one, else 1.
     """
 
     def __init__(self, conf: dict[str, Any], device: Any) -> None:
@@ -320,11 +322,27 @@ class ImmPairMatcher:
                 f"reachable, or put its files where vismatch loads them"
             ) from error
 
+        self.resize_to = conf["resize_to"]
+
+    def load(self, path: Any) -> tuple[np.ndarray, np.ndarray]:
+        """An image as vismatch's ``BaseMatcher.load_image(path, resize=(H, W))`` makes it, as an
+        H x W x 3 float32 array in [0, 1] (the pair loop's layout), and the (sx, sy) scale back to
+        the original pixels. The pixel bound is checked from the header first."""
+        from PIL import Image
+        from vismatch.utils import _load_image
+
+        from gvbench_nb.protocol.images import check_pixel_bound
+
+        check_pixel_bound(path)
+        with Image.open(path) as opened:
+            width, height = opened.size
+        new_width, new_height = (int(side) for side in self.resize_to or (width, height))
+        tensor = _load_image(path, resize=(new_height, new_width) if self.resize_to else None)
+        scale = np.array([width / new_width, height / new_height], dtype=np.float32)
+        return tensor.permute(1, 2, 0).numpy(), scale
+
     def to_tensor(self, image: np.ndarray) -> Any:
-        if image.ndim == 2:
-            image = np.repeat(image[:, :, None], 3, axis=2)
-        tensor = self.torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).float() / 255.0
-        return tensor.to(self.device)
+        return self.torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1).to(self.device)
 
     def __call__(self, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         with self.torch.inference_mode():

@@ -181,9 +181,10 @@ def load_results(
     folders = as_list(output_dirs)
     for params_file in as_list(params_files):
         require_results(params_file, methods, compute_missing=compute_missing)
+    results = run_tables.load_results(folders)  # refuses what `results` refuses, before a figure folder is made
     figures = Path(figures_dir)
     figures.mkdir(parents=True, exist_ok=True)
-    return AnalysisInputs(folders, run_tables.load_results(folders), figures)
+    return AnalysisInputs(folders, results, figures)
 
 
 def describe(results: pd.DataFrame) -> str:

@@ -96,7 +96,7 @@ def run_files(methods: list[str]) -> list[str]:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config, distributed, method_outputs, method_runs, record, scoring
+    from gvbench_nb.runner import config, distributed, input_checks, method_outputs, method_runs, record, scoring
 
     params = run_params_of_args(args)
     # Weights, vismatch, the device, the folders and every image were checked before any work
@@ -108,6 +108,8 @@ def command_run(args: argparse.Namespace) -> int:
     sequence.check_images()
     config.check_writable_folder(params, "output_dir")
     config.check_writable_folder(params, "cache_dir")
+    # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
+    damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
     record.claim(output_dir)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         return distributed.run_from_cli(args, params)
@@ -151,7 +153,7 @@ def command_run(args: argparse.Namespace) -> int:
 
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
-        bindings.update(dict.fromkeys(params["methods"], binding))
+        bindings.update(dict.fromkeys(params["methods"], binding | ({"damaged_images": damaged} if damaged else {})))
         record.publish(output_dir, stage, bindings)
     except Exception:
         if stage is not None and stage.is_dir():
@@ -212,12 +214,16 @@ def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
     (paths typed on the command line are relative to the current folder)."""
     from gvbench_nb.runner import config
 
-    absolute = lambda path: str(Path(path).resolve()) if path else None
+    def absolute(path: str | None, flag: str) -> str | None:
+        if path is not None and not path.strip():  # "" would silently mean the params file's folder
+            raise config.ParamsError(f"{flag} is empty; give a folder, or leave {flag} out to use the params file's")
+        return str(Path(path).resolve()) if path else None
+
     return config.load_params(
         args.params,
         methods=args.methods,
         limit=args.limit,
         profile=args.profile,
-        output_dir=absolute(args.output_dir),
-        image_root=absolute(args.image_root),
+        output_dir=absolute(args.output_dir, "--output-dir"),
+        image_root=absolute(args.image_root, "--image-root"),
     )

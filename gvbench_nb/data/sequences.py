@@ -178,6 +178,12 @@ def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
     return pairs
 
 
+def pair_line_numbers(path: str | os.PathLike[str]) -> list[int]:
+    """The line of each pair of a pair file, in order (for errors naming file:line)."""
+    lines = Path(path).read_text(encoding="utf-8-sig").splitlines()
+    return [n for n, line in enumerate(lines, start=1) if line.strip() and not line.strip().startswith("#")]
+
+
 def quote_path(path_text: str) -> str:
     """A path as a pair file writes it: in quotes when it holds spaces or quotes."""
     if path_text and not any(ch.isspace() or ch in "'\"" for ch in path_text):

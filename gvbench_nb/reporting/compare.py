@@ -42,9 +42,11 @@ def resample_count(text: str) -> int:
 def command_compare(args: argparse.Namespace) -> int:
     from gvbench_nb.evaluation import bootstrap, intervals, run_tables
     from gvbench_nb.reporting.tables import markdown_table
-    from gvbench_nb.runner import method_outputs
+    from gvbench_nb.runner import method_outputs, scoring
 
     folders = [Path(f) for f in args.output_dirs]
+    for folder in folders:
+        scoring.readable_methods(folder)  # what `results` refuses, compare refuses
     where = ", ".join(map(str, folders))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
     tables = intervals.folder_tables(folders, methods)

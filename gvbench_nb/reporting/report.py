@@ -403,6 +403,7 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
 
 def command_report(args: argparse.Namespace) -> int:
     from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.runner import scoring
 
     root = Path(args.outputs_root)
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
@@ -420,6 +421,8 @@ def command_report(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 2
+    for folder in output_dirs:
+        scoring.readable_methods(folder)  # what `results` refuses, the report refuses, before any file
     print(f"report over {len(output_dirs)} sequence(s): {', '.join(d.name for d in output_dirs)} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]

@@ -45,11 +45,22 @@ def configure_threads(n_threads: int | None = None, jobs: int = 1) -> int:
     import torch
     from threadpoolctl import threadpool_limits
 
-    n = n_threads or int(os.environ.get(THREADS_ENV) or 0) or max(1, available_cores() // max(jobs, 1))
+    n = n_threads or threads_of_environment() or max(1, available_cores() // max(jobs, 1))
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
     threadpool_limits(n)  # numpy's BLAS (the OpenCV-rule L2 products); kept for the process
     return n
+
+
+def threads_of_environment() -> int | None:
+    """$GVBENCH_THREADS as a whole number of at least 1, or None when unset."""
+    text = os.environ.get(THREADS_ENV) or ""
+    if text and not (text.isdigit() and int(text) >= 1):
+        raise ValueError(
+            f"the environment variable {THREADS_ENV} (threads a job) must be a whole number of at least 1, "
+            f"got {text!r}; fix or unset it"
+        )
+    return int(text) if text else None
 
 
 JOBS_ENV = "GVBENCH_JOBS"  # the run's parallelism, as `run --jobs` and the bench's `--jobs` set it

@@ -32,7 +32,7 @@ from gvbench_nb.data.sequences import (
 from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import path_problem
-from gvbench_nb.runner import sequence_build
+from gvbench_nb.runner import input_checks, sequence_build
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -46,6 +46,7 @@ OPTIONAL_KEYS: dict[str, Any] = {
     "device": "auto",  # auto = cuda when available, else cpu
     "cache_dir": None,  # default: <output_dir>/../cache (shared by sequences)
     "verifier": {},  # overrides of the profile's verifier conf, e.g. {method: USAC_MAGSAC} (methods.VERIFIER)
+    "allow_damaged_images": False,  # score images whose decoder warns (listed in the folder's record)
 }
 PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
 
@@ -83,13 +84,15 @@ def _unique_mapping(loader: _UniqueKeyLoader, node: yaml.MappingNode, deep: bool
         key = loader.construct_object(key_node, deep=True)
         line = key_node.start_mark.line + 1
         try:
-            first = seen.setdefault(key, line)
+            first = seen.get(key)
+            seen.setdefault(key, line)
         except TypeError:  # an unhashable key: the constructor below reports it
             continue
-        if first != line:
+        if first is not None:  # block or flow style ({a: 1, a: 2} holds both on one line)
             source = getattr(loader, "source_name", key_node.start_mark.name)
             raise ParamsError(
-                f"{source}:{line}: key {key!r} is given twice (first on line {first}); "
+                f"{source}:{line}: key {key!r} is given twice (first on "
+                f"{'the same line' if first == line else f'line {first}'}); "
                 "YAML would silently keep the last one, so keep only the one you mean"
             )
     return loader.construct_mapping(node, deep=deep)
@@ -192,6 +195,7 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
     if params["cache_dir"] is None:
         params["cache_dir"] = str(Path(params["output_dir"]).parent / "cache")
+    input_checks.check_environment()
     return params
 
 
@@ -244,6 +248,7 @@ TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "limit": (lambda v: v is None or _is_integer(v), "a positive integer or null"),
     "seed": (_is_integer, "an integer"),
     "verifier": (lambda v: isinstance(v, dict), "a mapping of verifier conf keys to values"),
+    "allow_damaged_images": (lambda v: isinstance(v, bool), "true or false"),
     "device": (
         lambda v: isinstance(v, str) and DEVICE_PATTERN.fullmatch(v) is not None,
         "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'",
@@ -371,6 +376,17 @@ def _check_image_root(params: dict[str, Any]) -> Path:
             f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
         )
     root = Path(params["image_root"])
+    renders = params["pairs_builder"] == "sample" or (
+        params["pairs_builder"] == sequence_build.BUILDER_NAME and params["builder_options"].get("render_sample")
+    )
+    if renders and "image_root" in params["overridden"] and not (root / "generator.json").is_file():
+        # A folder typed on the command line names images; a builder renders only into the params file's.
+        what = "holds no rendered route" if root.is_dir() else "does not exist"
+        raise ParamsError(
+            f"--image-root {root} {what}: a folder given on the command line must hold the images, it is never "
+            f"rendered into; drop --image-root to render into the params file's image_root, or set image_root "
+            f"in a params file of your own (its pairs_builder renders the route there)"
+        )
     if params["pairs_builder"] != "sample" and not root.is_dir():  # the sample builder renders into the root
         what = "is a file, not a folder" if root.exists() else "does not exist"
         raise ParamsError(
@@ -527,6 +543,7 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
         )
     check_folder_can_be_made(params, "output_dir")
     check_folder_can_be_made(params, "cache_dir")
+    input_checks.check_same_recipes(params)
     missing = [
         c
         for m in params["methods"]
@@ -561,14 +578,18 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
                     "set the folder names (or image_root) to folders of images"
                 )
     if builder == "frame_tolerance":
-        _check_frame_tolerance_options(params).limited(params["limit"]).check_images()
-    if builder is not None:
-        return  # the builder makes (or checks) the pair file
-    if path_problem(params["pairs"]) is not None:
-        raise _missing_pairs_error(params)
-    Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin={"pairs_file": params["pairs"]}).limited(
-        params["limit"]
-    ).check_images()
+        sequence = _check_frame_tolerance_options(params).limited(params["limit"])
+    elif builder is not None:
+        return  # the builder makes the pair file and images: ``run`` checks them once built
+    else:
+        if path_problem(params["pairs"]) is not None:
+            raise _missing_pairs_error(params)
+        origin = {"pairs_file": params["pairs"]}
+        sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=origin).limited(
+            params["limit"]
+        )
+    sequence.check_images()
+    input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
 
 
 RESOLVED_PARAMS_NAME = "params.resolved.yaml"

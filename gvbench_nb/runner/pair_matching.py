@@ -414,9 +414,12 @@ def _match_dense_pairs(
     resumes), then the keypoints of each image are merged across all pairs
     (``matchers.merge_dense_matches``) and each pair is verified on its merged matches."""
 
+    # A matcher with a loader of its own (vismatch's) sees the images as that loader makes them.
+    load = getattr(matcher, "load", None) or (lambda path: load_for_extraction(path, conf["matcher"]))
+
     def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        image0, scale0 = load_for_extraction(sequence.image_root / pair.query, conf["matcher"])
-        image1, scale1 = load_for_extraction(sequence.image_root / pair.reference, conf["matcher"])
+        image0, scale0 = load(sequence.image_root / pair.query)
+        image1, scale1 = load(sequence.image_root / pair.reference)
         return image0, scale0, image1, scale1
 
     def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:

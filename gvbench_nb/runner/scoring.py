@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import hashlib
 import json
+import os
 from collections.abc import Iterable
+from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -202,3 +204,35 @@ def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
             f"{output_dir}: results computed from inputs that have changed since ({described}); run those methods "
             f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {output_dir})"
         )
+
+
+def readable_methods(
+    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None, tables: Iterable[str] = ()
+) -> list[str]:
+    """The one test every reader of results runs at its entry, before any work or file (``results``,
+    ``compare``, ``report``, ``explore``, the analysis notebooks): the folder holds a published
+    run's record; ``methods`` (default: every finished one) are finished, their files (and
+    ``tables``, e.g. ``results.csv``) unedited since the package wrote them, their pair file and
+    images unchanged since, and all scored on the same pairs and labels. Returns the methods;
+    raises the one sentence a user reads otherwise."""
+    folder = Path(output_dir)
+    if not folder.is_dir():
+        evaluate(folder, write=False)  # says the folder does not exist
+    record.check_published(folder)
+    unfinished = method_outputs.unfinished_methods(folder)
+    if methods:
+        if any(m in unfinished for m in methods):
+            method_outputs.check_results_finished(folder)
+        absent = [m for m in methods if m not in methods_with_results(folder)]
+        if absent:
+            load_pairs_table(folder, absent[0])  # names the missing pairs.csv
+    else:
+        methods = [m for m in methods_with_results(folder) if m not in unfinished]
+        if not methods:
+            method_outputs.check_results_finished(folder)  # names the unfinished methods, if any
+            evaluate(folder, write=False)  # says the folder holds no results
+    methods = list(methods)
+    check_results_current(folder, methods, tables)
+    digests = [table_pairs_digest(load_pairs_table(folder, m))[:12] for m in methods]
+    check_one_binding(folder, pd.DataFrame({"method": methods, "pairs_digest": digests}))
+    return methods

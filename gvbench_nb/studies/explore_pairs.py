@@ -16,7 +16,7 @@ from typing import Any
 import pandas as pd
 
 from gvbench_nb.evaluation import run_tables
-from gvbench_nb.runner import method_outputs, scoring
+from gvbench_nb.runner import scoring
 from gvbench_nb.studies import failures
 
 PICKS = ("index", "false_positive", "false_negative")
@@ -41,17 +41,8 @@ def load_tables(
 ) -> dict[str, pd.DataFrame]:
     """``pairs.csv`` of each method (default: every method with results in ``output_dir``), as a
     run published them, from inputs unchanged since, every method on the same pairs and labels."""
-    methods = list(methods) if methods else scoring.methods_with_results(Path(output_dir))
-    if not methods:
-        raise method_outputs.ResultsError(
-            f"{output_dir} holds no method results (<method>/pairs.csv); run a method "
-            "first (python -m gvbench_nb run PARAMS --methods NAME)"
-        )
-    scoring.check_results_current(Path(output_dir), methods)
-    tables = {method: scoring.load_pairs_table(Path(output_dir), method) for method in methods}
-    digests = pd.DataFrame({"method": list(tables), "pairs_digest": map(scoring.table_pairs_digest, tables.values())})
-    scoring.check_one_binding(Path(output_dir), digests)
-    return tables
+    methods = scoring.readable_methods(output_dir, methods)
+    return {method: scoring.load_pairs_table(Path(output_dir), method) for method in methods}
 
 
 def score_ranks(table: pd.DataFrame) -> pd.Series:

@@ -52,7 +52,7 @@ from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.protocol.ransac import ESTIMATORS
 from gvbench_nb.protocol.weights import MissingWeightsError
-from gvbench_nb.runner import config, method_outputs, method_runs
+from gvbench_nb.runner import config, method_outputs, method_runs, scoring
 from gvbench_nb.studies import doppelgangers, verifier_inputs
 
 GV_SCORES = ("inliers", "inlier_ratio", "inliers_over_keypoints")
@@ -365,6 +365,7 @@ def open_bench(
 ) -> VerifierBench:
     """A ``VerifierBench`` on ``results_dir/method``'s cached matches, split with
     ``place_disjoint_split(**split_options)``; learned weights go to ``output_dir``."""
+    scoring.readable_methods(results_dir, [method])  # what `results` refuses, the verifier notebooks refuse
     cached = verifier_inputs.CachedMatches(results_dir, method, cache_dir)
     pairs = cached.pairs.copy()
     pairs["split"] = verifier_inputs.place_disjoint_split(pairs, **split_options)

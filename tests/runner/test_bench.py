@@ -164,6 +164,7 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
         {
             "query": ["q0", "q0", "q1", "q1"],
             "reference": ["r0", "r1", "r0", "r1"],
+            "label": [1, 0, 0, 1],
             "profile": "repository",
             "extract_seconds": 0.4,
             "match_seconds": [0.1, 0.2, 0.3, 0.2],
@@ -176,6 +177,10 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
         (tmp_path / method / "run.json").write_text(
             json.dumps({"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"})
         )
+    from gvbench_nb.runner import record
+
+    record.claim(tmp_path)  # as a run publishes it: the estimate reads only what `results` reads
+    record.register(tmp_path.glob("*/*.*"))
     costs = estimate.costs_from_runs(tmp_path).set_index("method")
     assert list(costs.index) == ["sift-nn", "xfeat-nn"]  # registry order
     assert costs.loc["sift-nn", "extract_seconds_per_image"] == pytest.approx(4 * 0.4 / 4)

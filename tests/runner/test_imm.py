@@ -20,7 +20,6 @@ import pytest
 
 from gvbench_nb import imm, methods
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.protocol.images import load_for_extraction
 from gvbench_nb.runner import method_runs, pair_matching, scoring
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
@@ -72,13 +71,24 @@ class FakeMatcher:
         return torch.from_numpy(points0), torch.from_numpy(points1), None, None, None, None
 
 
+def fake_load_image(path, resize=None, rot_angle=0):
+    """vismatch's loader's interface: a float C x H x W tensor in [0, 1], resized to ``resize`` (H, W)."""
+    import torch
+
+    image = torch.from_numpy(cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)).permute(2, 0, 1).float() / 255
+    return torch.nn.functional.interpolate(image[None], size=resize, mode="bilinear", antialias=True)[0]
+
+
 @pytest.fixture
 def fake_vismatch(monkeypatch):
     module = types.ModuleType("vismatch")
     module.__spec__ = importlib.machinery.ModuleSpec("vismatch", None)
     module.available_models = ["fake-nn", "sift-nn"]
     module.get_matcher = lambda name, device="cpu", max_num_keypoints=2048: FakeMatcher(max_num_keypoints)
+    utils = types.ModuleType("vismatch.utils")
+    utils._load_image = fake_load_image
     monkeypatch.setitem(sys.modules, "vismatch", module)
+    monkeypatch.setitem(sys.modules, "vismatch.utils", utils)
     imm.available_names.cache_clear()
     FakeMatcher.seen = []
     yield module
@@ -216,7 +226,7 @@ def test_pipeline_runs_an_imm_matcher_cached_per_pair(fake_vismatch, tmp_path):
     conf["verifier"].update(FORK_VERIFIER)
     counts = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
     assert counts == {"pairs": 2, "cached": 0, "matched": 2}
-    # Our loader's 512x288 RGB image reached vismatch as its own loader gives it: float C x H x W in [0, 1].
+    # vismatch's own loader made the 512x288 RGB image the matcher saw: float C x H x W in [0, 1].
     shape, dtype, low, high = FakeMatcher.seen[0]
     assert shape == (3, 288, 512) and str(dtype) == "torch.float32" and 0.0 <= low < high <= 1.0
     table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
@@ -283,7 +293,6 @@ def fork_ransac(matched0: np.ndarray, matched1: np.ndarray) -> tuple:
 @needs_vismatch
 @pytest.mark.real_data
 def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(shared_data, tmp_path):
-    import torch
     from vismatch import get_matcher
 
     sequence = gardens_point_pairs(shared_data)
@@ -296,15 +305,10 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
     theirs.compute_ransac = fork_ransac
     compared = 0
     for pair, (_, row) in zip(sequence.pairs, ours.iterrows()):
-        # vismatch's own forward on the very images our pipeline loaded (512x288 RGB).
-        tensors = [
-            torch.from_numpy(load_for_extraction(sequence.image_root / name, conf["matcher"])[0])
-            .permute(2, 0, 1)
-            .float()
-            / 255.0
-            for name in (pair.query, pair.reference)
-        ]
-        result = theirs(*tensors)
+        # vismatch's own forward on the images its own loader makes (512x288 RGB, float).
+        result = theirs(
+            *(theirs.load_image(sequence.image_root / name, resize=(288, 512)) for name in (pair.query, pair.reference))
+        )
         assert row["num_matches"] == len(result["matched_kpts0"]), pair
         if len(result["matched_kpts0"]) < 8:
             continue  # the fork counts every match as an inlier there; our verifier's rule is a profile option

@@ -1,0 +1,61 @@
+"""The reference tier for ``imm:`` methods: they give vismatch's own matches, pair by pair.
+
+vismatch's own loop loads each image with its loader (``BaseMatcher.load_image``: Pillow's RGB,
+torchvision's float tensor resized with antialiasing) and calls the matcher's ``_forward`` on
+the two tensors; an ``imm:`` method runs through our pair loop and stores. On the first 10 pairs
+of ``params/gardens_point.yaml`` (``--limit 10``) both must find the same matches at the same
+points. Runs only in the opt-in venv (``make test-reference``), and needs the real data.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from gvbench_nb import imm, methods
+from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.protocol.images import to_original_pixels
+from gvbench_nb.runner import config, pair_matching
+
+PROJECT = Path(__file__).resolve().parents[2]
+ENABLE = "make setup-imm && .venv-imm/bin/python -m pytest -m reference tests (make test-reference)"
+
+pytestmark = [
+    pytest.mark.reference,
+    pytest.mark.real_data,
+    pytest.mark.skipif(
+        importlib.util.find_spec("vismatch") is None, reason=f"vismatch is not installed here; run: {ENABLE}"
+    ),
+]
+
+
+@pytest.mark.parametrize("name", ["orb-nn", "sift-nn"])
+def test_imm_methods_give_vismatchs_own_matches_pair_by_pair(shared_data, tmp_path, name):
+    import torch
+    from PIL import Image
+    from vismatch import get_matcher
+
+    params = config.load_params(PROJECT / "params" / "gardens_point.yaml", limit=10)
+    root = Path(params["image_root"])
+    sequence = Sequence("gardens_point", root, config.frame_tolerance_sequence_pairs(params)[:10])
+    conf = methods.resolve_method(f"imm:{name}", "repository")
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    store = pair_matching.match_store(tmp_path / "out", conf)
+
+    theirs = get_matcher(name, device="cpu", max_num_keypoints=2048)
+    width, height = conf["matcher"]["resize_to"]
+    found = []
+    for pair in sequence.pairs:
+        paths = [root / pair.query, root / pair.reference]
+        with torch.inference_mode():
+            matched = theirs._forward(*(theirs.load_image(p, resize=(height, width)) for p in paths))
+        entry = store.read(pair_matching.pair_key(root, pair.query, pair.reference, 0))
+        for side, path in enumerate(paths):
+            scale = np.array(Image.open(path).size, dtype=np.float32) / np.float32([width, height])
+            expected = to_original_pixels(np.asarray(imm._numpy(matched[side]), dtype=np.float32), scale)
+            np.testing.assert_allclose(entry[f"points{side}"], expected, rtol=0, atol=1e-3, err_msg=str(pair))
+        found.append(len(entry["points0"]))
+    assert sum(found) > 50  # matches to compare, not empty pairs

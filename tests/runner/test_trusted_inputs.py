@@ -1,0 +1,290 @@
+"""Inputs a reader can trust: every input checked by what it is before work, every reader as strict
+as ``results``.
+
+Part of ``pytest -m reliability``. Each test feeds ``python -m gvbench_nb`` (``cli.main``, the stage
+notebooks computed in this process as in tests/runner/test_run_record.py) a case that used to be
+scored or read silently: two images of one content, a damaged JPEG, a key given twice in a flow
+mapping, a method added under another verifier or seed, a reader on a folder ``results`` refuses,
+a mistyped ``--image-root`` beside a builder that renders, a bad environment variable. Four small
+photographs matched with ORB: seconds, no real data needed.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pytest
+import yaml
+from test_fault_injection import write_root
+from test_run_record import FLIPPED, PAIRS, in_process_notebooks, one_sentence, params_file, run_cli, snapshot
+
+from gvbench_nb import notebook, run_and_publish
+from gvbench_nb.data.sequences import Pair, write_pairs
+from gvbench_nb.reporting import report
+from gvbench_nb.runner import config, record
+
+pytestmark = pytest.mark.reliability
+
+
+@pytest.fixture
+def notebooks_here(monkeypatch):
+    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
+
+
+@pytest.fixture
+def images(tmp_path) -> Path:
+    return write_root(tmp_path / "images")
+
+
+def written(tmp_path: Path) -> list[str]:
+    """What a run made besides the test's own inputs."""
+    return sorted(p.name for p in tmp_path.iterdir() if p.name in ("out", "cache"))
+
+
+# ------------------------------------------------------- images by content --
+@pytest.mark.parametrize("how", ["copy", "symlink"])
+def test_two_images_of_one_content_are_a_self_pair_refused_with_file_and_line(
+    tmp_path, images, capsys, notebooks_here, how
+):
+    same = images / "reference" / "same.png"
+    if how == "copy":
+        shutil.copyfile(images / "query" / "a.png", same)
+    else:
+        same.symlink_to(images / "query" / "a.png")
+    path = params_file(tmp_path, pairs=[*PAIRS, Pair("query/a.png", "reference/same.png", 1)])
+    code, _, err = run_cli(capsys, "run", str(path))
+    assert code == 2
+    assert f"{tmp_path / 'params-pairs.txt'}:5: self-pair by content" in one_sentence(err)
+    assert "query/a.png and reference/same.png hold the same bytes" in err
+    assert written(tmp_path) == []
+
+
+def test_the_same_two_images_under_other_names_are_a_duplicate_pair_refused_with_file_and_line(
+    tmp_path, images, capsys, notebooks_here
+):
+    shutil.copyfile(images / "reference" / "b.png", images / "reference" / "b-copy.png")
+    path = params_file(tmp_path, pairs=[*PAIRS, Pair("reference/b-copy.png", "query/b.png", 1)])
+    code, _, err = run_cli(capsys, "run", str(path))
+    assert code == 2 and written(tmp_path) == []
+    pairs = tmp_path / "params-pairs.txt"
+    assert f"{pairs}:5: duplicate pair by content: reference/b-copy.png query/b.png holds the same two" in err
+    assert f"query/b.png reference/b.png ({pairs}:3;" in one_sentence(err)
+
+
+# ---------------------------------------------------------- damaged images --
+def damaged_jpeg(images: Path) -> Path:
+    """``reference/c.jpg``: a JPEG of a photo with 200 bytes of its entropy-coded data zeroed."""
+    data = bytearray(cv2.imencode(".jpg", cv2.imread(str(images / "reference" / "b.png")))[1].tobytes())
+    middle = len(data) // 2
+    data[middle : middle + 200] = bytes(200)
+    path = images / "reference" / "c.jpg"
+    path.write_bytes(bytes(data))
+    assert (
+        cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None
+    )  # it decodes, with a warning
+    return path
+
+
+def test_a_damaged_jpeg_is_named_and_refused_before_work_unless_allowed(tmp_path, images, capsys, notebooks_here):
+    jpeg = damaged_jpeg(images)
+    pairs = [*PAIRS, Pair("query/b.png", "reference/c.jpg", 1)]
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, pairs=pairs)))
+    assert code == 2 and written(tmp_path) == []
+    assert f"first {jpeg} (pair 4: query/b.png reference/c.jpg)" in one_sentence(err)
+    assert "Corrupt JPEG data" in err and "allow_damaged_images: true" in err  # libjpeg's words, from its stderr
+    # Allowed explicitly: scored, and listed in the folder's record.
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, pairs=pairs, allow_damaged_images=True)))
+    assert code == 0, err
+    damaged = record.read_record(tmp_path / "out")["methods"]["orb-nn"]["damaged_images"]
+    assert list(damaged) == ["reference/c.jpg"] and "Corrupt JPEG data" in damaged["reference/c.jpg"]
+    checked = json.loads((tmp_path / "cache" / "decoder-checks.json").read_text())
+    assert len(checked) == 5 and sum(bool(said) for said in checked.values()) == 1  # each content decoded once
+
+
+def test_an_image_that_does_not_decode_is_refused_before_work_even_when_damage_is_allowed(
+    tmp_path, images, capsys, notebooks_here
+):
+    (images / "reference" / "b.png").write_bytes((images / "reference" / "b.png").read_bytes()[:2000])
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, allow_damaged_images=True)))
+    assert code == 2 and written(tmp_path) == []
+    assert f"cannot decode image {images / 'reference' / 'b.png'}" in one_sentence(err)
+
+
+# ------------------------------------------------------ keys given twice --
+@pytest.mark.parametrize(
+    "text, key, line",
+    [
+        ("verifier: {threshold_px: 3, threshold_px: 1}\n", "threshold_px", 2),
+        ("builder_options: {a: {b: 1, b: 2}}\n", "b", 2),
+        ("verifier:\n  {threshold_px: 3,\n   threshold_px: 1}\n", "threshold_px", 4),
+        ("methods: [orb-nn]\nmethods: [sift-nn]\n", "methods", 3),
+    ],
+    ids=["flow", "flow-nested", "flow-two-lines", "block"],
+)
+def test_a_key_given_twice_in_any_yaml_style_is_refused_naming_file_and_line(tmp_path, images, text, key, line):
+    path = params_file(tmp_path)
+    body = path.read_text()
+    path.write_text(body.split("\n", 1)[0] + "\n" + text + body.split("\n", 1)[1])
+    with pytest.raises(config.ParamsError, match=rf"^{path}:{line}: key '{key}' is given twice"):
+        config.load_params(path)
+
+
+# ------------------------------------------------------- one recipe a table --
+@pytest.mark.parametrize(
+    "changes, said",
+    [
+        ({"verifier": {"threshold_px": 0.25, "max_iters": 5}}, "verifier max_iters"),
+        ({"seed": 1}, "seed 0 there, 1 here"),
+    ],
+    ids=["verifier", "seed"],
+)
+def test_a_method_added_under_another_verifier_or_seed_is_refused_before_work(
+    tmp_path, images, capsys, notebooks_here, changes, said
+):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    before = snapshot(tmp_path / "out")
+    added = params_file(tmp_path, "added.yaml", methods=["sift-opencv-nn"], **changes)
+    code, _, err = run_cli(capsys, "run", str(added))
+    assert code == 2 and "holds results made under another recipe than this run's (orb-nn: " in one_sentence(err)
+    assert said in err and "--methods sift-opencv-nn,orb-nn" in err
+    assert snapshot(tmp_path / "out") == before
+    assert run_cli(capsys, "run", str(added), "--methods", "sift-opencv-nn,orb-nn")[0] == 0  # the way out it names
+
+
+# ------------------------------------------- every reader as strict as results --
+def edit_labels(tmp_path: Path) -> None:
+    write_pairs(tmp_path / "params-pairs.txt", [PAIRS[0], FLIPPED[1], *PAIRS[2:]])
+
+
+def edit_scores(tmp_path: Path) -> None:
+    table = tmp_path / "out" / "orb-nn" / "pairs.csv"
+    frame = pd.read_csv(table)
+    frame.loc[frame["label"] == 0, "score"] = 0
+    frame.to_csv(table, index=False)
+
+
+def remove_record(tmp_path: Path) -> None:
+    (tmp_path / "out" / record.RECORD_NAME).unlink()
+
+
+@pytest.fixture
+def started(monkeypatch) -> list[str]:
+    """Readers' work, stubbed to say it started: the report's notebooks, JupyterLab."""
+    work: list[str] = []
+    monkeypatch.setattr(report, "write_report", lambda *a: work.append("report") or (Path("index.html"), []))
+    monkeypatch.setattr(os, "execv", lambda *a: work.append("explore"))
+    return work
+
+
+@pytest.mark.parametrize("edit", [edit_labels, edit_scores, remove_record], ids=["labels", "scores", "no-record"])
+def test_every_reader_refuses_what_results_refuses_before_any_work_or_file(
+    tmp_path, images, capsys, notebooks_here, started, edit
+):
+    path = params_file(tmp_path, methods=["orb-nn", "sift-opencv-nn"])
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    out = tmp_path / "out"
+    edit(tmp_path)
+    code, printed, refused = run_cli(capsys, "results", str(out))
+    assert code == 2 and printed == "" and one_sentence(refused)
+    before = snapshot(out)
+    readers = {
+        "compare": ["compare", str(out)],
+        "report": ["report", "--outputs-root", str(tmp_path), "--output-dir", str(tmp_path / "report")],
+        "explore": ["explore", str(out), "--no-browser"],
+    }
+    for reader, argv in readers.items():
+        code, _, err = run_cli(capsys, *argv)
+        assert (reader, code, err) == (reader, 2, refused)
+    with pytest.raises(Exception) as error:
+        notebook.load_results(out, tmp_path / "figures")
+    assert f"error: {error.value}\n" == refused
+    assert started == [] and snapshot(out) == before
+    assert not (tmp_path / "report").exists() and not (tmp_path / "figures").exists()
+
+
+# ------------------------------------------------- typed paths are not built into --
+@pytest.fixture
+def builder_calls(monkeypatch) -> list[str]:
+    """The sample builder, stubbed: it records the image root it would render into and stops the run."""
+    calls: list[str] = []
+
+    def render(params: dict) -> None:
+        calls.append(params["image_root"])
+        raise KeyboardInterrupt  # the run stops here, exit code 130, nothing rendered
+
+    monkeypatch.setitem(config.PAIR_BUILDERS, "sample", render)
+    return calls
+
+
+def sample_params(tmp_path: Path) -> Path:
+    path = tmp_path / "sample.yaml"
+    path.write_text(
+        yaml.safe_dump(
+            {
+                "sequence": "sample",
+                "pairs_builder": "sample",
+                "image_root": "data/sample",
+                "pairs": "data/sample/pairs.txt",
+                "methods": ["orb-nn"],
+                "profile": "repository",
+                "output_dir": "out",
+            }
+        )
+    )
+    return path
+
+
+def test_an_image_root_typed_on_the_command_line_is_never_rendered_into(tmp_path, capsys, builder_calls):
+    path = sample_params(tmp_path)
+    typo = tmp_path / "dta" / "sample"
+    code, _, err = run_cli(capsys, "run", str(path), "--image-root", str(typo))
+    assert code == 2 and f"--image-root {typo} does not exist" in one_sentence(err)
+    assert builder_calls == [] and not typo.parent.exists() and not (tmp_path / "out").exists()
+    typo.mkdir(parents=True)
+    code, _, err = run_cli(capsys, "run", str(path), "--image-root", str(typo))
+    assert code == 2 and f"--image-root {typo} holds no rendered route" in one_sentence(err)
+    # The params file's own image_root is rendered (what `make demo` does on a fresh clone) ...
+    assert run_cli(capsys, "run", str(path))[0] == 130
+    assert builder_calls == [str(tmp_path / "data" / "sample")]
+    # ... and a typed folder holding a rendered route is used as it is.
+    (typo / "generator.json").write_text("{}")
+    assert run_cli(capsys, "run", str(path), "--image-root", str(typo))[0] == 130
+    assert builder_calls[-1] == str(typo)
+
+
+# ------------------------------------------------------ environment variables --
+@pytest.mark.parametrize(
+    "name, value",
+    [
+        ("GVBENCH_THREADS", "abc"),
+        ("GVBENCH_THREADS", "-1"),
+        ("GVBENCH_MAX_PIXELS", "abc"),
+        ("GVBENCH_DATA", "file"),
+    ],
+)
+def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
+    tmp_path, images, capsys, notebooks_here, monkeypatch, name, value
+):
+    if value == "file":
+        value = str(tmp_path / "a-file")
+        Path(value).write_text("")
+    monkeypatch.setenv(name, value)
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)))
+    assert code == 2 and name in one_sentence(err) and repr(value) in err
+    assert written(tmp_path) == []
+
+
+@pytest.mark.parametrize(
+    "option",
+    [["--shard", "5/2"], ["--shard", "x"], ["--dask", "--shards", "0"], ["--output-dir", ""], ["--image-root", " "]],
+)
+def test_a_bad_run_option_is_one_sentence_naming_it_before_any_folder(tmp_path, images, capsys, option):
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)), *option)
+    assert code == 2 and option[-2] in one_sentence(err)
+    assert written(tmp_path) == []

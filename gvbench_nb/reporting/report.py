@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import html
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -45,8 +44,8 @@ KEY_FIGURES = (
 
 HELP = "run the analysis notebooks over finished sequences and write an HTML report"
 DESCRIPTION = """\
-Finds every sequence output folder with a results.csv under --outputs-root (or the ones named
-by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
+Reads the run folders named (each with a results.csv; without any, every such folder under
+--outputs-root, or the ones named by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
 histograms, failures, bootstrap uncertainty; the results table once across all sequences),
 converts them to HTML and writes <output-dir>/index.html: the combined results table (ours
 beside the paper's published values, labelled 'paper'), the key figures and links to every
@@ -55,6 +54,7 @@ notebook. Reads only written results: nothing is re-extracted or re-matched.
 EPILOG = """\
 examples:
   python -m gvbench_nb report
+  python -m gvbench_nb report outputs/sample outputs/gardens_point
   python -m gvbench_nb report --sequences sample,gardens_point --output-dir outputs/report
 """
 
@@ -164,11 +164,10 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         error = f" <span class='error'>failed: {html.escape(item.error)}</span>" if item.error else ""
         parts.append(f"<li>{link}{error}</li>")
     parts.append("</ul>")
-    for folder in output_dirs:
-        sequence = folder.name
-        figures = [report_dir / sequence / name.format(sequence=_sequence_name(folder)) for name in KEY_FIGURES]
+    for folder, name in page_folders(output_dirs).items():
+        figures = [report_dir / name / figure.format(sequence=_sequence_name(folder)) for figure in KEY_FIGURES]
         shown = [f for f in figures if f.is_file()]
-        intervals = report_dir / sequence / "bootstrap_intervals.csv"
+        intervals = report_dir / name / "bootstrap_intervals.csv"
         if shown or intervals.is_file():
             parts.append(f"<h2>{html.escape(_sequence_name(folder))}</h2>")
         if intervals.is_file():
@@ -244,6 +243,12 @@ def _sequence_name(output_dir: Path) -> str:
     return str(names[0]) if len(names) else output_dir.name
 
 
+def page_folders(output_dirs: list[Path]) -> dict[Path, str]:
+    """Each run folder's sub-folder of the report: its name, with its parent's where two share a name."""
+    names = [d.name for d in output_dirs]
+    return {d: d.name if names.count(d.name) == 1 else f"{d.parent.name}-{d.name}" for d in output_dirs}
+
+
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
     from tqdm import tqdm
@@ -260,8 +265,8 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
             "",
         )
     ]
-    for folder in output_dirs:
-        target_dir = report_dir / folder.name
+    for folder, folder_name in page_folders(output_dirs).items():
+        target_dir = report_dir / folder_name
         for name in PER_SEQUENCE_NOTEBOOKS:
             jobs.append(
                 (
@@ -282,26 +287,37 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
     return index, executed
 
 
-def command_report(args: argparse.Namespace) -> int:
+def run_folders(args: argparse.Namespace) -> list[Path]:
+    """The run folders a ``report`` command line names: its OUTPUT_DIRs, else ``--outputs-root``
+    itself when it is a run folder, else the folders under it (``--sequences``: those only).
+    Raises ``ResultsError`` saying which folder holds no results.csv."""
     from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.runner.method_outputs import ResultsError
 
+    example = "python -m gvbench_nb run params/sample.yaml writes one, outputs/sample"
+    if args.output_dirs:
+        absent = [d for d in args.output_dirs if not (Path(d) / "results.csv").is_file()]
+        if absent:
+            raise ResultsError(f"{', '.join(absent)} holds no results.csv: give the output folder of a run ({example})")
+        return [Path(d) for d in args.output_dirs]
     root = Path(args.outputs_root)
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
+    if not sequences and (root / "results.csv").is_file():
+        return [root]
     try:
-        output_dirs = run_tables.find_output_dirs(root, sequences)
+        folders = run_tables.find_output_dirs(root, sequences)
     except FileNotFoundError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        raise ResultsError(str(error)) from None
+    folders = [d for d in folders if d.resolve() != Path(args.output_dir).resolve()]
+    if not folders:
+        raise ResultsError(f"no run folder with a results.csv in or under {root} ({example})")
+    return folders
+
+
+def command_report(args: argparse.Namespace) -> int:
+    output_dirs = run_folders(args)
     report_dir = Path(args.output_dir)
-    output_dirs = [d for d in output_dirs if d.resolve() != report_dir.resolve()]
-    if not output_dirs:
-        print(
-            f"error: no sequence folder with a results.csv under {root}; run one first, e.g. "
-            "python -m gvbench_nb run params/sample.yaml",
-            file=sys.stderr,
-        )
-        return 2
-    print(f"report over {len(output_dirs)} sequence(s): {', '.join(d.name for d in output_dirs)} -> {report_dir}")
+    print(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]
     print(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
@@ -318,6 +334,13 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
+        "output_dirs",
+        nargs="*",
+        metavar="OUTPUT_DIR",
+        help="run folders holding a results.csv, e.g. outputs/sample outputs/gardens_point "
+        "(default: every such folder under --outputs-root)",
+    )
+    parser.add_argument(
         "--output-dir",
         default=str(config.PROJECT_ROOT / "outputs" / "report"),
         help="where the executed notebooks, their HTML, figures and index.html go (default: outputs/report)",
@@ -330,6 +353,6 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--outputs-root",
         default=str(config.PROJECT_ROOT / "outputs"),
-        help="the folder holding the sequence output folders (default: outputs)",
+        help="a folder holding run folders, or a run folder itself (default: outputs)",
     )
     parser.set_defaults(handler=command_report)

@@ -334,7 +334,10 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
             str(report_dir),
         ]
     )
-    assert args.handler(args) == 2  # a named sequence without results is refused, not a traceback
+    with pytest.raises(
+        method_outputs.ResultsError, match="absent"
+    ):  # a named sequence without results is refused before any work
+        report.run_folders(args)
 
 
 def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):

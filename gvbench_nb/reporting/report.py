@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import html
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -67,8 +68,11 @@ class ExecutedNotebook:
     error: str | None = None
 
 
-def execute_and_convert(source: str, target: Path, parameters: dict, sequence: str = "") -> ExecutedNotebook:
-    """Execute one analysis notebook with papermill, then write its HTML beside it.
+def execute_and_convert(
+    source: str, target: Path, parameters: dict, sequence: str = "", index: Path | None = None
+) -> ExecutedNotebook:
+    """Execute one analysis notebook with papermill, then write its HTML beside it (linked back
+    to the report's ``index`` page when given).
 
     A failing notebook is still converted (its traceback is the useful part) and its
     error is returned rather than raised, so one sequence cannot sink the report.
@@ -82,16 +86,21 @@ def execute_and_convert(source: str, target: Path, parameters: dict, sequence: s
         error = f"{failure.ename}: {failure.evalue}"
     html_path = None
     if target.is_file():
-        body, _ = _offline_exporter().from_filename(str(target))
+        back = {"index_href": Path(os.path.relpath(index, target.parent)).as_posix()} if index else {}
+        body, _ = _offline_exporter().from_filename(str(target), resources=back)
         html_path = atomic_write_text(target.with_suffix(".html"), body)
     return ExecutedNotebook(sequence, target, html_path, error)
 
 
-# nbconvert's lab template, less require.js and MathJax: both come from a CDN, so offline the page
+# nbconvert's lab template, less require.js and MathJax, with a link back to the report's index: both come from a CDN, so offline the page
 # logs load errors, and the analysis notebooks have no widgets or LaTeX that need them.
 OFFLINE_TEMPLATE = """{%- extends 'lab/index.html.j2' -%}
 {%- block html_head_js -%}{%- endblock html_head_js -%}
 {%- block html_head_js_mathjax -%}{%- endblock html_head_js_mathjax -%}
+{%- block body_header -%}{{ super() }}
+{%- if resources.index_href %}<p class="jp-RenderedHTMLCommon report-index"><a href="{{ resources.index_href }}">
+the report's index</a></p>{% endif -%}
+{%- endblock body_header -%}
 """
 
 
@@ -131,7 +140,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         "img{max-width:100%;border:1px solid #eee;margin:6px 0}.error{color:#b00}</style></head><body>",
         "<h1>gvbench-nb: geometric verification report</h1>",
         f"<p>Generated {html.escape(_dt.datetime.now().isoformat(timespec='seconds'))} from "
-        f"{len(output_dirs)} sequence folder(s): " + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
+        f"{len(output_dirs)} run folder(s): " + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
         "<h2>AP and max recall at 100% precision (%)</h2>",
         f"<p>Bold: the best of its column. {paper_note}</p>",
         table_html,
@@ -184,6 +193,10 @@ def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
 
     sources = set(wide.columns.get_level_values("source"))
     notes = [f"One row a (method, profile); <b>{run_tables.OURS_LABEL}</b> columns are our runs, in that profile."]
+    if "pairs" in set(wide.columns.get_level_values("metric")):
+        notes.append(
+            "<b>pairs</b>: the pairs a run scored, all of its pair file or the first N (<code>--limit</code>)."
+        )
     if run_tables.PAPER_LABEL in sources:
         notes.append(
             f"Columns labelled <b>{run_tables.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
@@ -279,7 +292,7 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
     executed = []
     for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
         tqdm.write(f"executing {source} -> {target}")
-        item = execute_and_convert(source, target, parameters, sequence)
+        item = execute_and_convert(source, target, parameters, sequence, index=report_dir / "index.html")
         if item.error:
             tqdm.write(f"  failed: {item.error} (see {target})")
         executed.append(item)

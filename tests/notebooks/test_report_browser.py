@@ -64,13 +64,21 @@ def report_index(chromium, tmp_path_factory) -> Path:
     base = ["run", str(params), "--methods", METHODS, "--limit", LIMIT]
     assert cli.main([*base, "--shard", "0/1"]) == 0
     assert cli.main([*base, "--merge"]) == 0
-    assert cli.main(["report", "--outputs-root", str(root / "outputs"), "--output-dir", str(root / "report")]) == 0
+    assert cli.main(["report", str(root / "outputs" / "sample"), "--output-dir", str(root / "report")]) == 0
     return root / "report" / "index.html"
 
 
+# Lines a page must not hold: notebook bookkeeping printed into the report, and numbers unrounded.
+STRAY = re.compile(r"\d+ results of \d+ sequence|paper's table: \d+ rows|\d\.\d{5,}")
+MAX_PAGE_BYTES = 2_000_000
+
+
 def check_page(browser, url: str) -> tuple[object, list[str]]:
-    """Open a page; assert its images loaded, its anchors exist and nothing logged an error.
-    Returns the page (still open) and the local files its links point to."""
+    """Open a page; assert it is under 2 MB, its images loaded, its anchors exist, it holds no
+    stray printout and nothing logged an error. Returns the page (still open) and the local
+    files its links point to."""
+    size = Path(unquote(urlparse(url).path)).stat().st_size
+    assert size < MAX_PAGE_BYTES, f"{url}: {size:,} bytes"
     page = browser.new_page()
     errors: list[str] = []
     page.on("console", lambda message: errors.append(message.text) if message.type == "error" else None)
@@ -96,6 +104,8 @@ def check_page(browser, url: str) -> tuple[object, list[str]]:
         elif path.suffix == ".html":
             targets.append(path)
     assert errors == [], f"{url}: console errors"
+    text = page.evaluate("document.body.innerText")
+    assert not STRAY.search(text), f"{url}: stray line {STRAY.search(text).group(0)!r}"
     return page, targets
 
 
@@ -125,6 +135,8 @@ def check_report(browser, index: Path) -> None:
     for table in tables:
         assert "profile" in table["headers"], table["headers"]
         assert table["rows"] and all(PROFILE in row for row in table["rows"]), table["rows"]
+    # Each row of the results table says how many pairs it has, and that --limit cut them.
+    assert "pairs" in tables[0]["headers"] and all(f"{LIMIT} (--limit)" in row for row in tables[0]["rows"])
     page.close()
     # The notebooks it links to: the one across sequences and the sample's own.
     assert len(linked) == 1 + len(report.PER_SEQUENCE_NOTEBOOKS)
@@ -133,4 +145,9 @@ def check_report(browser, index: Path) -> None:
         # Outputs only: no code cell's source is on the page.
         assert notebook_page.locator(".jp-InputArea-editor").count() == 0, target
         assert notebook_page.locator(".jp-OutputArea").count() > 0, target
+        # Every page leads back to the index; no table shows pandas' index column.
+        back = notebook_page.evaluate("[...document.querySelectorAll('a[href]')].map(a => a.href)")
+        assert index.as_uri() in back, f"{target}: no link back to the index"
+        row_numbers = "[...document.querySelectorAll('tbody tr:first-child > th:first-child')].map(c => c.innerText)"
+        assert "0" not in [text.strip() for text in notebook_page.evaluate(row_numbers)], f"{target}: row numbers"
         notebook_page.close()

@@ -43,6 +43,11 @@ _content_keys: dict[tuple[str, int, int, int, int], str] = {}
 _content_keys_lock = threading.Lock()
 
 
+# run id -> (store folder, key) of every image that run extracted in this process: a later method
+# of the same run that finds them cached is served by this run's own work, timed by this run.
+_extracted_by_run: dict[str, set[tuple[str, str]]] = {}
+
+
 def content_key(path: str | os.PathLike[str]) -> str:
     """``blake2b-<hex>`` of a file's bytes: the cache key of what the file holds, not where it is."""
     path = Path(path)
@@ -114,10 +119,12 @@ def extract_features(
     flush_every: int = 16,
     images: list[str] | None = None,
     workers: int | None = None,
+    run_id: str | None = None,
 ) -> dict[str, int]:
     """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
     not yet in the cache, ``workers`` images at a time (default ``worker_count()``).
-    Returns counts."""
+    Returns counts; ``cached_by_this_run``: cached images that run ``run_id`` extracted itself
+    (for another method, in this process)."""
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
     wanted: dict[str, str] = {}
@@ -129,7 +136,9 @@ def extract_features(
                 f"{error} (image {name!r} of sequence {sequence.name!r}, {first_pair_using(sequence, name)})"
             ) from None
     todo = [key for key in wanted if key not in store]
-    counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
+    ours = _extracted_by_run.setdefault(run_id, set()) if run_id else set()
+    earlier = len(ours & {(str(store.folder), key) for key in wanted}) if ours else 0
+    counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "cached_by_this_run": earlier, "extracted": 0}
     if not todo:
         return counts
     from gvbench_nb.protocol.features import build_extractor
@@ -175,6 +184,7 @@ def extract_features(
                 raise extracted
             features, seconds = extracted
             writer.put(key, features, {"seconds": seconds})
+            ours.add((str(store.folder), key))
             counts["extracted"] += 1
             bar.update()
     bar.close()

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 
 
 def whole_number_at_least(text: str, minimum: int, what: str) -> int:
@@ -15,3 +16,19 @@ def whole_number_at_least(text: str, minimum: int, what: str) -> int:
     if value < minimum:
         raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
     return value
+
+
+class SuggestingParser(argparse.ArgumentParser):
+    """argparse's parser, with a did-you-mean for a mistyped command or choice (``rn`` -> ``run``).
+    Its sub-command parsers are of this class too (argparse makes them of their parent's)."""
+
+    def _check_value(self, action: argparse.Action, value: object) -> None:
+        choices = action.choices
+        if choices is not None and value not in choices:
+            close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1)
+            if close:
+                known = ", ".join(map(str, choices))
+                raise argparse.ArgumentError(
+                    action, f"invalid choice: {value!r}; did you mean {close[0]!r}? (choose from {known})"
+                )
+        super()._check_value(action, value)

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb import run_and_publish
-from gvbench_nb.arguments import whole_number_at_least
+from gvbench_nb.arguments import SuggestingParser, whole_number_at_least
 from gvbench_nb.reporting import tables
 
 DESCRIPTION = """\
@@ -227,7 +227,7 @@ def data_main(argv: SequenceType[str]) -> int:
     """``python -m gvbench_nb data ...`` without building the whole CLI (which imports torch)."""
     from gvbench_nb.data import fetch
 
-    parser = argparse.ArgumentParser(prog="python -m gvbench_nb data")
+    parser = SuggestingParser(prog="python -m gvbench_nb data")
     configure_data_parser(parser)
     args = parser.parse_args(argv)
     try:
@@ -240,7 +240,7 @@ def data_main(argv: SequenceType[str]) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from gvbench_nb.runner import distributed
 
-    parser = argparse.ArgumentParser(
+    parser = SuggestingParser(
         prog="python -m gvbench_nb",
         description=DESCRIPTION,
         epilog=EPILOG,

@@ -264,7 +264,7 @@ def page_folders(output_dirs: list[Path]) -> dict[Path, str]:
 
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
-    from tqdm import tqdm
+    from gvbench_nb.progress import progress_bar
 
     report_dir = report_dir.resolve()
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -290,11 +290,12 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
                 )
             )
     executed = []
-    for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
-        tqdm.write(f"executing {source} -> {target}")
+    bar = progress_bar(jobs, desc="analysis notebooks", unit="nb")
+    for source, target, parameters, sequence in bar:
+        bar.write(f"executing {source} -> {target}")
         item = execute_and_convert(source, target, parameters, sequence, index=report_dir / "index.html")
         if item.error:
-            tqdm.write(f"  failed: {item.error} (see {target})")
+            bar.write(f"  failed: {item.error} (see {target})")
         executed.append(item)
     index = atomic_write_text(report_dir / "index.html", summary_page(report_dir, output_dirs, executed))
     return index, executed

@@ -13,7 +13,7 @@ STAGES += ("evaluation", "verification", "studies", "reporting", "speed")
 # Bottom to top: a room (a top-level module or folder of the package) imports only rooms of its
 # own layer or below. data -> protocol -> runner -> evaluation and studies -> reporting and the CLI.
 LAYERS = (
-    ("gvbench_nb", "io_utils", "arguments"),  # the package face names only its version
+    ("gvbench_nb", "io_utils", "arguments", "progress"),  # the package face names only its version
     ("protocol",),
     ("data", "imm"),
     ("methods", "reference_values"),

@@ -66,8 +66,8 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
     """Lines above a folder's table: the sequence and the folder; when, and --limit; the machine and libraries."""
     environment = runs[0]["environment"]
     finished = max(run["finished_at"] for run in runs)
-    limits = {(run.get("pairs") or {}).get("limit") for run in runs} - {None}
-    cut = f", the first {', '.join(map(str, sorted(limits)))} pairs (--limit)" if limits else ""
+    limits = sorted({int(limit) for run in runs if (limit := (run.get("pairs") or {}).get("limit")) is not None})
+    cut = f", the first {', '.join(map(str, limits))} pairs (--limit)" if limits else ""
     return (
         f"{results['sequence'].iloc[0]} in {folder}\nruns finished {finished}{cut}\n"
         f"device {environment['device']} ({environment['device_name']}, {environment['cpu_count']} cores), "

@@ -367,9 +367,11 @@ def test_a_rerun_served_from_the_cache_says_its_timers_are_the_earlier_runs(tmp_
 
 
 def test_results_fits_100_columns_and_shows_every_column_when_wide(tmp_path, root, capsys, notebooks_here):
-    assert run_cli(capsys, "run", str(params_file(tmp_path)), "--methods", "orb-nn,sift-opencv-nn")[0] == 0
+    methods = ["--methods", "orb-nn,sift-opencv-nn", "--limit", "3"]
+    assert run_cli(capsys, "run", str(params_file(tmp_path)), *methods)[0] == 0
     code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
     assert code == 0 and max(map(len, out.splitlines()[1:])) <= 100, out  # all but the folder's path
+    assert ", the first 3 pairs (--limit)" in out.splitlines()[1]
     assert out.splitlines()[4].split() == [
         "method",
         "profile",

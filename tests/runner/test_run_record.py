@@ -26,8 +26,8 @@ from test_fault_injection import write_root
 from gvbench_nb import cli, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.evaluation import run_tables
-from gvbench_nb.reporting import tables
 from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.reporting import tables
 from gvbench_nb.runner import config, method_outputs, method_runs, record, scoring
 
 pytestmark = pytest.mark.reliability

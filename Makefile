@@ -1,4 +1,4 @@
-# Two entry points: `make demo` (set-up + the main job on the embedded sample) and
+# Two entry points: `make demo` (set-up + the fast methods on the embedded sample) and
 # `make test` (set-up + the whole test suite). Set-up is idempotent: a second run
 # installs nothing (a stamp records the requirements it installed).
 PYTHON ?= python3
@@ -55,8 +55,13 @@ $(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
 	@touch $(IMM_STAMP)
 	@echo "setup-imm done: run imm: methods with $(IMM_VENV)/bin/python -m gvbench_nb ..."
 
+# The three fast methods on every pair of the sample (about a minute on two cores); xfeat-lg's
+# LighterGlue takes about a second a pair on such a CPU, so it is the command printed after.
+DEMO_METHODS := sift-nn,orb-nn,xfeat-nn
 demo: setup
-	$(PY) -m gvbench_nb run params/sample.yaml
+	$(PY) -m gvbench_nb run params/sample.yaml --methods $(DEMO_METHODS)
+	@echo "next: xfeat-lg (XFeat+LighterGlue, about 5 minutes on two cores) adds its row to outputs/sample:"
+	@echo "  $(PY) -m gvbench_nb run params/sample.yaml --methods xfeat-lg"
 
 # JupyterLab on a working copy of the explore notebook, pointed at a run's folder
 # (`make lab RUN=outputs/gardens_point`; default outputs/sample, which `make demo` writes).

@@ -26,3 +26,19 @@ def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
         close = difflib.get_close_matches(key, valid, n=1)
         hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
     return ", ".join(hints)
+
+
+class SuggestingParser(argparse.ArgumentParser):
+    """argparse's parser, with a did-you-mean for a mistyped command or choice (``rn`` -> ``run``).
+    Its sub-command parsers are of this class too (argparse makes them of their parent's)."""
+
+    def _check_value(self, action: argparse.Action, value: object) -> None:
+        choices = action.choices
+        if choices is not None and value not in choices:
+            close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1)
+            if close:
+                known = ", ".join(map(str, choices))
+                raise argparse.ArgumentError(
+                    action, f"invalid choice: {value!r}; did you mean {close[0]!r}? (choose from {known})"
+                )
+        super()._check_value(action, value)

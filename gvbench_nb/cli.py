@@ -13,8 +13,8 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb import GVBenchError, run_and_publish, user_error_names
-from gvbench_nb.arguments import whole_number_at_least
-from gvbench_nb.reporting.tables import markdown_table
+from gvbench_nb.arguments import SuggestingParser, whole_number_at_least
+from gvbench_nb.reporting import tables
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -59,103 +59,6 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
     print("  ".join(c.ljust(widths[c]) for c in columns))
     for row in rows:
         print("  ".join(str(row[c]).ljust(widths[c]) for c in columns))
-
-
-def command_results(args: argparse.Namespace) -> int:
-    import json
-
-    from gvbench_nb.runner import method_outputs, record, scoring
-
-    for folder in args.output_dirs:
-        folder = Path(folder)
-        finished_methods = scoring.readable_methods(folder)
-        unfinished = method_outputs.unfinished_methods(folder)
-        results = scoring.evaluate(folder, finished_methods, write=False)
-        from gvbench_nb.evaluation import intervals
-
-        tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
-        results = results.join(intervals.interval_columns(tables), on="method")
-        runs = [json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
-        measured = [run for run in runs if "imported" not in run]  # imported scores say nothing of this machine
-        finished = max(run["finished_at"] for run in runs)
-        columns = [
-            "method",
-            "paper_name",
-            "profile",
-            "n_pairs",
-            "n_positives",
-            "ap",
-            "ap_low",
-            "ap_high",
-            "max_recall",
-            "max_recall_low",
-            "max_recall_high",
-            "extract_seconds_per_pair",
-            "match_seconds_per_pair",
-            "verify_seconds_per_pair",
-            "seconds_per_pair",
-            "timers",
-            "pairs_digest",
-        ]
-        environment = measured[0]["environment"] if measured else None
-        print(
-            f"{results['sequence'].iloc[0]} ({folder}), runs finished {finished}, "
-            + (
-                f"device {environment['device']} ({environment['device_name']}, {environment['cpu_count']} cores), "
-                f"torch {environment['torch']}, kornia {environment['kornia']}, opencv {environment['opencv']}\n"
-                if environment
-                else "imported scores only\n"
-            )
-        )
-        print(markdown_table(results[columns]) if args.markdown else results[columns].to_string(index=False))
-        print(
-            f"\n*_low, *_high: 95 % bootstrap interval over {results['interval_unit'].iloc[0]} resamples "
-            "(python -m gvbench_nb compare ranks the methods pairwise)"
-        )
-        print()
-        holder = record.running(folder)
-        if holder:
-            print(
-                f"note: a run (pid {holder.get('pid')}, started {holder.get('started_at')}) is writing {folder} now; "
-                "the rows above are the results published before it\n"
-            )
-        for method, why in unfinished.items():
-            print(f"not finished: {method}: {why}")
-        if args.export == "npy":
-            from gvbench_nb.runner import score_files
-
-            for method in results["method"]:
-                print(f"{method}: {score_files.export_npy(folder, method)}")
-        if args.all_methods:
-            others = not_run_table(set(results["method"]))
-            if len(others):
-                print(f"registered methods without results in {folder}:\n")
-                print(markdown_table(others) if args.markdown else others.to_string(index=False))
-                print()
-    return 0
-
-
-def not_run_table(ran: set[str]) -> Any:
-    """Registered methods that have no results: why, and the files a user needs to run them."""
-    import pandas as pd
-
-    from gvbench_nb import methods
-    from gvbench_nb.protocol import weights
-
-    rows = []
-    for row in methods.method_table():
-        if row["method"] in ran:
-            continue
-        missing = [c for c in methods.required_checkpoints(row["method"]) if not weights.is_present(c)]
-        needs = "; ".join(f"`{weights.get(c).file}` from {weights.get(c).urls[0]}" for c in missing)
-        rows.append(
-            {
-                "method": row["method"],
-                "paper_name": row["paper_name"],
-                "status": f"not run here: needs {needs}" if missing else "weights present, not run",
-            }
-        )
-    return pd.DataFrame(rows, columns=["method", "paper_name", "status"])
 
 
 def command_methods(args: argparse.Namespace) -> int:
@@ -328,7 +231,7 @@ def data_main(argv: SequenceType[str]) -> int:
     """``python -m gvbench_nb data ...`` without building the whole CLI (which imports torch)."""
     from gvbench_nb.data import fetch
 
-    parser = argparse.ArgumentParser(prog="python -m gvbench_nb data")
+    parser = SuggestingParser(prog="python -m gvbench_nb data")
     configure_data_parser(parser)
     args = parser.parse_args(argv)
     try:
@@ -341,7 +244,7 @@ def data_main(argv: SequenceType[str]) -> int:
 def build_parser() -> argparse.ArgumentParser:
     from gvbench_nb.runner import distributed
 
-    parser = argparse.ArgumentParser(
+    parser = SuggestingParser(
         prog="python -m gvbench_nb",
         description=DESCRIPTION,
         epilog=EPILOG,
@@ -382,13 +285,18 @@ def build_parser() -> argparse.ArgumentParser:
         help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
     )
     results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
-    results.add_argument("--markdown", action="store_true", help="print a markdown table (for a README)")
+    results.add_argument(
+        "--wide", action="store_true", help="every column: paper names, positives, seconds by stage, timers, digest"
+    )
+    results.add_argument(
+        "--markdown", action="store_true", help="print a markdown table of every column (for a README)"
+    )
     results.add_argument(
         "--all-methods",
         action="store_true",
         help="also list every registered method without results, with the weight files it needs",
     )
-    results.set_defaults(handler=command_results)
+    results.set_defaults(handler=tables.command_results)
 
     listing = commands.add_parser(
         "methods",

@@ -187,10 +187,9 @@ def load_results(
     return AnalysisInputs(folders, results, figures)
 
 
-def describe(results: pd.DataFrame) -> str:
-    """One line: how many results of which sequences a notebook is looking at."""
-    sequences = list(dict.fromkeys(results["sequence"]))
-    return f"{len(results)} results of {len(sequences)} sequence(s): {', '.join(sequences)}"
+def table(frame: pd.DataFrame, precision: int = 3) -> Any:
+    """A table as a notebook's page shows it: without pandas' row numbers, numbers rounded."""
+    return frame.style.hide(axis="index").format(precision=precision, na_rep="-")
 
 
 def sequence_of(results: pd.DataFrame, output_dir: PathLike) -> str:

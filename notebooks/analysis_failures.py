@@ -55,7 +55,6 @@ output_dirs, results, figures = notebook.load_results(
     ensure_methods,
     compute_missing=compute_missing,
 )
-print(notebook.describe(results))
 
 # %%
 runs, near_misses = [], []
@@ -82,13 +81,14 @@ near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
 
 # %%
 for _, sequence, _, failed in runs:
-    display(Markdown(f"## {sequence}"), failed)
+    display(Markdown(f"## {sequence}"), notebook.table(failed, precision=1))
 
 # %% [markdown]
 # The same pairs drawn query left, reference right, inlier matches green and outliers
 # red. Green lines on a false positive are matches that fit one epipolar geometry
 # although the places differ; a false negative with few green lines is a true pair whose
-# images the method found little to match in.
+# images the method found little to match in. Shown as JPEG; each figure's full-size PNG,
+# `false_positives_<sequence>_<method>.png` or `false_negatives_...`, is in `output_dir`.
 
 # %%
 for folder, sequence, image_root, failed in runs:
@@ -103,7 +103,8 @@ for folder, sequence, image_root, failed in runs:
             title=f"{sequence} / {method}: top {what}s",
         )
         plots.save(figure, figures / f"{kind}s_{sequence}_{method}.png")
-        plt.show()
+        display(failures.jpeg_view(figure))
+        plt.close(figure)
 
 # %% [markdown]
 # False positives `near_low` to `near_high` frames from the query among each method's
@@ -112,4 +113,4 @@ for folder, sequence, image_root, failed in runs:
 # pairs means near misses crowd the top of the ranking.
 
 # %%
-display(near_misses)
+display(notebook.table(near_misses, precision=2))

@@ -45,7 +45,6 @@ output_dirs, results, figures = notebook.load_results(
     ensure_methods,
     compute_missing=compute_missing,
 )
-print(notebook.describe(results))
 
 # %%
 # (sequence, {method: pairs table}) of every output folder
@@ -57,9 +56,11 @@ tables = [(notebook.sequence_of(results, folder), run_tables.load_pairs_tables(f
 # (`true_above_top_false`, which is MR) or not (`true_in_overlap`).
 
 # %%
-pd.concat(
-    [inlier_histograms.inlier_overlap_table(runs).assign(sequence=sequence) for sequence, runs in tables],
-    ignore_index=True,
+notebook.table(
+    pd.concat(
+        [inlier_histograms.inlier_overlap_table(runs).assign(sequence=sequence) for sequence, runs in tables],
+        ignore_index=True,
+    )
 )
 
 # %% [markdown]

@@ -51,7 +51,6 @@ output_dirs, results, figures = notebook.load_results(
     ensure_methods,
     compute_missing=compute_missing,
 )
-print(notebook.describe(results))
 
 # %% [markdown]
 # Ours beside the published values of the same protocol, in %, also written to
@@ -61,7 +60,6 @@ print(notebook.describe(results))
 # %%
 paper = results_table.load_paper_table(paper_table)
 repository = results_table.load_repository_table()
-print(f"paper's table: {len(paper)} rows" if len(paper) else "paper's table not found")
 joined = results_table.join_paper_table(results, paper, repository)
 wide = results_table.results_table(joined)
 joined.to_csv(figures / "results_with_paper.csv", index=False)
@@ -90,7 +88,7 @@ for table, source in ((paper, run_tables.PAPER_LABEL), (repository, run_tables.R
 
 # %%
 runtime = runtime_vs_mr.runtime_table(results)
-runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]
+notebook.table(runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]])
 
 # %% [markdown]
 # MR of every (method, profile) on each sequence: ours, and the published value where
@@ -99,10 +97,6 @@ runtime[["sequence", "profile", "method", "device", "seconds_per_pair", "fps"]]
 # changes most from one sequence to another.
 
 # %%
-figure = results_table.max_recall_radar(
-    joined,
-    title="max recall at 100% precision (ours: solid, paper profile / dash-dot, "
-    "repository profile; published: dashed, paper / dotted, GV-Bench repository)",
-)
+figure = results_table.max_recall_radar(joined)
 plots.save(figure, figures / "max_recall_radar.png")
 plt.show()

@@ -50,7 +50,6 @@ output_dirs, results, figures = notebook.load_results(
     ensure_methods,
     compute_missing=compute_missing,
 )
-print(notebook.describe(results))
 
 # %% [markdown]
 # One row a run: seconds per pair by stage and in total, FPS, and its MR and AP. The
@@ -58,7 +57,7 @@ print(notebook.describe(results))
 
 # %%
 runtime = runtime_vs_mr.runtime_table(results)
-display(runtime)
+display(notebook.table(runtime))
 
 # %% [markdown]
 # Each sequence's runs described for the captions below: device, profile and the image

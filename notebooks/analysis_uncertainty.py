@@ -49,7 +49,6 @@ output_dirs, results, figures = notebook.load_results(
     ensure_methods,
     compute_missing=compute_missing,
 )
-print(notebook.describe(results))
 
 # %%
 boots = []  # (sequence, bootstrap) of every output folder
@@ -70,7 +69,7 @@ intervals = pd.concat(
     ignore_index=True,
 )
 intervals.to_csv(figures / "bootstrap_intervals.csv", index=False)
-display(intervals)
+display(notebook.table(intervals))
 
 # %% [markdown]
 # The same intervals drawn, one row a method: the dot is the estimate on all queries,
@@ -97,5 +96,7 @@ for sequence, boot in boots:
         continue
     for metric in ("max_recall", "ap"):
         display(
-            Markdown(f"**{sequence}, {metric}**: row vs column"), boot.ranking_matrix(metric), boot.pairwise(metric)
+            Markdown(f"**{sequence}, {metric}**: row vs column"),
+            boot.ranking_matrix(metric),
+            notebook.table(boot.pairwise(metric)),
         )

@@ -266,7 +266,7 @@ def fetch(
 ) -> dict[str, int]:
     """Fetch datasets (default: the package manifest's) into ``to`` (default: :func:`data_dir`);
     returns how many files each dataset placed now (0: all were there and verified)."""
-    from tqdm import tqdm
+    from gvbench_nb.progress import progress_bar
 
     datasets = datasets if datasets is not None else load_manifest()[0]
     chosen = [get_dataset(name, datasets) for name in dict.fromkeys(names)]
@@ -282,7 +282,7 @@ def fetch(
     for dataset in chosen:
         count = 0
         folders_before = _folders_under(root / dataset.folder)
-        with tqdm(
+        with progress_bar(
             total=dataset.total_bytes,
             unit="B",
             unit_scale=True,
@@ -342,11 +342,12 @@ class ImageCheck:
 def check_images(root: Path, names: SequenceType[str], progress: bool = True) -> ImageCheck:
     """Every named image exists under ``root`` and decodes (OpenCV)."""
     import cv2
-    from tqdm import tqdm
+
+    from gvbench_nb.progress import progress_bar
 
     missing, undecodable = [], []
     present = 0
-    for name in tqdm(names, desc="images", unit="img", disable=not progress, file=sys.stderr):
+    for name in progress_bar(names, desc="images", unit="img", disable=not progress, file=sys.stderr):
         path = root / name
         if not path.is_file():
             missing.append(name)

@@ -95,7 +95,8 @@ def find_output_dirs(
 
 
 def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
-    """``results.csv`` of several output folders, one table (plus an ``output_dir`` column)."""
+    """``results.csv`` of several output folders, one table, plus an ``output_dir`` column and
+    ``limit``: the run's ``--limit`` (first N pairs of the pair file; None: every pair)."""
     frames = []
     for folder in output_dirs:
         path = Path(folder) / "results.csv"
@@ -106,7 +107,8 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
         frame = pd.read_csv(path)
         # Read only what a run published, unedited, from inputs unchanged since, on one set of pairs.
         scoring.readable_methods(folder, list(frame["method"]), tables=["results.csv"])
-        frames.append(frame.assign(output_dir=str(Path(folder))))
+        limits = [(load_run(folder, m).get("pairs") or {}).get("limit") for m in frame["method"]]
+        frames.append(frame.assign(output_dir=str(Path(folder)), limit=pd.Series(limits, dtype=object)))
     if not frames:
         raise ValueError("no output folders given: pass at least one folder holding results.csv")
     results = pd.concat(frames, ignore_index=True)

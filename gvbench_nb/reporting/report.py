@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import html
-import sys
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -45,8 +45,8 @@ KEY_FIGURES = (
 
 HELP = "run the analysis notebooks over finished sequences and write an HTML report"
 DESCRIPTION = """\
-Finds every sequence output folder with a results.csv under --outputs-root (or the ones named
-by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
+Reads the run folders named (each with a results.csv; without any, every such folder under
+--outputs-root, or the ones named by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
 histograms, failures, bootstrap uncertainty; the results table once across all sequences),
 converts them to HTML and writes <output-dir>/index.html: the combined results table (ours
 beside the paper's published values, labelled 'paper'), the key figures and links to every
@@ -55,6 +55,7 @@ notebook. Reads only written results: nothing is re-extracted or re-matched.
 EPILOG = """\
 examples:
   python -m gvbench_nb report
+  python -m gvbench_nb report outputs/sample outputs/gardens_point
   python -m gvbench_nb report --sequences sample,gardens_point --output-dir outputs/report
 """
 
@@ -67,8 +68,11 @@ class ExecutedNotebook:
     error: str | None = None
 
 
-def execute_and_convert(source: str, target: Path, parameters: dict, sequence: str = "") -> ExecutedNotebook:
-    """Execute one analysis notebook with papermill, then write its HTML beside it.
+def execute_and_convert(
+    source: str, target: Path, parameters: dict, sequence: str = "", index: Path | None = None
+) -> ExecutedNotebook:
+    """Execute one analysis notebook with papermill, then write its HTML beside it (linked back
+    to the report's ``index`` page when given).
 
     A failing notebook is still converted (its traceback is the useful part) and its
     error is returned rather than raised, so one sequence cannot sink the report.
@@ -82,16 +86,21 @@ def execute_and_convert(source: str, target: Path, parameters: dict, sequence: s
         error = f"{failure.ename}: {failure.evalue}"
     html_path = None
     if target.is_file():
-        body, _ = _offline_exporter().from_filename(str(target))
+        back = {"index_href": Path(os.path.relpath(index, target.parent)).as_posix()} if index else {}
+        body, _ = _offline_exporter().from_filename(str(target), resources=back)
         html_path = atomic_write_text(target.with_suffix(".html"), body)
     return ExecutedNotebook(sequence, target, html_path, error)
 
 
-# nbconvert's lab template, less require.js and MathJax: both come from a CDN, so offline the page
+# nbconvert's lab template, less require.js and MathJax, with a link back to the report's index: both come from a CDN, so offline the page
 # logs load errors, and the analysis notebooks have no widgets or LaTeX that need them.
 OFFLINE_TEMPLATE = """{%- extends 'lab/index.html.j2' -%}
 {%- block html_head_js -%}{%- endblock html_head_js -%}
 {%- block html_head_js_mathjax -%}{%- endblock html_head_js_mathjax -%}
+{%- block body_header -%}{{ super() }}
+{%- if resources.index_href %}<p class="jp-RenderedHTMLCommon report-index"><a href="{{ resources.index_href }}">
+the report's index</a></p>{% endif -%}
+{%- endblock body_header -%}
 """
 
 
@@ -131,7 +140,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         "img{max-width:100%;border:1px solid #eee;margin:6px 0}.error{color:#b00}</style></head><body>",
         "<h1>gvbench-nb: geometric verification report</h1>",
         f"<p>Generated {html.escape(_dt.datetime.now().isoformat(timespec='seconds'))} from "
-        f"{len(output_dirs)} sequence folder(s): " + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
+        f"{len(output_dirs)} run folder(s): " + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
         "<h2>AP and max recall at 100% precision (%)</h2>",
         f"<p>Bold: the best of its column. {paper_note}</p>",
         table_html,
@@ -165,11 +174,10 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         error = f" <span class='error'>failed: {html.escape(item.error)}</span>" if item.error else ""
         parts.append(f"<li>{link}{error}</li>")
     parts.append("</ul>")
-    for folder in output_dirs:
-        sequence = folder.name
-        figures = [report_dir / sequence / name.format(sequence=_sequence_name(folder)) for name in KEY_FIGURES]
+    for folder, name in page_folders(output_dirs).items():
+        figures = [report_dir / name / figure.format(sequence=_sequence_name(folder)) for figure in KEY_FIGURES]
         shown = [f for f in figures if f.is_file()]
-        intervals = report_dir / sequence / "bootstrap_intervals.csv"
+        intervals = report_dir / name / "bootstrap_intervals.csv"
         if shown or intervals.is_file():
             parts.append(f"<h2>{html.escape(_sequence_name(folder))}</h2>")
         if intervals.is_file():
@@ -186,6 +194,10 @@ def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
 
     sources = set(wide.columns.get_level_values("source"))
     notes = [f"One row a (method, profile); <b>{run_tables.OURS_LABEL}</b> columns are our runs, in that profile."]
+    if "pairs" in set(wide.columns.get_level_values("metric")):
+        notes.append(
+            "<b>pairs</b>: the pairs a run scored, all of its pair file or the first N (<code>--limit</code>)."
+        )
     if run_tables.PAPER_LABEL in sources:
         notes.append(
             f"Columns labelled <b>{run_tables.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
@@ -362,9 +374,15 @@ def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
     return parts
 
 
+def page_folders(output_dirs: list[Path]) -> dict[Path, str]:
+    """Each run folder's sub-folder of the report: its name, with its parent's where two share a name."""
+    names = [d.name for d in output_dirs]
+    return {d: d.name if names.count(d.name) == 1 else f"{d.parent.name}-{d.name}" for d in output_dirs}
+
+
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
-    from tqdm import tqdm
+    from gvbench_nb.progress import progress_bar
 
     report_dir = report_dir.resolve()
     report_dir.mkdir(parents=True, exist_ok=True)
@@ -378,8 +396,8 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
             "",
         )
     ]
-    for folder in output_dirs:
-        target_dir = report_dir / folder.name
+    for folder, folder_name in page_folders(output_dirs).items():
+        target_dir = report_dir / folder_name
         for name in PER_SEQUENCE_NOTEBOOKS:
             jobs.append(
                 (
@@ -391,39 +409,52 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
             )
     jobs += paper_jobs(report_dir, output_dirs) + study_jobs(report_dir, output_dirs)
     executed = []
-    for source, target, parameters, sequence in tqdm(jobs, desc="analysis notebooks", unit="nb"):
-        tqdm.write(f"executing {source} -> {target}")
-        item = execute_and_convert(source, target, parameters, sequence)
+    bar = progress_bar(jobs, desc="analysis notebooks", unit="nb")
+    for source, target, parameters, sequence in bar:
+        bar.write(f"executing {source} -> {target}")
+        item = execute_and_convert(source, target, parameters, sequence, index=report_dir / "index.html")
         if item.error:
-            tqdm.write(f"  failed: {item.error} (see {target})")
+            bar.write(f"  failed: {item.error} (see {target})")
         executed.append(item)
     index = atomic_write_text(report_dir / "index.html", summary_page(report_dir, output_dirs, executed))
     return index, executed
 
 
-def command_report(args: argparse.Namespace) -> int:
+def run_folders(args: argparse.Namespace) -> list[Path]:
+    """The run folders a ``report`` command line names: its OUTPUT_DIRs, else ``--outputs-root``
+    itself when it is a run folder, else the folders under it (``--sequences``: those only).
+    Raises ``ResultsError`` saying which folder holds no results.csv."""
     from gvbench_nb.evaluation import run_tables
-    from gvbench_nb.runner import scoring
+    from gvbench_nb.runner.method_outputs import ResultsError
 
+    example = "python -m gvbench_nb run params/sample.yaml writes one, outputs/sample"
+    if args.output_dirs:
+        absent = [d for d in args.output_dirs if not (Path(d) / "results.csv").is_file()]
+        if absent:
+            raise ResultsError(f"{', '.join(absent)} holds no results.csv: give the output folder of a run ({example})")
+        return [Path(d) for d in args.output_dirs]
     root = Path(args.outputs_root)
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
+    if not sequences and (root / "results.csv").is_file():
+        return [root]
     try:
-        output_dirs = run_tables.find_output_dirs(root, sequences)
+        folders = run_tables.find_output_dirs(root, sequences)
     except FileNotFoundError as error:
-        print(f"error: {error}", file=sys.stderr)
-        return 2
+        raise ResultsError(str(error)) from None
+    folders = [d for d in folders if d.resolve() != Path(args.output_dir).resolve()]
+    if not folders:
+        raise ResultsError(f"no run folder with a results.csv in or under {root} ({example})")
+    return folders
+
+
+def command_report(args: argparse.Namespace) -> int:
+    output_dirs = run_folders(args)
+    from gvbench_nb.runner import scoring
+
     report_dir = Path(args.output_dir)
-    output_dirs = [d for d in output_dirs if d.resolve() != report_dir.resolve()]
-    if not output_dirs:
-        print(
-            f"error: no sequence folder with a results.csv under {root}; run one first, e.g. "
-            "python -m gvbench_nb run params/sample.yaml",
-            file=sys.stderr,
-        )
-        return 2
     for folder in output_dirs:
         scoring.readable_methods(folder)  # what `results` refuses, the report refuses, before any file
-    print(f"report over {len(output_dirs)} sequence(s): {', '.join(d.name for d in output_dirs)} -> {report_dir}")
+    print(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]
     print(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
@@ -440,6 +471,13 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     parser.add_argument(
+        "output_dirs",
+        nargs="*",
+        metavar="OUTPUT_DIR",
+        help="run folders holding a results.csv, e.g. outputs/sample outputs/gardens_point "
+        "(default: every such folder under --outputs-root)",
+    )
+    parser.add_argument(
         "--output-dir",
         default=str(config.PROJECT_ROOT / "outputs" / "report"),
         help="where the executed notebooks, their HTML, figures and index.html go (default: outputs/report)",
@@ -452,6 +490,6 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--outputs-root",
         default=str(config.PROJECT_ROOT / "outputs"),
-        help="the folder holding the sequence output folders (default: outputs)",
+        help="a folder holding run folders, or a run folder itself (default: outputs)",
     )
     parser.set_defaults(handler=command_report)

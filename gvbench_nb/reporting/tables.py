@@ -1,8 +1,32 @@
-"""Tables as text for a terminal or a README."""
+"""Tables as text for a terminal or a README: ``python -m gvbench_nb results``."""
 
 from __future__ import annotations
 
+import argparse
+import json
+from pathlib import Path
 from typing import Any
+
+# Every column of `results --wide` and `--markdown` (the README's tables come from the latter).
+WIDE_COLUMNS = [
+    "method",
+    "paper_name",
+    "profile",
+    "n_pairs",
+    "n_positives",
+    "ap",
+    "ap_low",
+    "ap_high",
+    "max_recall",
+    "max_recall_low",
+    "max_recall_high",
+    "extract_seconds_per_pair",
+    "match_seconds_per_pair",
+    "verify_seconds_per_pair",
+    "seconds_per_pair",
+    "timers",
+    "pairs_digest",
+]
 
 
 def markdown_table(frame: Any) -> str:
@@ -12,3 +36,116 @@ def markdown_table(frame: Any) -> str:
     cell = lambda v: f"{v:.3f}" if isinstance(v, float) else str(v)
     rows = ["| " + " | ".join(cell(v) for v in row) + " |" for row in frame.itertuples(index=False)]
     return "\n".join([header, rule, *rows])
+
+
+def compact_table(results: Any) -> Any:
+    """The results in the columns a terminal of 100 fits: method, profile, pairs, AP and MR with
+    their 95 % intervals, seconds a pair (marked ``*`` where the timers are not all this run's)."""
+    import pandas as pd
+
+    def with_interval(metric: str) -> list[str]:
+        columns = zip(results[metric], results[f"{metric}_low"], results[f"{metric}_high"])
+        return [f"{value:.3f} [{low:.3f}, {high:.3f}]" for value, low, high in columns]
+
+    seconds = [
+        f"{s:.3f}" + ("" if t == "this run" else "*") for s, t in zip(results["seconds_per_pair"], results["timers"])
+    ]
+    return pd.DataFrame(
+        {
+            "method": results["method"],
+            "profile": results["profile"],
+            "n_pairs": results["n_pairs"],
+            "AP [95% CI]": with_interval("ap"),
+            "MR [95% CI]": with_interval("max_recall"),
+            "s/pair": seconds,
+        }
+    )
+
+
+def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> str:
+    """Lines above a folder's table: the sequence and the folder; when, and --limit; the machine and libraries."""
+    measured = [run for run in runs if "imported" not in run]  # imported scores say nothing of this machine
+    finished = max(run["finished_at"] for run in runs)
+    limits = sorted({int(limit) for run in runs if (limit := (run.get("pairs") or {}).get("limit")) is not None})
+    cut = f", the first {', '.join(map(str, limits))} pairs (--limit)" if limits else ""
+    machine = "imported scores only"
+    if measured:
+        env = measured[0]["environment"]
+        machine = (
+            f"device {env['device']} ({env['device_name']}, {env['cpu_count']} cores), "
+            f"torch {env['torch']}, kornia {env['kornia']}, opencv {env['opencv']}"
+        )
+    return f"{results['sequence'].iloc[0]} in {folder}\nruns finished {finished}{cut}\n{machine}\n"
+
+
+def command_results(args: argparse.Namespace) -> int:
+    from gvbench_nb.evaluation import intervals
+    from gvbench_nb.runner import method_outputs, record, scoring
+
+    for folder in map(Path, args.output_dirs):
+        finished_methods = scoring.readable_methods(folder)
+        unfinished = method_outputs.unfinished_methods(folder)
+        results = scoring.evaluate(folder, finished_methods, write=False)
+        pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
+        results = results.join(intervals.interval_columns(pair_tables), on="method")
+        runs = [json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
+        print(results_header(folder, results, runs))
+        if args.markdown:
+            print(markdown_table(results[WIDE_COLUMNS]))
+        else:
+            table = results[WIDE_COLUMNS] if args.wide else compact_table(results)
+            print(table.to_string(index=False, float_format="%.3f"))
+        print(
+            f"\n{'*_low, *_high' if args.markdown or args.wide else 'CI'}: 95 % bootstrap interval over "
+            f"{results['interval_unit'].iloc[0]} resamples (`compare` ranks the methods pairwise)"
+        )
+        reused = results.loc[results["timers"] != "this run", ["method", "timers"]]
+        if len(reused) and not (args.markdown or args.wide):
+            print(
+                "*: seconds from the cache, the runs' that computed them: "
+                + ", ".join(f"{m} ({t})" for m, t in zip(reused["method"], reused["timers"]))
+            )
+        print()
+        holder = record.running(folder)
+        if holder:
+            print(
+                f"note: a run (pid {holder.get('pid')}, started {holder.get('started_at')}) is writing {folder} now; "
+                "the rows above are the results published before it\n"
+            )
+        for method, why in unfinished.items():
+            print(f"not finished: {method}: {why}")
+        if args.export == "npy":
+            from gvbench_nb.runner import score_files
+
+            for method in results["method"]:
+                print(f"{method}: {score_files.export_npy(folder, method)}")
+        if args.all_methods:
+            others = not_run_table(set(results["method"]))
+            if len(others):
+                print(f"registered methods without results in {folder}:\n")
+                print(markdown_table(others) if args.markdown else others.to_string(index=False))
+                print()
+    return 0
+
+
+def not_run_table(ran: set[str]) -> Any:
+    """Registered methods that have no results: why, and the files a user needs to run them."""
+    import pandas as pd
+
+    from gvbench_nb import methods
+    from gvbench_nb.protocol import weights
+
+    rows = []
+    for row in methods.method_table():
+        if row["method"] in ran:
+            continue
+        missing = [c for c in methods.required_checkpoints(row["method"]) if not weights.is_present(c)]
+        needs = "; ".join(f"`{weights.get(c).file}` from {weights.get(c).urls[0]}" for c in missing)
+        rows.append(
+            {
+                "method": row["method"],
+                "paper_name": row["paper_name"],
+                "status": f"not run here: needs {needs}" if missing else "weights present, not run",
+            }
+        )
+    return pd.DataFrame(rows, columns=["method", "paper_name", "status"])

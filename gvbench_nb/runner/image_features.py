@@ -11,10 +11,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.progress import progress_bar
 from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,
@@ -41,6 +41,11 @@ _content_keys: dict[tuple[str, int, int, int, int], str] = {}
 
 
 _content_keys_lock = threading.Lock()
+
+
+# run id -> (store folder, key) of every image that run extracted in this process: a later method
+# of the same run that finds them cached is served by this run's own work, timed by this run.
+_extracted_by_run: dict[str, set[tuple[str, str]]] = {}
 
 
 def content_key(path: str | os.PathLike[str]) -> str:
@@ -114,10 +119,12 @@ def extract_features(
     flush_every: int = 16,
     images: list[str] | None = None,
     workers: int | None = None,
+    run_id: str | None = None,
 ) -> dict[str, int]:
     """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
     not yet in the cache, ``workers`` images at a time (default ``worker_count()``).
-    Returns counts."""
+    Returns counts; ``cached_by_this_run`` (only when there are any): cached images that run
+    ``run_id`` extracted itself, for another method, in this process."""
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
     wanted: dict[str, str] = {}
@@ -129,7 +136,11 @@ def extract_features(
                 f"{error} (image {name!r} of sequence {sequence.name!r}, {first_pair_using(sequence, name)})"
             ) from None
     todo = [key for key in wanted if key not in store]
+    ours = _extracted_by_run.setdefault(run_id, set()) if run_id else set()
+    earlier = len(ours & {(str(store.folder), key) for key in wanted}) if ours else 0
     counts = {"images": len(wanted), "cached": len(wanted) - len(todo), "extracted": 0}
+    if earlier:
+        counts["cached_by_this_run"] = earlier
     if not todo:
         return counts
     from gvbench_nb.protocol.features import build_extractor
@@ -163,7 +174,7 @@ def extract_features(
         )
     else:
         results = concurrency.prefetch(todo, lambda key: extract(load(key)), depth=2 * workers, workers=workers)
-    bar = tqdm(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
+    bar = progress_bar(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
     with store.writer(flush_every) as writer:
         for key, extracted in results:
             if isinstance(extracted, ImageReadError):
@@ -175,6 +186,7 @@ def extract_features(
                 raise extracted
             features, seconds = extracted
             writer.put(key, features, {"seconds": seconds})
+            ours.add((str(store.folder), key))
             counts["extracted"] += 1
             bar.update()
     bar.close()

@@ -129,7 +129,13 @@ def compute_method(
     started = time.perf_counter()
     extraction = (
         image_features.extract_features(
-            sequence, conf["extractor"], cache_dir, resolved_device, progress, workers=workers
+            sequence,
+            conf["extractor"],
+            cache_dir,
+            resolved_device,
+            progress,
+            workers=workers,
+            run_id=record.stage_run_id(output_dir),
         )
         if conf["extractor"]
         else {"images": 0, "cached": 0, "extracted": 0}

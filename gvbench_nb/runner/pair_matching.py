@@ -15,10 +15,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
-from tqdm import tqdm
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.progress import progress_bar
 from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,
@@ -237,7 +237,7 @@ def match_and_verify(
         return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
     workers = concurrency.worker_count(workers)
-    bar = tqdm(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+    bar = progress_bar(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
     with matches.writer(flush_every) as writer:
         if workers == 1:
             # Matching runs one pair ahead in a worker thread while this thread verifies
@@ -424,7 +424,7 @@ def _match_dense_pairs(
 
     def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:
         """Each pair's points in original pixels, both images' original sizes, scores, seconds."""
-        bar = tqdm(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+        bar = progress_bar(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
         for pair, loaded in concurrency.prefetch(pairs, load_pair):
             if isinstance(loaded, BaseException):
                 raise ImageReadError(f"{loaded} (pair {pair.query} {pair.reference} of {sequence.name!r})") from loaded

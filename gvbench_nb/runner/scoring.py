@@ -77,13 +77,14 @@ def methods_with_results(output_dir: Path) -> list[str]:
 
 
 def timers_source(run: dict[str, Any]) -> str:
-    """Whose timers a method's seconds are: ``this run`` (it computed every image and pair),
-    ``cached`` (every one came from the cache: the seconds are those of the runs that computed
-    them) or ``partly cached``."""
+    """Whose timers a method's seconds are: ``this run`` (it computed every image and pair, or
+    another method of the same run extracted the images it shares), ``cached`` (every one came
+    from the cache: the seconds are those of the runs that computed them) or ``partly cached``."""
     this_run = run.get("this_run", {})
     extraction, matching = this_run.get("extraction", {}), this_run.get("matching", {})
-    reused = extraction.get("cached", 0) + matching.get("cached", 0)
-    computed = extraction.get("extracted", 0) + matching.get("matched", 0)
+    earlier = extraction.get("cached_by_this_run", 0)
+    reused = extraction.get("cached", 0) - earlier + matching.get("cached", 0)
+    computed = extraction.get("extracted", 0) + earlier + matching.get("matched", 0)
     if not reused:
         return "this run"
     return "cached" if not computed else "partly cached"

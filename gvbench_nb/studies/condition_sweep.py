@@ -35,13 +35,13 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.progress import progress_bar
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import read_image
 from gvbench_nb.protocol.metrics import evaluate_scores
@@ -343,7 +343,7 @@ def run_sweep(
 
     # One run a query folder: strength 0 is a single clear run whose rows serve every condition.
     cells = [(0.0, conditions)] + [(s, [c]) for c in conditions for s in strengths if s > 0.0]
-    bar = tqdm(total=len(cells) * len(profiles), desc="condition sweep", unit="cell", disable=not progress)
+    bar = progress_bar(total=len(cells) * len(profiles), desc="condition sweep", unit="cell", disable=not progress)
     for strength, targets in cells:
         for method, method_profile in profiles.items():
             wanted = [c for c in targets if (c, strength, method, method_profile) not in finished]

@@ -215,8 +215,10 @@ def pair_views(
 class ExploreControls:
     """The notebook's controls: ``pick``, ``pair_index``, ``pick_rank``, ``pick_method`` and the
     methods shown. Any change chooses the pair again and redraws every view (``draw(index,
-    methods)`` returns them, ``VIEWS``) into its own output area; the ``pair_index`` box follows
-    the pair a pick chose, and typing an index switches ``pick`` to 'index'."""
+    methods)`` returns them, ``VIEWS``) into its own output area, the status saying so while it
+    draws; the ``pair_index`` box follows the pair a pick chose, and typing an index switches
+    ``pick`` to 'index'. ``pick_method`` offers the methods shown; a choice that names no pair (an
+    index out of range, a rank beyond the method's pairs) is said in the status, the views cleared."""
 
     def __init__(
         self,
@@ -233,17 +235,20 @@ class ExploreControls:
         self.tables = tables
         self.draw = draw
         names = list(tables)
-        self.pick = widgets.Dropdown(options=list(PICKS), value=pick, description="pick")
-        self.pair_index = widgets.BoundedIntText(
-            value=pair_index, min=0, max=len(next(iter(tables.values()))) - 1, description="pair_index"
-        )
-        self.pick_rank = widgets.BoundedIntText(value=pick_rank, min=1, max=100_000, description="pick_rank")
-        self.pick_method = widgets.Dropdown(options=names, value=pick_method or names[0], description="pick_method")
+        shown = list(methods or names)
+        fit = {"style": {"description_width": "initial"}}  # labels whole, not cut to 'pick_met...'
+        self.pick = widgets.Dropdown(options=list(PICKS), value=pick, description="pick", **fit)
+        # Unbounded: an index out of range is said, not silently clamped to the last pair.
+        self.pair_index = widgets.IntText(value=pair_index, description="pair_index", **fit)
+        self.pick_rank = widgets.BoundedIntText(value=pick_rank, min=1, max=100_000, description="pick_rank", **fit)
+        ranked_by = pick_method if pick_method in shown else shown[0]
+        self.pick_method = widgets.Dropdown(options=shown, value=ranked_by, description="pick_method", **fit)
         self.methods = widgets.SelectMultiple(
-            options=names, value=tuple(methods or names), rows=min(8, len(names)), description="methods"
+            options=names, value=tuple(shown), rows=min(8, len(names)), description="methods", **fit
         )
         self.status = widgets.HTML()
         self.areas = {name: widgets.Output() for name in VIEWS}
+        self.areas["table"].layout = widgets.Layout(overflow="auto")  # a wide table scrolls inside the cell
         # CSS classes name each control and view on the page (what a browser test finds them by).
         for name, box in (
             ("pick", self.pick),
@@ -256,9 +261,10 @@ class ExploreControls:
         ):
             box.add_class(f"gvbench-{name}")
         self.drawn: dict[str, Any] = {}  # the views last drawn, by name
-        self._following = False  # set while the pair_index box follows a pick, so it draws once
-        for box in (self.pick, self.pick_rank, self.pick_method, self.methods):
+        self._following = False  # set while a box follows another choice, so that it draws once
+        for box in (self.pick, self.pick_rank, self.pick_method):
             box.observe(self.redraw, names="value")
+        self.methods.observe(self._methods_chosen, names="value")
         self.pair_index.observe(self._index_typed, names="value")
 
     def widget(self) -> Any:
@@ -274,7 +280,19 @@ class ExploreControls:
         )
 
     def shown_methods(self) -> list[str]:
+        """The methods selected; none selected means all of them (the status says so)."""
         return list(self.methods.value) or list(self.tables)
+
+    def _methods_chosen(self, _change: Any = None) -> None:
+        shown = self.shown_methods()
+        self._following = True
+        try:
+            kept = self.pick_method.value if self.pick_method.value in shown else shown[0]
+            self.pick_method.options = shown
+            self.pick_method.value = kept
+        finally:
+            self._following = False
+        self.redraw()
 
     def _index_typed(self, _change: Any = None) -> None:
         if self._following:
@@ -284,18 +302,26 @@ class ExploreControls:
         else:
             self.redraw()
 
-    def redraw(self, _change: Any = None) -> None:
+    def _say(self, text: str) -> None:
         import html
 
+        self.status.value = html.escape(text)
+
+    def _clear_views(self) -> None:
+        self.drawn = {}
+        for area in self.areas.values():
+            area.clear_output()
+
+    def redraw(self, _change: Any = None) -> None:
+        if self._following:
+            return
         shown = {method: self.tables[method] for method in self.shown_methods()}
         ranked_by = self.pick_method.value
-        if self.pick.value != "index" and ranked_by not in shown:
-            self.status.value = html.escape(f"pick_method {ranked_by} is not among the methods shown: select it too")
-            return
         try:
             index = choose_pair(shown, self.pick.value, self.pair_index.value, ranked_by, self.pick_rank.value)
         except ValueError as error:
-            self.status.value = html.escape(str(error))
+            self._clear_views()  # no figure of an earlier choice stays under the message
+            self._say(str(error))
             return
         if self.pair_index.value != index:
             self._following = True
@@ -303,6 +329,7 @@ class ExploreControls:
                 self.pair_index.value = index
             finally:
                 self._following = False
+        self._say(f"drawing pair {index} for {', '.join(shown)}...")
         self.drawn = self.draw(index, list(shown))
         from IPython.display import display
 
@@ -312,7 +339,8 @@ class ExploreControls:
             with area:
                 display(self.drawn[name])
         # Last, naming every control: once it reads so, every view shows that choice.
-        self.status.value = html.escape(
+        everything = "" if self.methods.value else " (none selected: all shown)"
+        self._say(
             f"pair {index}: pick {self.pick.value}, pick_method {ranked_by}, pick_rank {self.pick_rank.value}; "
-            f"methods {', '.join(shown)}"
+            f"methods {', '.join(shown)}{everything}"
         )

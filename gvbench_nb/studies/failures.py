@@ -144,3 +144,15 @@ def failure_pairs(
         figure.suptitle(title)
     figure.tight_layout()
     return figure
+
+
+def jpeg_view(figure: plt.Figure, dpi: int = 80, quality: int = 80) -> Any:
+    """The figure as a JPEG for a notebook's page: photographs drawn into a PNG take over a megabyte
+    a figure, which makes a page of a dozen pairs too heavy to open (the PNG saved beside it is full size)."""
+    import io
+
+    from IPython.display import Image
+
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="jpeg", dpi=dpi, bbox_inches="tight", pil_kwargs={"quality": quality})
+    return Image(data=buffer.getvalue(), format="jpeg")

@@ -86,6 +86,9 @@ def join_paper_table(
             f"the same (sequence, profile, method) appears more than once: {runs}; pass only one output folder for each"
         )
     ours = results[["method", "profile", "sequence", *run_tables.METRICS]].copy()
+    if "n_pairs" in results:
+        limits = results["limit"] if "limit" in results else [None] * len(results)
+        ours["pairs"] = [pairs_text(n, limit) for n, limit in zip(results["n_pairs"], limits)]
     ours["paper_name"] = ours["method"].map(method_registry.paper_name)
     ours["source"] = run_tables.OURS_LABEL
     ran = set(zip(ours["method"], ours["sequence"], ours["profile"]))
@@ -100,14 +103,22 @@ def join_paper_table(
         keep = np.array([(m, s, profile) in ran for m, s in zip(table["method"], table["sequence"])], dtype=bool)
         frames.append(table[keep].assign(source=source, profile=profile))
     columns = ["method", "paper_name", "profile", "sequence", "source", *run_tables.METRICS]
-    joined = pd.concat([f[columns] for f in frames], ignore_index=True)
+    columns += ["pairs"] if "pairs" in ours else []
+    joined = pd.concat([f.reindex(columns=columns) for f in frames], ignore_index=True)
     joined["label"] = [source_label(src, prof) for src, prof in zip(joined["source"], joined["profile"])]
     return joined
 
 
+def pairs_text(n_pairs: int, limit: int | None) -> str:
+    """How many pairs a run scored, and whether ``--limit`` cut the pair file: '240 (all)', '24 (--limit)'."""
+    cut = limit is not None and not pd.isna(limit)
+    return f"{int(n_pairs)} ({'--limit' if cut else 'all'})"
+
+
 def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.METRICS) -> pd.DataFrame:
     """Wide table: one row a (method, profile); columns (sequence, metric, source), ours beside
-    the published values of the same protocol.
+    the published values of the same protocol, and (sequence, 'pairs', ours) where ``joined``
+    has our runs' ``pairs`` (``pairs_text``).
 
     Rows, sequences keep first-seen order; a published column exists only where it has values.
     """
@@ -118,7 +129,18 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.
     sequence_order = list(dict.fromkeys(joined["sequence"]))
     row_order = [r for r in dict.fromkeys(zip(joined["method"], joined["profile"])) if r in wide.index]
     source_order = [run_tables.OURS_LABEL, run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL]
-    keys = [(s, m, src) for s in sequence_order for m in metrics for src in source_order if (s, m, src) in wide.columns]
+    if "pairs" in joined:
+        ours = joined[joined["source"] == run_tables.OURS_LABEL]
+        pairs = ours.pivot_table(index=["method", "profile"], columns="sequence", values="pairs", aggfunc="first")
+        for sequence in pairs.columns:
+            wide[(sequence, "pairs", run_tables.OURS_LABEL)] = pairs[sequence]
+    keys = [
+        (s, m, src)
+        for s in sequence_order
+        for m in ["pairs", *metrics]
+        for src in source_order
+        if (s, m, src) in wide.columns
+    ]
     wide = wide.loc[row_order, keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     wide.index = pd.MultiIndex.from_tuples(
@@ -149,10 +171,16 @@ def paper_reference_table(
     return wide
 
 
+def metric_columns(wide: pd.DataFrame) -> list[tuple]:
+    """The wide table's AP and MR columns (not its 'pairs' ones)."""
+    return [c for c in wide.columns if c[1] in run_tables.METRICS]
+
+
 def style_results_table(wide: pd.DataFrame) -> Any:
     """The wide table as a pandas Styler: values in %, each column's best in bold,
     the published columns (paper, GV-Bench repository) in grey italics."""
-    best = run_tables.best_per_column(wide)
+    metrics = metric_columns(wide)
+    best = run_tables.best_per_column(wide[metrics]).reindex(columns=wide.columns, fill_value=False)
 
     def css(_: pd.DataFrame) -> pd.DataFrame:
         styles = pd.DataFrame("", index=wide.index, columns=wide.columns)
@@ -162,13 +190,19 @@ def style_results_table(wide: pd.DataFrame) -> Any:
             styles[column] = [base + ("font-weight: bold;" if b else "") for b in best[column]]
         return styles
 
-    return wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}").apply(css, axis=None)
+    return wide.style.format(_percent, subset=metrics).apply(css, axis=None)
+
+
+def _percent(value: float) -> str:
+    return "-" if pd.isna(value) else f"{100 * value:.1f}"
 
 
 def text_results_table(wide: pd.DataFrame) -> pd.DataFrame:
     """The wide table as strings in %, the best of each column marked with ``*``."""
-    best = run_tables.best_per_column(wide)
-    text = wide.map(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}")
+    metrics = metric_columns(wide)
+    best = run_tables.best_per_column(wide[metrics]).reindex(columns=wide.columns, fill_value=False)
+    text = wide.astype(object).where(wide.notna(), "-")
+    text[metrics] = wide[metrics].map(_percent)
     return text.where(~best, text + "*")
 
 
@@ -191,21 +225,22 @@ def _line_style(source: str, profile: str) -> dict:
 
 
 def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
-    """MR of every (method, profile) across sequences (the paper's Fig. 1): ours solid (the
+    """MR in % of every (method, profile) across sequences (the paper's Fig. 1): ours solid (the
     repository profile dash-dotted), the paper's dashed, the GV-Bench repository's dotted;
-    every line's label names its source and profile.
+    every line's label names its source and profile. The title names only what is drawn.
 
     A radar needs three sequences or more; with fewer the same values are drawn as bars.
     """
     sequences = list(dict.fromkeys(joined["sequence"]))
     methods = list(dict.fromkeys(joined["method"]))
     colours = plots.method_colours(methods)
+    title = title or "max recall at 100% precision (%)"
     if len(sequences) < 3:
         return _max_recall_bars(joined, sequences, methods, colours, title)
     angles = np.linspace(0, 2 * np.pi, len(sequences), endpoint=False)
     figure, axis = plt.subplots(figsize=(6.5, 6.5), subplot_kw={"projection": "polar"})
     for (method, profile, source), group in joined.groupby(["method", "profile", "source"], sort=False):
-        values = group.set_index("sequence")["max_recall"].reindex(sequences).to_numpy(dtype=float)
+        values = 100 * group.set_index("sequence")["max_recall"].reindex(sequences).to_numpy(dtype=float)
         if np.isnan(values).all():
             continue
         closed = np.r_[values, values[:1]]
@@ -219,8 +254,8 @@ def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
             **_line_style(source, profile),
         )
     axis.set_xticks(angles, sequences)
-    axis.set_ylim(0, max(0.05, float(np.nanmax(joined["max_recall"])) * 1.1))
-    axis.set_title(title or "max recall at 100% precision across sequences", pad=20)
+    axis.set_ylim(0, max(5.0, 110 * float(np.nanmax(joined["max_recall"]))))
+    axis.set_title(title, pad=20)
     axis.legend(loc="upper left", bbox_to_anchor=(1.05, 1.0), fontsize=8)
     return figure
 
@@ -228,7 +263,7 @@ def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
 def _max_recall_bars(
     joined: pd.DataFrame, sequences: list[str], methods: list[str], colours: dict, title: str
 ) -> plt.Figure:
-    """One bar a (method, profile, source) and sequence, each labelled with its source and profile."""
+    """One bar a (method, profile, source) and sequence, in %, each labelled with its source and profile."""
     rows = list(dict.fromkeys(zip(joined["method"], joined["profile"], joined["source"])))
     figure, axes = plt.subplots(
         1, len(sequences), figsize=(4.5 * len(sequences), 0.4 * len(rows) + 2), squeeze=False, sharex=True
@@ -239,9 +274,10 @@ def _max_recall_bars(
             value = data[(data.method == method) & (data.profile == profile) & (data.source == source)]["max_recall"]
             if value.empty:
                 continue
+            percent = 100 * float(value.iloc[0])
             axis.barh(
                 row,
-                value.iloc[0],
+                percent,
                 height=0.8,
                 color=colours[method],
                 hatch=None if source == run_tables.OURS_LABEL else "//",
@@ -249,12 +285,11 @@ def _max_recall_bars(
                 edgecolor="black",
                 linewidth=0.4,
             )
-            axis.text(value.iloc[0], row, f" {100 * value.iloc[0]:.1f}%", va="center", fontsize=7)
+            axis.text(percent, row, f" {percent:.1f}%", va="center", fontsize=7)
         axis.set_yticks(range(len(rows)), [f"{m} ({source_label(src, p)})" for m, p, src in rows], fontsize=7)
         axis.invert_yaxis()
-        axis.set(title=sequence, xlabel="max recall at 100% precision", xlim=(0, 1.15))
-    figure.suptitle(
-        (title + "\n" if title else "") + "(a radar needs 3+ sequences: bars; hatched: published)", fontsize=10
-    )
+        axis.set(title=sequence, xlabel="max recall at 100% precision (%)", xlim=(0, 115))
+    published = (joined["source"] != run_tables.OURS_LABEL).any()
+    figure.suptitle(title + ("; hatched: published values" if published else ""), fontsize=10)
     figure.tight_layout()
     return figure

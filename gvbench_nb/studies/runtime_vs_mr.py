@@ -12,7 +12,7 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from matplotlib.ticker import NullFormatter, ScalarFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter, PercentFormatter
 
 from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.runner import image_features, scoring
@@ -149,11 +149,14 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     middle = np.sqrt(low * high)
     span = max(np.sqrt(high / low) * 1.5, np.sqrt(10))
     axis.set_xlim(middle / span, middle * span)
-    axis.xaxis.set_major_formatter(ScalarFormatter())
+    # Ticks at 1, 2 and 5 of every decade, written as plain numbers: at least three on the axis.
+    axis.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
+    axis.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
     axis.xaxis.set_minor_formatter(NullFormatter())
+    axis.yaxis.set_major_formatter(PercentFormatter(xmax=1))
     axis.set(
         xlabel="FPS (pairs a second, 1 / seconds per pair; log scale)",
-        ylabel="max recall at 100% precision",
+        ylabel="max recall at 100% precision (%)",
         ylim=(-0.02, max(0.1, float(runtime["max_recall"].max()) * 1.2)),
     )
     axis.grid(alpha=0.3, which="both")

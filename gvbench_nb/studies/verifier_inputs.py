@@ -15,10 +15,10 @@ from typing import Any
 import cv2
 import numpy as np
 import pandas as pd
-from tqdm import tqdm
 
 from gvbench_nb.data.sequences import frame_index
 from gvbench_nb.evaluation import run_tables
+from gvbench_nb.progress import progress_bar
 from gvbench_nb.protocol.ransac import filter_and_fit
 from gvbench_nb.runner import image_features, pair_matching, scoring
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
@@ -280,7 +280,7 @@ def gv_feature_table(
     """``gv_features`` of every pair (query, reference order kept), fitting once a pair with its run seed."""
     rows = []
     desc = f"{MODEL_SHORT_NAMES[conf['model']]}-{ESTIMATOR_SHORT_NAMES[conf['estimator']]}"
-    for query, reference in tqdm(
+    for query, reference in progress_bar(
         zip(pairs["query"], pairs["reference"]),
         total=len(pairs),
         desc=desc,
@@ -332,7 +332,7 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
     from gvbench_nb.verification.doppelgangers import build_input
 
     inputs = []
-    for query, reference in tqdm(
+    for query, reference in progress_bar(
         zip(pairs["query"], pairs["reference"]),
         total=len(pairs),
         desc=f"doppelgangers inputs {size}px",

@@ -171,6 +171,16 @@ def test_explore_in_jupyterlab_redraws_every_view_and_leaves_the_sources_clean(
                     assert page.locator(".gvbench-pair-index input").input_value() == str(index)
                     if pick == "false_negative":
                         page.screenshot(path=str(tmp_path / f"explore_{pick}_{method}.png"), full_page=True)
+            # An index out of range is said and kept, not clamped; no figure stays under the message.
+            box = page.locator(".gvbench-pair-index input")
+            box.fill("9999")
+            box.press("Enter")
+            status.get_by_text(re.compile(r"0 to \d+, got 9999")).wait_for()
+            assert box.input_value() == "9999" and page.locator(".gvbench-view-matches img").count() == 0
+            # Every control's label is whole (not cut to 'pick_met...').
+            for label in page.locator(".widget-label").all():
+                assert label.evaluate("l => l.scrollWidth <= l.clientWidth"), label.inner_text()
+            box.evaluate("b => b.blur()")  # a widget's text box keeps its keys from JupyterLab's shortcuts
             page.keyboard.press("Control+s")
             page.wait_for_timeout(2000)
         except Exception:

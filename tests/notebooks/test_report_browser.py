@@ -91,9 +91,17 @@ def report_index(chromium, tmp_path_factory) -> Path:
     return root / "report" / "index.html"
 
 
+# Lines a page must not hold: notebook bookkeeping printed into the report, and numbers unrounded.
+STRAY = re.compile(r"\d+ results of \d+ sequence|paper's table: \d+ rows|\d\.\d{5,}")
+MAX_PAGE_BYTES = 2_000_000
+
+
 def check_page(browser, url: str) -> tuple[object, list[str]]:
-    """Open a page; assert its images loaded, its anchors exist and nothing logged an error.
-    Returns the page (still open) and the local files its links point to."""
+    """Open a page; assert it is under 2 MB, its images loaded, its anchors exist, it holds no
+    stray printout and nothing logged an error. Returns the page (still open) and the local
+    files its links point to."""
+    size = Path(unquote(urlparse(url).path)).stat().st_size
+    assert size < MAX_PAGE_BYTES, f"{url}: {size:,} bytes"
     page = browser.new_page()
     errors: list[str] = []
     page.on("console", lambda message: errors.append(message.text) if message.type == "error" else None)
@@ -119,6 +127,8 @@ def check_page(browser, url: str) -> tuple[object, list[str]]:
         elif path.suffix == ".html":
             targets.append(path)
     assert errors == [], f"{url}: console errors"
+    text = page.evaluate("document.body.innerText")
+    assert not STRAY.search(text), f"{url}: stray line {STRAY.search(text).group(0)!r}"
     return page, targets
 
 
@@ -152,6 +162,10 @@ def check_report(browser, index: Path) -> None:
     for table in tables:
         assert "profile" in table["headers"], table["headers"]
         assert table["rows"] and all(PROFILE in row for row in table["rows"]), table["rows"]
+    # Each row of the results table says how many pairs it has, and whether --limit cut them.
+    rows = tables[0]["rows"]
+    assert "pairs" in tables[0]["headers"] and all(f"{LIMIT} (--limit)" in row or "240 (all)" in row for row in rows)
+    assert any(f"{LIMIT} (--limit)" in row for row in rows) and any("240 (all)" in row for row in rows)
     page.close()
     # The notebooks it links to: those across sequences, each sequence's own and the studies'
     # pages whose inputs exist: the verifiers and Doppelgangers where the sample's were compared,
@@ -165,6 +179,11 @@ def check_report(browser, index: Path) -> None:
         # Outputs only: no code cell's source is on the page.
         assert notebook_page.locator(".jp-InputArea-editor").count() == 0, target
         assert notebook_page.locator(".jp-OutputArea").count() > 0, target
+        # Every page leads back to the index; no table shows pandas' index column.
+        back = notebook_page.evaluate("[...document.querySelectorAll('a[href]')].map(a => a.href)")
+        assert index.as_uri() in back, f"{target}: no link back to the index"
+        row_numbers = "[...document.querySelectorAll('tbody tr:first-child > th:first-child')].map(c => c.innerText)"
+        assert "0" not in [text.strip() for text in notebook_page.evaluate(row_numbers)], f"{target}: row numbers"
         notebook_page.close()
 
 

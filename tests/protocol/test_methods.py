@@ -59,7 +59,7 @@ def test_missing_weights_fail_before_any_work(empty_hub, tmp_path):
 
 
 def test_results_lists_every_method_without_results_with_the_files_it_needs(empty_hub):
-    from gvbench_nb.cli import not_run_table
+    from gvbench_nb.reporting.tables import not_run_table
 
     table = not_run_table({"sift-nn", "disk-nn"}).set_index("method")
     assert set(table.index) == set(methods.method_names()) - {"sift-nn", "disk-nn"}

@@ -502,3 +502,17 @@ def test_a_nul_byte_in_a_params_path_is_refused_naming_the_key(tmp_path):
     path = write_params(tmp_path, output_dir="out\0put")
     with pytest.raises(config.ParamsError, match=f"{path}: output_dir holds a NUL byte"):
         config.load_params(path)
+
+
+@pytest.mark.parametrize(
+    ("argv", "hint"),
+    [
+        (["rn", "params/sample.yaml"], "invalid choice: 'rn'; did you mean 'run'?"),
+        (["data", "fech", "gardens_point"], "invalid choice: 'fech'; did you mean 'fetch'?"),
+        (["build", "p.yaml", "--descriptor", "vald"], "invalid choice: 'vald'; did you mean 'vlad'?"),
+    ],
+)
+def test_a_mistyped_command_or_choice_gets_a_did_you_mean(argv, hint, capsys):
+    with pytest.raises(SystemExit) as stopped:
+        cli.main(argv)
+    assert stopped.value.code == 2 and hint in capsys.readouterr().err

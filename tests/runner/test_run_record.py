@@ -27,6 +27,7 @@ from gvbench_nb import cli, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.protocol.metrics import evaluate_scores
+from gvbench_nb.reporting import tables
 from gvbench_nb.runner import config, method_outputs, method_runs, record, scoring
 
 pytestmark = pytest.mark.reliability
@@ -363,6 +364,52 @@ def test_a_rerun_served_from_the_cache_says_its_timers_are_the_earlier_runs(tmp_
     other = params_file(tmp_path, "demo.yaml", output_dir=str(tmp_path / "demo"))
     assert run_cli(capsys, "run", str(other))[0] == 0
     assert pd.read_csv(tmp_path / "demo" / "results.csv")["timers"].tolist() == ["partly cached"]
+
+
+def test_results_fits_100_columns_and_shows_every_column_when_wide(tmp_path, root, capsys, notebooks_here):
+    methods = ["--methods", "orb-nn,sift-opencv-nn", "--limit", "3"]
+    assert run_cli(capsys, "run", str(params_file(tmp_path)), *methods)[0] == 0
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 0 and max(map(len, out.splitlines()[1:])) <= 100, out  # all but the folder's path
+    assert ", the first 3 pairs (--limit)" in out.splitlines()[1]
+    assert out.splitlines()[4].split() == [
+        "method",
+        "profile",
+        "n_pairs",
+        "AP",
+        "[95%",
+        "CI]",
+        "MR",
+        "[95%",
+        "CI]",
+        "s/pair",
+    ]
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"), "--wide")
+    assert out.splitlines()[4].split() == tables.WIDE_COLUMNS
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"), "--markdown")
+    assert out.splitlines()[4] == "| " + " | ".join(tables.WIDE_COLUMNS) + " |"  # the README's tables come from it
+
+
+def test_images_another_method_of_the_same_run_extracted_are_timed_by_this_run(tmp_path, root):
+    """xfeat-nn and xfeat-lg share their features: the second method of one run finds them cached,
+    but this run extracted and timed them, so its timers are this run's; another run's are not."""
+    from gvbench_nb import methods
+    from gvbench_nb.runner import image_features
+
+    sequence, cache = Sequence("photos", root, PAIRS), tmp_path / "cache"
+    conf = methods.resolve_method("orb-nn", "repository")["extractor"]
+
+    def extraction(run_id: str) -> dict[str, int]:
+        return image_features.extract_features(sequence, conf, cache, "cpu", progress=False, run_id=run_id)
+
+    first = extraction("run-1")
+    assert first["extracted"] == first["images"] > 0 and "cached_by_this_run" not in first
+    later_method, next_run = extraction("run-1"), extraction("run-2")
+    assert later_method["cached"] == later_method["cached_by_this_run"] == first["images"]
+    assert next_run["cached"] == first["images"] and "cached_by_this_run" not in next_run
+    matched = {"cached": 0, "matched": len(PAIRS)}
+    assert scoring.timers_source({"this_run": {"extraction": later_method, "matching": matched}}) == "this run"
+    assert scoring.timers_source({"this_run": {"extraction": next_run, "matching": matched}}) == "partly cached"
 
 
 # -------------------------------------------------------------- interruption --

@@ -4,12 +4,14 @@ offsets, normalised inliers and the query bootstrap (agreement, coverage, determ
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
+from gvbench_nb import notebook
 from gvbench_nb.evaluation import bootstrap, run_tables
 from gvbench_nb.protocol import metrics
 from gvbench_nb.runner import method_outputs, method_runs, scoring
@@ -111,6 +113,9 @@ def test_top_false_positives_and_negatives_with_frame_offsets():
     assert fp["frame_offset"].tolist() == [3, 4] and fp["rank"].tolist() == [1, 2]
     near = failures.near_miss_false_positives(table, offsets, top_k=2, low=3, high=5)
     assert near["near_in_top"] == 2 and near["near_share_all_false"] == pytest.approx(2 / 3)
+    # As a page shows it: no index column, offsets rounded.
+    page = notebook.table(failed.assign(distance_m=27.028347), precision=1).to_html()
+    assert ">27.0<" in page and "27.028" not in page and 'class="row_heading' not in page
 
 
 def test_pose_offsets_from_poses_csv(tmp_path):
@@ -320,6 +325,7 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     assert ">12.5<" in page and ">50.0<" in page  # the paper's values, in %
     assert "href='toy/analysis_failures.html'" in page
     assert "failed: ValueError: boom" in page
+    assert re.search(r">\d+ \(all\)<", page)  # the row's pairs, and that no --limit cut them
 
     parser = argparse.ArgumentParser()
     report.add_command(parser.add_subparsers(dest="command"))
@@ -334,7 +340,10 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
             str(report_dir),
         ]
     )
-    assert args.handler(args) == 2  # a named sequence without results is refused, not a traceback
+    with pytest.raises(
+        method_outputs.ResultsError, match="absent"
+    ):  # a named sequence without results is refused before any work
+        report.run_folders(args)
 
 
 def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
@@ -345,6 +354,17 @@ def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
     joined = results_table.join_paper_table(results, paper)
     assert joined["source"].tolist() == [run_tables.OURS_LABEL]
     assert results_table.results_table(joined).shape == (1, 2)
+
+
+def test_results_table_says_how_many_pairs_a_row_has_and_whether_limit_cut_them():
+    results = two_profile_results().assign(n_pairs=[240, 24, 240], limit=[None, 24, None])
+    wide = results_table.results_table(results_table.join_paper_table(results, results_table.load_paper_table()))
+    assert wide[("night", "pairs", "ours")].tolist() == ["240 (all)", "24 (--limit)", "240 (all)"]
+    assert wide.columns[0] == ("night", "pairs", "ours")
+    text = results_table.text_results_table(wide)
+    assert text[("night", "pairs", "ours")].tolist() == ["240 (all)", "24 (--limit)", "240 (all)"]
+    assert text[("night", "ap", "ours")].tolist() == ["60.0", "55.0", "90.0*"]
+    assert "24 (--limit)" in results_table.style_results_table(wide).to_html()
 
 
 # ------------------------------------------------------- profiles never mix --
@@ -426,6 +446,13 @@ def test_radar_and_bars_label_every_line_with_its_profile():
     bars = results_table.max_recall_radar(joined[joined.sequence == "night"])
     ticks = [t.get_text() for t in bars.axes[0].get_yticklabels()]
     assert ticks[:2] == ["sift-nn (ours (paper profile))", "sift-nn (ours (repository profile))"]
+    # In %, as the tables are, and the title names only what is drawn.
+    assert bars.axes[0].patches[0].get_width() == pytest.approx(8.0) and "(%)" in bars.axes[0].get_xlabel()
+    assert "hatched: published" in bars.texts[0].get_text()
+    ours = results_table.max_recall_radar(joined[(joined.sequence == "night") & (joined.source == "ours")])
+    assert ours.texts[0].get_text() == "max recall at 100% precision (%)"
+    radar = results_table.max_recall_radar(joined).axes[0]
+    assert radar.get_title() == "max recall at 100% precision (%)" and radar.get_ylim()[1] > 40
 
 
 def test_runtime_figures_and_histograms_name_the_profile():
@@ -442,6 +469,14 @@ def test_runtime_figures_and_histograms_name_the_profile():
     ]
     scatter = runtime_vs_mr.fps_vs_max_recall(runtime)
     assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
+    # The log axis reads: at least three labelled ticks inside it, whatever the speeds.
+    for seconds in ([0.05, 0.06, 0.08], [0.01, 1.0, 30.0]):
+        figure = runtime_vs_mr.fps_vs_max_recall(runtime.assign(fps=[1 / s for s in seconds]))
+        figure.canvas.draw()
+        axis = figure.axes[0]
+        low, high = axis.get_xlim()
+        shown = [t.get_text() for t in axis.get_xticklabels() if low <= t.get_position()[0] <= high]
+        assert len([t for t in shown if t]) >= 3, shown
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     tables = {
         "sift-nn (paper)": table.assign(profile="paper"),

@@ -191,6 +191,37 @@ def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run,
     assert controls.pick.value == "index" and drawn[-1][0] == 2
 
 
+def test_controls_say_what_they_do_and_leave_no_stale_view_under_a_message(tiny_run, tmp_path):
+    pytest.importorskip("ipywidgets")
+    out = tiny_run.parent / "out"
+    tables = explore.load_tables(out)
+    status_while_drawing: list[str] = []
+
+    def draw(index, shown):
+        status_while_drawing.append(controls.status.value)
+        return explore.pair_views(out, {m: tables[m] for m in shown}, index, tmp_path)
+
+    controls = explore.ExploreControls(tables, draw, pick="index", pair_index=3)
+    controls.redraw()
+    assert status_while_drawing[-1].startswith("drawing pair 3") and controls.status.value.startswith("pair 3:")
+    assert controls.pick_method.style.description_width == "initial"  # the label whole, not 'pick_met...'
+    # An index out of range is said and kept, not clamped to the last pair; no earlier view stays.
+    controls.pair_index.value = 9999
+    assert controls.pair_index.value == 9999 and controls.drawn == {}
+    assert "0 to" in controls.status.value and "9999" in controls.status.value
+    # pick_method offers the methods shown; none selected means all, and the status says so.
+    controls.pair_index.value = 1
+    controls.methods.value = (METHODS[-1],)
+    assert controls.pick_method.options == (METHODS[-1],) and controls.pick_method.value == METHODS[-1]
+    controls.methods.value = ()
+    assert list(controls.drawn["table"]["method"]) == METHODS and "(none selected: all shown)" in controls.status.value
+    assert controls.pick_method.options == tuple(METHODS)
+    # A rank beyond the method's pairs: said, the views cleared.
+    controls.pick.value = "false_positive"
+    controls.pick_rank.value = 99_999
+    assert "fewer than pick_rank 99999" in controls.status.value and controls.drawn == {}
+
+
 def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run):
     out = tiny_run.parent / "out"
     source = NOTEBOOKS / "explore_pairs.ipynb"

@@ -4,6 +4,7 @@ notebook pages without code cells, and a run's own cache found from its record."
 
 from __future__ import annotations
 
+import argparse
 import re
 from pathlib import Path
 
@@ -100,3 +101,31 @@ def test_report_on_a_run_with_its_own_cache_dir_hides_code_and_shows_pr_curves(t
     # analysis_failures drew the top failures' matches from the run's own cache.
     failures = Path(report_dir / "sample" / "analysis_failures.ipynb").read_text()
     assert "KeyError" not in failures
+
+
+def test_report_takes_run_folders_or_a_run_folder_as_outputs_root(tmp_path, capsys):
+    """``report OUTPUT_DIR...`` reads those run folders; ``--outputs-root`` may be a run folder
+    itself or hold them; a folder without results.csv is one sentence, before any work."""
+    outputs = tmp_path / "outputs"
+    for name in ("a", "b"):
+        (outputs / name).mkdir(parents=True)
+        (outputs / name / "results.csv").write_text("sequence,method\n")
+    (outputs / "empty").mkdir()
+    parser = argparse.ArgumentParser()
+    report.add_command(parser.add_subparsers(dest="command"))
+
+    def folders(*words: str) -> list[Path]:
+        return report.run_folders(parser.parse_args(["report", *words]))
+
+    assert folders(str(outputs / "b"), str(outputs / "a")) == [outputs / "b", outputs / "a"]
+    assert folders("--outputs-root", str(outputs / "a")) == [outputs / "a"]
+    assert folders("--outputs-root", str(outputs)) == [outputs / "a", outputs / "b"]
+    assert cli.main(["report", str(outputs / "empty"), "--output-dir", str(tmp_path / "report")]) == 2
+    error = capsys.readouterr().err
+    assert error.count("\n") == 1 and f"{outputs / 'empty'} holds no results.csv" in error
+    assert not (tmp_path / "report").exists()
+    # Two run folders of one name get a report sub-folder each.
+    assert report.page_folders([tmp_path / "x" / "sample", tmp_path / "y" / "sample"]) == {
+        tmp_path / "x" / "sample": "x-sample",
+        tmp_path / "y" / "sample": "y-sample",
+    }

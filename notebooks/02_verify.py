@@ -47,6 +47,7 @@ limit: Optional[int] = None  # first N pairs only
 seed: Optional[int] = None
 device: Optional[str] = None  # 'auto' (cuda when present), 'cpu' or 'cuda'
 verifier: Optional[dict] = None
+allow_damaged_images: Optional[bool] = None  # true: run on images whose decoder warns (each listed in the record)
 
 # %% [markdown]
 # Run the method on every pair and write its table; the first rows follow. Each row is

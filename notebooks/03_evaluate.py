@@ -46,6 +46,7 @@ limit: Optional[int] = None  # first N pairs only
 seed: Optional[int] = None
 device: Optional[str] = None  # 'auto' (cuda when present), 'cpu' or 'cuda'
 verifier: Optional[dict] = None
+allow_damaged_images: Optional[bool] = None  # true: run on images whose decoder warns (each listed in the record)
 
 # %% [markdown]
 # One row a method: pairs, positives, AP, max recall at 100 % precision (MR) and seconds

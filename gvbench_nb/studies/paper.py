@@ -105,6 +105,7 @@ def table_iii(results: pd.DataFrame) -> pd.DataFrame:
     Average over the sequences of each metric (NaN for a row missing a sequence)."""
     joined = results_table.join_paper_table(results, pd.DataFrame(), None)
     wide = results_table.results_table(joined).droplevel("source", axis=1)
+    wide = wide.loc[:, wide.columns.get_level_values("metric").isin(run_tables.METRICS)]  # not the pairs column
     for metric in run_tables.METRICS:
         wide[(AVERAGE, metric)] = wide.xs(metric, axis=1, level="metric").mean(axis=1, skipna=False)
     return wide

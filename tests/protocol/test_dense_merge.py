@@ -229,4 +229,4 @@ def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkey
 def test_loftr_conf_merges_as_hloc_conf_loftr():
     options = pair_matching.dense_merge_options(methods.resolve_method("loftr", "paper")["matcher"])
     assert options == {"max_keypoints": 8192, "cell_size": 1, "max_error": 1}
-    assert registry.resolve_type("matcher type", "loftr", matchers.MATCHER_TYPES) is LoFTRMatcher
+    assert registry.resolve_type("matcher type", "kornia_loftr", matchers.MATCHER_TYPES) is LoFTRMatcher

@@ -50,7 +50,6 @@ output_dirs, results, figures = notebook.load_results(
     compute_missing=compute_missing,
 )
 inputs = deployment.DeploymentInputs(output_dirs)
-print(notebook.describe(results))
 
 # %% [markdown]
 # One matrix a method: the threshold fixed on the row's sequence, applied to the column's.

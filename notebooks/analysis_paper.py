@@ -48,7 +48,6 @@ output_dirs, results, figures = notebook.load_results(
     ensure_methods,
     compute_missing=compute_missing,
 )
-print(notebook.describe(results))
 
 # %% [markdown]
 # **Table II**, the sequences: each run's pairs and each official list, counted, beside

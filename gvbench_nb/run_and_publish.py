@@ -115,7 +115,7 @@ def command_run(args: argparse.Namespace) -> int:
     stage = None
     try:
         record.finish_publishing(output_dir)
-        kept, bindings = kept_methods(output_dir, params["methods"], scoring.sequence_binding(sequence))
+        kept, bindings = record.kept_methods(output_dir, params["methods"], scoring.sequence_binding(sequence))
         record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
         for method, previous in method_outputs.replaced_profiles(
             output_dir, params["methods"], params["profile"]
@@ -163,30 +163,6 @@ def command_run(args: argparse.Namespace) -> int:
         lock.release()
     print_run_results(output_dir)
     return 0
-
-
-def kept_methods(
-    output_dir: Path, methods: list[str], binding: dict[str, Any]
-) -> tuple[list[str], dict[str, dict[str, Any]]]:
-    """The methods an output folder holds that this run does not rerun, with their bindings;
-    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
-    from gvbench_nb.runner import record
-
-    published = (record.read_record(output_dir) or {}).get("methods", {})
-    kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
-    other = [
-        m
-        for m, entry in kept.items()
-        if (entry.get("pairs_digest"), entry.get("images_digest"))
-        != (binding["pairs_digest"], binding["images_digest"])
-    ]
-    if other:
-        raise record.RecordError(
-            f"{output_dir} holds results of {', '.join(other)} computed on other pairs, labels or images than this "
-            f"run's ({binding['pairs_file']}); run them again with this run (--methods "
-            f"{','.join([*methods, *other])}) or give another --output-dir"
-        )
-    return list(kept), kept
 
 
 def print_run_results(output_dir: Path) -> None:

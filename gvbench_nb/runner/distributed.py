@@ -32,7 +32,15 @@ import pandas as pd
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.runner import concurrency, image_features, method_outputs, method_runs, pair_matching, scoring
+from gvbench_nb.runner import (
+    concurrency,
+    image_features,
+    method_outputs,
+    method_runs,
+    pair_matching,
+    record,
+    scoring,
+)
 
 
 class ShardError(RuntimeError):
@@ -187,10 +195,10 @@ def merge_method(
     return table
 
 
-def _remove_stale_results(output_dir: Path, method: str) -> None:
-    # As run_method does: a failed run must not leave an old pairs.csv looking like its result.
-    for stale in ("pairs.csv", "run.json"):
-        (method_outputs.method_dir(output_dir, method) / stale).unlink(missing_ok=True)
+def kept_methods(params: dict[str, Any], sequence: Sequence) -> list[str]:
+    """The folder's other methods; ``RecordError`` when any scored other pairs, labels or images
+    (a merge must not make a table of two inputs, as a ``run`` must not)."""
+    return record.kept_methods(Path(params["output_dir"]), params["methods"], scoring.sequence_binding(sequence))[0]
 
 
 def _require_weights(params: dict[str, Any]) -> None:
@@ -211,10 +219,10 @@ def run_shard(
 
     _require_weights(params)
     sequence = prepare_sequence(params)
+    kept_methods(params, sequence)
     done = []
     for method in params["methods"]:
         conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-        _remove_stale_results(Path(params["output_dir"]), method)
         if conf["extractor"]:
             extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
         result = match_shard(
@@ -244,12 +252,14 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
 
     sequence = prepare_sequence(params)
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
-    for method in params["methods"]:
-        conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-        merge_method(
-            sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
-        )
-    return scoring.evaluate(output_dir, params["methods"])
+    with record.FolderLock(output_dir):  # one writer of the folder's results at a time, as for `run`
+        kept = kept_methods(params, sequence)
+        for method in params["methods"]:
+            conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
+            merge_method(
+                sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
+            )
+        return scoring.evaluate(output_dir, [*params["methods"], *kept])
 
 
 # -------------------------------------------------------------------------- Dask --
@@ -296,6 +306,8 @@ def run_many(
     for params in params_list:
         _require_weights(params)
     sequences = [prepare_sequence(params) for params in params_list]
+    for params, sequence in zip(params_list, sequences):
+        kept_methods(params, sequence)
     if threads is None and scheduler is None:
         threads = default_threads(n_workers or os.cpu_count() or 1)
     results: dict[str, pd.DataFrame] = {}
@@ -306,7 +318,6 @@ def run_many(
             output_dir, cache_dir = params["output_dir"], params["cache_dir"]
             for method in params["methods"]:
                 conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-                _remove_stale_results(Path(output_dir), method)
                 after: list[Any] = []
                 if conf["extractor"]:
                     key = (
@@ -426,12 +437,12 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
             f"{params['params_file']} --merge (with the same --methods/--limit/--profile)"
         )
         return 0
-    if args.merge:
-        results = merge_runs(params)
-    else:
-        dask_workers = args.dask_workers or os.cpu_count() or 1
-        n_shards = args.shards or 2 * dask_workers
-        results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
+    lock = record.FolderLock(params["output_dir"])
+    lock.acquire()  # refused before any work while another run writes the folder
+    try:
+        results = merge_runs(params) if args.merge else run_dask_from_cli(args, params)
+    finally:
+        lock.release()
     print(
         results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
             index=False
@@ -439,3 +450,9 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
     )
     print(f"results table: {Path(params['output_dir']) / 'results.csv'}")
     return 0
+
+
+def run_dask_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> pd.DataFrame:
+    dask_workers = args.dask_workers or os.cpu_count() or 1
+    n_shards = args.shards or 2 * dask_workers
+    return run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)

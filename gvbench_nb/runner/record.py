@@ -288,6 +288,28 @@ def running(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
     return None
 
 
+def kept_methods(
+    output_dir: Path, methods: list[str], binding: dict[str, Any]
+) -> tuple[list[str], dict[str, dict[str, Any]]]:
+    """The methods an output folder holds that this run does not rerun, with their bindings;
+    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
+    published = (read_record(output_dir) or {}).get("methods", {})
+    kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
+    other = [
+        m
+        for m, entry in kept.items()
+        if (entry.get("pairs_digest"), entry.get("images_digest"))
+        != (binding["pairs_digest"], binding["images_digest"])
+    ]
+    if other:
+        raise RecordError(
+            f"{output_dir} holds results of {', '.join(other)} computed on other pairs, labels or images than this "
+            f"run's ({binding['pairs_file']}); run them again with this run (--methods "
+            f"{','.join([*methods, *other])}) or give another --output-dir"
+        )
+    return list(kept), kept
+
+
 # ---------------------------------------------------------------------- stage --
 def open_stage(folder: str | os.PathLike[str]) -> Path:
     """A new, empty stage in ``folder`` for one run; the stages of earlier runs that stopped
@@ -347,7 +369,7 @@ def method_files(files: Iterable[str], method: str) -> list[str]:
 
 def publish(folder: Path, stage: Path, methods: dict[str, dict[str, Any]]) -> list[str]:
     """Move a finished stage's files into ``folder`` and record them; the files of the previous
-    publication that the stage does not hold again are removed (the package wrote them).
+    publication that the stage does not hold again are removed (its run wrote them).
     ``methods``: method -> what its results are bound to, kept in the record.
 
     The record says ``publishing`` while files move, so a reader never takes a half-moved folder
@@ -371,9 +393,14 @@ def _move_and_record(folder: Path, stage: Path) -> list[str]:
             os.replace(stage / name, target)
     fsync_folder(folder)
     with editing(folder) as record:
-        for name in set(record["files"]) - set(files):
+        # Only what the previous publication itself published is replaced: files written in
+        # place by others (the explorer's figures, an analysis's) stay theirs.
+        for name in set(record.get("published", [])) - set(files):
             (folder / name).unlink(missing_ok=True)
-        record["files"] = {name: file_sha256(folder / name) for name in files if (folder / name).is_file()}
+            record["files"].pop(name, None)
+        record["files"].update({name: file_sha256(folder / name) for name in files if (folder / name).is_file()})
+        record["files"] = {name: sha for name, sha in record["files"].items() if (folder / name).is_file()}
+        record["published"] = files
         record["methods"] = {
             method: {**binding, "files": method_files(files, method)} for method, binding in methods.items()
         }

@@ -1,0 +1,94 @@
+"""The doors besides ``run``: shards, merges, the explorer's figures. Each writes results the
+way ``run`` does or is refused in one sentence before work; none removes a finished result or
+a file it did not write.
+
+Part of ``pytest -m reliability``; docs/reliability.md lists each test beside its promise. Same
+small photographs and in-process notebooks as test_run_record.py.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pandas as pd
+import pytest
+import test_run_record
+from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file, run_cli, snapshot
+
+from gvbench_nb.evaluation import plots
+from gvbench_nb.runner import record
+
+pytestmark = pytest.mark.reliability
+root, notebooks_here = test_run_record.root, test_run_record.notebooks_here  # the fixtures
+
+
+def published(folder: Path) -> dict[str, bytes]:
+    """The folder's results as a reader sees them: the unit files and derived tables."""
+    return {k: v for k, v in snapshot(folder).items() if k.endswith((".csv", "run.json", ".png"))}
+
+
+def test_a_shard_into_a_finished_folder_keeps_its_results(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = published(tmp_path / "out")
+    assert run_cli(capsys, "run", str(path), "--shard", "0/2")[0] == 0
+    assert published(tmp_path / "out") == before
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 0 and "orb-nn" in out
+
+
+def test_a_shard_or_merge_on_other_labels_into_a_folder_of_other_methods_is_refused(
+    tmp_path, root, capsys, notebooks_here
+):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    before = published(tmp_path / "out")
+    flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, methods=["sift-opencv-nn"])
+    for option in (["--shard", "0/1"], ["--merge"]):
+        code, _, err = run_cli(capsys, "run", str(flipped), *option)
+        assert code == 2 and "holds results of orb-nn computed on other pairs, labels or images" in one_sentence(err)
+        assert published(tmp_path / "out") == before
+    assert not (tmp_path / "out" / "sift-opencv-nn" / "pairs.csv").exists()
+
+
+def test_a_merge_lists_every_method_of_the_folder(tmp_path, root, capsys, notebooks_here):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    sift = params_file(tmp_path, "sift.yaml", PAIRS, methods=["sift-opencv-nn"])
+    assert run_cli(capsys, "run", str(sift), "--shard", "0/1")[0] == 0
+    assert run_cli(capsys, "run", str(sift), "--merge")[0] == 0
+    assert sorted(pd.read_csv(tmp_path / "out" / "results.csv")["method"]) == ["orb-nn", "sift-opencv-nn"]
+
+
+def test_a_merge_while_a_run_holds_the_folder_is_refused_and_a_shard_changes_no_result(
+    tmp_path, root, capsys, notebooks_here
+):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = published(tmp_path / "out")
+    holder = hold_lock(tmp_path / "out")
+    try:
+        # A shard fills only the caches (keyed by content), which any number of writers share.
+        assert run_cli(capsys, "run", str(path), "--shard", "0/1")[0] == 0
+        code, _, err = run_cli(capsys, "run", str(path), "--merge")
+        assert code == 2 and f"another run is writing {tmp_path / 'out'} (pid {holder.pid}" in one_sentence(err)
+        assert published(tmp_path / "out") == before
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, notebooks_here):
+    import matplotlib.pyplot as plt
+
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    figure = plt.figure()
+    saved = plots.save(figure, tmp_path / "out" / "explore" / "explore_pair_0.png")
+    plt.close(figure)
+    content = saved.read_bytes()
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    assert saved.read_bytes() == content
+    # Saved again, it replaces its own earlier file (the package wrote it).
+    figure = plt.figure()
+    plots.save(figure, saved)
+    plt.close(figure)
+    assert "explore/explore_pair_0.png" in record.read_record(tmp_path / "out")["files"]

@@ -35,7 +35,6 @@ from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.runner import (
     concurrency,
     image_features,
-    method_outputs,
     method_runs,
     pair_matching,
     record,
@@ -181,18 +180,15 @@ def merge_method(
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
-    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed)
-    method_runs.write_method_outputs(
-        method_outputs.method_dir(output_dir, conf["method"]),
+    return method_runs.write_results(
+        output_dir,
         sequence,
         conf,
         seed,
         concurrency.environment_info(resolve_device(device)),
         {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
-        table,
+        cache_dir,
     )
-    method_runs.record_method_in_place(output_dir, conf["method"], sequence)
-    return table
 
 
 def kept_methods(params: dict[str, Any], sequence: Sequence) -> list[str]:

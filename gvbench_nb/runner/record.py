@@ -33,7 +33,7 @@ STAGE_PREFIX = ".run-"
 STAGE_MARKER = ".stage.json"  # in a stage: the folder it will be published into
 PACKAGE = "gvbench-nb"
 # Files a stage holds that are the run's working state, not its results.
-WORKING_FILES = (STAGE_MARKER, ".computed.json", ".unfinished.json")
+WORKING_FILES = (STAGE_MARKER, ".computed.json")
 # The names the package writes in an output folder besides its record.
 OWN_NAMES = (RECORD_NAME, LOCK_NAME, HOLDER_NAME, RECORD_LOCK_NAME)
 

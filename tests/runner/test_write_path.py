@@ -10,13 +10,14 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import matplotlib.pyplot as plt
 import pandas as pd
 import pytest
 import test_run_record
 from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file, run_cli, snapshot
 
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import record
+from gvbench_nb.runner import config, method_runs, record
 
 pytestmark = pytest.mark.reliability
 root, notebooks_here = test_run_record.root, test_run_record.notebooks_here  # the fixtures
@@ -77,8 +78,6 @@ def test_a_merge_while_a_run_holds_the_folder_is_refused_and_a_shard_changes_no_
 
 
 def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, notebooks_here):
-    import matplotlib.pyplot as plt
-
     path = params_file(tmp_path)
     assert run_cli(capsys, "run", str(path))[0] == 0
     figure = plt.figure()
@@ -92,3 +91,47 @@ def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, no
     plots.save(figure, saved)
     plt.close(figure)
     assert "explore/explore_pair_0.png" in record.read_record(tmp_path / "out")["files"]
+
+
+def verify_on_its_own(path: Path, method: str = "orb-nn", **overrides) -> None:
+    """What ``02_verify`` does when papermill, JupyterLab or nbmake runs it on its own."""
+    params = config.load_params(path, **overrides)
+    method_runs.run_method_of_params(params, config.prepare_sequence(params), method, progress=False)
+
+
+def test_a_notebook_run_on_its_own_that_fails_keeps_the_finished_results(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = published(tmp_path / "out")
+    run_record = (tmp_path / "out" / record.RECORD_NAME).read_bytes()
+    (root / "query" / "b.png").unlink()
+    with pytest.raises(Exception, match="b.png"):
+        verify_on_its_own(path)
+    assert published(tmp_path / "out") == before
+    assert (tmp_path / "out" / record.RECORD_NAME).read_bytes() == run_record
+    assert not list((tmp_path / "out").rglob(".unfinished.json"))
+
+
+def test_a_notebook_run_on_its_own_on_fewer_pairs_leaves_no_figure_of_the_earlier_run(
+    tmp_path, root, capsys, notebooks_here
+):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    out = tmp_path / "out"
+    # On the folder's own inputs, a new method's results join the folder; the run's notebooks still show it.
+    verify_on_its_own(path, "sift-opencv-nn")
+    assert (out / "02_verify_orb-nn.ipynb").is_file() and not (out / "results.csv").exists()
+    code, text, _ = run_cli(capsys, "results", str(out))
+    assert code == 0 and "orb-nn" in text and "sift-opencv-nn" in text
+    # On fewer pairs, what the run derived from the four-pair results is gone, and nothing else.
+    figure = plt.figure()
+    explored = plots.save(figure, out / "explore" / "explore_pair_0.png")
+    plt.close(figure)
+    verify_on_its_own(path, limit=2)
+    assert len(pd.read_csv(out / "orb-nn" / "pairs.csv")) == 2
+    left = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and "matches-" not in str(p))
+    assert not [name for name in left if name.endswith((".ipynb", ".yaml")) or name == "results.csv"], left
+    assert explored.is_file() and (out / "sift-opencv-nn" / "pairs.csv").is_file()
+    # The folder now mixes two pair lists: its readers refuse it, naming the methods.
+    code, _, err = run_cli(capsys, "results", str(out))
+    assert code == 2 and "orb-nn" in one_sentence(err) and "sift-opencv-nn" in err

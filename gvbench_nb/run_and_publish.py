@@ -152,7 +152,13 @@ def command_run(args: argparse.Namespace) -> int:
             bindings[method] = scoring.sequence_binding(run_sequence)
         record.publish(output_dir, stage, bindings)
     except Exception:
-        if stage is not None and stage.is_dir():
+        if (record.read_record(output_dir) or {}).get("state") == "publishing":
+            print(
+                f"the run stopped while publishing into {output_dir}: its readers refuse the folder until a run "
+                "finishes the move (run it again)",
+                file=sys.stderr,
+            )
+        elif stage is not None and stage.is_dir():
             print(
                 f"the run did not finish: {output_dir} still holds the previous run's results; this run's partial "
                 f"work and executed notebooks are in {stage}",

@@ -8,6 +8,7 @@ small photographs and in-process notebooks as test_run_record.py.
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -135,3 +136,27 @@ def test_a_notebook_run_on_its_own_on_fewer_pairs_leaves_no_figure_of_the_earlie
     # The folder now mixes two pair lists: its readers refuse it, naming the methods.
     code, _, err = run_cli(capsys, "results", str(out))
     assert code == 2 and "orb-nn" in one_sentence(err) and "sift-opencv-nn" in err
+
+
+def test_a_publication_that_cannot_finish_says_so_and_no_reader_shows_the_mix(
+    tmp_path, root, capsys, notebooks_here, monkeypatch
+):
+    both = {"methods": ["orb-nn", "sift-opencv-nn"]}
+    assert run_cli(capsys, "run", str(params_file(tmp_path, **both)))[0] == 0
+    flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, **both)
+    replace = os.replace
+
+    def immutable_run_json(source, target):  # as `chattr +i` on one published file would
+        if ".run-" in str(source) and ".run-" not in str(target) and str(target).endswith("orb-nn/run.json"):
+            raise PermissionError(1, "Operation not permitted", str(target))
+        replace(source, target)
+
+    monkeypatch.setattr(os, "replace", immutable_run_json)
+    code, _, err = run_cli(capsys, "run", str(flipped))
+    assert code == 2 and "stopped while publishing" in err and "previous run's results" not in err
+    monkeypatch.setattr(os, "replace", replace)
+    for command in (["results"], ["compare"]):
+        code, out, err = run_cli(capsys, *command, str(tmp_path / "out"))
+        assert code == 2 and out == "" and "a run stopped while publishing" in one_sentence(err)
+    assert run_cli(capsys, "run", str(flipped))[0] == 0  # the next run finishes the move first
+    assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]

@@ -5,6 +5,7 @@ with papermill, then publish the stage whole into the output folder and print th
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from collections.abc import Callable
@@ -149,7 +150,8 @@ def command_run(args: argparse.Namespace) -> int:
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
         for method in params["methods"]:
-            bindings[method] = scoring.sequence_binding(run_sequence)
+            # What the method's results were scored on, as its notebook read the inputs.
+            bindings[method] = json.loads((stage / method / "run.json").read_text(encoding="utf-8"))["binding"]
         record.publish(output_dir, stage, bindings)
     except Exception:
         if (record.read_record(output_dir) or {}).get("state") == "publishing":

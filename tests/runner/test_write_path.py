@@ -17,6 +17,8 @@ import pytest
 import test_run_record
 from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file, run_cli, snapshot
 
+from gvbench_nb import run_and_publish
+from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.evaluation import plots
 from gvbench_nb.runner import config, method_runs, record
 
@@ -160,3 +162,21 @@ def test_a_publication_that_cannot_finish_says_so_and_no_reader_shows_the_mix(
         assert code == 2 and out == "" and "a run stopped while publishing" in one_sentence(err)
     assert run_cli(capsys, "run", str(flipped))[0] == 0  # the next run finishes the move first
     assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
+
+
+def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(tmp_path, root, capsys, monkeypatch):
+    path = params_file(tmp_path)
+
+    def edit_labels_then_run(name: str, output_path: Path, parameters: dict) -> None:
+        if name == "01_sequence.ipynb":  # after `run` read the pair file, before any method scored it
+            write_pairs(tmp_path / "params-pairs.txt", FLIPPED)
+        test_run_record.in_process_notebooks(name, output_path, parameters)
+
+    monkeypatch.setattr(run_and_publish, "execute_notebook", edit_labels_then_run)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
+    # The record binds the labels the results scored: a run of another method on the same file joins them.
+    monkeypatch.setattr(run_and_publish, "execute_notebook", test_run_record.in_process_notebooks)
+    assert run_cli(capsys, "run", str(path), "--methods", "sift-opencv-nn")[0] == 0
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 0 and "orb-nn" in out and "sift-opencv-nn" in out

@@ -151,7 +151,12 @@ def command_run(args: argparse.Namespace) -> int:
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
         for method in params["methods"]:
             # What the method's results were scored on, as its notebook read the inputs.
-            bindings[method] = json.loads((stage / method / "run.json").read_text(encoding="utf-8"))["binding"]
+            scored = stage / method / "run.json"
+            bindings[method] = (
+                json.loads(scored.read_text(encoding="utf-8"))["binding"]
+                if scored.is_file()
+                else scoring.sequence_binding(run_sequence)
+            )
         record.publish(output_dir, stage, bindings)
     except Exception:
         if (record.read_record(output_dir) or {}).get("state") == "publishing":

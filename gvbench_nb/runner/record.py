@@ -444,6 +444,12 @@ def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:
             f"{folder} holds no {RECORD_NAME}, so no gvbench-nb run wrote it (or it was written by an older "
             "version); run the methods into a new folder (python -m gvbench_nb run PARAMS --output-dir NEW)"
         )
+    if record.get("state") == "publishing" and running(folder) is None:
+        # A run killed while publishing left its files in its stage: the move is finished here, so
+        # the folder is that run's results, whole (when the move cannot finish, it is refused below).
+        with contextlib.suppress(RecordError, OSError), FolderLock(folder):
+            finish_publishing(folder)
+        record = read_record(folder) or record
     if record.get("state") == "publishing":
         raise RecordError(
             f"{folder}: a run stopped while publishing its results ({record.get('stage')}); run it again "

@@ -32,14 +32,7 @@ import pandas as pd
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.runner import (
-    concurrency,
-    image_features,
-    method_runs,
-    pair_matching,
-    record,
-    scoring,
-)
+from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, record, scoring
 
 
 class ShardError(RuntimeError):
@@ -433,12 +426,13 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
             f"{params['params_file']} --merge (with the same --methods/--limit/--profile)"
         )
         return 0
-    lock = record.FolderLock(params["output_dir"])
-    lock.acquire()  # refused before any work while another run writes the folder
-    try:
-        results = merge_runs(params) if args.merge else run_dask_from_cli(args, params)
-    finally:
-        lock.release()
+    dask_workers = args.dask_workers or os.cpu_count() or 1
+    with record.FolderLock(params["output_dir"]):  # refused before any work while another run writes the folder
+        if args.merge:
+            results = merge_runs(params)
+        else:
+            n_shards = args.shards or 2 * dask_workers
+            results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
     print(
         results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
             index=False
@@ -446,9 +440,3 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
     )
     print(f"results table: {Path(params['output_dir']) / 'results.csv'}")
     return 0
-
-
-def run_dask_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> pd.DataFrame:
-    dask_workers = args.dask_workers or os.cpu_count() or 1
-    n_shards = args.shards or 2 * dask_workers
-    return run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)

@@ -5,6 +5,7 @@ with papermill, then publish the stage whole into the output folder and print th
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import sys
 from collections.abc import Callable
@@ -119,7 +120,7 @@ def command_run(args: argparse.Namespace) -> int:
     try:
         record.finish_publishing(output_dir)
         binding = scoring.sequence_binding(sequence)
-        kept, bindings = kept_methods(output_dir, params["methods"], binding)
+        kept, bindings = record.kept_methods(output_dir, params["methods"], binding)
         record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
         for method, previous in method_outputs.replaced_profiles(
             output_dir, params["methods"], params["profile"]
@@ -153,10 +154,20 @@ def command_run(args: argparse.Namespace) -> int:
 
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
-        bindings.update(dict.fromkeys(params["methods"], binding | ({"damaged_images": damaged} if damaged else {})))
+        for method in params["methods"]:
+            # What the method's results were scored on, as its run read the inputs.
+            scored = stage / method / "run.json"
+            scored_binding = json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
+            bindings[method] = scored_binding | ({"damaged_images": damaged} if damaged else {})
         record.publish(output_dir, stage, bindings)
     except Exception:
-        if stage is not None and stage.is_dir():
+        if (record.read_record(output_dir) or {}).get("state") == "publishing":
+            print(
+                f"the run stopped while publishing into {output_dir}: its readers refuse the folder until a run "
+                "finishes the move (run it again)",
+                file=sys.stderr,
+            )
+        elif stage is not None and stage.is_dir():
             print(
                 f"the run did not finish: {output_dir} still holds the previous run's results; this run's partial "
                 f"work and executed notebooks are in {stage}",
@@ -167,30 +178,6 @@ def command_run(args: argparse.Namespace) -> int:
         lock.release()
     print_run_results(output_dir)
     return 0
-
-
-def kept_methods(
-    output_dir: Path, methods: list[str], binding: dict[str, Any]
-) -> tuple[list[str], dict[str, dict[str, Any]]]:
-    """The methods an output folder holds that this run does not rerun, with their bindings;
-    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
-    from gvbench_nb.runner import record
-
-    published = (record.read_record(output_dir) or {}).get("methods", {})
-    kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
-    other = [  # an imported method read no images (images_digest None): its pairs and labels bind it
-        m
-        for m, entry in kept.items()
-        if entry.get("pairs_digest") != binding["pairs_digest"]
-        or entry.get("images_digest") not in (None, binding["images_digest"])
-    ]
-    if other:
-        raise record.RecordError(
-            f"{output_dir} holds results of {', '.join(other)} computed on other pairs, labels or images than this "
-            f"run's ({binding['pairs_file']}); run them again with this run (--methods "
-            f"{','.join([*methods, *other])}) or give another --output-dir"
-        )
-    return list(kept), kept
 
 
 def print_run_results(output_dir: Path) -> None:

@@ -33,7 +33,7 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.runner import concurrency, image_features, method_outputs, method_runs, pair_matching, scoring
+from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, record, scoring
 
 
 class ShardError(GVBenchError, RuntimeError):
@@ -174,24 +174,21 @@ def merge_method(
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
-    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed)
-    method_runs.write_method_outputs(
-        method_outputs.method_dir(output_dir, conf["method"]),
+    return method_runs.write_results(
+        output_dir,
         sequence,
         conf,
         seed,
         concurrency.environment_info(resolve_device(device)),
         {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
-        table,
+        cache_dir,
     )
-    method_runs.record_method_in_place(output_dir, conf["method"], sequence)
-    return table
 
 
-def _remove_stale_results(output_dir: Path, method: str) -> None:
-    # As run_method does: a failed run must not leave an old pairs.csv looking like its result.
-    for stale in ("pairs.csv", "run.json"):
-        (method_outputs.method_dir(output_dir, method) / stale).unlink(missing_ok=True)
+def kept_methods(params: dict[str, Any], sequence: Sequence) -> list[str]:
+    """The folder's other methods; ``RecordError`` when any scored other pairs, labels or images
+    (a merge must not make a table of two inputs, as a ``run`` must not)."""
+    return record.kept_methods(Path(params["output_dir"]), params["methods"], scoring.sequence_binding(sequence))[0]
 
 
 def _require_weights(params: dict[str, Any]) -> None:
@@ -212,10 +209,10 @@ def run_shard(
 
     _require_weights(params)
     sequence = prepare_sequence(params)
+    kept_methods(params, sequence)
     done = []
     for method in params["methods"]:
         conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-        _remove_stale_results(Path(params["output_dir"]), method)
         if conf["extractor"]:
             extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
         result = match_shard(
@@ -245,12 +242,14 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
 
     sequence = prepare_sequence(params)
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
-    for method in params["methods"]:
-        conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-        merge_method(
-            sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
-        )
-    return scoring.evaluate(output_dir, params["methods"])
+    with record.FolderLock(output_dir):  # one writer of the folder's results at a time, as for `run`
+        kept = kept_methods(params, sequence)
+        for method in params["methods"]:
+            conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
+            merge_method(
+                sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
+            )
+        return scoring.evaluate(output_dir, [*params["methods"], *kept])
 
 
 # -------------------------------------------------------------------------- Dask --
@@ -297,6 +296,8 @@ def run_many(
     for params in params_list:
         _require_weights(params)
     sequences = [prepare_sequence(params) for params in params_list]
+    for params, sequence in zip(params_list, sequences):
+        kept_methods(params, sequence)
     if threads is None and scheduler is None:
         threads = default_threads(n_workers or os.cpu_count() or 1)
     results: dict[str, pd.DataFrame] = {}
@@ -307,7 +308,6 @@ def run_many(
             output_dir, cache_dir = params["output_dir"], params["cache_dir"]
             for method in params["methods"]:
                 conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-                _remove_stale_results(Path(output_dir), method)
                 after: list[Any] = []
                 if conf["extractor"]:
                     key = (
@@ -427,12 +427,13 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
             f"{params['params_file']} --merge (with the same --methods/--limit/--profile)"
         )
         return 0
-    if args.merge:
-        results = merge_runs(params)
-    else:
-        dask_workers = args.dask_workers or os.cpu_count() or 1
-        n_shards = args.shards or 2 * dask_workers
-        results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
+    dask_workers = args.dask_workers or os.cpu_count() or 1
+    with record.FolderLock(params["output_dir"]):  # refused before any work while another run writes the folder
+        if args.merge:
+            results = merge_runs(params)
+        else:
+            n_shards = args.shards or 2 * dask_workers
+            results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
     print(
         results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
             index=False

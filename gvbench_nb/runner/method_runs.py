@@ -97,7 +97,7 @@ def finished_table(
     except (OSError, ValueError):  # no result, or an image gone: the work names it and its pair
         return None
     done = isinstance(run, dict) and all(run.get(key) == value for key, value in identity.items())
-    if not done or (folder / method_outputs.UNFINISHED_MARKER).exists() or not (folder / "pairs.csv").is_file():
+    if not done or not (folder / "pairs.csv").is_file():
         return None
     return pd.read_csv(folder / "pairs.csv", keep_default_na=False)
 
@@ -193,34 +193,68 @@ def run_method(
     in_place = not record.is_stage(output_dir)
     written = [f"{method}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
     if in_place:
+        # The folder's results stay as they are until this method's are written, at the end.
         record.claim(output_dir)
         record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
-    with record.pending(output_dir if in_place else None, written):
-        # A failed or killed run must not leave the previous run's pairs.csv looking like its result.
-        method_outputs.claim_method_outputs(output_dir, [method], sequence.origin.get("params_file"))  # type: ignore[arg-type]
-        work = compute_method(
-            sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
-        )
-        lock = record.FolderLock(output_dir) if in_place else None
-        if lock is not None:
-            lock.acquire(wait_seconds=600)
-        try:
+    work = compute_method(
+        sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
+    )
+    return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
+
+
+def write_results(
+    output_dir: Path,
+    sequence: Sequence,
+    conf: dict[str, Any],
+    seed: int,
+    environment: dict[str, Any],
+    this_run: dict[str, Any],
+    cache_dir: Path,
+    device: str = "auto",
+) -> pd.DataFrame:
+    """The one way a method's results are written, whoever computed them (a run, a notebook on
+    its own, a merge of shards): its table from the stores, then ``run.json`` and ``pairs.csv``.
+    Outside a run's stage, under the folder's lock, never over a file the package did not write,
+    and recorded with what they are bound to."""
+    folder = method_outputs.method_dir(output_dir, conf["method"])
+    in_place = not record.is_stage(output_dir)
+    written = [f"{conf['method']}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+    lock = record.FolderLock(output_dir) if in_place else None
+    if lock is not None:
+        lock.acquire(wait_seconds=600)
+    try:
+        if in_place:
+            record.check_no_foreign_files(output_dir, written)
+        with record.pending(output_dir if in_place else None, written):
             table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-            write_method_outputs(folder, sequence, conf, seed, work["environment"], work["this_run"], table, device)
+            write_method_outputs(folder, sequence, conf, seed, environment, this_run, table, device)
             if in_place:
-                record_method_in_place(output_dir, method, sequence)
-        finally:
-            if lock is not None:
-                lock.release()
+                record_method_in_place(output_dir, conf["method"], sequence)
+    finally:
+        if lock is not None:
+            lock.release()
     return table
 
 
 def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) -> None:
-    """Enter a method's finished outputs, written in place, in the folder's record."""
+    """Enter a method's finished outputs, written in place, in the folder's record. What the last
+    ``run`` derived from the results (tables, figures, notebooks) no longer shows them: the folder's
+    table is removed (``results`` rebuilds it), and all of it when the method's inputs changed."""
+    binding = scoring.sequence_binding(sequence)
     with record.editing(output_dir) as entry:
         written = [f"{method}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+        previous = entry["methods"].get(method, {})
+        same_inputs = not previous or all(
+            previous.get(key) == binding[key] for key in ("pairs_digest", "images_digest")
+        )
+        derived = ["results.csv"] if same_inputs else ["results.csv", *entry.get("published", [])]
+        for name in derived:
+            if name.rsplit("/", 1)[-1] not in method_outputs.FINISHED_OUTPUTS:  # the methods' results stay
+                (Path(output_dir) / name).unlink(missing_ok=True)
+                entry["files"].pop(name, None)
+        entry["published"] = [name for name in entry.get("published", []) if name not in derived]
         entry["files"].update({name: record.file_sha256(Path(output_dir) / name) for name in written})
-        entry["methods"][method] = {**scoring.sequence_binding(sequence), "files": written}
+        entry["methods"][method] = {**binding, "files": written}
 
 
 def write_method_outputs(
@@ -234,7 +268,7 @@ def write_method_outputs(
     device: str = "auto",
 ) -> None:
     """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
-    finished run, ``methods_with_results``), then the unfinished marker removed."""
+    finished run, ``methods_with_results``)."""
     from gvbench_nb import __version__
 
     atomic_write_json(
@@ -251,7 +285,6 @@ def write_method_outputs(
         },
     )
     atomic_write_csv(folder / "pairs.csv", table)
-    (folder / method_outputs.UNFINISHED_MARKER).unlink(missing_ok=True)
 
 
 # ------------------------------------------------------------------- evaluation --

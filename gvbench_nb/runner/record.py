@@ -33,7 +33,7 @@ STAGE_PREFIX = ".run-"
 STAGE_MARKER = ".stage.json"  # in a stage: the folder it will be published into
 PACKAGE = "gvbench-nb"
 # Files a stage holds that are the run's working state, not its results.
-WORKING_FILES = (STAGE_MARKER, ".unfinished.json")
+WORKING_FILES = (STAGE_MARKER,)
 # The names the package writes in an output folder besides its record.
 OWN_NAMES = (RECORD_NAME, LOCK_NAME, HOLDER_NAME, RECORD_LOCK_NAME)
 
@@ -288,6 +288,28 @@ def running(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
     return None
 
 
+def kept_methods(
+    output_dir: Path, methods: list[str], binding: dict[str, Any]
+) -> tuple[list[str], dict[str, dict[str, Any]]]:
+    """The methods an output folder holds that this run does not rerun, with their bindings;
+    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
+    published = (read_record(output_dir) or {}).get("methods", {})
+    kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
+    other = [  # an imported method read no images (images_digest None): its pairs and labels bind it
+        m
+        for m, entry in kept.items()
+        if entry.get("pairs_digest") != binding["pairs_digest"]
+        or entry.get("images_digest") not in (None, binding["images_digest"])
+    ]
+    if other:
+        raise RecordError(
+            f"{output_dir} holds results of {', '.join(other)} computed on other pairs, labels or images than this "
+            f"run's ({binding['pairs_file']}); run them again with this run (--methods "
+            f"{','.join([*methods, *other])}) or give another --output-dir"
+        )
+    return list(kept), kept
+
+
 # ---------------------------------------------------------------------- stage --
 def open_stage(folder: str | os.PathLike[str]) -> Path:
     """A new, empty stage in ``folder`` for one run; the stages of earlier runs that stopped
@@ -347,7 +369,7 @@ def method_files(files: Iterable[str], method: str) -> list[str]:
 
 def publish(folder: Path, stage: Path, methods: dict[str, dict[str, Any]]) -> list[str]:
     """Move a finished stage's files into ``folder`` and record them; the files of the previous
-    publication that the stage does not hold again are removed (the package wrote them).
+    publication that the stage does not hold again are removed (its run wrote them).
     ``methods``: method -> what its results are bound to, kept in the record.
 
     The record says ``publishing`` while files move, so a reader never takes a half-moved folder
@@ -371,9 +393,14 @@ def _move_and_record(folder: Path, stage: Path) -> list[str]:
             os.replace(stage / name, target)
     fsync_folder(folder)
     with editing(folder) as record:
-        for name in set(record["files"]) - set(files):
+        # Only what the previous publication itself published is replaced: files written in
+        # place by others (the explorer's figures, an analysis's) stay theirs.
+        for name in set(record.get("published", [])) - set(files):
             (folder / name).unlink(missing_ok=True)
-        record["files"] = {name: file_sha256(folder / name) for name in files if (folder / name).is_file()}
+            record["files"].pop(name, None)
+        record["files"].update({name: file_sha256(folder / name) for name in files if (folder / name).is_file()})
+        record["files"] = {name: sha for name, sha in record["files"].items() if (folder / name).is_file()}
+        record["published"] = files
         record["methods"] = {
             method: {**binding, "files": method_files(files, method)} for method, binding in methods.items()
         }
@@ -417,6 +444,12 @@ def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:
             f"{folder} holds no {RECORD_NAME}, so no gvbench-nb run wrote it (or it was written by an older "
             "version); run the methods into a new folder (python -m gvbench_nb run PARAMS --output-dir NEW)"
         )
+    if record.get("state") == "publishing" and running(folder) is None:
+        # A run killed while publishing left its files in its stage: the move is finished here, so
+        # the folder is that run's results, whole (when the move cannot finish, it is refused below).
+        with contextlib.suppress(RecordError, OSError), FolderLock(folder):
+            finish_publishing(folder)
+        record = read_record(folder) or record
     if record.get("state") == "publishing":
         raise RecordError(
             f"{folder}: a run stopped while publishing its results ({record.get('stage')}); run it again "

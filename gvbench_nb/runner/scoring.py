@@ -60,6 +60,8 @@ def sequence_binding(sequence: Sequence) -> dict[str, Any]:
 
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     path = method_outputs.method_dir(output_dir, method) / "pairs.csv"
+    if (record.read_record(output_dir) or {}).get("state") == "publishing":
+        record.check_published(output_dir)  # half of two runs: refused, naming how to finish
     if not path.is_file():
         raise method_outputs.ResultsError(f"no results for method {method!r}: {path} is missing; run the method first")
     # Names stay strings whatever they read ("NA", "null"); an empty measurement is missing

@@ -370,9 +370,7 @@ def test_uncommon_image_kinds_are_read_not_rejected(tmp_path):
 
 @pytest.mark.real_data
 @pytest.mark.parametrize("workers", ["1", "2"])
-def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_complete(
-    small_root, tmp_path, monkeypatch, workers
-):
+def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small_root, tmp_path, monkeypatch, workers):
     monkeypatch.setenv("GVBENCH_JOBS", workers)  # the error surfaces from a worker thread as well
     root = tmp_path / "root"
     shutil.copytree(small_root, root)
@@ -382,7 +380,7 @@ def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_comp
     ]
     out, cache = tmp_path / "out", tmp_path / "cache"
     method_runs.run_method(Sequence("s", root, good), METHOD, PROFILE, out, cache, device="cpu", progress=False)
-    assert (method_outputs.method_dir(out, METHOD) / "pairs.csv").is_file()
+    finished = (method_outputs.method_dir(out, METHOD) / "pairs.csv").read_bytes()
 
     broken = root / "day_right" / "Image010.jpg"
     _truncated(small_root / "day_right" / "Image010.jpg", broken)
@@ -393,9 +391,9 @@ def test_a_run_hitting_a_bad_image_names_it_and_leaves_no_results_that_look_comp
     message = str(error.value)
     assert str(broken) in message and "sequence 's'" in message
     assert "pair 3: night_right/Image020.jpg day_right/Image010.jpg" in message
-    # The previous run's results are gone, not left to pass for this run's.
-    assert not (method_outputs.method_dir(out, METHOD) / "pairs.csv").exists()
-    assert scoring.methods_with_results(out) == []
+    # The finished results stay as they were, bound to the pairs they scored; this run wrote nothing.
+    assert (method_outputs.method_dir(out, METHOD) / "pairs.csv").read_bytes() == finished
+    assert scoring.methods_with_results(out) == [METHOD] and run_json(out)["n_pairs"] == len(good)
     # What was extracted before the error is kept: after the fix only the repaired image is extracted.
     shutil.copy(small_root / "day_right" / "Image010.jpg", broken)
     method_runs.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)

@@ -1,0 +1,182 @@
+"""The doors besides ``run``: shards, merges, the explorer's figures. Each writes results the
+way ``run`` does or is refused in one sentence before work; none removes a finished result or
+a file it did not write.
+
+Part of ``pytest -m reliability``; docs/reliability.md lists each test beside its promise. Same
+small photographs and in-process notebooks as test_run_record.py.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import matplotlib.pyplot as plt
+import pandas as pd
+import pytest
+import test_run_record
+from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file, run_cli, snapshot
+
+from gvbench_nb import run_and_publish
+from gvbench_nb.data.sequences import write_pairs
+from gvbench_nb.evaluation import plots
+from gvbench_nb.runner import config, method_runs, record
+
+pytestmark = pytest.mark.reliability
+root, notebooks_here = test_run_record.root, test_run_record.notebooks_here  # the fixtures
+
+
+def published(folder: Path) -> dict[str, bytes]:
+    """The folder's results as a reader sees them: the unit files and derived tables."""
+    return {k: v for k, v in snapshot(folder).items() if k.endswith((".csv", "run.json", ".png"))}
+
+
+def test_a_shard_into_a_finished_folder_keeps_its_results(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = published(tmp_path / "out")
+    assert run_cli(capsys, "run", str(path), "--shard", "0/2")[0] == 0
+    assert published(tmp_path / "out") == before
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 0 and "orb-nn" in out
+
+
+def test_a_shard_or_merge_on_other_labels_into_a_folder_of_other_methods_is_refused(
+    tmp_path, root, capsys, notebooks_here
+):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    before = published(tmp_path / "out")
+    flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, methods=["sift-opencv-nn"])
+    for option in (["--shard", "0/1"], ["--merge"]):
+        code, _, err = run_cli(capsys, "run", str(flipped), *option)
+        assert code == 2 and "holds results of orb-nn computed on other pairs, labels or images" in one_sentence(err)
+        assert published(tmp_path / "out") == before
+    assert not (tmp_path / "out" / "sift-opencv-nn" / "pairs.csv").exists()
+
+
+def test_a_merge_lists_every_method_of_the_folder(tmp_path, root, capsys, notebooks_here):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    sift = params_file(tmp_path, "sift.yaml", PAIRS, methods=["sift-opencv-nn"])
+    assert run_cli(capsys, "run", str(sift), "--shard", "0/1")[0] == 0
+    assert run_cli(capsys, "run", str(sift), "--merge")[0] == 0
+    assert sorted(pd.read_csv(tmp_path / "out" / "results.csv")["method"]) == ["orb-nn", "sift-opencv-nn"]
+
+
+def test_a_merge_while_a_run_holds_the_folder_is_refused_and_a_shard_changes_no_result(
+    tmp_path, root, capsys, notebooks_here
+):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = published(tmp_path / "out")
+    holder = hold_lock(tmp_path / "out")
+    try:
+        # A shard fills only the caches (keyed by content), which any number of writers share.
+        assert run_cli(capsys, "run", str(path), "--shard", "0/1")[0] == 0
+        code, _, err = run_cli(capsys, "run", str(path), "--merge")
+        assert code == 2 and f"another run is writing {tmp_path / 'out'} (pid {holder.pid}" in one_sentence(err)
+        assert published(tmp_path / "out") == before
+    finally:
+        holder.kill()
+        holder.wait()
+
+
+def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    figure = plt.figure()
+    saved = plots.save(figure, tmp_path / "out" / "explore" / "explore_pair_0.png")
+    plt.close(figure)
+    content = saved.read_bytes()
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    assert saved.read_bytes() == content
+    # Saved again, it replaces its own earlier file (the package wrote it).
+    figure = plt.figure()
+    plots.save(figure, saved)
+    plt.close(figure)
+    assert "explore/explore_pair_0.png" in record.read_record(tmp_path / "out")["files"]
+
+
+def verify_on_its_own(path: Path, method: str = "orb-nn", **overrides) -> None:
+    """What ``02_verify`` does when papermill, JupyterLab or nbmake runs it on its own."""
+    params = config.load_params(path, **overrides)
+    method_runs.run_method_of_params(params, config.prepare_sequence(params), method, progress=False)
+
+
+def test_a_notebook_run_on_its_own_that_fails_keeps_the_finished_results(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    before = published(tmp_path / "out")
+    run_record = (tmp_path / "out" / record.RECORD_NAME).read_bytes()
+    (root / "query" / "b.png").unlink()
+    with pytest.raises(Exception, match="b.png"):
+        verify_on_its_own(path)
+    assert published(tmp_path / "out") == before
+    assert (tmp_path / "out" / record.RECORD_NAME).read_bytes() == run_record
+    assert not list((tmp_path / "out").rglob(".unfinished.json"))
+
+
+def test_a_notebook_run_on_its_own_on_fewer_pairs_leaves_no_figure_of_the_earlier_run(
+    tmp_path, root, capsys, notebooks_here
+):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    out = tmp_path / "out"
+    # On the folder's own inputs, a new method's results join the folder; the run's notebooks still show it.
+    verify_on_its_own(path, "sift-opencv-nn")
+    assert (out / "02_verify_orb-nn.ipynb").is_file() and not (out / "results.csv").exists()
+    code, text, _ = run_cli(capsys, "results", str(out))
+    assert code == 0 and "orb-nn" in text and "sift-opencv-nn" in text
+    # On fewer pairs, what the run derived from the four-pair results is gone, and nothing else.
+    figure = plt.figure()
+    explored = plots.save(figure, out / "explore" / "explore_pair_0.png")
+    plt.close(figure)
+    verify_on_its_own(path, limit=2)
+    assert len(pd.read_csv(out / "orb-nn" / "pairs.csv")) == 2
+    left = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and "matches-" not in str(p))
+    assert not [name for name in left if name.endswith((".ipynb", ".yaml")) or name == "results.csv"], left
+    assert explored.is_file() and (out / "sift-opencv-nn" / "pairs.csv").is_file()
+    # The folder now mixes two pair lists: its readers refuse it, naming the methods.
+    code, _, err = run_cli(capsys, "results", str(out))
+    assert code == 2 and "orb-nn" in one_sentence(err) and "sift-opencv-nn" in err
+
+
+def test_a_publication_that_cannot_finish_says_so_and_no_reader_shows_the_mix(
+    tmp_path, root, capsys, notebooks_here, monkeypatch
+):
+    both = {"methods": ["orb-nn", "sift-opencv-nn"]}
+    assert run_cli(capsys, "run", str(params_file(tmp_path, **both)))[0] == 0
+    flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, **both)
+    replace = os.replace
+
+    def immutable_run_json(source, target):  # as `chattr +i` on one published file would
+        if ".run-" in str(source) and ".run-" not in str(target) and str(target).endswith("orb-nn/run.json"):
+            raise PermissionError(1, "Operation not permitted", str(target))
+        replace(source, target)
+
+    monkeypatch.setattr(os, "replace", immutable_run_json)
+    code, _, err = run_cli(capsys, "run", str(flipped))
+    assert code == 2 and "stopped while publishing" in err and "previous run's results" not in err
+    for command in (["results"], ["compare"]):  # the move still cannot finish
+        code, out, err = run_cli(capsys, *command, str(tmp_path / "out"))
+        assert code == 2 and out == "" and "a run stopped while publishing" in one_sentence(err)
+    monkeypatch.setattr(os, "replace", replace)
+    assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0  # now the reader finishes it
+    assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
+
+
+def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(tmp_path, root, capsys, monkeypatch):
+    path = params_file(tmp_path)
+
+    def edit_labels_then_run(name: str, output_path: Path, parameters: dict) -> None:
+        if name == "01_sequence.ipynb":  # after `run` read the pair file, before any method scored it
+            write_pairs(tmp_path / "params-pairs.txt", FLIPPED)
+        test_run_record.in_process_notebooks(name, output_path, parameters)
+
+    monkeypatch.setattr(run_and_publish, "execute_notebook", edit_labels_then_run)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
+    # The record binds the labels the results scored: a run of another method on the same file joins them.
+    monkeypatch.setattr(run_and_publish, "execute_notebook", test_run_record.in_process_notebooks)
+    assert run_cli(capsys, "run", str(path), "--methods", "sift-opencv-nn")[0] == 0
+    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
+    assert code == 0 and "orb-nn" in out and "sift-opencv-nn" in out

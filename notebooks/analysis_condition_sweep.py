@@ -37,6 +37,7 @@ from typing import Optional, Union
 import matplotlib.pyplot as plt
 from IPython.display import display
 
+from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
 from gvbench_nb.studies import condition_sweep
 
@@ -72,7 +73,7 @@ sweep = condition_sweep.run_sweep(
     threads=threads,
 )
 print(f"{len(sweep)} cells -> {out / 'sweep.csv'}")
-display(sweep)
+display(notebook.table(sweep))
 
 # %% [markdown]
 # ## AP, MR and aliasing share against strength, one figure a condition
@@ -95,7 +96,7 @@ for condition in conditions:
 # %%
 breaking = condition_sweep.breaking_strength(sweep)
 breaking.to_csv(out / "breaking_strength.csv", index=False)
-display(condition_sweep.breaking_strength_table(sweep))
+display(notebook.table(condition_sweep.breaking_strength_table(sweep)))
 
 # %% [markdown]
 # MR against strength, one panel a condition; the dashed mark on each line is its

@@ -81,7 +81,7 @@ print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
 # ranges must not overlap.
 
 # %%
-verifier_inputs.split_summary(bench.pairs, bench.pairs["split"])
+notebook.table(verifier_inputs.split_summary(bench.pairs, bench.pairs["split"]))
 
 # %% [markdown]
 # Score the test split with GV, the official classifier and the in-domain one (trained
@@ -106,7 +106,7 @@ print(
     f"inputs {info['input_seconds']:.0f} s"
 )
 epochs_run = pd.RangeIndex(1, len(info["history"]["loss"]) + 1, name="epoch")
-pd.DataFrame(info["history"], index=epochs_run)
+notebook.table(pd.DataFrame(info["history"], index=epochs_run).reset_index())
 
 # %% [markdown]
 # AP and MR in % of each verifier: ours on this run's test split, beside the paper's
@@ -125,14 +125,18 @@ print(
 shown = comparison.copy()
 for metric in ("ap", "max_recall"):
     shown[metric] = (100 * shown[metric]).round(1)
-shown.pivot_table(index=["source", "verifier"], columns="sequence", values=["ap", "max_recall"], sort=False)
+notebook.table(
+    shown.pivot_table(
+        index=["source", "verifier"], columns="sequence", values=["ap", "max_recall"], sort=False
+    ).reset_index()
+)
 
 # %% [markdown]
 # Ours again with the 95% intervals, the status of each verifier (why one could not run)
 # and the weights it used. Overlapping intervals do not separate two verifiers.
 
 # %%
-verifiers.verifier_table(results)
+notebook.table(verifiers.verifier_table(results).reset_index())
 
 # %% [markdown]
 # Precision-recall curves of the verifiers that ran, on the test split; the dot on the

@@ -82,7 +82,7 @@ print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
 # ranges must not overlap.
 
 # %%
-verifier_inputs.split_summary(bench.pairs, bench.pairs["split"])
+notebook.table(verifier_inputs.split_summary(bench.pairs, bench.pairs["split"]))
 
 # %% [markdown]
 # AP and MR in % with their 95% intervals of every verifier on the test split, its
@@ -93,7 +93,7 @@ verifier_inputs.split_summary(bench.pairs, bench.pairs["split"])
 names = list(verifier_names or verifiers.VERIFIERS)
 results, tables, boot = bench.evaluate(names, "test", n_resamples)
 print("verifiers.csv:", verifiers.write_results(results, output_dir))
-verifiers.verifier_table(results)
+notebook.table(verifiers.verifier_table(results).reset_index())
 
 # %% [markdown]
 # The intervals drawn, one row a verifier that ran, sorted by MR: the dot is the
@@ -143,4 +143,9 @@ features = bench.combination_features(conf)
 labels = bench.used().loc[train, "label"]
 model = verifiers.fit_combination(features[train], labels, conf)
 coefficients = model[-1].coef_[0]
-pd.Series(coefficients, index=features.columns, name="coefficient").sort_values()
+notebook.table(
+    pd.Series(coefficients, index=features.columns, name="coefficient")
+    .sort_values()
+    .rename_axis("feature")
+    .reset_index()
+)

@@ -124,7 +124,6 @@ def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], 
     twice is) with file:line, and an image whose decoder fails, or warns unless ``allow_damaged``.
     Returns the damaged images allowed (name -> what the decoder said), for the run's record."""
     keys = content_keys(sequence)
-    seen: dict[tuple[str, str], int] = {}
     for index, pair in enumerate(sequence.pairs):
         query, reference = keys[pair.query], keys[pair.reference]
         if query == reference:
@@ -132,15 +131,6 @@ def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], 
                 f"{_where(sequence, index)}: self-pair by content: {pair.query} and {pair.reference} hold the same "
                 "bytes (a copy of one image, or a link to it); a pair needs two different images, remove this line"
             )
-        first = seen.get((query, reference), seen.get((reference, query)))
-        if first is not None:  # as a pair spelled twice by name is refused
-            other = sequence.pairs[first]
-            raise PairFileError(
-                f"{_where(sequence, index)}: duplicate pair by content: {pair.query} {pair.reference} holds the same "
-                f"two images as {other.query} {other.reference} ({_where(sequence, first)}; copies or links of "
-                "them); remove one of them"
-            )
-        seen[(query, reference)] = index
     damaged = decoder_messages(sequence, keys, Path(cache_dir))
     if damaged and not allow_damaged:
         name, said = next(iter(damaged.items()))

@@ -16,6 +16,7 @@ import datetime as _dt
 import json
 import os
 import platform
+import secrets
 import shutil
 import sys
 from collections.abc import Iterable, Iterator
@@ -318,7 +319,8 @@ def open_stage(folder: str | os.PathLike[str]) -> Path:
     for old in folder.glob(f"{STAGE_PREFIX}*"):
         if old.is_dir() and is_stage(old):
             shutil.rmtree(old, ignore_errors=True)
-    run_id = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ") + f"-{os.getpid()}"
+    # Unique also for two runs of one process within a second (the timers tell their work apart by it).
+    run_id = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%SZ") + f"-{os.getpid()}-{secrets.token_hex(3)}"
     stage = folder / f"{STAGE_PREFIX}{run_id}"
     stage.mkdir(parents=True)
     atomic_write_json(stage / STAGE_MARKER, {"output_dir": str(folder), "run_id": run_id, "started_at": now()})

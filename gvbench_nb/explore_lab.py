@@ -22,6 +22,9 @@ from gvbench_nb.runner import config, method_outputs, scoring
 
 SOURCE_NOTEBOOK = NOTEBOOKS_DIR / "explore_pairs.ipynb"
 COPY_FOLDER = "explore"  # inside the run's folder: the working copy and the figures it writes
+# A Jupyter config folder added to the search path of explore's JupyterLab only: its page config
+# disables the announcements plugin, whose first-start pop-up asks to fetch Jupyter news.
+LAB_CONFIG = Path(__file__).parent / "lab_config"
 DEFAULT_PORT = 8888
 
 HELP = "open JupyterLab on a working copy of the explore notebook, pointed at a finished run's folder"
@@ -82,7 +85,23 @@ def working_notebook(output_dir: Path, source: Path = SOURCE_NOTEBOOK) -> dict[s
         if cell["cell_type"] == "code":
             cell["outputs"], cell["execution_count"] = [], None
     notebook["metadata"].pop("jupytext", None)
+    # What the kernel reports on start: a copy that says it already is not marked modified
+    # before the user edits anything.
+    notebook["metadata"].update(kernel_metadata())
     return notebook
+
+
+def kernel_metadata() -> dict[str, Any]:
+    """The notebook metadata JupyterLab writes when the python3 kernel starts: its kernelspec
+    and the language_info ipykernel reports."""
+    from ipykernel.ipkernel import IPythonKernel
+    from jupyter_client.kernelspec import KernelSpecManager
+
+    spec = KernelSpecManager().get_kernel_spec("python3")
+    return {
+        "kernelspec": {"display_name": spec.display_name, "language": spec.language, "name": "python3"},
+        "language_info": dict(IPythonKernel.language_info),
+    }
 
 
 def prepare_copy(output_dir: Path, source: Path = SOURCE_NOTEBOOK) -> tuple[Path, bool]:
@@ -138,8 +157,9 @@ def lab_command(copy: Path, port: int, token: str, open_browser: bool) -> list[s
         "--ServerApp.ip=127.0.0.1",
         f"--IdentityProvider.token={token}",
         f"--ServerApp.open_browser={open_browser}",
-        # The server would otherwise ask the network for news and updates.
-        "--LabApp.news_url=",
+        # No news feed (None, not an empty URL: only None stops the pop-up asking to fetch news)
+        # and no update check: the server asks no network.
+        "--LabApp.news_url=None",
         "--LabApp.check_for_updates_class=jupyterlab.NeverCheckForUpdate",
         # JupyterLab refuses root unless told; containers and CI often run as root.
         *(["--ServerApp.allow_root=True"] if hasattr(os, "geteuid") and os.geteuid() == 0 else []),
@@ -168,7 +188,9 @@ def command_explore(args: argparse.Namespace) -> int:
     print(f"explore: {copy} ({state}); methods {', '.join(methods)}", flush=True)
     print(f"JupyterLab: {lab_url(copy, port, token)} (Ctrl-C stops it)", flush=True)
     command = lab_command(copy, port, token, open_browser=not args.no_browser)
-    os.execv(command[0], command)  # JupyterLab takes this process over: Ctrl-C and signals reach it
+    search = os.pathsep.join(filter(None, [str(LAB_CONFIG), os.environ.get("JUPYTER_CONFIG_PATH")]))
+    # JupyterLab takes this process over: Ctrl-C and signals reach it.
+    os.execve(command[0], command, {**os.environ, "JUPYTER_CONFIG_PATH": search})
     return 0  # not reached
 
 

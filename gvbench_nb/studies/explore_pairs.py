@@ -162,6 +162,7 @@ def default_methods(params_file: str | os.PathLike[str], output_dir: str | os.Pa
 
 
 VIEWS = ("table", "matches", "scores")  # what the notebook shows of one pair, top to bottom
+FIGURE_FILES = {"table": "explore_pair.csv", "matches": "explore_pair.png", "scores": "explore_scores.png"}
 
 
 def figure_image(figure: Any, path: Path) -> Any:
@@ -185,14 +186,15 @@ def pair_views(
     cache_dir: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
     """Every view of one pair (``VIEWS``): the table across methods, the matches figure and the
-    score histograms; each is also written to ``figures_dir`` (CSV, PNG)."""
+    score histograms; each is also written to ``figures_dir`` (``FIGURE_FILES``), each view
+    replacing the last, so the folder holds the pair shown, not one file a pair viewed."""
     from gvbench_nb.evaluation import plots
     from gvbench_nb.protocol.images import read_image
 
     figures = Path(figures_dir)
     figures.mkdir(parents=True, exist_ok=True)
     view = pair_across_methods(tables, pair_index)
-    view.to_csv(figures / "explore_pair.csv", index=False)
+    view.to_csv(figures / FIGURE_FILES["table"], index=False)
     run = run_tables.load_run(output_dir, str(view["method"].iloc[0]))
     first = view.iloc[0]
     image_root = Path(run["image_root"])
@@ -207,8 +209,8 @@ def pair_views(
     scores = plots.score_histograms(tables, view)
     return {
         "table": view,
-        "matches": figure_image(matches, figures / f"explore_pair_{first['pair_index']}.png"),
-        "scores": figure_image(scores, figures / f"explore_scores_{first['pair_index']}.png"),
+        "matches": figure_image(matches, figures / FIGURE_FILES["matches"]),
+        "scores": figure_image(scores, figures / FIGURE_FILES["scores"]),
     }
 
 

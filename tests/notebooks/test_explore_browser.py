@@ -1,5 +1,6 @@
-"""``explore`` in a real browser: JupyterLab opens the working copy, Run All draws the controls,
-and every pick and every method redraws every view; the tracked notebooks stay untouched.
+"""``explore`` in a real browser: JupyterLab opens the working copy (unmodified, no pop-up), Run
+All draws the controls, and every pick and every method redraws every view, each replacing the
+last one's figures; the tracked notebooks stay untouched.
 
 A tiny run (two cheap methods on a small synthetic route) is made in a temporary folder,
 ``python -m gvbench_nb explore`` serves it on a free localhost port, and headless Chromium (the
@@ -153,6 +154,12 @@ def test_explore_in_jupyterlab_redraws_every_view_and_leaves_the_sources_clean(
             page.locator(".jp-Notebook").wait_for()
             # The kernel started (Run All before that asks which kernel to start).
             page.locator(".jp-StatusBar-Widget", has_text="Python 3 (ipykernel) | Idle").wait_for()
+            # Opened as it was written: not marked modified before any edit, and no pop-up (the
+            # news question JupyterLab asks on a first start).
+            page.wait_for_timeout(1500)
+            tab = page.locator(".lm-DockPanel-tabBar .lm-TabBar-tab", has_text="explore_pairs.ipynb")
+            assert "jp-mod-dirty" not in (tab.get_attribute("class") or ""), "the tab is marked modified"
+            assert page.locator(".Toastify__toast").all_inner_texts() == []
             page.get_by_role("menuitem", name="Run", exact=True).click()
             page.get_by_role("menuitem", name="Run All Cells", exact=True).click()
             status = page.locator(".gvbench-status")
@@ -190,5 +197,8 @@ def test_explore_in_jupyterlab_redraws_every_view_and_leaves_the_sources_clean(
             browser.close()
     # Saving wrote the outputs into the working copy, and nothing into the tracked notebooks.
     assert "image/png" in (run_folder / "explore" / "explore_pairs.ipynb").read_text()
+    # Every view replaced the last one's files: the folder holds the copy and one pair's figures.
+    kept = {p.name for p in (run_folder / "explore").iterdir() if p.name != ".ipynb_checkpoints"}
+    assert kept == {"explore_pairs.ipynb", *explore.FIGURE_FILES.values()}, kept
     assert sources_status() == before, sources_status()  # empty on a clean checkout
     assert sources_bytes() == before_bytes

@@ -404,6 +404,7 @@ def add_weights_fetch_command(weights_parser: argparse.ArgumentParser) -> None:
 def check_before_work(args: argparse.Namespace) -> None:
     """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
     if getattr(args, "command", None) == "run":
+        from gvbench_nb import methods as method_registry
         from gvbench_nb.runner import config, distributed
 
         try:  # the scale-out options, before the params and any folder
@@ -414,7 +415,9 @@ def check_before_work(args: argparse.Namespace) -> None:
         for flag, value in (("--shards", args.shards), ("--dask-workers", args.dask_workers)):
             if value is not None and value < 1:
                 raise config.ParamsError(f"{flag} must be a whole number of at least 1, got {value}")
-        config.check_run_inputs(run_and_publish.run_params_of_args(args), images=not getattr(args, "merge", False))
+        params = run_and_publish.run_params_of_args(args)
+        method_registry.check_known_to_kernels(params["methods"])
+        config.check_run_inputs(params, images=not getattr(args, "merge", False))
 
 
 def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:

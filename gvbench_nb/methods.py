@@ -14,7 +14,7 @@ import math
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import imm
+from gvbench_nb import GVBenchError, imm
 from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.protocol import recipes, registry, weights
 from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
@@ -22,6 +22,8 @@ from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
 __all__ = ["RECIPES", "check_profile", "conf_hash"]
 
 UnknownNameError = registry.UnknownNameError
+# Methods added by ``register_method`` in this process: only this process knows them.
+REGISTERED_FROM_CODE: set[str] = set()
 
 
 def _unknown(kind: str, name: str, known: list[str]) -> UnknownNameError:
@@ -63,6 +65,25 @@ def register_method(name: str, profiles: dict[str, dict[str, Any]]) -> None:
                 whole[kind].setdefault("checkpoints", [])
         whole.setdefault("verifier", recipes.profile_verifier(profile))
         RECIPES[profile][name] = {key: whole[key] for key in recipes.RECIPE_KEYS}
+    REGISTERED_FROM_CODE.add(name)
+
+
+class ProcessOnlyMethodError(GVBenchError):
+    """A method registered from code, asked of a command that computes in other processes."""
+
+
+def check_known_to_kernels(names: list[str]) -> None:
+    """``run`` executes its notebooks in fresh kernels (and Dask workers in other processes),
+    which know the recipe files' methods, not those ``register_method`` added here: refused
+    in one sentence before any work rather than failing in a kernel."""
+    mine = [name for name in names if name in REGISTERED_FROM_CODE]
+    if mine:
+        raise ProcessOnlyMethodError(
+            f"method {', '.join(mine)} was registered from code (methods.register_method), and run executes "
+            "its notebooks in fresh kernels that know only the methods of gvbench_nb/protocol/recipes/: "
+            "compute it in this process with method_runs.run_method, or add it there as an entry a profile "
+            "(docs/extending.md)"
+        )
 
 
 def _is_number(value: Any) -> bool:

@@ -125,6 +125,9 @@ def check_views(page, index: int) -> None:
     """Every view shows pair ``index``: the table names it, each figure is a loaded image."""
     table = page.locator(".gvbench-view-table table")
     assert table.count() == 1
+    # The table fits its cell (a wider one would scroll inside it, not overflow the notebook).
+    area, cell = page.locator(".gvbench-view-table").bounding_box(), page.locator(".jp-Notebook").bounding_box()
+    assert area and cell and area["x"] + area["width"] <= cell["x"] + cell["width"], (area, cell)
     cells = table.locator("tbody tr").evaluate_all("rows => rows.map(r => [...r.cells].map(c => c.innerText.trim()))")
     assert [row[1] for row in cells] == METHODS and {row[2] for row in cells} == {str(index)}, cells
     for view in ("matches", "scores"):

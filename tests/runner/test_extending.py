@@ -35,6 +35,7 @@ def isolate_recipes(monkeypatch: pytest.MonkeyPatch) -> None:
     """Registrations end with the test."""
     for profile in list(methods.RECIPES):
         monkeypatch.setitem(methods.RECIPES, profile, dict(methods.RECIPES[profile]))
+    monkeypatch.setattr(methods, "REGISTERED_FROM_CODE", set())
 
 
 @pytest.fixture(scope="module")

@@ -164,6 +164,18 @@ def test_a_publication_that_cannot_finish_says_so_and_no_reader_shows_the_mix(
     assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
 
 
+def test_a_method_registered_from_code_is_refused_by_run_before_any_folder(tmp_path, root, capsys, monkeypatch):
+    from test_extending import isolate_recipes
+
+    from gvbench_nb import methods
+
+    isolate_recipes(monkeypatch)
+    methods.register_method("orb-mine", {"repository": methods.resolve_method("orb-nn", "repository")})
+    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, methods=["orb-mine"])))
+    assert code == 2 and "method orb-mine was registered from code" in one_sentence(err)
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
+
+
 def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(tmp_path, root, capsys, monkeypatch):
     path = params_file(tmp_path)
 

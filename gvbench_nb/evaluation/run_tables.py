@@ -25,7 +25,7 @@ import yaml
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb import reference_values
-from gvbench_nb.runner import config, image_features, method_outputs, method_runs, pair_matching, scoring
+from gvbench_nb.runner import config, image_features, method_outputs, method_runs, pair_matching, record, scoring
 
 METRICS = ("ap", "max_recall")
 
@@ -104,11 +104,15 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
             raise FileNotFoundError(
                 f"{path} is missing: evaluate that output folder first (python -m gvbench_nb run PARAMS)"
             )
-        frame = pd.read_csv(path)
-        # Read only what a run published, unedited, from inputs unchanged since, on one set of pairs.
-        scoring.readable_methods(folder, list(frame["method"]), tables=["results.csv"])
-        limits = [(load_run(folder, m).get("pairs") or {}).get("limit") for m in frame["method"]]
-        frames.append(frame.assign(output_dir=str(Path(folder)), limit=pd.Series(limits, dtype=object)))
+
+        def read(path: Path = path, folder: str | os.PathLike[str] = folder) -> pd.DataFrame:
+            frame = pd.read_csv(path)
+            # Only what a run published, unedited, from inputs unchanged since, on one set of pairs.
+            scoring.readable_methods(folder, list(frame["method"]), tables=["results.csv"])
+            limits = [(load_run(folder, m).get("pairs") or {}).get("limit") for m in frame["method"]]
+            return frame.assign(output_dir=str(Path(folder)), limit=pd.Series(limits, dtype=object))
+
+        frames.append(record.read_whole(folder, read))  # one publication, also while a run publishes
     if not frames:
         raise ValueError("no output folders given: pass at least one folder holding results.csv")
     results = pd.concat(frames, ignore_index=True)

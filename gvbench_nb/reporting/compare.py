@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 from pathlib import Path
+from typing import Any
 
 from gvbench_nb.arguments import whole_number_at_least
 
@@ -42,14 +43,18 @@ def resample_count(text: str) -> int:
 def command_compare(args: argparse.Namespace) -> int:
     from gvbench_nb.evaluation import bootstrap, intervals, run_tables
     from gvbench_nb.reporting.tables import markdown_table
-    from gvbench_nb.runner import method_outputs, scoring
+    from gvbench_nb.runner import method_outputs, record, scoring
 
     folders = [Path(f) for f in args.output_dirs]
-    for folder in folders:
-        scoring.readable_methods(folder)  # what `results` refuses, compare refuses
     where = ", ".join(map(str, folders))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
-    tables = intervals.folder_tables(folders, methods)
+
+    def read() -> dict[str, Any]:
+        for folder in folders:
+            scoring.readable_methods(folder)  # what `results` refuses, compare refuses
+        return intervals.folder_tables(folders, methods)
+
+    tables = record.read_whole(folders, read)  # one publication of each folder, also while runs publish
     if len(tables) < 2:
         raise run_tables.IncomparableRunsError(
             f"{where} holds results of one method only ({', '.join(tables)}); "

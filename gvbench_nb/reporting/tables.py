@@ -83,12 +83,18 @@ def command_results(args: argparse.Namespace) -> int:
     from gvbench_nb.runner import method_outputs, record, scoring
 
     for folder in map(Path, args.output_dirs):
-        finished_methods = scoring.readable_methods(folder)
-        unfinished = method_outputs.unfinished_methods(folder)
-        results = scoring.evaluate(folder, finished_methods, write=False)
-        pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
-        results = results.join(intervals.interval_columns(pair_tables), on="method")
-        runs = [json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]]
+
+        def read(folder: Path = folder) -> tuple[Any, dict[str, str], list[dict[str, Any]]]:
+            results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
+            pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
+            results = results.join(intervals.interval_columns(pair_tables), on="method")
+            runs = [
+                json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]
+            ]
+            return results, method_outputs.unfinished_methods(folder), runs
+
+        # One publication's tables, whole, also while a run publishes into the folder.
+        results, unfinished, runs = record.read_whole(folder, read)
         print(results_header(folder, results, runs))
         if args.markdown:
             print(markdown_table(results[WIDE_COLUMNS]))

@@ -19,14 +19,16 @@ import platform
 import secrets
 import shutil
 import sys
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from gvbench_nb import GVBenchError, __version__
 from gvbench_nb.io_utils import atomic_write_json, file_sha256, fsync_folder
 
+T = TypeVar("T")
 RECORD_NAME = "gvbench-run.json"
+READ_WAIT_SECONDS = 60  # how long a reader waits for runs publishing into a folder it reads
 LOCK_NAME = ".gvbench.lock"  # held by the one run writing the folder
 HOLDER_NAME = ".gvbench-running.json"  # who holds the lock: pid, host, command, start
 RECORD_LOCK_NAME = ".gvbench-record.lock"  # held for the moment the record is read and rewritten
@@ -437,6 +439,41 @@ def changed_files(folder: str | os.PathLike[str], names: Iterable[str] | None = 
     return [n for n in wanted if not (folder / n).is_file() or file_sha256(folder / n) != listed[n]]
 
 
+def _publications(folders: list[Path]) -> list[tuple[Any, ...] | None]:
+    records = [read_record(folder) for folder in folders]
+    return [None if r is None else (r.get("state"), r.get("run_id"), r.get("published_at")) for r in records]
+
+
+def read_whole(folders: str | os.PathLike[str] | Iterable[str | os.PathLike[str]], read: Callable[[], T]) -> T:
+    """``read()`` of one publication of each folder. A run publishing into one (its files move
+    in milliseconds) is waited for, and a read it overlapped starts again on the new
+    publication, so a reader polling a folder that runs publish into sees each run whole: never
+    half of two, never a refusal for the move. What ``read`` refuses otherwise is raised."""
+    import time
+
+    paths = [Path(folders)] if isinstance(folders, (str, os.PathLike)) else [Path(f) for f in folders]
+    deadline = time.monotonic() + READ_WAIT_SECONDS
+    while True:
+        before = _publications(paths)
+        moving = any(p and p[0] == "publishing" and running(f) is not None for f, p in zip(paths, before))
+        if moving and time.monotonic() < deadline:
+            time.sleep(0.02)
+            continue
+        try:
+            result = read()
+        except GVBenchError:
+            if _publications(paths) != before and time.monotonic() < deadline:
+                continue  # refused what a publication left mid-way: read the new one
+            raise
+        if _publications(paths) == before:
+            return result
+        if time.monotonic() >= deadline:
+            raise RecordError(
+                f"{', '.join(map(str, paths))} kept being published into for {READ_WAIT_SECONDS} s while it was "
+                "read; read it once the runs writing it have finished"
+            )
+
+
 def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:
     """The record of a folder whose results a reader may use; ``RecordError`` otherwise."""
     folder = Path(folder)
@@ -452,6 +489,11 @@ def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:
         with contextlib.suppress(RecordError, OSError), FolderLock(folder):
             finish_publishing(folder)
         record = read_record(folder) or record
+    holder = running(folder) if record.get("state") == "publishing" else None
+    if holder is not None:
+        raise RecordError(
+            f"a run (pid {holder.get('pid')}) is publishing its results into {folder} now; read it again in a moment"
+        )
     if record.get("state") == "publishing":
         raise RecordError(
             f"{folder}: a run stopped while publishing its results ({record.get('stage')}); run it again "

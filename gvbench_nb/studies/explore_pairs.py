@@ -41,8 +41,13 @@ def load_tables(
 ) -> dict[str, pd.DataFrame]:
     """``pairs.csv`` of each method (default: every method with results in ``output_dir``), as a
     run published them, from inputs unchanged since, every method on the same pairs and labels."""
-    methods = scoring.readable_methods(output_dir, methods)
-    return {method: scoring.load_pairs_table(Path(output_dir), method) for method in methods}
+    from gvbench_nb.runner import record
+
+    def read() -> dict[str, pd.DataFrame]:
+        names = scoring.readable_methods(output_dir, methods)
+        return {method: scoring.load_pairs_table(Path(output_dir), method) for method in names}
+
+    return record.read_whole(output_dir, read)  # one publication, also while a run publishes
 
 
 def score_ranks(table: pd.DataFrame) -> pd.Series:

@@ -176,6 +176,58 @@ def test_a_method_registered_from_code_is_refused_by_run_before_any_folder(tmp_p
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
+def test_a_reader_polling_while_a_run_publishes_sees_each_run_whole(tmp_path, root, capsys, monkeypatch):
+    import threading
+    import time
+
+    from gvbench_nb.runner import scoring
+
+    both = {"methods": ["orb-nn", "sift-opencv-nn"]}
+    assert run_cli(capsys, "run", str(params_file(tmp_path, **both)))[0] == 0
+    out = tmp_path / "out"
+
+    def read() -> dict[str, list[float]]:
+        return {m: scoring.load_pairs_table(out, m)["score"].tolist() for m in scoring.readable_methods(out)}
+
+    first = read()
+    second = {m: [score + 1 for score in scores] for m, scores in first.items()}
+    # The next publication, as a run makes it: its stage holds every method, each file moved
+    # in place 0.1 s after the last, so readers land mid-move.
+    published = record.read_record(out)
+    stage = record.open_stage(out)
+    for name in published["published"]:
+        (stage / name).parent.mkdir(parents=True, exist_ok=True)
+        (stage / name).write_bytes((out / name).read_bytes())
+    for method in first:
+        table = pd.read_csv(stage / method / "pairs.csv")
+        table["score"] += 1
+        table.to_csv(stage / method / "pairs.csv", index=False)
+    bindings = {m: {k: v for k, v in b.items() if k != "files"} for m, b in published["methods"].items()}
+    replace = os.replace
+
+    def slow_replace(source, target):
+        if threading.current_thread().name == "publisher":
+            time.sleep(0.1)
+        replace(source, target)
+
+    monkeypatch.setattr(os, "replace", slow_replace)
+
+    def publish() -> None:
+        with record.FolderLock(out):
+            record.publish(out, stage, bindings)
+
+    publisher = threading.Thread(target=publish, name="publisher")
+    polls = [record.read_whole(out, read)]
+    publisher.start()
+    while publisher.is_alive():
+        polls.append(record.read_whole(out, read))  # raises on a refusal
+    publisher.join()
+    polls.append(record.read_whole(out, read))
+    assert polls[0] == first and polls[-1] == second
+    assert all(poll in (first, second) for poll in polls), "a poll showed half of two runs"
+    assert len(polls) > 3
+
+
 def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(tmp_path, root, capsys, monkeypatch):
     path = params_file(tmp_path)
 

@@ -4,6 +4,7 @@ cached results only; its controls redraw every view; the command opens a working
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -247,12 +248,16 @@ def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run)
 def test_explore_command_opens_lab_on_the_copy(tiny_run, monkeypatch, capsys):
     out = tiny_run.parent / "out"
     started = []
-    monkeypatch.setattr(explore_lab.os, "execv", lambda path, argv: started.append(argv))
+    monkeypatch.setattr(explore_lab.os, "execve", lambda path, argv, env: started.append((argv, env)))
     assert cli.main(["explore", str(out), "--no-browser", "--port", "9876"]) == 0
     printed = capsys.readouterr().out
     assert str(out / "explore" / "explore_pairs.ipynb") in printed
     assert "http://127.0.0.1:9876/lab/tree/explore_pairs.ipynb?token=" in printed
-    assert "--ServerApp.open_browser=False" in started[0] and "--ServerApp.port=9876" in started[0]
+    argv, env = started[0]
+    assert "--ServerApp.open_browser=False" in argv and "--ServerApp.port=9876" in argv
+    # Its JupyterLab reads the package's page config too (no news pop-up), besides the user's.
+    assert env["JUPYTER_CONFIG_PATH"].split(os.pathsep)[0] == str(explore_lab.LAB_CONFIG)
+    assert (explore_lab.LAB_CONFIG / "labconfig" / "page_config.json").is_file()
 
 
 @pytest.mark.parametrize("folder", ["missing", "no_record", "no_results"])

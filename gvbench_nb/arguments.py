@@ -5,6 +5,12 @@ from __future__ import annotations
 
 import argparse
 import difflib
+from typing import Any
+
+
+def is_whole_number(value: Any) -> bool:
+    """An int given in a params file or from code (YAML's ``yes`` is a bool, not 1)."""
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def whole_number_at_least(text: str, minimum: int, what: str) -> int:

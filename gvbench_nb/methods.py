@@ -15,7 +15,7 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb import GVBenchError, imm
-from gvbench_nb.arguments import unknown_keys_hint
+from gvbench_nb.arguments import is_whole_number, unknown_keys_hint
 from gvbench_nb.protocol import recipes, registry, weights
 from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
 
@@ -90,21 +90,17 @@ def _is_number(value: Any) -> bool:
     return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
 
 
-def _is_whole(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)
-
-
 # Numeric verifier keys: (check, what the value must be). OpenCV does not refuse values out
 # of range: a threshold of 0 or less silently becomes its 3 px default, for one.
 VERIFIER_RANGES: dict[str, tuple[Any, str]] = {
     "threshold_px": (lambda v: _is_number(v) and v > 0, "a number of pixels above 0"),
     "confidence": (lambda v: _is_number(v) and 0 < v < 1, "a number between 0 and 1 (both excluded)"),
     # OpenCV takes an int: above 2**31 - 1 it would fail mid-run.
-    "max_iters": (lambda v: _is_whole(v) and 1 <= v <= 2**31 - 1, "a whole number from 1 to 2147483647"),
-    "min_matches": (lambda v: _is_whole(v) and v >= 0, "a whole number of at least 0"),
+    "max_iters": (lambda v: is_whole_number(v) and 1 <= v <= 2**31 - 1, "a whole number from 1 to 2147483647"),
+    "min_matches": (lambda v: is_whole_number(v) and v >= 0, "a whole number of at least 0"),
     "min_match_score": (lambda v: v is None or _is_number(v), "a number or null (null keeps every match)"),
     "resize_to": (
-        lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(_is_whole(x) and x >= 1 for x in v),
+        lambda v: isinstance(v, (list, tuple)) and len(v) == 2 and all(is_whole_number(x) and x >= 1 for x in v),
         "[width, height], two whole numbers of at least 1",
     ),
 }

@@ -22,12 +22,11 @@ from gvbench_nb.data.sequences import (
     frame_index,
 )
 from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
 
 # Local features a vlad/bow descriptor aggregates -> the method whose extractor conf it
 # reuses, so the feature cache is shared with that method's runs.
 LOCAL_FEATURE_METHODS = {"sift": "sift-nn", "orb": "orb-nn"}
-
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
 
 
 class BuildError(GVBenchError, ValueError):

@@ -33,7 +33,6 @@ APP_NAME = "gvbench-nb"
 CHUNK_BYTES = 1 << 16
 TIMEOUT_SECONDS = 60.0
 ATTEMPTS = 4  # a cut connection is resumed this many times before the fetch gives up
-IMAGE_EXTENSIONS = {".jpg", ".jpeg", ".png", ".ppm", ".bmp"}
 
 
 class DataError(GVBenchError, RuntimeError):
@@ -367,6 +366,8 @@ def images_of_params(params: dict[str, Any]) -> tuple[list[str], str, list[str]]
     """The images a sequence names (relative to its image root), where the names came from
     (a builder's folders when it has them: its pair file is made from them; else the pair
     list) and the builder's folders that do not exist (they name no image)."""
+    from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
+
     folders = _builder_folders(dict(params["builder_options"]))
     if params["pairs_builder"] and folders:
         root = Path(params["image_root"])

@@ -13,6 +13,9 @@ import numpy as np
 from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 
+# The image files a folder of images is read for (what OpenCV decodes here).
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
+
 
 def path_problem(path: str | os.PathLike[str]) -> str | None:
     """What keeps ``path`` from being read as a regular file, in words that follow its name

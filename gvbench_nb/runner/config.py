@@ -20,7 +20,7 @@ import yaml
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
-from gvbench_nb.arguments import unknown_keys_hint
+from gvbench_nb.arguments import is_whole_number, unknown_keys_hint
 from gvbench_nb.data import build_inputs, fetch
 from gvbench_nb.data.sequences import (
     Pair,
@@ -220,10 +220,6 @@ def load_build_params(
     return params
 
 
-def _is_integer(value: Any) -> bool:
-    return isinstance(value, int) and not isinstance(value, bool)  # YAML 'yes' is a bool, not 1
-
-
 def _is_path(value: Any) -> bool:
     return isinstance(value, (str, os.PathLike))  # overrides from code may be Path objects
 
@@ -245,8 +241,8 @@ TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
     "description": (lambda v: isinstance(v, str), "text"),
     "pairs_builder": (lambda v: v is None or isinstance(v, str), "a builder name or null"),
     "builder_options": (lambda v: isinstance(v, dict), "a mapping of option names to values"),
-    "limit": (lambda v: v is None or _is_integer(v), "a positive integer or null"),
-    "seed": (_is_integer, "an integer"),
+    "limit": (lambda v: v is None or is_whole_number(v), "a positive integer or null"),
+    "seed": (is_whole_number, "an integer"),
     "verifier": (lambda v: isinstance(v, dict), "a mapping of verifier conf keys to values"),
     "allow_damaged_images": (lambda v: isinstance(v, bool), "true or false"),
     "device": (
@@ -433,14 +429,6 @@ def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
         "seed": params["seed"],
         "limit": params["limit"],
     }
-
-
-def load_sequence_pairs_only(params: dict[str, Any]) -> Sequence:
-    """Pairs without touching images (works for the official lists without their images)."""
-    root = Path(params["image_root"]) if params["image_root"] else Path(".")
-    if path_problem(params["pairs"]) is not None:
-        raise _missing_pairs_error(params)
-    return Sequence(params["sequence"], root, read_pairs(params["pairs"])).limited(params["limit"])
 
 
 def check_writable_folder(params: dict[str, Any], key: str) -> Path:

@@ -82,7 +82,7 @@ def test_frame_tolerance_pairs_labels_follow_the_rule():
 @pytest.mark.parametrize("name", sorted(OFFICIAL))
 def test_official_pair_lists_load_without_images(shared_data, name):
     params = config.load_params(config.PROJECT_ROOT / "params" / f"{name}.yaml")
-    sequence = config.load_sequence_pairs_only(params)
+    sequence = Sequence(name, Path("."), read_pairs(params["pairs"]))  # the labels only, no image
     pairs, positives, queries = OFFICIAL[name]
     summary = summarize(sequence)
     assert (summary["n_pairs"], summary["n_positives"], summary["n_queries"]) == (pairs, positives, queries)

@@ -366,11 +366,19 @@ def test_a_rerun_served_from_the_cache_says_its_timers_are_the_earlier_runs(tmp_
     assert pd.read_csv(tmp_path / "demo" / "results.csv")["timers"].tolist() == ["partly cached"]
 
 
-def test_two_runs_of_one_process_within_a_second_have_their_own_run_ids(tmp_path):
+def test_two_runs_of_one_process_within_a_second_have_their_own_run_ids(tmp_path, monkeypatch):
     # A run's timers count the images it extracted itself by its id: two ids must never meet.
+    import datetime
+
+    class OneSecond(datetime.datetime):  # both stages opened in the same second, whatever the load
+        @classmethod
+        def now(cls, tz=None):
+            return datetime.datetime(2026, 12, 4, 12, 0, 0, tzinfo=tz)
+
+    monkeypatch.setattr(datetime, "datetime", OneSecond)
     first = record.stage_run_id(record.open_stage(tmp_path))
     second = record.stage_run_id(record.open_stage(tmp_path))
-    assert first != second and first.split("-")[0] == second.split("-")[0]
+    assert first.split("-")[0] == second.split("-")[0] == "20261204T120000Z" and first != second
 
 
 def test_results_fits_100_columns_and_shows_every_column_when_wide(tmp_path, root, capsys, notebooks_here):

@@ -35,6 +35,11 @@ def method_dir(output_dir: Path, method: str) -> Path:
 FINISHED_OUTPUTS = ("pairs.csv", "run.json")
 
 
+def result_files(method: str) -> list[str]:
+    """A method's finished outputs as the folder's record names them (relative to the folder)."""
+    return [f"{method}/{name}" for name in FINISHED_OUTPUTS]
+
+
 class ResultsError(GVBenchError, FileNotFoundError):
     """An output folder holds no results, or a method's results are unfinished or partial."""
 

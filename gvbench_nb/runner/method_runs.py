@@ -191,7 +191,7 @@ def run_method(
     # while the results are written. The stores are filled first, by any number of processes at
     # once (they are safe for that).
     in_place = not record.is_stage(output_dir)
-    written = [f"{method}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+    written = method_outputs.result_files(method)
     if in_place:
         # The folder's results stay as they are until this method's are written, at the end.
         record.claim(output_dir)
@@ -218,7 +218,7 @@ def write_results(
     and recorded with what they are bound to."""
     folder = method_outputs.method_dir(output_dir, conf["method"])
     in_place = not record.is_stage(output_dir)
-    written = [f"{conf['method']}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+    written = method_outputs.result_files(conf["method"])
     lock = record.FolderLock(output_dir) if in_place else None
     if lock is not None:
         lock.acquire(wait_seconds=600)
@@ -242,7 +242,7 @@ def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) ->
     table is removed (``results`` rebuilds it), and all of it when the method's inputs changed."""
     binding = scoring.sequence_binding(sequence)
     with record.editing(output_dir) as entry:
-        written = [f"{method}/{name}" for name in method_outputs.FINISHED_OUTPUTS]
+        written = method_outputs.result_files(method)
         previous = entry["methods"].get(method, {})
         same_inputs = not previous or all(
             previous.get(key) == binding[key] for key in ("pairs_digest", "images_digest")

@@ -187,7 +187,7 @@ def check_results_current(output_dir: Path, methods: Iterable[str], tables: Iter
     output_dir = Path(output_dir)
     methods = list(methods)
     record.check_published(output_dir)
-    names = [f"{m}/{name}" for m in methods for name in method_outputs.FINISHED_OUTPUTS] + list(tables)
+    names = [name for m in methods for name in method_outputs.result_files(m)] + list(tables)
     edited = record.changed_files(output_dir, names)
     if edited:
         raise record.RecordError(

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import json
 import os
 import socket
 import uuid
@@ -27,7 +28,9 @@ import numpy as np
 from gvbench_nb import GVBenchError
 from gvbench_nb.io_utils import WRITE_FAILURES, fsync_folder
 
-SHARD_SUFFIX = ".h5"
+# The layout's version is in the name: a shard of another layout is not listed (its entries are
+# computed again) rather than read as damaged.
+SHARD_SUFFIX = ".v2.h5"
 
 
 # In temporary names, so a writer only ever cleans up after dead writers of its own host.
@@ -54,14 +57,16 @@ class StoreWriteError(GVBenchError, OSError):
     """A shard could not be written (disk full, quota, file size limit); nothing of it is kept."""
 
 
-# Each dataset carries the CRC-32 of its dtype, shape and bytes as the attribute
-# ``_digest:<name>``; the entry's own attributes (counts such as num_inliers) and its key
-# are covered by ``_digest_attrs``. HDF5's Fletcher32 filter would need chunked datasets
-# (not scalars) and does not cover attributes, hence our own. CRC-32 catches damage (it
-# runs at about 1 GB/s, four times BLAKE2b here); it is no defence against someone who
-# can rewrite the cache, and need not be: such a person can rewrite the results too.
-_DIGEST_PREFIX = "_digest:"
-_ATTRS_DIGEST = "_digest_attrs"
+# A shard holds one HDF5 group of datasets an entry, and one table of its entries (the JSON
+# dataset ``_entries``: each key's attributes, such as num_inliers, and the CRC-32 of each of
+# its datasets' dtype, shape and bytes), whose own CRC-32 is the file's attribute
+# ``_entries_digest``. One table a shard, not HDF5 attributes on each entry: reading the counts
+# of a sequence's pairs then costs a read a shard, not a dozen an entry. HDF5's Fletcher32
+# filter would need chunked datasets (not scalars), hence our own. CRC-32 catches damage; it is
+# no defence against someone who can rewrite the cache, and need not be: such a person can
+# rewrite the results too.
+_ENTRIES = "entries table"  # a space: no quoted key is this name
+_ENTRIES_DIGEST = "_entries_digest"
 
 
 def _crc(array: np.ndarray, crc: int) -> int:
@@ -75,12 +80,9 @@ def array_digest(array: np.ndarray) -> str:
     return f"{_crc(np.asarray(array), 0):08x}"
 
 
-def attrs_digest(key: str, attrs: Mapping[str, object]) -> str:
-    """CRC-32 of an entry's key and its attributes' names and values (8 hex digits)."""
-    crc = zlib.crc32(key.encode())
-    for name in sorted(attrs):
-        crc = _crc(np.asarray(attrs[name]), zlib.crc32(f"\0{name}\0".encode(), crc))
-    return f"{crc:08x}"
+def _plain(value: object) -> object:
+    """An attribute value as JSON holds it (numpy scalars become Python numbers)."""
+    return value.item() if isinstance(value, np.generic) else value
 
 
 def _corrupt(shard: Path, folder: Path, what: str) -> StoreCorruptError:
@@ -101,16 +103,16 @@ class ShardedStore:
     def __init__(self, folder: str | os.PathLike[str], max_open: int = 16):
         self.folder = Path(folder)
         self._index: dict[str, Path] | None = None
-        # Shards open for reading, least recently read first. Bounded: reading every pair of a
-        # long sequence would otherwise hold every shard open (a file handle and HDF5 caches each).
+        # Shards open for reading with their entries tables, least recently read first. Bounded:
+        # reading every pair of a long sequence would otherwise hold every shard open.
         self.max_open = max_open
-        self._open: OrderedDict[Path, h5py.File] = OrderedDict()
+        self._open: OrderedDict[Path, tuple[h5py.File, dict[str, dict]]] = OrderedDict()
 
     # -- reading -----------------------------------------------------------------
     def shards(self) -> list[Path]:
         if not self.folder.is_dir():
             return []
-        return sorted(p for p in self.folder.iterdir() if p.suffix == SHARD_SUFFIX and not p.name.startswith("."))
+        return sorted(p for p in self.folder.iterdir() if p.name.endswith(SHARD_SUFFIX) and not p.name.startswith("."))
 
     def refresh(self) -> None:
         """Re-list the committed shards (other processes may have added some)."""
@@ -119,7 +121,7 @@ class ShardedStore:
         for shard in self.shards():
             try:
                 with h5py.File(shard, "r") as handle:
-                    names = list(handle.keys())
+                    names = [name for name in handle.keys() if name != _ENTRIES]
             except OSError as error:
                 # Committed shards are complete (fsync then rename); one that is not was
                 # damaged afterwards (disk, copy, another tool): say which, and the way out.
@@ -153,31 +155,44 @@ class ShardedStore:
             shard = self.index[key]
         except KeyError:
             raise KeyError(f"{key!r} is not in the store {self.folder}") from None
+        handle, table = self._opened(shard)
+        if key not in table:
+            raise _corrupt(shard, self.folder, f"entry {key!r} is not in its entries table")
         try:
-            # The most recently read shards stay open, at most max_open of them.
-            handle = self._open.pop(shard, None) or h5py.File(shard, "r")
-            self._open[shard] = handle
-            while len(self._open) > self.max_open:
-                self._open.popitem(last=False)[1].close()
             group = handle[_group_name(key)]
             wanted = list(group) if fields is None else [n for n in fields if n in group]
             entry = {name: group[name][()] for name in wanted}
-            stored = dict(group.attrs.items())
         except (OSError, KeyError, ValueError, RuntimeError) as error:
             raise _corrupt(shard, self.folder, f"entry {key!r} cannot be read: {error}") from error
-        attrs = {name: value for name, value in stored.items() if not name.startswith("_digest")}
-        if _ATTRS_DIGEST not in stored:
-            raise _corrupt(shard, self.folder, f"entry {key!r} has no checksums")
-        if stored[_ATTRS_DIGEST] != attrs_digest(key, attrs):
-            raise _corrupt(shard, self.folder, f"the attributes of entry {key!r} do not match their checksum")
+        digests = table[key]["digests"]
         for name, array in entry.items():
-            if stored.get(_DIGEST_PREFIX + name) != array_digest(array):
+            if digests.get(name) != array_digest(array):
                 raise _corrupt(shard, self.folder, f"dataset {name!r} of entry {key!r} does not match its checksum")
-        entry.update({f"attr:{name}": value for name, value in attrs.items()})
+        entry.update({f"attr:{name}": value for name, value in table[key]["attrs"].items()})
         return entry
 
+    def _opened(self, shard: Path) -> tuple[h5py.File, dict[str, dict]]:
+        """A shard's open handle and its checked entries table; the most recently read shards
+        stay open, at most max_open of them."""
+        opened = self._open.pop(shard, None)
+        if opened is None:
+            try:
+                handle = h5py.File(shard, "r")
+                text = bytes(handle[_ENTRIES][()])
+                stored = handle.attrs.get(_ENTRIES_DIGEST)
+            except (OSError, KeyError, ValueError, RuntimeError) as error:
+                raise _corrupt(shard, self.folder, f"its entries table cannot be read: {error}") from error
+            if stored != f"{zlib.crc32(text):08x}":
+                handle.close()
+                raise _corrupt(shard, self.folder, "its entries table does not match its checksum")
+            opened = (handle, json.loads(text))
+        self._open[shard] = opened
+        while len(self._open) > self.max_open:
+            self._open.popitem(last=False)[1][0].close()
+        return opened
+
     def close(self) -> None:
-        for handle in self._open.values():
+        for handle, _ in self._open.values():
             handle.close()
         self._open.clear()
 
@@ -237,17 +252,18 @@ class ShardWriter:
         try:
             with open(temporary, "wb") as stream:
                 with h5py.File(buffer, "w") as handle:
+                    table = {}
                     for key, (arrays, attrs) in self._buffer.items():
                         group = handle.create_group(_group_name(key))
+                        digests = {}
                         for array_name, array in arrays.items():
-                            dataset = group.create_dataset(array_name, data=np.asarray(array))
-                            # The digest of what HDF5 gives back, so reading compares like with like.
-                            group.attrs[_DIGEST_PREFIX + array_name] = array_digest(dataset[()])
-                        for attr_name, value in attrs.items():
-                            group.attrs[attr_name] = value
-                        group.attrs[_ATTRS_DIGEST] = attrs_digest(
-                            key, {n: v for n, v in group.attrs.items() if not n.startswith("_digest")}
-                        )
+                            array = np.asarray(array)  # numeric: HDF5 gives back these bytes
+                            group.create_dataset(array_name, data=array)
+                            digests[array_name] = array_digest(array)
+                        table[key] = {"attrs": {n: _plain(v) for n, v in attrs.items()}, "digests": digests}
+                    text = json.dumps(table).encode()
+                    handle.create_dataset(_ENTRIES, data=np.void(text))
+                    handle.attrs[_ENTRIES_DIGEST] = f"{zlib.crc32(text):08x}"
                 stream.write(buffer.getbuffer())
                 stream.flush()
                 os.fsync(stream.fileno())

@@ -38,6 +38,7 @@ from gvbench_nb.data.sequences import (
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import ImageReadError, read_image
 from gvbench_nb.runner import config, image_features, method_runs, pair_matching, scoring
+from gvbench_nb.runner import store as store_module
 from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
@@ -432,10 +433,13 @@ def test_an_attribute_changed_inside_a_match_shard_is_detected(root, tmp_path):
     store = pair_matching.match_store(tmp_path / "work" / "out", methods.resolve_method(METHOD))
     shard = store.shards()[0]
     with h5py.File(shard, "r+") as handle:  # a tool "fixing" an inlier count in place
-        group = next(iter(handle.values()))
-        group.attrs["num_inliers"] = group.attrs["num_inliers"] + 5
+        table = json.loads(bytes(handle[store_module._ENTRIES][()]))
+        entry = next(iter(table.values()))
+        entry["attrs"]["num_inliers"] += 5
+        del handle[store_module._ENTRIES]
+        handle.create_dataset(store_module._ENTRIES, data=np.void(json.dumps(table).encode()))
     (tmp_path / "work" / "out" / METHOD / "run.json").unlink()  # the result made again reads the stores
-    with pytest.raises(StoreCorruptError, match="attributes of entry .* do not match their checksum"):
+    with pytest.raises(StoreCorruptError, match="entries table does not match its checksum"):
         run(root, tmp_path / "work")
 
 

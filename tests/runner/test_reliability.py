@@ -45,6 +45,7 @@ from gvbench_nb.runner import (
     record,
     scoring,
 )
+from gvbench_nb.runner import store as store_module
 from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
@@ -260,16 +261,14 @@ def store_entries(store: ShardedStore) -> dict[str, list[dict[str, np.ndarray]]]
     entries: dict[str, list[dict[str, np.ndarray]]] = {}
     for shard in store.shards():
         with h5py.File(shard, "r") as handle:
+            table = json.loads(bytes(handle[store_module._ENTRIES][()]))
             for name, group in handle.items():
+                if name == store_module._ENTRIES:
+                    continue
                 arrays = {k: group[k][()] for k in group.keys()}
-                # Timers differ between runs, and so does the checksum that covers them.
-                arrays.update(
-                    {
-                        f"attr:{k}": v
-                        for k, v in group.attrs.items()
-                        if not k.endswith("seconds") and k != "_digest_attrs"
-                    }
-                )
+                attrs = table[unquote(name)]["attrs"]
+                # Timers differ between runs.
+                arrays.update({f"attr:{k}": v for k, v in attrs.items() if not k.endswith("seconds")})
                 entries.setdefault(unquote(name), []).append(arrays)
     return entries
 
@@ -589,7 +588,7 @@ def test_a_damaged_shard_is_reported_by_name_not_read(tmp_path):
     store = ShardedStore(tmp_path / "s")
     with store.writer(flush_every=1) as writer:
         writer.put("a", {"x": np.arange(3)})
-    damaged = tmp_path / "s" / "shard-1-damaged.h5"
+    damaged = tmp_path / "s" / f"shard-1-damaged{store_module.SHARD_SUFFIX}"
     damaged.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 40)
     with pytest.raises(StoreCorruptError, match=re.escape(f"cannot read shard {damaged}")) as error:
         ShardedStore(tmp_path / "s").refresh()

@@ -21,15 +21,15 @@ def execute_run_notebooks(
     """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
     01_sequence at once; each method's 02_verify once ``compute(method)`` has written its
     result here (torch is imported once for all methods; the notebook's ``run_method`` then
-    finds the result done); 03_evaluate once every 02_verify has finished (it reads their
-    pairs.csv only), while 01_sequence may still run.
+    finds the result done); 03_evaluate once every method's result is written (it reads their
+    pairs.csv and run.json only), while the 02_verify notebooks and 01_sequence may still run.
 
     Errors are raised in job order, as when the notebooks ran one after another. A method
     whose computation fails here is left to its notebook, whose ``run_method`` does the same
     work (resuming from the caches) and, failing the same way, keeps the traceback; the
     methods after it are not started.
     """
-    from concurrent.futures import Future, ThreadPoolExecutor, wait
+    from concurrent.futures import Future, ThreadPoolExecutor
 
     def execute(job: tuple[str, str, dict[str, Any]]) -> None:
         # Lines, not a bar: notebooks overlap each other and the stages' own progress bars.
@@ -47,7 +47,6 @@ def execute_run_notebooks(
     # Every notebook's kernel is started ahead (``kernels_ahead``), while this process computes.
     with kernels_ahead(len(jobs)), ThreadPoolExecutor(max_workers=max(2, os.cpu_count() or 1)) as pool:
         started: list[Future] = []
-        verifying: list[Future] = []
         try:
             for job in jobs[:-1]:
                 if failed(started):
@@ -61,9 +60,6 @@ def execute_run_notebooks(
                         execute(job)  # raises this method's error from its notebook
                         continue
                 started.append(pool.submit(execute, job))
-                if method is not None:
-                    verifying.append(started[-1])
-            wait(verifying)
             if failed(started):
                 finish(started)
             started.append(pool.submit(execute, jobs[-1]))

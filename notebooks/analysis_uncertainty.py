@@ -18,7 +18,8 @@
 # Queries are resampled with replacement (a pair goes with its query), the same
 # resamples for every method, and AP and MR recomputed: 95% percentile intervals, and
 # for every two methods the share of resamples where one beats the other. '>' marks a
-# row method better than the column's in more than 97.5% of resamples.
+# row method ranked above the column's: strictly better in at least 95% of resamples (the
+# rule `compare` prints).
 
 # %%
 import matplotlib.pyplot as plt
@@ -85,9 +86,9 @@ for sequence, _ in boots:
     plt.show()
 
 # %% [markdown]
-# For each metric, row method against column method: '>' it is better in more than 97.5%
-# of resamples, '<' worse, '~' neither; then the shares of resamples behind each mark
-# (`a_beats_b`, `tied`).
+# For each metric, row method against column method: '>' ranked above (strictly better in
+# at least 95% of resamples), '<' below, '~' a tie; then the shares of resamples behind
+# each mark (`first_beats_second`, `tied`, `second_beats_first`).
 
 # %%
 for sequence, boot in boots:
@@ -98,5 +99,5 @@ for sequence, boot in boots:
         display(
             Markdown(f"**{sequence}, {metric}**: row vs column"),
             boot.ranking_matrix(metric),
-            notebook.table(boot.pairwise(metric)),
+            notebook.table(boot.paired_shares(metric)),
         )

@@ -11,6 +11,8 @@ import pandas as pd
 
 from gvbench_nb.evaluation import run_tables
 
+RANKED_SHARE = 0.95  # a ranking needs one method ahead in this share of the paired resamples
+
 
 # ------------------------------------------------------------------ bootstrap --
 def weighted_ap_max_recall(
@@ -92,38 +94,56 @@ class Bootstrap:
                 )
         return pd.DataFrame(rows)
 
-    def pairwise(self, metric: str = "max_recall", level: float = 0.975) -> pd.DataFrame:
-        """Every ordered pair of methods: the share of resamples where A beats B, ties,
-        and ``a_better`` = A beats B in more than ``level`` of them."""
-        frame = self.samples[metric]
+    def paired_shares(self, metric: str, ranked_share: float | None = None) -> pd.DataFrame:
+        """The one ranking rule. Every pair of methods once, the one with the higher value on all
+        pairs first: the share of paired resamples in which the first beats the second, is tied
+        with it, or loses, and the verdict.
+
+        A resample where both are equal (frequent for MR) counts for neither, so a ranking
+        needs ``ranked_share`` (default ``RANKED_SHARE``) strict wins in one direction;
+        anything else is a tie.
+        """
+        if metric not in run_tables.METRICS:
+            raise ValueError(f"unknown metric {metric!r}: use one of {', '.join(run_tables.METRICS)}")
+        share = RANKED_SHARE if ranked_share is None else ranked_share
+        samples, estimates = self.samples[metric], self.estimates[metric]
         rows = []
-        for a in self.methods:
-            for b in self.methods:
-                if a == b:
-                    continue
-                both = frame[[a, b]].dropna()
-                wins = float((both[a] > both[b]).mean()) if len(both) else float("nan")
-                ties = float((both[a] == both[b]).mean()) if len(both) else float("nan")
+        for i, a in enumerate(self.methods):
+            for b in self.methods[i + 1 :]:
+                first, second = (b, a) if estimates[b] > estimates[a] else (a, b)
+                # Paired: one row of ``samples`` is one draw of queries for every method.
+                both = samples[[first, second]].dropna()
+                left, right = both[first].to_numpy(), both[second].to_numpy()
+                wins, ties, losses = (
+                    float(np.mean(op(left, right))) if len(both) else float("nan")
+                    for op in (np.greater, np.equal, np.less)
+                )
+                verdict = (
+                    f"{first} > {second}" if wins >= share else f"{second} > {first}" if losses >= share else "tie"
+                )
                 rows.append(
                     {
                         "metric": metric,
-                        "method_a": a,
-                        "method_b": b,
-                        "a_beats_b": wins,
+                        "first": first,
+                        "second": second,
+                        "first_value": float(estimates[first]),
+                        "second_value": float(estimates[second]),
+                        "first_beats_second": wins,
                         "tied": ties,
-                        "a_better": bool(wins > level),
+                        "second_beats_first": losses,
+                        "verdict": verdict,
                     }
                 )
         return pd.DataFrame(rows)
 
-    def ranking_matrix(self, metric: str = "max_recall", level: float = 0.975) -> pd.DataFrame:
-        """Square table: '>' where the row method is significantly better than the column's,
-        '<' where worse, '~' where neither."""
-        pairs = self.pairwise(metric, level)
+    def ranking_matrix(self, metric: str = "max_recall", ranked_share: float | None = None) -> pd.DataFrame:
+        """Square table of ``paired_shares``' verdicts: '>' where the row method ranks above the
+        column's, '<' where below, '~' for a tie."""
         matrix = pd.DataFrame("", index=self.methods, columns=self.methods)
-        for row in pairs.itertuples():
-            reverse = pairs[(pairs.method_a == row.method_b) & (pairs.method_b == row.method_a)].iloc[0]
-            matrix.loc[row.method_a, row.method_b] = ">" if row.a_better else ("<" if reverse.a_better else "~")
+        for row in self.paired_shares(metric, ranked_share).itertuples():
+            above = row.verdict.split(" > ")[0] if row.verdict != "tie" else None
+            for a, b in ((row.first, row.second), (row.second, row.first)):
+                matrix.loc[a, b] = "~" if above is None else (">" if above == a else "<")
         return matrix
 
 

@@ -13,7 +13,6 @@ import os
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
 
-import numpy as np
 import pandas as pd
 
 from gvbench_nb.evaluation import bootstrap, run_tables
@@ -21,7 +20,6 @@ from gvbench_nb.runner import method_outputs, scoring
 
 RESAMPLING_UNIT = "query"
 LEVEL = 0.95  # the intervals' coverage
-RANKED_SHARE = 0.95  # a ranking needs the leader ahead in this share of the paired resamples
 DEFAULT_RESAMPLES = 1000
 INTERVAL_COLUMNS = ("ap_low", "ap_high", "max_recall_low", "max_recall_high", "interval_unit")
 
@@ -111,47 +109,3 @@ def interval_columns(
     if not frames:
         raise run_tables.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")
     return pd.concat(frames, ignore_index=True).set_index("method")[list(INTERVAL_COLUMNS)]
-
-
-def paired_shares(boot: bootstrap.Bootstrap, metric: str, ranked_share: float = RANKED_SHARE) -> pd.DataFrame:
-    """Every pair of methods once, the one with the higher value on all pairs first:
-    the share of paired resamples in which the first beats the second, is tied with it,
-    or loses, and the verdict.
-
-    A resample where both are equal (frequent for MR) counts for neither, so a ranking
-    needs ``ranked_share`` strict wins in one direction; anything else is a tie.
-    """
-    if metric not in run_tables.METRICS:
-        raise ValueError(f"unknown metric {metric!r}: use one of {', '.join(run_tables.METRICS)}")
-    samples = boot.samples[metric]
-    estimates = boot.estimates[metric]
-    rows = []
-    for i, a in enumerate(boot.methods):
-        for b in boot.methods[i + 1 :]:
-            first, second = (b, a) if estimates[b] > estimates[a] else (a, b)
-            # Paired: one row of ``samples`` is one draw of queries for every method.
-            both = samples[[first, second]].dropna()
-            left, right = both[first].to_numpy(), both[second].to_numpy()
-            wins, ties, losses = (
-                float(np.mean(op(left, right))) if len(both) else float("nan") for op in (np.greater, np.equal, np.less)
-            )
-            if wins >= ranked_share:
-                verdict = f"{first} > {second}"
-            elif losses >= ranked_share:
-                verdict = f"{second} > {first}"
-            else:
-                verdict = "tie"
-            rows.append(
-                {
-                    "metric": metric,
-                    "first": first,
-                    "second": second,
-                    "first_value": float(estimates[first]),
-                    "second_value": float(estimates[second]),
-                    "first_beats_second": wins,
-                    "tied": ties,
-                    "second_beats_first": losses,
-                    "verdict": verdict,
-                }
-            )
-    return pd.DataFrame(rows)

@@ -76,10 +76,10 @@ def command_compare(args: argparse.Namespace) -> int:
     for metric in [args.metric] if args.metric else list(run_tables.METRICS):
         print(
             f"\n{metric}: share of the same {args.resamples} query resamples in which the first beats the second "
-            f"(tied: both equal); ranked when one side wins in >= {100 * intervals.RANKED_SHARE:.0f} % of them, "
+            f"(tied: both equal); ranked when one side wins in >= {100 * bootstrap.RANKED_SHARE:.0f} % of them, "
             "else tie\n"
         )
-        print(show(intervals.paired_shares(boot, metric)))
+        print(show(boot.paired_shares(metric)))
     return 0
 
 

@@ -193,7 +193,7 @@ def test_bootstrap_is_deterministic_by_seed():
     again = bootstrap.bootstrap(tables, 100, seed=7)
     other = bootstrap.bootstrap(tables, 100, seed=8)
     pd.testing.assert_frame_equal(first.intervals(), again.intervals())
-    pd.testing.assert_frame_equal(first.pairwise(), again.pairwise())
+    pd.testing.assert_frame_equal(first.paired_shares("ap"), again.paired_shares("ap"))
     assert not first.samples["ap"].equals(other.samples["ap"])
     assert first.estimates.loc["a", "ap"] == pytest.approx(average_precision_score(table["label"], table["score"]))
 
@@ -219,10 +219,9 @@ def test_bootstrap_ranking_significant_only_when_it_should_be():
     table = grouped_scores(rng, 60, 5, separation=0.3)
     perfect = table.assign(score=table["label"] * 10.0 + rng.random(len(table)))
     result = bootstrap.bootstrap({"weak": table, "perfect": perfect, "same": table.copy()}, 300, seed=0)
-    pairs = result.pairwise("max_recall").set_index(["method_a", "method_b"])
-    assert pairs.loc[("perfect", "weak"), "a_better"]
-    assert not pairs.loc[("weak", "perfect"), "a_better"]
-    assert not pairs.loc[("same", "weak"), "a_better"] and pairs.loc[("same", "weak"), "tied"] == 1.0
+    pairs = result.paired_shares("max_recall").set_index(["first", "second"])
+    assert pairs.loc[("perfect", "weak"), "verdict"] == "perfect > weak"
+    assert pairs.loc[("weak", "same"), "verdict"] == "tie" and pairs.loc[("weak", "same"), "tied"] == 1.0
     matrix = result.ranking_matrix("max_recall")
     assert matrix.loc["perfect", "weak"] == ">" and matrix.loc["weak", "perfect"] == "<"
     assert matrix.loc["same", "weak"] == "~"

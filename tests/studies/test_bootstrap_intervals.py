@@ -71,7 +71,7 @@ def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
     boot = bootstrap.bootstrap({"better": better, "worse": worse}, 500, seed=0)
     table = intervals.intervals_of(boot).set_index("method")
     assert table.loc["worse", "ap_high"] > table.loc["better", "ap_low"]  # the intervals alone: a tie
-    shares = intervals.paired_shares(boot, "ap").iloc[0]
+    shares = boot.paired_shares("ap").iloc[0]
     assert (shares["first"], shares["second"]) == ("better", "worse")
     assert shares["first_beats_second"] >= 0.95
     assert shares["second_beats_first"] == 0.0
@@ -87,7 +87,7 @@ def test_same_ranking_is_tied_in_every_paired_resample():
     rescaled = table.assign(score=2 * table["score"] + 1)  # the same order of pairs
     boot = bootstrap.bootstrap({"a": table, "b": rescaled}, 300, seed=0)
     for metric in ("ap", "max_recall"):
-        shares = intervals.paired_shares(boot, metric).iloc[0]
+        shares = boot.paired_shares(metric).iloc[0]
         assert shares["tied"] == 1.0
         assert shares["first_beats_second"] == shares["second_beats_first"] == 0.0
         assert shares["verdict"] == "tie"
@@ -97,12 +97,12 @@ def test_ranking_in_either_direction_and_ties_between():
     table = noisy_queries(3)
     perfect = table.assign(score=table["label"] * 10.0)
     boot = bootstrap.bootstrap({"weak": table, "perfect": perfect}, 300, seed=0)
-    shares = intervals.paired_shares(boot, "max_recall").iloc[0]
+    shares = boot.paired_shares("max_recall").iloc[0]
     assert (shares["first"], shares["second"], shares["verdict"]) == ("perfect", "weak", "perfect > weak")
     assert shares["first_value"] == 1.0
     # The leader on all pairs is listed first even when it is given second.
     reversed_boot = bootstrap.bootstrap({"perfect": perfect, "weak": table}, 300, seed=0)
-    assert intervals.paired_shares(reversed_boot, "max_recall").iloc[0]["first"] == "perfect"
+    assert reversed_boot.paired_shares("max_recall").iloc[0]["first"] == "perfect"
 
 
 def test_interval_columns_keyed_by_method():
@@ -129,3 +129,21 @@ def test_refuses_methods_with_different_labels():
         intervals.query_intervals({"a": table, "b": relabelled}, 100)
     with pytest.raises(run_tables.IncomparableRunsError, match="scored different pairs"):
         intervals.query_intervals({"a": table, "b": table.iloc[:-5]}, 100)
+
+
+def test_the_notebooks_matrix_and_compares_table_rank_by_one_rule():
+    # A wins 96 of 100 draws: ranked at the rule's 95 %, where a 97.5 % reading would call a tie.
+    samples = pd.DataFrame({"a": [0.6] * 96 + [0.4] * 4, "b": [0.5] * 100})
+    boot = bootstrap.Bootstrap(
+        methods=["a", "b"],
+        estimates=pd.DataFrame({"ap": [0.6, 0.5], "max_recall": [0.6, 0.5]}, index=["a", "b"]),
+        samples={"ap": samples, "max_recall": samples},
+        n_queries=10,
+        n_pairs=20,
+        seed=0,
+    )
+    assert boot.paired_shares("ap").iloc[0]["verdict"] == "a > b"
+    matrix = boot.ranking_matrix("ap")
+    assert (matrix.loc["a", "b"], matrix.loc["b", "a"]) == (">", "<")
+    tied = boot.paired_shares("ap", ranked_share=0.975).iloc[0]["verdict"]
+    assert tied == "tie" and boot.ranking_matrix("ap", ranked_share=0.975).loc["a", "b"] == "~"

@@ -1,5 +1,5 @@
 # Two entry points: `make demo` (set-up + the fast methods on the embedded sample) and
-# `make test` (set-up + the whole test suite). Set-up is idempotent: a second run
+# `make test` (set-up + the default test tier). Set-up is idempotent: a second run
 # installs nothing (a stamp records the requirements it installed).
 PYTHON ?= python3
 VENV := .venv
@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
 DATA_MIRROR := ../shared/data
 
-.PHONY: setup demo test test-fast test-reference lint notebooks clean setup-imm lab
+.PHONY: setup demo test test-data test-slow test-reference lint notebooks clean setup-imm lab
 
 setup: $(STAMP)
 
@@ -73,13 +73,18 @@ lab: setup
 # -rs: every skip's reason at the end.
 PYTEST_PARALLEL := -n auto -rs
 
-test: setup
+# The data the real-data tests read, from ../shared/data when that folder exists.
+test-data: setup
 	if [ -d $(DATA_MIRROR) ]; then GVBENCH_DATA=$(TEST_DATA) $(PY) -m gvbench_nb data fetch gvbench-lists gardens_point --mirror $(DATA_MIRROR) --quiet; fi
-	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) tests --nbmake notebooks
 
-# The fast tier: every test not marked slow (no notebook execution), under a minute.
-test-fast: setup
-	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow" tests
+# The default tier: every test not marked slow, and every notebook through nbmake (a few minutes).
+test: test-data
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m "not slow" tests --nbmake notebooks
+
+# The slow tier (CI runs it after `test`): whole-pipeline runs on many pairs, concurrent and
+# killed runs, the browser tests, learned models on whole sequences.
+test-slow: test-data
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m slow tests
 
 # The reference tier: Magic Leap's SuperPoint and SuperGlue, cvg's LightGlue and
 # image-matching-models' OpenCV matchers run beside ours (tests/protocol/test_reference_parity.py); it

@@ -141,14 +141,14 @@ def require_results(
     if not (missing or stale):
         return output_dir
     if compute_missing:
+        from gvbench_nb.runner import method_runs
+
+        if missing:
+            sequence = config.prepare_sequence(params)
+            for method in missing:
+                method_runs.run_method_of_params(params, sequence, method)
         if evaluate:
-            from gvbench_nb.evaluation import run_tables
-
-            return run_tables.ensure_results(params_file, methods, **overrides)
-        from gvbench_nb.studies import verifiers
-
-        for method in missing:
-            verifiers.ensure_method_results(params_file, method, **overrides)
+            scoring.evaluate(output_dir)
         return output_dir
     if missing:
         raise ResultsMissingError(

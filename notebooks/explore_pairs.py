@@ -54,7 +54,7 @@ out = notebook.require_results(
     params_file, methods, compute_missing=compute_missing, evaluate=False, output_dir=output_dir
 )
 figures = Path(figures_dir) if figures_dir else out / "explore"
-tables = explore.load_tables(out, methods)
+tables = run_tables.load_pairs_tables(out, methods)
 run = run_tables.load_run(out, next(iter(tables)))
 print(f"{run['sequence']}: {len(next(iter(tables.values())))} pairs; methods {', '.join(tables)} ({out})")
 

@@ -58,7 +58,10 @@ def folder_tables(
         raise method_outputs.ResultsError(
             f"no results for method {absent[0]!r} in {', '.join(map(str, folders))}; run it on the same pairs first"
         )
-    tables = {m: scoring.load_pairs_table(found[m], m) for m in wanted}
+    tables: dict[str, pd.DataFrame] = {}
+    for folder in dict.fromkeys(found[m] for m in wanted):
+        tables.update(run_tables.load_pairs_tables(folder, [m for m in wanted if found[m] == folder]))
+    tables = {m: tables[m] for m in wanted}
     run_tables.align_tables(tables)
     return tables
 

@@ -23,9 +23,8 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from gvbench_nb import methods as method_registry
 from gvbench_nb import reference_values
-from gvbench_nb.runner import config, image_features, method_outputs, method_runs, pair_matching, record, scoring
+from gvbench_nb.runner import config, image_features, method_outputs, pair_matching, record, scoring
 
 METRICS = ("ap", "max_recall")
 
@@ -46,35 +45,6 @@ TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_se
 
 
 # ------------------------------------------------------------ finding results --
-def ensure_results(
-    params_file: str | os.PathLike[str], methods: SequenceType[str] = ("sift-nn",), **overrides: Any
-) -> Path:
-    """Run only the ``methods`` whose ``pairs.csv`` is missing, then make ``results.csv`` current.
-
-    What an analysis notebook runs when it asks (``notebook.load_results(...,
-    compute_missing=True)``): with everything present it does nothing but (when needed)
-    re-evaluate. ``overrides`` go to ``config.load_params``
-    (e.g. ``output_dir``, ``limit``). Returns the output folder.
-    """
-    params = config.load_params(params_file, **overrides)
-    output_dir = Path(params["output_dir"])
-    missing = [
-        m
-        for m in method_registry.expand_methods(list(methods))
-        if not (method_outputs.method_dir(output_dir, m) / "pairs.csv").is_file()
-    ]
-    if missing:
-        sequence = config.prepare_sequence(params)
-        for method in missing:
-            method_runs.run_method_of_params(params, sequence, method)
-    results_path = output_dir / "results.csv"
-    have = set(scoring.methods_with_results(output_dir))
-    evaluated = set(pd.read_csv(results_path)["method"]) if results_path.is_file() else set()
-    if missing or have != evaluated:
-        scoring.evaluate(output_dir)
-    return output_dir
-
-
 def find_output_dirs(
     root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs", sequences: SequenceType[str] | None = None
 ) -> list[Path]:
@@ -131,9 +101,16 @@ def load_run(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
 def load_pairs_tables(
     output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
 ) -> dict[str, pd.DataFrame]:
-    """Every method's ``pairs.csv`` of one output folder (default: all with results)."""
-    methods = list(methods) if methods else scoring.methods_with_results(Path(output_dir))
-    return {m: scoring.load_pairs_table(Path(output_dir), m) for m in methods}
+    """The one reader of a folder's pair tables: ``pairs.csv`` of each method (default: every
+    method with results), as a run published them, from inputs unchanged since, every method on
+    the same pairs and labels (what ``results`` refuses, it refuses), one publication whole."""
+    folder = Path(output_dir)
+
+    def read() -> dict[str, pd.DataFrame]:
+        names = scoring.readable_methods(folder, list(methods) if methods else None)
+        return {method: scoring.load_pairs_table(folder, method) for method in names}
+
+    return record.read_whole(folder, read)  # also while a run publishes
 
 
 def measured_methods(output_dir: str | os.PathLike[str]) -> list[str]:

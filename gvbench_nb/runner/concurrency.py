@@ -66,9 +66,6 @@ def threads_of_environment() -> int | None:
 JOBS_ENV = "GVBENCH_JOBS"  # the run's parallelism, as `run --jobs` and the bench's `--jobs` set it
 
 
-RENAMED_ENV = {"GVBENCH_WORKERS": JOBS_ENV}  # an old name, no longer read: the CLI names its successor
-
-
 def worker_count(workers: int | None = None) -> int:
     """How many images are extracted, and pairs matched and verified, at once (the run's
     jobs): ``workers``, else $GVBENCH_JOBS (what ``--jobs`` sets), else every available core

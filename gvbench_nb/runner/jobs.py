@@ -10,27 +10,13 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 
 from gvbench_nb.arguments import whole_number_at_least
-from gvbench_nb.runner.concurrency import JOBS_ENV, RENAMED_ENV
-
-_hinted: set[str] = set()
-
-
-def hint_renamed_variables() -> None:
-    """One line on stderr for each old variable still set (it is no longer read)."""
-    for old, new in RENAMED_ENV.items():
-        if os.environ.get(old) and old not in _hinted:
-            _hinted.add(old)
-            print(
-                f"note: {old} is no longer read; set {new}={os.environ[old]} (or pass --jobs) instead", file=sys.stderr
-            )
+from gvbench_nb.runner.concurrency import JOBS_ENV
 
 
 def jobs_value(text: str) -> int | None:
     """argparse type of --jobs: a whole number of at least 1; "" (no flag, no $GVBENCH_JOBS) is None."""
-    hint_renamed_variables()  # runs when the command that takes --jobs parses, not for every command
     if text == "":
         return None
     return whole_number_at_least(text, 1, f"a whole number of at least 1 (--jobs or ${JOBS_ENV})")

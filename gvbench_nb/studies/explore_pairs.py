@@ -36,20 +36,6 @@ VIEW_COLUMNS = [
 ]
 
 
-def load_tables(
-    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
-) -> dict[str, pd.DataFrame]:
-    """``pairs.csv`` of each method (default: every method with results in ``output_dir``), as a
-    run published them, from inputs unchanged since, every method on the same pairs and labels."""
-    from gvbench_nb.runner import record
-
-    def read() -> dict[str, pd.DataFrame]:
-        names = scoring.readable_methods(output_dir, methods)
-        return {method: scoring.load_pairs_table(Path(output_dir), method) for method in names}
-
-    return record.read_whole(output_dir, read)  # one publication, also while a run publishes
-
-
 def score_ranks(table: pd.DataFrame) -> pd.Series:
     """Rank of each pair's score among its method's scores: 1 is the highest, and a pair
     tied with others gets the best rank of its tie (1 + the pairs scoring strictly higher)."""

@@ -52,7 +52,7 @@ from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.protocol.ransac import ESTIMATORS
 from gvbench_nb.protocol.weights import MissingWeightsError
-from gvbench_nb.runner import config, method_outputs, method_runs, scoring
+from gvbench_nb.runner import scoring
 from gvbench_nb.studies import doppelgangers, verifier_inputs
 
 GV_SCORES = ("inliers", "inlier_ratio", "inliers_over_keypoints")
@@ -343,17 +343,6 @@ def fit_combination(features: pd.DataFrame, labels: pd.Series, conf: dict[str, A
 
 
 # ------------------------------------------------------------- entry points --
-def ensure_method_results(params_file: str | os.PathLike[str], method: str, **overrides: Any) -> Path:
-    """Run ``method`` with the params file (``overrides`` to ``config.load_params``) only when its
-    ``pairs.csv`` is missing; never re-evaluates, so another run's folder is left as it is."""
-    params = config.load_params(params_file, **overrides)
-    output_dir = Path(params["output_dir"])
-    if not (method_outputs.method_dir(output_dir, method) / "pairs.csv").is_file():
-        sequence = config.prepare_sequence(params)
-        method_runs.run_method_of_params(params, sequence, method)
-    return output_dir
-
-
 def open_bench(
     results_dir: str | os.PathLike[str],
     method: str,

@@ -13,7 +13,6 @@ from PIL import Image
 
 from gvbench_nb import methods
 from gvbench_nb.protocol import images, ransac
-from gvbench_nb.runner import config
 
 
 # ------------------------------------------------------------ few-matches rule --
@@ -165,17 +164,6 @@ def test_repository_superglue_is_image_matching_toolboxs_as_its_config_sets_it()
     assert "model_input_long_side" not in conf["extractor"] and conf["extractor"]["resize_to"] == [512, 288]
     lightglue_superpoint = methods.resolve_method("sp-lg", "repository")["extractor"]
     assert (lightglue_superpoint["keypoint_threshold"], lightglue_superpoint["model_input_long_side"]) == (0.0005, 1024)
-
-
-def test_the_fast_profile_is_gone_with_a_pointer_to_repository(tmp_path):
-    with pytest.raises(KeyError, match="profile 'fast' was replaced by 'repository'"):
-        methods.resolve_method("sift-nn", "fast")
-    params = tmp_path / "p.yaml"
-    params.write_text(
-        "sequence: s\npairs: pairs.txt\nimage_root: .\nmethods: [sift-nn]\nprofile: fast\noutput_dir: out\n"
-    )
-    with pytest.raises(config.ParamsError, match="p.yaml: profile 'fast' was replaced by 'repository'"):
-        config.load_params(params)
 
 
 def test_bilinear_antialias_resize_equals_pil_bilinear():

@@ -242,7 +242,6 @@ def test_the_bench_parser_reads_its_options():
 
 
 def test_bench_takes_jobs_and_estimate_names_the_lists_before_any_timing(tmp_path, monkeypatch, capsys):
-    monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
     assert speed_cli.build_parser().parse_args(["p.yaml"]).jobs == 2  # the bench's own default
     assert speed_cli.build_parser().parse_args(["p.yaml", "--jobs", "1"]).jobs == 1
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))

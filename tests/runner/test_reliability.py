@@ -476,7 +476,6 @@ def _params_file(tmp_path: Path, **changes) -> Path:
         ({"methods": ["sift-nn", "sift_nn2"]}, ["unknown method 'sift_nn2'", "Known: sift-nn, sp-nn"]),
         ({"methods": "sift-nn,disk-lgg"}, ["unknown method 'disk-lgg'. Did you mean 'disk-lg'?"]),
         ({"profile": "fastest"}, ["unknown profile 'fastest'", "Known: paper, repository"]),
-        ({"profile": "fast"}, ["profile 'fast' was replaced by 'repository'", "set profile: repository or paper"]),
         ({"methods": []}, ["methods is empty"]),
         ({"seed": "zero"}, ["seed must be an integer, got 'zero'"]),
         ({"limit": True}, ["limit must be a positive integer or null, got True"]),
@@ -684,7 +683,6 @@ def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
 
 def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
-    monkeypatch.setenv("GVBENCH_WORKERS", "3")  # the old name is no longer read
     assert concurrency.worker_count() == concurrency.available_cores() == len(os.sched_getaffinity(0))
     monkeypatch.setenv("GVBENCH_JOBS", "3")
     assert concurrency.worker_count() == 3 and concurrency.worker_count(2) == 2
@@ -719,7 +717,6 @@ def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the
     from gvbench_nb import cli
 
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
-    monkeypatch.delenv("GVBENCH_WORKERS", raising=False)
     args = cli.build_parser().parse_args(["run", "p.yaml", "--jobs", "2", "--dask-workers", "3"])
     assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and concurrency.worker_count() == 2
     assert args.dask_workers == 3  # the Dask cluster's size: another name, another number
@@ -736,21 +733,6 @@ def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the
     with pytest.raises(SystemExit):  # the old spelling is gone, not an alias
         cli.build_parser().parse_args(["run", "p.yaml", "--workers", "2"])
     assert "unrecognized arguments: --workers 2" in capsys.readouterr().err
-
-
-def test_the_old_variable_gets_one_line_naming_its_successor(monkeypatch, capsys):
-    from gvbench_nb import cli
-    from gvbench_nb.runner import jobs
-
-    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
-    monkeypatch.setenv("GVBENCH_WORKERS", "2")
-    monkeypatch.setattr(jobs, "_hinted", set())
-    cli.build_parser().parse_args(["results", "outputs/x"])  # a command without --jobs: no hint
-    assert capsys.readouterr().err == ""
-    assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None
-    assert capsys.readouterr().err.splitlines() == [
-        "note: GVBENCH_WORKERS is no longer read; set GVBENCH_JOBS=2 (or pass --jobs) instead"
-    ]
 
 
 @pytest.mark.real_data

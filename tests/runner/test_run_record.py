@@ -457,7 +457,6 @@ def test_ctrl_c_during_a_run_keeps_the_published_results(tmp_path, root):
 
 
 def test_the_explore_notebook_refuses_methods_scored_on_different_labels(tmp_path, root):
-    from gvbench_nb.studies import explore_pairs as explore
 
     out, cache = tmp_path / "out", tmp_path / "cache"
     for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):
@@ -465,5 +464,5 @@ def test_the_explore_notebook_refuses_methods_scored_on_different_labels(tmp_pat
             Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
         )
     with pytest.raises(method_outputs.ResultsError, match="scored on different pairs or labels"):
-        explore.load_tables(out)
-    assert list(explore.load_tables(out, ["orb-nn"])) == ["orb-nn"]
+        run_tables.load_pairs_tables(out)
+    assert list(run_tables.load_pairs_tables(out, ["orb-nn"])) == ["orb-nn"]

@@ -286,7 +286,7 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
         raise AssertionError("run_method must not run when pairs.csv exists")
 
     monkeypatch.setattr(method_runs, "run_method", refuse)
-    assert run_tables.ensure_results(params, ["sift-nn"]) == output_dir
+    assert notebook.require_results(params, ["sift-nn"], compute_missing=True) == output_dir
     results = run_tables.load_results(run_tables.find_output_dirs(tmp_path))
     assert results["method"].tolist() == ["sift-nn"]
     assert results["max_recall"].iloc[0] == pytest.approx(0.5)

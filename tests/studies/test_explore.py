@@ -161,7 +161,7 @@ def test_explore_defaults_to_every_method_the_run_holds(tiny_run):
 def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run, tmp_path, pick):
     pytest.importorskip("ipywidgets")
     out = tiny_run.parent / "out"
-    tables = explore.load_tables(out)
+    tables = run_tables.load_pairs_tables(out)
     drawn: list[tuple[int, list[str]]] = []
 
     def draw(index, shown):
@@ -196,7 +196,7 @@ def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run,
 def test_controls_say_what_they_do_and_leave_no_stale_view_under_a_message(tiny_run, tmp_path):
     pytest.importorskip("ipywidgets")
     out = tiny_run.parent / "out"
-    tables = explore.load_tables(out)
+    tables = run_tables.load_pairs_tables(out)
     status_while_drawing: list[str] = []
 
     def draw(index, shown):

@@ -11,8 +11,7 @@ import pytest
 from test_analysis import write_fake_run
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import run_tables
-from gvbench_nb.runner import method_runs, scoring
+from gvbench_nb.runner import config, method_runs, scoring
 from gvbench_nb.studies import verifiers
 
 
@@ -50,13 +49,12 @@ def test_compute_missing_runs_only_what_is_missing(toy, monkeypatch):
     params, output_dir = toy
     ran = []
 
-    def fake_ensure(params_file, methods, **overrides):
-        ran.append(list(methods))
+    def fake_run(params, sequence, method, **options):
+        ran.append([method])
         write_fake_run(output_dir)
-        scoring.evaluate(output_dir)
-        return output_dir
 
-    monkeypatch.setattr(run_tables, "ensure_results", fake_ensure)
+    monkeypatch.setattr(method_runs, "run_method_of_params", fake_run)
+    monkeypatch.setattr(config, "prepare_sequence", lambda params: "the sequence")
     inputs = notebook.load_results(
         str(output_dir), output_dir / "analysis", str(params), ["sift-nn"], compute_missing=True
     )
@@ -103,7 +101,10 @@ def test_verifier_bench_names_the_run_with_its_output_folder_and_profile(toy, tm
     with pytest.raises(notebook.ResultsMissingError, match="run it on that sequence first"):
         notebook.open_verifier_bench(elsewhere, "sift-nn", tmp_path / "v")
     ran = []
-    monkeypatch.setattr(verifiers, "ensure_method_results", lambda *a, **k: ran.append((a, k)))
+    monkeypatch.setattr(config, "prepare_sequence", lambda params: params)
+    monkeypatch.setattr(
+        method_runs, "run_method_of_params", lambda params, sequence, method: ran.append((method, params["output_dir"]))
+    )
     monkeypatch.setattr(verifiers, "open_bench", lambda *a, **k: ("bench", a, k))
     bench = notebook.open_verifier_bench(
         elsewhere,
@@ -114,7 +115,7 @@ def test_verifier_bench_names_the_run_with_its_output_folder_and_profile(toy, tm
         classifier={"epochs": 1},
         gap_frames=8,
     )
-    assert ran == [((params, "sift-nn"), {"output_dir": str(elsewhere), "profile": None})]
+    assert ran == [("sift-nn", str(elsewhere))]
     assert bench[2] == {"overrides": {"doppelgangers-in-domain": {"epochs": 1}}, "gap_frames": 8}
 
 

@@ -33,16 +33,9 @@ def _load(profile: str) -> dict[str, dict[str, Any]]:
 # profile -> method -> recipe. 'paper' is the protocol as published (the hloc chain); 'repository'
 # the GV-Bench repository's current code, whose numbers compare with its published table.
 RECIPES: dict[str, dict[str, dict[str, Any]]] = {profile: _load(profile) for profile in ("paper", "repository")}
-# Profiles this package used to have, and what replaced them.
-REPLACED_PROFILES: dict[str, str] = {"fast": "repository"}
 
 
 def check_profile(profile: str) -> None:
-    if profile in REPLACED_PROFILES and profile not in RECIPES:
-        raise registry.UnknownNameError(
-            f"profile {profile!r} was replaced by {REPLACED_PROFILES[profile]!r} (the GV-Bench repository's "
-            f"current protocol); set profile: {REPLACED_PROFILES[profile]} or paper"
-        )
     if profile not in RECIPES:
         raise registry.UnknownNameError(registry.unknown_name_message("profile", profile, list(RECIPES)))
 

@@ -243,6 +243,9 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
                 "limit": loaded["limit"],
                 "profile": loaded["profile"],
                 "output_dir": loaded["output_dir"],
+                "result_written": all(
+                    (output_path.parent / METHOD / name).is_file() for name in ("pairs.csv", "run.json")
+                ),
             }
         )
         if name == "03_evaluate.ipynb":
@@ -281,10 +284,11 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
         )
         == 0
     )
-    # 01_sequence runs beside the others; 03_evaluate comes after 02_verify.
-    order = [s["notebook"] for s in seen]
-    assert sorted(order) == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
-    assert order.index("03_evaluate.ipynb") > order.index("02_verify.ipynb")
+    # 01_sequence runs beside the others; 02_verify and 03_evaluate once the method's result is
+    # written (in either order: 03_evaluate reads the result, not the 02_verify notebook).
+    by_notebook = {s.pop("notebook"): s for s in seen}
+    assert sorted(by_notebook) == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
+    assert by_notebook["02_verify.ipynb"]["result_written"] and by_notebook["03_evaluate.ipynb"]["result_written"]
     assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "repository"} for s in seen)
     # The notebooks write into the run's stage inside the output folder; the published params name the folder.
     stages = {Path(s["output_dir"]) for s in seen}

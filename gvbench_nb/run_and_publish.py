@@ -84,10 +84,10 @@ RUN_FILES = (
 
 def run_files(methods: list[str]) -> list[str]:
     """The files a run of ``methods`` publishes in its output folder."""
+    from gvbench_nb.runner import method_outputs
+
     per_method = [
-        name
-        for m in methods
-        for name in (f"02_verify_{m}.ipynb", f"inliers_{m}.png", f"{m}/pairs.csv", f"{m}/run.json")
+        name for m in methods for name in (f"02_verify_{m}.ipynb", f"inliers_{m}.png", *method_outputs.result_files(m))
     ]
     return [*RUN_FILES, *per_method]
 

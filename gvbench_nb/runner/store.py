@@ -80,6 +80,11 @@ def array_digest(array: np.ndarray) -> str:
     return f"{_crc(np.asarray(array), 0):08x}"
 
 
+def _text_digest(text: bytes) -> str:
+    """CRC-32 of an entries table's bytes (8 hex digits)."""
+    return f"{zlib.crc32(text):08x}"
+
+
 def _plain(value: object) -> object:
     """An attribute value as JSON holds it (numpy scalars become Python numbers)."""
     return value.item() if isinstance(value, np.generic) else value
@@ -182,7 +187,7 @@ class ShardedStore:
                 stored = handle.attrs.get(_ENTRIES_DIGEST)
             except (OSError, KeyError, ValueError, RuntimeError) as error:
                 raise _corrupt(shard, self.folder, f"its entries table cannot be read: {error}") from error
-            if stored != f"{zlib.crc32(text):08x}":
+            if stored != _text_digest(text):
                 handle.close()
                 raise _corrupt(shard, self.folder, "its entries table does not match its checksum")
             opened = (handle, json.loads(text))
@@ -263,7 +268,7 @@ class ShardWriter:
                         table[key] = {"attrs": {n: _plain(v) for n, v in attrs.items()}, "digests": digests}
                     text = json.dumps(table).encode()
                     handle.create_dataset(_ENTRIES, data=np.void(text))
-                    handle.attrs[_ENTRIES_DIGEST] = f"{zlib.crc32(text):08x}"
+                    handle.attrs[_ENTRIES_DIGEST] = _text_digest(text)
                 stream.write(buffer.getbuffer())
                 stream.flush()
                 os.fsync(stream.fileno())

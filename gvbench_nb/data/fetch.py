@@ -1,38 +1,33 @@
-"""Datasets a user can get: ``python -m gvbench_nb data fetch|list|check``.
-
-The datasets and the SHA-256 of every file live in ``datasets.json`` beside this module.
-A fetch writes each file to a hidden partial file beside its target (resumed with an HTTP
-Range request after a cut connection), checks its size and hash, then renames it into
-place, so a file under its final name is always complete and verified. Only the standard
-library (and tqdm, lazily) is imported here: ``data`` runs without torch.
-"""
+"""Datasets a user can get: ``python -m gvbench_nb data fetch|list|check``. ``datasets.json`` beside
+this module names every file and its SHA-256; pooch downloads each (trying again after a failure), checks
+its hash and only then moves it into place. Nothing here imports torch: ``data`` runs without it."""
 
 from __future__ import annotations
 
 import contextlib
-import hashlib
-import http.client
 import json
+import logging
 import os
+import re
 import shutil
 import sys
-import urllib.error
-import urllib.parse
-import urllib.request
 from collections.abc import Iterable
-from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
+from urllib.parse import quote, urlsplit
+from urllib.request import url2pathname
+
+import pooch
+import requests
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 
 MANIFEST_PATH = Path(__file__).resolve().parent / "datasets.json"
 APP_NAME = "gvbench-nb"
-CHUNK_BYTES = 1 << 16
-TIMEOUT_SECONDS = 60.0
-ATTEMPTS = 4  # a cut connection is resumed this many times before the fetch gives up
+ATTEMPTS = 4  # tries of one file (a cut connection, bytes that do not match) before the fetch gives up
+pooch.get_logger().setLevel(logging.WARNING)  # the commands say what was done, in one line
 
 
 class DataError(GVBenchError, RuntimeError):
@@ -40,20 +35,16 @@ class DataError(GVBenchError, RuntimeError):
 
 
 def data_dir() -> Path:
-    """The data folder: ``$GVBENCH_DATA``, else a per-user cache folder (``data`` in platformdirs' cache)."""
+    """The data folder: ``$GVBENCH_DATA``, else ``data`` in the per-user cache folder."""
     value = os.environ.get("GVBENCH_DATA")
-    if value:
-        return Path(value).expanduser().resolve()
-    import platformdirs
-
-    return platformdirs.user_cache_path(APP_NAME) / "data"
+    return Path(value).expanduser().resolve() if value else pooch.os_cache(APP_NAME) / "data"
 
 
 @dataclass(frozen=True)
 class DataFile:
     path: str  # relative to the dataset's folder (and so to a mirror's folder of the same name)
     source: str  # relative to the dataset's base_url
-    bytes: int | None  # None: not known beforehand (a checkpoint), so a cut download starts again
+    bytes: int
     sha256: str
 
 
@@ -71,189 +62,108 @@ class Dataset:
 
     @property
     def total_bytes(self) -> int:
-        return sum(f.bytes or 0 for f in self.files)
+        return sum(f.bytes for f in self.files)
 
     def url(self, item: DataFile) -> str:
-        return self.base_url + urllib.parse.quote(item.source)
+        return self.base_url + quote(item.source)
 
 
-@dataclass(frozen=True)
-class ExternalDataset:
-    """A dataset without stable per-file URLs: where to get it and how to lay it out."""
-
-    name: str
-    title: str
-    what: str
-    licence: str
-    citation: str
-    where: str
-    layout: str
-    check: str
-
-
-def load_manifest(path: Path = MANIFEST_PATH) -> tuple[dict[str, Dataset], dict[str, ExternalDataset]]:
-    """The fetchable datasets and the external ones, by name."""
+def load_manifest(path: Path = MANIFEST_PATH) -> tuple[dict[str, Dataset], dict[str, dict[str, str]]]:
+    """The fetchable datasets and the external ones (title, what, licence, citation, where, layout, check), by name."""
     raw = json.loads(path.read_text(encoding="utf-8"))
     datasets = {
         name: Dataset(name=name, files=tuple(DataFile(**f) for f in entry.pop("files")), **entry)
         for name, entry in raw["datasets"].items()
     }
-    external = {name: ExternalDataset(name=name, **entry) for name, entry in raw["external"].items()}
-    return datasets, external
+    return datasets, raw["external"]
 
 
 def get_dataset(name: str, datasets: dict[str, Dataset] | None = None) -> Dataset:
-    datasets = datasets if datasets is not None else load_manifest()[0]
-    if name not in datasets:
-        _, external = load_manifest()
-        if name in external:
-            raise DataError(
-                f"{name} cannot be fetched (no stable per-file URLs): get it from {external[name].where} "
-                f"and check it with `{external[name].check}`"
-            )
+    manifest, external = load_manifest()
+    datasets = manifest if datasets is None else datasets
+    if name in datasets:
+        return datasets[name]
+    if name in external:
         raise DataError(
-            registry.unknown_name_message("dataset", name, datasets)
-            + " (python -m gvbench_nb data list describes them)"
+            f"{name} cannot be fetched (no stable per-file URLs): get it from {external[name]['where']} "
+            f"and check it with `{external[name]['check']}`"
         )
-    return datasets[name]
-
-
-def sha256_of(path: Path) -> str:
-    digest = hashlib.sha256()
-    with open(path, "rb") as handle:
-        for block in iter(lambda: handle.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
-def is_verified(path: Path, item: DataFile) -> bool:
-    """The file exists with the manifest's size and SHA-256."""
-    return path.is_file() and path.stat().st_size == item.bytes and sha256_of(path) == item.sha256
-
-
-def partial_path(target: Path) -> Path:
-    """Where a file is written while it arrives: hidden, beside its final name."""
-    return target.with_name(f".{target.name}.partial")
+    hint = " (python -m gvbench_nb data list describes them)"
+    raise DataError(registry.unknown_name_message("dataset", name, datasets) + hint)
 
 
 def presence(dataset: Dataset, root: Path) -> tuple[int, int]:
     """(files present with the right size, files in the manifest) under ``root``; no hashing."""
-    folder = root / dataset.folder
-    found = sum(1 for f in dataset.files if (folder / f.path).is_file() and (folder / f.path).stat().st_size == f.bytes)
+    paths = [root / dataset.folder / f.path for f in dataset.files]
+    found = sum(p.is_file() and p.stat().st_size == f.bytes for p, f in zip(paths, dataset.files, strict=True))
     return found, len(dataset.files)
 
 
 # ------------------------------------------------------------------- fetching --
-def _is_url(text: str) -> bool:
-    return urllib.parse.urlparse(text).scheme in {"http", "https", "file"}
+def downloader(url: str, progressbar: bool = False) -> Any:
+    """pooch's HTTP downloader, or a plain copy for a ``file://`` URL (a mirror folder)."""
+    if urlsplit(url).scheme != "file":
+        return pooch.HTTPDownloader(progressbar=progressbar)
+    return lambda url, output_file, _pooch: shutil.copyfile(url2pathname(urlsplit(url).path), output_file)
 
 
-def _source_of(dataset: Dataset, item: DataFile, mirror: str | None) -> tuple[str, Path | None]:
-    """(URL or path shown to the user, local path when the mirror is a folder)."""
+def store(dataset: Dataset, root: Path, mirror: str | None) -> pooch.Pooch:
+    """The dataset's pooch: its files and hashes, from the public URLs or a mirror with the data folder's layout."""
     if mirror is None:
-        return dataset.url(item), None
-    if _is_url(mirror):
-        return mirror.rstrip("/") + "/" + urllib.parse.quote(f"{dataset.folder}/{item.path}"), None
-    local = Path(mirror).expanduser().resolve() / dataset.folder / item.path
-    return str(local), local
-
-
-def _download(url: str, partial: Path, item: DataFile, label: str, bar: Any, folder: str = "") -> None:
-    """Bring ``url`` into ``partial``, resuming from what it holds; raise DataError when it cannot.
-    ``folder``: the dataset's folder in the data folder, which a --mirror copy must hold."""
-    last_problem = ""
-    connected = False  # whether any attempt reached the source: offline, rerunning cannot help
-    for _ in range(ATTEMPTS):
-        have = partial.stat().st_size if partial.is_file() else 0
-        if have and (item.bytes is None or have > item.bytes):  # not a prefix of the file: start again
-            partial.unlink()
-            bar.update(-have)
-            have = 0
-        if have == item.bytes:
-            return
-        headers = {"User-Agent": f"{APP_NAME} data fetch"}
-        if have:
-            headers["Range"] = f"bytes={have}-"
-        try:
-            with urllib.request.urlopen(urllib.request.Request(url, headers=headers), timeout=TIMEOUT_SECONDS) as reply:
-                connected = True
-                if have and getattr(reply, "status", 200) != 206:  # the server ignored the range: start again
-                    bar.update(-have)
-                    have = 0
-                with open(partial, "ab" if have else "wb") as out:
-                    for block in iter(lambda: reply.read(CHUNK_BYTES), b""):
-                        out.write(block)
-                        bar.update(len(block))
-                    out.flush()
-                    os.fsync(out.fileno())
-        except urllib.error.HTTPError as error:
-            if error.code == 416 and have:  # the range starts past the end: what we hold is stale
-                partial.unlink()
-                bar.update(-have)
-                continue
-            raise DataError(
-                f"{label}: {url} answered HTTP {error.code} {error.reason}; check the address (or that the "
-                f"source still has the file), or pass --mirror with a folder or URL holding the same layout"
-            ) from None
-        except PermissionError:
-            raise  # the data folder is not writable: no retry helps (fetch says what to do)
-        except (urllib.error.URLError, http.client.HTTPException, OSError) as error:
-            last_problem = str(getattr(error, "reason", None) or error) or type(error).__name__
-            continue  # a cut connection: resume from what arrived
-        if partial.is_file() and partial.stat().st_size >= (item.bytes or 0):
-            return
-        last_problem = "the connection closed early"
-    kept = partial.stat().st_size if partial.is_file() else 0
-    if not connected:
-        host = urllib.parse.urlsplit(url).netloc or url
-        earlier = (
-            f"the {kept} bytes an earlier attempt left in {partial} are kept for when it is"
-            if kept
-            else "nothing was downloaded"
-        )
-        raise DataError(
-            f"{label}: cannot reach {host} ({last_problem}): the network or the source is unreachable and "
-            f"{earlier}; pass --mirror DIR with a local copy of the data folder (one holding {folder}/), "
-            "or run the same command again once the source is reachable"
-        )
-    raise DataError(
-        f"{label}: could not download {url} after {ATTEMPTS} attempts ({last_problem}); {kept} of {item.bytes} "
-        f"bytes are kept in {partial}: rerun the same command to resume, or pass --mirror with a local copy"
-    )
-
-
-def fetch_file(dataset: Dataset, item: DataFile, root: Path, mirror: str | None, bar: Any) -> bool:
-    """Place one verified file under ``root``; False when it was already there and verified."""
-    target = root / dataset.folder / item.path
-    if is_verified(target, item):
-        bar.update(item.bytes)
-        return False
-    target.parent.mkdir(parents=True, exist_ok=True)
-    partial = partial_path(target)
-    source, local = _source_of(dataset, item, mirror)
-    if local is not None:
-        if not local.is_file():
-            raise DataError(
-                f"{dataset.name}: {item.path} is missing in the mirror folder (expected {local}); "
-                f"pass --mirror a folder holding {dataset.folder}/ with the files of `data fetch`, "
-                "or omit --mirror to download from the public source"
-            )
-        shutil.copyfile(local, partial)
-        bar.update(item.bytes)
+        base, urls = dataset.base_url, {f.path: dataset.url(f) for f in dataset.files}
     else:
-        bar.update(partial.stat().st_size if partial.is_file() else 0)
-        _download(source, partial, item, f"{dataset.name}: {item.path}", bar, dataset.folder)
-    size = partial.stat().st_size
-    digest = sha256_of(partial)
-    if size != item.bytes or digest != item.sha256:
-        partial.unlink()
+        is_url = urlsplit(mirror).scheme in {"http", "https", "file"}
+        base = (mirror if is_url else Path(mirror).expanduser().resolve().as_uri()).rstrip("/") + f"/{dataset.folder}/"
+        urls = {f.path: base + quote(f.path) for f in dataset.files}
+    hashes = {f.path: f"sha256:{f.sha256}" for f in dataset.files}
+    return pooch.create(root / dataset.folder, base, registry=hashes, urls=urls, retry_if_failed=ATTEMPTS - 1)
+
+
+def _root_cause(error: BaseException) -> str:
+    while error.__cause__ or error.__context__:
+        error = error.__cause__ or error.__context__  # type: ignore[assignment]
+    return getattr(error, "strerror", None) or str(error) or type(error).__name__
+
+
+def fetch_file(dataset: Dataset, item: DataFile, files: pooch.Pooch) -> bool:
+    """Place one verified file; False when it was already there and verified (pooch keeps it)."""
+    url, label = files.get_url(item.path), f"{dataset.name}: {item.path}"
+    try:
+        return files.fetch(item.path, lambda _path, action, _pooch: action != "fetch", downloader(url))
+    except PermissionError:
         raise DataError(
-            f"{dataset.name}: {item.path} from {source} has {size} bytes and SHA-256 {digest}, but the manifest "
-            f"says {item.bytes} bytes and {item.sha256}; the copy was removed: rerun to download it again, and if "
-            "it fails again the source has changed (use --mirror with a copy that matches)"
-        )
-    os.replace(partial, target)  # atomic: the final name only ever holds a verified file
-    return True
+            f"{dataset.name}: cannot write {files.abspath / item.path} (permission denied); "
+            "set GVBENCH_DATA or pass --to a writable folder"
+        ) from None
+    except FileNotFoundError:  # only a mirror folder's copy raises it
+        raise DataError(
+            f"{label} is missing in the mirror folder (expected {url2pathname(urlsplit(url).path)}); "
+            f"pass --mirror a folder holding {dataset.folder}/ with the files of `data fetch`, "
+            "or omit --mirror to download from the public source"
+        ) from None
+    except ValueError as error:  # pooch: the bytes do not have the manifest's hash
+        got = re.search(r"but got (\w+)", str(error))
+        raise DataError(
+            f"{label} from {url} has SHA-256 {got[1] if got else '?'}, but the manifest says {item.sha256}; "
+            f"the copy was removed after {ATTEMPTS} attempts: rerun to download it again, and if it fails again "
+            "the source has changed (use --mirror with a copy that matches)"
+        ) from None
+    except requests.HTTPError as error:
+        raise DataError(
+            f"{label}: {url} answered HTTP {error.response.status_code} {error.response.reason}; check the address "
+            "(or that the source still has the file), or pass --mirror with a folder or URL holding the same layout"
+        ) from None
+    except requests.ConnectionError as error:
+        raise DataError(
+            f"{label}: cannot reach {urlsplit(url).netloc or url} ({_root_cause(error)}): the network or the "
+            f"source is unreachable and nothing was downloaded; pass --mirror DIR with a local copy of the data "
+            f"folder (one holding {dataset.folder}/), or run the same command again once the source is reachable"
+        ) from None
+    except requests.RequestException as error:
+        raise DataError(
+            f"{label}: could not download {url} after {ATTEMPTS} attempts ({_root_cause(error)}); "
+            "rerun the same command, or pass --mirror with a local copy"
+        ) from None
 
 
 def fetch(
@@ -277,113 +187,38 @@ def fetch(
         raise DataError(
             f"cannot create the data folder {root} ({error.strerror}); set GVBENCH_DATA or pass --to a writable folder"
         ) from None
-    placed: dict[str, int] = {}
+    placed = dict.fromkeys((d.name for d in chosen), 0)
     for dataset in chosen:
-        count = 0
-        folders_before = _folders_under(root / dataset.folder)
-        with progress_bar(
-            total=dataset.total_bytes,
-            unit="B",
-            unit_scale=True,
-            unit_divisor=1024,
-            desc=dataset.name,
-            disable=not progress,
-            file=sys.stderr,
-            leave=True,
-        ) as bar:
+        files = store(dataset, root, mirror)
+        bar = {"unit": "B", "unit_scale": True, "unit_divisor": 1024, "file": sys.stderr, "disable": not progress}
+        with progress_bar(total=dataset.total_bytes, desc=dataset.name, **bar) as shown:
             try:
                 for item in dataset.files:
-                    try:
-                        count += fetch_file(dataset, item, root, mirror, bar)
-                    except PermissionError as error:
-                        raise DataError(
-                            f"{dataset.name}: cannot write {error.filename} (permission denied); "
-                            "set GVBENCH_DATA or pass --to a writable folder"
-                        ) from None
-            except BaseException:
-                _remove_empty_folders(root / dataset.folder, folders_before)
-                if not root_existed:
-                    with contextlib.suppress(OSError):  # holds other datasets' files: stays
-                        root.rmdir()
+                    placed[dataset.name] += fetch_file(dataset, item, files)
+                    shown.update(item.bytes)
+            except BaseException:  # leave no empty folder: those holding files placed now stay
+                for path in [*sorted((root / dataset.folder).rglob("*"), reverse=True), root / dataset.folder, root]:
+                    if path.is_dir() and (path != root or not root_existed):
+                        with contextlib.suppress(OSError):
+                            path.rmdir()
                 raise
-        placed[dataset.name] = count
     return placed
 
 
-def _folders_under(folder: Path) -> set[Path]:
-    """``folder`` and every folder below it that exists now."""
-    if not folder.is_dir():
-        return set()
-    return {folder, *(p for p in folder.rglob("*") if p.is_dir())}
-
-
-def _remove_empty_folders(folder: Path, keep: set[Path]) -> None:
-    """Remove the folders a failed fetch created and left empty (deepest first); ``keep`` were there before."""
-    for path in sorted(_folders_under(folder) - keep, key=lambda p: len(p.parts), reverse=True):
-        with contextlib.suppress(OSError):  # not empty: it holds files placed now, which stay
-            path.rmdir()
-
-
 # ------------------------------------------------------------------- checking --
-@dataclass
-class ImageCheck:
-    named: int
-    present: int
-    decoded: int
-    missing: list[str]
-    undecodable: list[str]
-
-    @property
-    def ok(self) -> bool:
-        return self.named > 0 and not self.missing and not self.undecodable
-
-
-def check_images(root: Path, names: SequenceType[str], progress: bool = True) -> ImageCheck:
-    """Every named image exists under ``root`` and decodes (OpenCV)."""
-    import cv2
-
-    from gvbench_nb.progress import progress_bar
-
-    missing, undecodable = [], []
-    present = 0
-    for name in progress_bar(names, desc="images", unit="img", disable=not progress, file=sys.stderr):
-        path = root / name
-        if not path.is_file():
-            missing.append(name)
-            continue
-        present += 1
-        if cv2.imread(str(path), cv2.IMREAD_UNCHANGED) is None:
-            undecodable.append(name)
-    return ImageCheck(len(names), present, present - len(undecodable), missing, undecodable)
-
-
-def _builder_folders(options: dict[str, Any]) -> list[str]:
-    folders = [options.get("query_folder"), options.get("reference_folder"), *(options.get("reference_folders") or [])]
-    return [f for f in folders if f]
-
-
 def images_of_params(params: dict[str, Any]) -> tuple[list[str], str, list[str]]:
-    """The images a sequence names (relative to its image root), where the names came from
-    (a builder's folders when it has them: its pair file is made from them; else the pair
-    list) and the builder's folders that do not exist (they name no image)."""
+    """The images a sequence names (relative to its image root), where the names came from (a builder's
+    folders when it has them: its pair file is made from them; else the pair list) and the missing folders."""
     from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
 
-    folders = _builder_folders(dict(params["builder_options"]))
-    if params["pairs_builder"] and folders:
-        root = Path(params["image_root"])
-        names: list[str] = []
-        missing_folders = []
-        for folder in folders:
-            directory = root / folder
-            if not directory.is_dir():
-                missing_folders.append(f"{folder}/")
-                continue
-            names += sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-        return (
-            names,
-            f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)",
-            missing_folders,
-        )
+    options, root = dict(params["builder_options"]), Path(str(params["image_root"]))
+    named = [options.get("query_folder"), options.get("reference_folder"), *(options.get("reference_folders") or [])]
+    if params["pairs_builder"] and any(named):
+        folders = [f for f in named if f]
+        images = [p for f in folders if (root / f).is_dir() for p in sorted((root / f).iterdir())]
+        names = [f"{p.parent.name}/{p.name}" for p in images if p.suffix.lower() in IMAGE_EXTENSIONS]
+        origin = f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)"
+        return names, origin, [f"{f}/" for f in folders if not (root / f).is_dir()]
     pairs = Path(params["pairs"])
     if pairs.is_file():
         from gvbench_nb.data.sequences import read_pairs
@@ -398,23 +233,64 @@ def images_of_params(params: dict[str, Any]) -> tuple[list[str], str, list[str]]
 
 def fetch_hint(folder: Path) -> str:
     """`data fetch NAME` when ``folder`` is (inside) a dataset's place in the data folder, else ''."""
-    datasets, _ = load_manifest()
-    root = data_dir()
-    for dataset in datasets.values():
-        place = root / dataset.folder
+    for dataset in load_manifest()[0].values():
+        place = data_dir() / dataset.folder
         if folder == place or place in folder.parents:
             return f"; run `python -m gvbench_nb data fetch {dataset.name}`"
     return ""
 
 
+def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, str]:
+    """Whether every image a loaded params file's sequence names exists and decodes (OpenCV), and a report."""
+    import cv2
+
+    from gvbench_nb.data.sequences import PairFileError
+    from gvbench_nb.progress import progress_bar
+
+    if params["pairs_builder"] == "sample":
+        return True, f"{params['sequence']}: its images are rendered by the run (builder sample); nothing to check"
+    if params["image_root"] is None:
+        raise DataError(
+            f"{params['params_file']}: image_root is not set; pass --image-root DIR, the folder the pair paths are "
+            "relative to (for the official sequences the one holding day0/, night0/, season1/, ...; see "
+            "`python -m gvbench_nb data list`)"
+        )
+    root = Path(params["image_root"])
+    try:
+        names, origin, missing_folders = images_of_params(params)
+    except PairFileError as error:
+        raise DataError(str(error)) from None
+    missing, undecodable = [], []
+    for name in progress_bar(names, desc="images", unit="img", disable=not progress, file=sys.stderr):
+        if not (root / name).is_file():
+            missing.append(name)
+        elif cv2.imread(str(root / name), cv2.IMREAD_UNCHANGED) is None:
+            undecodable.append(name)
+    present = len(names) - len(missing)
+    lines = [
+        f"{params['sequence']}: {len(names)} images named by {origin}, under {root}",
+        f"  present {present}, decode {present - len(undecodable)}, missing {len(missing)}, "
+        f"do not decode {len(undecodable)}",
+    ]
+    if missing_folders:
+        lines.append(f"  missing folders: {', '.join(missing_folders)}{fetch_hint(root)}")
+    if missing:
+        official = Path(params["pairs"]).parent == data_dir() / get_dataset("gvbench-lists").folder
+        hint = "; the GV-Bench images are not fetchable: `python -m gvbench_nb data list` says where to get them "
+        hint += "(gvbench-images) and how to lay them out"
+        lines.append("  first missing: " + ", ".join(missing[:10]) + (hint if official else fetch_hint(root)))
+    if undecodable:
+        lines.append("  first that do not decode: " + ", ".join(undecodable[:10]))
+    if not names and not missing_folders:
+        lines.append(f"  no images found: check image_root ({root}){fetch_hint(root)}")
+    ok = bool(names) and not missing and not undecodable and not missing_folders
+    return ok, "\n".join([*lines, "  ok" if ok else "  NOT ready to run"])
+
+
 # -------------------------------------------------------------------- listing --
 def _size(n: int) -> str:
-    size = float(n)
-    for unit in ("B", "KiB", "MiB", "GiB"):
-        if size < 1024 or unit == "GiB":
-            return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1024
-    return str(size)
+    power = next((p for p in range(3) if n < 1024 ** (p + 1)), 3)
+    return f"{n} B" if power == 0 else f"{n / 1024**power:.1f} {('KiB', 'MiB', 'GiB')[power - 1]}"
 
 
 def list_text(root: Path | None = None) -> str:
@@ -424,69 +300,11 @@ def list_text(root: Path | None = None) -> str:
     for d in datasets.values():
         found, total = presence(d, root)
         state = "present" if found == total else ("absent" if found == 0 else f"partial ({found}/{total} files)")
-        lines += [
-            f"{d.name}  ({d.title}; {total} files, {_size(d.total_bytes)}; {state} in {root / d.folder})",
-            f"  what:     {d.what}",
-            f"  licence:  {d.licence}",
-            f"  cite:     {d.citation}",
-            f"  source:   {d.homepage}",
-            f"  get it:   python -m gvbench_nb data fetch {d.name}",
-            "",
-        ]
-    for e in external.values():
-        lines += [
-            f"{e.name}  ({e.title}; not fetchable: no stable per-file URLs)",
-            f"  what:     {e.what}",
-            f"  licence:  {e.licence}",
-            f"  cite:     {e.citation}",
-            f"  get it:   {e.where}",
-            f"  layout:   {e.layout}",
-            f"  check:    {e.check}",
-            "",
-        ]
+        lines += [f"{d.name}  ({d.title}; {total} files, {_size(d.total_bytes)}; {state} in {root / d.folder})"]
+        lines += [f"  what:     {d.what}", f"  licence:  {d.licence}", f"  cite:     {d.citation}"]
+        lines += [f"  source:   {d.homepage}", f"  get it:   python -m gvbench_nb data fetch {d.name}", ""]
+    for name, e in external.items():
+        lines += [f"{name}  ({e['title']}; not fetchable: no stable per-file URLs)", f"  what:     {e['what']}"]
+        lines += [f"  licence:  {e['licence']}", f"  cite:     {e['citation']}", f"  get it:   {e['where']}"]
+        lines += [f"  layout:   {e['layout']}", f"  check:    {e['check']}", ""]
     return "\n".join(lines).rstrip() + "\n"
-
-
-def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, str]:
-    """Check the images a loaded params file's sequence names; returns whether all are usable, and a report."""
-    from gvbench_nb.data.sequences import PairFileError
-
-    params_file = params["params_file"]
-    if params["pairs_builder"] == "sample":
-        return True, f"{params['sequence']}: its images are rendered by the run (builder sample); nothing to check"
-    if params["image_root"] is None:
-        raise DataError(
-            f"{params_file}: image_root is not set; pass --image-root DIR, the folder the pair paths are relative to "
-            "(for the official sequences the one holding day0/, night0/, season1/, ...; see `python -m gvbench_nb data list`)"
-        )
-    root = Path(params["image_root"])
-    try:
-        names, origin, missing_folders = images_of_params(params)
-    except PairFileError as error:
-        raise DataError(str(error)) from None
-    result = check_images(root, names, progress=progress)
-    lines = [
-        f"{params['sequence']}: {result.named} images named by {origin}, under {root}",
-        f"  present {result.present}, decode {result.decoded}, missing {len(result.missing)}, "
-        f"do not decode {len(result.undecodable)}",
-    ]
-    if missing_folders:
-        lines.append(f"  missing folders: {', '.join(missing_folders)}{fetch_hint(root)}")
-    if result.missing:
-        official = Path(params["pairs"]).parent == data_dir() / get_dataset("gvbench-lists").folder
-        hint = (
-            (
-                "; the GV-Bench images are not fetchable: `python -m gvbench_nb data list` says where to get them "
-                "(gvbench-images) and how to lay them out"
-            )
-            if official
-            else fetch_hint(root)
-        )
-        lines.append("  first missing: " + ", ".join(result.missing[:10]) + hint)
-    if result.undecodable:
-        lines.append("  first that do not decode: " + ", ".join(result.undecodable[:10]))
-    if result.named == 0 and not missing_folders:
-        lines.append(f"  no images found: check image_root ({root}){fetch_hint(root)}")
-    ok = result.ok and not missing_folders
-    lines.append("  ok" if ok else "  NOT ready to run")
-    return ok, "\n".join(lines)

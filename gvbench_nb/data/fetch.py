@@ -119,7 +119,7 @@ def store(dataset: Dataset, root: Path, mirror: str | None) -> pooch.Pooch:
     return pooch.create(root / dataset.folder, base, registry=hashes, urls=urls, retry_if_failed=ATTEMPTS - 1)
 
 
-def _root_cause(error: BaseException) -> str:
+def root_cause(error: BaseException) -> str:
     while error.__cause__ or error.__context__:
         error = error.__cause__ or error.__context__  # type: ignore[assignment]
     return getattr(error, "strerror", None) or str(error) or type(error).__name__
@@ -155,13 +155,13 @@ def fetch_file(dataset: Dataset, item: DataFile, files: pooch.Pooch) -> bool:
         ) from None
     except requests.ConnectionError as error:
         raise DataError(
-            f"{label}: cannot reach {urlsplit(url).netloc or url} ({_root_cause(error)}): the network or the "
+            f"{label}: cannot reach {urlsplit(url).netloc or url} ({root_cause(error)}): the network or the "
             f"source is unreachable and nothing was downloaded; pass --mirror DIR with a local copy of the data "
             f"folder (one holding {dataset.folder}/), or run the same command again once the source is reachable"
         ) from None
     except requests.RequestException as error:
         raise DataError(
-            f"{label}: could not download {url} after {ATTEMPTS} attempts ({_root_cause(error)}); "
+            f"{label}: could not download {url} after {ATTEMPTS} attempts ({root_cause(error)}); "
             "rerun the same command, or pass --mirror with a local copy"
         ) from None
 

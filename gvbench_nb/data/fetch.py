@@ -26,6 +26,8 @@ from gvbench_nb.protocol import registry
 
 MANIFEST_PATH = Path(__file__).resolve().parent / "datasets.json"
 APP_NAME = "gvbench-nb"
+LIST_LABELS = {"what": "what", "licence": "licence", "citation": "cite", "homepage": "source", "where": "get it"}
+LIST_LABELS |= {"layout": "layout", "check": "check"}  # in the order `data list` shows them
 ATTEMPTS = 4  # tries of one file (a cut connection, bytes that do not match) before the fetch gives up
 pooch.get_logger().setLevel(logging.WARNING)  # the commands say what was done, in one line
 
@@ -52,13 +54,9 @@ class DataFile:
 class Dataset:
     name: str
     folder: str  # under the data folder
-    title: str
-    what: str
-    licence: str
-    citation: str
-    homepage: str
     base_url: str
     files: tuple[DataFile, ...]
+    about: dict[str, str]  # title, what, licence, citation, homepage: what `data list` shows
 
     @property
     def total_bytes(self) -> int:
@@ -69,12 +67,12 @@ class Dataset:
 
 
 def load_manifest(path: Path = MANIFEST_PATH) -> tuple[dict[str, Dataset], dict[str, dict[str, str]]]:
-    """The fetchable datasets and the external ones (title, what, licence, citation, where, layout, check), by name."""
+    """The fetchable datasets, and the external ones (title, what, licence, citation, where, layout, check)."""
     raw = json.loads(path.read_text(encoding="utf-8"))
-    datasets = {
-        name: Dataset(name=name, files=tuple(DataFile(**f) for f in entry.pop("files")), **entry)
-        for name, entry in raw["datasets"].items()
-    }
+    datasets = {}
+    for name, entry in raw["datasets"].items():
+        files = tuple(DataFile(**f) for f in entry.pop("files"))
+        datasets[name] = Dataset(name, entry.pop("folder"), entry.pop("base_url"), files, entry)
     return datasets, raw["external"]
 
 
@@ -296,15 +294,15 @@ def _size(n: int) -> str:
 def list_text(root: Path | None = None) -> str:
     datasets, external = load_manifest()
     root = root if root is not None else data_dir()
-    lines = [f"data folder: {root}  (GVBENCH_DATA, else the per-user cache)", ""]
+    entries = []
     for d in datasets.values():
         found, total = presence(d, root)
         state = "present" if found == total else ("absent" if found == 0 else f"partial ({found}/{total} files)")
-        lines += [f"{d.name}  ({d.title}; {total} files, {_size(d.total_bytes)}; {state} in {root / d.folder})"]
-        lines += [f"  what:     {d.what}", f"  licence:  {d.licence}", f"  cite:     {d.citation}"]
-        lines += [f"  source:   {d.homepage}", f"  get it:   python -m gvbench_nb data fetch {d.name}", ""]
-    for name, e in external.items():
-        lines += [f"{name}  ({e['title']}; not fetchable: no stable per-file URLs)", f"  what:     {e['what']}"]
-        lines += [f"  licence:  {e['licence']}", f"  cite:     {e['citation']}", f"  get it:   {e['where']}"]
-        lines += [f"  layout:   {e['layout']}", f"  check:    {e['check']}", ""]
+        about = {**d.about, "where": f"python -m gvbench_nb data fetch {d.name}"}
+        entries.append((d.name, f"{total} files, {_size(d.total_bytes)}; {state} in {root / d.folder}", about))
+    entries += [(name, "not fetchable: no stable per-file URLs", about) for name, about in external.items()]
+    lines = [f"data folder: {root}  (GVBENCH_DATA, else the per-user cache)", ""]
+    for name, state, about in entries:
+        lines.append(f"{name}  ({about['title']}; {state})")
+        lines += [f"  {label + ':':10}{about[key]}" for key, label in LIST_LABELS.items() if key in about] + [""]
     return "\n".join(lines).rstrip() + "\n"

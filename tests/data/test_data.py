@@ -79,7 +79,7 @@ def make_dataset(files: dict[str, bytes], base_url: str, wrong_hash: str | None 
         )
         for path, body in files.items()
     )
-    return data.Dataset("toy", "toy", "toy", "toy", "none", "none", base_url, base_url + "/", entries)
+    return data.Dataset("toy", "toy", base_url + "/", entries, {})
 
 
 TOY = {"a/one.bin": payload(1, 300_000), "b/two.bin": payload(2, 5_000), "three.txt": b"query reference 1\n"}

@@ -147,9 +147,10 @@ def fetch_file(dataset: Dataset, item: DataFile, files: pooch.Pooch) -> bool:
             "the source has changed (use --mirror with a copy that matches)"
         ) from None
     except requests.HTTPError as error:
+        answer = f"HTTP {error.response.status_code} {error.response.reason}"  # type: ignore[union-attr]
         raise DataError(
-            f"{label}: {url} answered HTTP {error.response.status_code} {error.response.reason}; check the address "
-            "(or that the source still has the file), or pass --mirror with a folder or URL holding the same layout"
+            f"{label}: {url} answered {answer}; check the address (or that the source still has the file), "
+            "or pass --mirror with a folder or URL holding the same layout"
         ) from None
     except requests.ConnectionError as error:
         raise DataError(

@@ -214,8 +214,8 @@ def images_of_params(params: dict[str, Any]) -> tuple[list[str], str, list[str]]
     named = [options.get("query_folder"), options.get("reference_folder"), *(options.get("reference_folders") or [])]
     if params["pairs_builder"] and any(named):
         folders = [f for f in named if f]
-        images = [p for f in folders if (root / f).is_dir() for p in sorted((root / f).iterdir())]
-        names = [f"{p.parent.name}/{p.name}" for p in images if p.suffix.lower() in IMAGE_EXTENSIONS]
+        listed = [(f, sorted((root / f).iterdir())) for f in folders if (root / f).is_dir()]
+        names = [f"{f}/{p.name}" for f, paths in listed for p in paths if p.suffix.lower() in IMAGE_EXTENSIONS]
         origin = f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)"
         return names, origin, [f"{f}/" for f in folders if not (root / f).is_dir()]
     pairs = Path(params["pairs"])

@@ -128,11 +128,6 @@ def fetch_file(dataset: Dataset, item: DataFile, files: pooch.Pooch) -> bool:
     url, label = files.get_url(item.path), f"{dataset.name}: {item.path}"
     try:
         return files.fetch(item.path, lambda _path, action, _pooch: action != "fetch", downloader(url))
-    except PermissionError:
-        raise DataError(
-            f"{dataset.name}: cannot write {files.abspath / item.path} (permission denied); "
-            "set GVBENCH_DATA or pass --to a writable folder"
-        ) from None
     except FileNotFoundError:  # only a mirror folder's copy raises it
         raise DataError(
             f"{label} is missing in the mirror folder (expected {url2pathname(urlsplit(url).path)}); "
@@ -163,6 +158,11 @@ def fetch_file(dataset: Dataset, item: DataFile, files: pooch.Pooch) -> bool:
             f"{label}: could not download {url} after {ATTEMPTS} attempts ({root_cause(error)}); "
             "rerun the same command, or pass --mirror with a local copy"
         ) from None
+    except OSError as error:  # the data folder cannot be made or written (pooch's refusal names no reason)
+        raise DataError(
+            f"{dataset.name}: cannot write {files.abspath / item.path} ({(error.strerror or 'permission denied').lower()}); "
+            "set GVBENCH_DATA or pass --to a writable folder"
+        ) from None
 
 
 def fetch(
@@ -180,12 +180,6 @@ def fetch(
     chosen = [get_dataset(name, datasets) for name in dict.fromkeys(names)]
     root = Path(to).expanduser().resolve() if to is not None else data_dir()
     root_existed = root.is_dir()
-    try:
-        root.mkdir(parents=True, exist_ok=True)
-    except OSError as error:
-        raise DataError(
-            f"cannot create the data folder {root} ({error.strerror}); set GVBENCH_DATA or pass --to a writable folder"
-        ) from None
     placed = dict.fromkeys((d.name for d in chosen), 0)
     for dataset in chosen:
         files = store(dataset, root, mirror)

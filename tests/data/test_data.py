@@ -185,6 +185,9 @@ def test_a_corrupted_file_in_the_data_folder_is_fetched_again(server, tmp_path):
 
 def test_a_data_folder_that_cannot_be_written_says_where_to_write_instead(server, tmp_path, monkeypatch):
     serve(server, TOY)
+    (tmp_path / "file").touch()
+    with pytest.raises(data.DataError, match=r"toy: cannot write .*/file/data/toy/a/one\.bin \(not a directory\); set"):
+        fetch_toy(tmp_path / "file" / "data", make_dataset(TOY, server.url))
 
     def refusing(*args, dir=None, **kwargs):  # as a read-only folder answers (also for root)
         raise PermissionError(13, "Permission denied", dir)

@@ -240,17 +240,6 @@ def test_the_data_folder_is_gvbench_data_else_a_user_cache(monkeypatch, tmp_path
 
 
 # ----------------------------------------------------------------------- CLI --
-def run_cli(*argv: str, env: dict[str, str]) -> subprocess.CompletedProcess:
-    return subprocess.run(
-        [sys.executable, "-m", "gvbench_nb", *argv],
-        capture_output=True,
-        text=True,
-        env={**os.environ, "PYTHONPATH": str(PROJECT_ROOT), **env},
-        cwd=PROJECT_ROOT,
-        timeout=120,
-    )
-
-
 def test_data_commands_run_without_importing_torch(tmp_path):
     code = (
         "import sys; from gvbench_nb import cli; status = cli.main(['data', 'list']); "
@@ -305,16 +294,8 @@ def test_check_reports_counts_and_first_missing_files_of_a_params(tmp_path, monk
     (lists / "night.txt").write_text(
         "night_right/Image001.jpg day_right/Image001.jpg 1\nnight_right/Image099.jpg day_right/Image002.jpg 0\n"
     )
-    status = cli.main(
-        [
-            "data",
-            "check",
-            str(PROJECT_ROOT / "params" / "night.yaml"),
-            "--quiet",
-            "--image-root",
-            str(tmp_path / "data" / "gardens_point"),
-        ]
-    )
+    night, image_root = str(PROJECT_ROOT / "params" / "night.yaml"), str(tmp_path / "data" / "gardens_point")
+    status = cli.main(["data", "check", night, "--quiet", "--image-root", image_root])
     report = capsys.readouterr().out
     assert status == 1 and "4 images named by the pair list" in report
     assert "missing 1" in report and "first missing: night_right/Image099.jpg" in report

@@ -1,6 +1,4 @@
-"""Photometric conditions of a rendered frame: illumination (night, street lamps), season and
-weather, each a strength in [0, 1].
-"""
+"""Photometric conditions of a rendered frame (illumination, season, weather), each a strength in [0, 1]."""
 
 from __future__ import annotations
 
@@ -11,8 +9,6 @@ import cv2
 import numpy as np
 
 CONDITIONS: tuple[str, ...] = ("illumination", "season", "weather")
-
-
 DEFAULT_NIGHT_CONDITIONS: dict[str, float] = {"illumination": 0.7}
 
 
@@ -86,10 +82,8 @@ def _apply_weather(image: np.ndarray, depth: np.ndarray, strength: float, rng: n
 
 
 def _lamp_fields(depth: np.ndarray, light_points: np.ndarray, downscale: int = 4) -> tuple[np.ndarray, np.ndarray]:
-    """Light pools on surfaces near each lamp and the lamps' glare, (H, W) each.
-
-    Both are smooth, so they are computed at 1/``downscale`` resolution.
-    """
+    """Light pools on surfaces near each lamp and the lamps' glare, (H, W) each (smooth, so
+    computed at 1/``downscale`` resolution)."""
     height, width = depth.shape
     small_depth = np.where(np.isinf(depth), 1e4, depth)[::downscale, ::downscale]
     rows, cols = np.mgrid[0 : small_depth.shape[0], 0 : small_depth.shape[1]].astype(np.float32)
@@ -103,18 +97,15 @@ def _lamp_fields(depth: np.ndarray, light_points: np.ndarray, downscale: int = 4
         pool += np.exp(-distance_sq / (2 * radius**2)) * near_lamp
         glare_sigma = 3.0 * max(2.0, 0.08 * radius)
         glare += np.exp(-((cols - u) ** 2 + (rows - v) ** 2) / (2 * glare_sigma**2))
-    size = (width, height)
-    return (
-        cv2.resize(pool, size, interpolation=cv2.INTER_LINEAR),
-        cv2.resize(glare, size, interpolation=cv2.INTER_LINEAR),
-    )
+    pool, glare = (cv2.resize(field, (width, height), interpolation=cv2.INTER_LINEAR) for field in (pool, glare))
+    return pool, glare
 
 
 def _apply_illumination(
-    image: np.ndarray, depth: np.ndarray, strength: float, rng: np.random.Generator, light_points: np.ndarray | None
+    image: np.ndarray, depth: np.ndarray, strength: float, rng: np.random.Generator, light_points: np.ndarray
 ) -> np.ndarray:
     """Day -> night: less daylight, headlights and lamps, colour cast, gain noise."""
-    height, width = depth.shape
+    height = depth.shape[0]
     linear = (image * np.float32(1 / 255.0)) ** np.float32(2.2)
     daylight = math.exp(-4.0 * strength)  # ~6 % of daylight at strength 0.7
 
@@ -122,8 +113,6 @@ def _apply_illumination(
     finite_depth = np.where(np.isinf(depth), 1e4, depth)
     row_weight = np.exp(-((np.arange(height, dtype=np.float32)[:, None] / height - 0.85) ** 2) / 0.12)
     headlight = np.float32(strength * 0.6) * np.exp(-finite_depth / np.float32(8.0)) * row_weight
-    if light_points is None:
-        light_points = _random_light_points(rng, depth)
     pool, glare = _lamp_fields(depth, light_points)
     warm = np.array([1.0, 0.75, 0.45], dtype=np.float32)  # sodium-lamp orange
     # Auto-exposure raises the gain (and with it the noise); the colour cast is
@@ -159,16 +148,6 @@ def _apply_illumination(
     return linear
 
 
-def _random_light_points(rng: np.random.Generator, depth: np.ndarray) -> np.ndarray:
-    """Lamp positions when the caller has no scene geometry (image upper half)."""
-    height, width = depth.shape
-    n = int(rng.integers(1, 5))
-    u = rng.uniform(0, width, size=n)
-    v = rng.uniform(0, 0.5 * height, size=n)
-    lamp_depth = np.minimum(depth[v.astype(int), u.astype(int)], 60.0)
-    return np.column_stack([u, v, lamp_depth, 0.6 * width * 4.0 / lamp_depth])
-
-
 def apply_conditions(
     image: np.ndarray,
     depth: np.ndarray,
@@ -176,17 +155,11 @@ def apply_conditions(
     conditions: Mapping[str, float],
     rng: np.random.Generator,
     *,
-    light_points: np.ndarray | None = None,
+    light_points: np.ndarray,
 ) -> np.ndarray:
-    """Apply condition strengths (names in ``CONDITIONS``, values in [0, 1]).
-
-    Conditions compose in a physical order: ``season`` changes surfaces,
-    ``weather`` adds the medium (fog, rain) and ``illumination`` last, because
-    exposure, gain noise and glare happen in the camera.  A condition at
-    strength 0 is skipped, so all-zero strengths return the image unchanged
-    (byte-identical copy).  ``light_points`` (M, 4: u, v, depth, pool radius
-    in px) places the night lamps; without it they are drawn from ``rng``.
-    """
+    """Apply condition strengths in physical order: surfaces (season), the medium (weather), then
+    the camera (illumination: exposure, gain noise, glare). Zero strengths leave the image as it is;
+    ``light_points`` (M, 4: u, v, depth, pool radius in px) places the night lamps."""
     strengths = validate_conditions(conditions)
     if all(s == 0.0 for s in strengths.values()):
         return image.copy()

@@ -1,5 +1,5 @@
-"""Rendering a frame: each plane mapped into the camera by its homography, clipped at the near
-plane, composited by depth, then the conditions applied.
+"""Rendering a frame: each rectangle's inverse depth is affine in pixel (u, v), so a z-buffer pass
+costs a few array operations over its screen box and texturing is one ``cv2.remap`` per mip level.
 """
 
 from __future__ import annotations
@@ -13,7 +13,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from gvbench_nb.data.synthetic import camera_paths, photometry, street
+from gvbench_nb.data.synthetic import photometry
+from gvbench_nb.data.synthetic.poses import Traversal
+from gvbench_nb.data.synthetic.street import Scene, texture_pyramid
+
+NEAR_PLANE_M = 0.1
 
 
 @dataclass
@@ -26,51 +30,32 @@ class RenderedFrame:
     light_points: np.ndarray  # (M, 4) visible lamps: u, v, depth, pool radius px
 
 
-NEAR_PLANE_M = 0.1
-
-
-def _clip_polygon_near(points_cam: np.ndarray) -> np.ndarray:
-    """Clip a camera-frame polygon to z >= NEAR_PLANE_M (Sutherland-Hodgman)."""
+def _screen_box(corners_cam: np.ndarray, K: np.ndarray, width: int, height: int):
+    """Integer pixel box (c0, r0, c1, r1) covering the rectangle clipped to the near plane
+    (Sutherland-Hodgman), or None."""
     clipped = []
-    n = len(points_cam)
-    for i in range(n):
-        p, q = points_cam[i], points_cam[(i + 1) % n]
-        p_in, q_in = p[2] >= NEAR_PLANE_M, q[2] >= NEAR_PLANE_M
-        if p_in:
+    for p, q in zip(corners_cam, np.roll(corners_cam, -1, axis=0)):
+        if p[2] >= NEAR_PLANE_M:
             clipped.append(p)
-        if p_in != q_in:
-            s = (NEAR_PLANE_M - p[2]) / (q[2] - p[2])
-            clipped.append(p + s * (q - p))
-    return np.array(clipped).reshape(-1, 3)
-
-
-def _screen_bbox(corners_cam: np.ndarray, K: np.ndarray, width: int, height: int):
-    """Integer pixel box (c0, r0, c1, r1) covering the rectangle, or None."""
-    polygon = _clip_polygon_near(corners_cam)
-    if len(polygon) < 3:
+        if (p[2] >= NEAR_PLANE_M) != (q[2] >= NEAR_PLANE_M):
+            clipped.append(p + (NEAR_PLANE_M - p[2]) / (q[2] - p[2]) * (q - p))
+    if len(clipped) < 3:
         return None
-    projected = (K @ polygon.T).T
+    projected = (K @ np.array(clipped).T).T
     uv = projected[:, :2] / projected[:, 2:3]
-    c0 = max(int(math.floor(uv[:, 0].min())), 0)
-    r0 = max(int(math.floor(uv[:, 1].min())), 0)
-    c1 = min(int(math.ceil(uv[:, 0].max())) + 1, width)
-    r1 = min(int(math.ceil(uv[:, 1].max())) + 1, height)
-    if c0 >= c1 or r0 >= r1:
-        return None
-    return c0, r0, c1, r1
+    c0, r0 = max(int(math.floor(uv[:, 0].min())), 0), max(int(math.floor(uv[:, 1].min())), 0)
+    c1, r1 = min(int(math.ceil(uv[:, 0].max())) + 1, width), min(int(math.ceil(uv[:, 1].max())) + 1, height)
+    return None if c0 >= c1 or r0 >= r1 else (c0, r0, c1, r1)
 
 
 def _remap_flat(texture: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np.ndarray:
     """cv2.remap for a flat list of coordinates (remap needs < 32767 rows)."""
-    n = len(map_x)
-    cols = 1024
+    n, cols = len(map_x), 1024
     rows = -(-n // cols)
     maps = np.zeros((2, rows * cols), dtype=np.float32)
-    maps[0, :n] = map_x
-    maps[1, :n] = map_y
-    out = cv2.remap(
-        texture, maps[0].reshape(rows, cols), maps[1].reshape(rows, cols), cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
-    )
+    maps[0, :n], maps[1, :n] = map_x, map_y
+    maps = maps.reshape(2, rows, cols)
+    out = cv2.remap(texture, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.reshape(rows * cols, -1)[:n]
 
 
@@ -85,15 +70,10 @@ def _sky_colour(ray_world: np.ndarray) -> np.ndarray:
 
 @dataclass
 class _PlaneInCamera:
-    """A rectangle in camera coordinates, as affine functions of pixel (u, v).
+    """A rectangle as functions of pixel (u, v): for ray r = K^-1 [u, v, 1] the inverse depth is
+    q = (n . r) / d and the in-plane coordinate a = (u_hat . r) / q - u_hat . P0 (b alike)."""
 
-    For ray r = K^-1 [u, v, 1] the hit point is X = r / q with inverse depth
-    q = (n . r) / d, and the in-plane coordinates are a = (u_hat . r) / q - u_hat . P0
-    (same for b), so every quantity is an affine function of (u, v) or a ratio
-    of two.
-    """
-
-    q_coef: np.ndarray  # (3,) float32: q = c0 u + c1 v + c2
+    q_coef: np.ndarray  # (3,) float32
     a_coef: np.ndarray
     b_coef: np.ndarray
     a_offset: float
@@ -112,45 +92,35 @@ class _PlaneInCamera:
         return a, b
 
 
-def _planes_in_camera(
-    scene: street.Scene, rotation: np.ndarray, position: np.ndarray, K_inv: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, list]:
-    """Front-facing rectangles: their corners in camera frame and plane functions."""
+def _planes_in_camera(scene: Scene, rotation: np.ndarray, position: np.ndarray, K_inv: np.ndarray):
+    """Indices, camera-frame corners and plane functions of the rectangles facing the camera."""
     R_wc = rotation.T
     origin = (scene.origin - position) @ R_wc.T
-    edge_u = scene.edge_u @ R_wc.T
-    edge_v = scene.edge_v @ R_wc.T
-    u_length = np.linalg.norm(edge_u, axis=1)
-    v_length = np.linalg.norm(edge_v, axis=1)
+    edge_u, edge_v = scene.edge_u @ R_wc.T, scene.edge_v @ R_wc.T
+    u_length, v_length = np.linalg.norm(edge_u, axis=1), np.linalg.norm(edge_v, axis=1)
     u_hat, v_hat = edge_u / u_length[:, None], edge_v / v_length[:, None]
     normal = np.cross(u_hat, v_hat)
     plane_offset = np.einsum("ij,ij->i", normal, origin)
-    # One-sided: the camera (origin) must be on the side the normal points to.
-    front = np.flatnonzero(plane_offset < -1e-6)
+    front = np.flatnonzero(plane_offset < -1e-6)  # one-sided: the camera is on the normal's side
     corners = np.stack([origin, origin + edge_u, origin + edge_u + edge_v, origin + edge_v], axis=1)
-    planes = []
-    for i in front:
-        planes.append(
-            _PlaneInCamera(
-                q_coef=((normal[i] @ K_inv) / plane_offset[i]).astype(np.float32),
-                a_coef=(u_hat[i] @ K_inv).astype(np.float32),
-                b_coef=(v_hat[i] @ K_inv).astype(np.float32),
-                a_offset=float(u_hat[i] @ origin[i]),
-                b_offset=float(v_hat[i] @ origin[i]),
-                u_length=float(u_length[i]),
-                v_length=float(v_length[i]),
-                plane_offset=float(plane_offset[i]),
-            )
+    planes = [
+        _PlaneInCamera(
+            ((normal[i] @ K_inv) / plane_offset[i]).astype(np.float32),
+            (u_hat[i] @ K_inv).astype(np.float32),
+            (v_hat[i] @ K_inv).astype(np.float32),
+            float(u_hat[i] @ origin[i]),
+            float(v_hat[i] @ origin[i]),
+            float(u_length[i]),
+            float(v_length[i]),
+            float(plane_offset[i]),
         )
+        for i in front
+    ]
     return front, corners[front], planes
 
 
 def render_frame(
-    scene: street.Scene,
-    rotation: np.ndarray,
-    position: np.ndarray,
-    K: np.ndarray,
-    image_size: tuple[int, int] = (640, 480),
+    scene: Scene, rotation: np.ndarray, position: np.ndarray, K: np.ndarray, image_size: tuple[int, int] = (640, 480)
 ) -> RenderedFrame:
     """Ray-cast the scene from one camera pose (clear conditions)."""
     width, height = image_size
@@ -163,7 +133,7 @@ def render_frame(
     cols = np.arange(width, dtype=np.float32)
     rows = np.arange(height, dtype=np.float32)
     for k, plane in enumerate(planes):
-        box = _screen_bbox(corners[k], K, width, height)
+        box = _screen_box(corners[k], K, width, height)
         if box is None:
             continue
         c0, r0, c1, r1 = box
@@ -185,13 +155,11 @@ def render_frame(
     order = np.argsort(flat_id, kind="stable")
     counts = np.bincount(flat_id.astype(np.int32) + 1, minlength=len(planes) + 1)
     bounds = np.concatenate([[0], np.cumsum(counts)])
-    ids = np.flatnonzero(counts) - 1  # -1 is the sky
     ray_norm = np.sqrt(
         ((cols[None, :] - K[0, 2]) / K[0, 0]) ** 2 + ((rows[:, None] - K[1, 2]) / K[1, 1]) ** 2 + 1.0
     ).ravel()
     world_normal = scene.normal.astype(np.float32)
-    focal = float(K[0, 0])
-    for k in ids.tolist():
+    for k in (np.flatnonzero(counts) - 1).tolist():  # -1 is the sky
         pixels = order[bounds[k + 1] : bounds[k + 2]]
         rr, cc = np.divmod(pixels, width)
         if k < 0:
@@ -199,15 +167,13 @@ def render_frame(
             image[pixels] = _sky_colour(pixel_h @ (rotation @ K_inv).T.astype(np.float32))
             continue
         i = front[k]
-        image[pixels] = _texture_colours(
-            scene, i, planes[k], cc.astype(np.float32), rr.astype(np.float32), ray_norm[pixels], focal
-        )
+        uv = (cc.astype(np.float32), rr.astype(np.float32))
+        image[pixels] = _texture_colours(scene, i, planes[k], *uv, ray_norm[pixels], float(K[0, 0]))
         normals[pixels] = world_normal[i]
 
-    # Mild optical blur: real lenses are not perfectly sharp and it hides
-    # the stair-casing of unsupersampled edges.
+    # Mild optical blur: real lenses are not perfectly sharp, and it hides unsupersampled edges.
     image = cv2.GaussianBlur(image.reshape(height, width, 3), (0, 0), 0.6)
-    depth = np.where(inv_depth > 0, 1.0 / np.maximum(inv_depth, 1e-12), street.SKY_DEPTH).astype(np.float32)
+    depth = np.where(inv_depth > 0, 1.0 / np.maximum(inv_depth, 1e-12), np.inf).astype(np.float32)
     lights = _visible_lamps(scene.lamps, rotation, position, K, depth)
     return RenderedFrame(
         np.clip(np.rint(image), 0, 255).astype(np.uint8), depth, normals.reshape(height, width, 3), lights
@@ -215,53 +181,44 @@ def render_frame(
 
 
 def _texture_colours(
-    scene: street.Scene, i: int, plane: _PlaneInCamera, u: np.ndarray, v: np.ndarray, ray_norm: np.ndarray, focal: float
+    scene: Scene, i: int, plane: _PlaneInCamera, u: np.ndarray, v: np.ndarray, ray_norm: np.ndarray, focal: float
 ) -> np.ndarray:
     """Tinted texture colours of rectangle ``i`` at pixels (u, v), mip-mapped."""
     q = plane.inverse_depth(u, v)
     a, b = plane.plane_coordinates(u, v, 1.0 / q)
-    pyramid = street.texture_pyramid(scene.texture[i])
-    tex_w = pyramid[0].shape[1]
+    pyramid = texture_pyramid(scene.texture[i])
+    tex_h, tex_w = pyramid[0].shape[:2]
     texels_per_metre = np.float32(tex_w / scene.metres_per_texture[i])
-    # Mip level from the texel footprint of a pixel; obliquity is only half
-    # counted (sqrt) so grazing surfaces blur less than isotropic mipmaps would.
+    # Mip level from a pixel's texel footprint; obliquity counts only half (sqrt), so grazing
+    # surfaces blur less than isotropic mipmaps would.
     cos_incidence = np.abs(q * np.float32(plane.plane_offset) / ray_norm)
     footprint = texels_per_metre / (q * focal) / np.sqrt(np.maximum(cos_incidence, 0.05))
     level = np.clip(np.rint(np.log2(np.maximum(footprint, 1e-6))), 0, len(pyramid) - 1).astype(np.int8)
-    tex_h = pyramid[0].shape[0]
-    # Wrap into the base texture (tiling) before scaling to a mip level, so
-    # every level tiles with its own size and remap never sees huge coordinates.
+    # Wrap into the base texture before scaling to a level: every level tiles with its own size.
     tex_x = np.mod(a * texels_per_metre + np.float32(scene.texture_offset[i, 0] * tex_w), tex_w)
     tex_y = np.mod(np.float32(scene.texture_offset[i, 1] * tex_w) - b * texels_per_metre, tex_h)
     colours = np.empty((len(u), 3), dtype=np.float32)
     for lv in range(int(level.min()), int(level.max()) + 1):
         sel = level == lv
-        if not sel.any():
-            continue
-        tex = pyramid[lv]
-        scale_x = np.float32(tex.shape[1] / tex_w)
-        scale_y = np.float32(tex.shape[0] / tex_h)
-        colours[sel] = _remap_flat(tex, tex_x[sel] * scale_x, tex_y[sel] * scale_y)
+        if sel.any():
+            tex = pyramid[lv]
+            scale_x, scale_y = np.float32(tex.shape[1] / tex_w), np.float32(tex.shape[0] / tex_h)
+            colours[sel] = _remap_flat(tex, tex_x[sel] * scale_x, tex_y[sel] * scale_y)
     return colours * scene.tint[i]
 
 
 def _visible_lamps(
     lamps: np.ndarray, rotation: np.ndarray, position: np.ndarray, K: np.ndarray, depth: np.ndarray
 ) -> np.ndarray:
-    """Project lamp heads; keep those in view and not hidden behind a surface."""
-    if len(lamps) == 0:
-        return np.zeros((0, 4))
+    """Lamp heads in view and not hidden behind a surface: u, v, depth, light-pool radius (px)."""
     height, width = depth.shape
     cam = (lamps - position) @ rotation
-    in_front = cam[:, 2] > 1.0
-    cam = cam[in_front]
+    cam = cam[cam[:, 2] > 1.0]
     uv = (cam @ K.T)[:, :2] / cam[:, 2:3]
     inside = (uv[:, 0] >= 0) & (uv[:, 0] < width) & (uv[:, 1] >= 0) & (uv[:, 1] < height)
     cam, uv = cam[inside], uv[inside]
-    surface = depth[uv[:, 1].astype(int), uv[:, 0].astype(int)]
-    unoccluded = cam[:, 2] <= surface + 0.5
-    pool_radius = K[0, 0] * 4.0 / cam[:, 2]  # ~4 m light pool
-    return np.column_stack([uv, cam[:, 2], pool_radius])[unoccluded]
+    unoccluded = cam[:, 2] <= depth[uv[:, 1].astype(int), uv[:, 0].astype(int)] + 0.5
+    return np.column_stack([uv, cam[:, 2], K[0, 0] * 4.0 / cam[:, 2]])[unoccluded]  # ~4 m light pool
 
 
 def frame_rng(seed: int, traversal_index: int, frame_index: int) -> np.random.Generator:
@@ -269,30 +226,9 @@ def frame_rng(seed: int, traversal_index: int, frame_index: int) -> np.random.Ge
     return np.random.default_rng([seed, 3, traversal_index, frame_index])
 
 
-def _render_with_conditions(
-    scene: street.Scene,
-    traversal: camera_paths.Traversal,
-    frame: int,
-    K: np.ndarray,
-    image_size: tuple[int, int],
-    conditions: Mapping[str, float],
-    seed: int,
-    traversal_index: int,
-) -> np.ndarray:
-    rendered = render_frame(scene, traversal.rotations[frame], traversal.positions[frame], K, image_size)
-    return photometry.apply_conditions(
-        rendered.image,
-        rendered.depth,
-        rendered.normals,
-        conditions,
-        frame_rng(seed, traversal_index, frame),
-        light_points=rendered.light_points,
-    )
-
-
 def render_traversal(
-    scene: street.Scene,
-    traversal: camera_paths.Traversal,
+    scene: Scene,
+    traversal: Traversal,
     K: np.ndarray,
     image_size: tuple[int, int] = (640, 480),
     conditions: Mapping[str, float] | None = None,
@@ -300,20 +236,17 @@ def render_traversal(
     traversal_index: int = 0,
     workers: int | None = None,
 ) -> list[np.ndarray]:
-    """Render every frame of a traversal under the given conditions (RGB uint8).
-
-    Frames are independent (own random stream), so they are rendered on
-    ``workers`` threads (numpy and OpenCV release the GIL); the result does
-    not depend on the number of workers.
-    """
+    """Every frame of a traversal under ``conditions`` (RGB uint8), on ``workers`` threads (numpy
+    and OpenCV release the GIL); each frame has its own random stream, so workers change nothing."""
     conditions = dict(conditions or {})
     photometry.validate_conditions(conditions)
-    workers = workers or min(4, os.cpu_count() or 1)
 
     def render(frame: int) -> np.ndarray:
-        return _render_with_conditions(scene, traversal, frame, K, image_size, conditions, seed, traversal_index)
+        clear = render_frame(scene, traversal.rotations[frame], traversal.positions[frame], K, image_size)
+        rng = frame_rng(seed, traversal_index, frame)
+        return photometry.apply_conditions(
+            clear.image, clear.depth, clear.normals, conditions, rng, light_points=clear.light_points
+        )
 
-    if workers <= 1:
-        return [render(frame) for frame in range(len(traversal))]
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with ThreadPoolExecutor(max_workers=workers or min(4, os.cpu_count() or 1)) as pool:
         return list(pool.map(render, range(len(traversal))))

@@ -7,21 +7,8 @@ World frame: X along the street, Y left, Z up (metres). Camera frame (OpenCV): x
 z forward; a pose is the camera-to-world rotation R and the centre t (X_world = R @ X_cam + t).
 """
 
-from gvbench_nb.data.synthetic.photometry import CONDITIONS, DEFAULT_NIGHT_CONDITIONS, apply_conditions
-from gvbench_nb.data.synthetic.poses import (
-    LOOK_ALIKE_LOOK_AHEAD_M,
-    Traversal,
-    camera_rotation,
-    default_intrinsics,
-    fundamental_from_poses,
-    heading_difference_deg,
-    heading_from_rotation,
-    look_alike_labels,
-    make_traversal,
-    pose_rule_labels,
-    select_pairs,
-)
-from gvbench_nb.data.synthetic.rasterise import RenderedFrame, frame_rng, render_frame, render_traversal
+from gvbench_nb.data.synthetic.poses import LOOK_ALIKE_LOOK_AHEAD_M, look_alike_labels, select_pairs
+from gvbench_nb.data.synthetic.render import CONDITIONS, render_traversal
 from gvbench_nb.data.synthetic.route_files import (
     GENERATOR_VERSION,
     Route,
@@ -29,33 +16,18 @@ from gvbench_nb.data.synthetic.route_files import (
     make_route,
     write_traversal_images,
 )
-from gvbench_nb.data.synthetic.street import DEFAULT_MAX_DISTANCE_M, DEFAULT_MAX_HEADING_DEG, Scene, build_scene
+from gvbench_nb.data.synthetic.street import DEFAULT_MAX_DISTANCE_M, DEFAULT_MAX_HEADING_DEG
 
 __all__ = [
     "CONDITIONS",
     "DEFAULT_MAX_DISTANCE_M",
     "DEFAULT_MAX_HEADING_DEG",
-    "DEFAULT_NIGHT_CONDITIONS",
     "GENERATOR_VERSION",
     "LOOK_ALIKE_LOOK_AHEAD_M",
-    "RenderedFrame",
     "Route",
-    "Scene",
-    "Traversal",
-    "apply_conditions",
-    "build_scene",
-    "camera_rotation",
-    "default_intrinsics",
-    "frame_rng",
-    "fundamental_from_poses",
     "generate_sample",
-    "heading_difference_deg",
-    "heading_from_rotation",
     "look_alike_labels",
     "make_route",
-    "make_traversal",
-    "pose_rule_labels",
-    "render_frame",
     "render_traversal",
     "select_pairs",
     "write_traversal_images",

@@ -11,6 +11,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from gvbench_nb.data.retrieval import heading_difference_deg
 from gvbench_nb.data.synthetic.street import DEFAULT_MAX_DISTANCE_M, DEFAULT_MAX_HEADING_DEG, Scene
 
 # Per query frame: true pairs, near negatives (hard: they still overlap) and far negatives.
@@ -83,12 +84,6 @@ def make_traversal(
     pitch, roll = jitter(0.6), jitter(0.4)
     rotations = np.stack([camera_rotation(a, b, c) for a, b, c in zip(yaw, pitch, roll)])
     return Traversal(np.stack([x, y, z], axis=1), rotations, yaw, pitch, roll)
-
-
-def heading_difference_deg(heading_a: np.ndarray, heading_b: np.ndarray) -> np.ndarray:
-    """Absolute heading difference wrapped to [0, 180] degrees."""
-    diff = np.abs(np.asarray(heading_a, dtype=np.float64) - np.asarray(heading_b, dtype=np.float64)) % 360.0
-    return np.minimum(diff, 360.0 - diff)
 
 
 def pose_rule_labels(

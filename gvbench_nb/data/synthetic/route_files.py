@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from gvbench_nb.data.sequences import write_pairs
-from gvbench_nb.data.synthetic import photometry, poses, rasterise
+from gvbench_nb.data.synthetic import poses, render
 from gvbench_nb.data.synthetic.street import DEFAULT_MAX_DISTANCE_M, DEFAULT_MAX_HEADING_DEG, Scene, build_scene
 
 GENERATOR_VERSION = 1
@@ -57,14 +57,12 @@ class Route:
         return _name_width(len(self.reference))
 
     def render_reference(self) -> list[np.ndarray]:
-        return rasterise.render_traversal(self.scene, self.reference, self.K, self.image_size, {}, self.seed, 0)
+        return render.render_traversal(self.scene, self.reference, self.K, self.image_size, {}, self.seed, 0)
 
     def render_query(self, conditions: Mapping[str, float] | None = None) -> list[np.ndarray]:
         """Query frames under ``conditions``; a frame's random stream does not depend on the
         strengths, so renders at different strengths differ only by the strength."""
-        return rasterise.render_traversal(
-            self.scene, self.query, self.K, self.image_size, conditions or {}, self.seed, 1
-        )
+        return render.render_traversal(self.scene, self.query, self.K, self.image_size, conditions or {}, self.seed, 1)
 
 
 def make_route(seed: int = 0, n_frames: int = 30, image_size: tuple[int, int] = (640, 480)) -> Route:
@@ -98,8 +96,8 @@ def generate_sample(
     default), ``poses.csv``, ``pairs.txt`` and ``generator.json``; returns a summary. Skipped when
     ``generator.json`` records the same parameters and every output exists."""
     out_dir = Path(out_dir)
-    conditions = dict(photometry.DEFAULT_NIGHT_CONDITIONS if conditions is None else conditions)
-    photometry.validate_conditions(conditions)
+    conditions = dict(render.DEFAULT_NIGHT_CONDITIONS if conditions is None else conditions)
+    render.validate_conditions(conditions)
     params = {
         "version": GENERATOR_VERSION,
         "seed": int(seed),

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import math
 import os
+from collections import namedtuple
 from collections.abc import Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -224,28 +225,17 @@ def _sky_colour(ray_world: np.ndarray) -> np.ndarray:
     return horizon * (1 - weight) + zenith * weight
 
 
-@dataclass
-class _PlaneInCamera:
-    """A rectangle as functions of pixel (u, v): for ray r = K^-1 [u, v, 1] the inverse depth is
-    q = (n . r) / d and the in-plane coordinate a = (u_hat . r) / q - u_hat . P0 (b alike)."""
+# A facing rectangle as functions of pixel (u, v): for ray r = K^-1 [u, v, 1] the inverse depth is
+# q = (n . r) / d (d = n . P0 < 0: camera on the visible side), the in-plane a = (u_hat . r) / q - u_hat . P0.
+_Plane = namedtuple("_Plane", "q_coef a_coef b_coef a_offset b_offset u_length v_length plane_offset")
 
-    q_coef: np.ndarray  # (3,) float32
-    a_coef: np.ndarray
-    b_coef: np.ndarray
-    a_offset: float
-    b_offset: float
-    u_length: float
-    v_length: float
-    plane_offset: float  # d = n . P0 (negative: camera on the visible side)
 
-    def inverse_depth(self, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-        c = self.q_coef
-        return c[0] * u + c[1] * v + c[2]
+def _affine(coef: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
+    return coef[0] * u + coef[1] * v + coef[2]
 
-    def plane_coordinates(self, u: np.ndarray, v: np.ndarray, inv_q: np.ndarray):
-        a = (self.a_coef[0] * u + self.a_coef[1] * v + self.a_coef[2]) * inv_q - self.a_offset
-        b = (self.b_coef[0] * u + self.b_coef[1] * v + self.b_coef[2]) * inv_q - self.b_offset
-        return a, b
+
+def _plane_coordinates(plane: _Plane, u: np.ndarray, v: np.ndarray, inv_q: np.ndarray):
+    return _affine(plane.a_coef, u, v) * inv_q - plane.a_offset, _affine(plane.b_coef, u, v) * inv_q - plane.b_offset
 
 
 def _planes_in_camera(scene: Scene, rotation: np.ndarray, position: np.ndarray, K_inv: np.ndarray):
@@ -259,19 +249,12 @@ def _planes_in_camera(scene: Scene, rotation: np.ndarray, position: np.ndarray, 
     plane_offset = np.einsum("ij,ij->i", normal, origin)
     front = np.flatnonzero(plane_offset < -1e-6)  # one-sided: the camera is on the normal's side
     corners = np.stack([origin, origin + edge_u, origin + edge_u + edge_v, origin + edge_v], axis=1)
-    planes = [
-        _PlaneInCamera(
-            ((normal[i] @ K_inv) / plane_offset[i]).astype(np.float32),
-            (u_hat[i] @ K_inv).astype(np.float32),
-            (v_hat[i] @ K_inv).astype(np.float32),
-            float(u_hat[i] @ origin[i]),
-            float(v_hat[i] @ origin[i]),
-            float(u_length[i]),
-            float(v_length[i]),
-            float(plane_offset[i]),
-        )
-        for i in front
-    ]
+    planes = []
+    for i in front:
+        q_coef = ((normal[i] @ K_inv) / plane_offset[i]).astype(np.float32)
+        a_coef, b_coef = ((hat[i] @ K_inv).astype(np.float32) for hat in (u_hat, v_hat))
+        offsets = (float(u_hat[i] @ origin[i]), float(v_hat[i] @ origin[i]), float(u_length[i]), float(v_length[i]))
+        planes.append(_Plane(q_coef, a_coef, b_coef, *offsets, float(plane_offset[i])))
     return front, corners[front], planes
 
 
@@ -294,12 +277,12 @@ def render_frame(
             continue
         c0, r0, c1, r1 = box
         uu, vv = cols[None, c0:c1], rows[r0:r1, None]
-        q = plane.inverse_depth(uu, vv)
+        q = _affine(plane.q_coef, uu, vv)
         zbuf = inv_depth[r0:r1, c0:c1]
         hit = q > zbuf
         if not hit.any():
             continue
-        a, b = plane.plane_coordinates(uu, vv, 1.0 / np.maximum(q, 1e-9))
+        a, b = _plane_coordinates(plane, uu, vv, 1.0 / np.maximum(q, 1e-9))
         hit &= (a >= 0) & (a <= plane.u_length) & (b >= 0) & (b <= plane.v_length)
         zbuf[hit] = q[hit]
         rect_id[r0:r1, c0:c1][hit] = k
@@ -337,11 +320,11 @@ def render_frame(
 
 
 def _texture_colours(
-    scene: Scene, i: int, plane: _PlaneInCamera, u: np.ndarray, v: np.ndarray, ray_norm: np.ndarray, focal: float
+    scene: Scene, i: int, plane: _Plane, u: np.ndarray, v: np.ndarray, ray_norm: np.ndarray, focal: float
 ) -> np.ndarray:
     """Tinted texture colours of rectangle ``i`` at pixels (u, v), mip-mapped."""
-    q = plane.inverse_depth(u, v)
-    a, b = plane.plane_coordinates(u, v, 1.0 / q)
+    q = _affine(plane.q_coef, u, v)
+    a, b = _plane_coordinates(plane, u, v, 1.0 / q)
     pyramid = texture_pyramid(scene.texture[i])
     tex_h, tex_w = pyramid[0].shape[:2]
     texels_per_metre = np.float32(tex_w / scene.metres_per_texture[i])

@@ -105,11 +105,6 @@ def pose_rule_labels(
     return (distance <= max_distance_m) & (heading <= max_heading_deg)
 
 
-def _traversal_labels(query: Traversal, reference: Traversal, *thresholds: float) -> np.ndarray:
-    headings_q, headings_r = heading_from_rotation(query.rotations), heading_from_rotation(reference.rotations)
-    return pose_rule_labels(query.positions, headings_q, reference.positions, headings_r, *thresholds)
-
-
 def _alias_reference_position(scene: Scene, query_x: float, look_ahead_m: float = 15.0) -> float | None:
     """Where the look-alike of what the query sees would be seen from, if the query has a repeated
     façade block within ``look_ahead_m`` ahead."""
@@ -123,17 +118,12 @@ def _alias_reference_position(scene: Scene, query_x: float, look_ahead_m: float 
 
 
 def look_alike_labels(
-    scene: Scene,
-    query: Traversal,
-    reference: Traversal,
-    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
-    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
-    look_ahead_m: float = LOOK_ALIKE_LOOK_AHEAD_M,
+    scene: Scene, query: Traversal, reference: Traversal, look_ahead_m: float = LOOK_ALIKE_LOOK_AHEAD_M
 ) -> np.ndarray:
     """(Q, R) bool: pairs false by the pose rule but true from the query's look-alike position (its
     position shifted by the repeated block's offset), so both images show the same façades."""
-    true_pairs = _traversal_labels(query, reference, max_distance_m, max_heading_deg)
     headings_q, headings_r = heading_from_rotation(query.rotations), heading_from_rotation(reference.rotations)
+    true_pairs = pose_rule_labels(query.positions, headings_q, reference.positions, headings_r)
     look_alike = np.zeros_like(true_pairs)
     for qi, position in enumerate(query.positions):
         alias_x = _alias_reference_position(scene, float(position[0]), look_ahead_m)
@@ -141,33 +131,25 @@ def look_alike_labels(
             continue
         shifted = position.copy()
         shifted[0] = alias_x
-        look_alike[qi] = pose_rule_labels(
-            shifted, headings_q[qi : qi + 1], reference.positions, headings_r, max_distance_m, max_heading_deg
-        )[0]
+        look_alike[qi] = pose_rule_labels(shifted, headings_q[qi : qi + 1], reference.positions, headings_r)[0]
     return look_alike & ~true_pairs
 
 
-def select_pairs(
-    scene: Scene,
-    query: Traversal,
-    reference: Traversal,
-    seed: int = 0,
-    max_distance_m: float = DEFAULT_MAX_DISTANCE_M,
-    max_heading_deg: float = DEFAULT_MAX_HEADING_DEG,
-) -> list[tuple[int, int, int]]:
+def select_pairs(scene: Scene, query: Traversal, reference: Traversal, seed: int = 0) -> list[tuple[int, int, int]]:
     """(query, reference, label) per query frame: the nearest true reference and random further
     ones, near and far negatives, and the look-alike when the query sees a repeated block
     (otherwise one more far negative). All choices come from ``seed``."""
     rng = np.random.default_rng([seed, 4])
-    labels = _traversal_labels(query, reference, max_distance_m, max_heading_deg)
+    headings_q, headings_r = heading_from_rotation(query.rotations), heading_from_rotation(reference.rotations)
+    labels = pose_rule_labels(query.positions, headings_q, reference.positions, headings_r)
     distance = np.linalg.norm(query.positions[:, None] - reference.positions[None], axis=2)
     pairs: list[tuple[int, int, int]] = []
     for qi in range(len(query)):
         order = np.argsort(distance[qi], kind="stable")
         positives = [r for r in order if labels[qi, r]]
         negatives = [r for r in order if not labels[qi, r]]
-        near = [r for r in negatives if distance[qi, r] <= 2.5 * max_distance_m]
-        far = [r for r in negatives if distance[qi, r] > 2.5 * max_distance_m]
+        near = [r for r in negatives if distance[qi, r] <= 2.5 * DEFAULT_MAX_DISTANCE_M]
+        far = [r for r in negatives if distance[qi, r] > 2.5 * DEFAULT_MAX_DISTANCE_M]
         chosen: list[int] = positives[:1]
         chosen += _pick(rng, positives[1:], N_POSITIVES - len(chosen))
         chosen += _pick(rng, near, N_NEAR_NEGATIVES)

@@ -43,19 +43,14 @@ def validate_conditions(conditions: Mapping[str, float]) -> dict[str, float]:
     return strengths
 
 
-def _low_frequency_noise(rng: np.random.Generator, shape: tuple[int, int], cells: int = 12) -> np.ndarray:
-    """Smooth random field in [0, 1] (snow patchiness)."""
-    height, width = shape
-    coarse = rng.uniform(size=(cells, max(2, cells * width // height))).astype(np.float32)
-    return np.clip(cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC), 0.0, 1.0)
-
-
 def _apply_season(
     image: np.ndarray, normals: np.ndarray, depth: np.ndarray, strength: float, rng: np.random.Generator
 ) -> np.ndarray:
     """Winter: snow on upward-facing surfaces, brown vegetation, pale overcast light."""
     up = np.clip(normals[..., 2], 0.0, 1.0)
-    patchiness = _low_frequency_noise(rng, up.shape)
+    height, width = up.shape  # snow patchiness: a smooth random field in [0, 1]
+    coarse = rng.uniform(size=(12, max(2, 12 * width // height))).astype(np.float32)
+    patchiness = np.clip(cv2.resize(coarse, (width, height), interpolation=cv2.INTER_CUBIC), 0.0, 1.0)
     snow_cover = np.clip(strength * 1.25 * up**2 * (0.65 + 0.45 * patchiness), 0.0, 1.0)
     snow = np.array([236.0, 240.0, 248.0], dtype=np.float32)
     image = image * (1 - snow_cover[..., None]) + snow * snow_cover[..., None]
@@ -108,8 +103,7 @@ def _lamp_fields(depth: np.ndarray, light_points: np.ndarray, downscale: int = 4
     small_depth = np.where(np.isinf(depth), 1e4, depth)[::downscale, ::downscale]
     rows, cols = np.mgrid[0 : small_depth.shape[0], 0 : small_depth.shape[1]].astype(np.float32)
     rows, cols = rows * downscale, cols * downscale
-    pool = np.zeros_like(small_depth)
-    glare = np.zeros_like(small_depth)
+    pool, glare = np.zeros_like(small_depth), np.zeros_like(small_depth)
     for u, v, lamp_depth, radius in np.asarray(light_points, dtype=np.float32).reshape(-1, 4):
         # The pool sits below the lamp head and only on surfaces at its depth.
         distance_sq = (cols - u) ** 2 + (rows - v - 0.6 * radius) ** 2
@@ -135,8 +129,7 @@ def _apply_illumination(
     headlight = np.float32(strength * 0.6) * np.exp(-finite_depth / np.float32(8.0)) * row_weight
     pool, glare = _lamp_fields(depth, light_points)
     warm = np.array([1.0, 0.75, 0.45], dtype=np.float32)  # sodium-lamp orange
-    # Auto-exposure raises the gain (and with it the noise); the colour cast is
-    # a white balance set for daylight under sodium lamps.
+    # Auto-exposure raises the gain (and the noise); white balance stays set for daylight.
     gain = 1.0 + 3.0 * strength
     gain_rgb = gain * np.array([1 + 0.1 * strength, 1.0, 1 - 0.25 * strength], dtype=np.float32)
     light = headlight[..., None] * np.array([1.0, 0.97, 0.9], dtype=np.float32)
@@ -153,8 +146,7 @@ def _apply_illumination(
         )
         linear[sky] = linear[sky] * (1 - strength) + night_sky * (strength * gain_rgb)
 
-    # Shot noise grows with signal and gain, read noise with gain only.  Buffers
-    # are reused: fresh full-size arrays cost more (page faults) than the maths.
+    # Shot noise grows with signal and gain, read noise with gain; reused buffers spare page faults.
     noise_std = np.multiply(linear, np.float32(strength * 0.002 * gain), out=light)
     noise_std += np.float32((0.006 * strength * gain) ** 2)
     np.sqrt(noise_std, out=noise_std)
@@ -268,7 +260,7 @@ def render_frame(
 
     # Pass 1: z-buffer on inverse depth, rectangle by rectangle over its screen box.
     inv_depth = np.zeros((height, width), dtype=np.float32)
-    rect_id = np.full((height, width), -1, dtype=np.int16 if len(scene) < 32000 else np.int32)
+    rect_id = np.full((height, width), -1, dtype=np.int16 if len(scene.texture) < 32000 else np.int32)
     cols = np.arange(width, dtype=np.float32)
     rows = np.arange(height, dtype=np.float32)
     for k, plane in enumerate(planes):

@@ -18,8 +18,9 @@ from gvbench_nb.data.synthetic import poses, render
 from gvbench_nb.data.synthetic.street import DEFAULT_MAX_DISTANCE_M, DEFAULT_MAX_HEADING_DEG, Scene, build_scene
 
 GENERATOR_VERSION = 1
-# The query drive's offset from the reference drive (generator.json records them).
-SPACING_M, LATERAL_OFFSET_M, HEADING_OFFSET_DEG, ALONG_OFFSET_M = 2.0, 1.0, 4.0, 1.0
+# Frame spacing and the query drive's offsets from the reference drive (generator.json records them).
+DRIVE = {"spacing_m": 2.0, "lateral_offset_m": 1.0, "heading_offset_deg": 4.0, "along_offset_m": 1.0}
+THRESHOLDS = {"max_distance_m": DEFAULT_MAX_DISTANCE_M, "max_heading_deg": DEFAULT_MAX_HEADING_DEG}
 POSE_COLUMNS = "traversal frame image x y z yaw_deg pitch_deg roll_deg fx fy cx cy".split()  # noqa: SIM905
 POSE_COLUMNS += [f"r{i}{j}" for i in range(3) for j in range(3)]
 
@@ -67,10 +68,9 @@ class Route:
 
 def make_route(seed: int = 0, n_frames: int = 30, image_size: tuple[int, int] = (640, 480)) -> Route:
     """The scene and both drives ``generate_sample`` renders (same parameters, same result)."""
-    scene = build_scene((n_frames - 1) * SPACING_M + ALONG_OFFSET_M, seed)
-    reference = poses.make_traversal(n_frames, SPACING_M, seed=seed, traversal_index=0)
-    offsets = (LATERAL_OFFSET_M, HEADING_OFFSET_DEG, ALONG_OFFSET_M)
-    query = poses.make_traversal(n_frames, SPACING_M, *offsets, seed=seed, traversal_index=1)
+    scene = build_scene((n_frames - 1) * DRIVE["spacing_m"] + DRIVE["along_offset_m"], seed)
+    reference = poses.make_traversal(n_frames, DRIVE["spacing_m"], seed=seed, traversal_index=0)
+    query = poses.make_traversal(n_frames, **DRIVE, seed=seed, traversal_index=1)
     size = (int(image_size[0]), int(image_size[1]))
     return Route(scene, reference, query, poses.default_intrinsics(image_size), size, int(seed))
 
@@ -104,12 +104,8 @@ def generate_sample(
         "n_frames": int(n_frames),
         "conditions": {k: float(v) for k, v in sorted(conditions.items())},
         "image_size": [int(image_size[0]), int(image_size[1])],
-        "spacing_m": SPACING_M,
-        "lateral_offset_m": LATERAL_OFFSET_M,
-        "heading_offset_deg": HEADING_OFFSET_DEG,
-        "along_offset_m": ALONG_OFFSET_M,
-        "max_distance_m": DEFAULT_MAX_DISTANCE_M,
-        "max_heading_deg": DEFAULT_MAX_HEADING_DEG,
+        **DRIVE,
+        **THRESHOLDS,
     }
     params_path = out_dir / "generator.json"
     width = _name_width(n_frames)
@@ -135,12 +131,7 @@ def generate_sample(
 
     pairs = poses.select_pairs(route.scene, route.query, route.reference, seed)
     write_pairs(out_dir / "pairs.txt", [(night_names[q], day_names[r], label) for q, r, label in pairs])
-    summary = {
-        "n_images": 2 * n_frames,
-        "n_pairs": len(pairs),
-        "n_positives": int(sum(label for _, _, label in pairs)),
-        "max_distance_m": DEFAULT_MAX_DISTANCE_M,
-        "max_heading_deg": DEFAULT_MAX_HEADING_DEG,
-    }
+    n_positives = int(sum(label for _, _, label in pairs))
+    summary = {"n_images": 2 * n_frames, "n_pairs": len(pairs), "n_positives": n_positives, **THRESHOLDS}
     params_path.write_text(json.dumps({"params": params, "summary": summary}, indent=2))
     return summary

@@ -78,9 +78,6 @@ class Scene:
         n = np.cross(self.edge_u, self.edge_v)
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
-    def __len__(self) -> int:
-        return len(self.texture)
-
 
 class _SceneBuilder:
     """Accumulates rectangles, each with its material: texture, metres per texture, offset, tint."""
@@ -113,17 +110,13 @@ class _SceneBuilder:
 
     def build(self, alias_blocks) -> Scene:
         origin, edge_u, edge_v, texture, mpt, offset, tint = zip(*self.rects)
-        return Scene(
-            np.array(origin),
-            np.array(edge_u),
-            np.array(edge_v),
-            list(texture),
+        geometry = (np.array(origin), np.array(edge_u), np.array(edge_v), list(texture))
+        material = (
             np.array(mpt, dtype=np.float64),
             np.array(offset, dtype=np.float64),
             np.array(tint, dtype=np.float32),
-            np.array(self.lamps, dtype=np.float64).reshape(-1, 3),
-            list(alias_blocks),
         )
+        return Scene(*geometry, *material, np.array(self.lamps, dtype=np.float64).reshape(-1, 3), list(alias_blocks))
 
 
 @dataclass(frozen=True)

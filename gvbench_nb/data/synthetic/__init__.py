@@ -1,11 +1,6 @@
-"""Deterministic synthetic street route for geometric-verification studies: façades, side streets,
-ground and street furniture textured with scikit-image's photographs, driven twice with exact 6-DoF
-poses, conditions (illumination, season, weather) applied per drive with a strength in [0, 1], and
-pairs labelled by the GV-Bench pose rule.
-
-World frame: X along the street, Y left, Z up (metres). Camera frame (OpenCV): x right, y down,
-z forward; a pose is the camera-to-world rotation R and the centre t (X_world = R @ X_cam + t).
-"""
+"""Deterministic synthetic street route textured with scikit-image's photographs, driven twice with
+exact poses, conditions applied per drive, pairs labelled by the GV-Bench pose rule. World frame:
+X along the street, Y left, Z up (metres)."""
 
 from gvbench_nb.data.synthetic.poses import LOOK_ALIKE_LOOK_AHEAD_M, look_alike_labels, select_pairs
 from gvbench_nb.data.synthetic.render import CONDITIONS, render_traversal

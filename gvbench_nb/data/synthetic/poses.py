@@ -1,7 +1,5 @@
-"""Camera poses along the route (OpenCV camera frame, camera-to-world rotation ``R`` and centre
-``t``) and the labels they give: the pose rule, look-alike negatives, the pair selection and the
-fundamental matrix of a pair's true geometry.
-"""
+"""Camera poses (OpenCV camera frame; camera-to-world rotation R and centre t) and the labels they
+give: the pose rule, look-alike negatives, the pair selection, a pair's fundamental matrix."""
 
 from __future__ import annotations
 
@@ -33,9 +31,8 @@ def camera_rotation(yaw_deg: float, pitch_deg: float = 0.0, roll_deg: float = 0.
     yaw, pitch, roll = np.deg2rad([yaw_deg, pitch_deg, roll_deg])
     # Camera axes at yaw 0: x_cam -> -Y (right), y_cam -> -Z (down), z_cam -> +X.
     base = np.array([[0.0, 0.0, 1.0], [-1.0, 0.0, 0.0], [0.0, -1.0, 0.0]])
-    cz, sz = math.cos(yaw), math.sin(yaw)
-    cp, sp = math.cos(pitch), math.sin(pitch)
-    cr, sr = math.cos(roll), math.sin(roll)
+    cz, cp, cr = (math.cos(angle) for angle in (yaw, pitch, roll))
+    sz, sp, sr = (math.sin(angle) for angle in (yaw, pitch, roll))
     rot_yaw = np.array([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
     rot_pitch = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
     rot_roll = np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]])

@@ -1,7 +1,6 @@
 """Rendering a frame and its conditions. A rectangle's inverse depth is affine in pixel (u, v), so a
 z-buffer pass costs a few array operations over its screen box and texturing is one ``cv2.remap``
-per mip level. Conditions (illumination, season, weather) each have a strength in [0, 1].
-"""
+per mip level. Conditions (illumination, season, weather) each have a strength in [0, 1]."""
 
 from __future__ import annotations
 
@@ -352,11 +351,6 @@ def _visible_lamps(
     return np.column_stack([uv, cam[:, 2], K[0, 0] * 4.0 / cam[:, 2]])[unoccluded]  # ~4 m light pool
 
 
-def frame_rng(seed: int, traversal_index: int, frame_index: int) -> np.random.Generator:
-    """Independent, reproducible random stream per rendered frame."""
-    return np.random.default_rng([seed, 3, traversal_index, frame_index])
-
-
 def render_traversal(
     scene: Scene,
     traversal: Traversal,
@@ -374,7 +368,7 @@ def render_traversal(
 
     def render(frame: int) -> np.ndarray:
         clear = render_frame(scene, traversal.rotations[frame], traversal.positions[frame], K, image_size)
-        return apply_conditions(clear, conditions, frame_rng(seed, traversal_index, frame))
+        return apply_conditions(clear, conditions, np.random.default_rng([seed, 3, traversal_index, frame]))
 
     with ThreadPoolExecutor(max_workers=workers or min(4, os.cpu_count() or 1)) as pool:
         return list(pool.map(render, range(len(traversal))))

@@ -1,6 +1,4 @@
-"""A route on disk: the traversals' images, their poses and the labelled pair file, and the
-``sample`` sequence the package embeds.
-"""
+"""A route on disk (the drives' images, poses and labelled pair file) and the embedded ``sample``."""
 
 from __future__ import annotations
 
@@ -34,12 +32,10 @@ def write_traversal_images(folder: Path, images: list[np.ndarray], width: int) -
     """Write RGB frames as ``<folder>/<frame:0width>.png``; returns their names relative to the
     folder's parent (the image root)."""
     folder.mkdir(parents=True, exist_ok=True)
-    names = []
-    for frame, image in enumerate(images):
-        name = f"{frame:0{width}d}.png"
+    names = [f"{frame:0{width}d}.png" for frame in range(len(images))]
+    for name, image in zip(names, images):
         cv2.imwrite(str(folder / name), cv2.cvtColor(image, cv2.COLOR_RGB2BGR))
-        names.append(f"{folder.name}/{name}")
-    return names
+    return [f"{folder.name}/{name}" for name in names]
 
 
 @dataclass

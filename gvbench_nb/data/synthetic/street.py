@@ -1,6 +1,5 @@
 """The synthetic street: textured rectangles (façades, ground, street furniture) along a route,
-with a block of buildings repeated elsewhere (the look-alikes a verifier must reject).
-"""
+with a block of buildings repeated elsewhere (the look-alikes a verifier must reject)."""
 
 from __future__ import annotations
 
@@ -111,12 +110,9 @@ class _SceneBuilder:
     def build(self, alias_blocks) -> Scene:
         origin, edge_u, edge_v, texture, mpt, offset, tint = zip(*self.rects)
         geometry = (np.array(origin), np.array(edge_u), np.array(edge_v), list(texture))
-        material = (
-            np.array(mpt, dtype=np.float64),
-            np.array(offset, dtype=np.float64),
-            np.array(tint, dtype=np.float32),
-        )
-        return Scene(*geometry, *material, np.array(self.lamps, dtype=np.float64).reshape(-1, 3), list(alias_blocks))
+        mpt, offset = np.array(mpt, dtype=np.float64), np.array(offset, dtype=np.float64)
+        lamps = np.array(self.lamps, dtype=np.float64).reshape(-1, 3)
+        return Scene(*geometry, mpt, offset, np.array(tint, dtype=np.float32), lamps, list(alias_blocks))
 
 
 @dataclass(frozen=True)

@@ -202,8 +202,8 @@ def _remap_flat(texture: np.ndarray, map_x: np.ndarray, map_y: np.ndarray) -> np
     rows = -(-n // cols)
     maps = np.zeros((2, rows * cols), dtype=np.float32)
     maps[0, :n], maps[1, :n] = map_x, map_y
-    maps = maps.reshape(2, rows, cols)
-    out = cv2.remap(texture, maps[0], maps[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
+    map_rows = maps.reshape(2, rows, cols)
+    out = cv2.remap(texture, map_rows[0], map_rows[1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP)
     return out.reshape(rows * cols, -1)[:n]
 
 

@@ -108,11 +108,11 @@ class _SceneBuilder:
         self.add([x0, y0, z], [x1 - x0, 0, 0], [0, y1 - y0, 0], *material)
 
     def build(self, alias_blocks) -> Scene:
-        origin, edge_u, edge_v, texture, mpt, offset, tint = zip(*self.rects)
+        origin, edge_u, edge_v, texture, metres, offsets, tint = zip(*self.rects)
         geometry = (np.array(origin), np.array(edge_u), np.array(edge_v), list(texture))
-        mpt, offset = np.array(mpt, dtype=np.float64), np.array(offset, dtype=np.float64)
+        floats = (np.array(metres, dtype=np.float64), np.array(offsets, dtype=np.float64))
         lamps = np.array(self.lamps, dtype=np.float64).reshape(-1, 3)
-        return Scene(*geometry, mpt, offset, np.array(tint, dtype=np.float32), lamps, list(alias_blocks))
+        return Scene(*geometry, *floats, np.array(tint, dtype=np.float32), lamps, list(alias_blocks))
 
 
 @dataclass(frozen=True)

@@ -1,49 +1,10 @@
-"""Build GV-Bench-style sequences from raw traversals: retrieval + a label rule.
+"""Build GV-Bench-style sequences from raw traversals, as a SLAM loop-closure detector would
+propose them: each query's top-N references by a global descriptor over every reference
+traversal ("experience", all competing for the same N slots), labelled by a ground-truth rule.
 
-GV-Bench made its pairs by mimicking a SLAM loop-closure detector: for each query
-frame, retrieve the top N database frames by global-descriptor similarity (NetVLAD,
-N = 20), then label every retrieved pair with a ground-truth rule. ``build_sequence``
-does the same from image folders:
-
-    query folder + reference folder(s) under image_root, per-image metadata
-    -> chosen queries (all, or a seeded random subset)
-    -> global descriptors (``retrieval.GLOBAL_DESCRIPTORS``: netvlad, vlad, bow;
-       vlad/bow aggregate local features read from the package's feature cache)
-    -> top-N candidates a query over every reference traversal ("experience")
-    -> labels by a named rule (``retrieval.LABEL_RULES``)
-    -> a GV-Bench pair file plus a sequence card beside it.
-
-Files written for a pair file ``<stem>.txt``:
-
-- ``<stem>.txt``: the pair file (``query reference label``), candidates of a query
-  best first;
-- ``<stem>.card.json`` / ``<stem>.card.md``: what was built and how (counts,
-  positives a query, retrieval recall@1/5/N against the rule applied to every
-  query x reference combination);
-- ``<stem>.candidates.csv``: one row a pair with experience, rank, similarity, label.
-
-Params (the ``builder_options`` of ``pairs_builder: retrieval``; see
-``RetrievalOptions``), e.g.::
-
-    pairs_builder: retrieval
-    builder_options:
-      query_folder: night_right
-      reference_folders: [day_right]
-      descriptor: vlad
-      top_n: 10
-      label_rule: frame_tolerance
-      label_params: {k: 2}
-
-Several reference traversals: every experience competes for the same N slots
-(``retrieval.retrieve_top_n_experiences``), so a query's candidates may come from
-any of them and the pair file lists them all. To score a query rather than a pair,
-verify every candidate pair and keep, per query, the pair with the highest score
-(``retrieval.best_experience``; ties go to the better retrieval rank): the query's
-label is that pair's label (``best_experience_table`` joins a method's
-``pairs.csv`` to the candidates for this).
-
-``config`` imports this module to register the builder; this module never imports
-``config`` (``pipeline`` is imported when features are extracted).
+Beside a pair file ``<stem>.txt`` go ``<stem>.card.json`` / ``.card.md`` (what was built and
+how: counts, retrieval recall@1/5/N) and ``<stem>.candidates.csv`` (experience, rank,
+similarity and label of every pair). ``config`` imports this module to register the builder.
 """
 
 from __future__ import annotations
@@ -59,22 +20,12 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb.data import build_inputs, retrieval
-from gvbench_nb.data.sequences import (
-    Pair,
-    Sequence,
-    read_pairs,
-    summarize,
-    write_pairs,
-)
+from gvbench_nb.data.sequences import Pair, Sequence, read_pairs, summarize, write_pairs
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text
 from gvbench_nb.protocol import registry
 
 BUILDER_NAME = "retrieval"
-
-
 CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "label"]
-
-
 MULTI_EXPERIENCE_NOTE = (
     "Every reference experience competes for the same top-N slots, so the pair file lists candidates from "
     "all of them. To score a query, verify every candidate pair and keep the pair with the highest score "

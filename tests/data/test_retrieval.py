@@ -95,8 +95,6 @@ def test_multi_experience_union_and_best_experience() -> None:
     np.testing.assert_array_equal(candidates.experience, ["night", "day", "night", "day"])
     np.testing.assert_array_equal(candidates.reference, [0, 0, 2, 1])
     np.testing.assert_array_equal(candidates.rank, [0, 1, 0, 1])
-    frame = candidates.to_frame()
-    assert list(frame.columns) == ["query", "experience", "reference", "rank", "similarity"]
     best = rt.best_experience(candidates, scores=np.array([10, 40, 7, 7]))
     np.testing.assert_array_equal(best.query, [0, 1])
     np.testing.assert_array_equal(best.experience, ["day", "night"])  # query 1: tie -> better rank

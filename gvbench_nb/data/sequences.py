@@ -1,15 +1,9 @@
-"""Sequences: an image root plus labelled (query, reference, label) pairs.
+"""Sequences: an image root plus labelled pairs, in GV-Bench's pair-file format, one pair a
+line: ``query_path reference_path label`` (paths relative to the image root, label 1 or 0).
 
-Pair files use GV-Bench's format, one pair a line: ``query_path reference_path label``
-with paths relative to the image root and label 1 (true loop closure) or 0. Loading
-pairs never touches the images, so the official lists load without them.
-
-A path holding spaces is written in double or single quotes (``"day 1/a b.jpg"``); on
-a line with quotes a backslash escapes the next character, as in a POSIX shell. Paths
-are normalised (``night/./a.jpg`` and ``night//a.jpg`` are ``night/a.jpg``) before the
-checks for duplicates and self-pairs. Symlinks inside the image root are followed,
-wherever they point: the caches key images by their content, so a link is the file it
-names (see docs/reliability.md).
+Paths with spaces are quoted (POSIX shell rules) and normalised (``night/./a.jpg`` is
+``night/a.jpg``) before the duplicate and self-pair checks. Loading pairs never touches the
+images; symlinks are followed (the caches key images by content, see docs/reliability.md).
 """
 
 from __future__ import annotations

@@ -373,11 +373,8 @@ def retrieve_top_n(
     n: int,
     chunk: int = 1024,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Top-n references per query by dot-product similarity.
-
-    Returns ``indices`` (Q, n') int64 and ``similarities`` (Q, n') float32, best first,
-    n' = min(n, R); equal similarities rank by lower reference index (stable).
-    """
+    """Top-min(n, R) reference rows and similarities per query by dot product, best first;
+    equal similarities rank by lower reference index."""
     query = np.asarray(query_descriptors, dtype=np.float32)
     reference = np.asarray(reference_descriptors, dtype=np.float32)
     if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
@@ -471,13 +468,9 @@ def retrieval_recall_at(
     ranked_indices: np.ndarray,
     ground_truth: np.ndarray,
 ) -> dict[str, float]:
-    """Recall@k: fraction of queries with at least one true reference among their top k.
-
-    ``ranked_indices`` (Q, n) reference rows best first; ``ground_truth`` (Q, R) bool.
-    Queries with no true reference at all are EXCLUDED (no retrieval can succeed on
-    them); their count is returned as ``queries_excluded`` and the denominator as
-    ``queries_evaluated``. k larger than n raises (it would silently be recall@n).
-    """
+    """Recall@k: the fraction of queries with a true reference among their top k. Queries with
+    no true reference at all are excluded (no retrieval can succeed; ``queries_excluded``);
+    k > n raises (it would silently be recall@n)."""
     ranked = np.asarray(ranked_indices, dtype=np.int64)
     truth = np.asarray(ground_truth, dtype=bool)
     if ranked.shape[0] != truth.shape[0]:

@@ -250,21 +250,17 @@ def load_traversal(
 def resolve_label_params(options: RetrievalOptions, image_root: Path) -> dict[str, Any]:
     """The rule's parameters: its defaults, then ``label_params_file``, then ``label_params``."""
     rule = retrieval.get_label_rule(options.label_rule)
-    merged = dict(rule.default_params)
+    loaded: dict[str, Any] = {}
     if options.label_params_file:
         path = Path(image_root) / options.label_params_file
         if not path.is_file():
             raise BuildError(f"label_params_file not found: {path} (relative to image_root)")
         loaded = json.loads(path.read_text(encoding="utf-8"))
-        loaded = loaded.get("params", loaded)
-        merged.update({k: v for k, v in loaded.items() if k in rule.default_params})
-    unknown = set(options.label_params) - set(rule.default_params)
-    if unknown:
-        raise BuildError(
-            f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}"
-        )
-    merged.update(options.label_params)
-    return merged
+        loaded = {k: v for k, v in loaded.get("params", loaded).items() if k in rule.default_params}
+    try:
+        return retrieval.rule_params(rule, {**loaded, **options.label_params})
+    except KeyError as error:
+        raise BuildError(error.args[0]) from None
 
 
 @dataclass
@@ -276,7 +272,6 @@ class BuildInputs:
     options: RetrievalOptions
     image_root: Path
     query: Traversal  # the chosen query rows only
-    query_rows: np.ndarray  # their rows in the full query traversal
     num_query_frames: int
     experiences: dict[str, Traversal]
     rule_params: dict[str, Any]
@@ -309,7 +304,6 @@ def prepare_inputs(params: Mapping[str, Any], options: RetrievalOptions | None =
         options,
         image_root,
         query.rows(rows),
-        rows,
         len(query.names),
         experiences,
         resolve_label_params(options, image_root),

@@ -120,7 +120,8 @@ def get_label_rule(rule_name: str) -> LabelRule:
     return registry.lookup("label rule", rule_name, LABEL_RULES)
 
 
-def _rule_params(rule: LabelRule, params: Mapping[str, Any] | None) -> dict[str, Any]:
+def rule_params(rule: LabelRule, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The rule's defaults overridden by ``params``; a parameter it lacks raises KeyError."""
     merged = {**rule.default_params, **(params or {})}
     unknown = set(merged) - set(rule.default_params)
     if unknown:
@@ -142,7 +143,7 @@ def label_pairs(
     rule = get_label_rule(rule_name)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     return np.asarray(
-        rule.evaluate(_rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool
+        rule.evaluate(rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool
     )
 
 
@@ -160,7 +161,7 @@ def ground_truth_matrix(
     rule = get_label_rule(rule_name)
     qi = np.arange(_num_rows(query_meta))[:, None]
     ri = np.arange(_num_rows(reference_meta))[None, :]
-    truth = rule.evaluate(_rule_params(rule, params), query_meta, reference_meta, qi, ri)
+    truth = rule.evaluate(rule_params(rule, params), query_meta, reference_meta, qi, ri)
     return np.broadcast_to(np.asarray(truth, bool), (qi.shape[0], ri.shape[1])).copy()
 
 

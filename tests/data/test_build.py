@@ -47,44 +47,26 @@ def make_traversals(
             for frame in range(NUM_FRAMES):
                 name = f"{folder}/Image{frame:03d}.png"
                 cv2.imwrite(str(root / name), np.full((8, 8), 40 * frame % 255, np.uint8))
-                descriptors = place_descriptors(frame, rng, design)
-                writer.put(
-                    image_features.image_key(root, name),
-                    {
-                        "keypoints": np.zeros((len(descriptors), 2), np.float32),
-                        "scores": np.ones(len(descriptors), np.float32),
-                        "descriptors": descriptors,
-                        "image_size": np.array([8, 8]),
-                    },
-                    {"seconds": 0.0},
-                )
+                rows = place_descriptors(frame, rng, design)
+                keypoints, scores = np.zeros((len(rows), 2), np.float32), np.ones(len(rows), np.float32)
+                features = {
+                    "keypoints": keypoints,
+                    "scores": scores,
+                    "descriptors": rows,
+                    "image_size": np.array([8, 8]),
+                }
+                writer.put(image_features.image_key(root, name), features, {"seconds": 0.0})
 
 
 def write_params(tmp_path: Path, **options: object) -> Path:
-    builder_options = {
-        "query_folder": "night",
-        "reference_folders": ["day"],
-        "descriptor": "vlad",
-        "descriptor_options": {"vlad": {"num_words": 4}, "bow": {"num_words": 4}},
-        "top_n": 3,
-        "label_rule": "frame_tolerance",
-        "label_params": {"k": 1},
-        **options,
-    }
-    params = {
-        "sequence": "tiny",
-        "pairs_builder": "retrieval",
-        "builder_options": builder_options,
-        "image_root": str(tmp_path / "images"),
-        "pairs": str(tmp_path / "out" / "pairs.txt"),
-        "methods": ["sift-nn"],
-        "profile": "repository",
-        "output_dir": str(tmp_path / "out"),
-        "cache_dir": str(tmp_path / "cache"),
-        "seed": 0,
-    }
+    words = {"vlad": {"num_words": 4}, "bow": {"num_words": 4}}
+    builder_options = NIGHT_DAY | {"descriptor": "vlad", "descriptor_options": words, "top_n": 3}
+    builder_options |= {"label_rule": "frame_tolerance", "label_params": {"k": 1}, **options}
+    params = {"sequence": "tiny", "pairs_builder": "retrieval", "builder_options": builder_options, "seed": 0}
+    params |= {"image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "out" / "pairs.txt")}
+    params |= {"methods": ["sift-nn"], "profile": "repository", "output_dir": str(tmp_path / "out")}
     path = tmp_path / "tiny.yaml"
-    path.write_text(yaml.safe_dump(params))
+    path.write_text(yaml.safe_dump(params | {"cache_dir": str(tmp_path / "cache")}))
     return path
 
 

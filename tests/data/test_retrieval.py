@@ -14,18 +14,12 @@ def test_heading_difference_wraps_at_360() -> None:
     )
 
 
-def pose_tables() -> tuple[dict, dict]:
-    query = rt.frame_table(["q0", "q1"], positions=[[0.0, 0.0], [100.0, 0.0]], headings=[359.0, 90.0])
-    reference = rt.frame_table(
-        ["r0", "r1", "r2", "r3", "r4"],
-        positions=[[10.0, 0.0], [20.0, 15.0], [0.0, 5.0], [0.0, 5.0], [110.0, 0.0]],
-        headings=[1.0, 0.0, 45.0, 300.0, 180.0],
-    )
-    return query, reference
-
-
 def test_pose_rule_distance_and_wrapped_heading() -> None:
-    query, reference = pose_tables()
+    query = rt.frame_table(["q0", "q1"], positions=[[0.0, 0.0], [100.0, 0.0]], headings=[359.0, 90.0])
+    positions = [[10.0, 0.0], [20.0, 15.0], [0.0, 5.0], [0.0, 5.0], [110.0, 0.0]]
+    reference = rt.frame_table(
+        [f"r{i}" for i in range(5)], positions=positions, headings=[1.0, 0.0, 45.0, 300.0, 180.0]
+    )
     pairs = [(0, 0), (0, 1), (0, 2), (0, 3), (1, 4), (0, 4)]
     labels = rt.label_pairs("pose", None, query, reference, pairs)
     # r0: 10 m, 2 deg across 0 | r1: 25 m exactly (inclusive), 1 deg | r2: 46 deg |
@@ -89,11 +83,8 @@ def test_multi_experience_union_and_best_experience() -> None:
         "night": np.array([[0.95, 0.05], [0.0, 0.3], [0.1, 0.99]], np.float32),
     }
     candidates = rt.retrieve_top_n_experiences(query, experiences, 2)
-    assert len(candidates) == 4
-    np.testing.assert_array_equal(candidates.query, [0, 0, 1, 1])
-    np.testing.assert_array_equal(candidates.experience, ["night", "day", "night", "day"])
-    np.testing.assert_array_equal(candidates.reference, [0, 0, 2, 1])
-    np.testing.assert_array_equal(candidates.rank, [0, 1, 0, 1])
+    got = list(zip(candidates.query, candidates.experience, candidates.reference, candidates.rank))
+    assert got == [(0, "night", 0, 0), (0, "day", 0, 1), (1, "night", 2, 0), (1, "day", 1, 1)]
     best = rt.best_experience(candidates, scores=np.array([10, 40, 7, 7]))
     np.testing.assert_array_equal(best.query, [0, 1])
     np.testing.assert_array_equal(best.experience, ["day", "night"])  # query 1: tie -> better rank

@@ -18,9 +18,7 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.data import retrieval
-from gvbench_nb.data.sequences import (
-    frame_index,
-)
+from gvbench_nb.data.sequences import frame_index
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
 
@@ -35,13 +33,9 @@ class BuildError(GVBenchError, ValueError):
 
 @dataclass(frozen=True)
 class MetadataSpec:
-    """Per-image metadata from a CSV (path relative to image_root), one row an image.
-
-    ``name``: the column holding the image path relative to image_root (a bare file
-    name is looked up inside the traversal's folder); ``position``: columns in metres
-    (2 or 3); ``heading``: degrees (optional); ``frame``: a frame-number column
-    (optional; default: parsed from the name, ``sequences.frame_index``).
-    """
+    """Per-image metadata from a CSV (relative to image_root): ``name`` holds the image path
+    relative to image_root or a bare file name inside the traversal's folder; ``frame``
+    defaults to the number in the name (``sequences.frame_index``)."""
 
     csv: str
     name: str = "name"
@@ -52,25 +46,9 @@ class MetadataSpec:
 
 @dataclass(frozen=True)
 class RetrievalOptions:
-    """The ``builder_options`` of ``pairs_builder: retrieval``.
-
-    query_folder        folder (under image_root) of the query traversal
-    reference_folders   one or more reference folders ("experiences")
-    descriptor          a name in ``retrieval.GLOBAL_DESCRIPTORS``: netvlad, vlad, bow
-    descriptor_options  {descriptor name: its keyword arguments}, e.g. {vlad: {num_words: 64}};
-                        kept per name so that switching descriptor keeps each one's own
-    local_features      vlad/bow only: 'sift' or 'orb' (the sift-nn / orb-nn extractor)
-    feature_profile     profile of that extractor; null = the params' profile
-    top_n               candidates a query (GV-Bench: 20)
-    num_queries         null = every query frame, else a seeded random subset of that size
-    label_rule          a name in ``retrieval.LABEL_RULES``: pose, frame_tolerance, manual
-    label_params        the rule's parameters (override its defaults)
-    label_params_file   JSON file (relative to image_root) whose mapping, or its
-                        ``params`` mapping, supplies the rule parameters it names
-                        (the sample's generator.json); label_params win
-    metadata            null = frame numbers from the names, else a ``MetadataSpec`` mapping
-    render_sample       render the embedded synthetic sample into image_root first
-    """
+    """The ``builder_options`` of ``pairs_builder: retrieval`` (docs/usage.md). Descriptor
+    options are kept per descriptor name, so switching descriptor keeps each one's own;
+    ``label_params_file`` (JSON, its mapping or its ``params``) yields to ``label_params``."""
 
     query_folder: str
     reference_folders: tuple[str, ...]
@@ -170,11 +148,9 @@ def list_images(image_root: Path, folder: str) -> list[str]:
 
 
 def inputs_digest(image_root: str | Path, options: Mapping[str, Any]) -> dict[str, str | None]:
-    """What a retrieval build read, as one BLAKE2b digest a file or folder: each image
-    folder's listing (every image's name, size, mtime and inode: the pipeline's rule for when
-    a file is hashed again), the metadata CSV and the label_params_file. A frame added,
-    removed or replaced changes its folder's digest. Read from the raw options, so a stamp
-    can be compared before they are parsed; a folder or file that is not there is None."""
+    """One BLAKE2b digest per image folder (names, sizes, mtimes, inodes) and per metadata or
+    label_params file a build read, None when absent; read from the raw options, so a stale
+    pair file shows before they are parsed."""
     import hashlib
     import os
 
@@ -243,32 +219,28 @@ def load_traversal(
     """A folder's images and their frame table (frames, and positions/headings from metadata)."""
     names = list_images(image_root, folder)
     frames = _frames_from_names(names)
-    if metadata is None or spec is None:
-        table = retrieval.frame_table(names, frames if frames is not None else np.arange(len(names)))
-        if frames is None:
-            del table["frame"]
-        return Traversal(folder, names, table)
-    # A CSV may name images relative to image_root or by file name inside the folder.
-    keys = [n if n in metadata.index else n.split("/", 1)[1] for n in names]
-    absent = [n for n, k in zip(names, keys) if k not in metadata.index]
-    if absent:
-        raise BuildError(
-            f"{len(absent)} image(s) of {folder!r} have no row in the metadata CSV {spec.csv} "
-            f"(column {spec.name!r}), e.g. {absent[:3]}"
-        )
-    rows = metadata.loc[keys]
-    if len(rows) != len(names):  # a name on several rows (bare file names shared by traversals)
-        raise BuildError(
-            f"images of {folder!r} match several rows of the metadata CSV {spec.csv} (column {spec.name!r}); "
-            "name each image once, by its path relative to image_root"
-        )
-    if spec.frame:
-        frames = rows[spec.frame].to_numpy(np.int64)
+    positions = headings = None
+    if metadata is not None and spec is not None:
+        # A CSV may name images relative to image_root or by file name inside the folder.
+        keys = [n if n in metadata.index else n.split("/", 1)[1] for n in names]
+        absent = [n for n, k in zip(names, keys) if k not in metadata.index]
+        if absent:
+            raise BuildError(
+                f"{len(absent)} image(s) of {folder!r} have no row in the metadata CSV {spec.csv} "
+                f"(column {spec.name!r}), e.g. {absent[:3]}"
+            )
+        rows = metadata.loc[keys]
+        if len(rows) != len(names):  # a name on several rows (bare file names shared by traversals)
+            raise BuildError(
+                f"images of {folder!r} match several rows of the metadata CSV {spec.csv} (column {spec.name!r}); "
+                "name each image once, by its path relative to image_root"
+            )
+        if spec.frame:
+            frames = rows[spec.frame].to_numpy(np.int64)
+        positions = rows[list(spec.position)].to_numpy(np.float64)
+        headings = rows[spec.heading].to_numpy(np.float64) if spec.heading else None
     table = retrieval.frame_table(
-        names,
-        frames if frames is not None else np.arange(len(names)),
-        positions=rows[list(spec.position)].to_numpy(np.float64),
-        headings=rows[spec.heading].to_numpy(np.float64) if spec.heading else None,
+        names, frames if frames is not None else np.arange(len(names)), positions=positions, headings=headings
     )
     if frames is None:
         del table["frame"]
@@ -278,21 +250,17 @@ def load_traversal(
 def resolve_label_params(options: RetrievalOptions, image_root: Path) -> dict[str, Any]:
     """The rule's parameters: its defaults, then ``label_params_file``, then ``label_params``."""
     rule = retrieval.get_label_rule(options.label_rule)
-    merged = dict(rule.default_params)
+    loaded: dict[str, Any] = {}
     if options.label_params_file:
         path = Path(image_root) / options.label_params_file
         if not path.is_file():
             raise BuildError(f"label_params_file not found: {path} (relative to image_root)")
         loaded = json.loads(path.read_text(encoding="utf-8"))
-        loaded = loaded.get("params", loaded)
-        merged.update({k: v for k, v in loaded.items() if k in rule.default_params})
-    unknown = set(options.label_params) - set(rule.default_params)
-    if unknown:
-        raise BuildError(
-            f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}"
-        )
-    merged.update(options.label_params)
-    return merged
+        loaded = {k: v for k, v in loaded.get("params", loaded).items() if k in rule.default_params}
+    try:
+        return retrieval.rule_params(rule, {**loaded, **options.label_params})
+    except KeyError as error:
+        raise BuildError(error.args[0]) from None
 
 
 @dataclass
@@ -304,7 +272,6 @@ class BuildInputs:
     options: RetrievalOptions
     image_root: Path
     query: Traversal  # the chosen query rows only
-    query_rows: np.ndarray  # their rows in the full query traversal
     num_query_frames: int
     experiences: dict[str, Traversal]
     rule_params: dict[str, Any]
@@ -337,7 +304,6 @@ def prepare_inputs(params: Mapping[str, Any], options: RetrievalOptions | None =
         options,
         image_root,
         query.rows(rows),
-        rows,
         len(query.names),
         experiences,
         resolve_label_params(options, image_root),

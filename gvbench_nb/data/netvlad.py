@@ -1,46 +1,9 @@
-"""NetVLAD (VGG16 + NetVLAD + whitening, Pitts30K weights) in plain PyTorch.
+"""NetVLAD (VGG16 + NetVLAD + whitening, Pitts30K weights) in plain PyTorch: the global
+descriptor GV-Bench retrieved its loop-closure candidates with (Arandjelovic et al., CVPR 2016).
 
-The global descriptor GV-Bench used to retrieve its loop-closure candidates
-(top 20 database frames per query). Architecture (Arandjelovic et al., CVPR 2016):
-
-    RGB 0..255 minus average colour
-    -> VGG16 conv1_1 .. conv5_3 (ReLU after every conv but conv5_3; 2x2 max-pool
-       after blocks 1-4; no pool5)                                  (B, 512, h, w)
-    -> L2 normalisation of every location's 512-d feature ("preL2")
-    -> NetVLAD, K=64: soft-assignment a = softmax_k(1x1 conv without bias),
-       V[d, k] = sum_locations a_k * (x_d - c_{k,d})                (B, 512, 64)
-    -> intra-normalisation (each cluster's 512-d residual to unit L2)
-    -> flatten d-major (index d * 64 + k, MATLAB's column-major [K, D] order)
-       and L2 ("postL2")                                            (B, 32768)
-    -> whitening PCA: linear 32768 -> 4096 with bias ("WPCA")
-    -> L2 ("finalL2")                                               (B, 4096)
-
-Our state dict (the layout ``load_netvlad`` fills; 30 tensors)::
-
-    backbone.conv{b}_{i}.weight  (out, in, 3, 3)   13 VGG16 convs, b=1..5
-    backbone.conv{b}_{i}.bias    (out,)            channels 64,64 | 128,128 |
-                                                   256x3 | 512x3 | 512x3
-    vlad.assignment.weight       (64, 512, 1, 1)   soft-assignment 1x1 conv, no bias
-    vlad.centres                 (64, 512)         cluster centres c_k (row k)
-    whiten.weight                (4096, 32768)     WPCA projection
-    whiten.bias                  (4096,)           -U^T mu of the PCA
-
-Mapping from ``Pitts30K_struct.mat`` (MatConvNet simplenn exported to a struct by
-netvlad_tf_open's net_class2struct.m; read with ``loadmat(squeeze_me=True,
-struct_as_record=False)``)::
-
-    net.layers[i].name 'conv1_1'..'conv5_3' (type 'conv', layers 0..28 with the
-        ReLUs/pools between them): weights[0] (3, 3, in, out) -> permute (3, 2, 0, 1);
-        weights[1] (out,)
-    net.layers 'vlad:core' (type 'custom', layer 30): weights[0] (512, 64) = D x K
-        assignment -> transpose, unsqueeze to (64, 512, 1, 1); weights[1] (512, 64) =
-        the centres NEGATED (layerVLAD.m stores -clsts) -> centres = -weights[1].T
-    net.layers 'WPCA' (type 'conv', layer 33): weights[0] (1, 1, 32768, 4096) ->
-        squeeze, transpose -> (4096, 32768); weights[1] (4096,)
-    net.meta.normalization.averageImage (H, W, 3) -> its pixel [0, 0] is the
-        average RGB colour (the same choice as hloc and netvlad_tf_open)
-
-'preL2', 'vlad:intranorm', 'postL2' and 'finalL2' hold no weights.
+The weights come from ``Pitts30K_struct.mat`` (MatConvNet simplenn as a struct). MatConvNet
+stores the VLAD centres negated (layerVLAD.m keeps -clsts) and flattens VLAD d-major
+(index d * K + k); the average colour is pixel [0, 0] of ``averageImage``, as in hloc.
 """
 
 from __future__ import annotations
@@ -57,6 +20,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.images import read_image
 
 CHECKPOINT_NAME = "netvlad_pitts30k"
 MAX_SIDE = 1024
@@ -160,22 +124,17 @@ class NetVLAD(nn.Module):
         return descriptor
 
 
-# ----------------------------------------------------------------------------- .mat
-
-
 def _mat_field(obj: Any, name: str) -> Any:
-    """Attribute of a loadmat struct, with a clear message when absent."""
-    if not hasattr(obj, name):
+    if not hasattr(obj, name):  # a clear message rather than AttributeError
         raise weights.WeightsLayoutError(f"NetVLAD .mat: struct has no field {name!r}")
     return getattr(obj, name)
 
 
-def _layers_by_name(mat_net: Any) -> dict[str, Any]:
-    layers = np.atleast_1d(_mat_field(mat_net, "layers"))
-    return {str(getattr(layer, "name", f"#{i}")): layer for i, layer in enumerate(layers)}
-
-
-def _layer(layers: dict[str, Any], *names: str) -> Any:
+def _layer(mat_net: Any, *names: str) -> Any:
+    layers = {
+        str(getattr(layer, "name", f"#{i}")): layer
+        for i, layer in enumerate(np.atleast_1d(_mat_field(mat_net, "layers")))
+    }
     for name in names:
         if name in layers:
             return layers[name]
@@ -198,19 +157,18 @@ def average_rgb_from_mat(mat_net: Any) -> np.ndarray:
 
 def state_dict_from_mat(mat_net: Any) -> dict[str, torch.Tensor]:
     """Our NetVLAD state dict (module docstring) from the loadmat struct ``mat['net']``."""
-    layers = _layers_by_name(mat_net)
     state: dict[str, torch.Tensor] = {}
     for name in VGG16_CONV_NAMES:
-        kernel, bias = _mat_field(_layer(layers, name), "weights")
+        kernel, bias = _mat_field(_layer(mat_net, name), "weights")
         state[f"backbone.{name}.weight"] = _as_tensor(kernel).permute(3, 2, 0, 1).contiguous()  # HWIO -> OIHW
         state[f"backbone.{name}.bias"] = _as_tensor(bias).reshape(-1)
 
-    assignment, negated_centres = _mat_field(_layer(layers, "vlad:core", "vlad_core"), "weights")
+    assignment, negated_centres = _mat_field(_layer(mat_net, "vlad:core", "vlad_core"), "weights")
     assignment = _as_tensor(assignment).reshape(FEATURE_DIM, -1)  # D x K
     state["vlad.assignment.weight"] = assignment.t().contiguous()[:, :, None, None]
     state["vlad.centres"] = (-_as_tensor(negated_centres).reshape(FEATURE_DIM, -1)).t().contiguous()
 
-    projection, bias = _mat_field(_layer(layers, "WPCA"), "weights")
+    projection, bias = _mat_field(_layer(mat_net, "WPCA"), "weights")
     projection = _as_tensor(projection)
     state["whiten.weight"] = projection.reshape(projection.shape[-2], projection.shape[-1]).t().contiguous()
     state["whiten.bias"] = _as_tensor(bias).reshape(-1)
@@ -241,32 +199,18 @@ def load_netvlad(path: str | os.PathLike[str] | None = None, device: str | torch
     return model.eval().to(device)
 
 
-# ----------------------------------------------------------------------------- images
-
-
-def resize_longest_side(image: np.ndarray, max_side: int = MAX_SIDE) -> np.ndarray:
-    """Shrink (never enlarge) so the longest side is <= max_side; INTER_AREA as hloc."""
-    height, width = image.shape[:2]
-    scale = max_side / max(height, width)
-    if scale >= 1.0:
-        return image
-    size = (max(1, round(width * scale)), max(1, round(height * scale)))
-    return cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-
-
 def image_to_tensor(image_rgb: np.ndarray, max_side: int = MAX_SIDE) -> torch.Tensor:
-    """(H, W, 3) uint8 RGB -> (1, 3, h, w) float 0..255, longest side <= max_side."""
+    """(H, W, 3) uint8 RGB -> (1, 3, h, w) float 0..255, shrunk (never enlarged, INTER_AREA
+    as hloc) so the longest side is <= max_side."""
     if image_rgb.ndim != 3 or image_rgb.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) RGB image, got shape {image_rgb.shape}")
-    image = resize_longest_side(image_rgb, max_side).astype(np.float32)
+    height, width = image_rgb.shape[:2]
+    scale = max_side / max(height, width)
+    if scale < 1.0:
+        size = (max(1, round(width * scale)), max(1, round(height * scale)))
+        image_rgb = cv2.resize(image_rgb, size, interpolation=cv2.INTER_AREA)
+    image = image_rgb.astype(np.float32)
     return torch.from_numpy(image).permute(2, 0, 1).unsqueeze(0).contiguous()
-
-
-def read_rgb(path: str | os.PathLike[str]) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if image is None:
-        raise FileNotFoundError(f"cannot read image {path}")
-    return cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
 
 
 @torch.inference_mode()
@@ -277,5 +221,8 @@ def describe_images(
 ) -> np.ndarray:
     """NetVLAD descriptors (N, output_dim) float32, one image at a time (sizes differ)."""
     device = next(model.parameters()).device
-    rows = [model(image_to_tensor(read_rgb(p), max_side).to(device))[0].cpu().numpy() for p in image_paths]
+    rows = [
+        model(image_to_tensor(read_image(p, exif_orientation=True), max_side).to(device))[0].cpu().numpy()
+        for p in image_paths
+    ]
     return np.stack(rows).astype(np.float32) if rows else np.zeros((0, model.output_dim), np.float32)

@@ -1,27 +1,14 @@
-"""Loop-closure candidates the way GV-Bench built them: global retrieval + a label rule.
+"""Loop-closure candidates the way GV-Bench built them: top-N retrieval by a global descriptor
+(``GLOBAL_DESCRIPTORS``), then a ground-truth label rule (``LABEL_RULES``) on each pair.
 
-A SLAM loop-closure detector proposes, for each query frame, the top-N database
-frames by global-descriptor similarity (GV-Bench: NetVLAD, N=20); each proposed
-pair is then labelled true/false by a ground-truth rule. This module holds
-
-- label rules (``LABEL_RULES``, ``label_pairs``, ``ground_truth_matrix``),
-- global descriptors (``GLOBAL_DESCRIPTORS``: ``netvlad``, ``vlad``, ``bow``),
-- retrieval (``retrieve_top_n``, several reference experiences at once,
-  ``best_experience``),
-- retrieval recall (``retrieval_recall_at``) and query choice (``choose_queries``).
-
-Frame metadata ("frame tables") are column mappings, one row a frame::
-
-    {"name": [...], "frame": [...], "position": (N, 2|3) metres, "heading": (N,) degrees}
-
-Only the columns a rule reads are needed (``frame_table`` builds one).
-Descriptors are rows; similarity is the dot product (cosine for L2-normalised rows).
+Frame tables map column -> one row a frame: name, frame, position (N, 2|3) metres, heading
+degrees; a rule reads only its own columns. Similarity is the dot product of descriptor rows.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable, Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -30,8 +17,6 @@ from gvbench_nb.protocol import registry
 
 FrameTable = Mapping[str, Any]
 LocalDescriptors = Mapping[str, np.ndarray]
-
-# ============================================================================ labels
 
 
 def frame_table(
@@ -114,40 +99,19 @@ def _manual_rule(
 
 @dataclass(frozen=True)
 class LabelRule:
-    """A named ground-truth rule. ``evaluate(params, query, reference, qi, ri)`` returns
-    booleans for index arrays ``qi``/``ri`` that broadcast against each other."""
+    """``evaluate(params, query, reference, qi, ri)``: booleans for index arrays that broadcast."""
 
     name: str
-    description: str
     default_params: Mapping[str, Any]
     evaluate: Callable[[Mapping[str, Any], FrameTable, FrameTable, np.ndarray, np.ndarray], np.ndarray]
-    columns: tuple[str, ...] = field(default=())
 
 
 LABEL_RULES: dict[str, LabelRule] = {
     rule.name: rule
     for rule in [
-        LabelRule(
-            "pose",
-            "within D metres and H degrees of heading (MSLS: 25 m, 40 deg)",
-            {"max_distance_m": 25.0, "max_heading_deg": 40.0},
-            _pose_rule,
-            ("position", "heading"),
-        ),
-        LabelRule(
-            "frame_tolerance",
-            "frame-aligned traversals: |i - j| <= k (Nordland, Gardens Point: k = 2)",
-            {"k": 2},
-            _frame_tolerance_rule,
-            ("frame",),
-        ),
-        LabelRule(
-            "manual",
-            "an explicit set of true (query name, reference name) pairs",
-            {"true_pairs": ()},
-            _manual_rule,
-            ("name",),
-        ),
+        LabelRule("pose", {"max_distance_m": 25.0, "max_heading_deg": 40.0}, _pose_rule),  # MSLS: 25 m, 40 deg
+        LabelRule("frame_tolerance", {"k": 2}, _frame_tolerance_rule),  # Nordland, Gardens Point: k = 2
+        LabelRule("manual", {"true_pairs": ()}, _manual_rule),
     ]
 }
 
@@ -156,7 +120,8 @@ def get_label_rule(rule_name: str) -> LabelRule:
     return registry.lookup("label rule", rule_name, LABEL_RULES)
 
 
-def _rule_params(rule: LabelRule, params: Mapping[str, Any] | None) -> dict[str, Any]:
+def rule_params(rule: LabelRule, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The rule's defaults overridden by ``params``; a parameter it lacks raises KeyError."""
     merged = {**rule.default_params, **(params or {})}
     unknown = set(merged) - set(rule.default_params)
     if unknown:
@@ -178,7 +143,7 @@ def label_pairs(
     rule = get_label_rule(rule_name)
     pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
     return np.asarray(
-        rule.evaluate(_rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool
+        rule.evaluate(rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool
     )
 
 
@@ -196,16 +161,12 @@ def ground_truth_matrix(
     rule = get_label_rule(rule_name)
     qi = np.arange(_num_rows(query_meta))[:, None]
     ri = np.arange(_num_rows(reference_meta))[None, :]
-    truth = rule.evaluate(_rule_params(rule, params), query_meta, reference_meta, qi, ri)
+    truth = rule.evaluate(rule_params(rule, params), query_meta, reference_meta, qi, ri)
     return np.broadcast_to(np.asarray(truth, bool), (qi.shape[0], ri.shape[1])).copy()
 
 
-# ============================================================================ local-descriptor encodings
-
-
 def _as_float_words(descriptors: np.ndarray) -> np.ndarray:
-    """Descriptors as float32 rows; binary ones (uint8, e.g. ORB's 32 bytes) are
-    unpacked to 0/1 bits so that squared Euclidean distance equals Hamming distance."""
+    """float32 rows; binary (uint8) ones unpacked to 0/1 bits: squared Euclidean = Hamming."""
     descriptors = np.asarray(descriptors)
     if descriptors.dtype == np.uint8:
         return np.unpackbits(descriptors, axis=1).astype(np.float32)
@@ -213,8 +174,7 @@ def _as_float_words(descriptors: np.ndarray) -> np.ndarray:
 
 
 def _training_sample(local: LocalDescriptors, max_descriptors: int, seed: int) -> np.ndarray:
-    """Up to ``max_descriptors`` rows from all images, sorted by name first so the
-    sample does not depend on the mapping's order."""
+    """Up to ``max_descriptors`` rows, images sorted by name: the mapping's order does not matter."""
     stacked = [_as_float_words(local[name]) for name in sorted(local) if len(local[name])]
     if not stacked:
         raise ValueError("no local descriptors to fit a vocabulary on")
@@ -233,13 +193,8 @@ def fit_vocabulary(
     kmeans: str = "minibatch",
     num_threads: int | None = 1,
 ) -> np.ndarray:
-    """k-means centres (num_words, D) over the images' local descriptors, seeded.
-
-    ``kmeans``: "minibatch" (scikit-learn MiniBatchKMeans, fast) or "full" (KMeans).
-    ``num_threads`` caps OpenMP for the fit (None: library default). One thread is the
-    default because OpenMP's busy-waiting makes scikit-learn's k-means 10x+ slower on
-    shared, oversubscribed cores (measured: 2 s vs 0.03 s on a toy fit).
-    """
+    """Seeded k-means centres (num_words, D), "minibatch" or "full". One OpenMP thread by
+    default: OpenMP's busy-waiting makes k-means 10x+ slower on shared, oversubscribed cores."""
     from sklearn.cluster import KMeans, MiniBatchKMeans
     from threadpoolctl import threadpool_limits
 
@@ -311,12 +266,8 @@ class VladEncoder:
 
 @dataclass
 class BowEncoder:
-    """Bag of visual words with tf-idf weights, L2-normalised so that the dot product
-    is the cosine similarity (DBoW2 scores ORB-SLAM's candidates with tf-idf too).
-
-    tf = word count / words in the image; idf = log(N / n_w) over the N reference
-    images, n_w of them containing word w (words no reference contains get log N).
-    """
+    """Bag of visual words, tf-idf weighted and L2-normalised (DBoW2 scores ORB-SLAM's
+    candidates so); idf = log(N / n_w) over the N references (log N for unseen words)."""
 
     centres: np.ndarray  # (K, D); binary descriptors live here as 0/1 bit floats
     idf: np.ndarray  # (K,)
@@ -338,28 +289,12 @@ class BowEncoder:
     def dim(self) -> int:
         return int(self.centres.shape[0])
 
-    def term_frequencies(self, descriptors: np.ndarray) -> np.ndarray:
-        if not len(descriptors):
-            return np.zeros(self.dim, dtype=np.float64)
-        counts = np.bincount(assign_words(descriptors, self.centres), minlength=self.dim)
-        return counts / counts.sum()
-
     def encode(self, descriptors: np.ndarray) -> np.ndarray:
         """(K,) float32, unit norm; all zeros when there are no descriptors."""
-        return _l2_rows(self.term_frequencies(descriptors) * self.idf).astype(np.float32)
-
-
-def encode_all(
-    encoder: VladEncoder | BowEncoder, local: LocalDescriptors, names: Sequence[str] | None = None
-) -> np.ndarray:
-    """(N, dim) rows in ``names`` order (default: the mapping's order)."""
-    names = list(local) if names is None else list(names)
-    if not names:
-        return np.zeros((0, encoder.dim), dtype=np.float32)
-    return np.stack([encoder.encode(local[name]) for name in names])
-
-
-# ============================================================================ global-descriptor registry
+        if not len(descriptors):
+            return np.zeros(self.dim, dtype=np.float32)
+        counts = np.bincount(assign_words(descriptors, self.centres), minlength=self.dim)
+        return _l2_rows(counts / counts.sum() * self.idf).astype(np.float32)
 
 
 @dataclass(frozen=True)
@@ -372,32 +307,19 @@ class GlobalDescriptors:
     query: np.ndarray  # (Q, D)
 
 
-def vlad_global_descriptors(
-    reference_local: LocalDescriptors,
-    query_local: LocalDescriptors,
-    num_words: int = 64,
-    seed: int = 0,
-    **vocabulary: Any,
-) -> GlobalDescriptors:
-    """VLAD with a vocabulary fitted on the reference traversal's local descriptors."""
-    encoder = VladEncoder.fit(reference_local, num_words, seed, **vocabulary)
-    return GlobalDescriptors(
-        list(reference_local), encode_all(encoder, reference_local), list(query_local), encode_all(encoder, query_local)
-    )
+def _encoded(encoder_class: type[VladEncoder] | type[BowEncoder]) -> Callable[..., GlobalDescriptors]:
+    """VLAD or bag of words with the vocabulary (and idf) fitted on the reference traversal."""
 
+    def compute(reference_local: LocalDescriptors, query_local: LocalDescriptors, **params: Any) -> GlobalDescriptors:
+        encoder = encoder_class.fit(reference_local, **params)
+        encode = lambda local: (
+            np.stack([encoder.encode(d) for d in local.values()])
+            if local
+            else np.zeros((0, encoder.dim), dtype=np.float32)
+        )
+        return GlobalDescriptors(list(reference_local), encode(reference_local), list(query_local), encode(query_local))
 
-def bow_global_descriptors(
-    reference_local: LocalDescriptors,
-    query_local: LocalDescriptors,
-    num_words: int = 1000,
-    seed: int = 0,
-    **vocabulary: Any,
-) -> GlobalDescriptors:
-    """tf-idf bag of words; vocabulary and idf from the reference traversal."""
-    encoder = BowEncoder.fit(reference_local, num_words, seed, **vocabulary)
-    return GlobalDescriptors(
-        list(reference_local), encode_all(encoder, reference_local), list(query_local), encode_all(encoder, query_local)
-    )
+    return compute
 
 
 def netvlad_global_descriptors(
@@ -421,34 +343,20 @@ def netvlad_global_descriptors(
 
 @dataclass(frozen=True)
 class GlobalDescriptorMethod:
-    """``compute(reference_inputs, query_inputs, **params) -> GlobalDescriptors``;
-    ``inputs`` says what the mappings hold: "images" ({name: path}) or
-    "local_descriptors" ({name: (N, D) array})."""
+    """``compute(reference_inputs, query_inputs, **params)``; ``inputs``: what the mappings
+    hold, "images" ({name: path}) or "local_descriptors" ({name: (N, D) array})."""
 
     name: str
     inputs: str
     compute: Callable[..., GlobalDescriptors]
-    description: str
 
 
 GLOBAL_DESCRIPTORS: dict[str, GlobalDescriptorMethod] = {
     m.name: m
     for m in [
-        GlobalDescriptorMethod(
-            "netvlad",
-            "images",
-            netvlad_global_descriptors,
-            "VGG16-NetVLAD Pitts30K, 4096-d whitened (GV-Bench's retrieval)",
-        ),
-        GlobalDescriptorMethod(
-            "vlad",
-            "local_descriptors",
-            vlad_global_descriptors,
-            "VLAD over local descriptors, k-means vocabulary on the references",
-        ),
-        GlobalDescriptorMethod(
-            "bow", "local_descriptors", bow_global_descriptors, "tf-idf bag of words, cosine similarity (DBoW-like)"
-        ),
+        GlobalDescriptorMethod("netvlad", "images", netvlad_global_descriptors),  # GV-Bench's retrieval
+        GlobalDescriptorMethod("vlad", "local_descriptors", _encoded(VladEncoder)),
+        GlobalDescriptorMethod("bow", "local_descriptors", _encoded(BowEncoder)),  # tf-idf, DBoW-like
     ]
 }
 
@@ -460,20 +368,14 @@ def compute_global_descriptors(
     return entry.compute(reference_inputs, query_inputs, **params)
 
 
-# ============================================================================ retrieval
-
-
 def retrieve_top_n(
     query_descriptors: np.ndarray,
     reference_descriptors: np.ndarray,
     n: int,
     chunk: int = 1024,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Top-n references per query by dot-product similarity.
-
-    Returns ``indices`` (Q, n') int64 and ``similarities`` (Q, n') float32, best first,
-    n' = min(n, R); equal similarities rank by lower reference index (stable).
-    """
+    """Top-min(n, R) reference rows and similarities per query by dot product, best first;
+    equal similarities rank by lower reference index."""
     query = np.asarray(query_descriptors, dtype=np.float32)
     reference = np.asarray(reference_descriptors, dtype=np.float32)
     if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:
@@ -505,12 +407,6 @@ class Candidates:
 
     def __len__(self) -> int:
         return len(self.query)
-
-    def to_frame(self) -> Any:
-        """As a pandas DataFrame (pandas imported only here)."""
-        import pandas as pd
-
-        return pd.DataFrame({f: getattr(self, f) for f in ("query", "experience", "reference", "rank", "similarity")})
 
 
 def retrieve_top_n_experiences(
@@ -568,21 +464,14 @@ def best_experience(candidates: Candidates, scores: np.ndarray) -> BestExperienc
     )
 
 
-# ============================================================================ recall and queries
-
-
 def retrieval_recall_at(
     ks: Iterable[int],
     ranked_indices: np.ndarray,
     ground_truth: np.ndarray,
 ) -> dict[str, float]:
-    """Recall@k: fraction of queries with at least one true reference among their top k.
-
-    ``ranked_indices`` (Q, n) reference rows best first; ``ground_truth`` (Q, R) bool.
-    Queries with no true reference at all are EXCLUDED (no retrieval can succeed on
-    them); their count is returned as ``queries_excluded`` and the denominator as
-    ``queries_evaluated``. k larger than n raises (it would silently be recall@n).
-    """
+    """Recall@k: the fraction of queries with a true reference among their top k. Queries with
+    no true reference at all are excluded (no retrieval can succeed; ``queries_excluded``);
+    k > n raises (it would silently be recall@n)."""
     ranked = np.asarray(ranked_indices, dtype=np.int64)
     truth = np.asarray(ground_truth, dtype=bool)
     if ranked.shape[0] != truth.shape[0]:

@@ -1,15 +1,9 @@
-"""Sequences: an image root plus labelled (query, reference, label) pairs.
+"""Sequences: an image root plus labelled pairs, in GV-Bench's pair-file format, one pair a
+line: ``query_path reference_path label`` (paths relative to the image root, label 1 or 0).
 
-Pair files use GV-Bench's format, one pair a line: ``query_path reference_path label``
-with paths relative to the image root and label 1 (true loop closure) or 0. Loading
-pairs never touches the images, so the official lists load without them.
-
-A path holding spaces is written in double or single quotes (``"day 1/a b.jpg"``); on
-a line with quotes a backslash escapes the next character, as in a POSIX shell. Paths
-are normalised (``night/./a.jpg`` and ``night//a.jpg`` are ``night/a.jpg``) before the
-checks for duplicates and self-pairs. Symlinks inside the image root are followed,
-wherever they point: the caches key images by their content, so a link is the file it
-names (see docs/reliability.md).
+Paths with spaces are quoted (POSIX shell rules) and normalised (``night/./a.jpg`` is
+``night/a.jpg``) before the duplicate and self-pair checks. Loading pairs never touches the
+images; symlinks are followed (the caches key images by content, see docs/reliability.md).
 """
 
 from __future__ import annotations
@@ -247,22 +241,16 @@ class Sequence:
             raise ValueError(f"limit must be a positive number of pairs, got {limit}")
         return Sequence(self.name, self.image_root, self.pairs[:limit], {**self.origin, "limit": limit})
 
-    def image_problems(self) -> dict[str, str]:
-        """Image path -> what keeps it from being read (``io_utils.path_problem``), for every
-        image of the pairs that is not a readable regular file."""
-        problems = {name: path_problem(self.image_root / name) for name in self.images}
-        return {name: problem for name, problem in problems.items() if problem is not None}
-
     def check_images(self) -> None:
-        """Raise ``MissingImagesError`` naming how many images cannot be read, the first one,
-        what it is (missing, a broken link, a link loop, a folder, a FIFO, a device...) and the
-        pair that uses it, when any image of the pairs is not a readable file."""
+        """Raise ``MissingImagesError`` when an image of the pairs is not a readable file, naming
+        how many, the first, what it is (missing, a broken link, a folder...) and its pair."""
         if not Path(self.image_root).is_dir():
             raise MissingImagesError(
                 f"image_root {self.image_root} of sequence {self.name!r} does not exist or is not a folder; "
                 "set image_root (or --image-root) to the folder the pair file's paths are relative to"
             )
-        problems = self.image_problems()
+        found = ((name, path_problem(self.image_root / name)) for name in self.images)
+        problems = {name: problem for name, problem in found if problem is not None}
         if problems:
             first, problem = next(iter(problems.items()))
             index, pair = next((i, p) for i, p in enumerate(self.pairs) if first in (p.query, p.reference))
@@ -316,18 +304,11 @@ def frame_tolerance_pairs(
     seed: int = 0,
     negative_margin: int | None = None,
 ) -> list[Pair]:
-    """Rule-built candidates for a frame-aligned sequence, before retrieval exists.
-
-    For query frame i: every reference j with |i - j| <= tolerance (true), then
-    ``near_negatives`` seeded picks from the near band (hard negatives), then seeded far
-    negatives (|i - j| > 4 * near_window) up to ``candidates_per_query``.
-
-    Without ``negative_margin`` the near band is tolerance < |i - j| <= near_window: views
-    that still overlap the query, labelled false. With it, no negative is closer than
-    ``negative_margin`` frames: the band becomes negative_margin <= |i - j| <= near_window and
-    the frames between tolerance and the margin are left out (neither true nor false), as
-    place-recognition benchmarks leave out views too close to call.
-    """
+    """Rule-built candidates of a frame-aligned sequence: for query frame i, every reference
+    with |i - j| <= tolerance (true), ``near_negatives`` seeded hard negatives from the near band
+    (low <= |i - j| <= near_window), then seeded far ones (> 4 * near_window) up to
+    ``candidates_per_query``. ``negative_margin`` raises ``low`` above tolerance + 1, leaving
+    out views too close to call, as place-recognition benchmarks do."""
     low = tolerance + 1 if negative_margin is None else negative_margin
     if negative_margin is not None and negative_margin <= tolerance:
         raise ValueError(

@@ -31,7 +31,7 @@ from gvbench_nb.data.sequences import (
 )
 from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
-from gvbench_nb.protocol.images import path_problem
+from gvbench_nb.protocol.images import IMAGE_EXTENSIONS, path_problem
 from gvbench_nb.runner import input_checks, sequence_build
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
@@ -279,7 +279,6 @@ def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
     root = Path(params["image_root"])
     query_folder = options.pop("query_folder")
     reference_folder = options.pop("reference_folder")
-    extensions = {".jpg", ".jpeg", ".png", ".ppm", ".bmp"}
 
     def names(folder: str) -> list[str]:
         directory = root / folder
@@ -288,7 +287,7 @@ def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
                 f"{params['params_file']}: image folder {directory} not found (image_root {root}, folder {folder!r})"
                 + (fetch.fetch_hint(directory) or "; set image_root to the folder holding it")
             )
-        return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in extensions)
+        return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
 
     try:
         return frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)

@@ -1,49 +1,10 @@
-"""Build GV-Bench-style sequences from raw traversals: retrieval + a label rule.
+"""Build GV-Bench-style sequences from raw traversals, as a SLAM loop-closure detector would
+propose them: each query's top-N references by a global descriptor over every reference
+traversal ("experience", all competing for the same N slots), labelled by a ground-truth rule.
 
-GV-Bench made its pairs by mimicking a SLAM loop-closure detector: for each query
-frame, retrieve the top N database frames by global-descriptor similarity (NetVLAD,
-N = 20), then label every retrieved pair with a ground-truth rule. ``build_sequence``
-does the same from image folders:
-
-    query folder + reference folder(s) under image_root, per-image metadata
-    -> chosen queries (all, or a seeded random subset)
-    -> global descriptors (``retrieval.GLOBAL_DESCRIPTORS``: netvlad, vlad, bow;
-       vlad/bow aggregate local features read from the package's feature cache)
-    -> top-N candidates a query over every reference traversal ("experience")
-    -> labels by a named rule (``retrieval.LABEL_RULES``)
-    -> a GV-Bench pair file plus a sequence card beside it.
-
-Files written for a pair file ``<stem>.txt``:
-
-- ``<stem>.txt``: the pair file (``query reference label``), candidates of a query
-  best first;
-- ``<stem>.card.json`` / ``<stem>.card.md``: what was built and how (counts,
-  positives a query, retrieval recall@1/5/N against the rule applied to every
-  query x reference combination);
-- ``<stem>.candidates.csv``: one row a pair with experience, rank, similarity, label.
-
-Params (the ``builder_options`` of ``pairs_builder: retrieval``; see
-``RetrievalOptions``), e.g.::
-
-    pairs_builder: retrieval
-    builder_options:
-      query_folder: night_right
-      reference_folders: [day_right]
-      descriptor: vlad
-      top_n: 10
-      label_rule: frame_tolerance
-      label_params: {k: 2}
-
-Several reference traversals: every experience competes for the same N slots
-(``retrieval.retrieve_top_n_experiences``), so a query's candidates may come from
-any of them and the pair file lists them all. To score a query rather than a pair,
-verify every candidate pair and keep, per query, the pair with the highest score
-(``retrieval.best_experience``; ties go to the better retrieval rank): the query's
-label is that pair's label (``best_experience_table`` joins a method's
-``pairs.csv`` to the candidates for this).
-
-``config`` imports this module to register the builder; this module never imports
-``config`` (``pipeline`` is imported when features are extracted).
+Beside a pair file ``<stem>.txt`` go ``<stem>.card.json`` / ``.card.md`` (what was built and
+how: counts, retrieval recall@1/5/N) and ``<stem>.candidates.csv`` (experience, rank,
+similarity and label of every pair). ``config`` imports this module to register the builder.
 """
 
 from __future__ import annotations
@@ -59,22 +20,12 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb.data import build_inputs, retrieval
-from gvbench_nb.data.sequences import (
-    Pair,
-    Sequence,
-    read_pairs,
-    summarize,
-    write_pairs,
-)
+from gvbench_nb.data.sequences import Pair, Sequence, read_pairs, summarize, write_pairs
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text
 from gvbench_nb.protocol import registry
 
 BUILDER_NAME = "retrieval"
-
-
 CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "label"]
-
-
 MULTI_EXPERIENCE_NOTE = (
     "Every reference experience competes for the same top-N slots, so the pair file lists candidates from "
     "all of them. To score a query, verify every candidate pair and keep the pair with the highest score "
@@ -151,24 +102,26 @@ def ground_truth(inputs: build_inputs.BuildInputs) -> np.ndarray:
     return np.concatenate(blocks, axis=1)
 
 
+def _offsets(inputs: build_inputs.BuildInputs) -> dict[str, int]:
+    """Each experience's first row among the stacked references."""
+    sizes = [len(t.names) for t in inputs.experiences.values()]
+    return dict(zip(inputs.experiences, np.cumsum([0, *sizes[:-1]]).tolist()))
+
+
 def retrieve(
     inputs: build_inputs.BuildInputs, descriptors: retrieval.GlobalDescriptors, n: int
 ) -> retrieval.Candidates:
     """Top-n candidates a chosen query over every experience."""
-    rows: dict[str, np.ndarray] = {}
-    start = 0
-    for folder, traversal in inputs.experiences.items():
-        rows[folder] = descriptors.reference[start : start + len(traversal.names)]
-        start += len(traversal.names)
+    rows = {
+        folder: descriptors.reference[start : start + len(inputs.experiences[folder].names)]
+        for folder, start in _offsets(inputs).items()
+    }
     return retrieval.retrieve_top_n_experiences(descriptors.query, rows, n)
 
 
 def stacked_indices(inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
     """(Q, n) candidate columns in the stacked reference order of ``ground_truth``."""
-    offsets, start = {}, 0
-    for folder, traversal in inputs.experiences.items():
-        offsets[folder] = start
-        start += len(traversal.names)
+    offsets = _offsets(inputs)
     columns = np.array([offsets[e] for e in candidates.experience], dtype=np.int64) + candidates.reference
     return columns.reshape(len(inputs.query.names), -1)
 
@@ -202,11 +155,6 @@ def candidate_frame(
     )
 
 
-def recall_ks(top_n: int) -> list[int]:
-    """The card's recall@k: 1, 5 and N (those <= N)."""
-    return sorted({k for k in (1, 5, top_n) if k <= top_n})
-
-
 def card_paths(pairs_path: str | Path) -> dict[str, Path]:
     """Files written beside a pair file ``<stem>.txt``."""
     pairs_path = Path(pairs_path)
@@ -226,12 +174,16 @@ def make_card(
     recall: dict[str, float],
     seconds: dict[str, float],
     files: dict[str, Path],
-    feature_conf: dict[str, Any] | None,
 ) -> dict[str, Any]:
     """The sequence card: how the pairs were made, and counts computed from the pairs written."""
     from gvbench_nb.methods import conf_hash
 
     options = inputs.options
+    feature_conf = (
+        local_feature_conf(options, inputs.params["profile"])
+        if retrieval.GLOBAL_DESCRIPTORS[options.descriptor].inputs == "local_descriptors"
+        else None
+    )
     pairs = [Pair(q, r, int(label)) for q, r, label in zip(frame["query"], frame["reference"], frame["label"])]
     counts = summarize(Sequence(inputs.params.get("sequence", "build"), inputs.image_root, pairs))
     per_experience = {
@@ -332,27 +284,15 @@ def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> di
     candidates = retrieve(inputs, descriptors, options.top_n)
     labels = label_candidates(inputs, candidates)
     truth = ground_truth(inputs)
-    recall = retrieval.retrieval_recall_at(
-        recall_ks(min(options.top_n, truth.shape[1])), stacked_indices(inputs, candidates), truth
-    )
+    top_n = min(options.top_n, truth.shape[1])
+    ks = sorted({k for k in (1, 5, top_n) if k <= top_n})  # the card's recall@1, 5 and N
+    recall = retrieval.retrieval_recall_at(ks, stacked_indices(inputs, candidates), truth)
     retrieved = time.perf_counter()
     frame = candidate_frame(inputs, candidates, labels)
     files = card_paths(build_params["pairs"])
     write_pairs(files["pairs"], zip(frame["query"], frame["reference"], frame["label"]))
-    feature_conf = (
-        local_feature_conf(options, build_params["profile"])
-        if retrieval.GLOBAL_DESCRIPTORS[options.descriptor].inputs == "local_descriptors"
-        else None
-    )
-    card = make_card(
-        inputs,
-        frame,
-        truth,
-        recall,
-        {"descriptors": described - started, "retrieval_and_labels": retrieved - described},
-        files,
-        feature_conf,
-    )
+    seconds = {"descriptors": described - started, "retrieval_and_labels": retrieved - described}
+    card = make_card(inputs, frame, truth, recall, seconds, files)
     atomic_write_csv(files["candidates"], frame)
     atomic_write_json(files["card_json"], card)
     atomic_write_text(files["card_markdown"], card_markdown(card))
@@ -364,13 +304,9 @@ def build_retrieval_pairs(params: dict[str, Any]) -> None:
     build_sequence(params)
 
 
-def read_card(pairs_path: str | Path) -> dict[str, Any]:
-    return json.loads(card_paths(pairs_path)["card_json"].read_text(encoding="utf-8"))
-
-
 def check_card(pairs_path: str | Path) -> None:
     """Raise when a card's counts disagree with its pair file (e.g. the file was edited)."""
-    card = read_card(pairs_path)
+    card = json.loads(card_paths(pairs_path)["card_json"].read_text(encoding="utf-8"))
     counts = summarize(Sequence(card["sequence"] or "build", Path("."), read_pairs(pairs_path)))
     wrong = {k: (card["counts"][k], v) for k, v in counts.items() if k != "sequence" and card["counts"].get(k) != v}
     if wrong:

@@ -1,9 +1,5 @@
-"""Building sequences by retrieval + a label rule (gvbench_nb.runner.sequence_build) on tiny made-up traversals.
-
-Local descriptors are written straight into the feature cache, so no image is
-extracted: place p's images share descriptors drawn around place p's own centres,
-which makes "the same frame comes first" the known answer of retrieval.
-"""
+"""Building sequences by retrieval + a label rule on tiny made-up traversals whose local
+descriptors go straight into the feature cache: "the same frame comes first" is the known answer."""
 
 from __future__ import annotations
 
@@ -22,18 +18,13 @@ from gvbench_nb.studies import build_sequence as build_study
 
 NUM_FRAMES = 8
 DIM = 16
-
-
+NIGHT_DAY = {"query_folder": "night", "reference_folders": ["day"]}
 WORD_CENTRES = 3.0 * np.random.default_rng(99).normal(size=(4, DIM))
 
 
 def place_descriptors(frame: int, rng: np.random.Generator, design: str, count: int = 32) -> np.ndarray:
-    """Descriptors of place ``frame``, the same distribution in every traversal.
-
-    "vlad": 4 visual words shared by all places, each place offset from every word in
-    its own way (VLAD's residuals tell places apart; use 4 words). "bow": a centre only
-    this place has (its own visual words tell places apart; use more words than places).
-    """
+    """Place ``frame``'s descriptors, alike in every traversal. "vlad": 4 shared words, offset per
+    place (residuals tell places apart); "bow": a centre only this place has."""
     place = np.random.default_rng(1000 + frame)
     if design == "vlad":
         words = np.arange(count) % len(WORD_CENTRES)
@@ -56,44 +47,26 @@ def make_traversals(
             for frame in range(NUM_FRAMES):
                 name = f"{folder}/Image{frame:03d}.png"
                 cv2.imwrite(str(root / name), np.full((8, 8), 40 * frame % 255, np.uint8))
-                descriptors = place_descriptors(frame, rng, design)
-                writer.put(
-                    image_features.image_key(root, name),
-                    {
-                        "keypoints": np.zeros((len(descriptors), 2), np.float32),
-                        "scores": np.ones(len(descriptors), np.float32),
-                        "descriptors": descriptors,
-                        "image_size": np.array([8, 8]),
-                    },
-                    {"seconds": 0.0},
-                )
+                rows = place_descriptors(frame, rng, design)
+                keypoints, scores = np.zeros((len(rows), 2), np.float32), np.ones(len(rows), np.float32)
+                features = {
+                    "keypoints": keypoints,
+                    "scores": scores,
+                    "descriptors": rows,
+                    "image_size": np.array([8, 8]),
+                }
+                writer.put(image_features.image_key(root, name), features, {"seconds": 0.0})
 
 
 def write_params(tmp_path: Path, **options: object) -> Path:
-    builder_options = {
-        "query_folder": "night",
-        "reference_folders": ["day"],
-        "descriptor": "vlad",
-        "descriptor_options": {"vlad": {"num_words": 4}, "bow": {"num_words": 4}},
-        "top_n": 3,
-        "label_rule": "frame_tolerance",
-        "label_params": {"k": 1},
-        **options,
-    }
-    params = {
-        "sequence": "tiny",
-        "pairs_builder": "retrieval",
-        "builder_options": builder_options,
-        "image_root": str(tmp_path / "images"),
-        "pairs": str(tmp_path / "out" / "pairs.txt"),
-        "methods": ["sift-nn"],
-        "profile": "repository",
-        "output_dir": str(tmp_path / "out"),
-        "cache_dir": str(tmp_path / "cache"),
-        "seed": 0,
-    }
+    words = {"vlad": {"num_words": 4}, "bow": {"num_words": 4}}
+    builder_options = NIGHT_DAY | {"descriptor": "vlad", "descriptor_options": words, "top_n": 3}
+    builder_options |= {"label_rule": "frame_tolerance", "label_params": {"k": 1}, **options}
+    params = {"sequence": "tiny", "pairs_builder": "retrieval", "builder_options": builder_options, "seed": 0}
+    params |= {"image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "out" / "pairs.txt")}
+    params |= {"methods": ["sift-nn"], "profile": "repository", "output_dir": str(tmp_path / "out")}
     path = tmp_path / "tiny.yaml"
-    path.write_text(yaml.safe_dump(params))
+    path.write_text(yaml.safe_dump(params | {"cache_dir": str(tmp_path / "cache")}))
     return path
 
 
@@ -105,9 +78,6 @@ def tiny(tmp_path: Path) -> Path:
 
 def built(tmp_path: Path, **options: object) -> dict:
     return sequence_build.build_sequence(config.load_build_params(write_params(tmp_path, **options)), progress=False)
-
-
-# ------------------------------------------------------------------ files and card
 
 
 def test_pair_file_round_trips_and_card_counts_match(tiny: Path) -> None:
@@ -181,18 +151,11 @@ def test_multi_experience_candidates_come_from_every_experience(tiny: Path) -> N
 
 def test_best_experience_table_keeps_each_query_best_pair() -> None:
     candidates = pd.DataFrame(
-        {
-            "query": ["q0", "q0", "q1", "q1"],
-            "experience": ["day", "dusk", "day", "dusk"],
-            "reference": ["day/a", "dusk/a", "day/b", "dusk/b"],
-            "rank": [0, 1, 0, 1],
-            "similarity": [0.9, 0.8, 0.7, 0.6],
-            "label": [0, 1, 1, 0],
-        }
+        [("q0", "day", "day/a", 0, 0.9, 0), ("q0", "dusk", "dusk/a", 1, 0.8, 1)]
+        + [("q1", "day", "day/b", 0, 0.7, 1), ("q1", "dusk", "dusk/b", 1, 0.6, 0)],
+        columns=["query", "experience", "reference", "rank", "similarity", "label"],
     )
-    scores = pd.DataFrame(
-        {"query": candidates["query"], "reference": candidates["reference"], "score": [5, 40, 12, 12]}
-    )
+    scores = candidates[["query", "reference"]].assign(score=[5, 40, 12, 12])
     best = build_study.best_experience_table(candidates, scores)
     assert best["experience"].tolist() == ["dusk", "day"]  # q1: a tie goes to the better rank
     assert best["label"].tolist() == [1, 1]
@@ -200,30 +163,21 @@ def test_best_experience_table_keeps_each_query_best_pair() -> None:
         build_study.best_experience_table(candidates, scores.iloc[:3])
 
 
-# ------------------------------------------------------------------ metadata + pose rule
-
-
 def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Path) -> None:
-    """The sample's own pair file was labelled by its generator; our pose rule on its
-    poses.csv (thresholds from generator.json) must give every one of those labels."""
+    """Our pose rule on the sample's poses.csv and generator.json gives its generator's labels."""
     from gvbench_nb.data import synthetic
 
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(80, 60))
+    metadata = {
+        "csv": "poses.csv",
+        "name": "image",
+        "position": ["x", "y", "z"],
+        "heading": "yaw_deg",
+        "frame": "frame",
+    }
     options = build_inputs.parse_options(
-        {
-            "query_folder": "night",
-            "reference_folders": ["day"],
-            "label_rule": "pose",
-            "label_params_file": "generator.json",
-            "metadata": {
-                "csv": "poses.csv",
-                "name": "image",
-                "position": ["x", "y", "z"],
-                "heading": "yaw_deg",
-                "frame": "frame",
-            },
-        }
+        {**NIGHT_DAY, "label_rule": "pose", "label_params_file": "generator.json", "metadata": metadata}
     )
     inputs = build_inputs.prepare_inputs({"image_root": str(root), "seed": 0, "profile": "repository"}, options)
     assert inputs.rule_params == {"max_distance_m": 8.0, "max_heading_deg": 40.0}
@@ -237,38 +191,25 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
 
 def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
     (tiny / "images" / "meta.csv").write_text("name,x,y\nImage000.png,0,0\n")
-    spec = {"csv": "meta.csv", "heading": None}
-    options = build_inputs.parse_options({"query_folder": "night", "reference_folders": ["day"], "metadata": spec})
-    with pytest.raises(
-        build_inputs.BuildError, match=r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"
-    ):
-        build_inputs.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
-    options = build_inputs.parse_options(
-        {"query_folder": "night", "reference_folders": ["day"], "metadata": {"csv": "meta.csv"}}
-    )
-    with pytest.raises(build_inputs.BuildError, match=r"missing column\(s\) \['heading'\]"):
-        build_inputs.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
-
-
-# ------------------------------------------------------------------ options and CLI
+    for spec, message in [
+        ({"csv": "meta.csv", "heading": None}, r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"),
+        ({"csv": "meta.csv"}, r"missing column\(s\) \['heading'\]"),
+    ]:
+        options = build_inputs.parse_options({**NIGHT_DAY, "metadata": spec})
+        with pytest.raises(build_inputs.BuildError, match=message):
+            build_inputs.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
 
 
 @pytest.mark.parametrize(
     "options, message",
     [
-        (
-            {"query_folder": "night", "reference_folders": ["day"], "top_nn": 3},
-            "'top_nn' \\(did you mean 'top_n'\\?\\)",
-        ),
+        (NIGHT_DAY | {"top_nn": 3}, "'top_nn' \\(did you mean 'top_n'\\?\\)"),
         ({"query_folder": "night"}, "missing 'reference_folders'"),
         ({"query_folder": "day", "reference_folders": ["day"]}, "also a reference folder"),
-        ({"query_folder": "night", "reference_folders": ["day"], "descriptor": "gem"}, "unknown descriptor 'gem'"),
-        ({"query_folder": "night", "reference_folders": ["day"], "top_n": 0}, "top_n must be a positive integer"),
-        (
-            {"query_folder": "night", "reference_folders": ["day"], "descriptor_options": {"num_words": 8}},
-            "descriptor_options maps descriptor names",
-        ),
-        ({"query_folder": "night", "reference_folders": ["day"], "label_rule": "gps"}, "unknown label_rule 'gps'"),
+        (NIGHT_DAY | {"descriptor": "gem"}, "unknown descriptor 'gem'"),
+        (NIGHT_DAY | {"top_n": 0}, "top_n must be a positive integer"),
+        (NIGHT_DAY | {"descriptor_options": {"num_words": 8}}, "descriptor_options maps descriptor names"),
+        (NIGHT_DAY | {"label_rule": "gps"}, "unknown label_rule 'gps'"),
     ],
 )
 def test_bad_options_say_what_is_wrong(options: dict, message: str) -> None:

@@ -21,25 +21,22 @@ VGG_SHAPES = {
 }  # fmt: skip
 
 
-def expected_layout(whitened_dim: int = 4096) -> dict[str, tuple[int, ...]]:
-    layout: dict[str, tuple[int, ...]] = {}
-    for name, (out_c, in_c) in VGG_SHAPES.items():
-        layout[f"backbone.{name}.weight"] = (out_c, in_c, 3, 3)
-        layout[f"backbone.{name}.bias"] = (out_c,)
-    layout["vlad.assignment.weight"] = (64, 512, 1, 1)
-    layout["vlad.centres"] = (64, 512)
-    layout["whiten.weight"] = (whitened_dim, 32768)
-    layout["whiten.bias"] = (whitened_dim,)
-    return layout
-
-
-def test_state_dict_layout_matches_documentation() -> None:
+def test_state_dict_layout_is_vgg16_netvlad_wpca() -> None:
     with torch.device("meta"):
         model = nv.NetVLAD()
-    layout = {k: tuple(v.shape) for k, v in model.state_dict().items()}
-    assert layout == expected_layout()
-    assert len(layout) == 30
-    assert model.output_dim == 4096
+    expected = {
+        f"backbone.{n}.{p}": (o, i, 3, 3) if p == "weight" else (o,)
+        for n, (o, i) in VGG_SHAPES.items()
+        for p in ("weight", "bias")
+    }
+    expected |= {
+        "vlad.assignment.weight": (64, 512, 1, 1),
+        "vlad.centres": (64, 512),
+        "whiten.weight": (4096, 32768),
+        "whiten.bias": (4096,),
+    }
+    assert {k: tuple(v.shape) for k, v in model.state_dict().items()} == expected
+    assert len(expected) == 30 and model.output_dim == 4096
 
 
 def unit_features(batch: int, dim: int, h: int, w: int, seed: int = 0) -> torch.Tensor:
@@ -75,21 +72,15 @@ def test_vlad_layer_matches_a_direct_loop() -> None:
     torch.testing.assert_close(layer.aggregate(features)[0], expected.detach(), rtol=1e-5, atol=1e-6)
 
 
-def test_full_model_gives_unit_4096_descriptor() -> None:
+def test_preprocessing_caps_longest_side_and_model_gives_unit_4096_descriptor() -> None:
+    assert nv.image_to_tensor(np.zeros((1500, 2048, 3), np.uint8)).shape == (1, 3, 750, 1024)
+    assert nv.image_to_tensor(np.zeros((300, 400, 3), np.uint8)).shape == (1, 3, 300, 400)  # never enlarged
     torch.manual_seed(0)
-    model = nv.NetVLAD().eval()
     image = nv.image_to_tensor(np.random.default_rng(0).integers(0, 256, (40, 56, 3), dtype=np.uint8))
     with torch.inference_mode():
-        out = model(image)
+        out = nv.NetVLAD().eval()(image)
     assert out.shape == (1, 4096)
     torch.testing.assert_close(out.norm(dim=1), torch.ones(1))
-
-
-def test_preprocessing_caps_longest_side() -> None:
-    big = np.zeros((1500, 2048, 3), dtype=np.uint8)
-    assert nv.image_to_tensor(big).shape == (1, 3, 750, 1024)
-    small = np.zeros((300, 400, 3), dtype=np.uint8)
-    assert nv.image_to_tensor(small).shape == (1, 3, 300, 400)  # never enlarged
 
 
 def fake_mat(path: Path, whitened_dim: int, rng: np.random.Generator) -> dict[str, np.ndarray]:
@@ -140,7 +131,5 @@ def test_load_netvlad_maps_mat_layers(tmp_path: Path) -> None:
 def test_missing_mat_names_file_and_url(empty_hub: Path) -> None:
     with pytest.raises(weights.MissingWeightsError) as error:
         nv.load_netvlad()
-    message = str(error.value)
-    assert "Pitts30K_struct.mat" in message
-    assert "https://cvg-data.inf.ethz.ch/hloc/netvlad/Pitts30K_struct.mat" in message
-    assert str(empty_hub) in message
+    assert "https://cvg-data.inf.ethz.ch/hloc/netvlad/Pitts30K_struct.mat" in str(error.value)
+    assert str(empty_hub) in str(error.value)

@@ -14,7 +14,7 @@ import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated, Any, Optional, Union
+from typing import Annotated, Any
 
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, InstanceOf, StringConstraints, ValidationError
@@ -43,7 +43,7 @@ class ParamsError(GVBenchError, ValueError):
 
 
 PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
-PathValue = Union[str, InstanceOf[os.PathLike]]  # overrides from code may be Path objects
+PathValue = str | InstanceOf[os.PathLike]  # overrides from code may be Path objects
 DEVICE_PATTERN = r"^(auto|cpu|mps|cuda(:\d+)?)$"
 
 
@@ -59,19 +59,19 @@ class ParamsModel(BaseModel):
 
     sequence: Annotated[str, StringConstraints(pattern=r"\S")] = _what("a non-empty name")
     pairs: PathValue = _what("a path")
-    image_root: Optional[PathValue] = _what("a folder path")
-    methods: Union[str, list[str]] = _what("a list of method names or a comma-separated string")
+    image_root: PathValue | None = _what("a folder path")
+    methods: str | list[str] = _what("a list of method names or a comma-separated string")
     profile: str = _what("a profile name")
     output_dir: PathValue = _what("a folder path")
     description: str = _what("text", default="")
-    pairs_builder: Optional[str] = _what("a builder name or null", default=None)  # makes `pairs` when missing
+    pairs_builder: str | None = _what("a builder name or null", default=None)  # makes `pairs` when missing
     builder_options: dict[str, Any] = _what("a mapping of option names to values", default={})
-    limit: Optional[Annotated[int, Field(gt=0)]] = _what("a positive integer or null", default=None)  # first N pairs
+    limit: Annotated[int, Field(gt=0)] | None = _what("a positive integer or null", default=None)  # first N pairs
     seed: int = _what("an integer", default=0, ge=0)  # RANSAC and every random choice; numpy refuses < 0
     device: Annotated[str, StringConstraints(pattern=DEVICE_PATTERN)] = _what(
         "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'", default="auto"
     )  # auto = cuda when available, else cpu
-    cache_dir: Optional[PathValue] = _what("a folder path or null", default=None)  # None: <output_dir>/../cache
+    cache_dir: PathValue | None = _what("a folder path or null", default=None)  # None: <output_dir>/../cache
     verifier: dict[str, Any] = _what("a mapping of verifier conf keys to values", default={})  # methods.VERIFIER
     allow_damaged_images: bool = _what("true or false", default=False)  # score images whose decoder warns
 

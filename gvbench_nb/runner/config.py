@@ -14,13 +14,14 @@ import re
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import yaml
+from pydantic import BaseModel, ConfigDict, Field, InstanceOf, StringConstraints, ValidationError
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
-from gvbench_nb.arguments import is_whole_number, unknown_keys_hint
+from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.data import build_inputs, fetch
 from gvbench_nb.data.sequences import (
     Pair,
@@ -36,23 +37,75 @@ from gvbench_nb.runner import input_checks, sequence_build
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
-REQUIRED_KEYS = ("sequence", "pairs", "image_root", "methods", "profile", "output_dir")
-OPTIONAL_KEYS: dict[str, Any] = {
-    "description": "",
-    "pairs_builder": None,  # name in PAIR_BUILDERS: makes `pairs` (and images) when missing
-    "builder_options": {},
-    "limit": None,  # first N pairs only
-    "seed": 0,  # RANSAC and every random choice
-    "device": "auto",  # auto = cuda when available, else cpu
-    "cache_dir": None,  # default: <output_dir>/../cache (shared by sequences)
-    "verifier": {},  # overrides of the profile's verifier conf, e.g. {method: USAC_MAGSAC} (methods.VERIFIER)
-    "allow_damaged_images": False,  # score images whose decoder warns (listed in the folder's record)
-}
-PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
-
 
 class ParamsError(GVBenchError, ValueError):
     """A params file is malformed: missing, misspelled or invalid keys or values."""
+
+
+PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
+PathValue = str | InstanceOf[os.PathLike]  # overrides from code may be Path objects
+DEVICE_PATTERN = r"^(auto|cpu|mps|cuda(:\d+)?)$"
+
+
+def _what(text: str, **kwargs: Any) -> Any:
+    """A field whose ``description`` is what a refusal says its value must be."""
+    return Field(description=text, **kwargs)
+
+
+class ParamsModel(BaseModel):
+    """A params file's keys: the required ones first, then the optional ones with their defaults."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
+
+    sequence: Annotated[str, StringConstraints(pattern=r"\S")] = _what("a non-empty name")
+    pairs: PathValue = _what("a path")
+    image_root: PathValue | None = _what("a folder path")
+    methods: str | list[str] = _what("a list of method names or a comma-separated string")
+    profile: str = _what("a profile name")
+    output_dir: PathValue = _what("a folder path")
+    description: str = _what("text", default="")
+    pairs_builder: str | None = _what("a builder name or null", default=None)  # makes `pairs` when missing
+    builder_options: dict[str, Any] = _what("a mapping of option names to values", default={})
+    limit: Annotated[int, Field(gt=0)] | None = _what("a positive integer or null", default=None)  # first N pairs
+    seed: int = _what("an integer", default=0, ge=0)  # RANSAC and every random choice; numpy refuses < 0
+    device: Annotated[str, StringConstraints(pattern=DEVICE_PATTERN)] = _what(
+        "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'", default="auto"
+    )  # auto = cuda when available, else cpu
+    cache_dir: PathValue | None = _what("a folder path or null", default=None)  # None: <output_dir>/../cache
+    verifier: dict[str, Any] = _what("a mapping of verifier conf keys to values", default={})  # methods.VERIFIER
+    allow_damaged_images: bool = _what("true or false", default=False)  # score images whose decoder warns
+
+
+REQUIRED_KEYS = tuple(k for k, f in ParamsModel.model_fields.items() if f.is_required())
+OPTIONAL_KEYS: dict[str, Any] = {
+    k: f.get_default(call_default_factory=True) for k, f in ParamsModel.model_fields.items() if not f.is_required()
+}
+
+
+def _validate(params: dict[str, Any], path: Path) -> None:
+    """Validate on ``ParamsModel``; its errors become the one sentence a user reads: unknown keys,
+    else missing keys, else each wrong value with what it must be (an option's before the file's)."""
+    try:
+        ParamsModel.model_validate({k: v for k, v in params.items() if k not in ("params_file", "overridden")})
+        return
+    except ValidationError as error:
+        errors = error.errors()
+    valid = list(ParamsModel.model_fields)
+    unknown = [str(e["loc"][0]) for e in errors if e["type"] == "extra_forbidden"]
+    if unknown:
+        raise ParamsError(f"{path}: unknown key(s) {unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
+    if any(e["type"] == "missing" for e in errors):
+        missing = [k for k in REQUIRED_KEYS if k not in params]
+        raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
+    wrong: dict[str, dict[str, str]] = {}
+    for e in errors:
+        key = str(e["loc"][0])
+        what = ParamsModel.model_fields[key].description
+        if e["type"] == "greater_than_equal":
+            what = f"{what} of at least {e['ctx']['ge']}"
+        wrong.setdefault(blame(params, key), {}).setdefault(key, f"{key} must be {what}, got {params[key]!r}")
+    source = sorted(wrong, key=lambda where: not where.startswith("--"))[0]
+    raise ParamsError(f"{source}: " + "; ".join(wrong[source].values()))
 
 
 def data_dir() -> Path:
@@ -147,17 +200,8 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     raw = read_yaml_mapping(path)
     given = {k: v for k, v in overrides.items() if v is not None}
     raw.update(given)
-    valid = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
-    unknown = [k for k in raw if k not in valid]
-    if unknown:
-        raise ParamsError(f"{path}: unknown key(s) {unknown_keys_hint(unknown, valid)}. Valid keys: {', '.join(valid)}")
-    missing = [k for k in REQUIRED_KEYS if k not in raw]
-    if missing:
-        raise ParamsError(f"{path}: missing key(s) {', '.join(missing)}. Required keys: {', '.join(REQUIRED_KEYS)}")
-    params = {**OPTIONAL_KEYS, **raw}
-    params["params_file"] = str(path)
-    params["overridden"] = sorted(given)
-    _check_types(params)
+    params = {**OPTIONAL_KEYS, **raw, "params_file": str(path), "overridden": sorted(given)}
+    _validate(params, path)
     try:
         params["methods"] = method_registry.expand_methods(params["methods"])
     except KeyError as error:
@@ -179,12 +223,6 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         method_registry.check_verifier_overrides(params["verifier"])
     except (KeyError, ValueError) as error:
         raise ParamsError(f"{blame(params, 'verifier')}: verifier: {error}") from None
-    if params["limit"] is not None and params["limit"] < 1:
-        raise ParamsError(
-            f"{blame(params, 'limit')}: limit must be a positive integer or null, got {params['limit']!r}"
-        )
-    if params["seed"] < 0:  # numpy's generators refuse negative seeds
-        raise ParamsError(f"{blame(params, 'seed')}: seed must be an integer of at least 0, got {params['seed']!r}")
     for key in PATH_KEYS:
         value = params.get(key)
         if value is None:
@@ -218,50 +256,6 @@ def load_build_params(
     build_inputs.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
     params["builder_options"] = options
     return params
-
-
-def _is_path(value: Any) -> bool:
-    return isinstance(value, (str, os.PathLike))  # overrides from code may be Path objects
-
-
-DEVICE_PATTERN = re.compile(r"auto|cpu|mps|cuda(:\d+)?")
-
-# key -> (check, what the value must be); None passes where the key allows it.
-TYPE_CHECKS: dict[str, tuple[Callable[[Any], bool], str]] = {
-    "sequence": (lambda v: isinstance(v, str) and bool(v.strip()), "a non-empty name"),
-    "pairs": (lambda v: _is_path(v), "a path"),
-    "image_root": (lambda v: v is None or _is_path(v), "a folder path"),
-    "output_dir": (lambda v: _is_path(v), "a folder path"),
-    "cache_dir": (lambda v: v is None or _is_path(v), "a folder path or null"),
-    "methods": (
-        lambda v: isinstance(v, str) or (isinstance(v, list) and all(isinstance(m, str) for m in v)),
-        "a list of method names or a comma-separated string",
-    ),
-    "profile": (lambda v: isinstance(v, str), "a profile name"),
-    "description": (lambda v: isinstance(v, str), "text"),
-    "pairs_builder": (lambda v: v is None or isinstance(v, str), "a builder name or null"),
-    "builder_options": (lambda v: isinstance(v, dict), "a mapping of option names to values"),
-    "limit": (lambda v: v is None or is_whole_number(v), "a positive integer or null"),
-    "seed": (is_whole_number, "an integer"),
-    "verifier": (lambda v: isinstance(v, dict), "a mapping of verifier conf keys to values"),
-    "allow_damaged_images": (lambda v: isinstance(v, bool), "true or false"),
-    "device": (
-        lambda v: isinstance(v, str) and DEVICE_PATTERN.fullmatch(v) is not None,
-        "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'",
-    ),
-}
-
-
-def _check_types(params: dict[str, Any]) -> None:
-    """Every key's value has the right kind; the error names where it came from, the key and
-    what it must be (the first source with a wrong value: an option before the file)."""
-    wrong: dict[str, list[str]] = {}
-    for key, (check, what) in TYPE_CHECKS.items():
-        if key in params and not check(params[key]):
-            wrong.setdefault(blame(params, key), []).append(f"{key} must be {what}, got {params[key]!r}")
-    if wrong:
-        source = sorted(wrong, key=lambda where: not where.startswith("--"))[0]
-        raise ParamsError(f"{source}: " + "; ".join(wrong[source]))
 
 
 # ------------------------------------------------------------------ builders --

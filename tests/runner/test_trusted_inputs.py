@@ -120,20 +120,21 @@ def test_an_image_that_does_not_decode_is_refused_before_work_even_when_damage_i
 
 # ------------------------------------------------------ keys given twice --
 @pytest.mark.parametrize(
-    "text, key, line",
+    "text, key, line, first",
     [
-        ("verifier: {threshold_px: 3, threshold_px: 1}\n", "threshold_px", 2),
-        ("builder_options: {a: {b: 1, b: 2}}\n", "b", 2),
-        ("verifier:\n  {threshold_px: 3,\n   threshold_px: 1}\n", "threshold_px", 4),
-        ("methods: [orb-nn]\nmethods: [sift-nn]\n", "methods", 3),
+        ("verifier: {threshold_px: 3, threshold_px: 1}\n", "threshold_px", 2, "the same line"),
+        ("builder_options: {a: {b: 1, b: 2}}\n", "b", 2, "the same line"),
+        ("verifier:\n  {threshold_px: 3,\n   threshold_px: 1}\n", "threshold_px", 4, "line 3"),
+        ("methods: [orb-nn]\nmethods: [sift-nn]\n", "methods", 3, "line 2"),
+        ("verifier:\n  threshold_px: 1.0\n  threshold_px: 2.0\n", "threshold_px", 4, "line 3"),
     ],
-    ids=["flow", "flow-nested", "flow-two-lines", "block"],
+    ids=["flow", "flow-nested", "flow-two-lines", "block", "block-nested"],
 )
-def test_a_key_given_twice_in_any_yaml_style_is_refused_naming_file_and_line(tmp_path, images, text, key, line):
+def test_a_key_given_twice_in_any_yaml_style_is_refused_naming_file_and_line(tmp_path, images, text, key, line, first):
     path = params_file(tmp_path)
     body = path.read_text()
     path.write_text(body.split("\n", 1)[0] + "\n" + text + body.split("\n", 1)[1])
-    with pytest.raises(config.ParamsError, match=rf"^{path}:{line}: key '{key}' is given twice"):
+    with pytest.raises(config.ParamsError, match=rf"^{path}:{line}: key '{key}' is given twice \(first on {first}\)"):
         config.load_params(path)
 
 

@@ -263,9 +263,9 @@ def _cell_row(
     metrics = evaluate_scores(labels, scores, where=where)
     n_false = int((labels == 0).sum())
     chance = float(look_alike.sum() / n_false) if n_false else float("nan")
-    values = (condition, float(strength), method, profile, metrics["ap"], metrics["max_recall"])
-    values += (aliasing_share(labels, scores, look_alike), chance, metrics["n_pairs"], metrics["n_positives"])
-    return dict(zip(SWEEP_COLUMNS, (*values, int(look_alike.sum()))))
+    values: list[Any] = [condition, float(strength), method, profile, metrics["ap"], metrics["max_recall"]]
+    values += [aliasing_share(labels, scores, look_alike), chance, metrics["n_pairs"], metrics["n_positives"]]
+    return dict(zip(SWEEP_COLUMNS, [*values, int(look_alike.sum())]))
 
 
 def run_sweep(
@@ -494,7 +494,7 @@ def time_render(
             )
             seconds.append(time.perf_counter() - start)
         cpus = os.cpu_count()
-        values = (name, json.dumps(dict(conditions)), n_frames, f"{image_size[0]}x{image_size[1]}", repeats)
-        values += (float(np.median(seconds)), min(seconds), max(seconds), scene_seconds, workers or min(4, cpus or 1))
-        rows.append(dict(zip(RENDER_TIME_COLUMNS, (*values, cpus, round(os.getloadavg()[0], 2)))))
+        values: list[Any] = [name, json.dumps(dict(conditions)), n_frames, f"{image_size[0]}x{image_size[1]}", repeats]
+        values += [float(np.median(seconds)), min(seconds), max(seconds), scene_seconds, workers or min(4, cpus or 1)]
+        rows.append(dict(zip(RENDER_TIME_COLUMNS, [*values, cpus, round(os.getloadavg()[0], 2)])))
     return pd.DataFrame(rows)

@@ -1,35 +1,12 @@
-"""Verifiers beyond counting FM_RANSAC inliers, all scored from a run's CACHED matches.
+"""Alternative verifiers, each scoring a pair from a run's CACHED matches (nothing re-matches).
 
-A verifier turns a pair's matches into a score (higher = more likely the same place).
-Each is a plain conf in ``ALTERNATIVE_VERIFIERS`` (like a recipe of ``protocol/recipes``); its identity in
-every table is ``verifier`` (the name) and ``conf_hash`` (``methods.conf_hash(conf)``).
-Nothing here re-matches: the matches, their scores and the keypoints come from the
-run's match store and the feature cache (``CachedMatches``).
-
-Families
---------
-``gv-<model>-<estimator>-<score>``
-    Robust model fit on the cached matches (after the run's score filter).
-    model: ``F`` fundamental (``cv2.findFundamentalMat``) or ``H`` homography
-    (``cv2.findHomography``); estimator: ``ransac`` (FM_RANSAC / cv2.RANSAC, the
-    paper's), ``degensac`` (USAC_DEFAULT), ``lo-ransac`` (USAC_ACCURATE: LO + graph
-    cut), ``magsac`` (USAC_MAGSAC: MAGSAC++); score: ``inliers`` (the paper's),
-    ``inlier_ratio`` (inliers / matches that entered the fit) or
-    ``inliers_over_keypoints`` (inliers / the smaller keypoint count of the pair).
-    ``gv-F-ransac-inliers`` with the run's seed reproduces the stored ``num_inliers``.
-``sue``
-    SUE (MODELS.md section 7) made into a per-pair score, see ``sue_pair_scores``.
-``doppelgangers`` / ``doppelgangers-in-domain``
-    P(same place) of the Doppelgangers classifier on the 10-channel input built
-    from the cached matches: the official checkpoint (fails with
-    ``MissingWeightsError`` when absent), or weights trained here on the train split.
-``learned_combination`` / ``learned_combination+dg``
-    Logistic regression over per-pair GV features (``FEATURES``), fitted on the
-    train split; the ``+dg`` variant adds the in-domain classifier's probability.
-
-Splits: learned verifiers must never see a test place while training, so
-``place_disjoint_split`` cuts a frame-aligned sequence into disjoint frame ranges
-with a gap wider than the ground-truth tolerance.
+Each is a plain conf in ``ALTERNATIVE_VERIFIERS``, identified in every table by ``verifier``
+and ``conf_hash``. Families: ``gv-<model>-<estimator>-<score>`` (a robust fit: model ``F`` or
+``H``; estimator ``ransac`` (the paper's), ``degensac``, ``lo-ransac``, ``magsac``; score
+``inliers`` (the paper's), ``inlier_ratio`` or ``inliers_over_keypoints``), ``sue`` (SUE as a
+per-pair score), ``doppelgangers[-in-domain]`` (the classifier, official or trained here) and
+``learned_combination[+dg]`` (a logistic regression over ``FEATURES``). Learned verifiers never
+see a test place: ``place_disjoint_split`` leaves a gap wider than the ground-truth tolerance.
 """
 
 from __future__ import annotations

@@ -23,9 +23,9 @@ from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.runner import config, method_outputs, record, scoring
 
 if TYPE_CHECKING:
-    from gvbench_nb.studies.verifiers import VerifierBench
+    from gvbench_nb.studies.alternative_verifiers import VerifierBench
 
-# `run_tables` and `verifiers` pull in OpenCV and scikit-learn: imported where they are used,
+# `run_tables` and `alternative_verifiers` pull in OpenCV and scikit-learn: imported where they are used,
 # so a stage notebook that only loads a sequence stays light.
 
 PathLike = str | os.PathLike[str]
@@ -215,7 +215,7 @@ def open_verifier_bench(
     classifier: dict[str, Any] | None = None,
     **split_options: Any,
 ) -> VerifierBench:
-    """A ``verifiers.VerifierBench`` on ``results_dir/method``'s cached matches.
+    """An ``alternative_verifiers.VerifierBench`` on ``results_dir/method``'s cached matches.
 
     ``results_dir`` is taken relative to the current folder (the notebook's), not the params
     file. When its ``pairs.csv`` is missing: with ``params_file`` and ``compute_missing=True``
@@ -239,7 +239,9 @@ def open_verifier_bench(
             f"{results_dir} has no results of {method}: run it on that sequence first "
             f"(python -m gvbench_nb run PARAMS --methods {method} --output-dir {results_dir})"
         )
-    from gvbench_nb.studies import verifiers
+    from gvbench_nb.studies import alternative_verifiers
 
     overrides = {"doppelgangers-in-domain": dict(classifier)} if classifier else None
-    return verifiers.open_bench(results_dir, method, output_dir, cache_dir, overrides=overrides, **split_options)
+    return alternative_verifiers.open_bench(
+        results_dir, method, output_dir, cache_dir, overrides=overrides, **split_options
+    )

@@ -32,7 +32,7 @@ import pandas as pd
 
 from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
-from gvbench_nb.studies import doppelgangers, results_table, verifier_inputs, verifiers
+from gvbench_nb.studies import alternative_verifiers, doppelgangers, results_table, verifier_inputs
 
 # %% tags=["parameters"]
 # with compute_missing, runs `method` when results_dir lacks its pairs.csv (None: never)
@@ -136,7 +136,7 @@ notebook.table(
 # and the weights it used. Overlapping intervals do not separate two verifiers.
 
 # %%
-notebook.table(verifiers.verifier_table(results).reset_index())
+notebook.table(alternative_verifiers.verifier_table(results).reset_index())
 
 # %% [markdown]
 # Precision-recall curves of the verifiers that ran, on the test split; the dot on the
@@ -147,4 +147,4 @@ notebook.table(verifiers.verifier_table(results).reset_index())
 figure = plots.pr_curves(tables, title=f"{bench.cached.label}, test split: GV vs Doppelgangers")
 plots.save(figure, figures / "doppelgangers_vs_gv_pr.png")
 plt.show()
-print("verifiers.csv:", verifiers.write_results(results, output_dir))
+print("verifiers.csv:", alternative_verifiers.write_results(results, output_dir))

@@ -15,7 +15,7 @@
 
 # %% [markdown]
 # # Verifiers beyond inlier counting
-# Every verifier of `verifiers.VERIFIERS` scored from the same cached matches, on the
+# Every verifier of `alternative_verifiers.ALTERNATIVE_VERIFIERS` scored from the same cached matches, on the
 # **test** split: robust estimators (RANSAC, DEGENSAC-like USAC_DEFAULT, LO-RANSAC/GC
 # USAC_ACCURATE, MAGSAC++), fundamental matrix or homography, raw or normalised inlier
 # scores; SUE over the query's GV-ranked candidates; the Doppelgangers classifier; and a
@@ -32,7 +32,7 @@ from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
-from gvbench_nb.studies import uncertainty, verifier_inputs, verifiers
+from gvbench_nb.studies import alternative_verifiers, uncertainty, verifier_inputs
 
 # %% tags=["parameters"]
 # with compute_missing, runs `method` when results_dir lacks its pairs.csv (None: never)
@@ -57,7 +57,7 @@ size: int = 64
 epochs: int = 1
 max_train_pairs: int = 32
 n_resamples: int = 1000  # query-bootstrap resamples for the 95% CIs
-verifier_names: Optional[list] = None  # None: every verifier in verifiers.VERIFIERS
+verifier_names: Optional[list] = None  # None: every verifier in alternative_verifiers.ALTERNATIVE_VERIFIERS
 
 # %%
 bench = notebook.open_verifier_bench(
@@ -90,10 +90,10 @@ notebook.table(verifier_inputs.split_summary(bench.pairs, bench.pairs["split"]))
 # paper's GV is `gv-F-ransac-inliers`: compare every other row with it.
 
 # %%
-names = list(verifier_names or verifiers.VERIFIERS)
+names = list(verifier_names or alternative_verifiers.ALTERNATIVE_VERIFIERS)
 results, tables, boot = bench.evaluate(names, "test", n_resamples)
-print("verifiers.csv:", verifiers.write_results(results, output_dir))
-notebook.table(verifiers.verifier_table(results).reset_index())
+print("verifiers.csv:", alternative_verifiers.write_results(results, output_dir))
+notebook.table(alternative_verifiers.verifier_table(results).reset_index())
 
 # %% [markdown]
 # The intervals drawn, one row a verifier that ran, sorted by MR: the dot is the
@@ -113,7 +113,7 @@ plt.show()
 # is not established on these queries.
 
 # %%
-best = verifiers.best_by(results, boot, "max_recall")
+best = alternative_verifiers.best_by(results, boot, "max_recall")
 display(
     Markdown(
         f"**Best MR: `{best['winner']}`**, {100 * best['difference']:+.1f} points over "
@@ -124,7 +124,7 @@ display(
         "of the resamples)."
     )
 )
-best_ap = verifiers.best_by(results, boot, "ap")
+best_ap = alternative_verifiers.best_by(results, boot, "ap")
 print(
     f"best AP: {best_ap['winner']} ({100 * best_ap['difference']:+.1f} points over "
     f"{best_ap['baseline']}, 95% CI [{100 * best_ap['difference_ci_low']:+.1f}, "
@@ -141,7 +141,7 @@ conf = bench.conf("learned_combination")
 train = bench.used()["split"] == "train"
 features = bench.combination_features(conf)
 labels = bench.used().loc[train, "label"]
-model = verifiers.fit_combination(features[train], labels, conf)
+model = alternative_verifiers.fit_combination(features[train], labels, conf)
 coefficients = model[-1].coef_[0]
 notebook.table(
     pd.Series(coefficients, index=features.columns, name="coefficient")

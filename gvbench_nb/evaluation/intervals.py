@@ -1,69 +1,19 @@
 """AP and MR with bootstrap intervals over queries, and paired rankings of methods.
 
-Both read the per-method pair tables of output folders and run ``bootstrap.bootstrap``:
-queries are drawn with replacement (all pairs of a query together, since a query's pairs
-share its image and are not independent) and every method is scored on the same draws,
-so "A beats B" is counted resample by resample. The resampling unit is named in every
-table these functions return.
+Queries are drawn with replacement (a query's pairs share its image, so they go together)
+and every method is scored on the same draws; every table names the resampling unit.
 """
 
 from __future__ import annotations
 
-import os
-from collections.abc import Sequence as SequenceType
-from pathlib import Path
-
 import pandas as pd
 
 from gvbench_nb.evaluation import bootstrap, run_tables
-from gvbench_nb.runner import method_outputs, scoring
 
 RESAMPLING_UNIT = "query"
 LEVEL = 0.95  # the intervals' coverage
 DEFAULT_RESAMPLES = 1000
 INTERVAL_COLUMNS = ("ap_low", "ap_high", "max_recall_low", "max_recall_high", "interval_unit")
-
-
-def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[str, Path]:
-    """Which of ``output_dirs`` holds each method's finished results; a method in two is refused."""
-    found: dict[str, Path] = {}
-    for folder in map(Path, output_dirs):
-        method_outputs.check_results_finished(folder)
-        ran = scoring.methods_with_results(folder)
-        if not ran:
-            what = "does not exist" if not folder.exists() else "holds no method results (<method>/pairs.csv)"
-            raise method_outputs.ResultsError(
-                f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
-            )
-        for method in ran:
-            if method in found:
-                raise run_tables.IncomparableRunsError(
-                    f"method {method!r} has results in both {found[method]} and {folder}; "
-                    "pass only one of the two folders"
-                )
-            found[method] = folder
-    return found
-
-
-def folder_tables(
-    output_dirs: str | os.PathLike[str] | SequenceType[str | os.PathLike[str]], methods: SequenceType[str] | None = None
-) -> dict[str, pd.DataFrame]:
-    """The finished pair tables of ``methods`` (default: all) in one or more output folders,
-    checked to be comparable (same pairs, same labels) before anything is resampled."""
-    folders = [output_dirs] if isinstance(output_dirs, (str, os.PathLike)) else list(output_dirs)
-    found = method_folders(folders)
-    wanted = list(methods) if methods else list(found)
-    absent = [m for m in wanted if m not in found]
-    if absent:
-        raise method_outputs.ResultsError(
-            f"no results for method {absent[0]!r} in {', '.join(map(str, folders))}; run it on the same pairs first"
-        )
-    tables: dict[str, pd.DataFrame] = {}
-    for folder in dict.fromkeys(found[m] for m in wanted):
-        tables.update(run_tables.load_pairs_tables(folder, [m for m in wanted if found[m] == folder]))
-    tables = {m: tables[m] for m in wanted}
-    run_tables.align_tables(tables)
-    return tables
 
 
 def query_intervals(

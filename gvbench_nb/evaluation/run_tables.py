@@ -98,19 +98,61 @@ def load_run(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
     return json.loads(path.read_text())
 
 
+def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[str, Path]:
+    """Which of ``output_dirs`` holds each method's finished results; a method in two is refused."""
+    found: dict[str, Path] = {}
+    for folder in map(Path, output_dirs):
+        method_outputs.check_results_finished(folder)
+        ran = scoring.methods_with_results(folder)
+        if not ran:
+            what = "does not exist" if not folder.exists() else "holds no method results (<method>/pairs.csv)"
+            raise method_outputs.ResultsError(
+                f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
+            )
+        for method in ran:
+            if method in found:
+                raise IncomparableRunsError(
+                    f"method {method!r} has results in both {found[method]} and {folder}; "
+                    "pass only one of the two folders"
+                )
+            found[method] = folder
+    return found
+
+
 def load_pairs_tables(
-    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None
+    output_dirs: str | os.PathLike[str] | SequenceType[str | os.PathLike[str]], methods: SequenceType[str] | None = None
 ) -> dict[str, pd.DataFrame]:
-    """The one reader of a folder's pair tables: ``pairs.csv`` of each method (default: every
-    method with results), as a run published them, from inputs unchanged since, every method on
-    the same pairs and labels (what ``results`` refuses, it refuses), one publication whole."""
-    folder = Path(output_dir)
+    """The one reader of pair tables: ``pairs.csv`` of each method (default: every method with
+    results), as a run published them, from inputs unchanged since, every method on the same
+    pairs and labels (what ``results`` refuses, it refuses), one publication whole. Several
+    folders: each method from the one folder holding it."""
+    if not isinstance(output_dirs, (str, os.PathLike)):
+        return _several_folders_tables(list(output_dirs), methods)
+    folder = Path(output_dirs)
 
     def read() -> dict[str, pd.DataFrame]:
         names = scoring.readable_methods(folder, list(methods) if methods else None)
         return {method: scoring.load_pairs_table(folder, method) for method in names}
 
     return record.read_whole(folder, read)  # also while a run publishes
+
+
+def _several_folders_tables(
+    folders: list[str | os.PathLike[str]], methods: SequenceType[str] | None
+) -> dict[str, pd.DataFrame]:
+    found = method_folders(folders)
+    wanted = list(methods) if methods else list(found)
+    absent = [m for m in wanted if m not in found]
+    if absent:
+        raise method_outputs.ResultsError(
+            f"no results for method {absent[0]!r} in {', '.join(map(str, folders))}; run it on the same pairs first"
+        )
+    tables: dict[str, pd.DataFrame] = {}
+    for folder in dict.fromkeys(found[m] for m in wanted):
+        tables.update(load_pairs_tables(folder, [m for m in wanted if found[m] == folder]))
+    tables = {m: tables[m] for m in wanted}
+    align_tables(tables)
+    return tables
 
 
 def measured_methods(output_dir: str | os.PathLike[str]) -> list[str]:

@@ -52,7 +52,7 @@ def command_compare(args: argparse.Namespace) -> int:
     def read() -> dict[str, Any]:
         for folder in folders:
             scoring.readable_methods(folder)  # what `results` refuses, compare refuses
-        return intervals.folder_tables(folders, methods)
+        return run_tables.load_pairs_tables(folders, methods)
 
     tables = record.read_whole(folders, read)  # one publication of each folder, also while runs publish
     if len(tables) < 2:
@@ -61,7 +61,7 @@ def command_compare(args: argparse.Namespace) -> int:
             "run another method on the same pairs, or name two or more with --methods"
         )
     boot = bootstrap.bootstrap(tables, args.resamples, args.seed)
-    found = intervals.method_folders(folders)
+    found = run_tables.method_folders(folders)
     runs = {m: json.loads((method_outputs.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
     table = intervals.intervals_of(boot)
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])

@@ -1,9 +1,8 @@
 """Controlled condition study: how AP, MR and aliasing move as one condition strengthens.
 
-On the synthetic route (``synthetic.py``) the reference drive stays a clear day and the
-query drive is rendered once per (condition, strength) with only that condition set.
-The poses, and so the pairs and their labels, are the same in every cell: only the query
-images change, so any change in AP or MR is the condition's doing.
+On the synthetic route the reference drive stays a clear day and the query drive is rendered
+once per (condition, strength) with only that condition set: poses, pairs and labels are the
+same in every cell, so any change in AP or MR is the condition's doing.
 
 Layout of ``out_dir``::
 
@@ -16,9 +15,8 @@ Layout of ``out_dir``::
     cache/                       feature cache (keyed by resolved image path)
     sweep.csv                    one row a (condition, strength, method, profile) cell
 
-Every folder of images is written under a temporary name and renamed when complete,
-and ``sweep.csv`` is rewritten atomically after each cell, so an interrupted sweep
-resumes where it stopped.
+Image folders are renamed into place when complete and ``sweep.csv`` is rewritten atomically
+after each cell, so an interrupted sweep resumes where it stopped.
 """
 
 from __future__ import annotations
@@ -47,20 +45,8 @@ from gvbench_nb.protocol.images import read_image
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.runner import method_outputs, method_runs
 
-SWEEP_COLUMNS = [
-    "condition",
-    "strength",
-    "method",
-    "profile",
-    "ap",
-    "max_recall",
-    "aliasing_share",
-    "aliasing_chance",
-    "n_pairs",
-    "n_positives",
-    "n_look_alike",
-]
-CELL_KEY = ["condition", "strength", "method", "profile"]
+SWEEP_COLUMNS = ["condition", "strength", "method", "profile", "ap", "max_recall", "aliasing_share"]
+SWEEP_COLUMNS += ["aliasing_chance", "n_pairs", "n_positives", "n_look_alike"]
 DEFAULT_STRENGTHS: tuple[float, ...] = (0.0, 0.25, 0.5, 0.75, 1.0)
 REFERENCE_FOLDER = "reference"
 CLEAR_FOLDER = "query_clear"
@@ -71,7 +57,6 @@ class SweepError(GVBenchError, ValueError):
     """A sweep's inputs are inconsistent (other route in the folder, bad strengths...)."""
 
 
-# ------------------------------------------------------------------ the route --
 @dataclass
 class SweepRoute:
     """The rendered route of a sweep: where its images are and which pairs it scores."""
@@ -85,16 +70,13 @@ class SweepRoute:
 
     def sequence(self, condition: str, strength: float) -> Sequence:
         """The cell's pairs: its query folder against the shared reference folder."""
-        folder = query_folder(condition, strength)
+        folder, name = query_folder(condition, strength), f"synthetic-{cell_name(condition, strength)}"
+        frames = zip(self.pairs["query_frame"], self.pairs["reference_frame"], self.pairs["label"])
         pairs = [
-            Pair(
-                self.frame_name(folder, int(row.query_frame)),
-                self.frame_name(REFERENCE_FOLDER, int(row.reference_frame)),
-                int(row.label),
-            )
-            for row in self.pairs.itertuples()
+            Pair(self.frame_name(folder, int(q)), self.frame_name(REFERENCE_FOLDER, int(r)), int(y))
+            for q, r, y in frames
         ]
-        return Sequence(f"synthetic-{cell_name(condition, strength)}", self.image_root, pairs)
+        return Sequence(name, self.image_root, pairs)
 
 
 def strength_text(strength: float) -> str:
@@ -134,11 +116,8 @@ def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> di
 def prepare_route(
     out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
 ) -> SweepRoute:
-    """Build the route, render the clear reference drive once and write the pair list.
-
-    Refuses a folder that holds another route (other seed, length or image size): its
-    cached results would not belong to this one.
-    """
+    """Build the route, render the clear reference drive once and write the pair list; a folder
+    holding another route is refused (its cached results would not belong to this one)."""
     image_root = Path(out_dir) / "images"
     params = _route_params(seed, n_frames, image_size)
     params_path = image_root / "route.json"
@@ -172,10 +151,8 @@ def prepare_route(
 
 
 def _render_folder(folder: Path, render, name_width: int) -> bool:
-    """Render into ``folder`` unless it exists; returns whether it rendered.
-
-    Frames go to a temporary folder renamed at the end, so an existing folder is complete.
-    """
+    """Render into ``folder`` unless it exists (a temporary folder renamed at the end, so an
+    existing one is complete); returns whether it rendered."""
     if folder.is_dir():
         return False
     partial = folder.with_name(f".{folder.name}.partial")
@@ -194,22 +171,15 @@ def render_query(sweep_route: SweepRoute, condition: str, strength: float) -> Pa
     return folder
 
 
-# ---------------------------------------------------------------- aliasing --
 TOP_FALSE_FRACTION = 0.1
 
 
 def aliasing_share(
     labels: np.ndarray, scores: np.ndarray, look_alike: np.ndarray, top_fraction: float = TOP_FALSE_FRACTION
 ) -> float:
-    """Fraction of look-alike pairs among the top-scoring false pairs.
-
-    The top-scoring false pairs are the hardest ``top_fraction`` of the false pairs
-    (``k = ceil(top_fraction * n_false)``, at least 1): the negatives that limit MR.
-    Chance is the look-alikes' share of all false pairs; 1 means every one of the
-    hardest negatives is a look-alike.  False pairs tied with the k-th score share the
-    remaining places in proportion (the expected share under a random tie-break), so
-    the value does not depend on row order.  NaN when the set has no look-alike pair.
-    """
+    """Fraction of look-alikes among the hardest ``top_fraction`` of the false pairs (at least 1):
+    the negatives that limit MR. Ties at the cut share the places left in proportion (the expected
+    share under a random tie-break), so row order does not matter; NaN without look-alikes."""
     labels, scores, look_alike = (np.asarray(a).ravel() for a in (labels, scores, look_alike))
     false = labels == 0
     if np.any(look_alike.astype(bool) & ~false):
@@ -229,7 +199,6 @@ def aliasing_share(
     return float(alike_count / k)
 
 
-# ------------------------------------------------------------------- sweep --
 def method_profiles(methods: Iterable[str] | str, profile: str | Mapping[str, str]) -> dict[str, str]:
     """Method -> profile: one profile for all, or a mapping naming each method's."""
     try:
@@ -280,14 +249,9 @@ def _typed(table: pd.DataFrame) -> pd.DataFrame:
     """Column types independent of where rows came from (a CSV reads 0.0 back as int)."""
     floats = ["strength", "ap", "max_recall", "aliasing_share", "aliasing_chance"]
     integers = ["n_pairs", "n_positives", "n_look_alike"]
+    texts = ["condition", "method", "profile"]
     return table.astype(
-        {
-            **dict.fromkeys(floats, "float64"),
-            **dict.fromkeys(integers, "int64"),
-            "condition": str,
-            "method": str,
-            "profile": str,
-        }
+        {**dict.fromkeys(floats, "float64"), **dict.fromkeys(integers, "int64"), **dict.fromkeys(texts, str)}
     )
 
 
@@ -298,19 +262,10 @@ def _cell_row(
     look_alike = sweep_route.pairs["look_alike"].to_numpy()
     metrics = evaluate_scores(labels, scores, where=where)
     n_false = int((labels == 0).sum())
-    return {
-        "condition": condition,
-        "strength": float(strength),
-        "method": method,
-        "profile": profile,
-        "ap": metrics["ap"],
-        "max_recall": metrics["max_recall"],
-        "aliasing_share": aliasing_share(labels, scores, look_alike),
-        "aliasing_chance": float(look_alike.sum() / n_false) if n_false else float("nan"),
-        "n_pairs": metrics["n_pairs"],
-        "n_positives": metrics["n_positives"],
-        "n_look_alike": int(look_alike.sum()),
-    }
+    chance = float(look_alike.sum() / n_false) if n_false else float("nan")
+    values: list[Any] = [condition, float(strength), method, profile, metrics["ap"], metrics["max_recall"]]
+    values += [aliasing_share(labels, scores, look_alike), chance, metrics["n_pairs"], metrics["n_positives"]]
+    return dict(zip(SWEEP_COLUMNS, [*values, int(look_alike.sum())]))
 
 
 def run_sweep(
@@ -326,14 +281,9 @@ def run_sweep(
     threads: int | None = None,
     progress: bool = True,
 ) -> pd.DataFrame:
-    """Run every (condition, strength, method) cell not yet in ``<out_dir>/sweep.csv``.
-
-    ``profile`` is one profile for every method or a mapping method -> profile.
-    Strength 0 is always included and is one ``clear`` run shared by the conditions
-    (its images are identical).  ``threads`` caps torch/OpenCV threads (fewer than the cores can be faster on a busy machine; see
-    ``concurrency.configure_threads``).  Returns the rows of the requested cells, in condition,
-    profile, method, strength order.
-    """
+    """Run every (condition, strength, method) cell not yet in ``<out_dir>/sweep.csv``; returns the
+    requested cells' rows. Strength 0 is one ``clear`` run shared by the conditions (same images);
+    ``profile`` is one for every method or a mapping method -> profile."""
     out_dir = Path(out_dir)
     profiles = method_profiles(methods, profile)
     conditions, strengths = _validate(conditions, strengths)
@@ -356,13 +306,8 @@ def run_sweep(
             bar.update()
     bar.close()
     table = _ordered(pd.DataFrame(rows, columns=SWEEP_COLUMNS))
-    keep = (
-        table["condition"].isin(conditions)
-        & table["strength"].round(6).isin(strengths)
-        & pd.Series(
-            [profiles.get(m) == p for m, p in zip(table["method"], table["profile"])], index=table.index, dtype=bool
-        )
-    )
+    profile_asked = np.array([profiles.get(m) == p for m, p in zip(table["method"], table["profile"])], dtype=bool)
+    keep = table["condition"].isin(conditions) & table["strength"].round(6).isin(strengths) & profile_asked
     return table[keep].reset_index(drop=True)
 
 
@@ -382,48 +327,28 @@ def _run_cell(
     render_query(sweep_route, conditions[0], strength)
     sequence = sweep_route.sequence(conditions[0], strength)
     run_dir = out_dir / "runs" / profile / cell_name(conditions[0], strength)
+    cache = out_dir / "cache"
     table = method_runs.run_method(
-        sequence,
-        method,
-        profile,
-        run_dir,
-        out_dir / "cache",
-        device=device,
-        seed=seed,
-        progress=progress,
-        threads=threads,
+        sequence, method, profile, run_dir, cache, device=device, seed=seed, progress=progress, threads=threads
     )
     where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")
     return [_cell_row(sweep_route, table, condition, strength, method, profile, where) for condition in conditions]
 
 
 def _ordered(table: pd.DataFrame) -> pd.DataFrame:
-    return (
-        _typed(table).sort_values(["condition", "profile", "method", "strength"], kind="stable").reset_index(drop=True)
-    )
+    order = ["condition", "profile", "method", "strength"]
+    return _typed(table).sort_values(order, kind="stable").reset_index(drop=True)
 
 
-# ------------------------------------------------------- breaking strength --
 def breaking_strength(sweep: pd.DataFrame) -> pd.DataFrame:
-    """Per condition, method and profile: the lowest strength at which MR falls below
-    half its clear (strength 0) value, linearly interpolated between grid strengths.
-
-    Columns: condition, method, profile, clear_max_recall, breaking_strength (float,
-    NaN when not reached or undefined), note ('' or why it is NaN).
-    """
+    """Per condition, method and profile: the lowest strength at which MR falls below half its
+    clear (strength 0) value, interpolated between grid strengths (NaN with a ``note`` why)."""
     rows = []
     for (condition, method, profile), group in sweep.groupby(["condition", "method", "profile"], sort=False):
         group = group.sort_values("strength")
         strengths = group["strength"].to_numpy(dtype=np.float64)
         recall = group["max_recall"].to_numpy(dtype=np.float64)
-        row = {
-            "condition": condition,
-            "method": method,
-            "profile": profile,
-            "clear_max_recall": float("nan"),
-            "breaking_strength": float("nan"),
-            "note": "",
-        }
+        row = dict(zip(BREAKING_COLUMNS, (condition, method, profile, float("nan"), float("nan"), "")))
         if len(strengths) == 0 or strengths[0] != 0.0:
             row["note"] = "no strength-0 (clear) cell"
         elif recall[0] == 0.0:
@@ -432,9 +357,10 @@ def breaking_strength(sweep: pd.DataFrame) -> pd.DataFrame:
             row["clear_max_recall"] = float(recall[0])
             row["breaking_strength"], row["note"] = _crossing(strengths, recall, recall[0] / 2.0)
         rows.append(row)
-    return pd.DataFrame(
-        rows, columns=["condition", "method", "profile", "clear_max_recall", "breaking_strength", "note"]
-    )
+    return pd.DataFrame(rows, columns=BREAKING_COLUMNS)
+
+
+BREAKING_COLUMNS = ["condition", "method", "profile", "clear_max_recall", "breaking_strength", "note"]
 
 
 def _crossing(strengths: np.ndarray, values: np.ndarray, level: float) -> tuple[float, str]:
@@ -457,7 +383,6 @@ def breaking_strength_table(sweep: pd.DataFrame) -> pd.DataFrame:
     return table.pivot(index="label", columns="condition", values="value").rename_axis(index="method", columns=None)
 
 
-# ----------------------------------------------------------------- figures --
 def _label(method: str, profile: str) -> str:
     return method if profile == "paper" else f"{method} ({profile})"
 
@@ -532,12 +457,15 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
     return figure
 
 
-# ----------------------------------------------------------------- render time --
 RENDER_SETTINGS: dict[str, dict[str, float]] = {
     "clear": {},
     **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
     "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0),
 }
+
+
+RENDER_TIME_COLUMNS = ["setting", "conditions", "n_frames", "image_size", "repeats", "median_seconds", "min_seconds"]
+RENDER_TIME_COLUMNS += ["max_seconds", "scene_seconds", "workers", "cpu_count", "loadavg_1m"]
 
 
 def time_render(
@@ -548,12 +476,8 @@ def time_render(
     settings: Mapping[str, Mapping[str, float]] | None = None,
     workers: int | None = None,
 ) -> pd.DataFrame:
-    """Seconds to render one ``n_frames`` query traversal per condition setting (strength 1).
-
-    Rendering only (writing PNGs is not counted); the scene is built once and timed
-    apart. Medians over ``repeats``; the load average is recorded beside each row,
-    since a busy machine slows the render.
-    """
+    """Seconds to render one ``n_frames`` query traversal per condition setting (strength 1), PNG
+    writing not counted, the scene timed apart; the load average beside each row (a busy machine is slower)."""
     import os
     import time
 
@@ -569,20 +493,8 @@ def time_render(
                 route.scene, route.query, route.K, route.image_size, conditions, seed, 1, workers=workers
             )
             seconds.append(time.perf_counter() - start)
-        rows.append(
-            {
-                "setting": name,
-                "conditions": json.dumps(dict(conditions)),
-                "n_frames": n_frames,
-                "image_size": f"{image_size[0]}x{image_size[1]}",
-                "repeats": repeats,
-                "median_seconds": float(np.median(seconds)),
-                "min_seconds": min(seconds),
-                "max_seconds": max(seconds),
-                "scene_seconds": scene_seconds,
-                "workers": workers or min(4, os.cpu_count() or 1),
-                "cpu_count": os.cpu_count(),
-                "loadavg_1m": round(os.getloadavg()[0], 2),
-            }
-        )
+        cpus = os.cpu_count()
+        values: list[Any] = [name, json.dumps(dict(conditions)), n_frames, f"{image_size[0]}x{image_size[1]}", repeats]
+        values += [float(np.median(seconds)), min(seconds), max(seconds), scene_seconds, workers or min(4, cpus or 1)]
+        rows.append(dict(zip(RENDER_TIME_COLUMNS, [*values, cpus, round(os.getloadavg()[0], 2)])))
     return pd.DataFrame(rows)

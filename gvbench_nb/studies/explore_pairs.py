@@ -20,20 +20,8 @@ from gvbench_nb.runner import scoring
 from gvbench_nb.studies import failures
 
 PICKS = ("index", "false_positive", "false_negative")
-VIEW_COLUMNS = [
-    "method",
-    "pair_index",
-    "query",
-    "reference",
-    "label",
-    "num_matches",
-    "num_inliers",
-    "score",
-    "rank",
-    "n_pairs",
-    "max_false_score",
-    "above_all_false",
-]
+VIEW_COLUMNS = ["method", "pair_index", "query", "reference", "label", "num_matches", "num_inliers", "score"]
+VIEW_COLUMNS += ["rank", "n_pairs", "max_false_score", "above_all_false"]
 
 
 def score_ranks(table: pd.DataFrame) -> pd.Series:
@@ -89,22 +77,10 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
         row = table.iloc[pair_index]
         false_scores = table.loc[table["label"] == 0, "score"]
         max_false = float(false_scores.max()) if len(false_scores) else float("-inf")
-        rows.append(
-            {
-                "method": method,
-                "pair_index": int(row["pair_index"]),
-                "query": row["query"],
-                "reference": row["reference"],
-                "label": int(row["label"]),
-                "num_matches": int(row["num_matches"]),
-                "num_inliers": int(row["num_inliers"]),
-                "score": row["score"],
-                "rank": int(score_ranks(table).iloc[pair_index]),
-                "n_pairs": len(table),
-                "max_false_score": max_false,
-                "above_all_false": bool(row["score"] > max_false),
-            }
-        )
+        counts = (int(row["label"]), int(row["num_matches"]), int(row["num_inliers"]), row["score"])
+        rank = int(score_ranks(table).iloc[pair_index])
+        values = (method, int(row["pair_index"]), row["query"], row["reference"], *counts, rank, len(table))
+        rows.append(dict(zip(VIEW_COLUMNS, (*values, max_false, bool(row["score"] > max_false)))))
     view = pd.DataFrame(rows, columns=VIEW_COLUMNS)
     if view[["query", "reference"]].drop_duplicates().shape[0] > 1:
         raise ValueError(
@@ -243,15 +219,9 @@ class ExploreControls:
         self.areas = {name: widgets.Output() for name in VIEWS}
         self.areas["table"].layout = widgets.Layout(overflow="auto")  # a wide table scrolls inside the cell
         # CSS classes name each control and view on the page (what a browser test finds them by).
-        for name, box in (
-            ("pick", self.pick),
-            ("pair-index", self.pair_index),
-            ("pick-rank", self.pick_rank),
-            ("pick-method", self.pick_method),
-            ("methods", self.methods),
-            ("status", self.status),
-            *((f"view-{name}", area) for name, area in self.areas.items()),
-        ):
+        boxes = {"pick": self.pick, "pair-index": self.pair_index, "pick-rank": self.pick_rank}
+        boxes |= {"pick-method": self.pick_method, "methods": self.methods, "status": self.status}
+        for name, box in [*boxes.items(), *((f"view-{name}", area) for name, area in self.areas.items())]:
             box.add_class(f"gvbench-{name}")
         self.drawn: dict[str, Any] = {}  # the views last drawn, by name
         self._following = False  # set while a box follows another choice, so that it draws once

@@ -197,15 +197,6 @@ def _percent(value: float) -> str:
     return "-" if pd.isna(value) else f"{100 * value:.1f}"
 
 
-def text_results_table(wide: pd.DataFrame) -> pd.DataFrame:
-    """The wide table as strings in %, the best of each column marked with ``*``."""
-    metrics = metric_columns(wide)
-    best = run_tables.best_per_column(wide[metrics]).reindex(columns=wide.columns, fill_value=False)
-    text = wide.astype(object).where(wide.notna(), "-")
-    text[metrics] = wide[metrics].map(_percent)
-    return text.where(~best, text + "*")
-
-
 SOURCE_STYLE = {
     run_tables.OURS_LABEL: {"linestyle": "-", "alpha": 0.9},
     run_tables.PAPER_LABEL: {"linestyle": "--", "alpha": 0.6},

@@ -62,6 +62,8 @@ def test_intervals_are_deterministic_for_a_seed():
     other = intervals.query_intervals(tables, 200, seed=4)
     assert not np.allclose(first[["ap_low", "ap_high"]], other[["ap_low", "ap_high"]])
     assert first["seed"].tolist() == [3, 3]
+    shares = [bootstrap.bootstrap(tables, 200, seed=3).paired_shares("ap") for _ in range(2)]
+    pd.testing.assert_frame_equal(*shares)
 
 
 def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
@@ -100,6 +102,7 @@ def test_ranking_in_either_direction_and_ties_between():
     shares = boot.paired_shares("max_recall").iloc[0]
     assert (shares["first"], shares["second"], shares["verdict"]) == ("perfect", "weak", "perfect > weak")
     assert shares["first_value"] == 1.0
+    assert boot.intervals().set_index(["method", "metric"]).loc[("perfect", "max_recall"), "low"] == 1.0
     # The leader on all pairs is listed first even when it is given second.
     reversed_boot = bootstrap.bootstrap({"perfect": perfect, "weak": table}, 300, seed=0)
     assert reversed_boot.paired_shares("max_recall").iloc[0]["first"] == "perfect"

@@ -12,7 +12,7 @@ from test_analysis import write_fake_run
 
 from gvbench_nb import notebook
 from gvbench_nb.runner import config, method_runs, scoring
-from gvbench_nb.studies import verifiers
+from gvbench_nb.studies import alternative_verifiers
 
 
 @pytest.fixture
@@ -105,7 +105,7 @@ def test_verifier_bench_names_the_run_with_its_output_folder_and_profile(toy, tm
     monkeypatch.setattr(
         method_runs, "run_method_of_params", lambda params, sequence, method: ran.append((method, params["output_dir"]))
     )
-    monkeypatch.setattr(verifiers, "open_bench", lambda *a, **k: ("bench", a, k))
+    monkeypatch.setattr(alternative_verifiers, "open_bench", lambda *a, **k: ("bench", a, k))
     bench = notebook.open_verifier_bench(
         elsewhere,
         "sift-nn",

@@ -1,35 +1,12 @@
-"""Verifiers beyond counting FM_RANSAC inliers, all scored from a run's CACHED matches.
+"""Alternative verifiers, each scoring a pair from a run's CACHED matches (nothing re-matches).
 
-A verifier turns a pair's matches into a score (higher = more likely the same place).
-Each is a plain conf in ``VERIFIERS`` (like a recipe of ``protocol/recipes``); its identity in
-every table is ``verifier`` (the name) and ``conf_hash`` (``methods.conf_hash(conf)``).
-Nothing here re-matches: the matches, their scores and the keypoints come from the
-run's match store and the feature cache (``CachedMatches``).
-
-Families
---------
-``gv-<model>-<estimator>-<score>``
-    Robust model fit on the cached matches (after the run's score filter).
-    model: ``F`` fundamental (``cv2.findFundamentalMat``) or ``H`` homography
-    (``cv2.findHomography``); estimator: ``ransac`` (FM_RANSAC / cv2.RANSAC, the
-    paper's), ``degensac`` (USAC_DEFAULT), ``lo-ransac`` (USAC_ACCURATE: LO + graph
-    cut), ``magsac`` (USAC_MAGSAC: MAGSAC++); score: ``inliers`` (the paper's),
-    ``inlier_ratio`` (inliers / matches that entered the fit) or
-    ``inliers_over_keypoints`` (inliers / the smaller keypoint count of the pair).
-    ``gv-F-ransac-inliers`` with the run's seed reproduces the stored ``num_inliers``.
-``sue``
-    SUE (MODELS.md section 7) made into a per-pair score, see ``sue_pair_scores``.
-``doppelgangers`` / ``doppelgangers-in-domain``
-    P(same place) of the Doppelgangers classifier on the 10-channel input built
-    from the cached matches: the official checkpoint (fails with
-    ``MissingWeightsError`` when absent), or weights trained here on the train split.
-``learned_combination`` / ``learned_combination+dg``
-    Logistic regression over per-pair GV features (``FEATURES``), fitted on the
-    train split; the ``+dg`` variant adds the in-domain classifier's probability.
-
-Splits: learned verifiers must never see a test place while training, so
-``place_disjoint_split`` cuts a frame-aligned sequence into disjoint frame ranges
-with a gap wider than the ground-truth tolerance.
+Each is a plain conf in ``ALTERNATIVE_VERIFIERS``, identified in every table by ``verifier``
+and ``conf_hash``. Families: ``gv-<model>-<estimator>-<score>`` (a robust fit: model ``F`` or
+``H``; estimator ``ransac`` (the paper's), ``degensac``, ``lo-ransac``, ``magsac``; score
+``inliers`` (the paper's), ``inlier_ratio`` or ``inliers_over_keypoints``), ``sue`` (SUE as a
+per-pair score), ``doppelgangers[-in-domain]`` (the classifier, official or trained here) and
+``learned_combination[+dg]`` (a logistic regression over ``FEATURES``). Learned verifiers never
+see a test place: ``place_disjoint_split`` leaves a gap wider than the ground-truth tolerance.
 """
 
 from __future__ import annotations
@@ -48,7 +25,7 @@ import pandas as pd
 from gvbench_nb import methods as method_registry
 from gvbench_nb.evaluation import bootstrap, run_tables
 from gvbench_nb.io_utils import atomic_write_csv
-from gvbench_nb.protocol import registry
+from gvbench_nb.protocol import recipes, registry
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.protocol.ransac import ESTIMATORS
 from gvbench_nb.protocol.weights import MissingWeightsError
@@ -59,22 +36,22 @@ GV_SCORES = ("inliers", "inlier_ratio", "inliers_over_keypoints")
 
 
 def gv_conf(model: str, estimator: str, score: str) -> dict[str, Any]:
-    """The conf of one GV verifier; thresholds are the paper's (3 px, 0.99, 1000 iterations)."""
+    """The conf of one GV verifier; its thresholds are those of the paper profile's verifier."""
     if model not in verifier_inputs.MODEL_SHORT_NAMES or estimator not in ESTIMATORS or score not in GV_SCORES:
         raise KeyError(
             f"unknown GV verifier ({model}, {estimator}, {score}); models {list(verifier_inputs.MODEL_SHORT_NAMES)}, "
             f"estimators {list(ESTIMATORS)}, scores {list(GV_SCORES)}"
         )
+    paper = recipes.profile_verifier("paper")
+    thresholds = {key: paper[key] for key in ("threshold_px", "confidence", "max_iters")}
     return {
         "type": "gv",
         "model": model,
         "estimator": estimator,
         "score": score,
-        "threshold_px": 3.0,
-        "confidence": 0.99,
-        "max_iters": 1000,
+        **thresholds,
         "min_matches": verifier_inputs.MIN_MATCHES[model],
-        "min_match_score": 0.5,
+        "min_match_score": paper["min_match_score"],
     }
 
 
@@ -82,12 +59,12 @@ def gv_name(model: str, estimator: str, score: str) -> str:
     return f"gv-{verifier_inputs.MODEL_SHORT_NAMES[model]}-{verifier_inputs.ESTIMATOR_SHORT_NAMES[estimator]}-{score}"
 
 
-VERIFIERS: dict[str, dict[str, Any]] = {
+ALTERNATIVE_VERIFIERS: dict[str, dict[str, Any]] = {
     gv_name(m, e, s): gv_conf(m, e, s) for m in verifier_inputs.MODEL_SHORT_NAMES for e in ESTIMATORS for s in GV_SCORES
 }
 
 
-VERIFIERS.update(
+ALTERNATIVE_VERIFIERS.update(
     {
         # slope 10 on distances in [0, 1] (1 - score / best score): a candidate with 10% fewer
         # inliers than the best weighs e^-1 of it. The paper's 350 was for NetVLAD distances.
@@ -123,9 +100,9 @@ VERIFIERS.update(
 
 def resolve_verifier(name: str, **overrides: Any) -> dict[str, Any]:
     """A verifier's conf (a copy) with ``overrides`` applied; unknown names list the valid ones."""
-    if name not in VERIFIERS:
-        raise registry.UnknownNameError(registry.unknown_name_message("verifier", name, VERIFIERS))
-    conf = json.loads(json.dumps(VERIFIERS[name]))
+    if name not in ALTERNATIVE_VERIFIERS:
+        raise registry.UnknownNameError(registry.unknown_name_message("verifier", name, ALTERNATIVE_VERIFIERS))
+    conf = json.loads(json.dumps(ALTERNATIVE_VERIFIERS[name]))
     unknown = [k for k in overrides if k not in conf]
     if unknown:
         raise KeyError(f"verifier {name!r} has no option(s) {unknown}; its options: {sorted(conf)}")
@@ -266,19 +243,14 @@ class VerifierBench:
                 "matches": self.cached.label,
                 "n_pairs": len(part),
                 "n_positives": int(part["label"].sum()),
+                "conf": json.dumps(conf, sort_keys=True),
             }
             try:
                 start = time.perf_counter()
                 score = self.scores(name, conf)
                 row["seconds"] = time.perf_counter() - start
             except MissingWeightsError as error:
-                rows.append(
-                    {
-                        **row,
-                        "status": f"unavailable: {str(error).splitlines()[0]}",
-                        "conf": json.dumps(conf, sort_keys=True),
-                    }
-                )
+                rows.append({**row, "status": f"unavailable: {str(error).splitlines()[0]}"})
                 continue
             tables[name] = part[["query", "reference", "label"]].assign(score=score.loc[part.index].to_numpy())
             metrics = evaluate_scores(
@@ -287,16 +259,8 @@ class VerifierBench:
                 where=f"verifier {name} on the {split} split of {self.cached.label}",
             )
             weights = self.weights_info.get(name) or self.weights_info.get(conf.get("classifier") or "")
-            rows.append(
-                {
-                    **row,
-                    "ap": metrics["ap"],
-                    "max_recall": metrics["max_recall"],
-                    "status": "ok",
-                    "weights": weights["weights"] if weights else "",
-                    "conf": json.dumps(conf, sort_keys=True),
-                }
-            )
+            row.update(ap=metrics["ap"], max_recall=metrics["max_recall"], status="ok")
+            rows.append({**row, "weights": weights["weights"] if weights else ""})
         results = pd.DataFrame(rows)
         boot = None
         if tables:
@@ -305,25 +269,19 @@ class VerifierBench:
             for metric in run_tables.METRICS:
                 results[f"{metric}_ci_low"] = results["verifier"].map(wide[("low", metric)])
                 results[f"{metric}_ci_high"] = results["verifier"].map(wide[("high", metric)])
-        columns = [
-            "verifier",
-            "split",
-            "ap",
-            "max_recall",
-            "ap_ci_low",
-            "ap_ci_high",
-            "max_recall_ci_low",
-            "max_recall_ci_high",
-            "n_pairs",
-            "n_positives",
-            "matches",
-            "weights",
-            "seconds",
-            "status",
-            "conf_hash",
-            "conf",
-        ]
-        return results.reindex(columns=columns), tables, boot
+        return results.reindex(columns=RESULT_COLUMNS), tables, boot
+
+
+RESULT_COLUMNS = [
+    "verifier",
+    "split",
+    "ap",
+    "max_recall",
+    "ap_ci_low",
+    "ap_ci_high",
+    "max_recall_ci_low",
+    "max_recall_ci_high",
+] + ["n_pairs", "n_positives", "matches", "weights", "seconds", "status", "conf_hash", "conf"]
 
 
 def fit_combination(features: pd.DataFrame, labels: pd.Series, conf: dict[str, Any]) -> Any:

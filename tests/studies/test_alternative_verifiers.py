@@ -13,7 +13,7 @@ from helpers import two_view_scene, with_outlier_matches
 from gvbench_nb.data.sequences import Pair, Sequence, frame_index, frame_tolerance_pairs
 from gvbench_nb.protocol.ransac import ESTIMATORS
 from gvbench_nb.runner import method_runs
-from gvbench_nb.studies import verifier_inputs, verifiers
+from gvbench_nb.studies import alternative_verifiers, verifier_inputs
 
 
 def as_pair(points0: np.ndarray, points1: np.ndarray, n_keypoints: int = 1000) -> verifier_inputs.PairMatches:
@@ -37,7 +37,7 @@ def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
 @pytest.mark.parametrize("estimator", list(ESTIMATORS))
 def test_every_fundamental_estimator_returns_the_planted_inliers(estimator):
     p0, p1, truth = two_view_scene()
-    conf = verifiers.gv_conf("fundamental", estimator, "inliers")
+    conf = alternative_verifiers.gv_conf("fundamental", estimator, "inliers")
     mask, fitted = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
     assert fitted == len(p0)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
@@ -47,7 +47,7 @@ def test_every_fundamental_estimator_returns_the_planted_inliers(estimator):
 @pytest.mark.parametrize("estimator", list(ESTIMATORS))
 def test_homography_on_a_planar_scene_returns_the_planted_inliers(estimator):
     p0, p1, truth = planar_scene()
-    conf = verifiers.gv_conf("homography", estimator, "inliers")
+    conf = alternative_verifiers.gv_conf("homography", estimator, "inliers")
     mask, _ = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
     assert (mask & ~truth).sum() <= 2
@@ -55,9 +55,11 @@ def test_homography_on_a_planar_scene_returns_the_planted_inliers(estimator):
 
 def test_homography_rejects_a_non_planar_scene_more_than_the_fundamental_matrix():
     p0, p1, truth = two_view_scene(seed=2)
-    h_mask, _ = verifier_inputs.fit_inliers(as_pair(p0, p1), verifiers.gv_conf("homography", "FM_RANSAC", "inliers"), 0)
+    h_mask, _ = verifier_inputs.fit_inliers(
+        as_pair(p0, p1), alternative_verifiers.gv_conf("homography", "FM_RANSAC", "inliers"), 0
+    )
     f_mask, _ = verifier_inputs.fit_inliers(
-        as_pair(p0, p1), verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers"), 0
+        as_pair(p0, p1), alternative_verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers"), 0
     )
     assert h_mask.sum() < 0.8 * f_mask.sum()
 
@@ -66,7 +68,9 @@ def test_normalised_scores_follow_their_definitions():
     p0, p1, truth = two_view_scene(n_inliers=80, n_outliers=20)
     pair = as_pair(p0, p1, n_keypoints=400)
     pair.num_keypoints1 = 200  # the smaller count divides
-    mask, fitted = verifier_inputs.fit_inliers(pair, verifiers.gv_conf("fundamental", "USAC_MAGSAC", "inliers"), 0)
+    mask, fitted = verifier_inputs.fit_inliers(
+        pair, alternative_verifiers.gv_conf("fundamental", "USAC_MAGSAC", "inliers"), 0
+    )
     features = verifier_inputs.gv_features(pair, mask, fitted)
     assert features["inliers"] == mask.sum()
     assert features["inlier_ratio"] == pytest.approx(mask.sum() / 100)
@@ -75,13 +79,13 @@ def test_normalised_scores_follow_their_definitions():
 
 
 def test_registry_has_every_combination_and_the_paper_verifier():
-    gv = [name for name, conf in verifiers.VERIFIERS.items() if conf["type"] == "gv"]
+    gv = [name for name, conf in alternative_verifiers.ALTERNATIVE_VERIFIERS.items() if conf["type"] == "gv"]
     assert len(gv) == 4 * 2 * 3
-    assert verifiers.VERIFIERS[verifier_inputs.PAPER_VERIFIER] == verifiers.gv_conf(
+    assert alternative_verifiers.ALTERNATIVE_VERIFIERS[verifier_inputs.PAPER_VERIFIER] == alternative_verifiers.gv_conf(
         "fundamental", "FM_RANSAC", "inliers"
     )
     with pytest.raises(KeyError, match="Known: "):
-        verifiers.resolve_verifier("gv-F-ransack-inliers")
+        alternative_verifiers.resolve_verifier("gv-F-ransack-inliers")
 
 
 # ----------------------------------------------------------------------- SUE --
@@ -175,9 +179,9 @@ def test_logistic_combination_fits_predicts_and_is_deterministic():
     features = pd.DataFrame(
         {name: rng.normal(0, 1, 120) + 1.5 * labels * (i == 0) for i, name in enumerate(verifier_inputs.FEATURES)}
     )
-    conf = verifiers.resolve_verifier("learned_combination")
-    first = verifiers.fit_combination(features[:80], labels[:80], conf)
-    second = verifiers.fit_combination(features[:80], labels[:80], conf)
+    conf = alternative_verifiers.resolve_verifier("learned_combination")
+    first = alternative_verifiers.fit_combination(features[:80], labels[:80], conf)
+    second = alternative_verifiers.fit_combination(features[:80], labels[:80], conf)
     probability = first.predict_proba(features[80:].to_numpy())
     assert probability.shape == (40, 2)
     np.testing.assert_array_equal(probability, second.predict_proba(features[80:].to_numpy()))
@@ -185,7 +189,7 @@ def test_logistic_combination_fits_predicts_and_is_deterministic():
     assert coefficients.shape == (1, len(verifier_inputs.FEATURES))
     assert np.argmax(np.abs(coefficients)) == 0  # the informative feature dominates
     with pytest.raises(ValueError, match="true and false"):
-        verifiers.fit_combination(features[:10], pd.Series(np.ones(10, int)), conf)
+        alternative_verifiers.fit_combination(features[:10], pd.Series(np.ones(10, int)), conf)
 
 
 # ------------------------------------------------------------- cached matches --
@@ -207,7 +211,7 @@ def cached_run(shared_data: Path, tmp_path_factory) -> Path:
 @pytest.mark.real_data
 def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
     cached = verifier_inputs.CachedMatches(cached_run / "out", "sift-nn", cached_run / "cache")
-    conf = verifiers.resolve_verifier(verifier_inputs.PAPER_VERIFIER)
+    conf = alternative_verifiers.resolve_verifier(verifier_inputs.PAPER_VERIFIER)
     table = verifier_inputs.gv_feature_table(cached, cached.pairs, conf, progress=False)
     np.testing.assert_array_equal(table["num_inliers"].to_numpy(), cached.pairs["num_inliers"].to_numpy())
     assert cached.pairs["num_inliers"].max() > 0  # the comparison is not 0 == 0
@@ -221,7 +225,7 @@ def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
 
 @pytest.mark.real_data
 def test_bench_records_conf_and_reports_a_missing_official_checkpoint(cached_run, empty_hub):
-    bench = verifiers.open_bench(
+    bench = alternative_verifiers.open_bench(
         cached_run / "out",
         "sift-nn",
         cached_run / "verifiers",
@@ -242,6 +246,6 @@ def test_bench_records_conf_and_reports_a_missing_official_checkpoint(cached_run
     ok = results[results["status"] == "ok"]
     assert (ok["ap_ci_low"] <= ok["ap"] + 1e-12).all() and (ok["ap"] <= ok["ap_ci_high"] + 1e-12).all()
     assert set(tables) == {"gv-F-ransac-inliers", "gv-H-magsac-inlier_ratio", "sue"}
-    path = verifiers.write_results(results, cached_run / "verifiers")
-    again = verifiers.write_results(results, cached_run / "verifiers")
+    path = alternative_verifiers.write_results(results, cached_run / "verifiers")
+    again = alternative_verifiers.write_results(results, cached_run / "verifiers")
     assert len(pd.read_csv(again)) == len(results) and path == again  # rewriting replaces, never duplicates

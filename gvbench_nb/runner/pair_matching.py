@@ -8,13 +8,13 @@ import hashlib
 import threading
 import time
 import zlib
-from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+from cachetools import LRUCache
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
@@ -35,23 +35,26 @@ if TYPE_CHECKING:
 
 
 # ---------------------------------------------------------- matching + verifying --
+def _bounded_lru(max_bytes: int, size_of: Callable[[Any], int]) -> LRUCache:
+    """An LRU cache of at most ``max_bytes``; an entry counts at least one byte and at most the
+    whole budget, so the newest entry always stays, however large."""
+    return LRUCache(maxsize=max_bytes, getsizeof=lambda value: min(max(size_of(value), 1), max_bytes))
+
+
 class PreparedCache:
-    """Per-image matcher states by image name, least recently used first out once they
-    hold more than ``max_bytes`` (the newest state always stays). Thread-safe: a thread
+    """Per-image matcher states by image name in a byte-bounded LRU. Thread-safe: a thread
     that asks for an image another thread is preparing waits for that state."""
 
     def __init__(self, prepare: Callable[[dict[str, np.ndarray]], Any], max_bytes: int = 1 << 30):
-        self.prepare, self.max_bytes = prepare, max_bytes
-        self._states: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self.prepare = prepare
+        self._states = _bounded_lru(max_bytes, lambda state: state.nbytes() if state is not None else 0)
         self._pending: dict[str, Future] = {}
-        self._bytes = 0
         self._lock = threading.Lock()
 
     def get(self, name: str, features: dict[str, np.ndarray]) -> Any:
         with self._lock:
             if name in self._states:
-                self._states.move_to_end(name)
-                return self._states[name][0]
+                return self._states[name]
             pending = self._pending.get(name)
             if pending is None:
                 mine = self._pending[name] = Future()
@@ -64,14 +67,9 @@ class PreparedCache:
                 del self._pending[name]
             mine.set_exception(error)
             raise
-        size = state.nbytes() if state is not None else 0
         with self._lock:
             del self._pending[name]
-            self._states[name] = (state, size)
-            self._bytes += size
-            while self._bytes > self.max_bytes and len(self._states) > 1:
-                _, (_, dropped) = self._states.popitem(last=False)
-                self._bytes -= dropped
+            self._states[name] = state
         mine.set_result(state)
         return state
 
@@ -80,25 +78,23 @@ class PreparedCache:
 
 
 class FeatureCache:
-    """Feature dicts by image name, read on first use; least recently used first out once
-    they hold more than ``max_bytes`` (the newest always stays). Not thread-safe: callers lock."""
+    """Feature dicts by image name, read on first use, in a byte-bounded LRU. Not thread-safe:
+    callers lock."""
 
     def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
-        self.read, self.max_bytes = read, max_bytes
-        self._entries: OrderedDict[str, tuple[dict[str, np.ndarray], int]] = OrderedDict()
-        self.nbytes = 0
+        self.read = read
+        self._entries = _bounded_lru(
+            max_bytes, lambda entry: sum(v.nbytes for v in entry.values() if isinstance(v, np.ndarray))
+        )
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._entries.currsize)
 
     def get(self, name: str) -> dict[str, np.ndarray]:
-        if name in self._entries:
-            self._entries.move_to_end(name)
-            return self._entries[name][0]
-        entry = self.read(name)
-        size = sum(value.nbytes for value in entry.values() if isinstance(value, np.ndarray))
-        self._entries[name] = (entry, size)
-        self.nbytes += size
-        while self.nbytes > self.max_bytes and len(self._entries) > 1:
-            self.nbytes -= self._entries.popitem(last=False)[1][1]
-        return entry
+        if name not in self._entries:
+            self._entries[name] = self.read(name)
+        return self._entries[name]
 
     def __len__(self) -> int:
         return len(self._entries)

@@ -6,6 +6,8 @@ from __future__ import annotations
 import ast
 import os
 import re
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -14,7 +16,7 @@ import pytest
 import torch
 
 import gvbench_nb
-from gvbench_nb.data.sequences import Pair, PairFileError, parse_pairs, read_pairs
+from gvbench_nb.data.sequences import Pair, PairFileError, format_pairs, parse_pairs, read_pairs, write_pairs
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import ImageReadError, read_image
 from gvbench_nb.runner import config
@@ -325,3 +327,95 @@ def test_the_package_has_no_code_execution_paths():
         "torch.load without weights_only=True",
         "yaml.load(",
     ]
+
+
+@pytest.mark.parametrize(
+    "first, second, message",
+    [
+        (
+            "night/./a.jpg day/b.jpg 1",
+            "night//a.jpg day/b.jpg 0",
+            "duplicate pair night/a.jpg day/b.jpg (first on line 1, with the opposite label: 1 there, 0 here)",
+        ),
+        (
+            "night/a.jpg day/b.jpg 1",
+            "night/a.jpg day/./b.jpg 1",
+            "duplicate pair night/a.jpg day/b.jpg (first on line 1)",
+        ),
+        ("night/a.jpg day/b.jpg 1", "day/b.jpg night/a.jpg 1", "(first on line 1, in the other order)"),
+    ],
+)
+def test_the_same_pair_spelled_twice_is_refused_with_file_and_line(first, second, message):
+    with pytest.raises(PairFileError) as error:
+        parse_pairs([first, second], source="pairs.txt")
+    assert str(error.value).startswith("pairs.txt:2: ") and message in str(error.value)
+
+
+@pytest.mark.parametrize("line", ["night/a.jpg night/a.jpg 1", "night/a.jpg night/./a.jpg 0", "a.jpg ./a.jpg 1"])
+def test_a_self_pair_is_refused(line):
+    with pytest.raises(PairFileError, match=r"pairs.txt:1: self-pair: query and reference are both"):
+        parse_pairs([line], source="pairs.txt")
+
+
+def test_paths_are_stored_normalised():
+    assert parse_pairs(["night/./a.jpg day//b.jpg 1"]) == [Pair("night/a.jpg", "day/b.jpg", 1)]
+
+
+def test_names_with_spaces_are_written_in_quotes_and_read_back(tmp_path):
+    pairs = [Pair("day 1/a b.jpg", "night/it's.jpg", 1), Pair("plain/a.jpg", 'odd/"q".jpg', 0)]
+    path = write_pairs(tmp_path / "pairs.txt", pairs)
+    assert read_pairs(path) == pairs
+    assert format_pairs([Pair("plain/a.jpg", "plain/b.jpg", 1)]) == "plain/a.jpg plain/b.jpg 1\n"
+    assert parse_pairs(["\"day 1/a.jpg\" 'day 2/b.jpg' 1"]) == [Pair("day 1/a.jpg", "day 2/b.jpg", 1)]
+    with pytest.raises(
+        PairFileError, match=r'pairs.txt:1: expected 3 fields .* got 4: .*in quotes, e.g. "day 1/a.jpg"'
+    ):
+        parse_pairs(["day 1/a.jpg day/b.jpg 1"], source="pairs.txt")
+    with pytest.raises(PairFileError, match=r"pairs.txt:1: No closing quotation .*close the quote"):
+        parse_pairs(['"day 1/a.jpg day/b.jpg 1'], source="pairs.txt")
+
+
+def test_a_megabyte_path_is_reported_by_file_and_line_and_shortened(tmp_path):
+    path = tmp_path / "pairs.txt"
+    path.write_text("query/a.png reference/a.png 1\n" + "x" * 1_000_000 + " reference/b.png 0\n")
+    with pytest.raises(PairFileError) as error:
+        read_pairs(path)
+    assert str(error.value).startswith(f"{path}:2: path 'xxx") and len(str(error.value)) < 400
+    assert "(1000000 characters)" in str(error.value)
+
+
+def _png_header_only(path: Path, width: int, height: int) -> Path:
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    header = struct.pack(">IIBBBBB", width, height, 8, 0, 0, 0, 0)  # 8-bit grayscale
+    path.write_bytes(
+        b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b"")
+    )
+    return path
+
+
+def test_an_image_beyond_the_pixel_bound_is_refused_before_decoding(tmp_path, monkeypatch):
+    huge = _png_header_only(tmp_path / "huge.png", 40000, 40000)  # 1.6 gigapixels in 100 bytes
+    with pytest.raises(ImageReadError) as error:
+        read_image(huge)
+    assert f"image {huge} has 1,600,000,000 pixels, above the bound of 64,000,000 pixels" in str(error.value)
+    assert "refused before decoding" in str(error.value)
+    assert "GVBENCH_MAX_PIXELS" in str(error.value)
+    monkeypatch.setenv("GVBENCH_MAX_PIXELS", "1000")
+    small = tmp_path / "small.png"
+    cv2.imwrite(str(small), np.zeros((40, 40), np.uint8))
+    with pytest.raises(ImageReadError, match="40 x 40 = 1,600 pixels, above the bound of 1,000"):
+        read_image(small)
+
+
+def test_a_pickled_checkpoint_for_a_kornia_model_is_refused_before_kornia_loads_it(empty_hub):
+    import pickle
+
+    empty_hub.mkdir(parents=True)
+    target = weights.checkpoint_path("disk_depth")
+    target.write_bytes(pickle.dumps({"extra": os.getcwd}, protocol=2))  # a global: weights_only refuses it
+    with pytest.raises(weights.CheckpointReadError) as error:
+        weights.require("disk_depth")
+    message = str(error.value)
+    assert str(target) in message and "Download it again" in message and "weights_only=False" not in message

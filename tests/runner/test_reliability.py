@@ -67,9 +67,6 @@ def frame_pairs() -> list[Pair]:
     return pairs
 
 
-CONFIGURE_THREADS = concurrency.configure_threads
-
-
 def one_thread(n_threads: int | None = None, jobs: int = 1) -> int:
     """Stand-in for ``concurrency.configure_threads``: on tiny images (and a shared, busy
     machine) one thread is about twice as fast as all cores; scores do not change."""
@@ -231,6 +228,11 @@ def finish(child: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str
     return child.returncode, stdout, stderr
 
 
+def run_here(sequence: Sequence, work: Path, cache: Path | None = None, **options) -> pd.DataFrame:
+    out, cache = work / "out", cache or work / "cache"
+    return method_runs.run_method(sequence, METHOD, PROFILE, out, cache, device="cpu", progress=False, **options)
+
+
 def run_json(output_dir: Path) -> dict:
     return json.loads((method_outputs.method_dir(output_dir, METHOD) / "run.json").read_text())
 
@@ -381,9 +383,7 @@ def test_a_killed_run_resumes_and_ends_identical(
     visible = [p for p in folder.rglob("*") if p.is_file() and not p.name.startswith(".")] if folder.exists() else []
     assert all(p.suffix in (".h5", ".json") for p in visible), visible
 
-    method_runs.run_method(
-        sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False
-    )
+    run_here(sequence, tmp_path)
     this_run = run_json(tmp_path / "out")["this_run"]
     assert extracted_again + matched_again < 40 + N_PAIRS  # finished work was kept, not redone
     assert this_run["extraction"] == {"images": 40, "cached": 40 - extracted_again, "extracted": extracted_again}
@@ -439,9 +439,7 @@ def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_two_runs_from_scratch_give_identical_pairs_and_results(sequence, baseline, tmp_path):
-    method_runs.run_method(
-        sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False
-    )
+    run_here(sequence, tmp_path)
     assert_same_pairs(tmp_path / "out", baseline["out"])
     first = (method_outputs.method_dir(baseline["out"], METHOD) / "pairs.csv").read_text().splitlines()
     second = (method_outputs.method_dir(tmp_path / "out", METHOD) / "pairs.csv").read_text().splitlines()
@@ -472,9 +470,7 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
-    table = method_runs.run_method(
-        sequence, METHOD, PROFILE, tmp_path / "out", tmp_path / "cache", device="cpu", progress=False, workers=2
-    )
+    table = run_here(sequence, tmp_path, workers=2)
     assert run_json(tmp_path / "out")["this_run"]["workers"] == 2
     expected = scoring.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
@@ -494,66 +490,10 @@ def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
             np.testing.assert_array_equal(mine.read(key)[name], reference.read(key)[name])
 
 
-def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
-    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
-    assert concurrency.worker_count() == concurrency.available_cores() == len(os.sched_getaffinity(0))
-    monkeypatch.setenv("GVBENCH_JOBS", "3")
-    assert concurrency.worker_count() == 3 and concurrency.worker_count(2) == 2
-    with pytest.raises(ValueError, match=r"--jobs or \$GVBENCH_JOBS"):
-        concurrency.worker_count(0)
-    monkeypatch.setenv("GVBENCH_JOBS", "two")
-    with pytest.raises(ValueError, match=r"got 'two' \(--jobs or \$GVBENCH_JOBS\)"):
-        concurrency.worker_count()
-
-
-def test_threads_a_job_share_the_cores_between_the_jobs_in_torch_opencv_and_blas(monkeypatch):
-    """The real ``configure_threads`` (this module's runs use the ``one_thread`` stand-in)."""
-    from threadpoolctl import threadpool_info
-
-    monkeypatch.delenv("GVBENCH_THREADS", raising=False)
-    monkeypatch.setattr(concurrency, "available_cores", lambda: 4)
-    before = torch.get_num_threads(), cv2.getNumThreads()
-    try:
-        assert CONFIGURE_THREADS(jobs=2) == 2
-        assert torch.get_num_threads() == cv2.getNumThreads() == 2
-        assert {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"} <= {2}
-        assert CONFIGURE_THREADS(jobs=8) == 1  # never fewer than one a job
-        assert CONFIGURE_THREADS(3, jobs=2) == 3  # asked for
-        monkeypatch.setenv("GVBENCH_THREADS", "2")
-        assert CONFIGURE_THREADS(jobs=4) == 2
-    finally:
-        CONFIGURE_THREADS(before[0])
-        cv2.setNumThreads(before[1])
-
-
-def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the_variable(monkeypatch, capsys):
-    from gvbench_nb import cli
-
-    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
-    args = cli.build_parser().parse_args(["run", "p.yaml", "--jobs", "2", "--dask-workers", "3"])
-    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and concurrency.worker_count() == 2
-    assert args.dask_workers == 3  # the Dask cluster's size: another name, another number
-    monkeypatch.delenv("GVBENCH_JOBS")
-    assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None
-    monkeypatch.setenv("GVBENCH_JOBS", "0")
-    with pytest.raises(SystemExit) as stopped:  # a bad variable is refused at parse time, before any work
-        cli.build_parser().parse_args(["run", "p.yaml"])
-    assert stopped.value.code == 2
-    assert "argument --jobs: must be a whole number of at least 1 (--jobs or $GVBENCH_JOBS), got '0'" in (
-        capsys.readouterr().err
-    )
-    monkeypatch.delenv("GVBENCH_JOBS")
-    with pytest.raises(SystemExit):  # the old spelling is gone, not an alias
-        cli.build_parser().parse_args(["run", "p.yaml", "--workers", "2"])
-    assert "unrecognized arguments: --workers 2" in capsys.readouterr().err
-
-
 @pytest.mark.real_data
 def test_scores_do_not_depend_on_the_order_pairs_run_in(sequence, baseline, tmp_path):
     reversed_sequence = Sequence(sequence.name, sequence.image_root, sequence.pairs[::-1])
-    table = method_runs.run_method(
-        reversed_sequence, METHOD, PROFILE, tmp_path / "out", baseline["cache"], device="cpu", progress=False
-    )
+    table = run_here(reversed_sequence, tmp_path, cache=baseline["cache"])
     expected = scoring.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
     pd.testing.assert_frame_equal(table[columns].iloc[::-1].reset_index(drop=True), expected[columns])

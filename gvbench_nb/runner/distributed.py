@@ -78,7 +78,7 @@ def extract_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    jobs = concurrency.worker_count()
+    jobs = concurrency.job_count()
     concurrency.configure_threads(threads, jobs)
     return image_features.extract_features(
         sequence,
@@ -87,7 +87,7 @@ def extract_shard(
         resolve_device(device),
         progress=False,
         images=sequence.images[index::count],
-        workers=jobs,
+        jobs=jobs,
     )
 
 
@@ -111,7 +111,7 @@ def match_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.worker_count())
+    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.job_count())
     if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
         raise ValueError(
             f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "

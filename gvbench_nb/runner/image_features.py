@@ -118,11 +118,11 @@ def extract_features(
     progress: bool = True,
     flush_every: int = 16,
     images: list[str] | None = None,
-    workers: int | None = None,
+    jobs: int | None = None,
     run_id: str | None = None,
 ) -> dict[str, int]:
     """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
-    not yet in the cache, ``workers`` images at a time (default ``worker_count()``).
+    not yet in the cache, ``jobs`` images at a time (default ``job_count()``).
     Returns counts; ``cached_by_this_run`` (only when there are any): cached images that run
     ``run_id`` extracted itself, for another method, in this process."""
     store = feature_store(cache_dir, extractor_conf)
@@ -163,7 +163,7 @@ def extract_features(
         stored = stored_features(features, image, scale, extractor_conf.get("store_float16", False))
         return stored, time.perf_counter() - start
 
-    results = _extract_in_order(todo, load, extract, concurrency.worker_count(workers))
+    results = _extract_in_order(todo, load, extract, concurrency.job_count(jobs))
     bar = progress_bar(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
     with store.writer(flush_every) as writer:
         for key, extracted in results:
@@ -192,4 +192,4 @@ def _extract_in_order(todo: list[str], load: Callable, extract: Callable, jobs: 
             (key, loaded if isinstance(loaded, BaseException) else extract(loaded))
             for key, loaded in concurrency.prefetch(todo, load)
         )
-    return concurrency.prefetch(todo, lambda key: extract(load(key)), depth=2 * jobs, workers=jobs)
+    return concurrency.prefetch(todo, lambda key: extract(load(key)), depth=2 * jobs, jobs=jobs)

@@ -162,10 +162,10 @@ def match_and_verify(
     seed: int = 0,
     progress: bool = True,
     flush_every: int = 64,
-    workers: int | None = None,
+    jobs: int | None = None,
 ) -> dict[str, int]:
-    """Match and verify every pair not yet in the method's match store, ``workers``
-    pairs at a time (default: ``worker_count()``; dense matchers run one pair at a time)."""
+    """Match and verify every pair not yet in the method's match store, ``jobs``
+    pairs at a time (default: ``job_count()``; dense matchers run one pair at a time)."""
     matches = match_store(output_dir, conf)
     matches.refresh()
     keys = pair_keys(sequence, seed)
@@ -220,10 +220,10 @@ def match_and_verify(
 
     # Pairs are matched and verified in worker threads (torch and OpenCV release the GIL),
     # one or more ahead of this thread, which alone writes the store, in order.
-    jobs = concurrency.worker_count(workers)
+    jobs = concurrency.job_count(jobs)
     bar = progress_bar(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
     with matches.writer(flush_every) as writer:
-        for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * jobs, workers=jobs):
+        for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * jobs, jobs=jobs):
             if isinstance(done, BaseException):
                 raise done
             pair_matches, match_scores, verified, match_seconds, verify_seconds = done

@@ -129,16 +129,16 @@ def test_parse_shard_reads_index_and_count():
     assert distributed.parse_shard("2/5") == (2, 5)
 
 
-def test_worker_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
+def test_job_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
-    assert concurrency.worker_count() == concurrency.available_cores() == len(os.sched_getaffinity(0))
+    assert concurrency.job_count() == concurrency.available_cores() == len(os.sched_getaffinity(0))
     monkeypatch.setenv("GVBENCH_JOBS", "3")
-    assert concurrency.worker_count() == 3 and concurrency.worker_count(2) == 2
+    assert concurrency.job_count() == 3 and concurrency.job_count(2) == 2
     with pytest.raises(ValueError, match=r"--jobs or \$GVBENCH_JOBS"):
-        concurrency.worker_count(0)
+        concurrency.job_count(0)
     monkeypatch.setenv("GVBENCH_JOBS", "two")
     with pytest.raises(ValueError, match=r"got 'two' \(--jobs or \$GVBENCH_JOBS\)"):
-        concurrency.worker_count()
+        concurrency.job_count()
 
 
 def test_threads_a_job_share_the_cores_between_the_jobs_in_torch_opencv_and_blas(monkeypatch):
@@ -165,7 +165,7 @@ def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the
 
     monkeypatch.delenv("GVBENCH_JOBS", raising=False)
     args = cli.build_parser().parse_args(["run", "p.yaml", "--jobs", "2", "--dask-workers", "3"])
-    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and concurrency.worker_count() == 2
+    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and concurrency.job_count() == 2
     assert args.dask_workers == 3  # the Dask cluster's size: another name, another number
     monkeypatch.delenv("GVBENCH_JOBS")
     assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None

@@ -107,7 +107,7 @@ def baseline(single_thread, sequence, tmp_path_factory) -> dict[str, Path]:
     """One uninterrupted run from scratch: what every other run must reproduce."""
     base = tmp_path_factory.mktemp("baseline")
     method_runs.run_method(
-        sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False, workers=1
+        sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False, jobs=1
     )
     return {"out": base / "out", "cache": base / "cache"}
 
@@ -299,9 +299,9 @@ def _truncated(source: Path, target: Path) -> Path:
 
 
 @pytest.mark.real_data
-@pytest.mark.parametrize("workers", ["1", "2"])
-def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small_root, tmp_path, monkeypatch, workers):
-    monkeypatch.setenv("GVBENCH_JOBS", workers)  # the error surfaces from a worker thread as well
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small_root, tmp_path, monkeypatch, jobs):
+    monkeypatch.setenv("GVBENCH_JOBS", jobs)  # the error surfaces from a worker thread as well
     root = tmp_path / "root"
     shutil.copytree(small_root, root)
     good = [
@@ -469,9 +469,9 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
 
 @pytest.mark.slow
 @pytest.mark.real_data
-def test_two_workers_store_what_one_worker_stores(sequence, baseline, tmp_path):
-    table = run_here(sequence, tmp_path, workers=2)
-    assert run_json(tmp_path / "out")["this_run"]["workers"] == 2
+def test_two_jobs_store_what_one_job_stores(sequence, baseline, tmp_path):
+    table = run_here(sequence, tmp_path, jobs=2)
+    assert run_json(tmp_path / "out")["this_run"]["jobs"] == 2
     expected = scoring.load_pairs_table(baseline["out"], METHOD)
     columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
     pd.testing.assert_frame_equal(table[columns], expected[columns])

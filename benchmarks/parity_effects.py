@@ -378,7 +378,7 @@ class Context:
 
     def extract(self, conf: dict[str, Any], cache_dir: Path | None = None) -> Callable[[str], Features]:
         cache_dir = cache_dir or self.cache_dir
-        image_features.extract_features(self.sequence, conf["extractor"], cache_dir, device=self.device, workers=1)
+        image_features.extract_features(self.sequence, conf["extractor"], cache_dir, device=self.device, jobs=1)
         return read_features(self.sequence, conf["extractor"], cache_dir)
 
     def matcher(self, conf: dict[str, Any]) -> Any:

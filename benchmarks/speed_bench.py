@@ -118,7 +118,7 @@ def run_cached_pipeline(
     workers: int | None = None,
 ) -> tuple[pd.DataFrame, dict[str, float]]:
     """Our pipeline from a cold cache in ``work_dir``, ``workers`` images or pairs at a
-    time (``concurrency.worker_count``): per-pair table and stage seconds (totals).
+    time (``concurrency.job_count``): per-pair table and stage seconds (totals).
 
     ``extract`` is the wall time of extraction (decoding overlapped by the prefetcher);
     ``match``/``verify`` are the per-pair timers' sums, which overlap (matching runs a pair
@@ -128,9 +128,9 @@ def run_cached_pipeline(
     cache_dir, output_dir = Path(work_dir) / "cache", Path(work_dir) / "out"
     start = time.perf_counter()
     if not method_registry.is_dense(conf):
-        image_features.extract_features(sequence, conf["extractor"], cache_dir, device, progress=False, workers=workers)
+        image_features.extract_features(sequence, conf["extractor"], cache_dir, device, progress=False, jobs=workers)
     extracted = time.perf_counter()
-    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device, seed, progress=False, workers=workers)
+    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device, seed, progress=False, jobs=workers)
     matched = time.perf_counter()
     table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed)
     wall = time.perf_counter() - start
@@ -524,7 +524,7 @@ def measure_prefetch_overlap(sequence: Sequence, method: str, profile: str, devi
     del images
     with tempfile.TemporaryDirectory(prefix="gvbench-overlap-") as work_dir:
         started = time.perf_counter()
-        image_features.extract_features(sequence, extractor_conf, Path(work_dir), resolved, progress=False, workers=1)
+        image_features.extract_features(sequence, extractor_conf, Path(work_dir), resolved, progress=False, jobs=1)
         prefetched = time.perf_counter() - started
     return {
         "sequence": sequence.name,

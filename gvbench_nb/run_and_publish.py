@@ -146,7 +146,7 @@ def command_run(args: argparse.Namespace) -> int:
         )
 
         def compute(method: str) -> None:
-            method_runs.run_method_of_params(run_params, sequence, method, workers=args.jobs)
+            method_runs.run_method_of_params(run_params, sequence, method, jobs=args.jobs)
 
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths

@@ -57,7 +57,7 @@ allow_damaged_images: Optional[bool] = None  # true: run on images whose decoder
 # %%
 params, seq = notebook.load_sequence(params_file, **notebook.params_keys(globals()))
 out = Path(params["output_dir"])
-table = method_runs.run_method_of_params(params, seq, method, workers=jobs)
+table = method_runs.run_method_of_params(params, seq, method, jobs=jobs)
 written = method_outputs.method_dir(out, method) / "pairs.csv"
 run = f"{method} ({params['profile']}) on {seq.name}"
 print(f"{run}: {len(table)} pairs -> {written}")

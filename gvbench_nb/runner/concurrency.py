@@ -66,9 +66,9 @@ def threads_of_environment() -> int | None:
 JOBS_ENV = "GVBENCH_JOBS"  # the run's parallelism, as `run --jobs` and the bench's `--jobs` set it
 
 
-def worker_count(workers: int | None = None) -> int:
+def job_count(jobs: int | None = None) -> int:
     """How many images are extracted, and pairs matched and verified, at once (the run's
-    jobs): ``workers``, else $GVBENCH_JOBS (what ``--jobs`` sets), else every available core
+    jobs): ``jobs``, else $GVBENCH_JOBS (what ``--jobs`` sets), else every available core
     (``available_cores``), each job on its own threads (``configure_threads``).
 
     Each image's and pair's timer is its own wall time on its job's threads: with one job a
@@ -77,17 +77,17 @@ def worker_count(workers: int | None = None) -> int:
     """
     text = os.environ.get(JOBS_ENV) or ""
     try:
-        n = workers if workers is not None else int(text) if text else available_cores()
+        n = jobs if jobs is not None else int(text) if text else available_cores()
     except ValueError:
         n = 0
     if n < 1:
-        given = n if workers is not None else repr(text)
+        given = n if jobs is not None else repr(text)
         raise ValueError(f"jobs must be a whole number of at least 1, got {given} (--jobs or ${JOBS_ENV})")
     return n
 
 
 def prefetch(
-    items: Iterable[T], load: Callable[[T], R], depth: int = 4, workers: int = 2
+    items: Iterable[T], load: Callable[[T], R], depth: int = 4, jobs: int = 2
 ) -> Iterator[tuple[T, R | BaseException]]:
     """Yield (item, load(item)) in order while the next ``depth`` loads run in threads.
 
@@ -97,7 +97,7 @@ def prefetch(
     """
     iterator = iter(items)
     pending: list[tuple[T, Future[R]]] = []
-    with ThreadPoolExecutor(max_workers=workers) as pool:
+    with ThreadPoolExecutor(max_workers=jobs) as pool:
         for item in iterator:
             pending.append((item, pool.submit(load, item)))
             if len(pending) >= depth:

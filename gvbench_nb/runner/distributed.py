@@ -78,7 +78,7 @@ def extract_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    jobs = concurrency.worker_count()
+    jobs = concurrency.job_count()
     concurrency.configure_threads(threads, jobs)
     return image_features.extract_features(
         sequence,
@@ -87,7 +87,7 @@ def extract_shard(
         resolve_device(device),
         progress=False,
         images=sequence.images[index::count],
-        workers=jobs,
+        jobs=jobs,
     )
 
 
@@ -111,7 +111,7 @@ def match_shard(
         resolve_device,  # imports torch: only where a device is resolved
     )
 
-    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.worker_count())
+    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.job_count())
     if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
         raise ValueError(
             f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
@@ -302,60 +302,12 @@ def run_many(
         threads = default_threads(n_workers or os.cpu_count() or 1)
     results: dict[str, pd.DataFrame] = {}
     with dask_client(scheduler, n_workers, processes) as client:
-        extraction: dict[tuple[str, str], list[Any]] = {}
-        matching: dict[tuple[int, str], list[Any]] = {}
-        for job, (params, sequence) in enumerate(zip(params_list, sequences)):
-            output_dir, cache_dir = params["output_dir"], params["cache_dir"]
-            for method in params["methods"]:
-                conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-                after: list[Any] = []
-                if conf["extractor"]:
-                    key = (
-                        f"{cache_dir}\t{sequence.image_root}\t{sequence.name}",
-                        method_registry.conf_hash(conf["extractor"]),
-                    )
-                    if key not in extraction:  # methods sharing an extractor share its shards
-                        name = f"extract-{sequence.name}-{conf['extractor']['name']}"
-                        extraction[key] = [
-                            client.submit(
-                                extract_shard,
-                                sequence,
-                                conf["extractor"],
-                                cache_dir,
-                                i,
-                                n_shards,
-                                params["device"],
-                                threads,
-                                pure=False,
-                                key=f"{name}-{i}of{n_shards}-{job}",
-                            )
-                            for i in range(n_shards)
-                        ]
-                    after = extraction[key]
-                matching[(job, method)] = [
-                    client.submit(
-                        match_shard,
-                        sequence,
-                        conf,
-                        cache_dir,
-                        output_dir,
-                        i,
-                        n_shards,
-                        params["device"],
-                        params["seed"],
-                        threads,
-                        after,
-                        pure=False,
-                        key=f"match-{sequence.name}-{method}-{i}of{n_shards}-{job}",
-                    )
-                    for i in range(n_shards)
-                ]
-        all_futures = [f for futures in matching.values() for f in futures]
-        bar = tqdm(total=len(all_futures), desc="shards", unit="shard", disable=not progress)
-        for job, (params, sequence) in enumerate(zip(params_list, sequences)):
+        matching = _submit_shards(client, params_list, sequences, n_shards, threads)
+        bar = tqdm(total=sum(len(f) for f in matching.values()), desc="shards", unit="shard", disable=not progress)
+        for index, (params, sequence) in enumerate(zip(params_list, sequences)):
             shards: dict[str, list[dict[str, Any]]] = {}
             for method in params["methods"]:
-                futures = matching[(job, method)]
+                futures = matching[(index, method)]
                 wait(futures)
                 shards[method] = []
                 for i, future in enumerate(futures):
@@ -370,6 +322,41 @@ def run_many(
             results[params["output_dir"]] = merge_runs(params, shards)
         bar.close()
     return results
+
+
+def _submit_shards(
+    client: Any, params_list: list[dict[str, Any]], sequences: list[Sequence], n_shards: int, threads: int | None
+) -> dict[tuple[int, str], list[Any]]:
+    """Submit every extraction shard (once per cache, images and extractor) and every matching
+    shard, after its extractor's; the matching futures by (params index, method)."""
+    extraction: dict[tuple[str, str], list[Any]] = {}
+    matching: dict[tuple[int, str], list[Any]] = {}
+    for index, (params, sequence) in enumerate(zip(params_list, sequences)):
+        output_dir, cache_dir, device = params["output_dir"], params["cache_dir"], params["device"]
+        for method in params["methods"]:
+            conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
+            after: list[Any] = []
+            if conf["extractor"]:
+                extractor = conf["extractor"]
+                key = (f"{cache_dir}\t{sequence.image_root}\t{sequence.name}", method_registry.conf_hash(extractor))
+                if key not in extraction:  # methods sharing an extractor share its shards
+                    name = f"extract-{sequence.name}-{extractor['name']}"
+                    extraction[key] = [
+                        client.submit(
+                            extract_shard, sequence, extractor, cache_dir, i, n_shards, device, threads,
+                            pure=False, key=f"{name}-{i}of{n_shards}-{index}",
+                        )
+                        for i in range(n_shards)
+                    ]  # fmt: skip
+                after = extraction[key]
+            matching[(index, method)] = [
+                client.submit(
+                    match_shard, sequence, conf, cache_dir, output_dir, i, n_shards, device, params["seed"], threads,
+                    after, pure=False, key=f"match-{sequence.name}-{method}-{i}of{n_shards}-{index}",
+                )
+                for i in range(n_shards)
+            ]  # fmt: skip
+    return matching
 
 
 def run_sharded(

@@ -6,7 +6,7 @@ import hashlib
 import os
 import threading
 import time
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -118,11 +118,11 @@ def extract_features(
     progress: bool = True,
     flush_every: int = 16,
     images: list[str] | None = None,
-    workers: int | None = None,
+    jobs: int | None = None,
     run_id: str | None = None,
 ) -> dict[str, int]:
     """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
-    not yet in the cache, ``workers`` images at a time (default ``worker_count()``).
+    not yet in the cache, ``jobs`` images at a time (default ``job_count()``).
     Returns counts; ``cached_by_this_run`` (only when there are any): cached images that run
     ``run_id`` extracted itself, for another method, in this process."""
     store = feature_store(cache_dir, extractor_conf)
@@ -163,17 +163,7 @@ def extract_features(
         stored = stored_features(features, image, scale, extractor_conf.get("store_float16", False))
         return stored, time.perf_counter() - start
 
-    workers = concurrency.worker_count(workers)
-    # One worker: decoding runs ahead in threads while this thread extracts. Several:
-    # each worker decodes and extracts its own image (OpenCV and torch release the GIL).
-    # Either way results come back in order and only this thread writes the store.
-    if workers == 1:
-        results: Iterable[tuple[str, Any]] = (
-            (key, loaded if isinstance(loaded, BaseException) else extract(loaded))
-            for key, loaded in concurrency.prefetch(todo, load)
-        )
-    else:
-        results = concurrency.prefetch(todo, lambda key: extract(load(key)), depth=2 * workers, workers=workers)
+    results = _extract_in_order(todo, load, extract, concurrency.job_count(jobs))
     bar = progress_bar(total=len(todo), desc=f"extract {extractor_conf['name']}", disable=not progress, unit="img")
     with store.writer(flush_every) as writer:
         for key, extracted in results:
@@ -191,3 +181,15 @@ def extract_features(
             bar.update()
     bar.close()
     return counts
+
+
+def _extract_in_order(todo: list[str], load: Callable, extract: Callable, jobs: int) -> Iterable[tuple[str, Any]]:
+    """(key, features and seconds, or the error) in ``todo``'s order. One job: decoding runs
+    ahead in threads while this thread extracts; several: each decodes and extracts its own
+    image (OpenCV and torch release the GIL). Only the caller's thread writes the store."""
+    if jobs == 1:
+        return (
+            (key, loaded if isinstance(loaded, BaseException) else extract(loaded))
+            for key, loaded in concurrency.prefetch(todo, load)
+        )
+    return concurrency.prefetch(todo, lambda key: extract(load(key)), depth=2 * jobs, jobs=jobs)

@@ -32,7 +32,7 @@ def check_environment() -> None:
     """Every environment variable the package reads holds a value it can use; the error names it."""
     try:
         concurrency.threads_of_environment()
-        concurrency.worker_count()
+        concurrency.job_count()
         max_pixels()
     except (ValueError, ImageReadError) as error:
         raise SettingError(str(error)) from None

@@ -1,4 +1,4 @@
-"""``--jobs N``: how many images, then pairs, a run processes at once (``concurrency.worker_count``).
+"""``--jobs N``: how many images, then pairs, a run processes at once (``concurrency.job_count``).
 
 One name for one concept: the flag of ``run`` and of the bench (``python benchmarks/speed.py``) and the environment variable
 $GVBENCH_JOBS that ``run`` exports for the processes it starts (``run`` passes it to its

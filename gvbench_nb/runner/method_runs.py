@@ -30,18 +30,16 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
         features = image_features.feature_store(cache_dir, conf["extractor"])
         features.refresh()
         for name in uses:
-            entry = features.read(
-                image_features.image_key(sequence.image_root, name), fields=("keypoints",)
-            )  # not descriptors
+            key = image_features.image_key(sequence.image_root, name)
+            entry = features.read(key, fields=("keypoints",))  # not descriptors
             image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
         features.close()
     keys = pair_matching.pair_keys(sequence, seed)
     rows = []
     for index, pair in enumerate(sequence.pairs):
         entry = matches.read(keys[pair], fields=())  # the counts and timers only
-        if dense:
-            pair_matching.check_merged_over(entry, sequence, keys, matches.folder)
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
+            pair_matching.check_merged_over(entry, sequence, keys, matches.folder)
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
             extract_seconds = 0.0
         else:
@@ -112,7 +110,7 @@ def compute_method(
     seed: int = 0,
     progress: bool = True,
     threads: int | None = None,
-    workers: int | None = None,
+    jobs: int | None = None,
     verifier: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Extract and match what the caches lack for one method on a sequence (``run_method``'s
@@ -123,9 +121,9 @@ def compute_method(
     from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)
-    workers = concurrency.worker_count(workers)
+    jobs = concurrency.job_count(jobs)
     # Dense matchers take one pair at a time: their one job gets every core's threads.
-    threads = concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else workers)
+    threads = concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else jobs)
     started = time.perf_counter()
     extraction = (
         image_features.extract_features(
@@ -134,7 +132,7 @@ def compute_method(
             cache_dir,
             resolved_device,
             progress,
-            workers=workers,
+            jobs=jobs,
             run_id=record.stage_run_id(output_dir),
         )
         if conf["extractor"]
@@ -142,7 +140,7 @@ def compute_method(
     )
     extracted = time.perf_counter()
     matching = pair_matching.match_and_verify(
-        sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, workers=workers
+        sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, jobs=jobs
     )
     finished = time.perf_counter()
     return {
@@ -150,7 +148,7 @@ def compute_method(
         "this_run": {
             "extraction": extraction,
             "matching": matching,
-            "workers": workers,
+            "jobs": jobs,
             "threads": threads,
             "extract_wall_seconds": extracted - started,
             "match_verify_wall_seconds": finished - extracted,
@@ -166,21 +164,18 @@ def run_method(
     cache_dir: Path,
     device: str = "auto",
     seed: int = 0,
-    progress: bool = True,
-    threads: int | None = None,
-    workers: int | None = None,
-    verifier: dict[str, Any] | None = None,
+    **options: Any,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
-    ``verifier``: overrides of the profile's verifier conf (``methods.resolve_method``).
-    ``workers`` images or pairs run at once (``worker_count``: default $GVBENCH_JOBS, else every core).
+    ``options``: ``compute_method``'s progress, threads, jobs (images or pairs at once, default
+    ``job_count()``) and verifier (overrides of the profile's, ``methods.resolve_method``).
 
     A finished result of the same pairs, labels, images, conf, seed and device request in
     ``output_dir`` is returned as it is (``finished_table``): nothing is computed or written.
     Missing weights fail here, before any work. Finished work found in the caches is
     reused, so an interrupted run resumes.
     """
-    conf = method_registry.resolve_method(method, profile, verifier)
+    conf = method_registry.resolve_method(method, profile, options.get("verifier"))
     method_registry.require(method, profile)
     folder = method_outputs.method_dir(output_dir, method)
     done = finished_table(folder, sequence, conf, seed, device)
@@ -196,9 +191,7 @@ def run_method(
         # The folder's results stay as they are until this method's are written, at the end.
         record.claim(output_dir)
         record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
-    work = compute_method(
-        sequence, method, profile, output_dir, cache_dir, device, seed, progress, threads, workers, verifier
-    )
+    work = compute_method(sequence, method, profile, output_dir, cache_dir, device, seed, **options)
     return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
 
 

@@ -8,13 +8,13 @@ import hashlib
 import threading
 import time
 import zlib
-from collections import OrderedDict
 from collections.abc import Callable, Iterator
 from concurrent.futures import Future
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, cast
 
 import numpy as np
+from cachetools import LRUCache
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
@@ -35,23 +35,26 @@ if TYPE_CHECKING:
 
 
 # ---------------------------------------------------------- matching + verifying --
+def _bounded_lru(max_bytes: int, size_of: Callable[[Any], int]) -> LRUCache:
+    """An LRU cache of at most ``max_bytes``; an entry counts at least one byte and at most the
+    whole budget, so the newest entry always stays, however large."""
+    return LRUCache(maxsize=max_bytes, getsizeof=lambda value: min(max(size_of(value), 1), max_bytes))
+
+
 class PreparedCache:
-    """Per-image matcher states by image name, least recently used first out once they
-    hold more than ``max_bytes`` (the newest state always stays). Thread-safe: a thread
+    """Per-image matcher states by image name in a byte-bounded LRU. Thread-safe: a thread
     that asks for an image another thread is preparing waits for that state."""
 
     def __init__(self, prepare: Callable[[dict[str, np.ndarray]], Any], max_bytes: int = 1 << 30):
-        self.prepare, self.max_bytes = prepare, max_bytes
-        self._states: OrderedDict[str, tuple[Any, int]] = OrderedDict()
+        self.prepare = prepare
+        self._states = _bounded_lru(max_bytes, lambda state: state.nbytes() if state is not None else 0)
         self._pending: dict[str, Future] = {}
-        self._bytes = 0
         self._lock = threading.Lock()
 
     def get(self, name: str, features: dict[str, np.ndarray]) -> Any:
         with self._lock:
             if name in self._states:
-                self._states.move_to_end(name)
-                return self._states[name][0]
+                return self._states[name]
             pending = self._pending.get(name)
             if pending is None:
                 mine = self._pending[name] = Future()
@@ -64,14 +67,9 @@ class PreparedCache:
                 del self._pending[name]
             mine.set_exception(error)
             raise
-        size = state.nbytes() if state is not None else 0
         with self._lock:
             del self._pending[name]
-            self._states[name] = (state, size)
-            self._bytes += size
-            while self._bytes > self.max_bytes and len(self._states) > 1:
-                _, (_, dropped) = self._states.popitem(last=False)
-                self._bytes -= dropped
+            self._states[name] = state
         mine.set_result(state)
         return state
 
@@ -80,25 +78,23 @@ class PreparedCache:
 
 
 class FeatureCache:
-    """Feature dicts by image name, read on first use; least recently used first out once
-    they hold more than ``max_bytes`` (the newest always stays). Not thread-safe: callers lock."""
+    """Feature dicts by image name, read on first use, in a byte-bounded LRU. Not thread-safe:
+    callers lock."""
 
     def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
-        self.read, self.max_bytes = read, max_bytes
-        self._entries: OrderedDict[str, tuple[dict[str, np.ndarray], int]] = OrderedDict()
-        self.nbytes = 0
+        self.read = read
+        self._entries = _bounded_lru(
+            max_bytes, lambda entry: sum(v.nbytes for v in entry.values() if isinstance(v, np.ndarray))
+        )
+
+    @property
+    def nbytes(self) -> int:
+        return int(self._entries.currsize)
 
     def get(self, name: str) -> dict[str, np.ndarray]:
-        if name in self._entries:
-            self._entries.move_to_end(name)
-            return self._entries[name][0]
-        entry = self.read(name)
-        size = sum(value.nbytes for value in entry.values() if isinstance(value, np.ndarray))
-        self._entries[name] = (entry, size)
-        self.nbytes += size
-        while self.nbytes > self.max_bytes and len(self._entries) > 1:
-            self.nbytes -= self._entries.popitem(last=False)[1][1]
-        return entry
+        if name not in self._entries:
+            self._entries[name] = self.read(name)
+        return self._entries[name]
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -166,10 +162,10 @@ def match_and_verify(
     seed: int = 0,
     progress: bool = True,
     flush_every: int = 64,
-    workers: int | None = None,
+    jobs: int | None = None,
 ) -> dict[str, int]:
-    """Match and verify every pair not yet in the method's match store, ``workers``
-    pairs at a time (default: ``worker_count()``; dense matchers run one pair at a time)."""
+    """Match and verify every pair not yet in the method's match store, ``jobs``
+    pairs at a time (default: ``job_count()``; dense matchers run one pair at a time)."""
     matches = match_store(output_dir, conf)
     matches.refresh()
     keys = pair_keys(sequence, seed)
@@ -186,9 +182,7 @@ def match_and_verify(
         counts["matched"] = len(todo)
         return counts
     features = image_features.feature_store(cache_dir, conf["extractor"])
-    reading = (
-        threading.Lock()
-    )  # one HDF5 reader at a time (h5py serialises anyway; the handle cache is not thread-safe)
+    reading = threading.Lock()  # h5py serialises reads anyway; the handle cache is not thread-safe
 
     def read(name: str) -> dict[str, np.ndarray]:
         key = image_features.image_key(sequence.image_root, name)
@@ -196,9 +190,7 @@ def match_and_verify(
             raise KeyError(f"features of {name!r} are not in the cache {features.folder}; run extraction first")
         return features.read(key)
 
-    # A query's candidates are consecutive and references recur: recently read features are
-    # kept, up to a memory bound that does not grow with the sequence.
-    recent = FeatureCache(read)
+    recent = FeatureCache(read)  # a query's candidates are consecutive and references recur
 
     def load(name: str) -> dict[str, np.ndarray]:
         with reading:
@@ -211,7 +203,7 @@ def match_and_verify(
         PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
     )
 
-    def match_pair(pair: Any) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray], np.ndarray, np.ndarray, float]:
+    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
         features0, features1 = load(pair.query), load(pair.reference)
         start = time.perf_counter()
         if prepared is not None:
@@ -220,68 +212,25 @@ def match_and_verify(
             )
         else:
             pair_matches, match_scores = matcher(features0, features1)
-        return features0, features1, pair_matches, match_scores, time.perf_counter() - start
-
-    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
-        features0, features1, pair_matches, match_scores, match_seconds = match_pair(pair)
-        verified, verify_seconds = _verify_pair(
-            pair,
-            conf,
-            seed,
-            features0["keypoints"],
-            features1["keypoints"],
-            pair_matches,
-            match_scores,
-            image_sizes(features0, features1),
-        )
+        match_seconds = time.perf_counter() - start
+        keypoints = features0["keypoints"], features1["keypoints"]
+        sizes = image_sizes(features0, features1)
+        verified, verify_seconds = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
         return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
-    workers = concurrency.worker_count(workers)
+    # Pairs are matched and verified in worker threads (torch and OpenCV release the GIL),
+    # one or more ahead of this thread, which alone writes the store, in order.
+    jobs = concurrency.job_count(jobs)
     bar = progress_bar(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
     with matches.writer(flush_every) as writer:
-        if workers == 1:
-            # Matching runs one pair ahead in a worker thread while this thread verifies
-            # and writes the previous one: torch and OpenCV release the GIL, so
-            # verification overlaps matching. The store is written from this thread only.
-            for pair, matched in concurrency.prefetch(todo, match_pair, depth=2, workers=1):
-                if isinstance(matched, BaseException):
-                    raise matched
-                features0, features1, pair_matches, match_scores, match_seconds = matched
-                _verify_and_store(
-                    writer,
-                    pair,
-                    keys[pair],
-                    conf,
-                    seed,
-                    features0["keypoints"],
-                    features1["keypoints"],
-                    pair_matches,
-                    match_scores,
-                    {"matches": pair_matches.astype(np.int32)},
-                    match_seconds,
-                    image_sizes(features0, features1),
-                )
-                counts["matched"] += 1
-                bar.update()
-        else:
-            # Several pairs at once, each matched then verified in its own thread; results
-            # come back in order and are written from this thread only.
-            for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * workers, workers=workers):
-                if isinstance(done, BaseException):
-                    raise done
-                pair_matches, match_scores, verified, match_seconds, verify_seconds = done
-                _store_verified(
-                    writer,
-                    keys[pair],
-                    pair_matches,
-                    match_scores,
-                    verified,
-                    {"matches": pair_matches.astype(np.int32)},
-                    match_seconds,
-                    verify_seconds,
-                )
-                counts["matched"] += 1
-                bar.update()
+        for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * jobs, jobs=jobs):
+            if isinstance(done, BaseException):
+                raise done
+            pair_matches, match_scores, verified, match_seconds, verify_seconds = done
+            arrays = {"matches": pair_matches.astype(np.int32)}
+            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds)
+            counts["matched"] += 1
+            bar.update()
     bar.close()
     return counts
 
@@ -289,25 +238,6 @@ def match_and_verify(
 def image_sizes(features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> tuple[Any, Any]:
     """Original (width, height) of both images of a pair, from their cached features."""
     return features0.get("image_size"), features1.get("image_size")
-
-
-def _verify_and_store(
-    writer: Any,
-    pair: Any,
-    key: str,
-    conf: dict[str, Any],
-    seed: int,
-    keypoints0: np.ndarray,
-    keypoints1: np.ndarray,
-    pair_matches: np.ndarray,
-    match_scores: np.ndarray,
-    arrays: dict[str, np.ndarray],
-    match_seconds: float,
-    sizes: tuple[Any, Any] = (None, None),
-) -> None:
-    """Verify one matched pair and commit its matches, inlier mask, counts and timings."""
-    verified, verify_seconds = _verify_pair(pair, conf, seed, keypoints0, keypoints1, pair_matches, match_scores, sizes)
-    _store_verified(writer, key, pair_matches, match_scores, verified, arrays, match_seconds, verify_seconds)
 
 
 def _verify_pair(
@@ -337,7 +267,6 @@ def _verify_pair(
 def _store_verified(
     writer: Any,
     key: str,
-    pair_matches: np.ndarray,
     match_scores: np.ndarray,
     verified: dict[str, Any],
     arrays: dict[str, np.ndarray],
@@ -394,6 +323,36 @@ def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any,
         )
 
 
+def _dense_raw_matches(
+    sequence: Sequence, pairs: list, conf: dict[str, Any], matcher: Callable, progress: bool
+) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:
+    """Each pair's points in original pixels, both images' original sizes, scores, seconds;
+    decoding overlaps compute through the prefetching loader."""
+    # A matcher with a loader of its own (vismatch's) sees the images as that loader makes them.
+    load = getattr(matcher, "load", None) or (lambda path: load_for_extraction(path, conf["matcher"]))
+
+    def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        return (*load(sequence.image_root / pair.query), *load(sequence.image_root / pair.reference))
+
+    bar = progress_bar(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
+    for pair, loaded in concurrency.prefetch(pairs, load_pair):
+        if isinstance(loaded, BaseException):
+            raise ImageReadError(f"{loaded} (pair {pair.query} {pair.reference} of {sequence.name!r})") from loaded
+        image0, scale0, image1, scale1 = loaded
+        start = time.perf_counter()
+        points0, points1, match_scores = matcher(image0, image1)
+        points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
+        seconds = time.perf_counter() - start
+        sizes = (np.round(np.array(image0.shape[1::-1]) * scale0), np.round(np.array(image1.shape[1::-1]) * scale1))
+        yield pair, points0, points1, sizes, match_scores, seconds
+        bar.update()
+    bar.close()
+
+
+def _identity(count: int) -> np.ndarray:
+    return np.repeat(np.arange(count)[:, None], 2, axis=1)
+
+
 def _match_dense_pairs(
     sequence: Sequence,
     todo: list,
@@ -407,81 +366,54 @@ def _match_dense_pairs(
     output_dir: Path | None = None,
 ) -> None:
     """Dense matchers (LoFTR, ``imm:`` methods) see both images of every pair: no per-image cache.
-    Decoding overlaps compute through the same prefetching loader.
+    With merging options (``dense_merge_options``), as hloc's ``match_dense``, see
+    ``_merge_and_verify_dense``; without, each pair's raw matches are verified as they come."""
+    merge = dense_merge_options(conf["matcher"])
+    if merge is not None:
+        if output_dir is None:
+            raise ValueError("merging dense matches needs the output_dir holding the raw matches")
+        raw = raw_dense_store(output_dir, conf)
+        _merge_and_verify_dense(sequence, todo, keys, conf, matcher, matches, raw, merge, seed, progress, flush_every)
+        return
+    with matches.writer(flush_every) as writer:
+        for pair, points0, points1, sizes, match_scores, match_seconds in _dense_raw_matches(
+            sequence, todo, conf, matcher, progress
+        ):
+            identity = _identity(len(points0))
+            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
+            arrays = {"points0": points0, "points1": points1}
+            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds)
 
-    With merging options (``dense_merge_options``), as hloc's ``match_dense``: every pair of
-    the sequence is matched first (its raw points kept in ``raw_dense_store``, so a rerun
-    resumes), then the keypoints of each image are merged across all pairs
-    (``matchers.merge_dense_matches``) and each pair is verified on its merged matches."""
 
-    # A matcher with a loader of its own (vismatch's) sees the images as that loader makes them.
-    load = getattr(matcher, "load", None) or (lambda path: load_for_extraction(path, conf["matcher"]))
-
-    def load_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        image0, scale0 = load(sequence.image_root / pair.query)
-        image1, scale1 = load(sequence.image_root / pair.reference)
-        return image0, scale0, image1, scale1
-
-    def raw_matches(pairs: list) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:
-        """Each pair's points in original pixels, both images' original sizes, scores, seconds."""
-        bar = progress_bar(total=len(pairs), desc=f"match {conf['method']}", disable=not progress, unit="pair")
-        for pair, loaded in concurrency.prefetch(pairs, load_pair):
-            if isinstance(loaded, BaseException):
-                raise ImageReadError(f"{loaded} (pair {pair.query} {pair.reference} of {sequence.name!r})") from loaded
-            image0, scale0, image1, scale1 = loaded
-            start = time.perf_counter()
-            points0, points1, match_scores = matcher(image0, image1)
-            points0, points1 = to_original_pixels(points0, scale0), to_original_pixels(points1, scale1)
-            seconds = time.perf_counter() - start
-            sizes = (np.round(np.array(image0.shape[1::-1]) * scale0), np.round(np.array(image1.shape[1::-1]) * scale1))
-            yield pair, points0, points1, sizes, match_scores, seconds
-            bar.update()
-        bar.close()
-
+def _merge_and_verify_dense(
+    sequence: Sequence,
+    todo: list,
+    keys: dict[Any, str],
+    conf: dict[str, Any],
+    matcher: Callable,
+    matches: ShardedStore,
+    raw: ShardedStore,
+    merge: dict[str, Any],
+    seed: int,
+    progress: bool,
+    flush_every: int,
+) -> None:
+    """Every pair of the sequence is matched first (its raw points kept in ``raw``, so a rerun
+    resumes), then each image's keypoints are merged across all pairs
+    (``merge_dense_matches``) and each pair is verified on its merged matches."""
     from gvbench_nb.protocol.matching.loftr import merge_dense_matches
 
-    merge = dense_merge_options(conf["matcher"])
-    if merge is None:
-        with matches.writer(flush_every) as writer:
-            for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(todo):
-                identity = np.repeat(np.arange(len(points0))[:, None], 2, axis=1)
-                _verify_and_store(
-                    writer,
-                    pair,
-                    keys[pair],
-                    conf,
-                    seed,
-                    points0,
-                    points1,
-                    identity,
-                    match_scores,
-                    {"points0": points0, "points1": points1},
-                    match_seconds,
-                    sizes,
-                )
-        return
-
-    if output_dir is None:
-        raise ValueError("merging dense matches needs the output_dir holding the raw matches")
     for key in matches.keys():
         check_merged_over(matches.read(key, fields=()), sequence, keys, matches.folder)
-    raw = raw_dense_store(output_dir, conf)
     raw.refresh()
     with raw.writer(flush_every) as writer:
-        for pair, points0, points1, sizes, match_scores, match_seconds in raw_matches(
-            [p for p in sequence.pairs if keys[p] not in raw]
+        missing = [p for p in sequence.pairs if keys[p] not in raw]
+        for pair, points0, points1, sizes, match_scores, match_seconds in _dense_raw_matches(
+            sequence, missing, conf, matcher, progress
         ):
-            writer.put(
-                keys[pair],
-                {
-                    "points0": points0,
-                    "points1": points1,
-                    "scores": match_scores.astype(np.float32),
-                    "image_size0": np.asarray(sizes[0]),
-                    "image_size1": np.asarray(sizes[1]),
-                },
-                {"match_seconds": match_seconds},
-            )
+            arrays = {"points0": points0, "points1": points1, "scores": match_scores.astype(np.float32)}
+            sized = {"image_size0": np.asarray(sizes[0]), "image_size1": np.asarray(sizes[1])}
+            writer.put(keys[pair], {**arrays, **sized}, {"match_seconds": match_seconds})
     raw.refresh()
     entries = [raw.read(keys[p]) for p in sequence.pairs]
     raw.close()
@@ -500,24 +432,10 @@ def _match_dense_pairs(
                 continue
             points0 = keypoints[pair.query][pair_matches[:, 0]]
             points1 = keypoints[pair.reference][pair_matches[:, 1]]
-            verified, verify_seconds = _verify_pair(
-                pair,
-                conf,
-                seed,
-                points0,
-                points1,
-                np.repeat(np.arange(len(points0))[:, None], 2, axis=1),
-                match_scores,
-                (entry["image_size0"], entry["image_size1"]),
-            )
-            _store_verified(
-                writer,
-                keys[pair],
-                pair_matches,
-                match_scores,
-                verified,
-                {"points0": points0, "points1": points1},
-                float(entry["attr:match_seconds"]) + merge_seconds,
-                verify_seconds,
-                {"merged_over": merged_over},
-            )
+            sizes = (entry["image_size0"], entry["image_size1"])
+            identity = _identity(len(points0))
+            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
+            match_seconds = float(entry["attr:match_seconds"]) + merge_seconds
+            arrays = {"points0": points0, "points1": points1}
+            extra = {"merged_over": merged_over}
+            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds, extra)

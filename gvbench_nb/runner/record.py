@@ -33,10 +33,8 @@ LOCK_NAME = ".gvbench.lock"  # held by the one run writing the folder
 HOLDER_NAME = ".gvbench-running.json"  # who holds the lock: pid, host, command, start
 RECORD_LOCK_NAME = ".gvbench-record.lock"  # held for the moment the record is read and rewritten
 STAGE_PREFIX = ".run-"
-STAGE_MARKER = ".stage.json"  # in a stage: the folder it will be published into
+STAGE_MARKER = ".stage.json"  # in a stage: the folder it will be published into (working state)
 PACKAGE = "gvbench-nb"
-# Files a stage holds that are the run's working state, not its results.
-WORKING_FILES = (STAGE_MARKER,)
 # The names the package writes in an output folder besides its record.
 OWN_NAMES = (RECORD_NAME, LOCK_NAME, HOLDER_NAME, RECORD_LOCK_NAME)
 
@@ -341,7 +339,7 @@ def staged_files(stage: Path) -> list[str]:
     files = []
     for path in sorted(stage.rglob("*")):
         relative = path.relative_to(stage)
-        if path.is_file() and path.name not in WORKING_FILES and not path.name.startswith(".write-check-"):
+        if path.is_file() and path.name != STAGE_MARKER and not path.name.startswith(".write-check-"):
             files.append(relative.as_posix())
     return files
 

@@ -129,7 +129,7 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
                 ).mean(),
                 "device": run["environment"]["device"],
                 # >1: the seconds above include waiting for cores shared by concurrent images/pairs
-                "workers": run.get("this_run", {}).get("workers", 1),  # runs written before workers existed: 1
+                "jobs": run.get("this_run", {}).get("jobs", 1),
                 "timers": timers_source(run),
                 "pairs_digest": table_pairs_digest(table)[:12],
                 "finished_at": run.get("finished_at"),

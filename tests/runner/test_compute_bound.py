@@ -32,7 +32,7 @@ def test_the_bound_is_the_one_core_work_shared_over_the_cores(tmp_path, capsys):
     row = pd.read_csv(tmp_path / "compute_bound.csv").iloc[0]
     pairs = pd.read_csv(tmp_path / "run" / "output" / "orb-nn" / "pairs.csv")
     run = pd.read_json(tmp_path / "run" / "output" / "orb-nn" / "run.json", typ="series")
-    assert run["this_run"]["workers"] == 1 and run["this_run"]["threads"] == 1  # one job on one thread
+    assert run["this_run"]["jobs"] == 1 and run["this_run"]["threads"] == 1  # one job on one thread
     assert row["n_pairs"] == len(pairs) == 12
     work = sum(pairs[name].sum() for name in compute_bound.TIMERS)
     assert row["one_core_work_seconds"] == pytest.approx(work, abs=0.01) and work > 0

@@ -1,14 +1,18 @@
-"""Sharded runs (by hand and through Dask) merge into exactly the unsharded result."""
+"""Sharded runs (by hand and through Dask) merge into exactly the unsharded result; how many jobs
+a run does at once, and on how many threads each."""
 
+import os
 from pathlib import Path
 
+import cv2
 import pandas as pd
 import pytest
+import torch
 import yaml
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, write_pairs
-from gvbench_nb.runner import config, distributed, image_features, method_runs, scoring
+from gvbench_nb.runner import concurrency, config, distributed, image_features, method_runs, scoring
 
 METHOD, PROFILE = "sift-nn", "repository"
 
@@ -123,3 +127,56 @@ def test_parse_shard_rejects_bad_values(text):
 
 def test_parse_shard_reads_index_and_count():
     assert distributed.parse_shard("2/5") == (2, 5)
+
+
+def test_job_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):
+    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
+    assert concurrency.job_count() == concurrency.available_cores() == len(os.sched_getaffinity(0))
+    monkeypatch.setenv("GVBENCH_JOBS", "3")
+    assert concurrency.job_count() == 3 and concurrency.job_count(2) == 2
+    with pytest.raises(ValueError, match=r"--jobs or \$GVBENCH_JOBS"):
+        concurrency.job_count(0)
+    monkeypatch.setenv("GVBENCH_JOBS", "two")
+    with pytest.raises(ValueError, match=r"got 'two' \(--jobs or \$GVBENCH_JOBS\)"):
+        concurrency.job_count()
+
+
+def test_threads_a_job_share_the_cores_between_the_jobs_in_torch_opencv_and_blas(monkeypatch):
+    from threadpoolctl import threadpool_info
+
+    monkeypatch.delenv("GVBENCH_THREADS", raising=False)
+    monkeypatch.setattr(concurrency, "available_cores", lambda: 4)
+    before = torch.get_num_threads(), cv2.getNumThreads()
+    try:
+        assert concurrency.configure_threads(jobs=2) == 2
+        assert torch.get_num_threads() == cv2.getNumThreads() == 2
+        assert {pool["num_threads"] for pool in threadpool_info() if pool["user_api"] == "blas"} <= {2}
+        assert concurrency.configure_threads(jobs=8) == 1  # never fewer than one a job
+        assert concurrency.configure_threads(3, jobs=2) == 3  # asked for
+        monkeypatch.setenv("GVBENCH_THREADS", "2")
+        assert concurrency.configure_threads(jobs=4) == 2
+    finally:
+        concurrency.configure_threads(before[0])
+        cv2.setNumThreads(before[1])
+
+
+def test_run_jobs_flag_is_exported_for_the_notebook_kernels_and_checked_like_the_variable(monkeypatch, capsys):
+    from gvbench_nb import cli
+
+    monkeypatch.delenv("GVBENCH_JOBS", raising=False)
+    args = cli.build_parser().parse_args(["run", "p.yaml", "--jobs", "2", "--dask-workers", "3"])
+    assert args.jobs == 2 and os.environ["GVBENCH_JOBS"] == "2" and concurrency.job_count() == 2
+    assert args.dask_workers == 3  # the Dask cluster's size: another name, another number
+    monkeypatch.delenv("GVBENCH_JOBS")
+    assert cli.build_parser().parse_args(["run", "p.yaml"]).jobs is None
+    monkeypatch.setenv("GVBENCH_JOBS", "0")
+    with pytest.raises(SystemExit) as stopped:  # a bad variable is refused at parse time, before any work
+        cli.build_parser().parse_args(["run", "p.yaml"])
+    assert stopped.value.code == 2
+    assert "argument --jobs: must be a whole number of at least 1 (--jobs or $GVBENCH_JOBS), got '0'" in (
+        capsys.readouterr().err
+    )
+    monkeypatch.delenv("GVBENCH_JOBS")
+    with pytest.raises(SystemExit):  # the old spelling is gone, not an alias
+        cli.build_parser().parse_args(["run", "p.yaml", "--workers", "2"])
+    assert "unrecognized arguments: --workers 2" in capsys.readouterr().err

@@ -95,7 +95,7 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
                 {"seconds": 0.01},
             )
     tracemalloc.start()
-    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, workers=1)
+    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, jobs=1)
     table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed=0)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()

@@ -95,7 +95,7 @@ def test_prefetch_preserves_order_and_surfaces_errors_in_place():
             raise OSError("bad image 3")
         return i * 10
 
-    results = list(concurrency.prefetch(range(8), load, depth=4, workers=3))
+    results = list(concurrency.prefetch(range(8), load, depth=4, jobs=3))
     assert [item for item, _ in results] == list(range(8))
     assert [r for i, r in results if i != 3] == [0, 10, 20, 40, 50, 60, 70]
     assert isinstance(results[3][1], OSError)

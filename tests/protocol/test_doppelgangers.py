@@ -16,11 +16,11 @@ from gvbench_nb.verification.doppelgangers import (
     build_input,
     estimate_warp,
     focal_loss,
-    input_from_matcher,
     load_doppelgangers,
     match_mask,
     resized_size,
     to_resized_frame,
+    predict,
     train_classifier,
 )
 
@@ -202,22 +202,6 @@ def test_match_mask_rejects_weak_and_outliers():
     assert mask[20:].mean() > 0.95
 
 
-def test_input_from_matcher_any_source():
-    image0, image1 = texture(96, 128, 4), texture(96, 128, 4)
-    kp = grid(10.5, 120, 10.5, 90, 9)
-    conf = np.full(len(kp), 0.9, np.float32)
-    direct = build_input(image0, image1, kp, kp, conf, size=128)
-    via_callable = input_from_matcher(image0, image1, lambda a, b: (kp, kp, conf), size=128)
-    via_kornia_dict = input_from_matcher(
-        image0,
-        image1,
-        {"keypoints0": torch.from_numpy(kp), "keypoints1": torch.from_numpy(kp), "confidence": torch.from_numpy(conf)},
-        size=128,
-    )
-    np.testing.assert_array_equal(direct, via_callable)
-    np.testing.assert_array_equal(direct, via_kornia_dict)
-
-
 # --------------------------------------------------------------------------- training
 
 
@@ -265,5 +249,5 @@ def test_training_lowers_loss_and_is_deterministic(one_thread):
     assert first["loss"][-1] < first["loss"][0]
     assert first["loss"] == second["loss"] and first["accuracy"] == second["accuracy"]
     assert not model.training
-    p = model.probability(torch.from_numpy(x))
-    assert p.shape == (8,) and torch.all((p >= 0) & (p <= 1))
+    p = predict(model, x)
+    assert p.shape == (8,) and ((p >= 0) & (p <= 1)).all()

@@ -24,32 +24,32 @@ def five_matches() -> tuple[np.ndarray, np.ndarray]:
 
 def test_few_matches_zero_scores_no_inliers_below_the_minimum():
     points0, points1 = five_matches()
-    assert ransac.fundamental_inliers(points0, points1, few_matches="zero").sum() == 0
+    assert ransac.fit_inliers(points0, points1, few_matches="zero").sum() == 0
 
 
 def test_few_matches_all_counts_every_match_below_the_minimum():
     points0, points1 = five_matches()
-    assert ransac.fundamental_inliers(points0, points1, few_matches="all").sum() == 5
+    assert ransac.fit_inliers(points0, points1, few_matches="all").sum() == 5
 
 
 def test_min_matches_above_eight_applies_the_rule_to_fittable_pairs():
     rng = np.random.default_rng(1)
     points0 = rng.uniform(0, 500, (12, 2))
-    assert ransac.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="all").sum() == 12
-    assert ransac.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="zero").sum() == 0
+    assert ransac.fit_inliers(points0, points0 + 2, min_matches=20, few_matches="all").sum() == 12
+    assert ransac.fit_inliers(points0, points0 + 2, min_matches=20, few_matches="zero").sum() == 0
 
 
 @pytest.mark.parametrize("rule, expected", [("zero", 0), ("all", 10)])
 def test_no_model_found_follows_the_rule(rule, expected):
     # Ten copies of one point: OpenCV's RANSAC finds no fundamental matrix (F is None).
     points = np.zeros((10, 2))
-    assert ransac.fundamental_inliers(points, points + 1, few_matches=rule).sum() == expected
+    assert ransac.fit_inliers(points, points + 1, few_matches=rule).sum() == expected
 
 
 def test_unknown_few_matches_rule_is_one_sentence():
     points0, points1 = five_matches()
     with pytest.raises(ValueError, match="unknown few_matches rule 'some'.*Known: zero, all"):
-        ransac.fundamental_inliers(points0, points1, few_matches="some")
+        ransac.fit_inliers(points0, points1, few_matches="some")
 
 
 def test_paper_profile_keeps_the_released_rule_and_repository_counts_all():

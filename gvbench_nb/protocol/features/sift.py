@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb.protocol.features.base import Features, empty_features, to_uint8
+from gvbench_nb.protocol.features.base import Extractor, Features, empty_features, to_uint8
 
 
 def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -20,7 +20,7 @@ def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     return descriptors / (np.linalg.norm(descriptors, axis=-1, keepdims=True) + eps)
 
 
-class ColmapSiftExtractor:
+class ColmapSiftExtractor(Extractor):
     """COLMAP's SIFT through pycolmap, as hloc's ``dog`` extractor with its ``sift`` conf.
 
     Options: first_octave, peak_threshold, RootSIFT normalisation (L1_ROOT), at most
@@ -30,6 +30,8 @@ class ColmapSiftExtractor:
     which are RootSIFT already ("COLMAP does not normalize well"); so do we (``root_sift``).
     CPU unless pycolmap was built with CUDA and the device is CUDA, as hloc chooses.
     """
+
+    type = "colmap_sift"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         import warnings
@@ -73,13 +75,15 @@ class ColmapSiftExtractor:
         }
 
 
-class OpenCVSiftExtractor:
+class OpenCVSiftExtractor(Extractor):
     """OpenCV SIFT with RootSIFT descriptors (not the paper's SIFT: it upsamples first).
 
     The paper's DoG peak threshold 0.01 (COLMAP's definition) maps to OpenCV's
     contrastThreshold = peak_threshold * nOctaveLayers, since OpenCV divides by the
     number of layers before comparing.
     """
+
+    type = "opencv_sift"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.conf = conf

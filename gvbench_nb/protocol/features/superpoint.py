@@ -28,7 +28,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
 
 CHECKPOINT = "superpoint_v1"
 
@@ -239,8 +239,10 @@ def load_superpoint(conf: Mapping[str, Any] | None = None, device: str | torch.d
     return model.eval().to(device)
 
 
-class SuperPointExtractor:
+class SuperPointExtractor(Extractor):
     """The SuperPoint above on the official Magic Leap weights."""
+
+    type = "magicleap_superpoint"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device

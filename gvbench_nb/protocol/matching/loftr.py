@@ -9,6 +9,7 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.matching.base import Matcher
 
 if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
     pass
@@ -39,7 +40,7 @@ def loftr_call(
     )
 
 
-class LoFTRMatcher:
+class LoFTRMatcher(Matcher):
     """kornia LoFTR run as a dense pair matcher (no per-image cache) with the paper's
     preprocessing: grayscale, longest side <= 1024, both sides floored to a multiple of 8.
 
@@ -48,6 +49,8 @@ class LoFTRMatcher:
     pipeline merges them across pairs (``merge_dense_matches``). The official checkpoint
     is loaded here with ``weights_only=True``.
     """
+
+    type = "kornia_loftr"
 
     dense = True
 

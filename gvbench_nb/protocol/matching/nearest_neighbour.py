@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import registry
-from gvbench_nb.protocol.matching.base import Matches, empty_matches
+from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
 if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
     pass
@@ -328,7 +328,9 @@ def knn_ratio_of_nearest(
     return np.stack([rows, nearest[rows]], axis=1).astype(np.int64), first[rows]
 
 
-class NearestNeighbourMatcher:
+class NearestNeighbourMatcher(Matcher):
+    type = "nn"
+
     def __init__(self, conf: dict[str, Any], device: torch.device):
         check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
         check_rule(conf.get("rule", "hloc"))

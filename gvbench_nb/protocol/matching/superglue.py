@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gvbench_nb.protocol import registry, weights
-from gvbench_nb.protocol.matching.base import Matches, empty_matches
+from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
 CHECKPOINTS = {"outdoor": "superglue_outdoor"}
 
@@ -318,8 +318,10 @@ def load_superglue(conf: Mapping[str, Any] | None = None, device: str | torch.de
     return model.eval().to(device)
 
 
-class SuperGlueMatcher:
+class SuperGlueMatcher(Matcher):
     """The SuperGlue above on the official outdoor weights."""
+
+    type = "magicleap_superglue"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device

@@ -164,10 +164,7 @@ def to_resized_frame(points: np.ndarray, original_wh: tuple[int, int], new_wh: t
 
 
 def match_mask(
-    keypoints0: np.ndarray,
-    keypoints1: np.ndarray,
-    confidence: np.ndarray,
-    threshold: float = MATCH_CONFIDENCE,
+    keypoints0: np.ndarray, keypoints1: np.ndarray, confidence: np.ndarray, threshold: float = MATCH_CONFIDENCE
 ) -> np.ndarray:
     """(M,) bool: confidence > ``threshold`` and inlier of the F-RANSAC
     (``cv2.findFundamentalMat(FM_RANSAC, 3, 0.99)``), as the original selects its

@@ -18,9 +18,9 @@ from gvbench_nb.verification.doppelgangers import (
     focal_loss,
     load_doppelgangers,
     match_mask,
+    predict,
     resized_size,
     to_resized_frame,
-    predict,
     train_classifier,
 )
 

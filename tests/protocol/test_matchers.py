@@ -196,11 +196,7 @@ def test_unknown_metric_is_named():
 # L46-53 confs["NN-superpoint"], L54-61 confs["NN-ratio"], L62-68 confs["NN-mutual"]. The
 # repository's xfeat-nn is XFeat.match(min_cossim=-1) (the fork's xfeat.py:L51): mutual nearest
 # neighbours, every similarity accepted, which is NN-mutual's rule.
-HLOC_NN_CONFS = {
-    "NN-superpoint": (True, None, 0.7),
-    "NN-ratio": (True, 0.8, None),
-    "NN-mutual": (True, None, None),
-}
+HLOC_NN_CONFS = {"NN-superpoint": (True, None, 0.7), "NN-ratio": (True, 0.8, None), "NN-mutual": (True, None, None)}
 NN_RECIPES = [
     ("paper", "sift-nn", "NN-ratio"),
     ("paper", "disk-nn", "NN-ratio"),

@@ -133,11 +133,7 @@ def test_paper_lightglue_model_runs_with_hlocs_confidences():
     if not all(weights.is_present(c) for c in conf["checkpoints"]):
         pytest.skip("LightGlue's DISK weights are not in the torch hub cache")
     model = build_matcher(conf, torch.device("cpu")).model
-    assert (model.conf.depth_confidence, model.conf.width_confidence, model.conf.filter_threshold) == (
-        0.95,
-        0.99,
-        0.1,
-    )
+    assert (model.conf.depth_confidence, model.conf.width_confidence, model.conf.filter_threshold) == (0.95, 0.99, 0.1)
 
 
 def test_paper_verifier_is_the_released_evaluations():
@@ -222,11 +218,7 @@ def test_repository_opencv_matchers_are_the_forks_ratio_test():
     # The fork's handcrafted.py:L43-49 knnMatch(k=2), kept when m.distance < 0.75 * n.distance
     # (lowe_thresh 0.75 at L69, L79), no mutual check; raw OpenCV descriptors (L38).
     for name in ("sift-nn", "orb-nn"):
-        assert_holds(
-            repository(name)["matcher"],
-            {"rule": "knn_ratio", "ratio_threshold": 0.75, "mutual": False},
-            name,
-        )
+        assert_holds(repository(name)["matcher"], {"rule": "knn_ratio", "ratio_threshold": 0.75, "mutual": False}, name)
     assert repository("sift-nn")["extractor"]["root_sift"] is False
 
 

@@ -18,10 +18,7 @@ from gvbench_nb.protocol.matching import superglue as sg
 # ----------------------------------------------------------------------------- fixtures
 
 
-MODELS = {
-    "superpoint_v1": lambda: sp.SuperPoint(),
-    "superglue_outdoor": lambda: sg.SuperGlue(),
-}
+MODELS = {"superpoint_v1": lambda: sp.SuperPoint(), "superglue_outdoor": lambda: sg.SuperGlue()}
 
 
 # ----------------------------------------------------------------------------- layouts

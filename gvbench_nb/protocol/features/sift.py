@@ -90,9 +90,7 @@ class OpenCVSiftExtractor(Extractor):
         layers = 3
         # SIFT.create is SIFT_create; OpenCV's stubs type only the class method.
         self.sift = cv2.SIFT.create(
-            nfeatures=conf["max_keypoints"],
-            nOctaveLayers=layers,
-            contrastThreshold=conf["peak_threshold"] * layers,
+            nfeatures=conf["max_keypoints"], nOctaveLayers=layers, contrastThreshold=conf["peak_threshold"] * layers
         )
 
     def __call__(self, image: np.ndarray) -> Features:

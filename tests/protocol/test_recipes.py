@@ -170,8 +170,9 @@ def test_repository_images_are_512x288_with_2048_keypoints():
         assert image_conf["resize_to"] == REPOSITORY_SIZE, name
         assert image_conf["interpolation"] == "bilinear_antialias", name  # base_matcher.py:L49 Resize(antialias=True)
         assert image_conf.get("resize_max") is None, name
-        if recipe["extractor"] is not None:
+        if recipe["extractor"] is not None:  # features stored as float32
             assert recipe["extractor"]["max_keypoints"] == REPOSITORY_KEYPOINTS, name
+            assert recipe["extractor"]["store_float16"] is False, name
 
 
 def test_repository_lightglue_extractors_are_cvgs_defaults():
@@ -212,6 +213,7 @@ def test_repository_superglue_is_image_matching_toolboxs_sat_config():
         "sp-sg",
     )
     assert_holds(recipe["extractor"], {"nms_radius": 4, "keypoint_threshold": 0.005, "grayscale": True}, "sp-sg")
+    assert "model_input_long_side" not in recipe["extractor"]  # the 512x288 grey image as it is
 
 
 def test_repository_opencv_matchers_are_the_forks_ratio_test():

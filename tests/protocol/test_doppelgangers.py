@@ -52,6 +52,11 @@ def test_load_official_format_strips_module_prefix(layout, tmp_path):
         assert model(torch.zeros(1, 10, 64, 64)).shape == (1, 2)
 
 
+def test_a_missing_given_path_names_the_download(tmp_path):
+    with pytest.raises(MissingWeightsError, match="checkpoint.tar.gz"):
+        load_doppelgangers(tmp_path / "nowhere.pt")
+
+
 def test_wrong_layout_names_bad_tensors(layout, tmp_path):
     state = random_state_dict(layout)
     del state["layer2.1.conv1.weight"]
@@ -64,16 +69,6 @@ def test_wrong_layout_names_bad_tensors(layout, tmp_path):
     message = str(info.value)
     for name in ("layer2.1.conv1.weight", "fc.weight", "head.extra"):
         assert name in message
-
-
-def test_missing_checkpoint_names_file_and_url(empty_hub, tmp_path):
-    with pytest.raises(MissingWeightsError) as info:
-        load_doppelgangers()
-    message = str(info.value)
-    assert "doppelgangers_classifier_loftr.pt" in message
-    assert "https://doppelgangers.cs.cornell.edu/dataset/checkpoint.tar.gz" in message
-    with pytest.raises(MissingWeightsError, match="checkpoint.tar.gz"):
-        load_doppelgangers(tmp_path / "nowhere.pt")
 
 
 # --------------------------------------------------------------------------- input

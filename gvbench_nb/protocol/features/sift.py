@@ -21,15 +21,10 @@ def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
 
 
 class ColmapSiftExtractor(Extractor):
-    """COLMAP's SIFT through pycolmap, as hloc's ``dog`` extractor with its ``sift`` conf.
-
-    Options: first_octave, peak_threshold, RootSIFT normalisation (L1_ROOT), at most
-    ``max_keypoints`` features (pycolmap's max_num_features, 8192 by default). hloc passes
-    the float image scaled to [0, 1] and keeps x, y of each keypoint; its scores are zeros
-    (COLMAP gives none). hloc then applies its own RootSIFT step to pycolmap's descriptors,
-    which are RootSIFT already ("COLMAP does not normalize well"); so do we (``root_sift``).
-    CPU unless pycolmap was built with CUDA and the device is CUDA, as hloc chooses.
-    """
+    """COLMAP's SIFT through pycolmap, as hloc's ``dog`` extractor with its ``sift`` conf: the image
+    scaled to [0, 1], zero scores (COLMAP gives none), and hloc's own RootSIFT step applied again
+    to pycolmap's RootSIFT descriptors ("COLMAP does not normalize well"). CPU unless pycolmap
+    has CUDA and the device is CUDA, as hloc chooses."""
 
     type = "colmap_sift"
 
@@ -76,12 +71,8 @@ class ColmapSiftExtractor(Extractor):
 
 
 class OpenCVSiftExtractor(Extractor):
-    """OpenCV SIFT with RootSIFT descriptors (not the paper's SIFT: it upsamples first).
-
-    The paper's DoG peak threshold 0.01 (COLMAP's definition) maps to OpenCV's
-    contrastThreshold = peak_threshold * nOctaveLayers, since OpenCV divides by the
-    number of layers before comparing.
-    """
+    """OpenCV SIFT (not the paper's: it upsamples first); COLMAP's peak threshold maps to
+    contrastThreshold = peak_threshold * nOctaveLayers, as OpenCV divides by the layers."""
 
     type = "opencv_sift"
 

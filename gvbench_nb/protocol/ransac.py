@@ -29,11 +29,29 @@ def as_point_arrays(points0: np.ndarray, points1: np.ndarray) -> tuple[np.ndarra
 
 
 FEW_MATCHES_RULES = ("zero", "all")
+MODELS = ("fundamental", "homography")
 
 
-def fundamental_inliers(
+def _fit(
+    model: str,
     points0: np.ndarray,
     points1: np.ndarray,
+    flag: int,
+    threshold_px: float,
+    confidence: float,
+    max_iters: int,
+) -> Any:
+    if model == "fundamental":
+        return cv2.findFundamentalMat(points0, points1, flag, threshold_px, confidence, max_iters)
+    # FM_RANSAC names plain cv2.RANSAC for a homography
+    flag = cv2.RANSAC if flag == cv2.FM_RANSAC else flag
+    return cv2.findHomography(points0, points1, flag, threshold_px, maxIters=max_iters, confidence=confidence)
+
+
+def fit_inliers(
+    points0: np.ndarray,
+    points1: np.ndarray,
+    model: str = "fundamental",
     threshold_px: float = 3.0,
     confidence: float = 0.99,
     max_iters: int = 1000,
@@ -42,29 +60,27 @@ def fundamental_inliers(
     seed: int = 0,
     few_matches: str = "zero",
 ) -> np.ndarray:
-    """Inlier mask of a fundamental matrix fitted robustly to matched points.
+    """Inlier mask of a fundamental matrix (or homography) fitted robustly to matched points.
 
-    Fewer than ``min_matches`` matches (at least the 8 a fit needs), or no model found:
-    ``few_matches`` = "zero" gives no inliers (the benchmark's released evaluation code,
-    May 2024 on); "all" counts every match as an inlier (the code of the paper's
-    submission period, Jan-Mar 2024, and the GV-Bench repository's current code).
-    OpenCV's RANSAC and USAC estimators sample from a fixed internal seed, so the
-    result depends only on the pair, not on the order or shard pairs run in
-    (tests/runner/test_reliability.py checks it); ``seed`` is kept for estimators that
-    honour ``cv2.setRNGSeed``.
+    Fewer than ``min_matches`` matches (at least the 8, or 4, a fit needs), or no model found:
+    ``few_matches`` = "zero" gives no inliers (the benchmark's released evaluation code, May 2024
+    on); "all" counts every match as an inlier (the paper's submission period and the GV-Bench
+    repository's current code). OpenCV's estimators sample from a fixed internal seed, so the
+    result depends only on the pair (tests/runner/test_reliability.py checks it).
     """
     registry.check_choice("few_matches rule", few_matches, FEW_MATCHES_RULES, "the verifier conf")
+    registry.lookup("verifier model", model, dict.fromkeys(MODELS))
     points0, points1 = as_point_arrays(points0, points1)
     unverifiable = np.full(len(points0), few_matches == "all", dtype=bool)
-    if len(points0) < max(min_matches, 8):
+    if len(points0) < max(min_matches, 8 if model == "fundamental" else 4):
         return unverifiable
     flag = registry.lookup("estimator", method, ESTIMATORS)
     cv2.setRNGSeed(int(seed))
     try:
-        F, mask = cv2.findFundamentalMat(points0, points1, flag, threshold_px, confidence, max_iters)
+        found, mask = _fit(model, points0, points1, flag, threshold_px, confidence, max_iters)
     except cv2.error:  # OpenCV's USAC raises where its RANSAC returns no model (degenerate matches)
         return unverifiable
-    if F is None or mask is None or F.shape != (3, 3):
+    if found is None or mask is None or found.shape != (3, 3):
         return unverifiable
     return mask.ravel().astype(bool)
 
@@ -92,43 +108,6 @@ def to_verifier_frame(
     return (np.asarray(keypoints, dtype=np.float64) + 0.5) * scale - 0.5
 
 
-def homography_inliers(
-    points0: np.ndarray,
-    points1: np.ndarray,
-    threshold_px: float = 3.0,
-    confidence: float = 0.99,
-    max_iters: int = 1000,
-    method: str = "FM_RANSAC",
-    min_matches: int = 4,
-    seed: int = 0,
-    few_matches: str = "zero",
-) -> np.ndarray:
-    """Inlier mask of a homography fitted robustly (``cv2.findHomography``).
-
-    ``method`` takes the fundamental estimators' names; FM_RANSAC means plain
-    ``cv2.RANSAC``. Fewer than ``min_matches`` (>= 4) matches or no model: ``few_matches``
-    decides, as for ``fundamental_inliers``.
-    """
-    registry.check_choice("few_matches rule", few_matches, FEW_MATCHES_RULES, "the verifier conf")
-    points0, points1 = as_point_arrays(points0, points1)
-    no_inliers = np.full(len(points0), few_matches == "all", dtype=bool)
-    if len(points0) < max(min_matches, 4):
-        return no_inliers
-    flag = registry.lookup("estimator", method, ESTIMATORS)
-    flag = cv2.RANSAC if method == "FM_RANSAC" else flag
-    cv2.setRNGSeed(int(seed))  # as fundamental_inliers: the result depends on the pair and seed only
-    try:
-        H, mask = cv2.findHomography(points0, points1, flag, threshold_px, maxIters=max_iters, confidence=confidence)
-    except cv2.error:
-        return no_inliers
-    if H is None or mask is None:
-        return no_inliers
-    return mask.ravel().astype(bool)
-
-
-MODELS = ("fundamental", "homography")
-
-
 def filter_and_fit(
     points0: np.ndarray,
     points1: np.ndarray,
@@ -147,12 +126,10 @@ def filter_and_fit(
     matches scoring ``min_match_score`` or less (None keeps all), then fit ``model`` robustly.
     Returns (inlier mask over all the given matches, number of matches that entered the fit)."""
     keep = np.ones(len(points0), dtype=bool) if min_match_score is None else np.asarray(match_scores) > min_match_score
-    fit = registry.lookup(
-        "verifier model", model, {"fundamental": fundamental_inliers, "homography": homography_inliers}
-    )
-    inliers_of_kept = fit(
+    inliers_of_kept = fit_inliers(
         np.asarray(points0)[keep],
         np.asarray(points1)[keep],
+        model=model,
         threshold_px=threshold_px,
         confidence=confidence,
         max_iters=max_iters,

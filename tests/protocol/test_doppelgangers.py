@@ -16,9 +16,9 @@ from gvbench_nb.verification.doppelgangers import (
     build_input,
     estimate_warp,
     focal_loss,
-    input_from_matcher,
     load_doppelgangers,
     match_mask,
+    predict,
     resized_size,
     to_resized_frame,
     train_classifier,
@@ -52,6 +52,11 @@ def test_load_official_format_strips_module_prefix(layout, tmp_path):
         assert model(torch.zeros(1, 10, 64, 64)).shape == (1, 2)
 
 
+def test_a_missing_given_path_names_the_download(tmp_path):
+    with pytest.raises(MissingWeightsError, match="checkpoint.tar.gz"):
+        load_doppelgangers(tmp_path / "nowhere.pt")
+
+
 def test_wrong_layout_names_bad_tensors(layout, tmp_path):
     state = random_state_dict(layout)
     del state["layer2.1.conv1.weight"]
@@ -64,16 +69,6 @@ def test_wrong_layout_names_bad_tensors(layout, tmp_path):
     message = str(info.value)
     for name in ("layer2.1.conv1.weight", "fc.weight", "head.extra"):
         assert name in message
-
-
-def test_missing_checkpoint_names_file_and_url(empty_hub, tmp_path):
-    with pytest.raises(MissingWeightsError) as info:
-        load_doppelgangers()
-    message = str(info.value)
-    assert "doppelgangers_classifier_loftr.pt" in message
-    assert "https://doppelgangers.cs.cornell.edu/dataset/checkpoint.tar.gz" in message
-    with pytest.raises(MissingWeightsError, match="checkpoint.tar.gz"):
-        load_doppelgangers(tmp_path / "nowhere.pt")
 
 
 # --------------------------------------------------------------------------- input
@@ -202,22 +197,6 @@ def test_match_mask_rejects_weak_and_outliers():
     assert mask[20:].mean() > 0.95
 
 
-def test_input_from_matcher_any_source():
-    image0, image1 = texture(96, 128, 4), texture(96, 128, 4)
-    kp = grid(10.5, 120, 10.5, 90, 9)
-    conf = np.full(len(kp), 0.9, np.float32)
-    direct = build_input(image0, image1, kp, kp, conf, size=128)
-    via_callable = input_from_matcher(image0, image1, lambda a, b: (kp, kp, conf), size=128)
-    via_kornia_dict = input_from_matcher(
-        image0,
-        image1,
-        {"keypoints0": torch.from_numpy(kp), "keypoints1": torch.from_numpy(kp), "confidence": torch.from_numpy(conf)},
-        size=128,
-    )
-    np.testing.assert_array_equal(direct, via_callable)
-    np.testing.assert_array_equal(direct, via_kornia_dict)
-
-
 # --------------------------------------------------------------------------- training
 
 
@@ -265,5 +244,5 @@ def test_training_lowers_loss_and_is_deterministic(one_thread):
     assert first["loss"][-1] < first["loss"][0]
     assert first["loss"] == second["loss"] and first["accuracy"] == second["accuracy"]
     assert not model.training
-    p = model.probability(torch.from_numpy(x))
-    assert p.shape == (8,) and torch.all((p >= 0) & (p <= 1))
+    p = predict(model, x)
+    assert p.shape == (8,) and ((p >= 0) & (p <= 1)).all()

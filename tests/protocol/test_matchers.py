@@ -1,4 +1,5 @@
-"""Nearest-neighbour matching against brute-force references of hloc's rules (first index on ties)."""
+"""Nearest-neighbour matching (L2 and Hamming by popcount) against brute-force references of
+hloc's rules (first index on ties)."""
 
 from __future__ import annotations
 
@@ -6,7 +7,12 @@ import numpy as np
 import pytest
 import torch
 
-from gvbench_nb.protocol.matching.nearest_neighbour import nearest_neighbour_matches
+from gvbench_nb.protocol.matching.nearest_neighbour import (
+    NearestNeighbourMatcher,
+    hamming_distances,
+    hamming_nearest_neighbour_matches,
+    nearest_neighbour_matches,
+)
 
 
 def _passes(distances: np.ndarray, ratio: float | None, threshold: float | None) -> tuple[int, bool]:
@@ -196,11 +202,7 @@ def test_unknown_metric_is_named():
 # L46-53 confs["NN-superpoint"], L54-61 confs["NN-ratio"], L62-68 confs["NN-mutual"]. The
 # repository's xfeat-nn is XFeat.match(min_cossim=-1) (the fork's xfeat.py:L51): mutual nearest
 # neighbours, every similarity accepted, which is NN-mutual's rule.
-HLOC_NN_CONFS = {
-    "NN-superpoint": (True, None, 0.7),
-    "NN-ratio": (True, 0.8, None),
-    "NN-mutual": (True, None, None),
-}
+HLOC_NN_CONFS = {"NN-superpoint": (True, None, 0.7), "NN-ratio": (True, 0.8, None), "NN-mutual": (True, None, None)}
 NN_RECIPES = [
     ("paper", "sift-nn", "NN-ratio"),
     ("paper", "disk-nn", "NN-ratio"),
@@ -237,4 +239,131 @@ def test_nn_recipes_match_as_hlocs_confs(profile, method, hloc_conf):
 
     matcher = build_matcher(methods.resolve_method(method, profile)["matcher"], torch.device("cpu"))
     matches, _ = matcher({"descriptors": descriptors0}, {"descriptors": descriptors1})
+    np.testing.assert_array_equal(matches, expected)
+
+
+# ------------------------------------------------------------------ Hamming --
+def bit_distances(binary0: np.ndarray, binary1: np.ndarray) -> np.ndarray:
+    """Full Hamming distance matrix from unpacked bits, no popcount involved."""
+    bits0, bits1 = np.unpackbits(binary0, axis=1), np.unpackbits(binary1, axis=1)
+    return (bits0[:, None, :] != bits1[None, :, :]).sum(-1).astype(np.float64)
+
+
+def tie_heavy(rng: np.random.Generator, n0: int, n1: int, n_bytes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sparse descriptors (few set bits) with duplicated rows: many equal distances everywhere."""
+    bits0 = (rng.random((n0, 8 * n_bytes)) < 0.04).astype(np.uint8)
+    bits1 = (rng.random((n1, 8 * n_bytes)) < 0.04).astype(np.uint8)
+    bits1[:100] = bits0[:100] ^ (rng.random((100, 8 * n_bytes)) < 0.01)  # near copies pass the ratio test
+    binary0, binary1 = np.packbits(bits0, axis=1), np.packbits(bits1, axis=1)
+    binary0[5:15] = binary0[0]
+    binary1[20:30] = binary1[3]
+    binary1[40:45] = binary0[7]  # exact copies: distance 0 ties with distance 0
+    return binary0, binary1
+
+
+def near_copies(rng: np.random.Generator, n0: int, n1: int, n_bytes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Noisy copies plus random rows: matches that pass the ratio test, as on real images."""
+    bits0 = rng.integers(0, 2, (n0, 8 * n_bytes), dtype=np.uint8)
+    noisy = bits0[: n1 // 2] ^ (rng.random((n1 // 2, 8 * n_bytes)) < 0.1).astype(np.uint8)
+    bits1 = np.concatenate([noisy, rng.integers(0, 2, (n1 - n1 // 2, 8 * n_bytes), dtype=np.uint8)])
+    return np.packbits(bits0, axis=1), np.packbits(bits1, axis=1)
+
+
+# threshold as a fraction of the descriptor's bits
+HAMMING_RULES = [
+    (True, 0.8, None),
+    (True, None, None),
+    (False, 0.8, None),
+    (True, 0.9, 0.15),
+    (False, None, None),
+    (True, None, 0.11),
+]
+
+
+@pytest.mark.parametrize("mutual, ratio, threshold", HAMMING_RULES)
+@pytest.mark.parametrize("make, n_bytes", [(tie_heavy, 8), (tie_heavy, 32), (near_copies, 32), (near_copies, 8)])
+def test_hamming_matches_equal_brute_force(make, n_bytes, mutual, ratio, threshold):
+    threshold = threshold and threshold * 8 * n_bytes
+    rng = np.random.default_rng(n_bytes)
+    binary0, binary1 = make(rng, 300, 260, n_bytes)
+    distance = bit_distances(binary0, binary1)
+    expected = hloc_matches(distance, mutual, ratio, threshold)
+
+    matches, scores = hamming_nearest_neighbour_matches(
+        binary0, binary1, mutual=mutual, ratio_threshold=ratio, distance_threshold=threshold
+    )
+
+    assert len(expected) > 5  # the case is not vacuous
+    np.testing.assert_array_equal(matches, expected)
+    assert matches.dtype == np.int64 and scores.dtype == np.float32
+    np.testing.assert_allclose(scores, 1 - distance[expected[:, 0], expected[:, 1]] / (8 * n_bytes), atol=1e-6)
+    if mutual:
+        assert len(np.unique(matches[:, 1])) == len(matches)  # one-to-one despite the duplicates
+
+
+@pytest.mark.parametrize("n_bytes, rows_per_block", [(32, 512), (32, 7), (5, 3), (1, 100)])
+def test_popcount_distances_equal_bit_comparison(n_bytes, rows_per_block):
+    rng = np.random.default_rng(n_bytes)
+    binary0 = rng.integers(0, 256, (41, n_bytes), dtype=np.uint8)
+    binary1 = rng.integers(0, 256, (23, n_bytes), dtype=np.uint8)
+    distance = hamming_distances(binary0, binary1, rows_per_block=rows_per_block)
+    assert distance.dtype == np.uint16
+    np.testing.assert_array_equal(distance, bit_distances(binary0, binary1))
+
+
+def test_hamming_ties_go_to_the_lower_index():
+    # Row 0 is equally far (1 bit) from columns 1 and 2 and exactly equal to none: without the
+    # ratio test it must take column 1; column 1's nearest rows tie too and must give row 0.
+    binary0 = np.array([[0b0000_0011], [0b1111_0000]], np.uint8)
+    binary1 = np.array([[0b1111_1111], [0b0000_0001], [0b0000_0010]], np.uint8)
+    matches, _ = hamming_nearest_neighbour_matches(binary0, binary1, mutual=False)
+    np.testing.assert_array_equal(matches, [[0, 1], [1, 0]])
+    matches, _ = hamming_nearest_neighbour_matches(binary0, binary1, mutual=True)
+    np.testing.assert_array_equal(matches, [[0, 1], [1, 0]])
+    # A tie at the nearest distance fails the ratio test (d1 == d2), unless both are 0 bits.
+    matches, _ = hamming_nearest_neighbour_matches(binary0, binary1, mutual=False, ratio_threshold=0.8)
+    np.testing.assert_array_equal(matches, [[1, 0]])
+
+
+def test_hamming_ratio_is_tested_on_columns_too():
+    """The case where hloc's rule and a row-only ratio test differ, so a regression shows."""
+    rng = np.random.default_rng(7)
+    binary0, binary1 = near_copies(rng, 400, 200, 8)
+    binary0[300:340] = np.packbits(np.unpackbits(binary1[:40], axis=1) ^ (rng.random((40, 64)) < 0.05), axis=1)
+    distance = bit_distances(binary0, binary1)
+    expected = {tuple(m) for m in hloc_matches(distance, True, 0.8, None)}
+    assert {
+        tuple(m) for m in one_way_matches(distance, True, 0.8, None)
+    } - expected  # some matches fail only on their column's ratio
+
+    matches, _ = hamming_nearest_neighbour_matches(binary0, binary1, mutual=True, ratio_threshold=0.8)
+
+    assert {tuple(m) for m in matches} == expected
+
+
+def test_hamming_single_descriptor_and_empty_sides():
+    rng = np.random.default_rng(3)
+    binary0 = rng.integers(0, 256, (20, 32), dtype=np.uint8)
+    one = binary0[4:5] ^ np.uint8(1)
+    for mutual in (True, False):
+        matches, scores = hamming_nearest_neighbour_matches(binary0, one, mutual=mutual, ratio_threshold=0.8)
+        expected = hloc_matches(bit_distances(binary0, one), mutual, 0.8, None)
+        np.testing.assert_array_equal(matches, expected)
+        matches, _ = hamming_nearest_neighbour_matches(one, binary0, mutual=mutual, ratio_threshold=0.8)
+        np.testing.assert_array_equal(matches, hloc_matches(bit_distances(one, binary0), mutual, 0.8, None))
+    matches, scores = hamming_nearest_neighbour_matches(binary0[:0], binary0, ratio_threshold=0.8)
+    assert matches.shape == (0, 2) and scores.shape == (0,)
+    matches, _ = hamming_nearest_neighbour_matches(binary0, binary0[:0])
+    assert matches.shape == (0, 2)
+
+
+def test_the_nn_matcher_dispatches_hamming_here():
+    rng = np.random.default_rng(4)
+    binary0, binary1 = near_copies(rng, 120, 100, 32)
+    conf = {"type": "nn", "metric": "hamming", "mutual": True, "ratio_threshold": 0.8}
+    matches, scores = NearestNeighbourMatcher(conf, torch.device("cpu"))(
+        {"descriptors": binary0}, {"descriptors": binary1}
+    )
+    expected = hloc_matches(bit_distances(binary0, binary1), True, 0.8, None)
+    assert len(expected) > 20
     np.testing.assert_array_equal(matches, expected)

@@ -22,41 +22,23 @@ def five_matches() -> tuple[np.ndarray, np.ndarray]:
     return points, points + 3.0
 
 
-def test_few_matches_zero_scores_no_inliers_below_the_minimum():
+@pytest.mark.parametrize("rule", ["zero", "all"])
+def test_few_matches_rule_applies_below_the_minimum_and_without_a_model(rule):
+    counted = rule == "all"
     points0, points1 = five_matches()
-    assert ransac.fundamental_inliers(points0, points1, few_matches="zero").sum() == 0
-
-
-def test_few_matches_all_counts_every_match_below_the_minimum():
-    points0, points1 = five_matches()
-    assert ransac.fundamental_inliers(points0, points1, few_matches="all").sum() == 5
-
-
-def test_min_matches_above_eight_applies_the_rule_to_fittable_pairs():
-    rng = np.random.default_rng(1)
-    points0 = rng.uniform(0, 500, (12, 2))
-    assert ransac.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="all").sum() == 12
-    assert ransac.fundamental_inliers(points0, points0 + 2, min_matches=20, few_matches="zero").sum() == 0
-
-
-@pytest.mark.parametrize("rule, expected", [("zero", 0), ("all", 10)])
-def test_no_model_found_follows_the_rule(rule, expected):
+    assert ransac.fit_inliers(points0, points1, few_matches=rule).sum() == 5 * counted
+    # min_matches above 8 applies the rule to pairs a fit could take.
+    points0 = np.random.default_rng(1).uniform(0, 500, (12, 2))
+    assert ransac.fit_inliers(points0, points0 + 2, min_matches=20, few_matches=rule).sum() == 12 * counted
     # Ten copies of one point: OpenCV's RANSAC finds no fundamental matrix (F is None).
     points = np.zeros((10, 2))
-    assert ransac.fundamental_inliers(points, points + 1, few_matches=rule).sum() == expected
+    assert ransac.fit_inliers(points, points + 1, few_matches=rule).sum() == 10 * counted
 
 
 def test_unknown_few_matches_rule_is_one_sentence():
     points0, points1 = five_matches()
     with pytest.raises(ValueError, match="unknown few_matches rule 'some'.*Known: zero, all"):
-        ransac.fundamental_inliers(points0, points1, few_matches="some")
-
-
-def test_paper_profile_keeps_the_released_rule_and_repository_counts_all():
-    paper = methods.resolve_method("sift-nn", "paper")["verifier"]
-    repository = methods.resolve_method("sift-nn", "repository")["verifier"]
-    assert (paper["few_matches"], paper["min_matches"]) == ("zero", 8)
-    assert (repository["few_matches"], repository["min_matches"]) == ("all", 8)
+        ransac.fit_inliers(points0, points1, few_matches="some")
 
 
 def test_verify_matches_without_score_filter_keeps_low_scores():
@@ -133,37 +115,6 @@ def test_resized_coordinates_without_image_size_say_what_to_do():
     points0, points1 = five_matches()
     with pytest.raises(ValueError, match="no original image size"):
         ransac.to_verifier_frame(points0, None, {"coordinates": "resize_to", "resize_to": [512, 288]})
-
-
-# --------------------------------------------------------- the repository profile --
-def test_repository_profile_is_the_benchmark_repository_protocol():
-    conf = methods.resolve_method("disk-lg", "repository")
-    assert conf["profile"] == "repository"
-    extractor, matcher, verifier = conf["extractor"], conf["matcher"], conf["verifier"]
-    assert extractor["resize_to"] == [512, 288] and extractor["max_keypoints"] == 2048
-    assert extractor["store_float16"] is False and extractor["model_input_long_side"] == 1024
-    assert (matcher["depth_confidence"], matcher["width_confidence"]) == (-1, -1)
-    assert (verifier["threshold_px"], verifier["confidence"], verifier["max_iters"]) == (3.0, 0.95, 2000)
-    assert verifier["coordinates"] == "resize_to" and verifier["resize_to"] == [512, 288]
-    sift = methods.resolve_method("sift-nn", "repository")
-    assert sift["extractor"]["max_keypoints"] == 2048 and sift["extractor"]["root_sift"] is False
-    assert (sift["matcher"]["ratio_threshold"], sift["matcher"]["mutual"]) == (0.75, False)
-    for name in methods.method_names():
-        extractor = methods.resolve_method(name, "repository")["extractor"]
-        if extractor is not None:
-            assert extractor["store_float16"] is False, name
-
-
-def test_repository_superglue_is_image_matching_toolboxs_as_its_config_sets_it():
-    # The fork's SP+SG is image-matching-toolbox's SuperGlue (configs/superglue.yml: 20 Sinkhorn
-    # iterations) on Magic Leap's SuperPoint with its own keypoint threshold (0.005), run on the
-    # 512x288 grey image as it is: not LightGlue's SuperPoint (threshold 0.0005, input resized to 1024).
-    conf = methods.resolve_method("sp-sg", "repository")
-    assert conf["matcher"]["sinkhorn_iterations"] == 20
-    assert conf["extractor"]["keypoint_threshold"] == 0.005
-    assert "model_input_long_side" not in conf["extractor"] and conf["extractor"]["resize_to"] == [512, 288]
-    lightglue_superpoint = methods.resolve_method("sp-lg", "repository")["extractor"]
-    assert (lightglue_superpoint["keypoint_threshold"], lightglue_superpoint["model_input_long_side"]) == (0.0005, 1024)
 
 
 def test_bilinear_antialias_resize_equals_pil_bilinear():

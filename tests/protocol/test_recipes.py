@@ -133,11 +133,7 @@ def test_paper_lightglue_model_runs_with_hlocs_confidences():
     if not all(weights.is_present(c) for c in conf["checkpoints"]):
         pytest.skip("LightGlue's DISK weights are not in the torch hub cache")
     model = build_matcher(conf, torch.device("cpu")).model
-    assert (model.conf.depth_confidence, model.conf.width_confidence, model.conf.filter_threshold) == (
-        0.95,
-        0.99,
-        0.1,
-    )
+    assert (model.conf.depth_confidence, model.conf.width_confidence, model.conf.filter_threshold) == (0.95, 0.99, 0.1)
 
 
 def test_paper_verifier_is_the_released_evaluations():
@@ -174,8 +170,9 @@ def test_repository_images_are_512x288_with_2048_keypoints():
         assert image_conf["resize_to"] == REPOSITORY_SIZE, name
         assert image_conf["interpolation"] == "bilinear_antialias", name  # base_matcher.py:L49 Resize(antialias=True)
         assert image_conf.get("resize_max") is None, name
-        if recipe["extractor"] is not None:
+        if recipe["extractor"] is not None:  # features stored as float32
             assert recipe["extractor"]["max_keypoints"] == REPOSITORY_KEYPOINTS, name
+            assert recipe["extractor"]["store_float16"] is False, name
 
 
 def test_repository_lightglue_extractors_are_cvgs_defaults():
@@ -216,17 +213,14 @@ def test_repository_superglue_is_image_matching_toolboxs_sat_config():
         "sp-sg",
     )
     assert_holds(recipe["extractor"], {"nms_radius": 4, "keypoint_threshold": 0.005, "grayscale": True}, "sp-sg")
+    assert "model_input_long_side" not in recipe["extractor"]  # the 512x288 grey image as it is
 
 
 def test_repository_opencv_matchers_are_the_forks_ratio_test():
     # The fork's handcrafted.py:L43-49 knnMatch(k=2), kept when m.distance < 0.75 * n.distance
     # (lowe_thresh 0.75 at L69, L79), no mutual check; raw OpenCV descriptors (L38).
     for name in ("sift-nn", "orb-nn"):
-        assert_holds(
-            repository(name)["matcher"],
-            {"rule": "knn_ratio", "ratio_threshold": 0.75, "mutual": False},
-            name,
-        )
+        assert_holds(repository(name)["matcher"], {"rule": "knn_ratio", "ratio_threshold": 0.75, "mutual": False}, name)
     assert repository("sift-nn")["extractor"]["root_sift"] is False
 
 

@@ -1,6 +1,5 @@
-"""SuperPoint and SuperGlue: checkpoint layouts, post-processing pieces, matching
-invariants. No weights needed (the official checkpoints are not on this machine);
-the layouts of the official checkpoints are read from the reference folder."""
+"""SuperPoint and SuperGlue: checkpoint layouts (read from the reference folder), post-processing
+pieces, matching invariants; no weights needed."""
 
 from __future__ import annotations
 
@@ -14,14 +13,9 @@ from helpers import random_state_dict, read_layout
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.features import superpoint as sp
 from gvbench_nb.protocol.matching import superglue as sg
+from gvbench_nb.verification.doppelgangers import load_doppelgangers
 
-# ----------------------------------------------------------------------------- fixtures
-
-
-MODELS = {
-    "superpoint_v1": lambda: sp.SuperPoint(),
-    "superglue_outdoor": lambda: sg.SuperGlue(),
-}
+MODELS = {"superpoint_v1": lambda: sp.SuperPoint(), "superglue_outdoor": lambda: sg.SuperGlue()}
 
 
 # ----------------------------------------------------------------------------- layouts
@@ -186,15 +180,19 @@ def test_superpoint_rejects_bad_max_keypoints():
 
 
 @pytest.mark.parametrize(
-    "load, checkpoint", [(sp.load_superpoint, "superpoint_v1"), (sg.load_superglue, "superglue_outdoor")]
+    "load, checkpoint",
+    [
+        (sp.load_superpoint, "superpoint_v1"),
+        (sg.load_superglue, "superglue_outdoor"),
+        (load_doppelgangers, "doppelgangers_classifier_loftr"),
+    ],
 )
 def test_loading_without_weights_names_file_url_and_place(empty_hub, load, checkpoint):
     with pytest.raises(weights.MissingWeightsError) as err:
         load()
-    message = str(err.value)
-    assert f"{checkpoint}.pth" in message
+    message, file = str(err.value), weights.CHECKPOINTS[checkpoint].file
+    assert file in message and str(empty_hub / file) in message
     assert weights.CHECKPOINTS[checkpoint].urls[0] in message
-    assert str(empty_hub / f"{checkpoint}.pth") in message
 
 
 # ----------------------------------------------------------------------------- SuperGlue pieces

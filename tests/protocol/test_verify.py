@@ -3,34 +3,20 @@ import pytest
 from helpers import two_view_scene
 
 from gvbench_nb.protocol import ransac, recipes
-from gvbench_nb.protocol.ransac import ESTIMATORS, fundamental_inliers, verify_matches
+from gvbench_nb.protocol.ransac import ESTIMATORS, fit_inliers, verify_matches
 
 
 @pytest.mark.parametrize("method", list(ESTIMATORS))
 def test_estimators_recover_the_planted_inliers(method):
     p0, p1, truth = two_view_scene()
-    mask = fundamental_inliers(p0, p1, method=method)
+    mask = fit_inliers(p0, p1, method=method)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
     assert (mask & ~truth).sum() <= 3  # a random match may fall near its epipolar line
 
 
-def test_fewer_than_eight_matches_give_no_inliers():
-    p0, p1, _ = two_view_scene(n_inliers=7, n_outliers=0)
-    assert fundamental_inliers(p0, p1).sum() == 0
-
-
 def test_same_seed_same_inliers():
     p0, p1, _ = two_view_scene(n_inliers=40, n_outliers=40, seed=3)
-    assert (fundamental_inliers(p0, p1, seed=5) == fundamental_inliers(p0, p1, seed=5)).all()
-
-
-def test_score_filter_drops_low_confidence_matches_before_ransac():
-    p0, p1, truth = two_view_scene(n_inliers=100, n_outliers=0)
-    matches = np.c_[np.arange(100), np.arange(100)]
-    scores = np.where(np.arange(100) < 50, 0.9, 0.4)  # half below the 0.5 filter
-    result = verify_matches(p0, p1, matches, scores, recipes.recipe("sift-nn", "paper")["verifier"])
-    assert result["num_matches"] == 100 and result["num_matches_filtered"] == 50
-    assert result["num_inliers"] >= 45 and not result["inlier_mask"][50:].any()
+    assert (fit_inliers(p0, p1, seed=5) == fit_inliers(p0, p1, seed=5)).all()
 
 
 def test_resize_to_is_a_fixed_size_whatever_the_aspect_ratio():
@@ -73,7 +59,7 @@ def test_a_degenerate_pair_that_usac_raises_on_is_a_pair_without_a_model():
         cv2.setRNGSeed(0)
         cv2.findFundamentalMat(points0, points1, cv2.USAC_DEFAULT, 1.0, 0.99, 10000)
     for rule, expected in (("zero", 0), ("all", len(points0))):
-        mask = ransac.fundamental_inliers(
+        mask = ransac.fit_inliers(
             points0, points1, threshold_px=1.0, method="USAC_DEFAULT", max_iters=10000, few_matches=rule
         )
         assert mask.sum() == expected
@@ -140,4 +126,5 @@ def test_score_filter_keeps_only_scores_above_one_half():
     p0, p1, _ = two_view_scene(n_inliers=40, n_outliers=0)
     scores = np.where(np.arange(40) < 20, 0.5, np.nextafter(0.5, 1.0))
     result = verify_matches(p0, p1, all_matches(40), scores, recipes.recipe("disk-lg", "paper")["verifier"])
-    assert result["num_matches_filtered"] == 20 and not result["inlier_mask"][:20].any()
+    assert result["num_matches"] == 40 and result["num_matches_filtered"] == 20
+    assert result["num_inliers"] >= 18 and not result["inlier_mask"][:20].any()

@@ -26,16 +26,3 @@ def test_a_users_own_file_is_kept(empty_hub):
     weights.checkpoint_path("disk_depth").write_bytes(b"user's own checkpoint")
     assert weights.link_carried_weights()["disk_depth"] == "present (own file kept)"
     assert weights.checkpoint_path("disk_depth").read_bytes() == b"user's own checkpoint"
-
-
-def test_missing_message_names_file_url_and_place(empty_hub):
-    with pytest.raises(weights.MissingWeightsError) as error:
-        weights.require("superglue_outdoor", "loftr_outdoor")
-    message = str(error.value)
-    for expected in (
-        "superglue_outdoor.pth",
-        "loftr_outdoor.ckpt",
-        str(empty_hub / "loftr_outdoor.ckpt"),
-        "https://huggingface.co/kornia/loftr/resolve/main/loftr_outdoor.ckpt",
-    ):
-        assert expected in message

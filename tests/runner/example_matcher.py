@@ -1,12 +1,5 @@
-"""An example matcher written outside the package: this one file, plus one method entry
-(``methods.register_method`` or an entry a profile in ``protocol/recipes/``), is all a sparse matcher
-needs. ``tests/runner/test_extending.py`` registers it and runs it end to end; docs/extending.md
-walks through it.
-
-A matcher class is built as ``Class(conf, device)`` and called on two feature dicts
-(``keypoints`` (N, 2), ``descriptors`` (N, D), ``image_size``); it returns matches (M, 2)
-int64 indices and scores (M,) float32.
-"""
+"""An example matcher written outside the package: this one file plus one method entry is all a
+sparse matcher needs (docs/extending.md; tests/runner/test_extending.py runs it end to end)."""
 
 from __future__ import annotations
 
@@ -14,16 +7,19 @@ from typing import Any
 
 import numpy as np
 
+from gvbench_nb.protocol.matching.base import Matcher, Matches
 
-class MutualNearestNeighbourMatcher:
+
+class MutualNearestNeighbourMatcher(Matcher):
     """Mutual nearest neighbours of float descriptors by cosine similarity, in numpy."""
 
+    type = "example_mutual_nn"  # the recipe's type once this file is in protocol/matching/
+
     def __init__(self, conf: dict[str, Any], device: Any) -> None:
+        super().__init__(conf, device)
         self.min_similarity = float(conf.get("min_similarity", -1.0))
 
-    def __call__(
-        self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray]:
+    def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
         descriptors0 = features0["descriptors"].astype(np.float32)
         descriptors1 = features1["descriptors"].astype(np.float32)
         if len(descriptors0) == 0 or len(descriptors1) == 0:

@@ -8,11 +8,13 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
 
 
-class AlikedExtractor:
+class AlikedExtractor(Extractor):
     """kornia ALIKED."""
+
+    type = "kornia_aliked"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         from kornia.feature import ALIKED

@@ -1,17 +1,26 @@
-"""What every extractor shares: the feature dict it returns, the device, image tensors.
-
-An extractor takes an image prepared by ``protocol.images.load_for_extraction`` (grayscale
-(H, W) or RGB (H, W, 3), float32 in 0..255) and returns numpy arrays: ``keypoints`` (N, 2)
-float32 (x, y) in that image's pixels, ``scores`` (N,) float32, ``descriptors`` (N, D)
-float32 (uint8 for binary descriptors).
-"""
+"""What every extractor shares: its contract, the feature dict it returns, image tensors."""
 
 from __future__ import annotations
+
+from typing import ClassVar
 
 import numpy as np
 import torch
 
+from gvbench_nb.protocol.registry import Model
+
 Features = dict[str, np.ndarray]
+
+
+class Extractor(Model):
+    """Called on one image prepared by ``images.load_for_extraction`` (grayscale (H, W) or RGB
+    (H, W, 3), float32 in 0..255); returns ``keypoints`` (N, 2) float32 (x, y) in that image's
+    pixels, ``scores`` (N,) float32, ``descriptors`` (N, D) float32 (uint8 when binary)."""
+
+    types: ClassVar[dict[str, type[Model]]] = {}
+
+    def __call__(self, image: np.ndarray) -> Features:
+        raise NotImplementedError
 
 
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:

@@ -8,11 +8,13 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb.protocol.features.base import Features, empty_features, to_uint8
+from gvbench_nb.protocol.features.base import Extractor, Features, empty_features, to_uint8
 
 
-class OrbExtractor:
+class OrbExtractor(Extractor):
     """OpenCV ORB (the features ORB-SLAM verifies loop closures with); binary descriptors."""
+
+    type = "opencv_orb"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         # ORB.create is ORB_create; OpenCV's stubs type only the class method.

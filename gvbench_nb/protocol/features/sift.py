@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import torch
 
-from gvbench_nb.protocol.features.base import Features, empty_features, to_uint8
+from gvbench_nb.protocol.features.base import Extractor, Features, empty_features, to_uint8
 
 
 def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -20,16 +20,13 @@ def root_sift(descriptors: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     return descriptors / (np.linalg.norm(descriptors, axis=-1, keepdims=True) + eps)
 
 
-class ColmapSiftExtractor:
-    """COLMAP's SIFT through pycolmap, as hloc's ``dog`` extractor with its ``sift`` conf.
+class ColmapSiftExtractor(Extractor):
+    """COLMAP's SIFT through pycolmap, as hloc's ``dog`` extractor with its ``sift`` conf: the image
+    scaled to [0, 1], zero scores (COLMAP gives none), and hloc's own RootSIFT step applied again
+    to pycolmap's RootSIFT descriptors ("COLMAP does not normalize well"). CPU unless pycolmap
+    has CUDA and the device is CUDA, as hloc chooses."""
 
-    Options: first_octave, peak_threshold, RootSIFT normalisation (L1_ROOT), at most
-    ``max_keypoints`` features (pycolmap's max_num_features, 8192 by default). hloc passes
-    the float image scaled to [0, 1] and keeps x, y of each keypoint; its scores are zeros
-    (COLMAP gives none). hloc then applies its own RootSIFT step to pycolmap's descriptors,
-    which are RootSIFT already ("COLMAP does not normalize well"); so do we (``root_sift``).
-    CPU unless pycolmap was built with CUDA and the device is CUDA, as hloc chooses.
-    """
+    type = "colmap_sift"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         import warnings
@@ -73,22 +70,18 @@ class ColmapSiftExtractor:
         }
 
 
-class OpenCVSiftExtractor:
-    """OpenCV SIFT with RootSIFT descriptors (not the paper's SIFT: it upsamples first).
+class OpenCVSiftExtractor(Extractor):
+    """OpenCV SIFT (not the paper's: it upsamples first); COLMAP's peak threshold maps to
+    contrastThreshold = peak_threshold * nOctaveLayers, as OpenCV divides by the layers."""
 
-    The paper's DoG peak threshold 0.01 (COLMAP's definition) maps to OpenCV's
-    contrastThreshold = peak_threshold * nOctaveLayers, since OpenCV divides by the
-    number of layers before comparing.
-    """
+    type = "opencv_sift"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.conf = conf
         layers = 3
         # SIFT.create is SIFT_create; OpenCV's stubs type only the class method.
         self.sift = cv2.SIFT.create(
-            nfeatures=conf["max_keypoints"],
-            nOctaveLayers=layers,
-            contrastThreshold=conf["peak_threshold"] * layers,
+            nfeatures=conf["max_keypoints"], nOctaveLayers=layers, contrastThreshold=conf["peak_threshold"] * layers
         )
 
     def __call__(self, image: np.ndarray) -> Features:

@@ -1,20 +1,9 @@
-"""SuperPoint keypoint detector and descriptor (DeTone, Malisiewicz, Rabinovich, CVPRW 2018).
+"""SuperPoint (DeTone et al., CVPRW 2018), re-implemented so that its ``state_dict`` has exactly the
+names and shapes of Magic Leap's ``superpoint_v1.pth`` (24 tensors; loads with strict=True).
 
-A readable re-implementation whose ``state_dict`` has exactly the names and shapes
-of Magic Leap's released ``superpoint_v1.pth`` (24 tensors), so the official
-checkpoint loads with ``strict=True``. Post-processing follows the Magic Leap
-release step by step, because GV-Bench extracted its features with it (through
-hloc):
-
-1. softmax over the 65 channels of the detector head, drop the "no keypoint" bin;
-2. depth-to-space: each 8x8 cell's 64 channels become an 8x8 pixel patch;
-3. non-maximum suppression by max pooling, with two extra suppression passes;
-4. keep scores above ``keypoint_threshold``, drop keypoints near the border,
-   keep the ``max_keypoints`` best;
-5. L2-normalise the dense descriptor map, sample it bilinearly at the keypoints
-   (Magic Leap's pixel -> [-1, 1] mapping on the stride-8 grid), L2-normalise again.
-
-Licence of the weights: Magic Leap, non-commercial research only.
+Post-processing follows the Magic Leap release step by step (GV-Bench extracted its features with
+it, through hloc): softmax and depth-to-space, NMS by max pooling, threshold, borders, top-k, then
+descriptors sampled bilinearly on the stride-8 grid. Weights: Magic Leap, non-commercial only.
 """
 
 from __future__ import annotations
@@ -28,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
 
 CHECKPOINT = "superpoint_v1"
 
@@ -239,8 +228,10 @@ def load_superpoint(conf: Mapping[str, Any] | None = None, device: str | torch.d
     return model.eval().to(device)
 
 
-class SuperPointExtractor:
+class SuperPointExtractor(Extractor):
     """The SuperPoint above on the official Magic Leap weights."""
+
+    type = "magicleap_superpoint"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device

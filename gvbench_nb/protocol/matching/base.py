@@ -1,18 +1,27 @@
-"""What every matcher shares.
-
-A sparse matcher takes two feature dicts (from the cache: keypoints in original
-pixels, descriptors, ``image_size`` as (width, height)) and returns ``matches`` (M, 2)
-int64 indices into keypoints0/1 and ``scores`` (M,) float32. A dense matcher (class
-attribute ``dense = True``) takes two prepared images and returns points and scores.
-"""
+"""What every matcher shares: its contract and the empty result."""
 
 from __future__ import annotations
 
-from typing import Any, Protocol
+from typing import Any, ClassVar, Protocol
 
 import numpy as np
 
+from gvbench_nb.protocol.registry import Model
+
 Matches = tuple[np.ndarray, np.ndarray]
+
+
+class Matcher(Model):
+    """A sparse matcher is called on two feature dicts (keypoints in original pixels,
+    descriptors, ``image_size`` (width, height)) and returns ``matches`` (M, 2) int64 and
+    ``scores`` (M,) float32; a dense one (``dense = True``, no extractor in its recipe) on two
+    prepared images, returning points in each and confidences."""
+
+    types: ClassVar[dict[str, type[Model]]] = {}
+    dense: ClassVar[bool] = False
+
+    def __call__(self, *inputs: Any) -> Any:
+        raise NotImplementedError
 
 
 class PreparedMatcher(Protocol):

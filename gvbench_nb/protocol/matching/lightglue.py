@@ -8,14 +8,16 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.matching.base import Matches, empty_matches
+from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
 if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
     from gvbench_nb.protocol.matching.lightglue_prepared import PreparedImage
 
 
-class LightGlueMatcher:
+class LightGlueMatcher(Matcher):
     """kornia LightGlue (and LighterGlue for XFeat) with the paper's thresholds."""
+
+    type = "kornia_lightglue"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         from kornia.feature import LightGlue

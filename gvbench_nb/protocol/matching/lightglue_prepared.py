@@ -1,20 +1,12 @@
-"""kornia's LightGlue forward, split so that the work that sees one image only is done
-once per image instead of once per pair.
+"""kornia's LightGlue forward, split so that the work that sees one image only is done once per
+image instead of once per pair (GV-Bench uses each image in ~10-20 pairs).
 
-In LightGlue the two images first meet in the cross-attention of layer 0. Everything
-before it depends on one image alone: the input projection of the descriptors, the
-positional encoding of the keypoints, the layer-0 self-attention block, and the
-layer-0 cross block's query/key and value projections. ``prepare_image`` computes
-those for one image; ``match_prepared`` runs the rest for a pair. Both call kornia's
-own modules with the same tensors, in the same order, as ``kornia.feature.LightGlue``
-does for one pair (``_forward`` with a batch of one, kornia 0.9), so the matches and
-scores are bit-identical to ``LightGlue.forward`` (tests/protocol/test_lightglue_prepared.py
-checks this on real images, with early stopping and point pruning).
-
-GV-Bench's sequences use each image in ~10-20 pairs, so that share of LightGlue's work is
-done once instead of ~10-20 times (the README's bench gives the measured effect). Only the configuration the paper
-uses is supported: one pair, no mixed precision, no compiled static lengths, no
-scale/orientation or LAF inputs; ``supports_prepared`` says whether a model qualifies.
+Everything before layer 0's cross-attention depends on one image alone (input projection,
+positional encoding, layer-0 self-attention, the cross block's projections): ``prepare_image``
+computes it, ``match_prepared`` runs the rest, calling kornia's own modules with the same tensors
+in the same order as ``LightGlue.forward`` for one pair (kornia 0.9), so matches are bit-identical
+(tests/protocol/test_lightglue_prepared.py). Only the paper's configuration qualifies
+(``supports_prepared``): one pair, no mixed precision, no static lengths, no LAF inputs.
 """
 
 from __future__ import annotations

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
-
-if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
-    pass
+from gvbench_nb.protocol.matching.base import Matcher
 
 
 def loftr_call(
@@ -39,16 +37,11 @@ def loftr_call(
     )
 
 
-class LoFTRMatcher:
-    """kornia LoFTR run as a dense pair matcher (no per-image cache) with the paper's
-    preprocessing: grayscale, longest side <= 1024, both sides floored to a multiple of 8.
+class LoFTRMatcher(Matcher):
+    """kornia LoFTR as a dense pair matcher on two prepared grayscale images (float32, 0..255):
+    points in their pixels and confidences, merged across pairs by ``merge_dense_matches``."""
 
-    Takes two prepared grayscale images (float32, 0..255), runs them swapped as hloc does
-    or as they are (``swap_images``, ``loftr_call``) and returns points in their pixels and confidences; the
-    pipeline merges them across pairs (``merge_dense_matches``). The official checkpoint
-    is loaded here with ``weights_only=True``.
-    """
-
+    type = "kornia_loftr"
     dense = True
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
@@ -101,22 +94,12 @@ def merge_dense_matches(
     cell_size: float = 1.0,
     max_error: float = 1.0,
 ) -> tuple[dict[str, np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
-    """Dense matches turned into per-image keypoints and per-pair matches as hloc's
-    ``match_dense.match_and_assign`` does (conf ``loftr``: 1-px cells, max error 1 px,
-    at most 8192 keypoints an image).
-
-    ``raw_matches[i]`` = (points0 (N, 2), points1 (N, 2), scores (N,)) of ``pairs[i]`` in
-    original pixels. Pairs are visited in hloc's order (by the fewer uses of their two
-    images, then by name); each point falls into the ``max(cell_size, max_error)``-pixel
-    cell of its image and adds its match score to its ``max_error``-pixel bin there. An
-    image's keypoints are the best-scored bin of each cell, its ``max_keypoints``
-    highest-summed ones first (hloc's argsort, reversed). Every raw match is then reassigned
-    to the nearest kept keypoint within ``max_error`` on both sides (not always its own
-    cell's), matches without one dropped, many-to-one removed (``_one_to_one``); scores
-    are float16-rounded as hloc stores them.
-
-    Returns (keypoints by image name, float32 (K, 2); per pair (matches (M, 2) int64 into
-    those keypoints, ordered by image-0 keypoint, scores (M,) float32)).
+    """Dense matches (``raw_matches[i]``: points0, points1, scores of ``pairs[i]`` in original
+    pixels) turned into per-image keypoints and per-pair matches as hloc's
+    ``match_dense.match_and_assign`` does: pairs in hloc's order, scores summed per cell, an
+    image's ``max_keypoints`` best cells kept, every match reassigned to the nearest kept keypoint
+    within ``max_error`` on both sides, many-to-one removed, scores float16-rounded.
+    Returns (keypoints by image name; per pair (matches (M, 2) int64, scores (M,) float32)).
     """
     from collections import Counter
 

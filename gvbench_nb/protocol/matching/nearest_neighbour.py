@@ -3,17 +3,14 @@
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
 from gvbench_nb.protocol import registry
-from gvbench_nb.protocol.matching.base import Matches, empty_matches
-
-if TYPE_CHECKING:  # kornia is imported when a matcher is built, not when this module is
-    pass
+from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
 
 def nearest_neighbour_matches(
@@ -60,15 +57,9 @@ def check_ratio_test_on(ratio_test_on: str) -> None:
 def hamming_distances(
     descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64, threads: int | None = None
 ) -> np.ndarray:
-    """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors, by popcount.
-
-    The bytes are read as 64-bit words (zero-padded: padding adds no differing bits) and
-    ``np.bitwise_count`` counts the bits of their XOR; rows go in blocks so that the temporary
-    word matrix stays at ``rows_per_block * N1`` words (cache-sized) whatever the number of descriptors.
-    numpy's ufuncs release the GIL, so the blocks are spread over ``threads`` threads (default
-    OpenCV's thread count, which the runner's ``concurrency.configure_threads`` sets with torch's): a pair's
-    matching then uses the cores the L2 matcher's product uses.
-    """
+    """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors: popcount of the XOR of
+    64-bit words, in cache-sized row blocks spread over ``threads`` threads (numpy releases the GIL;
+    default OpenCV's thread count, as the L2 product uses)."""
     n_bytes = descriptors0.shape[1]
     padded = -n_bytes % 8
 
@@ -137,15 +128,8 @@ def hamming_nearest_neighbour_matches(
     distance_threshold: float | None = None,
     ratio_test_on: str = "rows_and_columns",
 ) -> Matches:
-    """Nearest-neighbour matches of binary descriptors (uint8 (N, B), 8B bits) by Hamming distance,
-    with hloc's rule (``hloc/matchers/nearest_neighbor.py``): each row's nearest column must pass
-    the Lowe ratio (d1 <= ratio * d2) and the distance threshold; with ``mutual``, that column's
-    nearest row, under the same tests, must be the row itself. The ratio test is skipped when
-    either side has a single descriptor. Ties go to the lower index: the nearest is the first
-    minimum, and a tie at the nearest distance fails the ratio test unless both are 0 bits.
-    ``ratio_test_on="rows"``: the columns' side of the mutual check skips the ratio test.
-    Returns matches (M, 2) int64 and scores (M,) float32 = 1 - distance / bits.
-    """
+    """hloc's rule (``two_way_l2_matches``) on binary descriptors (uint8 (N, B)) by Hamming distance;
+    ties go to the lower index. Scores are 1 - distance / bits."""
     if len(descriptors0) == 0 or len(descriptors1) == 0:
         return empty_matches()
     if min(len(descriptors0), len(descriptors1)) == 1:
@@ -176,14 +160,10 @@ def two_way_l2_matches(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """hloc's nearest-neighbour rule (``hloc/matchers/nearest_neighbor.py``) on L2 descriptors.
 
-    Similarity = dot product of the L2-normalised descriptors, distance^2 = 2 (1 - similarity).
-    Each row (a descriptor of image 0) keeps its best column when it passes the Lowe ratio
-    (d1^2 <= ratio^2 d2^2, d1 and d2 its two best) and the distance test (d1 <= threshold);
-    with ``mutual`` each column (a descriptor of image 1) must pass the same tests against
-    its two best rows, and the row and column must be each other's best. The ratio test is
-    skipped when either image has a single descriptor; ``ratio_test_on="rows"`` skips it on
-    the columns' side of the mutual check (the one-way reading). Score = (similarity + 1) / 2. Ties
-    go to the first index. Returns (matches (M, 2) long, scores (M,) float).
+    A row keeps its best column when it passes the Lowe ratio (d1^2 <= ratio^2 d2^2) and the
+    distance test; with ``mutual`` the column must pass them against its rows too and the two be
+    each other's best. The ratio test is skipped when either side has a single descriptor;
+    ``ratio_test_on="rows"`` skips it on the columns' side. Score (similarity + 1) / 2.
     """
     if len(descriptors0) == 0 or len(descriptors1) == 0:
         return torch.zeros((0, 2), dtype=torch.long), torch.zeros((0,))
@@ -245,12 +225,8 @@ def check_rule(rule: str) -> None:
 
 
 def l2_distances_as_opencv(descriptors0: np.ndarray, descriptors1: np.ndarray) -> np.ndarray:
-    """(N0, N1) L2 distances of raw float descriptors as cv2.BFMatcher(NORM_L2) reports them:
-    the square root, in float32, of the summed squared differences.
-
-    The squared distances come from one float64 product (|a|^2 + |b|^2 - 2 a.b); for OpenCV's
-    SIFT descriptors, whole numbers up to 255, every term is an integer below 2^53, so they are
-    exact and equal to OpenCV's float32 sums (below 2^24), and so is the float32 root."""
+    """(N0, N1) L2 distances as cv2.BFMatcher(NORM_L2) reports them (float32 roots); exact for
+    OpenCV's whole-number SIFT descriptors, whose float64 product terms are integers."""
     a = np.asarray(descriptors0, dtype=np.float64)
     b = np.asarray(descriptors1, dtype=np.float64)
     squared = (a * a).sum(axis=1)[:, None] + (b * b).sum(axis=1)[None, :] - 2.0 * (a @ b.T)
@@ -328,7 +304,9 @@ def knn_ratio_of_nearest(
     return np.stack([rows, nearest[rows]], axis=1).astype(np.int64), first[rows]
 
 
-class NearestNeighbourMatcher:
+class NearestNeighbourMatcher(Matcher):
+    type = "nn"
+
     def __init__(self, conf: dict[str, Any], device: torch.device):
         check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
         check_rule(conf.get("rule", "hloc"))

@@ -1,20 +1,8 @@
-"""SuperGlue feature matcher (Sarlin, DeTone, Malisiewicz, Rabinovich, CVPR 2020).
+"""SuperGlue (Sarlin et al., CVPR 2020), re-implemented so that its ``state_dict`` has exactly the
+names and shapes of Magic Leap's ``superglue_outdoor.pth`` (339 tensors; loads with strict=True).
 
-A readable re-implementation whose ``state_dict`` has exactly the names and shapes
-of Magic Leap's released ``superglue_outdoor.pth`` (339 tensors, BatchNorm buffers
-included), so the official checkpoint loads with ``strict=True``:
-
-- ``kenc``: keypoint encoder, an MLP of 1x1 Conv1d 3 -> 32 -> 64 -> 128 -> 256 -> 256
-  on (x, y, detection score), added to the descriptors;
-- ``gnn.layers.{0..17}``: attentional message passing, alternating self / cross;
-- ``final_proj``: a 1x1 Conv1d before the score matrix;
-- ``bin_score``: the learned dustbin score of the optimal transport.
-
-Tensors inside the network are channel-first (B, D, N), as in the release (its
-Conv1d layers need it); the public API takes descriptors as (B, N, D) and
-transposes them once.
-
-Licence of the weights: Magic Leap, non-commercial research only.
+Inside the network tensors are channel-first (B, D, N), as in the release; the public API takes
+(B, N, D). Weights: Magic Leap, non-commercial research only.
 """
 
 from __future__ import annotations
@@ -29,7 +17,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gvbench_nb.protocol import registry, weights
-from gvbench_nb.protocol.matching.base import Matches, empty_matches
+from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
 CHECKPOINTS = {"outdoor": "superglue_outdoor"}
 
@@ -318,8 +306,10 @@ def load_superglue(conf: Mapping[str, Any] | None = None, device: str | torch.de
     return model.eval().to(device)
 
 
-class SuperGlueMatcher:
+class SuperGlueMatcher(Matcher):
     """The SuperGlue above on the official outdoor weights."""
+
+    type = "magicleap_superglue"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from gvbench_nb import GVBenchError, run_and_publish, user_error_names
-from gvbench_nb.arguments import SuggestingParser, whole_number_at_least
+from gvbench_nb.io_utils import SuggestingParser, whole_number_at_least
 from gvbench_nb.reporting import tables
 
 DESCRIPTION = """\
@@ -62,7 +62,7 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
 
 
 def command_methods(args: argparse.Namespace) -> int:
-    from gvbench_nb import imm, methods
+    from gvbench_nb import methods
 
     if args.name:
         import yaml
@@ -76,6 +76,7 @@ def command_methods(args: argparse.Namespace) -> int:
         return 0
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
     print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
+    imm = methods.imm_peer()
     if not imm.vismatch_installed():
         print(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
         return 0
@@ -93,8 +94,9 @@ def command_weights(args: argparse.Namespace) -> int:
     if args.link:
         for name, what in weights.link_carried_weights().items():
             print(f"{name}: {what}")
-        from gvbench_nb import imm
+        from gvbench_nb.methods import imm_peer
 
+        imm = imm_peer()
         if imm.vismatch_installed():  # the same LightGlue files under the names vismatch loads
             for name, what in imm.link_local_weights().items():
                 print(f"{name} (vismatch): {what}")

@@ -265,7 +265,7 @@ def fetch(
 ) -> dict[str, int]:
     """Fetch datasets (default: the package manifest's) into ``to`` (default: :func:`data_dir`);
     returns how many files each dataset placed now (0: all were there and verified)."""
-    from gvbench_nb.progress import progress_bar
+    from gvbench_nb.io_utils import progress_bar
 
     datasets = datasets if datasets is not None else load_manifest()[0]
     chosen = [get_dataset(name, datasets) for name in dict.fromkeys(names)]
@@ -342,7 +342,7 @@ def check_images(root: Path, names: SequenceType[str], progress: bool = True) ->
     """Every named image exists under ``root`` and decodes (OpenCV)."""
     import cv2
 
-    from gvbench_nb.progress import progress_bar
+    from gvbench_nb.io_utils import progress_bar
 
     missing, undecodable = [], []
     present = 0

@@ -12,7 +12,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb.arguments import whole_number_at_least
+from gvbench_nb.io_utils import whole_number_at_least
 
 # `intervals` (and through it torch) is imported inside the handler: `--help` stays instant.
 

@@ -382,7 +382,7 @@ def page_folders(output_dirs: list[Path]) -> dict[Path, str]:
 
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
-    from gvbench_nb.progress import progress_bar
+    from gvbench_nb.io_utils import progress_bar
 
     report_dir = report_dir.resolve()
     report_dir.mkdir(parents=True, exist_ok=True)

@@ -7,7 +7,7 @@ import io
 import sys
 import types
 
-from gvbench_nb import progress
+from gvbench_nb import io_utils as progress
 
 
 class Terminal(io.StringIO):

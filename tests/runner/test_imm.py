@@ -18,7 +18,9 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import imm, methods
+from gvbench_nb import methods
+
+imm = methods.imm_peer()
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.runner import method_runs, pair_matching, scoring
 
@@ -98,7 +100,7 @@ def fake_vismatch(monkeypatch):
 def test_imm_methods_resolve_as_dense_pair_matchers(no_vismatch):
     conf = methods.resolve_method("imm:sift-nn", "paper")
     assert conf["extractor"] is None and conf["matcher"]["dense"]
-    assert conf["matcher"]["type"] == "gvbench_nb.imm:ImmPairMatcher" and conf["matcher"]["vismatch_name"] == "sift-nn"
+    assert conf["matcher"]["type"] == "benchmarks.imm:ImmPairMatcher" and conf["matcher"]["vismatch_name"] == "sift-nn"
     assert conf["matcher"]["resize_to"] == [512, 288] and conf["paper_name"] == "vismatch sift-nn"
     assert methods.required_checkpoints("imm:sift-nn") == []
     assert methods.expand_methods("sift-nn, imm:orb-nn") == ["sift-nn", "imm:orb-nn"]

@@ -15,7 +15,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gvbench_nb import imm, methods
+from gvbench_nb import methods
+
+imm = methods.imm_peer()
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.protocol.images import to_original_pixels
 from gvbench_nb.runner import config, pair_matching

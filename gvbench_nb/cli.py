@@ -12,7 +12,7 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import GVBenchError, run_and_publish, user_error_names
+from gvbench_nb import GVBenchError, run_and_publish
 from gvbench_nb.io_utils import SuggestingParser, whole_number_at_least
 from gvbench_nb.reporting import tables
 
@@ -475,12 +475,12 @@ def main(
     ``python benchmarks/speed.py``) that shares this one's error messages and Ctrl-C handling."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in argv:  # Python's KeyboardInterrupt, with its traceback
-        return run_command(argv, parser, module)
+        return dispatch(argv, parser, module)
     with stop_on_interrupt(argv, module):
-        return run_command(argv, parser, module)
+        return dispatch(argv, parser, module)
 
 
-def run_command(
+def dispatch(
     argv: list[str], parser: Callable[[], argparse.ArgumentParser] | None = None, module: str = "gvbench_nb"
 ) -> int:
     if parser is None and argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
@@ -503,52 +503,17 @@ def run_command(
         return code
 
 
-def _loaded_classes(names: SequenceType[tuple[str, str]]) -> tuple[type, ...]:
-    """The classes of ``names`` whose modules are imported (importing papermill to answer a typo takes seconds)."""
-    found = (getattr(sys.modules[module], name, None) for module, name in names if module in sys.modules)
-    return tuple(c for c in found if isinstance(c, type))
-
-
-def _written_path(error: BaseException) -> str | None:
-    """The file a failed write was writing, when a frame of its traceback holds it as ``path``
-    (Python's write errors name no file; papermill's and most writers' frames do)."""
-    found = None
-    traceback = error.__traceback__
-    while traceback is not None:
-        value = traceback.tb_frame.f_locals.get("path")
-        if isinstance(value, (str, os.PathLike)):
-            found = os.fspath(value)
-        traceback = traceback.tb_next
-    return found
-
-
 def user_error(error: BaseException) -> tuple[str, int] | None:
-    """The message and exit code of an error a user can cause (bad params, pairs,
-    images, weights, caches or paths); None for any other error."""
-    papermill = _loaded_classes([("papermill.exceptions", "PapermillExecutionError")])
-    if papermill and isinstance(error, papermill):
-        # The failing cell's own error, without the notebook machinery around it; an error
-        # the user can cause (a full disk, a bad image) reads as it would outside a notebook.
-        count = getattr(error, "exec_count", None)
-        if getattr(error, "ename", None) in user_error_names():
-            return (
-                f"error: {getattr(error, 'evalue', '')} (the executed notebook in the output folder keeps the traceback)",
-                2,
-            )
-        return (
-            f"error in {count and 'cell ' + str(count)}: {getattr(error, 'ename', '')}: "
-            f"{getattr(error, 'evalue', '')}\n"
-            "the executed notebook (with the full traceback) is in the output folder"
-        ), 1
+    """The message and exit code of an error a user can cause (bad params, pairs, images,
+    weights, caches or paths); None for a fault of the program."""
     if isinstance(error, GVBenchError):
-        return f"error: {error}", 2
+        return f"error: {error}", error.exit_code
     from gvbench_nb.io_utils import WRITE_FAILURES
 
-    if isinstance(error, OSError) and error.errno in WRITE_FAILURES and not error.filename:
-        written = _written_path(error)
+    if isinstance(error, OSError) and error.errno in WRITE_FAILURES:
         return (
-            f"error: cannot write {written or 'a file'} ({error.strerror or error}): the disk is full or a quota "
-            "or file size limit is reached; free space and run again"
+            f"error: cannot write {error.filename or 'a file'} ({error.strerror or error}): the disk is full or a "
+            "quota or file size limit is reached; free space and run again"
         ), 2
     if isinstance(error, OSError):  # a file or folder the user named cannot be used
         where = f" {error.filename}:" if error.filename else ""

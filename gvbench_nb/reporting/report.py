@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from gvbench_nb.io_utils import atomic_write_text
-from gvbench_nb.reporting.execute import execute_notebook
+from gvbench_nb.reporting.execute import NotebookFailedError, execute_notebook
 from gvbench_nb.runner import config
 
 if TYPE_CHECKING:
@@ -77,12 +77,10 @@ def execute_and_convert(
     A failing notebook is still converted (its traceback is the useful part) and its
     error is returned rather than raised, so one sequence cannot sink the report.
     """
-    from papermill.exceptions import PapermillExecutionError
-
     error = None
     try:
         execute_notebook(source, target, parameters)
-    except PapermillExecutionError as failure:
+    except NotebookFailedError as failure:
         error = f"{failure.ename}: {failure.evalue}"
     html_path = None
     if target.is_file():

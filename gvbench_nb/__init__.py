@@ -4,6 +4,9 @@ Stages (one function each): ``config.prepare_sequence`` -> ``image_features.extr
 -> ``pair_matching.match_and_verify`` -> ``method_runs.pairs_table`` -> ``scoring.evaluate``.
 """
 
+import logging
+import sys
+
 __version__ = "0.1.0"
 
 
@@ -12,3 +15,24 @@ class GVBenchError(Exception):
     command line prints its message as one sentence, without a traceback."""
 
     exit_code = 2
+
+
+class _CurrentStreamHandler(logging.StreamHandler):  # type: ignore[type-arg]
+    """Status lines to sys.stdout, warnings and errors to sys.stderr, as they are when a line is
+    written: pytest's capture and a notebook's cell output see them."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
+        super().emit(record)
+
+
+def set_log_level(level: int) -> None:
+    """The package's status lines at ``level`` and above (``--quiet``: warnings, ``--verbose``: debug)."""
+    log = logging.getLogger(__name__)
+    if not any(isinstance(h, _CurrentStreamHandler) for h in log.handlers):
+        log.addHandler(_CurrentStreamHandler())
+        log.propagate = False  # one copy of each line, whatever the root logger does
+    log.setLevel(level)
+
+
+set_log_level(logging.INFO)

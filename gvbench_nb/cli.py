@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import os
 import sys
 import threading
@@ -12,9 +13,11 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import GVBenchError, run_and_publish
+from gvbench_nb import GVBenchError, run_and_publish, set_log_level
 from gvbench_nb.io_utils import SuggestingParser, whole_number_at_least
 from gvbench_nb.reporting import tables
+
+log = logging.getLogger(__name__)
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -75,10 +78,10 @@ def command_methods(args: argparse.Namespace) -> int:
         print(yaml.safe_dump({args.name: conf}, sort_keys=False, default_flow_style=False), end="")
         return 0
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
-    print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
+    log.info("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
     imm = methods.imm_peer()
     if not imm.vismatch_installed():
-        print(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
+        log.info(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
         return 0
     print(
         f"\nimage-matching-models (vismatch {imm.vismatch_version()}) matchers, run as imm:<name> "
@@ -93,20 +96,20 @@ def command_weights(args: argparse.Namespace) -> int:
 
     if args.link:
         for name, what in weights.link_carried_weights().items():
-            print(f"{name}: {what}")
+            log.info(f"{name}: {what}")
         from gvbench_nb.methods import imm_peer
 
         imm = imm_peer()
         if imm.vismatch_installed():  # the same LightGlue files under the names vismatch loads
             for name, what in imm.link_local_weights().items():
-                print(f"{name} (vismatch): {what}")
+                log.info(f"{name} (vismatch): {what}")
         print()
     rows = weights.status_table()
     _print_table(rows, ["name", "present", "carrier", "used_by", "licence"])
-    print(f"\nweights folder: {weights.checkpoints_dir()}")
+    log.info(f"\nweights folder: {weights.checkpoints_dir()}")
     for row in rows:
         if not row["present"]:
-            print(f"\n{weights.missing_message(row['name'])}")
+            log.info(f"\n{weights.missing_message(row['name'])}")
     return 0
 
 
@@ -116,7 +119,6 @@ def positive_int(text: str) -> int:
 
 
 def command_build(args: argparse.Namespace) -> int:
-    import sys
 
     from gvbench_nb.data import build_inputs
     from gvbench_nb.runner import config, sequence_build
@@ -130,10 +132,10 @@ def command_build(args: argparse.Namespace) -> int:
         )
         card = sequence_build.build_sequence(params)
     except (build_inputs.BuildError, config.ParamsError) as error:
-        print(f"error: {error}", file=sys.stderr)
+        log.error(f"error: {error}")
         return 2
     print(sequence_build.card_markdown(card))
-    print(f"pairs: {card['files']['pairs']}\ncard: {card['files']['card_json']}")
+    log.info(f"pairs: {card['files']['pairs']}\ncard: {card['files']['card_json']}")
     return 0
 
 
@@ -169,11 +171,11 @@ def command_data(args: argparse.Namespace) -> int:
         return 0
     if args.data_command == "fetch":
         root = Path(args.to).expanduser().resolve() if args.to else fetch.data_dir()
-        print(f"data folder: {root}", file=sys.stderr)
+        log.warning(f"data folder: {root}")
         placed = fetch.fetch(args.names, to=root, mirror=args.mirror, progress=not args.quiet)
         for name, count in placed.items():
             dataset = fetch.get_dataset(name)
-            print(
+            log.info(
                 f"{name}: {len(dataset.files)} files verified in {root / dataset.folder} "
                 f"({count} placed now, {len(dataset.files) - count} already there)"
             )
@@ -239,23 +241,24 @@ def data_main(argv: SequenceType[str]) -> int:
     try:
         return args.handler(args)
     except fetch.DataError as error:
-        print(f"error: {error}", file=sys.stderr)
+        log.error(f"error: {error}")
         return 2
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from gvbench_nb.runner import distributed
-
-    parser = SuggestingParser(
-        prog="python -m gvbench_nb",
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_global_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--debug", action="store_true", help="show the full traceback of an error instead of its one-line message"
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    level = parser.add_mutually_exclusive_group()
+    level.add_argument(
+        "--quiet", dest="log_level", action="store_const", const=logging.WARNING, help="only warnings and errors"
+    )
+    level.add_argument("--verbose", dest="log_level", action="store_const", const=logging.DEBUG, help="debug lines too")
+    parser.set_defaults(log_level=logging.INFO)
+
+
+def add_run_command(commands: Any) -> None:
+    from gvbench_nb.runner import distributed
 
     run = commands.add_parser(
         "run",
@@ -281,6 +284,19 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
     run.set_defaults(handler=run_and_publish.command_run)
     distributed.add_run_arguments(run)  # --jobs; --shard I/N, --merge, --dask, --scheduler, --shards, --dask-workers
+
+
+def build_parser() -> argparse.ArgumentParser:
+
+    parser = SuggestingParser(
+        prog="python -m gvbench_nb",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    add_global_options(parser)
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add_run_command(commands)
 
     results = commands.add_parser(
         "results",
@@ -382,7 +398,7 @@ def command_weights_fetch(args: argparse.Namespace) -> int:
     if args.sha256 and len(args.names) > 1:
         raise fetch.DataError("--sha256 is the hash of one file: give one NAME with it (or run one fetch a NAME)")
     for name in args.names:
-        print(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
+        log.info(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
     return 0
 
 
@@ -486,20 +502,21 @@ def dispatch(
     if parser is None and argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
         return data_main(argv[1:])
     args = (parser or build_parser)().parse_args(argv)
+    set_log_level(getattr(args, "log_level", logging.INFO))
     try:
         check_before_work(args)
         return args.handler(args)
     except KeyboardInterrupt:
         if args.debug:
             raise
-        print(resume_hint(argv, module), file=sys.stderr)
+        log.error(resume_hint(argv, module))
         return 130
     except Exception as error:
         report = None if args.debug else user_error(error)
         if report is None:  # --debug, or a fault of the program rather than of its input
             raise
         message, code = report
-        print(message, file=sys.stderr)
+        log.error(message)
         return code
 
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import html
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,6 +22,8 @@ from typing import TYPE_CHECKING, Any
 from gvbench_nb.io_utils import atomic_write_text
 from gvbench_nb.reporting.execute import NotebookFailedError, execute_notebook
 from gvbench_nb.runner import config
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -452,10 +455,10 @@ def command_report(args: argparse.Namespace) -> int:
     report_dir = Path(args.output_dir)
     for folder in output_dirs:
         scoring.readable_methods(folder)  # what `results` refuses, the report refuses, before any file
-    print(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
+    log.info(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]
-    print(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
+    log.info(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
     return 1 if failed else 0
 
 

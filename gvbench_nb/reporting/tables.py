@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 # Every column of `results --wide` and `--markdown` (the README's tables come from the latter).
 WIDE_COLUMNS = [
@@ -101,30 +104,30 @@ def command_results(args: argparse.Namespace) -> int:
         else:
             table = results[WIDE_COLUMNS] if args.wide else compact_table(results)
             print(table.to_string(index=False, float_format="%.3f"))
-        print(
+        log.info(
             f"\n{'*_low, *_high' if args.markdown or args.wide else 'CI'}: 95 % bootstrap interval over "
             f"{results['interval_unit'].iloc[0]} resamples (`compare` ranks the methods pairwise)"
         )
         reused = results.loc[results["timers"] != "this run", ["method", "timers"]]
         if len(reused) and not (args.markdown or args.wide):
-            print(
+            log.info(
                 "*: seconds from the cache, the runs' that computed them: "
                 + ", ".join(f"{m} ({t})" for m, t in zip(reused["method"], reused["timers"]))
             )
         print()
         holder = record.running(folder)
         if holder:
-            print(
+            log.warning(
                 f"note: a run (pid {holder.get('pid')}, started {holder.get('started_at')}) is writing {folder} now; "
                 "the rows above are the results published before it\n"
             )
         for method, why in unfinished.items():
-            print(f"not finished: {method}: {why}")
+            log.warning(f"not finished: {method}: {why}")
         if args.export == "npy":
             from gvbench_nb.runner import score_files
 
             for method in results["method"]:
-                print(f"{method}: {score_files.export_npy(folder, method)}")
+                log.info(f"{method}: {score_files.export_npy(folder, method)}")
         if args.all_methods:
             others = not_run_table(set(results["method"]))
             if len(others):

@@ -19,10 +19,10 @@ import numpy as np
 import pytest
 
 from gvbench_nb import methods
-
-imm = methods.imm_peer()
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.runner import method_runs, pair_matching, scoring
+
+imm = methods.imm_peer()  # benchmarks/imm.py
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
     sys.modules.get("vismatch"), types.SimpleNamespace
@@ -117,22 +117,6 @@ def test_missing_vismatch_fails_before_any_work_saying_what_to_install(no_vismat
     assert not (tmp_path / "out").exists()
 
 
-@pytest.mark.slow
-def test_methods_command_says_how_to_enable_imm_without_vismatch():
-    if HAVE_VISMATCH:
-        pytest.skip(
-            "vismatch is installed here; the listing is checked by test_methods_command_lists_vismatch_matchers"
-        )
-    out = subprocess.run(
-        [sys.executable, "-m", "gvbench_nb", "methods"],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=Path(__file__).resolve().parents[2],
-    ).stdout
-    assert "imm:<name>" in out and "make setup-imm" in out
-
-
 def test_methods_points_to_the_opt_in_venv_not_to_pip_and_has_a_description(no_vismatch, capsys):
     from gvbench_nb import cli
 
@@ -199,7 +183,7 @@ def test_imm_xfeat_builds_offline_from_the_linked_weights_without_the_hub_banner
     probe = (
         "import numpy as np\n"
         "from gvbench_nb import methods\n"
-        "from gvbench_nb import imm\n"
+        "imm = methods.imm_peer()\n"
         "print(imm.link_local_weights()['vismatch/xfeat/xfeat.pt'])\n"
         "matcher = imm.ImmPairMatcher(methods.resolve_method('imm:xfeat', 'repository')['matcher'], 'cpu')\n"
         "image = np.random.default_rng(0).integers(0, 255, (288, 512, 3), dtype=np.uint8)\n"

@@ -17,7 +17,7 @@ class GVBenchError(Exception):
     exit_code = 2
 
 
-class _CurrentStreamHandler(logging.StreamHandler):  # type: ignore[type-arg]
+class _CurrentStreamHandler(logging.StreamHandler):
     """Status lines to sys.stdout, warnings and errors to sys.stderr, as they are when a line is
     written: pytest's capture and a notebook's cell output see them."""
 

@@ -73,5 +73,5 @@ def paper_sequences() -> pd.DataFrame:
 
 
 def _read_csv(name: str) -> pd.DataFrame:
-    with resources.files("gvbench_nb").joinpath("reference_values", name).open("r", encoding="utf-8") as handle:
+    with resources.files("gvbench_nb").joinpath("reference_values").joinpath(name).open("r", encoding="utf-8") as handle:
         return pd.read_csv(handle)

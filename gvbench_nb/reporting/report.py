@@ -267,12 +267,6 @@ PAPER_FIGURES = {
 }
 
 
-def paper_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
-    """The across-sequences notebooks of the paper's items and of deployment, as report jobs."""
-    parameters = {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}
-    return [(name, report_dir / name, dict(parameters), "") for name in PAPER_NOTEBOOKS]
-
-
 VERIFIER_METHOD = "sift-nn"  # whose cached matches the verifier pages re-score
 VERIFIERS_FOLDER = "verifiers"  # the verifier notebooks' output folder in a run folder, as they default
 
@@ -389,26 +383,13 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
     report_dir.mkdir(parents=True, exist_ok=True)
     output_dirs = [d.resolve() for d in output_dirs]
     # params_files=[]: the report runs nothing, it only reads what runs wrote.
-    jobs: list[tuple[str, Path, dict, str]] = [
-        (
-            ACROSS_SEQUENCES_NOTEBOOK,
-            report_dir / ACROSS_SEQUENCES_NOTEBOOK,
-            {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)},
-            "",
-        )
-    ]
+    every = {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}
+    jobs = [(ACROSS_SEQUENCES_NOTEBOOK, report_dir / ACROSS_SEQUENCES_NOTEBOOK, every, "")]
     for folder, folder_name in page_folders(output_dirs).items():
-        target_dir = report_dir / folder_name
-        for name in PER_SEQUENCE_NOTEBOOKS:
-            jobs.append(
-                (
-                    name,
-                    target_dir / name,
-                    {"output_dirs": [str(folder)], "params_files": [], "output_dir": str(target_dir)},
-                    _sequence_name(folder),
-                )
-            )
-    jobs += paper_jobs(report_dir, output_dirs) + study_jobs(report_dir, output_dirs)
+        one = {"output_dirs": [str(folder)], "params_files": [], "output_dir": str(report_dir / folder_name)}
+        jobs += [(n, report_dir / folder_name / n, one, _sequence_name(folder)) for n in PER_SEQUENCE_NOTEBOOKS]
+    jobs += [(name, report_dir / name, dict(every), "") for name in PAPER_NOTEBOOKS]
+    jobs += study_jobs(report_dir, output_dirs)
     executed = []
     bar = progress_bar(jobs, desc="analysis notebooks", unit="nb")
     for source, target, parameters, sequence in bar:

@@ -31,7 +31,6 @@ import numpy as np
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.methods import IMM_PREFIX as PREFIX
-from gvbench_nb.methods import is_imm
 
 # Not `pip install vismatch`: it needs torch 2.14.1 and kornia < 0.8.3, which would replace the
 # default venv's pins; the opt-in venv keeps them apart.

@@ -44,6 +44,8 @@ def imm_peer() -> ModuleType:
         sys.modules[name] = module = importlib.util.module_from_spec(spec)
         spec.loader.exec_module(module)
     return sys.modules[name]
+
+
 # Methods added by ``register_method`` in this process: only this process knows them.
 REGISTERED_FROM_CODE: set[str] = set()
 

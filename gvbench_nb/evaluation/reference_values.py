@@ -73,5 +73,6 @@ def paper_sequences() -> pd.DataFrame:
 
 
 def _read_csv(name: str) -> pd.DataFrame:
-    with resources.files("gvbench_nb").joinpath("reference_values").joinpath(name).open("r", encoding="utf-8") as handle:
+    path = resources.files("gvbench_nb").joinpath("reference_values").joinpath(name)
+    with path.open("r", encoding="utf-8") as handle:
         return pd.read_csv(handle)

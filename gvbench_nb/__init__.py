@@ -4,6 +4,9 @@ Stages (one function each): ``config.prepare_sequence`` -> ``image_features.extr
 -> ``pair_matching.match_and_verify`` -> ``method_runs.pairs_table`` -> ``scoring.evaluate``.
 """
 
+import logging
+import sys
+
 __version__ = "0.1.0"
 
 
@@ -11,12 +14,25 @@ class GVBenchError(Exception):
     """An error the user can cause (params, pairs, images, weights, caches, output folders): the
     command line prints its message as one sentence, without a traceback."""
 
+    exit_code = 2
 
-def user_error_names() -> set[str]:
-    """The names of every loaded ``GVBenchError`` class (a notebook's error arrives by name)."""
-    found, todo = set(), [GVBenchError]
-    while todo:
-        for sub in todo.pop().__subclasses__():
-            found.add(sub.__name__)
-            todo.append(sub)
-    return found
+
+class _CurrentStreamHandler(logging.StreamHandler):
+    """Status lines to sys.stdout, warnings and errors to sys.stderr, as they are when a line is
+    written: pytest's capture and a notebook's cell output see them."""
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self.stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
+        super().emit(record)
+
+
+def set_log_level(level: int) -> None:
+    """The package's status lines at ``level`` and above (``--quiet``: warnings, ``--verbose``: debug)."""
+    log = logging.getLogger(__name__)
+    if not any(isinstance(h, _CurrentStreamHandler) for h in log.handlers):
+        log.addHandler(_CurrentStreamHandler())
+        log.propagate = False  # one copy of each line, whatever the root logger does
+    log.setLevel(level)
+
+
+set_log_level(logging.INFO)

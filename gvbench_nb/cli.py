@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import logging
 import os
 import sys
 import threading
@@ -12,9 +13,11 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import GVBenchError, run_and_publish, user_error_names
-from gvbench_nb.arguments import SuggestingParser, whole_number_at_least
+from gvbench_nb import GVBenchError, run_and_publish, set_log_level
+from gvbench_nb.io_utils import SuggestingParser, whole_number_at_least
 from gvbench_nb.reporting import tables
+
+log = logging.getLogger(__name__)
 
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
@@ -62,7 +65,7 @@ def _print_table(rows: list[dict[str, Any]], columns: list[str]) -> None:
 
 
 def command_methods(args: argparse.Namespace) -> int:
-    from gvbench_nb import imm, methods
+    from gvbench_nb import methods
 
     if args.name:
         import yaml
@@ -75,9 +78,10 @@ def command_methods(args: argparse.Namespace) -> int:
         print(yaml.safe_dump({args.name: conf}, sort_keys=False, default_flow_style=False), end="")
         return 0
     _print_table(methods.method_table(), ["method", "paper_name", "in_paper", "weights", "available", "missing"])
-    print("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
+    log.info("\nrun any of them: python -m gvbench_nb run PARAMS --methods NAME[,NAME] (or all-available)")
+    imm = methods.imm_peer()
     if not imm.vismatch_installed():
-        print(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
+        log.info(f"\nimm:<name> methods (any image-matching-models matcher) need vismatch: {imm.SETUP_HINT}")
         return 0
     print(
         f"\nimage-matching-models (vismatch {imm.vismatch_version()}) matchers, run as imm:<name> "
@@ -92,19 +96,20 @@ def command_weights(args: argparse.Namespace) -> int:
 
     if args.link:
         for name, what in weights.link_carried_weights().items():
-            print(f"{name}: {what}")
-        from gvbench_nb import imm
+            log.info(f"{name}: {what}")
+        from gvbench_nb.methods import imm_peer
 
+        imm = imm_peer()
         if imm.vismatch_installed():  # the same LightGlue files under the names vismatch loads
             for name, what in imm.link_local_weights().items():
-                print(f"{name} (vismatch): {what}")
+                log.info(f"{name} (vismatch): {what}")
         print()
     rows = weights.status_table()
     _print_table(rows, ["name", "present", "carrier", "used_by", "licence"])
-    print(f"\nweights folder: {weights.checkpoints_dir()}")
+    log.info(f"\nweights folder: {weights.checkpoints_dir()}")
     for row in rows:
         if not row["present"]:
-            print(f"\n{weights.missing_message(row['name'])}")
+            log.info(f"\n{weights.missing_message(row['name'])}")
     return 0
 
 
@@ -114,7 +119,6 @@ def positive_int(text: str) -> int:
 
 
 def command_build(args: argparse.Namespace) -> int:
-    import sys
 
     from gvbench_nb.data import build_inputs
     from gvbench_nb.runner import config, sequence_build
@@ -128,10 +132,10 @@ def command_build(args: argparse.Namespace) -> int:
         )
         card = sequence_build.build_sequence(params)
     except (build_inputs.BuildError, config.ParamsError) as error:
-        print(f"error: {error}", file=sys.stderr)
+        log.error(f"error: {error}")
         return 2
     print(sequence_build.card_markdown(card))
-    print(f"pairs: {card['files']['pairs']}\ncard: {card['files']['card_json']}")
+    log.info(f"pairs: {card['files']['pairs']}\ncard: {card['files']['card_json']}")
     return 0
 
 
@@ -167,11 +171,11 @@ def command_data(args: argparse.Namespace) -> int:
         return 0
     if args.data_command == "fetch":
         root = Path(args.to).expanduser().resolve() if args.to else fetch.data_dir()
-        print(f"data folder: {root}", file=sys.stderr)
+        log.warning(f"data folder: {root}")
         placed = fetch.fetch(args.names, to=root, mirror=args.mirror, progress=not args.quiet)
         for name, count in placed.items():
             dataset = fetch.get_dataset(name)
-            print(
+            log.info(
                 f"{name}: {len(dataset.files)} files verified in {root / dataset.folder} "
                 f"({count} placed now, {len(dataset.files) - count} already there)"
             )
@@ -237,23 +241,24 @@ def data_main(argv: SequenceType[str]) -> int:
     try:
         return args.handler(args)
     except fetch.DataError as error:
-        print(f"error: {error}", file=sys.stderr)
+        log.error(f"error: {error}")
         return 2
 
 
-def build_parser() -> argparse.ArgumentParser:
-    from gvbench_nb.runner import distributed
-
-    parser = SuggestingParser(
-        prog="python -m gvbench_nb",
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+def add_global_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--debug", action="store_true", help="show the full traceback of an error instead of its one-line message"
     )
-    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    level = parser.add_mutually_exclusive_group()
+    level.add_argument(
+        "--quiet", dest="log_level", action="store_const", const=logging.WARNING, help="only warnings and errors"
+    )
+    level.add_argument("--verbose", dest="log_level", action="store_const", const=logging.DEBUG, help="debug lines too")
+    parser.set_defaults(log_level=logging.INFO)
+
+
+def add_run_command(commands: Any) -> None:
+    from gvbench_nb.runner import distributed
 
     run = commands.add_parser(
         "run",
@@ -280,23 +285,18 @@ def build_parser() -> argparse.ArgumentParser:
     run.set_defaults(handler=run_and_publish.command_run)
     distributed.add_run_arguments(run)  # --jobs; --shard I/N, --merge, --dask, --scheduler, --shards, --dask-workers
 
-    results = commands.add_parser(
-        "results",
-        help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
+
+def build_parser() -> argparse.ArgumentParser:
+
+    parser = SuggestingParser(
+        prog="python -m gvbench_nb",
+        description=DESCRIPTION,
+        epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
-    results.add_argument(
-        "--wide", action="store_true", help="every column: paper names, positives, seconds by stage, timers, digest"
-    )
-    results.add_argument(
-        "--markdown", action="store_true", help="print a markdown table of every column (for a README)"
-    )
-    results.add_argument(
-        "--all-methods",
-        action="store_true",
-        help="also list every registered method without results, with the weight files it needs",
-    )
-    results.set_defaults(handler=tables.command_results)
+    add_global_options(parser)
+    commands = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    add_run_command(commands)
 
     listing = commands.add_parser(
         "methods",
@@ -328,7 +328,7 @@ def build_parser() -> argparse.ArgumentParser:
 
     add_data_command(commands)
     add_build_command(commands)
-    add_score_file_commands(commands, results)
+    tables.add_command(commands)
     add_weights_fetch_command(weights_parser)
     report.add_command(commands)
     explore_lab.add_command(commands)
@@ -337,50 +337,14 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
-# ------------------------------------------------ scores from elsewhere, weights fetch --
-def command_import_scores(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import score_files
-
-    row = score_files.import_scores(args.file, args.sequence, args.method, args.output_dir)
-    print(
-        f"{args.method}: {row['n_pairs']} pairs ({row['n_positives']} true), AP {row['ap']:.4f}, "
-        f"MR {row['max_recall']:.4f} -> {Path(args.output_dir) / args.method}"
-    )
-    for key, value in row["stated"].items():
-        print(f"  the file states {key} {value:.4f} (recomputed here from its pairs: {row[key]:.4f})")
-    return 0
-
-
-def add_score_file_commands(commands: Any, results: argparse.ArgumentParser) -> None:
-    """``import-scores FILE`` and ``results --export npy``: per-pair scores in and out."""
-    parser = commands.add_parser(
-        "import-scores",
-        help="publish per-pair scores computed elsewhere as a method of an output folder",
-        description="Read the GV-Bench authors' per-pair .npy ($seq_$feature_$match.npy) or a table "
-        "'query reference label score' (CSV or whitespace, header optional) and publish it as METHOD in "
-        "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
-        "it like a run. Its run.json names the file and its SHA-256. A .npy pickling anything but plain "
-        "data is refused without running it.",
-    )
-    parser.add_argument("file", help="the .npy or the table of scores")
-    parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")
-    parser.add_argument("--method", required=True, help="the method's name (its folder), e.g. sp-sg-authors")
-    parser.add_argument("--output-dir", required=True, help="the output folder to publish it in")
-    parser.set_defaults(handler=command_import_scores)
-    results.add_argument(
-        "--export",
-        choices=["npy"],
-        help="also write each method's pairs as the GV-Bench authors' <sequence>_<method>.npy in its folder",
-    )
-
-
+# ------------------------------------------------ weights fetch --
 def command_weights_fetch(args: argparse.Namespace) -> int:
     from gvbench_nb.data import fetch, weights_fetch
 
     if args.sha256 and len(args.names) > 1:
         raise fetch.DataError("--sha256 is the hash of one file: give one NAME with it (or run one fetch a NAME)")
     for name in args.names:
-        print(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
+        log.info(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
     return 0
 
 
@@ -473,80 +437,46 @@ def main(
     ``python benchmarks/speed.py``) that shares this one's error messages and Ctrl-C handling."""
     argv = list(sys.argv[1:] if argv is None else argv)
     if "--debug" in argv:  # Python's KeyboardInterrupt, with its traceback
-        return run_command(argv, parser, module)
+        return dispatch(argv, parser, module)
     with stop_on_interrupt(argv, module):
-        return run_command(argv, parser, module)
+        return dispatch(argv, parser, module)
 
 
-def run_command(
+def dispatch(
     argv: list[str], parser: Callable[[], argparse.ArgumentParser] | None = None, module: str = "gvbench_nb"
 ) -> int:
     if parser is None and argv[:1] == ["data"]:  # fetching and checking data need neither torch nor the notebooks
         return data_main(argv[1:])
     args = (parser or build_parser)().parse_args(argv)
+    set_log_level(getattr(args, "log_level", logging.INFO))
     try:
         check_before_work(args)
         return args.handler(args)
     except KeyboardInterrupt:
         if args.debug:
             raise
-        print(resume_hint(argv, module), file=sys.stderr)
+        log.error(resume_hint(argv, module))
         return 130
     except Exception as error:
         report = None if args.debug else user_error(error)
         if report is None:  # --debug, or a fault of the program rather than of its input
             raise
         message, code = report
-        print(message, file=sys.stderr)
+        log.error(message)
         return code
 
 
-def _loaded_classes(names: SequenceType[tuple[str, str]]) -> tuple[type, ...]:
-    """The classes of ``names`` whose modules are imported (importing papermill to answer a typo takes seconds)."""
-    found = (getattr(sys.modules[module], name, None) for module, name in names if module in sys.modules)
-    return tuple(c for c in found if isinstance(c, type))
-
-
-def _written_path(error: BaseException) -> str | None:
-    """The file a failed write was writing, when a frame of its traceback holds it as ``path``
-    (Python's write errors name no file; papermill's and most writers' frames do)."""
-    found = None
-    traceback = error.__traceback__
-    while traceback is not None:
-        value = traceback.tb_frame.f_locals.get("path")
-        if isinstance(value, (str, os.PathLike)):
-            found = os.fspath(value)
-        traceback = traceback.tb_next
-    return found
-
-
 def user_error(error: BaseException) -> tuple[str, int] | None:
-    """The message and exit code of an error a user can cause (bad params, pairs,
-    images, weights, caches or paths); None for any other error."""
-    papermill = _loaded_classes([("papermill.exceptions", "PapermillExecutionError")])
-    if papermill and isinstance(error, papermill):
-        # The failing cell's own error, without the notebook machinery around it; an error
-        # the user can cause (a full disk, a bad image) reads as it would outside a notebook.
-        count = getattr(error, "exec_count", None)
-        if getattr(error, "ename", None) in user_error_names():
-            return (
-                f"error: {getattr(error, 'evalue', '')} (the executed notebook in the output folder keeps the traceback)",
-                2,
-            )
-        return (
-            f"error in {count and 'cell ' + str(count)}: {getattr(error, 'ename', '')}: "
-            f"{getattr(error, 'evalue', '')}\n"
-            "the executed notebook (with the full traceback) is in the output folder"
-        ), 1
+    """The message and exit code of an error a user can cause (bad params, pairs, images,
+    weights, caches or paths); None for a fault of the program."""
     if isinstance(error, GVBenchError):
-        return f"error: {error}", 2
+        return f"error: {error}", error.exit_code
     from gvbench_nb.io_utils import WRITE_FAILURES
 
-    if isinstance(error, OSError) and error.errno in WRITE_FAILURES and not error.filename:
-        written = _written_path(error)
+    if isinstance(error, OSError) and error.errno in WRITE_FAILURES:
         return (
-            f"error: cannot write {written or 'a file'} ({error.strerror or error}): the disk is full or a quota "
-            "or file size limit is reached; free space and run again"
+            f"error: cannot write {error.filename or 'a file'} ({error.strerror or error}): the disk is full or a "
+            "quota or file size limit is reached; free space and run again"
         ), 2
     if isinstance(error, OSError):  # a file or folder the user named cannot be used
         where = f" {error.filename}:" if error.filename else ""

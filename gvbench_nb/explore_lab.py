@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
 import secrets
 import socket
@@ -19,6 +20,8 @@ from typing import Any
 
 from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
 from gvbench_nb.runner import config, method_outputs, scoring
+
+log = logging.getLogger(__name__)
 
 SOURCE_NOTEBOOK = NOTEBOOKS_DIR / "explore_pairs.ipynb"
 COPY_FOLDER = "explore"  # inside the run's folder: the working copy and the figures it writes
@@ -175,7 +178,7 @@ def command_explore(args: argparse.Namespace) -> int:
     output_dir = Path(args.output_dir).resolve()
     methods = check_run_folder(output_dir)
     if args.port and not port_is_free(args.port):
-        print(f"error: port {args.port} is in use on 127.0.0.1; give another --port or leave it out", file=sys.stderr)
+        log.error(f"error: port {args.port} is in use on 127.0.0.1; give another --port or leave it out")
         return 2
     port = args.port or free_port()
     copy, written = prepare_copy(output_dir)
@@ -185,8 +188,8 @@ def command_explore(args: argparse.Namespace) -> int:
         if written
         else "kept as you left it; delete it for a fresh one"
     )
-    print(f"explore: {copy} ({state}); methods {', '.join(methods)}", flush=True)
-    print(f"JupyterLab: {lab_url(copy, port, token)} (Ctrl-C stops it)", flush=True)
+    log.info(f"explore: {copy} ({state}); methods {', '.join(methods)}")
+    log.info(f"JupyterLab: {lab_url(copy, port, token)} (Ctrl-C stops it)")
     command = lab_command(copy, port, token, open_browser=not args.no_browser)
     search = os.pathsep.join(filter(None, [str(LAB_CONFIG), os.environ.get("JUPYTER_CONFIG_PATH")]))
     # JupyterLab takes this process over: Ctrl-C and signals reach it.

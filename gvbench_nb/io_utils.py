@@ -1,15 +1,16 @@
-"""Crash-safe file writes: a temporary file in the same folder, fsync, then rename.
-
-A run killed mid-write leaves the previous file (or none), never a half-written one
-that looks complete.
-"""
+"""What every layer shares for input and output: crash-safe file writes (a temporary file in the
+same folder, fsync, then rename: a run killed mid-write leaves the previous file or none), the
+bounded whole numbers and did-you-mean hints of options and params, and progress bars."""
 
 from __future__ import annotations
 
+import argparse
+import difflib
 import errno
 import hashlib
 import json
 import os
+import sys
 import tempfile
 from collections.abc import Callable
 from pathlib import Path
@@ -94,3 +95,71 @@ def atomic_write_json(path: Path, data: Any) -> Path:
 def atomic_write_csv(path: Path, frame: pd.DataFrame) -> Path:
     # Fixed float format so two runs on the same input give byte-identical files.
     return _atomic_write(path, lambda tmp: frame.to_csv(tmp, index=False, float_format="%.6g", lineterminator="\n"))
+
+
+def is_whole_number(value: Any) -> bool:
+    """An int given in a params file or from code (YAML's ``yes`` is a bool, not 1)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
+def whole_number_at_least(text: str, minimum: int, what: str) -> int:
+    """``text`` as a whole number of at least ``minimum``; otherwise argparse's error, saying the
+    value ``must be {what}``."""
+    try:
+        value = int(text)
+    except ValueError:
+        value = minimum - 1
+    if value < minimum:
+        raise argparse.ArgumentTypeError(f"must be {what}, got {text!r}")
+    return value
+
+
+def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
+    """``'limt' (did you mean 'limit'?), 'x'``: each unknown key with its closest valid one."""
+    hints = []
+    for key in unknown:
+        close = difflib.get_close_matches(key, valid, n=1)
+        hints.append(f"{key!r}" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return ", ".join(hints)
+
+
+class SuggestingParser(argparse.ArgumentParser):
+    """argparse's parser, with a did-you-mean for a mistyped command or choice (``rn`` -> ``run``).
+    Its sub-command parsers are of this class too (argparse makes them of their parent's)."""
+
+    def _check_value(self, action: argparse.Action, value: object) -> None:
+        choices = action.choices
+        if choices is not None and value not in choices:
+            close = difflib.get_close_matches(str(value), [str(c) for c in choices], n=1)
+            if close:
+                known = ", ".join(map(str, choices))
+                raise argparse.ArgumentError(
+                    action, f"invalid choice: {value!r}; did you mean {close[0]!r}? (choose from {known})"
+                )
+        super()._check_value(action, value)
+
+
+# Progress bars that fit where they run: a widget in JupyterLab, a bar redrawn in a terminal, and in
+# a file or a batch-executed notebook a line every half minute at most (a few lines a bar in a log).
+BATCH_INTERVAL_SECONDS = 30.0
+
+
+def interactive_kernel() -> bool:
+    """True in a kernel that a Jupyter server started for a notebook (it sets JPY_SESSION_NAME);
+    false in a terminal and in papermill's or nbmake's kernels."""
+    return "ipykernel" in sys.modules and "JPY_SESSION_NAME" in os.environ
+
+
+def progress_bar(iterable: Any = None, **options: Any) -> Any:
+    """``tqdm(iterable, **options)`` for where it runs: ``tqdm.auto`` (a widget) in JupyterLab;
+    elsewhere plain tqdm, redrawn at most every ``BATCH_INTERVAL_SECONDS`` unless it writes to a terminal."""
+    if interactive_kernel():
+        from tqdm.auto import tqdm as auto_tqdm
+
+        return auto_tqdm(iterable, **options)
+    from tqdm import tqdm
+
+    stream = options.get("file") or sys.stderr
+    if not getattr(stream, "isatty", lambda: False)():
+        options.setdefault("mininterval", BATCH_INTERVAL_SECONDS)
+    return tqdm(iterable, **options)

@@ -1,7 +1,7 @@
 """The method catalogue: every method a run can name, under each profile.
 
 A method is a recipe of ``protocol/recipes/<profile>.yaml`` (written whole there), or
-``imm:<name>``, vismatch's matcher ``<name>`` run as a pair matcher (``imm.py``). This module
+``imm:<name>``, vismatch's matcher ``<name>`` run as a pair matcher (``benchmarks/imm.py``, outside the package). This module
 resolves a name to its recipe (plus the run's verifier overrides), checks those overrides, says
 which weights a method needs and expands ``all`` / ``all-available``.
 """
@@ -9,19 +9,43 @@ which weights a method needs and expands ``all`` / ``all-available``.
 from __future__ import annotations
 
 import copy
+import importlib
+import importlib.util
 import itertools
 import math
+import sys
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
-from gvbench_nb import GVBenchError, imm
-from gvbench_nb.arguments import is_whole_number, unknown_keys_hint
+from gvbench_nb import GVBenchError
+from gvbench_nb.io_utils import is_whole_number, unknown_keys_hint
 from gvbench_nb.protocol import recipes, registry, weights
 from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
 
 __all__ = ["RECIPES", "check_profile", "conf_hash"]
 
 UnknownNameError = registry.UnknownNameError
+IMM_PREFIX = "imm:"  # a vismatch matcher, run by the peer module benchmarks/imm.py
+
+
+def is_imm(name: str) -> bool:
+    return name.startswith(IMM_PREFIX)
+
+
+def imm_peer() -> ModuleType:
+    """The vismatch peer, ``benchmarks/imm.py`` beside the package: loaded on the first ``imm:`` method."""
+    name = "benchmarks.imm"
+    if name not in sys.modules:
+        path = Path(__file__).resolve().parents[1] / "benchmarks" / "imm.py"
+        spec = importlib.util.spec_from_file_location(name, path)
+        if spec is None or spec.loader is None or not path.is_file():
+            return importlib.import_module(name)
+        sys.modules[name] = module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
 # Methods added by ``register_method`` in this process: only this process knows them.
 REGISTERED_FROM_CODE: set[str] = set()
 
@@ -45,7 +69,7 @@ def register_method(name: str, profiles: dict[str, dict[str, Any]]) -> None:
     (the keys of ``recipes.RECIPE_KEYS``; ``paper_name`` and ``in_paper`` may be left out).
     A package method is one entry a profile in ``protocol/recipes/``; this is the same entry made
     from code. A profile the method has no recipe under refuses it by name."""
-    if name in method_names() or imm.is_imm(name) or name in ("all", "all-available"):
+    if name in method_names() or is_imm(name) or name in ("all", "all-available"):
         raise ValueError(f"method name {name!r} is taken; choose another name")
     for profile, entry in profiles.items():
         check_profile(profile)
@@ -139,8 +163,9 @@ def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] |
     conf is part of the match folder's hash, so its results never mix with the default's."""
     check_profile(profile)
     whole: dict[str, Any]
-    if imm.is_imm(name):
-        whole = {"paper_name": imm.paper_name(name), "extractor": None, "matcher": imm.matcher_conf(name, None)}
+    if is_imm(name):
+        peer = imm_peer()
+        whole = {"paper_name": peer.paper_name(name), "extractor": None, "matcher": peer.matcher_conf(name, None)}
         base_verifier = recipes.profile_verifier(profile)
     else:
         if name not in RECIPES[profile]:
@@ -180,13 +205,13 @@ def is_dense(conf: dict[str, Any]) -> bool:
 def paper_name(name: str) -> str:
     """The name a method goes by in tables: its paper name, ``vismatch <name>``
     for ``imm:`` methods, else the name itself."""
-    if imm.is_imm(name):
-        return imm.paper_name(name)
+    if is_imm(name):
+        return imm_peer().paper_name(name)
     return RECIPES["paper"].get(name, {}).get("paper_name", name)
 
 
 def required_checkpoints(name: str, profile: str = "paper") -> list[str]:
-    """Our checkpoints a method needs (``imm:`` methods: none of ours; ``imm.require`` checks theirs)."""
+    """Our checkpoints a method needs (``imm:`` methods: none of ours; the peer's ``require`` checks theirs)."""
     conf = resolve_method(name, profile)
     extractor_checkpoints = conf["extractor"]["checkpoints"] if conf["extractor"] else []
     return list(dict.fromkeys(extractor_checkpoints + conf["matcher"]["checkpoints"]))
@@ -217,8 +242,8 @@ def method_table() -> list[dict[str, Any]]:
 def require(name: str, profile: str = "paper") -> None:
     """Fail before any work when a method's weights (or, for ``imm:``, vismatch) are missing."""
     weights.require(*required_checkpoints(name, profile))
-    if imm.is_imm(name):
-        imm.require(name)
+    if is_imm(name):
+        imm_peer().require(name)
 
 
 def available_methods() -> list[str]:
@@ -237,8 +262,8 @@ def expand_methods(names: list[str] | str) -> list[str]:
             expanded.extend(available_methods())
         elif name in method_names():
             expanded.append(name)
-        elif imm.is_imm(name):
-            imm.check_name(name)
+        elif is_imm(name):
+            imm_peer().check_name(name)
             expanded.append(name)
         else:
             raise _unknown("method", name, method_names() + ["all", "all-available", "imm:<vismatch name>"])

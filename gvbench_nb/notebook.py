@@ -54,7 +54,7 @@ def as_list(value: PathLike | Iterable[PathLike] | None) -> list[str]:
     return [os.fspath(v) for v in value]
 
 
-def run_command(params_file: PathLike, methods: SequenceType[str], **overrides: Any) -> str:
+def run_command_line(params_file: PathLike, methods: SequenceType[str], **overrides: Any) -> str:
     """The shell command that runs ``methods`` with the params file, with an option for each
     override that changes what the file says."""
     as_written = config.load_params(params_file)
@@ -153,13 +153,13 @@ def require_results(
     if missing:
         raise ResultsMissingError(
             f"{output_dir} has no results of {', '.join(missing)}: make them with "
-            f"`{run_command(params_file, missing, **overrides)}`, or pass compute_missing=True to run them here."
+            f"`{run_command_line(params_file, missing, **overrides)}`, or pass compute_missing=True to run them here."
         )
     raise ResultsMissingError(
         f"{output_dir / 'results.csv'} does not list exactly the methods with a pairs.csv there "
         f"({', '.join(scoring.methods_with_results(output_dir))}): pass compute_missing=True to evaluate them "
         "here (reads only pairs.csv), or run them again with "
-        f"`{run_command(params_file, scoring.methods_with_results(output_dir), **overrides)}`."
+        f"`{run_command_line(params_file, scoring.methods_with_results(output_dir), **overrides)}`."
     )
 
 

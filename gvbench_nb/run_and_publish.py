@@ -6,13 +6,15 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import os
-import sys
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
+
+log = logging.getLogger(__name__)
 
 
 def execute_run_notebooks(
@@ -34,7 +36,7 @@ def execute_run_notebooks(
     def execute(job: tuple[str, str, dict[str, Any]]) -> None:
         # Lines, not a bar: notebooks overlap each other and the stages' own progress bars.
         source, target, parameters = job
-        print(f"executing {source} -> {output_dir / target}", flush=True)
+        log.info(f"executing {source} -> {output_dir / target}")
         execute_notebook(source, output_dir / target, parameters)
 
     def failed(futures: list[Future]) -> bool:
@@ -121,10 +123,9 @@ def command_run(args: argparse.Namespace) -> int:
         for method, previous in method_outputs.replaced_profiles(
             output_dir, params["methods"], params["profile"]
         ).items():
-            print(
+            log.warning(
                 f"note: {method_outputs.method_dir(output_dir, method)} holds {previous}-profile results; this "
-                f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)",
-                file=sys.stderr,
+                f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)"
             )
         # The run writes its results into a stage of its own and publishes them whole when it
         # succeeds; the methods it does not run are carried over, so the folder's table lists them all.
@@ -139,7 +140,7 @@ def command_run(args: argparse.Namespace) -> int:
             for m in params["methods"]
         ]
         jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
-        print(
+        log.info(
             f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
             f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}"
             + (f" (kept from earlier runs: {', '.join(kept)})" if kept else "")
@@ -158,16 +159,14 @@ def command_run(args: argparse.Namespace) -> int:
         record.publish(output_dir, stage, bindings)
     except Exception:
         if (record.read_record(output_dir) or {}).get("state") == "publishing":
-            print(
+            log.warning(
                 f"the run stopped while publishing into {output_dir}: its readers refuse the folder until a run "
-                "finishes the move (run it again)",
-                file=sys.stderr,
+                "finishes the move (run it again)"
             )
         elif stage is not None and stage.is_dir():
-            print(
+            log.warning(
                 f"the run did not finish: {output_dir} still holds the previous run's results; this run's partial "
-                f"work and executed notebooks are in {stage}",
-                file=sys.stderr,
+                f"work and executed notebooks are in {stage}"
             )
         raise
     finally:
@@ -185,11 +184,11 @@ def print_run_results(output_dir: Path) -> None:
     print(results[columns].to_string(index=False))
     reused = results.loc[results["timers"] != "this run", "method"].tolist()
     if reused:
-        print(
+        log.info(
             f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "
             "that computed them (timers column), not this run's"
         )
-    print(f"results table: {output_dir / 'results.csv'}")
+    log.info(f"results table: {output_dir / 'results.csv'}")
 
 
 def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:

@@ -16,9 +16,9 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb import GVBenchError
-from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.data import retrieval
 from gvbench_nb.data.sequences import frame_index
+from gvbench_nb.io_utils import unknown_keys_hint
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
 

@@ -174,7 +174,7 @@ def fetch(
 ) -> dict[str, int]:
     """Fetch datasets (default: the package manifest's) into ``to`` (default: :func:`data_dir`);
     returns how many files each dataset placed now (0: all were there and verified)."""
-    from gvbench_nb.progress import progress_bar
+    from gvbench_nb.io_utils import progress_bar
 
     datasets = datasets if datasets is not None else load_manifest()[0]
     chosen = [get_dataset(name, datasets) for name in dict.fromkeys(names)]
@@ -238,7 +238,7 @@ def check_params(params: dict[str, Any], progress: bool = True) -> tuple[bool, s
     import cv2
 
     from gvbench_nb.data.sequences import PairFileError
-    from gvbench_nb.progress import progress_bar
+    from gvbench_nb.io_utils import progress_bar
 
     if params["pairs_builder"] == "sample":
         return True, f"{params['sequence']}: its images are rendered by the run (builder sample); nothing to check"

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 import yaml
 
-from gvbench_nb import reference_values
+from gvbench_nb.evaluation import reference_values
 from gvbench_nb.runner import config, image_features, method_outputs, pair_matching, record, scoring
 
 METRICS = ("ap", "max_recall")

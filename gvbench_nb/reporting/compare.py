@@ -9,10 +9,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb.arguments import whole_number_at_least
+from gvbench_nb.io_utils import whole_number_at_least
+
+log = logging.getLogger(__name__)
 
 # `intervals` (and through it torch) is imported inside the handler: `--help` stays instant.
 
@@ -67,14 +70,14 @@ def command_compare(args: argparse.Namespace) -> int:
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])
     sequences = ", ".join(dict.fromkeys(run["sequence"] for run in runs.values()))
     show = lambda frame: markdown_table(frame) if args.markdown else frame.to_string(index=False, float_format="%.3f")
-    print(
+    log.info(
         f"{sequences} ({where}): AP and MR on all {boot.n_pairs} pairs, with 95 % percentile intervals over "
         f"{boot.n_queries} queries resampled with replacement ({args.resamples} resamples, seed {args.seed})\n"
     )
     columns = ["method", "profile", "ap", "ap_low", "ap_high", "max_recall", "max_recall_low", "max_recall_high"]
     print(show(table[columns]))
     for metric in [args.metric] if args.metric else list(run_tables.METRICS):
-        print(
+        log.info(
             f"\n{metric}: share of the same {args.resamples} query resamples in which the first beats the second "
             f"(tied: both equal); ranked when one side wins in >= {100 * bootstrap.RANKED_SHARE:.0f} % of them, "
             "else tie\n"

@@ -10,6 +10,9 @@ from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from gvbench_nb import GVBenchError
+from gvbench_nb.io_utils import WRITE_FAILURES, WriteFailedError
+
 if TYPE_CHECKING:
     from jupyter_client.manager import KernelManager
 
@@ -164,5 +167,42 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
             km=manager,
             extra_arguments=preload_arguments(()),  # a kernel nbclient starts: the same quiet warnings
         )
+    except papermill.PapermillExecutionError as failure:
+        raise NotebookFailedError(failure.ename, failure.evalue, failure.exec_count) from failure
+    except OSError as error:  # papermill writing the executed notebook names no file
+        if error.errno not in WRITE_FAILURES or error.filename:
+            raise
+        raise WriteFailedError(
+            error.errno,
+            f"cannot write {output_path} ({error.strerror}); free disk space (or raise the quota or file "
+            "size limit) and run again",
+        ) from error
     finally:  # nbclient stops only the kernels of managers it made
         stop_kernel(manager)
+
+
+def _user_error_names() -> set[str]:
+    """The names of every loaded ``GVBenchError`` class (a notebook's error arrives by name)."""
+    found, todo = set(), [GVBenchError]
+    while todo:
+        for sub in todo.pop().__subclasses__():
+            found.add(sub.__name__)
+            todo.append(sub)
+    return found
+
+
+class NotebookFailedError(GVBenchError):
+    """A notebook's cell raised: a user error reads as it would outside a notebook; any other
+    error exits 1, pointing at the executed notebook's traceback."""
+
+    def __init__(self, ename: str, evalue: str, exec_count: int | None) -> None:
+        self.ename, self.evalue = ename, evalue
+        if ename in _user_error_names():
+            message = f"{evalue} (the executed notebook in the output folder keeps the traceback)"
+        else:
+            self.exit_code = 1
+            message = (
+                f"in cell {exec_count}: {ename}: {evalue}\n"
+                "the executed notebook (with the full traceback) is in the output folder"
+            )
+        super().__init__(message)

@@ -13,14 +13,17 @@ from __future__ import annotations
 import argparse
 import datetime as _dt
 import html
+import logging
 import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from gvbench_nb.io_utils import atomic_write_text
-from gvbench_nb.reporting.execute import execute_notebook
+from gvbench_nb.reporting.execute import NotebookFailedError, execute_notebook
 from gvbench_nb.runner import config
+
+log = logging.getLogger(__name__)
 
 if TYPE_CHECKING:
     import pandas as pd
@@ -77,12 +80,10 @@ def execute_and_convert(
     A failing notebook is still converted (its traceback is the useful part) and its
     error is returned rather than raised, so one sequence cannot sink the report.
     """
-    from papermill.exceptions import PapermillExecutionError
-
     error = None
     try:
         execute_notebook(source, target, parameters)
-    except PapermillExecutionError as failure:
+    except NotebookFailedError as failure:
         error = f"{failure.ename}: {failure.evalue}"
     html_path = None
     if target.is_file():
@@ -266,12 +267,6 @@ PAPER_FIGURES = {
 }
 
 
-def paper_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
-    """The across-sequences notebooks of the paper's items and of deployment, as report jobs."""
-    parameters = {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}
-    return [(name, report_dir / name, dict(parameters), "") for name in PAPER_NOTEBOOKS]
-
-
 VERIFIER_METHOD = "sift-nn"  # whose cached matches the verifier pages re-score
 VERIFIERS_FOLDER = "verifiers"  # the verifier notebooks' output folder in a run folder, as they default
 
@@ -382,32 +377,19 @@ def page_folders(output_dirs: list[Path]) -> dict[Path, str]:
 
 def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[ExecutedNotebook]]:
     """Execute every analysis notebook, convert to HTML, write ``index.html``."""
-    from gvbench_nb.progress import progress_bar
+    from gvbench_nb.io_utils import progress_bar
 
     report_dir = report_dir.resolve()
     report_dir.mkdir(parents=True, exist_ok=True)
     output_dirs = [d.resolve() for d in output_dirs]
     # params_files=[]: the report runs nothing, it only reads what runs wrote.
-    jobs: list[tuple[str, Path, dict, str]] = [
-        (
-            ACROSS_SEQUENCES_NOTEBOOK,
-            report_dir / ACROSS_SEQUENCES_NOTEBOOK,
-            {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)},
-            "",
-        )
-    ]
+    every = {"output_dirs": [str(d) for d in output_dirs], "params_files": [], "output_dir": str(report_dir)}
+    jobs = [(ACROSS_SEQUENCES_NOTEBOOK, report_dir / ACROSS_SEQUENCES_NOTEBOOK, every, "")]
     for folder, folder_name in page_folders(output_dirs).items():
-        target_dir = report_dir / folder_name
-        for name in PER_SEQUENCE_NOTEBOOKS:
-            jobs.append(
-                (
-                    name,
-                    target_dir / name,
-                    {"output_dirs": [str(folder)], "params_files": [], "output_dir": str(target_dir)},
-                    _sequence_name(folder),
-                )
-            )
-    jobs += paper_jobs(report_dir, output_dirs) + study_jobs(report_dir, output_dirs)
+        one = {"output_dirs": [str(folder)], "params_files": [], "output_dir": str(report_dir / folder_name)}
+        jobs += [(n, report_dir / folder_name / n, one, _sequence_name(folder)) for n in PER_SEQUENCE_NOTEBOOKS]
+    jobs += [(name, report_dir / name, dict(every), "") for name in PAPER_NOTEBOOKS]
+    jobs += study_jobs(report_dir, output_dirs)
     executed = []
     bar = progress_bar(jobs, desc="analysis notebooks", unit="nb")
     for source, target, parameters, sequence in bar:
@@ -454,10 +436,10 @@ def command_report(args: argparse.Namespace) -> int:
     report_dir = Path(args.output_dir)
     for folder in output_dirs:
         scoring.readable_methods(folder)  # what `results` refuses, the report refuses, before any file
-    print(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
+    log.info(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]
-    print(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
+    log.info(f"report: {index}" + (f" ({len(failed)} notebook(s) failed, listed there)" if failed else ""))
     return 1 if failed else 0
 
 

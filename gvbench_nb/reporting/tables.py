@@ -4,8 +4,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from pathlib import Path
 from typing import Any
+
+log = logging.getLogger(__name__)
 
 # Every column of `results --wide` and `--markdown` (the README's tables come from the latter).
 WIDE_COLUMNS = [
@@ -101,30 +104,30 @@ def command_results(args: argparse.Namespace) -> int:
         else:
             table = results[WIDE_COLUMNS] if args.wide else compact_table(results)
             print(table.to_string(index=False, float_format="%.3f"))
-        print(
+        log.info(
             f"\n{'*_low, *_high' if args.markdown or args.wide else 'CI'}: 95 % bootstrap interval over "
             f"{results['interval_unit'].iloc[0]} resamples (`compare` ranks the methods pairwise)"
         )
         reused = results.loc[results["timers"] != "this run", ["method", "timers"]]
         if len(reused) and not (args.markdown or args.wide):
-            print(
+            log.info(
                 "*: seconds from the cache, the runs' that computed them: "
                 + ", ".join(f"{m} ({t})" for m, t in zip(reused["method"], reused["timers"]))
             )
         print()
         holder = record.running(folder)
         if holder:
-            print(
+            log.warning(
                 f"note: a run (pid {holder.get('pid')}, started {holder.get('started_at')}) is writing {folder} now; "
                 "the rows above are the results published before it\n"
             )
         for method, why in unfinished.items():
-            print(f"not finished: {method}: {why}")
+            log.warning(f"not finished: {method}: {why}")
         if args.export == "npy":
             from gvbench_nb.runner import score_files
 
             for method in results["method"]:
-                print(f"{method}: {score_files.export_npy(folder, method)}")
+                log.info(f"{method}: {score_files.export_npy(folder, method)}")
         if args.all_methods:
             others = not_run_table(set(results["method"]))
             if len(others):
@@ -155,3 +158,56 @@ def not_run_table(ran: set[str]) -> Any:
             }
         )
     return pd.DataFrame(rows, columns=["method", "paper_name", "status"])
+
+
+def command_import_scores(args: argparse.Namespace) -> int:
+    from gvbench_nb.runner import score_files
+
+    row = score_files.import_scores(args.file, args.sequence, args.method, args.output_dir)
+    print(
+        f"{args.method}: {row['n_pairs']} pairs ({row['n_positives']} true), AP {row['ap']:.4f}, "
+        f"MR {row['max_recall']:.4f} -> {Path(args.output_dir) / args.method}"
+    )
+    for key, value in row["stated"].items():
+        print(f"  the file states {key} {value:.4f} (recomputed here from its pairs: {row[key]:.4f})")
+    return 0
+
+
+def add_command(commands: Any) -> None:
+    """Register ``results`` (``--export npy``: per-pair scores out) and ``import-scores FILE`` (in)."""
+    results = commands.add_parser(
+        "results",
+        help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
+    )
+    results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
+    results.add_argument(
+        "--wide", action="store_true", help="every column: paper names, positives, seconds by stage, timers, digest"
+    )
+    results.add_argument(
+        "--markdown", action="store_true", help="print a markdown table of every column (for a README)"
+    )
+    results.add_argument(
+        "--all-methods",
+        action="store_true",
+        help="also list every registered method without results, with the weight files it needs",
+    )
+    results.set_defaults(handler=command_results)
+    parser = commands.add_parser(
+        "import-scores",
+        help="publish per-pair scores computed elsewhere as a method of an output folder",
+        description="Read the GV-Bench authors' per-pair .npy ($seq_$feature_$match.npy) or a table "
+        "'query reference label score' (CSV or whitespace, header optional) and publish it as METHOD in "
+        "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
+        "it like a run. Its run.json names the file and its SHA-256. A .npy pickling anything but plain "
+        "data is refused without running it.",
+    )
+    parser.add_argument("file", help="the .npy or the table of scores")
+    parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")
+    parser.add_argument("--method", required=True, help="the method's name (its folder), e.g. sp-sg-authors")
+    parser.add_argument("--output-dir", required=True, help="the output folder to publish it in")
+    parser.set_defaults(handler=command_import_scores)
+    results.add_argument(
+        "--export",
+        choices=["npy"],
+        help="also write each method's pairs as the GV-Bench authors' <sequence>_<method>.npy in its folder",
+    )

@@ -21,7 +21,6 @@ from pydantic import BaseModel, ConfigDict, Field, InstanceOf, StringConstraints
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
-from gvbench_nb.arguments import unknown_keys_hint
 from gvbench_nb.data import build_inputs, fetch
 from gvbench_nb.data.sequences import (
     Pair,
@@ -30,7 +29,7 @@ from gvbench_nb.data.sequences import (
     read_pairs,
     write_pairs,
 )
-from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256
+from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256, is_whole_number, unknown_keys_hint
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import IMAGE_EXTENSIONS, path_problem
 from gvbench_nb.runner import input_checks, sequence_build
@@ -536,11 +535,9 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
             + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
         )
-    from gvbench_nb import imm
-
     for method in params["methods"]:
-        if imm.is_imm(method):
-            imm.require(method)
+        if method_registry.is_imm(method):
+            method_registry.imm_peer().require(method)
     if not images:
         return
     root = _check_image_root(params)

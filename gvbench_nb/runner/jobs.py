@@ -11,7 +11,7 @@ from __future__ import annotations
 import argparse
 import os
 
-from gvbench_nb.arguments import whole_number_at_least
+from gvbench_nb.io_utils import whole_number_at_least
 from gvbench_nb.runner.concurrency import JOBS_ENV
 
 

@@ -18,7 +18,7 @@ from cachetools import LRUCache
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.progress import progress_bar
+from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,

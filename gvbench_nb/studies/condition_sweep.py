@@ -38,8 +38,7 @@ from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Pair, Sequence
-from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
-from gvbench_nb.progress import progress_bar
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, progress_bar
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import read_image
 from gvbench_nb.protocol.metrics import evaluate_scores

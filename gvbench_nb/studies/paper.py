@@ -19,8 +19,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
 
-from gvbench_nb import reference_values
-from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.evaluation import plots, reference_values, run_tables
 from gvbench_nb.studies import results_table
 
 COUNTED = "counted from the list"

@@ -15,8 +15,7 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb import reference_values
-from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.evaluation import plots, reference_values, run_tables
 
 
 def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame:

@@ -18,7 +18,7 @@ import pandas as pd
 
 from gvbench_nb.data.sequences import frame_index
 from gvbench_nb.evaluation import run_tables
-from gvbench_nb.progress import progress_bar
+from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.ransac import filter_and_fit
 from gvbench_nb.runner import image_features, pair_matching, scoring
 from gvbench_nb.verification.sue import sue as spatial_uncertainty

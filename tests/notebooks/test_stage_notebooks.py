@@ -97,8 +97,6 @@ def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path
 @pytest.mark.slow
 @pytest.mark.reliability
 def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_nothing(sample_params, tmp_path):
-    from papermill.exceptions import PapermillExecutionError
-
     empty = tmp_path / "empty"
     raw = yaml.safe_load(sample_params.read_text())
     raw.update(
@@ -108,7 +106,7 @@ def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_no
     )
     params = tmp_path / "empty.yaml"
     params.write_text(yaml.safe_dump(raw))
-    with pytest.raises(PapermillExecutionError) as failure:
+    with pytest.raises(execute.NotebookFailedError) as failure:
         execute.execute_notebook(
             "analysis_inlier_histograms.ipynb",
             tmp_path / "histograms.ipynb",

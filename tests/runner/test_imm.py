@@ -18,9 +18,11 @@ import cv2
 import numpy as np
 import pytest
 
-from gvbench_nb import imm, methods
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.runner import method_runs, pair_matching, scoring
+
+imm = methods.imm_peer()  # benchmarks/imm.py
 
 HAVE_VISMATCH = importlib.util.find_spec("vismatch") is not None and not isinstance(
     sys.modules.get("vismatch"), types.SimpleNamespace
@@ -98,7 +100,7 @@ def fake_vismatch(monkeypatch):
 def test_imm_methods_resolve_as_dense_pair_matchers(no_vismatch):
     conf = methods.resolve_method("imm:sift-nn", "paper")
     assert conf["extractor"] is None and conf["matcher"]["dense"]
-    assert conf["matcher"]["type"] == "gvbench_nb.imm:ImmPairMatcher" and conf["matcher"]["vismatch_name"] == "sift-nn"
+    assert conf["matcher"]["type"] == "benchmarks.imm:ImmPairMatcher" and conf["matcher"]["vismatch_name"] == "sift-nn"
     assert conf["matcher"]["resize_to"] == [512, 288] and conf["paper_name"] == "vismatch sift-nn"
     assert methods.required_checkpoints("imm:sift-nn") == []
     assert methods.expand_methods("sift-nn, imm:orb-nn") == ["sift-nn", "imm:orb-nn"]
@@ -113,22 +115,6 @@ def test_missing_vismatch_fails_before_any_work_saying_what_to_install(no_vismat
     with pytest.raises(imm.ImmUnavailableError, match="make setup-imm"):
         method_runs.run_method(sequence, "imm:sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
     assert not (tmp_path / "out").exists()
-
-
-@pytest.mark.slow
-def test_methods_command_says_how_to_enable_imm_without_vismatch():
-    if HAVE_VISMATCH:
-        pytest.skip(
-            "vismatch is installed here; the listing is checked by test_methods_command_lists_vismatch_matchers"
-        )
-    out = subprocess.run(
-        [sys.executable, "-m", "gvbench_nb", "methods"],
-        capture_output=True,
-        text=True,
-        check=True,
-        cwd=Path(__file__).resolve().parents[2],
-    ).stdout
-    assert "imm:<name>" in out and "make setup-imm" in out
 
 
 def test_methods_points_to_the_opt_in_venv_not_to_pip_and_has_a_description(no_vismatch, capsys):
@@ -197,7 +183,7 @@ def test_imm_xfeat_builds_offline_from_the_linked_weights_without_the_hub_banner
     probe = (
         "import numpy as np\n"
         "from gvbench_nb import methods\n"
-        "from gvbench_nb import imm\n"
+        "imm = methods.imm_peer()\n"
         "print(imm.link_local_weights()['vismatch/xfeat/xfeat.pt'])\n"
         "matcher = imm.ImmPairMatcher(methods.resolve_method('imm:xfeat', 'repository')['matcher'], 'cpu')\n"
         "image = np.random.default_rng(0).integers(0, 255, (288, 512, 3), dtype=np.uint8)\n"

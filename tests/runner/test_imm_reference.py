@@ -15,10 +15,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from gvbench_nb import imm, methods
+from gvbench_nb import methods
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.protocol.images import to_original_pixels
 from gvbench_nb.runner import config, pair_matching
+
+imm = methods.imm_peer()  # benchmarks/imm.py
 
 PROJECT = Path(__file__).resolve().parents[2]
 ENABLE = "make setup-imm && .venv-imm/bin/python -m pytest -m reference tests (make test-reference)"

@@ -271,7 +271,7 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     output_dir = tmp_path / "outputs" / "toy"
     write_fake_run(output_dir, profile="paper")
     scoring.evaluate(output_dir)
-    from gvbench_nb import reference_values
+    from gvbench_nb.evaluation import reference_values
 
     toy_paper = pd.DataFrame(
         {"reference_name": ["SIFT+NN"], "method": ["sift-nn"], "sequence": ["toy"], "ap": [0.5], "max_recall": [0.125]}

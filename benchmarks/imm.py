@@ -7,7 +7,8 @@ in-image check its ``forward`` applies), then our verification, stores and metri
 pair), since a vismatch matcher takes two images.
 
 vismatch lives only in the opt-in environment (``make setup-imm``): it needs torch 2.14.1, so
-this module never imports it at import time, and nothing else in the package imports it.
+this module never imports it at import time. It stands outside the package: ``methods.imm_peer``
+loads it on the first ``imm:`` method.
 """
 
 from __future__ import annotations
@@ -29,8 +30,7 @@ from typing import Any
 import numpy as np
 
 from gvbench_nb import GVBenchError
-
-PREFIX = "imm:"
+from gvbench_nb.methods import IMM_PREFIX as PREFIX
 
 # Not `pip install vismatch`: it needs torch 2.14.1 and kornia < 0.8.3, which would replace the
 # default venv's pins; the opt-in venv keeps them apart.
@@ -41,7 +41,7 @@ SETUP_HINT = (
 # The image preparation of the GV-Bench repository's loop (dataloaders/ImagePairDataset.py:
 # RGB at a fixed 512x288, width x height) and vismatch's default keypoint budget (get_matcher).
 MATCHER_DEFAULTS: dict[str, Any] = {
-    "type": "gvbench_nb.imm:ImmPairMatcher",
+    "type": "benchmarks.imm:ImmPairMatcher",
     "dense": True,
     "grayscale": False,
     "resize_to": [512, 288],
@@ -81,10 +81,6 @@ OUR_NAMES: dict[str, str] = {
 
 class ImmUnavailableError(GVBenchError, ImportError):
     """vismatch is not installed, or does not know a matcher name, or cannot build it."""
-
-
-def is_imm(name: str) -> bool:
-    return name.startswith(PREFIX)
 
 
 def vismatch_name(method: str) -> str:

@@ -83,20 +83,18 @@ def refused(capsys, argv) -> str:
     return message
 
 
-def test_compare_refuses_methods_on_different_labels(tmp_path, capsys):
+@pytest.mark.parametrize(
+    "other",
+    [lambda t: t.assign(label=np.roll(t["label"], 1)), lambda t: t.iloc[:-8]],
+    ids=["different labels", "different pairs"],
+)
+def test_compare_refuses_methods_on_different_pairs_or_labels(tmp_path, capsys, other):
     table = noisy_table()
     write_run(tmp_path / "toy", "sift-nn", table)
-    write_run(tmp_path / "toy", "orb-nn", table.assign(label=np.roll(table["label"], 1)))
+    write_run(tmp_path / "toy", "orb-nn", other(table))
     message = refused(capsys, ["compare", str(tmp_path / "toy")])
     # the sentence `results` gives: one function decides for every reader
     assert "scored on different pairs or labels (sift-nn: pairs" in message and "orb-nn: pairs" in message
-
-
-def test_compare_refuses_methods_on_different_pairs(tmp_path, capsys):
-    table = noisy_table()
-    write_run(tmp_path / "toy", "sift-nn", table)
-    write_run(tmp_path / "toy", "orb-nn", table.iloc[:-8])
-    assert "scored on different pairs or labels" in refused(capsys, ["compare", str(tmp_path / "toy")])
 
 
 def test_compare_refuses_a_folder_it_cannot_compare(tmp_path, capsys):

@@ -1,4 +1,5 @@
-"""Published reference values, shipped with the package, never labelled as ours.
+"""Published reference values, shipped with the package in ``gvbench_nb/reference_values/``, never
+labelled as ours.
 
 * ``paper_table.csv``: the GV-Bench paper's table (IROS 2024), AP and MR in percent, by the
   paper's method names; produced with the hloc chain (our ``paper`` profile).
@@ -72,5 +73,6 @@ def paper_sequences() -> pd.DataFrame:
 
 
 def _read_csv(name: str) -> pd.DataFrame:
-    with resources.files(__name__).joinpath(name).open("r", encoding="utf-8") as handle:
+    path = resources.files("gvbench_nb").joinpath("reference_values").joinpath(name)
+    with path.open("r", encoding="utf-8") as handle:
         return pd.read_csv(handle)

@@ -1,13 +1,16 @@
-"""Progress bars fit where they run: a widget in JupyterLab's kernels, few lines in a file or a
-batch-executed notebook, the usual redrawn bar in a terminal."""
+"""Output fits where it runs. Progress bars: a widget in JupyterLab's kernels, few lines in a file
+or a batch-executed notebook, the usual redrawn bar in a terminal. Status lines: the package's
+logger, into the stdout of the moment, silenced by --quiet while the asked-for table stays."""
 
 from __future__ import annotations
 
 import io
+import logging
 import sys
 import types
 
-from gvbench_nb import progress
+from gvbench_nb import cli, set_log_level
+from gvbench_nb import io_utils as progress
 
 
 class Terminal(io.StringIO):
@@ -38,3 +41,15 @@ def test_a_kernel_jupyterlab_started_gets_tqdm_auto(monkeypatch):
     monkeypatch.delenv("JPY_SESSION_NAME")  # papermill's and nbmake's kernels: plain text, few lines
     assert progress.progress_bar(total=3, file=io.StringIO()).mininterval == progress.BATCH_INTERVAL_SECONDS
     assert len(made) == 1
+
+
+def test_status_lines_reach_the_current_stdout_and_quiet_keeps_the_table(capsys):
+    try:
+        assert cli.main(["methods"]) == 0
+        loud = capsys.readouterr().out
+        assert cli.main(["--quiet", "methods"]) == 0
+        quiet = capsys.readouterr().out
+    finally:
+        set_log_level(logging.INFO)
+    assert "run any of them:" in loud and "run any of them:" not in quiet
+    assert quiet.splitlines()[0] == loud.splitlines()[0] and "sift-nn" in quiet  # the table itself

@@ -29,7 +29,7 @@ from gvbench_nb.data.sequences import (
     read_pairs,
     write_pairs,
 )
-from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256, is_whole_number, unknown_keys_hint
+from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256, unknown_keys_hint
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import IMAGE_EXTENSIONS, path_problem
 from gvbench_nb.runner import input_checks, sequence_build

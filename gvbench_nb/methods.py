@@ -1,10 +1,5 @@
-"""The method catalogue: every method a run can name, under each profile.
-
-A method is a recipe of ``protocol/recipes/<profile>.yaml`` (written whole there), or
-``imm:<name>``, vismatch's matcher ``<name>`` run as a pair matcher (``benchmarks/imm.py``, outside the package). This module
-resolves a name to its recipe (plus the run's verifier overrides), checks those overrides, says
-which weights a method needs and expands ``all`` / ``all-available``.
-"""
+"""The method catalogue: a recipe of ``protocol/recipes/<profile>.yaml`` or ``imm:<name>``
+(vismatch's matcher via ``benchmarks/imm.py``); resolves names, verifier overrides, weights, ``all``."""
 
 from __future__ import annotations
 
@@ -156,11 +151,8 @@ def check_verifier_overrides(overrides: dict[str, Any]) -> None:
 
 
 def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] | None = None) -> dict[str, Any]:
-    """The full conf of a method under a profile: its recipe, with the run's verifier overrides.
-
-    ``verifier``: overrides of the recipe's verifier conf (the params' ``verifier`` key), so a
-    stronger verifier than the paper's reaches ``pairs.csv`` and ``results.csv``; the verifier
-    conf is part of the match folder's hash, so its results never mix with the default's."""
+    """A method's recipe under a profile with the run's ``verifier`` overrides (part of the match
+    folder's hash, so their results never mix with the default's)."""
     check_profile(profile)
     whole: dict[str, Any]
     if is_imm(name):

@@ -1,10 +1,6 @@
-"""NetVLAD (VGG16 + NetVLAD + whitening, Pitts30K weights) in plain PyTorch: the global
-descriptor GV-Bench retrieved its loop-closure candidates with (Arandjelovic et al., CVPR 2016).
-
-The weights come from ``Pitts30K_struct.mat`` (MatConvNet simplenn as a struct). MatConvNet
-stores the VLAD centres negated (layerVLAD.m keeps -clsts) and flattens VLAD d-major
-(index d * K + k); the average colour is pixel [0, 0] of ``averageImage``, as in hloc.
-"""
+"""NetVLAD (VGG16 + NetVLAD + whitening, Pitts30K weights, Arandjelovic et al., CVPR 2016) in plain
+PyTorch: GV-Bench's retrieval descriptor. MatConvNet's ``Pitts30K_struct.mat`` stores the centres
+negated and VLAD d-major (index d * K + k); the average colour is ``averageImage[0, 0]``, as in hloc."""
 
 from __future__ import annotations
 
@@ -64,11 +60,8 @@ class VGG16Conv5(nn.Module):
 
 
 class NetVLADLayer(nn.Module):
-    """Soft-assignment VLAD pooling with intra-normalisation and L2.
-
-    Input: (B, D, h, w) features already L2-normalised per location.
-    Output: (B, D * K), d-major (index d * K + k), unit L2 norm.
-    """
+    """Soft-assignment VLAD pooling with intra-normalisation and L2: (B, D, h, w) L2-normalised
+    features -> (B, D * K), d-major (index d * K + k), unit norm."""
 
     def __init__(self, num_clusters: int = NUM_CLUSTERS, dim: int = FEATURE_DIM) -> None:
         super().__init__()
@@ -176,12 +169,8 @@ def state_dict_from_mat(mat_net: Any) -> dict[str, torch.Tensor]:
 
 
 def load_netvlad(path: str | os.PathLike[str] | None = None, device: str | torch.device = "cpu") -> NetVLAD:
-    """NetVLAD with the Pitts30K weights, in eval mode.
-
-    ``path`` defaults to ``<torch hub dir>/checkpoints/Pitts30K_struct.mat``; when that
-    file is missing, ``weights.require`` raises ``MissingWeightsError`` naming it and
-    its download URL.
-    """
+    """NetVLAD with the Pitts30K weights, in eval mode (default ``path``:
+    ``<torch hub dir>/checkpoints/Pitts30K_struct.mat``; missing -> ``MissingWeightsError``)."""
     from scipy.io import loadmat  # scipy only needed when loading real weights
 
     if path is None:

@@ -1,9 +1,6 @@
-"""Loop-closure candidates the way GV-Bench built them: top-N retrieval by a global descriptor
-(``GLOBAL_DESCRIPTORS``), then a ground-truth label rule (``LABEL_RULES``) on each pair.
-
-Frame tables map column -> one row a frame: name, frame, position (N, 2|3) metres, heading
-degrees; a rule reads only its own columns. Similarity is the dot product of descriptor rows.
-"""
+"""Loop-closure candidates as GV-Bench built them: top-N retrieval by a global descriptor
+(``GLOBAL_DESCRIPTORS``, dot-product similarity), then a label rule (``LABEL_RULES``) per pair.
+Frame tables map column -> one row a frame (name, frame, position (N, 2|3) m, heading deg)."""
 
 from __future__ import annotations
 

@@ -1,10 +1,6 @@
-"""Sequences: an image root plus labelled pairs, in GV-Bench's pair-file format, one pair a
-line: ``query_path reference_path label`` (paths relative to the image root, label 1 or 0).
-
-Paths with spaces are quoted (POSIX shell rules) and normalised (``night/./a.jpg`` is
-``night/a.jpg``) before the duplicate and self-pair checks. Loading pairs never touches the
-images; symlinks are followed (the caches key images by content, see docs/reliability.md).
-"""
+"""Sequences: an image root plus labelled pairs in GV-Bench's pair-file format, one pair a line:
+``query_path reference_path label``. Paths are shell-quoted and normalised before the duplicate
+and self-pair checks; loading pairs never touches the images (docs/reliability.md)."""
 
 from __future__ import annotations
 
@@ -96,11 +92,8 @@ def _check_relative(path_text: str, where: str) -> None:
 
 
 def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
-    """Parse pair-file lines, rejecting anything that is not exactly a valid pair.
-
-    Blank lines and lines starting with ``#`` are skipped. Errors name the source and
-    line number and say what to do.
-    """
+    """Parse pair-file lines (blank and ``#`` lines skipped), rejecting anything that is not
+    exactly a valid pair; errors name the source and line and say what to do."""
     pairs: list[Pair] = []
     seen: dict[tuple[str, str], tuple[int, int]] = {}  # (query, reference) -> (line, label)
     for line_number, raw in enumerate(lines, start=1):
@@ -304,11 +297,9 @@ def frame_tolerance_pairs(
     seed: int = 0,
     negative_margin: int | None = None,
 ) -> list[Pair]:
-    """Rule-built candidates of a frame-aligned sequence: for query frame i, every reference
-    with |i - j| <= tolerance (true), ``near_negatives`` seeded hard negatives from the near band
-    (low <= |i - j| <= near_window), then seeded far ones (> 4 * near_window) up to
-    ``candidates_per_query``. ``negative_margin`` raises ``low`` above tolerance + 1, leaving
-    out views too close to call, as place-recognition benchmarks do."""
+    """Rule-built candidates of a frame-aligned sequence: references with |i - j| <= tolerance
+    (true), seeded near negatives (low <= |i - j| <= near_window), then far ones (> 4 * near_window);
+    ``negative_margin`` raises ``low`` to leave out views too close to call."""
     low = tolerance + 1 if negative_margin is None else negative_margin
     if negative_margin is not None and negative_margin <= tolerance:
         raise ValueError(

@@ -18,11 +18,8 @@ IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
 
 
 def path_problem(path: str | os.PathLike[str]) -> str | None:
-    """What keeps ``path`` from being read as a regular file, in words that follow its name
-    ("is a broken symbolic link to ...", "is a folder, not a file", "does not exist"), or None.
-
-    Only metadata is read: a FIFO or a device is named, never opened (opening a FIFO blocks).
-    """
+    """What keeps ``path`` from being read as a regular file, in words following its name, or
+    None; reads metadata only (a FIFO is named, never opened: opening one blocks)."""
     text = os.fspath(path)
     if "\0" in text:
         return "holds a NUL byte, which no file name can"
@@ -108,14 +105,9 @@ def check_pixel_bound(path: str | os.PathLike[str]) -> None:
 
 
 def read_image(path: str | os.PathLike[str], grayscale: bool = False, exif_orientation: bool = False) -> np.ndarray:
-    """Read an image as uint8 RGB (H, W, 3) or gray (H, W).
-
-    16-bit, RGBA, palette and grayscale files are converted rather than rejected;
-    missing, empty and undecodable files raise ``ImageReadError`` naming the file.
-    ``exif_orientation``: turn the image as its EXIF orientation tag says, as hloc's
-    ``cv2.imread`` does; PIL's ``Image.open().convert("RGB")`` (the GV-Bench repository's
-    loader) does not, nor does this function by default.
-    """
+    """Read an image as uint8 RGB (H, W, 3) or gray (H, W); odd formats are converted, bad files
+    raise ``ImageReadError``. ``exif_orientation``: turn it as hloc's ``cv2.imread`` does (the
+    GV-Bench repository's PIL loader does not, nor does this by default)."""
     path = Path(path)
     problem = path_problem(path)
     if problem == "does not exist":
@@ -169,13 +161,9 @@ def target_size(
     multiple_of: int | None = None,
     resize_to: tuple[int, int] | None = None,
 ) -> tuple[int, int]:
-    """(width, height) after resizing the longest side to ``resize_max``.
-
-    Without ``resize_force`` images are only shrunk (hloc's convention); with it they
-    are also enlarged (the paper's SuperPoint at 1600). ``multiple_of`` floors both
-    sides (LoFTR's multiple of 8). ``resize_to`` = (width, height) is a fixed size
-    whatever the aspect ratio (the GV-Bench repository's 512x288); it replaces ``resize_max``.
-    """
+    """(width, height) after resizing the longest side to ``resize_max``: only shrinking (hloc)
+    unless ``resize_force``; ``multiple_of`` floors both sides (LoFTR's 8); ``resize_to`` is a
+    fixed (width, height) replacing ``resize_max`` (the GV-Bench repository's 512x288)."""
     new_w, new_h = width, height
     if resize_to:
         new_w, new_h = int(resize_to[0]), int(resize_to[1])
@@ -214,13 +202,9 @@ def resize_bilinear_antialias(image: np.ndarray, size: tuple[int, int]) -> np.nd
 
 
 def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, tuple[int, int]]:
-    """The GV-Bench repository's image chain: RGB in [0, 1], resized as a float image, then
-    grey (its OpenCV and LoFTR matchers convert after resizing), min-max stretched to 0-255
-    where its OpenCV matchers do, and resized again when the model resizes its input
-    (LightGlue's extractors: longest side ``model_input_long_side``, also enlarging).
-    Made 8-bit once, at the end: rounded, or truncated where the conf's ``uint8`` says
-    ``truncate`` (the fork's OpenCV matchers: ``astype("uint8")`` of the stretched image).
-    Returns the image and the original (width, height)."""
+    """The GV-Bench repository's image chain: RGB [0, 1] resized as float, grey after resizing,
+    min-max stretched for its OpenCV matchers, resized again for LightGlue's extractors, made 8-bit
+    once at the end (rounded, or truncated per the conf's ``uint8``). Returns image, (w, h)."""
     stretched = conf.get("normalize_minmax", False)
     rgb = read_image(path, grayscale=False).astype(np.float32)
     if stretched:
@@ -255,13 +239,9 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
 
 
 def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.ndarray, np.ndarray]:
-    """Image prepared for an extractor conf, float32 in 0..255 (H, W) or (H, W, 3), and the
-    float32 (sx, sy) scale back to original pixels (original size / new size).
-
-    ``interpolation``: "area_or_linear" (default; hloc's ``ImageDataset``: the decoded image
-    becomes float32 before resizing, so resized values are not rounded to integers) or
-    "bilinear_antialias" (the GV-Bench repository's torchvision chain, ``_prepare_as_repository``).
-    """
+    """Image prepared for an extractor conf (float32, 0..255) and the (sx, sy) scale back to the
+    original; ``interpolation`` "area_or_linear" is hloc's ``ImageDataset`` (resized as float32),
+    "bilinear_antialias" the GV-Bench repository's torchvision chain."""
     interpolation = conf.get("interpolation", "area_or_linear")
     if interpolation == "bilinear_antialias":
         resized8, (width, height) = _prepare_as_repository(path, conf)

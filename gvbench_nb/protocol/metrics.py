@@ -43,11 +43,8 @@ def average_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metr
 
 
 def max_recall_at_full_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
-    """Largest recall among the PR-curve points whose precision is exactly 1.0.
-
-    Ties count as the curve counts them: a false pair tied with the best true pair
-    lowers precision at that threshold, so MR can be 0.
-    """
+    """Largest recall among PR-curve points with precision exactly 1.0; a false pair tied with
+    the best true pair lowers precision there, so MR can be 0."""
     from sklearn.metrics import precision_recall_curve
 
     labels, scores = _check(labels, scores, where)

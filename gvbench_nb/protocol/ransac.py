@@ -60,14 +60,9 @@ def fit_inliers(
     seed: int = 0,
     few_matches: str = "zero",
 ) -> np.ndarray:
-    """Inlier mask of a fundamental matrix (or homography) fitted robustly to matched points.
-
-    Fewer than ``min_matches`` matches (at least the 8, or 4, a fit needs), or no model found:
-    ``few_matches`` = "zero" gives no inliers (the benchmark's released evaluation code, May 2024
-    on); "all" counts every match as an inlier (the paper's submission period and the GV-Bench
-    repository's current code). OpenCV's estimators sample from a fixed internal seed, so the
-    result depends only on the pair (tests/runner/test_reliability.py checks it).
-    """
+    """Inlier mask of a robust fundamental matrix (or homography) fit. Below ``min_matches`` or no
+    model: ``few_matches`` "zero" (released evaluation code, May 2024 on) or "all" (the paper's
+    period and the repository's code). OpenCV's fixed seed makes it depend only on the pair."""
     registry.check_choice("few_matches rule", few_matches, FEW_MATCHES_RULES, "the verifier conf")
     registry.lookup("verifier model", model, dict.fromkeys(MODELS))
     points0, points1 = as_point_arrays(points0, points1)
@@ -88,13 +83,8 @@ def fit_inliers(
 def to_verifier_frame(
     keypoints: np.ndarray, image_size: np.ndarray | SequenceType[int] | None, conf: dict[str, Any]
 ) -> np.ndarray:
-    """Keypoints (original pixels) in the frame the verifier fits in.
-
-    ``coordinates`` = "original" leaves them; "resize_to" maps them into the fixed
-    ``resize_to`` (width, height) image, pixel centres kept: (k + 0.5) * new / old - 0.5
-    (the GV-Bench repository fits F on its 512x288 coordinates, so its 3 px threshold
-    is 3 px of that image).
-    """
+    """Keypoints (original pixels) in the verifier's frame: "original", or "resize_to" mapped into
+    the fixed (width, height) by (k + 0.5) * new / old - 0.5 (the repository fits F at 512x288)."""
     coordinates = conf.get("coordinates", "original")
     if coordinates == "original":
         return keypoints
@@ -152,11 +142,8 @@ def verify_matches(
     seed: int = 0,
     image_sizes: tuple[Any, Any] = (None, None),
 ) -> dict[str, Any]:
-    """Apply the score filter then the robust fit; returns counts and the inlier mask over ``matches``.
-
-    ``image_sizes``: the original (width, height) of both images, needed when the verifier
-    fits in resized coordinates. ``min_match_score`` None keeps every match.
-    """
+    """Score filter (``min_match_score``, None keeps all) then robust fit; returns counts and the
+    inlier mask over ``matches``. ``image_sizes``: originals, for resized-frame verifiers."""
     points0 = to_verifier_frame(keypoints0[matches[:, 0]], image_sizes[0], conf)
     points1 = to_verifier_frame(keypoints1[matches[:, 1]], image_sizes[1], conf)
     inlier_mask, num_filtered = filter_and_fit(

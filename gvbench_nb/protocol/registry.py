@@ -1,10 +1,6 @@
-"""One lookup for every named choice (methods, profiles, extractor and matcher types,
-verifiers, pair builders, datasets, checkpoints...), with one error and one did-you-mean.
-
-A model class registers itself by naming its recipe ``type`` (``Model``); its family's modules
-are imported when a model is first built, so listing or checking names never imports torch. A
-conf may name a class outside the package as ``"package.module:Class"``.
-"""
+"""One lookup for every named choice (methods, profiles, model types, verifiers, datasets,
+checkpoints...), with one error and one did-you-mean. Models register by recipe ``type``; families
+are imported at first build, so listing never imports torch; ``"package.module:Class"`` also works."""
 
 from __future__ import annotations
 

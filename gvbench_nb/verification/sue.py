@@ -1,26 +1,6 @@
-"""SUE: spatial uncertainty of a retrieval (Zaffar et al., CVPR 2024), training-free.
-
-A query's top-1 retrieval is trusted when its top-K references lie close together
-on the map. With descriptor distances d_i and positions p_i of the top-K
-(MODELS.md section 7):
-
-    w_i = exp(-slope * d_i) / sum_j exp(-slope * d_j)        (slope = 350)
-    mu  = sum_i w_i p_i
-    SUE = (sum_i w_i (x_i - mu_x)^2 + sum_i w_i (y_i - mu_y)^2) / 2
-    confidence = -SUE
-
-i.e. the weighted variance of the positions, averaged over the two axes.
-
-1-D positions: for frame-aligned sequences (Nordland, GV-Bench's sequences without
-poses) the reference's frame index is its position; pass ``positions`` as (Q, K)
-and SUE is the weighted variance of the indices (the average over one axis), in
-frames squared. In general, positions (Q, K, D) give the mean over the D axes of
-the weighted variances.
-
-The weights are computed as ``exp(-slope * (d_i - min_j d_j))`` before normalising:
-the same numbers after normalisation, but no underflow to 0/0 when every distance
-is large (exp(-350 * 3) is 0 in float64).
-"""
+"""SUE: spatial uncertainty of a retrieval (Zaffar et al., CVPR 2024), training-free (MODELS.md
+section 7): confidence = -(softmax(-slope * d)-weighted variance of the top-K positions, averaged
+over the axes); frame indices (Q, K) serve as 1-D positions. Weights use d - min d (no underflow)."""
 
 from __future__ import annotations
 
@@ -41,16 +21,8 @@ def sue_weights(distances: np.ndarray, slope: float = SLOPE) -> np.ndarray:
 
 
 def sue(distances: np.ndarray, positions: np.ndarray, slope: float = SLOPE, k: int | None = None) -> np.ndarray:
-    """Spatial uncertainty (Q,), >= 0: the weighted positional variance of the top-K.
-
-    Args:
-        distances: (Q, K) descriptor distances of each query's retrieved references.
-        positions: (Q, K, 2) reference positions (x, y), or (Q, K) for 1-D positions
-            such as frame indices, or (Q, K, D) in general.
-        slope: sharpness of the weights (350 in the paper).
-        k: use only the first ``k`` columns (the top-k, if given in retrieval order);
-            ``None`` uses all K given.
-    """
+    """Spatial uncertainty (Q,), >= 0, of (Q, K) distances and (Q, K[, D]) positions; ``slope``
+    350 in the paper; ``k`` uses only the first k columns (None: all)."""
     d = np.asarray(distances, dtype=np.float64)
     p = np.asarray(positions, dtype=np.float64)
     if d.ndim == 1:  # a single query

@@ -1,8 +1,5 @@
-"""Local feature extractors: one file a family, each class naming the recipe ``type`` it implements.
-
-Adding an extractor is one file here with a subclass of ``base.Extractor`` (or a ``"module:Class"``
-type in its conf for a class outside the package).
-"""
+"""Local feature extractors: one file a family, each a ``base.Extractor`` subclass naming its
+recipe ``type`` (or a ``"module:Class"`` type for a class outside the package)."""
 
 from __future__ import annotations
 

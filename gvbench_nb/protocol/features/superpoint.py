@@ -1,10 +1,6 @@
-"""SuperPoint (DeTone et al., CVPRW 2018), re-implemented so that its ``state_dict`` has exactly the
-names and shapes of Magic Leap's ``superpoint_v1.pth`` (24 tensors; loads with strict=True).
-
-Post-processing follows the Magic Leap release step by step (GV-Bench extracted its features with
-it, through hloc): softmax and depth-to-space, NMS by max pooling, threshold, borders, top-k, then
-descriptors sampled bilinearly on the stride-8 grid. Weights: Magic Leap, non-commercial only.
-"""
+"""SuperPoint (DeTone et al., CVPRW 2018) whose ``state_dict`` matches Magic Leap's
+``superpoint_v1.pth`` (strict load); post-processing follows the Magic Leap release step by step,
+as GV-Bench ran it through hloc. Weights: Magic Leap, non-commercial only."""
 
 from __future__ import annotations
 
@@ -23,11 +19,8 @@ CHECKPOINT = "superpoint_v1"
 
 
 def cells_to_pixels(probs: Tensor, cell: int = 8) -> Tensor:
-    """Depth to space: (B, cell*cell, h, w) -> (B, h*cell, w*cell).
-
-    Channel k of cell (i, j) becomes pixel (cell*i + k // cell, cell*j + k % cell),
-    i.e. the 64 channels are an 8x8 patch in row-major order.
-    """
+    """Depth to space: (B, cell*cell, h, w) -> (B, h*cell, w*cell); the 64 channels of a cell
+    are an 8x8 patch in row-major order."""
     b, c, h, w = probs.shape
     if c != cell * cell:
         raise ValueError(f"expected {cell * cell} channels, got {c}")
@@ -36,13 +29,8 @@ def cells_to_pixels(probs: Tensor, cell: int = 8) -> Tensor:
 
 
 def simple_nms(scores: Tensor, nms_radius: int) -> Tensor:
-    """Zero every score that is not the maximum of its (2r+1)x(2r+1) window.
-
-    ``scores``: (B, H, W). After the first pass, points suppressed only by a
-    neighbour that is itself a maximum get a second chance: scores within the
-    radius of a kept maximum are zeroed and local maxima of what remains are
-    added (twice, as in the Magic Leap code).
-    """
+    """Zero every score (B, H, W) that is not the maximum of its (2r+1)x(2r+1) window, with the
+    Magic Leap code's two second-chance passes for points suppressed by a suppressed neighbour."""
     if nms_radius < 0:
         raise ValueError(f"nms_radius must be >= 0, got {nms_radius}")
 
@@ -62,11 +50,8 @@ def simple_nms(scores: Tensor, nms_radius: int) -> Tensor:
 
 
 def remove_borders(keypoints: Tensor, scores: Tensor, border: int, height: int, width: int) -> tuple[Tensor, Tensor]:
-    """Drop keypoints closer than ``border`` pixels to the image edge.
-
-    ``keypoints``: (N, 2) integer (row, col) = (y, x), the order of ``nonzero``
-    on the score map (the Magic Leap code removes borders before flipping to x, y).
-    """
+    """Drop keypoints (N, 2) (row, col) closer than ``border`` pixels to the edge (the Magic Leap
+    code removes borders before flipping to x, y)."""
     inside_y = (keypoints[:, 0] >= border) & (keypoints[:, 0] < height - border)
     inside_x = (keypoints[:, 1] >= border) & (keypoints[:, 1] < width - border)
     keep = inside_y & inside_x
@@ -74,11 +59,8 @@ def remove_borders(keypoints: Tensor, scores: Tensor, border: int, height: int, 
 
 
 def top_k_keypoints(keypoints: Tensor, scores: Tensor, k: int) -> tuple[Tensor, Tensor]:
-    """Keep the ``k`` keypoints with the highest scores (all of them if there are fewer).
-
-    When it cuts, the result is sorted by decreasing score (``torch.topk``);
-    otherwise the input order is kept, as in the original.
-    """
+    """Keep the ``k`` best-scored keypoints: sorted by decreasing score when it cuts
+    (``torch.topk``), input order otherwise, as in the original."""
     if k >= len(keypoints):
         return keypoints, scores
     scores, indices = torch.topk(scores, k, dim=0)
@@ -86,21 +68,9 @@ def top_k_keypoints(keypoints: Tensor, scores: Tensor, k: int) -> tuple[Tensor, 
 
 
 def sample_descriptors(keypoints: Tensor, descriptors: Tensor, s: int = 8) -> Tensor:
-    """Bilinearly interpolate a dense descriptor map at keypoint positions.
-
-    ``keypoints``: (B, N, 2) float (x, y) in pixels of the input image.
-    ``descriptors``: (B, C, h, w) map on the stride-``s`` grid.
-    Returns (B, C, N), L2-normalised along C.
-
-    The pixel -> [-1, 1] mapping is Magic Leap's (kept on purpose, to reproduce
-    the released model's matches, although hloc calls it slightly off): shift by
-    s/2 - 0.5 (pixel centre of cell 0), divide by ``w*s - s/2 - 0.5`` and use
-    ``align_corners=True``. So x = 3.5 (the centre of cell 0) lands on cell 0 but
-    the last pixel, x = w*s - 1, on the last cell ``w - 1`` (for s = 8), a slight
-    stretch of the grid. The release means ``align_corners=True`` (its string
-    comparison ``torch.__version__ >= '1.3'`` does pass it for torch 2.x, but
-    silently dropped it, i.e. used False, under torch 1.10-1.13).
-    """
+    """Bilinearly sample (B, C, h, w) descriptors at (B, N, 2) (x, y) pixels -> (B, C, N), L2-normed.
+    The pixel -> [-1, 1] mapping is Magic Leap's on purpose (hloc calls it slightly off): shift by
+    s/2 - 0.5, divide by ``w*s - s/2 - 0.5``, ``align_corners=True`` (the release's intent)."""
     b, c, h, w = descriptors.shape
     keypoints = keypoints - s / 2 + 0.5
     keypoints = keypoints / keypoints.new_tensor([w * s - s / 2 - 0.5, h * s - s / 2 - 0.5])
@@ -110,18 +80,9 @@ def sample_descriptors(keypoints: Tensor, descriptors: Tensor, s: int = 8) -> Te
 
 
 class SuperPoint(nn.Module):
-    """SuperPoint with the official checkpoint's layout.
-
-    ``forward(image)`` takes a grayscale batch (B, 1, H, W) in [0, 1] (or a dict
-    with key ``"image"``) and returns a dict of per-image lists:
-
-    - ``keypoints``: (N, 2) float (x, y) in pixels of the input,
-    - ``scores``: (N,) detection scores,
-    - ``descriptors``: (N, 256) L2-normalised.
-
-    Only the top-left ``8*floor(H/8) x 8*floor(W/8)`` part can hold keypoints
-    (the encoder floors at each pooling, as in the release).
-    """
+    """SuperPoint with the official checkpoint's layout: grayscale (B, 1, H, W) in [0, 1] (or
+    ``{"image": ...}``) -> per-image lists of ``keypoints`` (N, 2) (x, y), ``scores``, ``descriptors``
+    (N, 256); only the top-left 8*floor(H/8) x 8*floor(W/8) part holds keypoints, as in the release."""
 
     default_conf: dict[str, Any] = {
         "descriptor_dim": 256,
@@ -215,12 +176,8 @@ class SuperPoint(nn.Module):
 
 
 def load_superpoint(conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperPoint:
-    """SuperPoint with the official ``superpoint_v1.pth`` weights, in eval mode.
-
-    Raises ``weights.MissingWeightsError`` (naming file, URL and target path) when
-    the checkpoint is not in the torch hub cache, and ``weights.WeightsLayoutError``
-    when its tensors do not fit.
-    """
+    """SuperPoint with the official ``superpoint_v1.pth`` weights, in eval mode; raises
+    ``MissingWeightsError`` or ``WeightsLayoutError`` (see ``weights``)."""
     (path,) = weights.require(CHECKPOINT)
     model = SuperPoint(conf)
     # Magic Leap ships a bare state dict.

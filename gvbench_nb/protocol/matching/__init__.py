@@ -1,8 +1,5 @@
-"""Matchers: one file a family, each class naming the recipe ``type`` it implements.
-
-Adding a matcher is one file here with a subclass of ``base.Matcher`` (or a ``"module:Class"``
-type in its conf for a class outside the package).
-"""
+"""Matchers: one file a family, each a ``base.Matcher`` subclass naming its recipe ``type``
+(or a ``"module:Class"`` type for a class outside the package)."""
 
 from __future__ import annotations
 

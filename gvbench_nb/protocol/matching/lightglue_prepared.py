@@ -1,13 +1,7 @@
-"""kornia's LightGlue forward, split so that the work that sees one image only is done once per
-image instead of once per pair (GV-Bench uses each image in ~10-20 pairs).
-
-Everything before layer 0's cross-attention depends on one image alone (input projection,
-positional encoding, layer-0 self-attention, the cross block's projections): ``prepare_image``
-computes it, ``match_prepared`` runs the rest, calling kornia's own modules with the same tensors
-in the same order as ``LightGlue.forward`` for one pair (kornia 0.9), so matches are bit-identical
-(tests/protocol/test_lightglue_prepared.py). Only the paper's configuration qualifies
-(``supports_prepared``): one pair, no mixed precision, no static lengths, no LAF inputs.
-"""
+"""kornia's LightGlue forward split so one-image work (input projection, positional encoding,
+layer-0 self-attention, cross projections) runs once per image (``prepare_image``); ``match_prepared``
+runs the rest with kornia 0.9's modules in ``LightGlue.forward``'s order, bit-identical
+(tests/protocol/test_lightglue_prepared.py); only the paper's configuration (``supports_prepared``)."""
 
 from __future__ import annotations
 
@@ -85,13 +79,8 @@ def _transformer(model: LightGlue, index: int) -> TransformerLayer:
 def _cross_messages(
     query_key0: torch.Tensor, query_key1: torch.Tensor, value0: torch.Tensor, value1: torch.Tensor, attention: str
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Bidirectional cross-attention of pre-scaled query/keys (1, H, N, d), heads not yet merged.
-
-    ``kornia``: kornia's CPU path, one similarity matrix softmaxed both ways. ``sdpa``:
-    ``torch.nn.functional.scaled_dot_product_attention`` once per direction (its fused CPU
-    kernel never materialises the attention matrix); the inputs are already scaled, so its
-    own scale is 1. The two agree to float rounding, not bit for bit.
-    """
+    """Bidirectional cross-attention of pre-scaled (1, H, N, d) query/keys: ``kornia`` softmaxes one
+    similarity both ways; ``sdpa`` calls torch's fused kernel per direction (scale 1), equal to rounding."""
     if attention == "sdpa":
         message0 = F.scaled_dot_product_attention(query_key0, query_key1, value1, scale=1.0)
         message1 = F.scaled_dot_product_attention(query_key1, query_key0, value0, scale=1.0)

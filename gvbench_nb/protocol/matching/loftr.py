@@ -18,12 +18,9 @@ def loftr_call(
     image1: torch.Tensor,
     swap_images: bool = True,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """LoFTR on a pair; returns (points in image 0, points in image 1, confidences).
-
-    ``swap_images``: run it as hloc runs it (``hloc/matchers/loftr.py``): the network sees image 1
-    as its first image and image 0 as its second (its fine stage refines the second image's
-    points, so hloc's image 0 is the refined one); the points come back in our order. The
-    GV-Bench repository's fork (``matching/im_models/loftr.py``) passes the pair as it is."""
+    """LoFTR on a pair -> (points0, points1, confidences). ``swap_images`` runs it as
+    ``hloc/matchers/loftr.py`` does (image 1 first, so image 0 is the refined one); the GV-Bench
+    fork (``matching/im_models/loftr.py``) passes the pair as it is."""
     if not swap_images:
         output = model({"image0": image0, "image1": image1})
         first, second = output["keypoints0"], output["keypoints1"]
@@ -94,13 +91,9 @@ def merge_dense_matches(
     cell_size: float = 1.0,
     max_error: float = 1.0,
 ) -> tuple[dict[str, np.ndarray], list[tuple[np.ndarray, np.ndarray]]]:
-    """Dense matches (``raw_matches[i]``: points0, points1, scores of ``pairs[i]`` in original
-    pixels) turned into per-image keypoints and per-pair matches as hloc's
-    ``match_dense.match_and_assign`` does: pairs in hloc's order, scores summed per cell, an
-    image's ``max_keypoints`` best cells kept, every match reassigned to the nearest kept keypoint
-    within ``max_error`` on both sides, many-to-one removed, scores float16-rounded.
-    Returns (keypoints by image name; per pair (matches (M, 2) int64, scores (M,) float32)).
-    """
+    """Dense matches of ``pairs`` (original pixels) to per-image keypoints and per-pair matches as
+    hloc's ``match_dense.match_and_assign``: cell scores summed, ``max_keypoints`` best cells kept,
+    matches reassigned within ``max_error``, many-to-one removed, scores float16-rounded."""
     from collections import Counter
 
     from scipy.spatial import KDTree

@@ -158,13 +158,9 @@ def two_way_l2_matches(
     distance_threshold: float | None = None,
     ratio_test_on: str = "rows_and_columns",
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """hloc's nearest-neighbour rule (``hloc/matchers/nearest_neighbor.py``) on L2 descriptors.
-
-    A row keeps its best column when it passes the Lowe ratio (d1^2 <= ratio^2 d2^2) and the
-    distance test; with ``mutual`` the column must pass them against its rows too and the two be
-    each other's best. The ratio test is skipped when either side has a single descriptor;
-    ``ratio_test_on="rows"`` skips it on the columns' side. Score (similarity + 1) / 2.
-    """
+    """hloc's nearest-neighbour rule (``hloc/matchers/nearest_neighbor.py``) on L2 descriptors:
+    Lowe ratio (skipped for a single descriptor; ``ratio_test_on="rows"`` skips the columns'),
+    distance test, optional ``mutual``; score (similarity + 1) / 2."""
     if len(descriptors0) == 0 or len(descriptors1) == 0:
         return torch.zeros((0, 2), dtype=torch.long), torch.zeros((0,))
     # hloc takes the product of the stored descriptors, which are unit vectors up to their
@@ -254,15 +250,9 @@ def exact_in_float32(descriptors: np.ndarray) -> bool:
 def two_nearest_l2_as_opencv(
     descriptors0: np.ndarray, descriptors1: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Each row's nearest column and the two smallest distances of the row, as
-    ``_two_nearest(l2_distances_as_opencv(...))`` gives them (float32 roots, as float64).
-
-    For whole descriptors (``exact_in_float32``) the product runs in float32, exactly: the
-    nearest column maximises a.b - |b|^2 / 2 (the squared distance less the row's |a|^2, halved),
-    and only the two smallest squared distances of a row are rooted. A float32 root can round two
-    different squared distances to one value; then the row's two smallest roots are equal, the
-    ratio test fails, and which of them is called nearest does not matter. Other descriptors take
-    the float64 distances."""
+    """Each row's nearest column and two smallest distances as ``_two_nearest(l2_distances_as_opencv(...))``
+    gives them; whole descriptors run exactly in float32 (argmax a.b - |b|^2 / 2, two roots a row;
+    tied roots fail the ratio test anyway), others in float64."""
     if not (exact_in_float32(descriptors0) and exact_in_float32(descriptors1)) or len(descriptors1) < 2:
         return _two_nearest(l2_distances_as_opencv(descriptors0, descriptors1))
     a = np.asarray(descriptors0, dtype=np.float32)
@@ -284,12 +274,9 @@ def two_nearest_l2_as_opencv(
 
 
 def knn_ratio_matches(distance: np.ndarray, ratio_threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """The repository's rule on a distance matrix: each row's nearest column, kept when its
-    distance is strictly below ``ratio_threshold`` times the row's second-nearest (compared in
-    float64, as Python compares OpenCV's float32 distances). A tie at the nearest distance never
-    passes, so which of the tied columns is nearest does not matter. With a single column there
-    is no second neighbour: the repository's loop fails there (it unpacks two), we keep no match.
-    Returns (matches (M, 2) int64, nearest distances (M,) float64)."""
+    """The repository's rule: nearest column kept when strictly below ``ratio_threshold`` times the
+    second-nearest (float64, as Python compares OpenCV's float32); ties never pass; one column keeps
+    nothing. Returns (matches (M, 2) int64, nearest distances (M,) float64)."""
     if distance.shape[0] == 0 or distance.shape[1] < 2:
         return np.zeros((0, 2), np.int64), np.zeros((0,), np.float64)
     return knn_ratio_of_nearest(*_two_nearest(distance), ratio_threshold)

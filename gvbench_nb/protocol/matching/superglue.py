@@ -1,9 +1,6 @@
-"""SuperGlue (Sarlin et al., CVPR 2020), re-implemented so that its ``state_dict`` has exactly the
-names and shapes of Magic Leap's ``superglue_outdoor.pth`` (339 tensors; loads with strict=True).
-
-Inside the network tensors are channel-first (B, D, N), as in the release; the public API takes
-(B, N, D). Weights: Magic Leap, non-commercial research only.
-"""
+"""SuperGlue (Sarlin et al., CVPR 2020) whose ``state_dict`` matches Magic Leap's
+``superglue_outdoor.pth`` (strict load); channel-first (B, D, N) inside as in the release, (B, N, D)
+outside. Weights: Magic Leap, non-commercial research only."""
 
 from __future__ import annotations
 
@@ -23,11 +20,8 @@ CHECKPOINTS = {"outdoor": "superglue_outdoor"}
 
 
 def mlp(channels: Sequence[int], do_bn: bool = True) -> nn.Sequential:
-    """1x1 Conv1d layers with BatchNorm + ReLU between them (not after the last).
-
-    The Sequential indices (conv at 0, 3, 6, ...; BatchNorm at 1, 4, ...) are the
-    checkpoint's tensor names, so the layer order matters.
-    """
+    """1x1 Conv1d layers with BatchNorm + ReLU between them; the Sequential indices are the
+    checkpoint's tensor names, so the layer order matters."""
     layers: list[nn.Module] = []
     for i in range(1, len(channels)):
         layers.append(nn.Conv1d(channels[i - 1], channels[i], kernel_size=1, bias=True))
@@ -49,11 +43,8 @@ def _image_size_wh(size: Any, batch: int, like: Tensor) -> Tensor:
 
 
 def normalize_keypoints(kpts: Tensor, image_size: Any) -> Tensor:
-    """Centre keypoints on the image and scale by 0.7 * the longest side.
-
-    ``kpts``: (B, N, 2) as (x, y) pixels; ``image_size``: (H, W) (tuple, (2,) or
-    (B, 2) tensor). The result lies roughly in [-0.72, 0.72].
-    """
+    """Centre (B, N, 2) keypoints on the image of ``image_size`` (H, W) and scale by 0.7 * the
+    longest side."""
     size = _image_size_wh(image_size, kpts.shape[0], kpts)  # (B, 2) as (W, H)
     center = size / 2
     scaling = size.max(dim=1, keepdim=True).values * 0.7
@@ -76,13 +67,8 @@ class KeypointEncoder(nn.Module):
 
 
 class MultiHeadedAttention(nn.Module):
-    """Multi-head attention with the release's channel split.
-
-    Channel ``c`` of a projected (B, D, N) tensor belongs to head ``c % num_heads``
-    and sub-dimension ``c // num_heads`` (``view(b, dim, heads, n)``: head index
-    fastest). Loading the official weights with the usual (head, dim) split would
-    silently scramble the heads.
-    """
+    """Multi-head attention with the release's channel split: channel ``c`` is head ``c % num_heads``
+    (head index fastest); the usual split would silently scramble the official weights' heads."""
 
     def __init__(self, num_heads: int, d_model: int) -> None:
         super().__init__()
@@ -157,13 +143,8 @@ def log_sinkhorn_iterations(z: Tensor, log_mu: Tensor, log_nu: Tensor, iters: in
 
 
 def log_optimal_transport(scores: Tensor, alpha: Tensor, iters: int) -> Tensor:
-    """Differentiable optimal transport with dustbins, in log space.
-
-    ``scores``: (B, M, N); ``alpha``: scalar dustbin score. Returns the
-    (B, M+1, N+1) log-assignment. As in the release, the marginals are: each of
-    the M rows and N columns carries mass 1; the dustbin row carries N and the
-    dustbin column M (so either side may be entirely unmatched). Total mass M+N.
-    """
+    """Log-space optimal transport with dustbins: (B, M, N) scores -> (B, M+1, N+1) log-assignment;
+    rows and columns carry mass 1, the dustbin row N and the dustbin column M, as in the release."""
     b, m, n = scores.shape
     ms = scores.new_tensor(float(m))
     ns = scores.new_tensor(float(n))
@@ -184,24 +165,10 @@ def log_optimal_transport(scores: Tensor, alpha: Tensor, iters: int) -> Tensor:
 
 
 class SuperGlue(nn.Module):
-    """SuperGlue with the official checkpoint's layout.
-
-    ``forward(data)`` takes a dict with
-
-    - ``keypoints0``, ``keypoints1``: (B, N, 2) float (x, y) pixels,
-    - ``scores0``, ``scores1``: (B, N) detection scores,
-    - ``descriptors0``, ``descriptors1``: (B, N, D) -- points first, like the
-      keypoints (the release took (B, D, N); we transpose inside),
-    - ``image_size0``, ``image_size1``: (H, W) as a tuple, a (2,) or a (B, 2) tensor
-      (or, instead, ``image0`` / ``image1`` tensors whose last two dims are H, W),
-
-    and returns ``matches0`` (B, N0) int64 index into image 1 or -1,
-    ``matching_scores0`` (B, N0) (exp of the log-assignment for mutual pairs, 0
-    otherwise; as in the release, a mutual pair below ``match_threshold`` keeps its
-    score but gets match -1), and the same with 0 and 1
-    swapped. Matches are mutual by construction. Call ``eval()`` before use
-    (BatchNorm); :func:`load_superglue` does.
-    """
+    """SuperGlue with the official checkpoint's layout. ``forward`` takes ``keypoints0/1`` (B, N, 2),
+    ``scores0/1``, ``descriptors0/1`` (B, N, D) and ``image_size0/1`` (H, W) (or ``image0/1``), and
+    returns mutual ``matches0/1`` (-1 unmatched, also below ``match_threshold``) and
+    ``matching_scores0/1``, as in the release. Call ``eval()`` first (``load_superglue`` does)."""
 
     default_conf: dict[str, Any] = {
         "descriptor_dim": 256,
@@ -264,11 +231,8 @@ class SuperGlue(nn.Module):
 
 
 def mutual_matches(log_assignment: Tensor, threshold: float) -> dict[str, Tensor]:
-    """Mutual argmax of the (B, M+1, N+1) log-assignment, ignoring the dustbins.
-
-    A pair (i, j) is kept when j is i's best column, i is j's best row and
-    exp(log-assignment[i, j]) > ``threshold``; both sides get the same score.
-    """
+    """Mutual argmax of the (B, M+1, N+1) log-assignment ignoring dustbins, kept above
+    ``threshold``; both sides get the same score."""
     inner = log_assignment[:, :-1, :-1]
     max0, max1 = inner.max(2), inner.max(1)
     indices0, indices1 = max0.indices, max1.indices
@@ -291,13 +255,8 @@ def mutual_matches(log_assignment: Tensor, threshold: float) -> dict[str, Tensor
 
 
 def load_superglue(conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperGlue:
-    """SuperGlue with official weights (``conf['weights']``, only 'outdoor' is
-    registered), in eval mode.
-
-    Raises ``weights.MissingWeightsError`` (naming file, URL and target path) when
-    the checkpoint is not in the torch hub cache, and ``weights.WeightsLayoutError``
-    when its tensors do not fit.
-    """
+    """SuperGlue with the official ``conf['weights']`` ('outdoor'), in eval mode; raises
+    ``MissingWeightsError`` or ``WeightsLayoutError`` (see ``weights``)."""
     model = SuperGlue(conf)
     which = model.conf["weights"]
     (path,) = weights.require(registry.lookup("SuperGlue weights", which, CHECKPOINTS, error=ValueError))

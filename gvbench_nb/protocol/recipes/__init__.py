@@ -1,11 +1,6 @@
-"""The recipes: one table a profile (``paper.yaml``, ``repository.yaml``), each method written whole.
-
-A recipe is ``paper_name``, ``in_paper``, ``extractor`` (image preparation and model options; null
-for a dense matcher, which prepares its own images), ``matcher`` and ``verifier``, with the
-reference it reproduces in the comment above it. Nothing is merged or overridden: what a method
-runs under a profile is what its entry says. Adding a method is one entry a profile (and one
-model file under ``features/`` or ``matching/`` if its model is new).
-"""
+"""The recipes: one table a profile (``paper.yaml``, ``repository.yaml``), each method written whole
+(``paper_name``, ``in_paper``, ``extractor``, ``matcher``, ``verifier``) under the reference it
+reproduces; nothing is merged or overridden."""
 
 from __future__ import annotations
 

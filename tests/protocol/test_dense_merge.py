@@ -18,13 +18,9 @@ from gvbench_nb.runner import method_runs, pair_matching
 
 
 def hloc_merge_reference(pairs, raw, max_keypoints):
-    """hloc's rule for 1-px cells and a 1-px error, with distinct scores (no ties):
-    pairs visited by the fewer uses of their images, then by names; each point's cell is
-    round(x + 0.5) - 0.5 per axis (numpy rounding); a cell's score sums the scores of the
-    matches whose points fall in it; an image keeps its max_keypoints best cells; every
-    match goes to the nearest kept cell within 1 px on both sides, else is dropped; a match
-    survives when it is the best-scored of its keypoint in image 0 and of its keypoint in
-    image 1; matches ordered by keypoint of image 0, scores rounded to float16."""
+    """hloc's rule for 1-px cells and error, distinct scores: pairs by fewer image uses then names;
+    cell round(x + 0.5) - 0.5; cell scores summed; max_keypoints best cells kept; matches to the
+    nearest kept cell within 1 px, best-scored per keypoint on both sides; float16 scores."""
     uses = {}
     for pair in pairs:
         for name in pair:

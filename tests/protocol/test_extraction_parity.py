@@ -1,9 +1,5 @@
-"""Image reading, resizing, COLMAP SIFT and float16 storage against hloc's rules.
-
-Each reference below is written from hloc's published code (``utils/io.py``,
-``extract_features.py``, ``extractors/dog.py``), independently of ours, on cases where
-the old and the new readings differ.
-"""
+"""Image reading, resizing, COLMAP SIFT and float16 storage against references written from hloc's
+code (``utils/io.py``, ``extract_features.py``, ``extractors/dog.py``) where readings differ."""
 
 from __future__ import annotations
 

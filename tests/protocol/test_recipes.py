@@ -1,14 +1,7 @@
-"""The recipes' values against the reference code they reproduce.
-
-Each expected value below is copied from the reference's published code (file and line in
-the comment above it), not from our recipes, so that a recipe edited away from the
-reference fails here. References read at: the authors' hloc fork
-(jarvisyjw/Hierarchical-Localization, branch gvbench, 427cc99); the GV-Bench repository
-(jarvisyjw/GV-Bench main, 11554cc) and its image-matching-models fork (branch gvbench,
-dd25ba4); cvg/LightGlue edb2b83 and ga1i13o/image-matching-toolbox def5557 (the fork's
-submodules). Where the reference value is a library default (pycolmap, OpenCV, kornia),
-the library installed here is asked for it.
-"""
+"""The recipes' values against the reference code they reproduce, each copied from the reference
+(file and line above it), not from our recipes. Read at: hloc fork gvbench 427cc99; GV-Bench main
+11554cc; image-matching-models fork gvbench dd25ba4; cvg/LightGlue edb2b83; image-matching-toolbox
+def5557. Library defaults (pycolmap, OpenCV, kornia) are asked of the installed library."""
 
 from __future__ import annotations
 

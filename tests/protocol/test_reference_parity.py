@@ -1,11 +1,6 @@
-"""The reference tier: our implementations run beside the reference code on the same inputs.
-
-The reference code ships with vismatch 1.4.0 in the opt-in environment (``make setup-imm``):
-Magic Leap's SuperPoint and SuperGlue (the release's ``models/``), cvg's LightGlue, and
-image-matching-models' OpenCV matchers. These tests run only there (marker ``reference``);
-elsewhere they skip with the command that runs them: ``make test-reference``, i.e.
-``make setup-imm && .venv-imm/bin/python -m pytest -m reference tests``.
-"""
+"""The reference tier: ours beside the reference code (vismatch 1.4.0's Magic Leap models, cvg's
+LightGlue, image-matching-models' OpenCV matchers) on the same inputs; marker ``reference``, run by
+``make test-reference`` (``make setup-imm && .venv-imm/bin/python -m pytest -m reference tests``)."""
 
 from __future__ import annotations
 

@@ -204,9 +204,7 @@ def image_to_tensor(image_rgb: np.ndarray, max_side: int = MAX_SIDE) -> torch.Te
 
 @torch.inference_mode()
 def describe_images(
-    model: NetVLAD,
-    image_paths: Iterable[str | os.PathLike[str]],
-    max_side: int = MAX_SIDE,
+    model: NetVLAD, image_paths: Iterable[str | os.PathLike[str]], max_side: int = MAX_SIDE
 ) -> np.ndarray:
     """NetVLAD descriptors (N, output_dim) float32, one image at a time (sizes differ)."""
     device = next(model.parameters()).device

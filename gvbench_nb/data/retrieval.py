@@ -149,10 +149,7 @@ def _num_rows(table: FrameTable) -> int:
 
 
 def ground_truth_matrix(
-    rule_name: str,
-    params: Mapping[str, Any] | None,
-    query_meta: FrameTable,
-    reference_meta: FrameTable,
+    rule_name: str, params: Mapping[str, Any] | None, query_meta: FrameTable, reference_meta: FrameTable
 ) -> np.ndarray:
     """(Q, R) bool: every query against every reference under a named rule."""
     rule = get_label_rule(rule_name)
@@ -366,10 +363,7 @@ def compute_global_descriptors(
 
 
 def retrieve_top_n(
-    query_descriptors: np.ndarray,
-    reference_descriptors: np.ndarray,
-    n: int,
-    chunk: int = 1024,
+    query_descriptors: np.ndarray, reference_descriptors: np.ndarray, n: int, chunk: int = 1024
 ) -> tuple[np.ndarray, np.ndarray]:
     """Top-min(n, R) reference rows and similarities per query by dot product, best first;
     equal similarities rank by lower reference index."""
@@ -407,9 +401,7 @@ class Candidates:
 
 
 def retrieve_top_n_experiences(
-    query_descriptors: np.ndarray,
-    experiences: Mapping[str, np.ndarray],
-    n: int,
+    query_descriptors: np.ndarray, experiences: Mapping[str, np.ndarray], n: int
 ) -> Candidates:
     """Top-n over the union of several reference traversals ("experiences"): every
     experience competes for the same n slots, as a multi-session map would."""
@@ -461,11 +453,7 @@ def best_experience(candidates: Candidates, scores: np.ndarray) -> BestExperienc
     )
 
 
-def retrieval_recall_at(
-    ks: Iterable[int],
-    ranked_indices: np.ndarray,
-    ground_truth: np.ndarray,
-) -> dict[str, float]:
+def retrieval_recall_at(ks: Iterable[int], ranked_indices: np.ndarray, ground_truth: np.ndarray) -> dict[str, float]:
     """Recall@k: the fraction of queries with a true reference among their top k. Queries with
     no true reference at all are excluded (no retrieval can succeed; ``queries_excluded``);
     k > n raises (it would silently be recall@n)."""

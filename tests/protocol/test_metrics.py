@@ -18,34 +18,26 @@ def test_average_precision_equals_scikit_learn_on_random_scores():
     assert average_precision(labels, scores) == pytest.approx(average_precision_score(labels, scores))
 
 
-def test_max_recall_hand_computed():
-    # Sorted by score: T T F T F -> precision 1.0 holds down to recall 2/3.
-    labels = np.array([1, 1, 0, 1, 0])
-    scores = np.array([50, 40, 30, 20, 10])
-    assert max_recall_at_full_precision(labels, scores) == pytest.approx(2 / 3)
-
-
-def test_max_recall_is_zero_when_a_false_pair_scores_highest():
-    labels = np.array([0, 1, 1, 1])
-    scores = np.array([99, 50, 40, 30])
-    assert max_recall_at_full_precision(labels, scores) == 0.0
+@pytest.mark.parametrize(
+    ("labels", "scores", "expected"),
+    [
+        ([1, 1, 0, 1, 0], [50, 40, 30, 20, 10], 2 / 3),  # T T F T F: precision 1.0 down to recall 2/3
+        ([0, 1, 1, 1], [99, 50, 40, 30], 0.0),  # a false pair scores highest
+    ],
+)
+def test_max_recall_hand_computed(labels, scores, expected):
+    assert max_recall_at_full_precision(np.array(labels), np.array(scores)) == pytest.approx(expected)
 
 
 def test_max_recall_counts_ties_against_precision():
     # The best true pair ties with a false pair: at that threshold precision is 1/2, so MR = 0.
-    labels = np.array([1, 0, 1])
-    scores = np.array([10, 10, 5])
-    assert max_recall_at_full_precision(labels, scores) == 0.0
+    assert max_recall_at_full_precision(np.array([1, 0, 1]), np.array([10, 10, 5])) == 0.0
     # A tie among true pairs only keeps precision 1.
-    labels = np.array([1, 1, 0, 1])
-    scores = np.array([10, 10, 5, 1])
-    assert max_recall_at_full_precision(labels, scores) == pytest.approx(2 / 3)
+    assert max_recall_at_full_precision(np.array([1, 1, 0, 1]), np.array([10, 10, 5, 1])) == pytest.approx(2 / 3)
 
 
 def test_perfect_separation():
-    labels = np.array([1, 1, 0, 0])
-    scores = np.array([9, 8, 2, 1])
-    result = evaluate_scores(labels, scores)
+    result = evaluate_scores(np.array([1, 1, 0, 0]), np.array([9, 8, 2, 1]))
     assert result == {"n_pairs": 4, "n_positives": 2, "ap": 1.0, "max_recall": 1.0}
 
 

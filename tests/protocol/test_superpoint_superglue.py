@@ -89,11 +89,8 @@ def test_nms_keeps_planted_maxima_and_suppresses_neighbours():
     assert kept == {(10, 10), (10, 16), (30, 30), (30, 34)}
     for y, x in kept:  # kept scores are unchanged
         assert out[0, y, x] == s[0, y, x]
-
-
-def test_nms_radius_zero_keeps_everything():
     s = torch.rand(1, 9, 9)
-    assert torch.equal(sp.simple_nms(s, 0), s)
+    assert torch.equal(sp.simple_nms(s, 0), s)  # radius 0 keeps everything
 
 
 def test_remove_borders():
@@ -145,6 +142,8 @@ def test_superpoint_forward_random_weights():
     with torch.no_grad():
         out = model(image)
     assert len(out["keypoints"]) == 2
+    with pytest.raises(ValueError):
+        sp.SuperPoint({"max_keypoints": 0})
     for k, s, d in zip(out["keypoints"], out["scores"], out["descriptors"]):
         assert k.dtype == torch.float32 and k.shape[1] == 2
         assert 0 < len(k) <= 50
@@ -172,11 +171,6 @@ def test_superpoint_forward_random_weights():
             same = model({"image": image[index : index + 1]})
             for key in ("keypoints", "scores", "descriptors"):
                 assert torch.equal(same[key][0], out[key][index]), key
-
-
-def test_superpoint_rejects_bad_max_keypoints():
-    with pytest.raises(ValueError):
-        sp.SuperPoint({"max_keypoints": 0})
 
 
 @pytest.mark.parametrize(

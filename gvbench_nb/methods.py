@@ -60,10 +60,8 @@ def verifier_keys() -> list[str]:
 
 
 def register_method(name: str, profiles: dict[str, dict[str, Any]]) -> None:
-    """Add a method from code: ``profiles`` maps a profile to the method's whole recipe there
-    (the keys of ``recipes.RECIPE_KEYS``; ``paper_name`` and ``in_paper`` may be left out).
-    A package method is one entry a profile in ``protocol/recipes/``; this is the same entry made
-    from code. A profile the method has no recipe under refuses it by name."""
+    """Add a method from code: ``profiles`` maps a profile to its whole recipe there (the keys of
+    ``recipes.RECIPE_KEYS``; ``paper_name``, ``in_paper`` optional), as a recipe file's entry would."""
     if name in method_names() or is_imm(name) or name in ("all", "all-available"):
         raise ValueError(f"method name {name!r} is taken; choose another name")
     for profile, entry in profiles.items():

@@ -1,7 +1,5 @@
-"""What a retrieval-built sequence is made from: its options (checked, one sentence an error),
-the traversals' image lists and metadata, the ground-truth rule's parameters, and a digest of
-the inputs that says when a built pair file is stale.
-"""
+"""What a retrieval-built sequence is made from: checked options, the traversals' images and metadata,
+the ground-truth rule's parameters, and a digest of the inputs that says when a pair file is stale."""
 
 from __future__ import annotations
 

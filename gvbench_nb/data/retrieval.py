@@ -386,9 +386,7 @@ def retrieve_top_n(
 
 @dataclass(frozen=True)
 class Candidates:
-    """Retrieved (query, reference) pairs, one row a pair, ``rank`` 0 = most similar.
-
-    ``reference`` indexes into its own ``experience``'s descriptor rows."""
+    """Retrieved (query, reference) pairs, ``rank`` 0 = most similar; ``reference`` indexes its ``experience``."""
 
     query: np.ndarray  # (P,) int64, query row
     experience: np.ndarray  # (P,) object, experience name

@@ -78,10 +78,7 @@ def max_pixels() -> int:
 
 
 def check_pixel_bound(path: str | os.PathLike[str]) -> None:
-    """Refuse an image whose header says it is larger than ``max_pixels()``, without decoding it.
-
-    Pillow reads only the header here; a file it cannot identify is left to the decoder.
-    """
+    """Refuse an image whose header says it is larger than ``max_pixels()``, without decoding it."""
     import re
 
     from PIL import Image

@@ -72,10 +72,8 @@ class BasicBlock(nn.Module):
 
 
 class DoppelgangersClassifier(nn.Module):
-    """conv 7x7/2 (10 -> 128) + BN + ReLU, three stages of two BasicBlocks at
-    128/256/512 channels (first block of each stride 2), global average pool,
-    linear 512 -> 2. Total stride 16; logits[:, 1] is "same place".
-    """
+    """conv 7x7/2 (10 -> 128), three stages of two BasicBlocks (128/256/512), average pool, linear
+    512 -> 2; total stride 16, logits[:, 1] is "same place"."""
 
     def __init__(
         self, in_channels: int = INPUT_CHANNELS, initial_dim: int = 128, block_dims: Sequence[int] = (128, 256, 512)

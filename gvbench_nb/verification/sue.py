@@ -42,10 +42,7 @@ def sue(distances: np.ndarray, positions: np.ndarray, slope: float = SLOPE, k: i
 def sue_confidence(
     distances: np.ndarray, positions: np.ndarray, slope: float = SLOPE, k: int | None = None
 ) -> np.ndarray:
-    """Confidence that each query's top-1 retrieval is right: -SUE, shape (Q,).
-
-    Higher is more confident; use it as the score for AP / PR curves.
-    """
+    """Confidence that each query's top-1 retrieval is right: -SUE (Q,), the score for AP / PR curves."""
     return -sue(distances, positions, slope, k)
 
 

@@ -170,10 +170,8 @@ def _prune(
 def match_prepared(
     model: LightGlue, image0: PreparedImage, image1: PreparedImage, cross_attention: str = "kornia"
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Matches (K, 2) and their scores (K,) of one pair from its prepared images, as
-    ``model({"image0": ..., "image1": ...})["matches"][0]`` and ``["scores"][0]`` with
-    ``cross_attention="kornia"``; ``"sdpa"`` computes the cross-attention with torch's fused
-    kernel instead (see ``_cross_messages``), which can change a near-threshold match."""
+    """Matches (K, 2) and scores (K,) of one pair from its prepared images, as kornia's ``model(...)``
+    with ``cross_attention="kornia"``; ``"sdpa"`` (``_cross_messages``) can change a near-threshold match."""
     if cross_attention not in CROSS_ATTENTIONS:
         raise ValueError(
             f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "

@@ -18,7 +18,7 @@ import pytest
 
 from gvbench_nb import cli
 from gvbench_nb.data import fetch as data
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, sequence_build
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -323,7 +323,7 @@ def test_run_without_gardens_point_names_the_fetch_command(tmp_path, monkeypatch
         PROJECT_ROOT / "params" / "gardens_point.yaml", pairs=str(tmp_path / "p.txt"), output_dir=str(tmp_path / "out")
     )
     with pytest.raises(config.ParamsError, match="data fetch gardens_point"):
-        config.prepare_sequence(params)
+        sequence_build.prepare_sequence(params)
 
 
 @pytest.mark.real_data

@@ -28,7 +28,7 @@ from gvbench_nb import cli
 from gvbench_nb.data import build_inputs
 from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
-from gvbench_nb.runner import config, image_features, sequence_build
+from gvbench_nb.runner import config, image_features, input_checks, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -169,8 +169,8 @@ def test_a_cuda_index_beyond_the_visible_devices_is_refused(tmp_path, monkeypatc
     monkeypatch.setattr(torch.version, "cuda", "12.1")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
-    assert config.device_problem("cuda:0") is None
-    assert config.device_problem("cuda:1") == "only 1 CUDA device(s) are visible (cuda:0 to cuda:0)"
+    assert input_checks.device_problem("cuda:0") is None
+    assert input_checks.device_problem("cuda:1") == "only 1 CUDA device(s) are visible (cuda:0 to cuda:0)"
 
 
 # ------------------------------------------------ method names, and how fast --
@@ -275,12 +275,12 @@ def retrieval_sequence(tmp_path, monkeypatch):
         for frame in range(FRAMES):
             add_frame(tmp_path / "images", tmp_path / "cache", folder, frame)
     builds = []
-    build = config.PAIR_BUILDERS["retrieval"]
-    monkeypatch.setitem(config.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
+    build = sequence_build.PAIR_BUILDERS["retrieval"]
+    monkeypatch.setitem(sequence_build.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
     path = retrieval_params(tmp_path)
 
     def prepare() -> Sequence:
-        return config.prepare_sequence(config.load_params(path))
+        return sequence_build.prepare_sequence(config.load_params(path))
 
     return prepare, builds
 

@@ -27,7 +27,7 @@ from test_run_record import FLIPPED, PAIRS, in_process_notebooks, one_sentence, 
 from gvbench_nb import notebook, run_and_publish
 from gvbench_nb.data.sequences import Pair, write_pairs
 from gvbench_nb.reporting import report
-from gvbench_nb.runner import config, record
+from gvbench_nb.runner import config, input_checks, record, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -70,7 +70,6 @@ def test_two_queries_of_one_content_each_with_its_own_reference_are_scored(share
     # Gardens Point's night_right frames 179 and 183 are byte-identical (the published data): two
     # queries of one content are two queries, not a self-pair; the whole sequence must pass.
     from gvbench_nb.data.sequences import Sequence
-    from gvbench_nb.runner import input_checks
 
     root = shared_data / "gardens_point"
     assert (root / "night_right/Image179.jpg").read_bytes() == (root / "night_right/Image183.jpg").read_bytes()
@@ -221,7 +220,7 @@ def builder_calls(monkeypatch) -> list[str]:
         calls.append(params["image_root"])
         raise KeyboardInterrupt  # the run stops here, exit code 130, nothing rendered
 
-    monkeypatch.setitem(config.PAIR_BUILDERS, "sample", render)
+    monkeypatch.setitem(sequence_build.PAIR_BUILDERS, "sample", render)
     return calls
 
 

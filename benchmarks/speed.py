@@ -83,12 +83,13 @@ def main(argv: list[str] | None = None) -> int:
 def command_bench(args: argparse.Namespace) -> int:
     import torch
 
+    from gvbench_nb.data import fetch
     from gvbench_nb.protocol.features.base import resolve_device
     from gvbench_nb.runner import config, sequence_build
 
     bench_dir = Path(args.bench_dir)
     if args.estimate:  # before any timing: the estimate at the end would fail without them
-        estimate.require_official_lists(config.data_dir() / "gvbench_gt")
+        estimate.require_official_lists(fetch.data_dir() / "gvbench_gt")
     if args.render:
         bench.print_render_time(bench_dir, args.frames, args.repeats, args.threads)
     if args.params is None:

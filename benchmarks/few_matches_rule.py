@@ -11,7 +11,7 @@ import argparse
 from pathlib import Path
 
 from gvbench_nb import methods
-from gvbench_nb.runner import config, method_runs, scoring
+from gvbench_nb.runner import config, method_runs, scoring, sequence_build
 
 
 def main() -> None:
@@ -21,7 +21,7 @@ def main() -> None:
     parser.add_argument("--output-dir", default="outputs/few_matches_rule", help="one folder a rule is made under it")
     args = parser.parse_args()
     params = config.load_params(args.params, profile="paper")
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     for rule in ("zero", "all"):
         out = Path(args.output_dir) / f"{params['sequence']}_{rule}"
         for method in methods.expand_methods(args.methods):

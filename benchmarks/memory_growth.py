@@ -18,7 +18,7 @@ from pathlib import Path
 
 def measure(params_file: str, method: str, pairs: int, cache_mib: int) -> int:
     """This process's peak resident memory in MiB after the method's work on ``pairs`` pairs."""
-    from gvbench_nb.runner import config, method_runs, pair_matching
+    from gvbench_nb.runner import config, method_runs, pair_matching, sequence_build
 
     bounded = pair_matching.FeatureCache.__init__
 
@@ -30,7 +30,7 @@ def measure(params_file: str, method: str, pairs: int, cache_mib: int) -> int:
         params = config.load_params(
             params_file, limit=pairs, output_dir=str(Path(folder) / "out"), cache_dir=str(Path(folder) / "cache")
         )
-        sequence = config.prepare_sequence(params)
+        sequence = sequence_build.prepare_sequence(params)
         method_runs.run_method_of_params(params, sequence, method, progress=False)
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024
 

@@ -63,7 +63,7 @@ from gvbench_nb.evaluation import bootstrap as resampling
 from gvbench_nb.protocol import images, metrics, weights
 from gvbench_nb.protocol.ransac import to_verifier_frame, verify_matches
 from gvbench_nb.protocol.recipes import conf_hash
-from gvbench_nb.runner import concurrency, config, image_features, pair_matching
+from gvbench_nb.runner import concurrency, config, image_features, pair_matching, sequence_build
 
 Features = dict[str, np.ndarray]
 Matches = tuple[np.ndarray, np.ndarray]
@@ -495,7 +495,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error("--query-step must be at least 1 and --resamples at least 0")
     concurrency.configure_threads(args.threads)
     params = config.load_params(args.params, profile="paper")
-    full = config.prepare_sequence(params)
+    full = sequence_build.prepare_sequence(params)
     sequence = query_subset(full, args.query_step)
     n_queries = len(dict.fromkeys(p.query for p in sequence.pairs))
     pairs_label = (

@@ -84,7 +84,7 @@ def score_pairs(labels: list[int], scores: list[float]) -> dict[str, float]:
 
 
 def orchestrate(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config
+    from gvbench_nb.runner import config, sequence_build
 
     ours_python, peer_python = Path(args.ours_python), Path(args.peer_python)
     for what, path, hint in (("ours", ours_python, "make setup"), ("peer", peer_python, "make setup-imm")):
@@ -100,7 +100,7 @@ def orchestrate(args: argparse.Namespace) -> int:
         )
         return 2
     params = config.load_params(args.params, limit=args.limit, profile=args.profile)
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     out = Path(args.out).resolve()
     out.mkdir(parents=True, exist_ok=True)
     pair_file = out / "pairs.txt"

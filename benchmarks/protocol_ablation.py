@@ -33,7 +33,7 @@ import pandas as pd
 from PIL import Image
 
 from gvbench_nb import methods
-from gvbench_nb.runner import config, method_runs, scoring
+from gvbench_nb.runner import config, method_runs, scoring, sequence_build
 
 Patch = Callable[[str], "contextlib.AbstractContextManager[str]"]
 
@@ -120,7 +120,7 @@ def main(argv: list[str] | None = None) -> int:
     if unknown:
         parser.error(f"unknown variant {unknown[0]!r}; choose from {', '.join(VARIANTS)}")
     params = config.load_params(args.params, profile="paper", limit=args.limit, cache_dir=args.cache_dir)
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     largest_side = max(max(Image.open(sequence.image_root / name).size) for name in sequence.images)
     out = Path(args.output_dir) / params["sequence"]
     rows: list[dict[str, Any]] = []

@@ -83,12 +83,13 @@ def main(argv: list[str] | None = None) -> int:
 def command_bench(args: argparse.Namespace) -> int:
     import torch
 
+    from gvbench_nb.data import fetch
     from gvbench_nb.protocol.features.base import resolve_device
-    from gvbench_nb.runner import config
+    from gvbench_nb.runner import config, sequence_build
 
     bench_dir = Path(args.bench_dir)
     if args.estimate:  # before any timing: the estimate at the end would fail without them
-        estimate.require_official_lists(config.data_dir() / "gvbench_gt")
+        estimate.require_official_lists(fetch.data_dir() / "gvbench_gt")
     if args.render:
         bench.print_render_time(bench_dir, args.frames, args.repeats, args.threads)
     if args.params is None:
@@ -100,7 +101,7 @@ def command_bench(args: argparse.Namespace) -> int:
     if args.repeats < 1:
         raise config.ParamsError(f"--repeats must be at least 1, got {args.repeats}")
     params = config.load_params(args.params, methods=args.methods, profile=args.profile, device=args.device)
-    full = config.prepare_sequence(params)  # the limit applies below (scaling needs the longer prefix)
+    full = sequence_build.prepare_sequence(params)  # the limit applies below (scaling needs the longer prefix)
     sequence = full.limited(args.limit)
     concurrency.configure_threads(args.threads)
     profile, device, seed = params["profile"], params["device"], params["seed"]

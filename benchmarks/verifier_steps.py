@@ -14,7 +14,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from gvbench_nb.runner import config, method_runs, scoring
+from gvbench_nb.runner import config, method_runs, scoring, sequence_build
 
 STEPS: list[tuple[str, dict]] = [
     ("repository", {}),
@@ -41,7 +41,7 @@ def main() -> None:
     parser.add_argument("--out", default="outputs/verifier_steps", help="where each step's run goes")
     args = parser.parse_args()
     params = config.load_params(args.params, profile="repository")
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     methods = [m.strip() for m in args.methods.split(",") if m.strip()]
     cells: dict[tuple[str, str], str] = {}
     for index, (name, overrides) in enumerate(STEPS):

@@ -124,7 +124,7 @@ def command_build(args: argparse.Namespace) -> int:
     from gvbench_nb.runner import config, sequence_build
 
     try:
-        params = config.load_build_params(
+        params = sequence_build.load_build_params(
             args.params,
             descriptor=args.descriptor,
             top_n=args.top_n,
@@ -369,7 +369,7 @@ def check_before_work(args: argparse.Namespace) -> None:
     """Refuse a command whose inputs are wrong before it writes a file or imports a model."""
     if getattr(args, "command", None) == "run":
         from gvbench_nb import methods as method_registry
-        from gvbench_nb.runner import config, distributed
+        from gvbench_nb.runner import config, distributed, input_checks
 
         try:  # the scale-out options, before the params and any folder
             if args.shard:
@@ -381,7 +381,7 @@ def check_before_work(args: argparse.Namespace) -> None:
                 raise config.ParamsError(f"{flag} must be a whole number of at least 1, got {value}")
         params = run_and_publish.run_params_of_args(args)
         method_registry.check_known_to_kernels(params["methods"])
-        config.check_run_inputs(params, images=not getattr(args, "merge", False))
+        input_checks.check_run_inputs(params, images=not getattr(args, "merge", False))
 
 
 def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:

@@ -20,7 +20,7 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.runner import config, method_outputs, record, scoring
+from gvbench_nb.runner import config, method_outputs, record, scoring, sequence_build
 
 if TYPE_CHECKING:
     from gvbench_nb.studies.alternative_verifiers import VerifierBench
@@ -114,9 +114,9 @@ def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
 
 def load_sequence(params_file: PathLike | None, **overrides: Any) -> tuple[dict[str, Any], Sequence]:
     """The params (``load_params``) and their sequence; the pair file is made first when the
-    params build it (``config.prepare_sequence``)."""
+    params build it (``sequence_build.prepare_sequence``)."""
     params = load_params(params_file, **overrides)
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     record.claim(params["output_dir"])  # the notebook writes its figures and tables there
     return params, sequence
 
@@ -144,7 +144,7 @@ def require_results(
         from gvbench_nb.runner import method_runs
 
         if missing:
-            sequence = config.prepare_sequence(params)
+            sequence = sequence_build.prepare_sequence(params)
             for method in missing:
                 method_runs.run_method_of_params(params, sequence, method)
         if evaluate:

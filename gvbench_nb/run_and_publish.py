@@ -95,7 +95,16 @@ def run_files(methods: list[str]) -> list[str]:
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config, distributed, input_checks, method_outputs, method_runs, record, scoring
+    from gvbench_nb.runner import (
+        config,
+        distributed,
+        input_checks,
+        method_outputs,
+        method_runs,
+        record,
+        scoring,
+        sequence_build,
+    )
 
     params = run_params_of_args(args)
     # Weights, vismatch, the device, the folders and every image were checked before any work
@@ -103,10 +112,10 @@ def command_run(args: argparse.Namespace) -> int:
     output_dir = Path(params["output_dir"])
     # Whose folder it is, before anything is written there.
     record.check_owned(output_dir)
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     sequence.check_images()
-    config.check_writable_folder(params, "output_dir")
-    config.check_writable_folder(params, "cache_dir")
+    input_checks.check_writable_folder(params, "output_dir")
+    input_checks.check_writable_folder(params, "cache_dir")
     # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
     damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
     record.claim(output_dir)

@@ -27,7 +27,7 @@ import pandas as pd
 from IPython.display import Markdown, display
 
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import config, sequence_build
+from gvbench_nb.runner import sequence_build
 from gvbench_nb.studies import build_sequence as build_study
 
 # %% tags=["parameters"]
@@ -47,7 +47,7 @@ output_dir: Optional[str] = None  # figures go here; default: the params file's 
 # them.
 
 # %%
-params = config.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
+params = sequence_build.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
 figures = Path(params["output_dir"])
 card = sequence_build.build_sequence(params)
 sequence_build.check_card(card["files"]["pairs"])  # the card's counts are the pair file's

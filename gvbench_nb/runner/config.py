@@ -1,5 +1,4 @@
-"""Params files (one YAML a sequence, the notebooks' papermill parameters) and how a
-sequence is prepared from them.
+"""Params files: one YAML a sequence, the notebooks' papermill parameters.
 
 Relative paths in a params file are relative to the file's folder. ``${NAME}``
 expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.data_dir``
@@ -8,11 +7,8 @@ expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.d
 
 from __future__ import annotations
 
-import json
 import os
 import re
-import tempfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -21,18 +17,11 @@ from pydantic import BaseModel, ConfigDict, Field, InstanceOf, StringConstraints
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data import build_inputs, fetch
-from gvbench_nb.data.sequences import (
-    Pair,
-    Sequence,
-    frame_tolerance_pairs,
-    read_pairs,
-    write_pairs,
-)
-from gvbench_nb.io_utils import atomic_write_json, atomic_write_text, file_sha256, unknown_keys_hint
+from gvbench_nb.data import fetch
+from gvbench_nb.io_utils import atomic_write_text, unknown_keys_hint
 from gvbench_nb.protocol import registry
-from gvbench_nb.protocol.images import IMAGE_EXTENSIONS, path_problem
-from gvbench_nb.runner import input_checks, sequence_build
+from gvbench_nb.protocol.images import ImageReadError, max_pixels, path_problem
+from gvbench_nb.runner import concurrency
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -44,6 +33,7 @@ class ParamsError(GVBenchError, ValueError):
 PATH_KEYS = ("pairs", "image_root", "output_dir", "cache_dir")
 PathValue = str | InstanceOf[os.PathLike]  # overrides from code may be Path objects
 DEVICE_PATTERN = r"^(auto|cpu|mps|cuda(:\d+)?)$"
+PAIR_BUILDER_NAMES = ("sample", "frame_tolerance", "retrieval")  # sequence_build.PAIR_BUILDERS makes each
 
 
 def _what(text: str, **kwargs: Any) -> Any:
@@ -107,16 +97,11 @@ def _validate(params: dict[str, Any], path: Path) -> None:
     raise ParamsError(f"{source}: " + "; ".join(wrong[source].values()))
 
 
-def data_dir() -> Path:
-    """The data folder: $GVBENCH_DATA, else the per-user cache folder (see ``data.data_dir``)."""
-    return fetch.data_dir()
-
-
 def _expand(value: str, source: str, key: str) -> str:
     def replace(match: re.Match[str]) -> str:
         name = match.group(1)
         if name == "GVBENCH_DATA":
-            return str(data_dir())
+            return str(fetch.data_dir())
         if name not in os.environ:
             raise ParamsError(f"{source}: {key} uses ${{{name}}}, which is not set in the environment")
         return os.environ[name]
@@ -180,12 +165,8 @@ def blame(params: dict[str, Any], key: str) -> str:
 
 
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
-    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys.
-
-    A wrong value is blamed on where it came from: an override on its option
-    (``--methods``), any other value on the params file. ``params["overridden"]`` lists
-    the overridden keys.
-    """
+    """Read, validate and resolve a params file; ``overrides`` (not None) replace keys and are
+    listed in ``params["overridden"]``, so a wrong one is blamed on its option."""
     path = Path(path).resolve()
     if path.is_dir():
         examples = sorted(p.name for p in path.glob("*.yaml"))[:3]
@@ -215,7 +196,7 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         )
     if params["pairs_builder"] is not None:
         try:
-            registry.lookup("pairs_builder", params["pairs_builder"], PAIR_BUILDERS)
+            registry.lookup("pairs_builder", params["pairs_builder"], dict.fromkeys(PAIR_BUILDER_NAMES))
         except registry.UnknownNameError as error:
             raise ParamsError(f"{blame(params, 'pairs_builder')}: {error}") from None
     try:
@@ -232,342 +213,28 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
     if params["cache_dir"] is None:
         params["cache_dir"] = str(Path(params["output_dir"]).parent / "cache")
-    input_checks.check_environment()
+    check_environment()
     return params
 
 
-def load_build_params(
-    params_file: str | Path,
-    descriptor: str | None = None,
-    top_n: int | None = None,
-    pairs: str | None = None,
-    **overrides: Any,
-) -> dict[str, Any]:
-    """``load_params`` of a ``pairs_builder: retrieval`` file, with build overrides."""
-    params = load_params(params_file, pairs=pairs, **overrides)
-    if params["pairs_builder"] != sequence_build.BUILDER_NAME:
-        raise build_inputs.BuildError(
-            f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
-            f"building needs pairs_builder: {sequence_build.BUILDER_NAME} with its builder_options"
-        )
-    options = dict(params["builder_options"])
-    options.update({k: v for k, v in (("descriptor", descriptor), ("top_n", top_n)) if v is not None})
-    build_inputs.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
-    params["builder_options"] = options
-    return params
+class SettingError(GVBenchError, ValueError):
+    """An environment variable the package reads holds a value it cannot use."""
 
 
-# ------------------------------------------------------------------ builders --
-def build_sample(params: dict[str, Any]) -> None:
-    """The embedded default: a synthetic route rendered by the package (seconds, no download)."""
-    from gvbench_nb.data import synthetic
-
-    options = dict(params["builder_options"])
-    synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
-
-
-def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
-    """The pairs the frame_tolerance builder makes of the params' two image folders."""
-    options = dict(params["builder_options"])
-    root = Path(params["image_root"])
-    query_folder = options.pop("query_folder")
-    reference_folder = options.pop("reference_folder")
-
-    def names(folder: str) -> list[str]:
-        directory = root / folder
-        if not directory.is_dir():
-            raise ParamsError(
-                f"{params['params_file']}: image folder {directory} not found (image_root {root}, folder {folder!r})"
-                + (fetch.fetch_hint(directory) or "; set image_root to the folder holding it")
-            )
-        return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
-
+def check_environment() -> None:
+    """Every environment variable the package reads holds a value it can use; the error names it."""
     try:
-        return frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
-    except (TypeError, ValueError) as error:
-        raise ParamsError(f"{params['params_file']}: builder_options: {error}") from None
-
-
-def build_frame_tolerance(params: dict[str, Any]) -> None:
-    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
-    pairs = frame_tolerance_sequence_pairs(params)
-    # Rebuilt on every run (milliseconds, seeded): a pair file made under other options is
-    # replaced, and an unchanged one is left untouched.
-    if not Path(params["pairs"]).is_file() or read_pairs(params["pairs"]) != pairs:
-        write_pairs(params["pairs"], pairs)
-
-
-def build_retrieval(params: dict[str, Any]) -> None:
-    """GV-Bench's way: top-N retrieval by a global descriptor, labelled by a rule (``build.py``)."""
-    sequence_build.build_retrieval_pairs(params)
-
-
-PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], None]] = {
-    "sample": build_sample,
-    "frame_tolerance": build_frame_tolerance,
-    "retrieval": build_retrieval,
-}
-
-
-def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
-    """``<pairs>.builder.json``: what built a pair file (builder, options, seed, image root)."""
-    pairs = Path(pairs)
-    return pairs.with_name(pairs.name + ".builder.json")
-
-
-def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
-    """What a builder's output depends on, as JSON would read it back: the builder, its
-    options, the seed, the image root and (retrieval) what it read there
-    (``build_inputs.inputs_digest``: the image folders' listings, the metadata and label files)."""
-    stamp = {
-        "pairs_builder": params["pairs_builder"],
-        "builder_options": params["builder_options"],
-        "seed": params["seed"],
-        "image_root": params["image_root"],
-    }
-    if params["pairs_builder"] == sequence_build.BUILDER_NAME and params["image_root"] is not None:
-        stamp["inputs"] = build_inputs.inputs_digest(params["image_root"], params["builder_options"])
-    return json.loads(json.dumps(stamp, sort_keys=True, default=str))
-
-
-def _stamp_matches(params: dict[str, Any]) -> bool:
-    """The pair file was built by this builder, with these options and seed, and not changed since."""
-    pairs, stamp_path = Path(params["pairs"]), builder_stamp_path(params["pairs"])
-    if not pairs.is_file() or not stamp_path.is_file():
-        return False
-    try:
-        recorded = json.loads(stamp_path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    if not isinstance(recorded, dict):
-        return False
-    sha256 = recorded.pop("pairs_sha256", None)
-    return recorded == builder_stamp(params) and sha256 == file_sha256(pairs)
-
-
-def _missing_pairs_error(params: dict[str, Any]) -> ParamsError:
-    pairs = Path(params["pairs"])
-    what = path_problem(pairs) or "is not a pair file"
-    what = "is a folder, not a pair file" if what == "is a folder, not a file" else what
-    return ParamsError(
-        f"{params['params_file']}: the pair file {pairs} {what}; set pairs to a file of "
-        "'query_path reference_path label' lines, or set pairs_builder to make it"
-    )
-
-
-def _check_image_root(params: dict[str, Any]) -> Path:
-    """The image root, refused when unset, or (unless the sample builder renders it) not a folder."""
-    source = blame(params, "image_root")
-    if params["image_root"] is None:
-        raise ParamsError(
-            f"{source}: image_root is not set. Set it (or pass --image-root) to the folder holding the images "
-            f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
+        concurrency.threads_of_environment()
+        concurrency.job_count()
+        max_pixels()
+    except (ValueError, ImageReadError) as error:
+        raise SettingError(str(error)) from None
+    value = os.environ.get("GVBENCH_DATA") or ""
+    if "\0" in value or (value and Path(value).expanduser().is_file()):
+        raise SettingError(
+            f"the environment variable GVBENCH_DATA (the data folder) must name a folder, got {value!r}; "
+            "fix or unset it"
         )
-    root = Path(params["image_root"])
-    renders = params["pairs_builder"] == "sample" or (
-        params["pairs_builder"] == sequence_build.BUILDER_NAME and params["builder_options"].get("render_sample")
-    )
-    if renders and "image_root" in params["overridden"] and not (root / "generator.json").is_file():
-        # A folder typed on the command line names images; a builder renders only into the params file's.
-        what = "holds no rendered route" if root.is_dir() else "does not exist"
-        raise ParamsError(
-            f"--image-root {root} {what}: a folder given on the command line must hold the images, it is never "
-            f"rendered into; drop --image-root to render into the params file's image_root, or set image_root "
-            f"in a params file of your own (its pairs_builder renders the route there)"
-        )
-    if params["pairs_builder"] != "sample" and not root.is_dir():  # the sample builder renders into the root
-        what = "is a file, not a folder" if root.exists() else "does not exist"
-        raise ParamsError(
-            f"{source}: image_root {root} {what}"
-            + (
-                fetch.fetch_hint(root)
-                or "; set image_root (or pass --image-root) to the folder "
-                "holding the images that the pair file's paths are relative to"
-            )
-        )
-    return root
-
-
-def prepare_sequence(params: dict[str, Any]) -> Sequence:
-    """The sequence of a params file, building its pairs (and images) when a builder is set.
-
-    A builder's pair file is rebuilt whenever its builder, options, seed, image root or
-    (retrieval) the images it read differ from those recorded beside it (``<pairs>.builder.json``) or the file changed
-    since: a pair file made by a builder belongs to it, so change the options, not the file.
-    """
-    root = _check_image_root(params)
-    builder = params["pairs_builder"]
-    if builder and (builder == "sample" or not _stamp_matches(params)):
-        builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds
-        PAIR_BUILDERS[builder](params)
-        atomic_write_json(
-            builder_stamp_path(params["pairs"]), {**builder_stamp(params), "pairs_sha256": file_sha256(params["pairs"])}
-        )
-    if path_problem(params["pairs"]) is not None:
-        raise _missing_pairs_error(params)
-    sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
-    return sequence.limited(params["limit"])
-
-
-def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
-    """Where a sequence's pairs came from, as run.json records it."""
-    return {
-        "params_file": params["params_file"],
-        "pairs_file": params["pairs"],
-        "pairs_sha256": file_sha256(params["pairs"]),
-        "image_root": params["image_root"],
-        "pairs_builder": params["pairs_builder"],
-        "builder_options": params["builder_options"],
-        "seed": params["seed"],
-        "limit": params["limit"],
-    }
-
-
-def check_writable_folder(params: dict[str, Any], key: str) -> Path:
-    """Create ``params[key]`` (a folder) if needed and check a file can be written in it."""
-    folder = Path(params[key])
-    flag = f"--{key.replace('_', '-')}"
-    if folder.exists() and not folder.is_dir():
-        raise ParamsError(
-            f"{params['params_file']}: {key} {folder} is a file, not a folder; set {key} (or pass {flag}) to a folder"
-        )
-    try:
-        folder.mkdir(parents=True, exist_ok=True)
-        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
-            pass
-    except OSError as error:
-        raise ParamsError(
-            f"{params['params_file']}: cannot write in {key} {folder} "
-            f"({error.strerror or type(error).__name__}); set {key} (or pass {flag}) to a folder "
-            "you can write in"
-        ) from None
-    return folder
-
-
-def check_folder_can_be_made(params: dict[str, Any], key: str) -> None:
-    """``params[key]`` is a folder that can be written, or one that could be made: checked
-    without creating anything (``check_writable_folder`` makes it once every check passed)."""
-    folder = Path(params[key])
-    flag = option_name(key)
-    if folder.exists() and not folder.is_dir():
-        raise ParamsError(
-            f"{blame(params, key)}: {key} {folder} is a file, not a folder; set {key} (or pass {flag}) to a folder"
-        )
-    existing = next(p for p in (folder, *folder.parents) if p.exists())
-    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
-        what = "is a file" if not existing.is_dir() else "cannot be written"
-        raise ParamsError(
-            f"{blame(params, key)}: cannot write in {key} {folder} ({existing} {what}); "
-            f"set {key} (or pass {flag}) to a folder you can write in"
-        )
-
-
-def device_problem(device: str) -> str | None:
-    """Why ``device`` (a params ``device`` value) cannot be used here, or None.
-
-    ``auto`` and ``cpu`` always can; torch is imported only to check a device named
-    otherwise (a run on it imports torch anyway).
-    """
-    if device in ("auto", "cpu"):
-        return None
-    import torch
-
-    if device == "mps":
-        return None if torch.backends.mps.is_available() else "this machine's torch has no MPS (Apple GPU) device"
-    if torch.version.cuda is None:
-        return f"this torch ({torch.__version__}) is built without CUDA"
-    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
-    if count == 0:
-        return "no CUDA device is visible (check the driver and CUDA_VISIBLE_DEVICES)"
-    index = int(device.partition(":")[2] or 0)
-    if index >= count:
-        return f"only {count} CUDA device(s) are visible (cuda:0 to cuda:{count - 1})"
-    return None
-
-
-def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
-    """The frame_tolerance builder's options name two image folders and only the rule's
-    parameters; returns the sequence it would build (nothing is written)."""
-    import inspect
-
-    options = params["builder_options"]
-    where = f"{blame(params, 'builder_options')}: builder_options"
-    rule = [
-        k
-        for k in inspect.signature(frame_tolerance_pairs).parameters
-        if k not in ("query_names", "reference_names", "seed")
-    ]
-    known = ["query_folder", "reference_folder", *rule]
-    unknown = [k for k in options if k not in known]
-    if unknown:
-        raise ParamsError(f"{where}: unknown option(s) {unknown_keys_hint(unknown, known)}; known: {', '.join(known)}")
-    for key in ("query_folder", "reference_folder"):
-        if not isinstance(options.get(key), str) or not options[key]:
-            raise ParamsError(f"{where}: {key} must name a folder of images under image_root, got {options.get(key)!r}")
-    pairs = frame_tolerance_sequence_pairs(params)
-    return Sequence(params["sequence"], Path(params["image_root"]), pairs, origin={"pairs_file": params["pairs"]})
-
-
-def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
-    """Everything a run needs that can be checked before it writes a file or imports a
-    model: the device, the output and cache folders, the weights, the builder's options and
-    folders, and (``images``) the pair file and every image it names (each missing, broken
-    link, link loop, folder or FIFO named as what it is). Raises the error a user reads."""
-    from gvbench_nb.protocol import weights
-
-    problem = device_problem(params["device"])
-    if problem:
-        raise ParamsError(
-            f"{blame(params, 'device')}: device {params['device']!r} cannot be used: {problem}; "
-            "set device: auto (CUDA when available, else the CPU) or cpu"
-        )
-    check_folder_can_be_made(params, "output_dir")
-    check_folder_can_be_made(params, "cache_dir")
-    input_checks.check_same_recipes(params)
-    missing = [
-        c
-        for m in params["methods"]
-        for c in method_registry.required_checkpoints(m, params["profile"])
-        if not weights.is_present(c)
-    ]
-    if missing:
-        raise weights.MissingWeightsError(
-            "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
-            + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
-        )
-    for method in params["methods"]:
-        if method_registry.is_imm(method):
-            method_registry.imm_peer().require(method)
-    if not images:
-        return
-    root = _check_image_root(params)
-    builder = params["pairs_builder"]
-    options = params["builder_options"]
-    if builder == sequence_build.BUILDER_NAME:
-        try:
-            parsed = build_inputs.parse_options(options, f"{blame(params, 'builder_options')}: builder_options")
-        except build_inputs.BuildError as error:
-            raise ParamsError(str(error)) from None
-        for folder in (parsed.query_folder, *parsed.reference_folders):
-            if not (root / folder).is_dir() and not options.get("render_sample"):
-                raise ParamsError(
-                    f"{blame(params, 'builder_options')}: builder_options names the image folder {folder!r}, "
-                    f"but {root / folder} {path_problem(root / folder) or 'is not a folder'}; "
-                    "set the folder names (or image_root) to folders of images"
-                )
-    if builder == "frame_tolerance":
-        sequence = _check_frame_tolerance_options(params).limited(params["limit"])
-    elif builder is not None:
-        return  # the builder makes the pair file and images: ``run`` checks them once built
-    else:
-        if path_problem(params["pairs"]) is not None:
-            raise _missing_pairs_error(params)
-        origin = {"pairs_file": params["pairs"]}
-        sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=origin).limited(
-            params["limit"]
-        )
-    sequence.check_images()
-    input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
 
 
 RESOLVED_PARAMS_NAME = "params.resolved.yaml"

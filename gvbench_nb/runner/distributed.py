@@ -205,7 +205,7 @@ def run_shard(
     Shards may run at the same time on machines sharing the cache and output folders,
     or one after another; ``merge_runs`` then writes the results.
     """
-    from gvbench_nb.runner.config import prepare_sequence
+    from gvbench_nb.runner.sequence_build import prepare_sequence
 
     _require_weights(params)
     sequence = prepare_sequence(params)
@@ -238,7 +238,7 @@ def run_shard(
 
 def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] | None = None) -> pd.DataFrame:
     """Merge every method of a params file, then evaluate (``run --merge``)."""
-    from gvbench_nb.runner.config import prepare_sequence
+    from gvbench_nb.runner.sequence_build import prepare_sequence
 
     sequence = prepare_sequence(params)
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
@@ -289,7 +289,7 @@ def run_many(
     from distributed import wait
     from tqdm import tqdm
 
-    from gvbench_nb.runner.config import prepare_sequence
+    from gvbench_nb.runner.sequence_build import prepare_sequence
 
     if n_shards < 1:
         raise ValueError(f"n_shards must be at least 1, got {n_shards}")

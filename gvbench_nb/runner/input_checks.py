@@ -1,7 +1,5 @@
-"""Inputs checked by what they are before a run works: the environment's settings, the images'
-contents (two images of one content are one image; a damaged image is named), and the recipe of
-the methods an output folder keeps beside this run's.
-"""
+"""What a run needs, checked before it writes a file or imports a model: device, folders, weights,
+builder options, the images (by content: a copy is one image, a damaged one is named) and recipes."""
 
 from __future__ import annotations
 
@@ -16,32 +14,12 @@ from typing import Any
 import cv2
 import numpy as np
 
-from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data.sequences import PairFileError, Sequence, pair_line_numbers, read_pairs
-from gvbench_nb.io_utils import atomic_write_json
-from gvbench_nb.protocol.images import ImageReadError, max_pixels
-from gvbench_nb.runner import concurrency, image_features, method_outputs, record
-
-
-class SettingError(GVBenchError, ValueError):
-    """An environment variable the package reads holds a value it cannot use."""
-
-
-def check_environment() -> None:
-    """Every environment variable the package reads holds a value it can use; the error names it."""
-    try:
-        concurrency.threads_of_environment()
-        concurrency.job_count()
-        max_pixels()
-    except (ValueError, ImageReadError) as error:
-        raise SettingError(str(error)) from None
-    value = os.environ.get("GVBENCH_DATA") or ""
-    if "\0" in value or (value and Path(value).expanduser().is_file()):
-        raise SettingError(
-            f"the environment variable GVBENCH_DATA (the data folder) must name a folder, got {value!r}; "
-            "fix or unset it"
-        )
+from gvbench_nb.data import build_inputs
+from gvbench_nb.data.sequences import PairFileError, Sequence, frame_tolerance_pairs, pair_line_numbers, read_pairs
+from gvbench_nb.io_utils import atomic_write_json, unknown_keys_hint
+from gvbench_nb.protocol.images import ImageReadError, path_problem
+from gvbench_nb.runner import config, image_features, method_outputs, record, sequence_build
 
 
 def _where(sequence: Sequence, index: int) -> str:
@@ -59,10 +37,8 @@ _decoder_lock = threading.Lock()
 
 
 def decoder_message(path: str | os.PathLike[str]) -> str:
-    """What the decoder says of an image, "" when nothing: libjpeg's and libpng's warnings
-    ("Corrupt JPEG data: premature end of data segment") go to the process's stderr, not to
-    Python, so they are caught there while an eighth-size grey decode (every byte is still
-    entropy-decoded; about a millisecond a frame) reads the file. A failed decode raises ``ImageReadError``."""
+    """What the decoder says of an image ("" nothing): libjpeg/libpng warn on the process's stderr, caught
+    there during an eighth-size grey decode (every byte still entropy-decoded). Raises ``ImageReadError``."""
     data = np.fromfile(path, dtype=np.uint8)
     with _decoder_lock, tempfile.TemporaryFile() as said:
         sys.stderr.flush()
@@ -99,9 +75,8 @@ DECODER_CHECKS = "decoder-checks.json"  # in the cache folder: content key -> wh
 
 
 def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) -> dict[str, str]:
-    """Image name -> what its decoder said, for each image whose decoder said anything. Each content
-    is decoded once: the answers are kept in ``<cache_dir>/decoder-checks.json`` (written only into
-    a cache folder that exists: a check writes no folder)."""
+    """Image name -> what its decoder said, when anything; each content decoded once, the answers kept
+    in ``<cache_dir>/decoder-checks.json`` when that folder exists."""
     path = Path(cache_dir) / DECODER_CHECKS
     try:
         known = json.loads(path.read_text(encoding="utf-8"))
@@ -180,3 +155,141 @@ def check_same_recipes(params: dict[str, Any]) -> None:
             f"does not mix recipes; run them again with this run (--methods "
             f"{','.join([*params['methods'], *differing])}) or give another --output-dir"
         )
+
+
+def check_writable_folder(params: dict[str, Any], key: str) -> Path:
+    """Make ``params[key]`` (a folder) if needed and write a file in it."""
+    check_folder_can_be_made(params, key)
+    folder = Path(params[key])
+    try:
+        folder.mkdir(parents=True, exist_ok=True)
+        with tempfile.NamedTemporaryFile(dir=folder, prefix=".write-check-"):
+            pass
+    except OSError as error:
+        raise config.ParamsError(
+            f"{config.blame(params, key)}: cannot write in {key} {folder} ({error.strerror or type(error).__name__}); "
+            f"set {key} (or pass {config.option_name(key)}) to a folder you can write in"
+        ) from None
+    return folder
+
+
+def check_folder_can_be_made(params: dict[str, Any], key: str) -> None:
+    """``params[key]`` is a writable folder or could be made one; nothing is created."""
+    folder = Path(params[key])
+    flag = config.option_name(key)
+    if folder.exists() and not folder.is_dir():
+        raise config.ParamsError(
+            f"{config.blame(params, key)}: {key} {folder} is a file, not a folder; set {key} (or pass {flag}) to a folder"
+        )
+    existing = next(p for p in (folder, *folder.parents) if p.exists())
+    if not existing.is_dir() or not os.access(existing, os.W_OK | os.X_OK):
+        what = "is a file" if not existing.is_dir() else "cannot be written"
+        raise config.ParamsError(
+            f"{config.blame(params, key)}: cannot write in {key} {folder} ({existing} {what}); "
+            f"set {key} (or pass {flag}) to a folder you can write in"
+        )
+
+
+def device_problem(device: str) -> str | None:
+    """Why ``device`` cannot be used here, or None; torch is imported only for a named GPU."""
+    if device in ("auto", "cpu"):
+        return None
+    import torch
+
+    if device == "mps":
+        return None if torch.backends.mps.is_available() else "this machine's torch has no MPS (Apple GPU) device"
+    if torch.version.cuda is None:
+        return f"this torch ({torch.__version__}) is built without CUDA"
+    count = torch.cuda.device_count() if torch.cuda.is_available() else 0
+    if count == 0:
+        return "no CUDA device is visible (check the driver and CUDA_VISIBLE_DEVICES)"
+    index = int(device.partition(":")[2] or 0)
+    if index >= count:
+        return f"only {count} CUDA device(s) are visible (cuda:0 to cuda:{count - 1})"
+    return None
+
+
+def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
+    """The sequence the frame_tolerance builder would make (nothing written), its options checked."""
+    import inspect
+
+    options = params["builder_options"]
+    where = f"{config.blame(params, 'builder_options')}: builder_options"
+    rule = [
+        k
+        for k in inspect.signature(frame_tolerance_pairs).parameters
+        if k not in ("query_names", "reference_names", "seed")
+    ]
+    known = ["query_folder", "reference_folder", *rule]
+    unknown = [k for k in options if k not in known]
+    if unknown:
+        raise config.ParamsError(
+            f"{where}: unknown option(s) {unknown_keys_hint(unknown, known)}; known: {', '.join(known)}"
+        )
+    for key in ("query_folder", "reference_folder"):
+        if not isinstance(options.get(key), str) or not options[key]:
+            raise config.ParamsError(
+                f"{where}: {key} must name a folder of images under image_root, got {options.get(key)!r}"
+            )
+    pairs = sequence_build.frame_tolerance_sequence_pairs(params)
+    return Sequence(params["sequence"], Path(params["image_root"]), pairs, origin={"pairs_file": params["pairs"]})
+
+
+def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
+    """Refuse, before any work, what a run cannot use: device, folders, weights, builder options and
+    (``images``) the pair file and every image it names, each problem named as what it is."""
+    from gvbench_nb.protocol import weights
+
+    problem = device_problem(params["device"])
+    if problem:
+        raise config.ParamsError(
+            f"{config.blame(params, 'device')}: device {params['device']!r} cannot be used: {problem}; "
+            "set device: auto (CUDA when available, else the CPU) or cpu"
+        )
+    check_folder_can_be_made(params, "output_dir")
+    check_folder_can_be_made(params, "cache_dir")
+    check_same_recipes(params)
+    missing = [
+        c
+        for m in params["methods"]
+        for c in method_registry.required_checkpoints(m, params["profile"])
+        if not weights.is_present(c)
+    ]
+    if missing:
+        raise weights.MissingWeightsError(
+            "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
+            + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
+        )
+    for method in params["methods"]:
+        if method_registry.is_imm(method):
+            method_registry.imm_peer().require(method)
+    if not images:
+        return
+    root = sequence_build.check_image_root(params)
+    builder = params["pairs_builder"]
+    options = params["builder_options"]
+    if builder == sequence_build.BUILDER_NAME:
+        try:
+            parsed = build_inputs.parse_options(options, f"{config.blame(params, 'builder_options')}: builder_options")
+        except build_inputs.BuildError as error:
+            raise config.ParamsError(str(error)) from None
+        for folder in (parsed.query_folder, *parsed.reference_folders):
+            if not (root / folder).is_dir() and not options.get("render_sample"):
+                raise config.ParamsError(
+                    f"{config.blame(params, 'builder_options')}: builder_options names the image folder {folder!r}, "
+                    f"but {root / folder} {path_problem(root / folder) or 'is not a folder'}; "
+                    "set the folder names (or image_root) to folders of images"
+                )
+    if builder == "frame_tolerance":
+        sequence = _check_frame_tolerance_options(params).limited(params["limit"])
+    elif builder is not None:
+        return  # the builder makes the pair file and images: ``run`` checks them once built
+    else:
+        if path_problem(params["pairs"]) is not None:
+            raise sequence_build.missing_pairs_error(params)
+        origin = {"pairs_file": params["pairs"]}
+        sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=origin).limited(
+            params["limit"]
+        )
+    sequence.check_images()
+    check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])

@@ -1,17 +1,13 @@
-"""Build GV-Bench-style sequences from raw traversals, as a SLAM loop-closure detector would
-propose them: each query's top-N references by a global descriptor over every reference
-traversal ("experience", all competing for the same N slots), labelled by a ground-truth rule.
-
-Beside a pair file ``<stem>.txt`` go ``<stem>.card.json`` / ``.card.md`` (what was built and
-how: counts, retrieval recall@1/5/N) and ``<stem>.candidates.csv`` (experience, rank,
-similarity and label of every pair). ``config`` imports this module to register the builder.
-"""
+"""A params file's sequence, its pairs made by its builder when one is set. The retrieval builder
+proposes pairs as a SLAM loop-closure detector would: each query's top-N references over every
+reference traversal, labelled by a rule, with a card (``<stem>.card.json``/``.md``) beside."""
 
 from __future__ import annotations
 
 import json
+import os
 import time
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
@@ -19,10 +15,12 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from gvbench_nb.data import build_inputs, retrieval
-from gvbench_nb.data.sequences import Pair, Sequence, read_pairs, summarize, write_pairs
-from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text
+from gvbench_nb.data import build_inputs, fetch, retrieval
+from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, summarize, write_pairs
+from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
+from gvbench_nb.protocol.images import IMAGE_EXTENSIONS, path_problem
+from gvbench_nb.runner import config
 
 BUILDER_NAME = "retrieval"
 CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "label"]
@@ -69,9 +67,7 @@ def global_descriptors(
     descriptor_options: Mapping[str, Any] | None = None,
     progress: bool = True,
 ) -> retrieval.GlobalDescriptors:
-    """Rows for the chosen queries and every reference (experiences in order, stacked).
-
-    vlad/bow fit their vocabulary on all reference experiences together (the map)."""
+    """Rows for the chosen queries and every reference (experiences stacked; vlad/bow fit on them all)."""
     method = registry.lookup("descriptor", descriptor, retrieval.GLOBAL_DESCRIPTORS, error=build_inputs.BuildError)
     options = dict(descriptor_options or {})
     references, queries = inputs.reference_names, inputs.query.names
@@ -272,8 +268,7 @@ def card_markdown(card: Mapping[str, Any]) -> str:
 
 
 def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> dict[str, Any]:
-    """Build the pair file of a loaded params dict (``pairs_builder: retrieval``) and
-    its card; returns the card. Overwrites ``build_params['pairs']`` and the card files."""
+    """Write the pair file and card of a ``pairs_builder: retrieval`` params dict; returns the card."""
     inputs = build_inputs.prepare_inputs(build_params)
     options = inputs.options
     started = time.perf_counter()
@@ -299,11 +294,6 @@ def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> di
     return card
 
 
-def build_retrieval_pairs(params: dict[str, Any]) -> None:
-    """``config.PAIR_BUILDERS['retrieval']``: writes ``params['pairs']`` (and the card)."""
-    build_sequence(params)
-
-
 def check_card(pairs_path: str | Path) -> None:
     """Raise when a card's counts disagree with its pair file (e.g. the file was edited)."""
     card = json.loads(card_paths(pairs_path)["card_json"].read_text(encoding="utf-8"))
@@ -313,3 +303,172 @@ def check_card(pairs_path: str | Path) -> None:
         raise build_inputs.BuildError(
             f"{pairs_path}: card counts differ from the pair file (card, file): {wrong}; rebuild it"
         )
+
+
+def load_build_params(
+    params_file: str | Path, descriptor: str | None = None, top_n: int | None = None, **overrides: Any
+) -> dict[str, Any]:
+    """``load_params`` of a ``pairs_builder: retrieval`` file, with build overrides."""
+    params = config.load_params(params_file, **overrides)
+    if params["pairs_builder"] != BUILDER_NAME:
+        raise build_inputs.BuildError(
+            f"{params['params_file']}: pairs_builder is {params['pairs_builder']!r}; "
+            f"building needs pairs_builder: {BUILDER_NAME} with its builder_options"
+        )
+    options = dict(params["builder_options"])
+    options.update({k: v for k, v in (("descriptor", descriptor), ("top_n", top_n)) if v is not None})
+    build_inputs.parse_options(options, f"{params['params_file']}: builder_options")  # fail before any work
+    params["builder_options"] = options
+    return params
+
+
+def build_sample(params: dict[str, Any]) -> None:
+    """The embedded default: a synthetic route rendered by the package (seconds, no download)."""
+    from gvbench_nb.data import synthetic
+
+    options = dict(params["builder_options"])
+    synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
+
+
+def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
+    """The pairs the frame_tolerance builder makes of the params' two image folders."""
+    options = dict(params["builder_options"])
+    root = Path(params["image_root"])
+    query_folder = options.pop("query_folder")
+    reference_folder = options.pop("reference_folder")
+
+    def names(folder: str) -> list[str]:
+        directory = root / folder
+        if not directory.is_dir():
+            raise config.ParamsError(
+                f"{params['params_file']}: image folder {directory} not found (image_root {root}, folder {folder!r})"
+                + (fetch.fetch_hint(directory) or "; set image_root to the folder holding it")
+            )
+        return sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+
+    try:
+        return frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)
+    except (TypeError, ValueError) as error:
+        raise config.ParamsError(f"{params['params_file']}: builder_options: {error}") from None
+
+
+def build_frame_tolerance(params: dict[str, Any]) -> None:
+    """Rule-built pairs of a frame-aligned sequence (see ``sequences.frame_tolerance_pairs``)."""
+    pairs = frame_tolerance_sequence_pairs(params)
+    # Rebuilt on every run (milliseconds, seeded): a pair file made under other options is
+    # replaced, and an unchanged one is left untouched.
+    if not Path(params["pairs"]).is_file() or read_pairs(params["pairs"]) != pairs:
+        write_pairs(params["pairs"], pairs)
+
+
+PAIR_BUILDERS: dict[str, Callable[[dict[str, Any]], object]] = {  # config.PAIR_BUILDER_NAMES
+    "sample": build_sample,
+    "frame_tolerance": build_frame_tolerance,
+    BUILDER_NAME: build_sequence,  # GV-Bench's way (build.py): top-N retrieval, labelled by a rule
+}
+
+
+def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
+    """``<pairs>.builder.json``: what built a pair file (builder, options, seed, image root)."""
+    pairs = Path(pairs)
+    return pairs.with_name(pairs.name + ".builder.json")
+
+
+def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
+    """What a builder's output depends on, as JSON reads it back (retrieval: also what it read there)."""
+    stamp = {
+        "pairs_builder": params["pairs_builder"],
+        "builder_options": params["builder_options"],
+        "seed": params["seed"],
+        "image_root": params["image_root"],
+    }
+    if params["pairs_builder"] == BUILDER_NAME and params["image_root"] is not None:
+        stamp["inputs"] = build_inputs.inputs_digest(params["image_root"], params["builder_options"])
+    return json.loads(json.dumps(stamp, sort_keys=True, default=str))
+
+
+def _stamp_matches(params: dict[str, Any]) -> bool:
+    """The pair file was built by this builder, with these options and seed, and not changed since."""
+    pairs = Path(params["pairs"])
+    try:
+        recorded = dict(json.loads(builder_stamp_path(pairs).read_text(encoding="utf-8")))
+    except (OSError, ValueError, TypeError):
+        return False
+    if not pairs.is_file():
+        return False
+    sha256 = recorded.pop("pairs_sha256", None)
+    return recorded == builder_stamp(params) and sha256 == file_sha256(pairs)
+
+
+def missing_pairs_error(params: dict[str, Any]) -> config.ParamsError:
+    pairs = Path(params["pairs"])
+    what = path_problem(pairs) or "is not a pair file"
+    what = "is a folder, not a pair file" if what == "is a folder, not a file" else what
+    return config.ParamsError(
+        f"{params['params_file']}: the pair file {pairs} {what}; set pairs to a file of "
+        "'query_path reference_path label' lines, or set pairs_builder to make it"
+    )
+
+
+def check_image_root(params: dict[str, Any]) -> Path:
+    """The image root, refused when unset, or (unless the sample builder renders it) not a folder."""
+    source = config.blame(params, "image_root")
+    if params["image_root"] is None:
+        raise config.ParamsError(
+            f"{source}: image_root is not set. Set it (or pass --image-root) to the folder holding the images "
+            f"that the pair file's paths are relative to (e.g. the GV-Bench image root with day0/, night0/, ...)"
+        )
+    root = Path(params["image_root"])
+    renders = params["pairs_builder"] == "sample" or (
+        params["pairs_builder"] == BUILDER_NAME and params["builder_options"].get("render_sample")
+    )
+    if renders and "image_root" in params["overridden"] and not (root / "generator.json").is_file():
+        # A folder typed on the command line names images; a builder renders only into the params file's.
+        what = "holds no rendered route" if root.is_dir() else "does not exist"
+        raise config.ParamsError(
+            f"--image-root {root} {what}: a folder given on the command line must hold the images, it is never "
+            f"rendered into; drop --image-root to render into the params file's image_root, or set image_root "
+            f"in a params file of your own (its pairs_builder renders the route there)"
+        )
+    if params["pairs_builder"] != "sample" and not root.is_dir():  # the sample builder renders into the root
+        what = "is a file, not a folder" if root.exists() else "does not exist"
+        raise config.ParamsError(
+            f"{source}: image_root {root} {what}"
+            + (
+                fetch.fetch_hint(root)
+                or "; set image_root (or pass --image-root) to the folder "
+                "holding the images that the pair file's paths are relative to"
+            )
+        )
+    return root
+
+
+def prepare_sequence(params: dict[str, Any]) -> Sequence:
+    """The sequence of a params file. A builder's pair file is its own: rebuilt whenever its stamp
+    (``<pairs>.builder.json``) differs from ``builder_stamp`` or the file changed since."""
+    root = check_image_root(params)
+    builder = params["pairs_builder"]
+    if builder and (builder == "sample" or not _stamp_matches(params)):
+        builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds
+        PAIR_BUILDERS[builder](params)
+        atomic_write_json(
+            builder_stamp_path(params["pairs"]), {**builder_stamp(params), "pairs_sha256": file_sha256(params["pairs"])}
+        )
+    if path_problem(params["pairs"]) is not None:
+        raise missing_pairs_error(params)
+    sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
+    return sequence.limited(params["limit"])
+
+
+def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
+    """Where a sequence's pairs came from, as run.json records it."""
+    return {
+        "params_file": params["params_file"],
+        "pairs_file": params["pairs"],
+        "pairs_sha256": file_sha256(params["pairs"]),
+        "image_root": params["image_root"],
+        "pairs_builder": params["pairs_builder"],
+        "builder_options": params["builder_options"],
+        "seed": params["seed"],
+        "limit": params["limit"],
+    }

@@ -13,7 +13,7 @@ import pytest
 import yaml
 
 from gvbench_nb.data import build_inputs, sequences
-from gvbench_nb.runner import config, image_features, sequence_build
+from gvbench_nb.runner import image_features, sequence_build
 from gvbench_nb.studies import build_sequence as build_study
 
 NUM_FRAMES = 8
@@ -77,7 +77,9 @@ def tiny(tmp_path: Path) -> Path:
 
 
 def built(tmp_path: Path, **options: object) -> dict:
-    return sequence_build.build_sequence(config.load_build_params(write_params(tmp_path, **options)), progress=False)
+    return sequence_build.build_sequence(
+        sequence_build.load_build_params(write_params(tmp_path, **options)), progress=False
+    )
 
 
 def test_pair_file_round_trips_and_card_counts_match(tiny: Path) -> None:
@@ -129,7 +131,7 @@ def test_same_seed_same_sequence_other_seed_other_queries(tiny: Path) -> None:
     assert Path(second["files"]["pairs"]).read_text() == text
     assert {k: v for k, v in first.items() if k != "seconds"} == {k: v for k, v in second.items() if k != "seconds"}
     assert first["counts"]["n_queries"] == 4
-    params = config.load_build_params(write_params(tiny, num_queries=4))
+    params = sequence_build.load_build_params(write_params(tiny, num_queries=4))
     params["seed"] = 1
     other = sequence_build.build_sequence(params, progress=False)
     assert len(queries(other)) == 4 and queries(other) != first_queries
@@ -235,7 +237,7 @@ def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytes
 
 
 def test_recall_curves_are_monotone_and_reach_the_card(tiny: Path) -> None:
-    params = config.load_build_params(write_params(tiny))
+    params = sequence_build.load_build_params(write_params(tiny))
     card = sequence_build.build_sequence(params, progress=False)
     curves = build_study.recall_curves(params, ["vlad", "bow"], progress=False)
     assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3

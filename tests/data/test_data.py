@@ -18,7 +18,7 @@ import pytest
 
 from gvbench_nb import cli
 from gvbench_nb.data import fetch as data
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, sequence_build
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
 
@@ -232,7 +232,7 @@ def test_the_manifest_pins_both_sources_and_lists_every_file():
 
 def test_the_data_folder_is_gvbench_data_else_a_user_cache(monkeypatch, tmp_path):
     monkeypatch.setenv("GVBENCH_DATA", str(tmp_path))
-    assert data.data_dir() == tmp_path.resolve() == config.data_dir()
+    assert data.data_dir() == tmp_path.resolve() == data.data_dir()
     monkeypatch.delenv("GVBENCH_DATA")
     import platformdirs
 
@@ -323,7 +323,7 @@ def test_run_without_gardens_point_names_the_fetch_command(tmp_path, monkeypatch
         PROJECT_ROOT / "params" / "gardens_point.yaml", pairs=str(tmp_path / "p.txt"), output_dir=str(tmp_path / "out")
     )
     with pytest.raises(config.ParamsError, match="data fetch gardens_point"):
-        config.prepare_sequence(params)
+        sequence_build.prepare_sequence(params)
 
 
 @pytest.mark.real_data

@@ -13,7 +13,7 @@ from gvbench_nb.data.sequences import (
     summarize,
     write_pairs,
 )
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, sequence_build
 
 NIGHT = [f"night/Image{i:03d}.jpg" for i in range(200)]
 DAY = [f"day/Image{i:03d}.jpg" for i in range(200)]
@@ -136,7 +136,7 @@ def test_a_margin_that_cannot_work_says_why(options, message):
 def test_gardens_point_params_build_their_rule(shared_data, tmp_path, name, folders, smallest_negative_gap, near_band):
     path = config.PROJECT_ROOT / "params" / f"{name}.yaml"
     params = config.load_params(path, pairs=str(tmp_path / "pairs.txt"), output_dir=str(tmp_path / "out"))
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     assert params["image_root"] == str(shared_data / "gardens_point")
     assert {p.query.split("/")[0] for p in sequence.pairs} == {folders[0]}
     assert {p.reference.split("/")[0] for p in sequence.pairs} == {folders[1]}
@@ -154,9 +154,9 @@ def test_the_frame_tolerance_pairs_are_rebuilt_when_the_options_change(shared_da
     pairs = tmp_path / "pairs.txt"
     folder = config.PROJECT_ROOT / "params"
     old = config.load_params(folder / "gardens_point_no_margin.yaml", pairs=str(pairs), output_dir=str(tmp_path / "o"))
-    config.prepare_sequence(old)
+    sequence_build.prepare_sequence(old)
     new = config.load_params(folder / "gardens_point.yaml", pairs=str(pairs), output_dir=str(tmp_path / "o"))
-    assert min(gap(p) for p in config.prepare_sequence(new).pairs if p.label == 0) == 6
+    assert min(gap(p) for p in sequence_build.prepare_sequence(new).pairs if p.label == 0) == 6
     written = pairs.stat().st_mtime_ns
-    config.prepare_sequence(new)
+    sequence_build.prepare_sequence(new)
     assert pairs.stat().st_mtime_ns == written  # unchanged pairs are not rewritten

@@ -23,7 +23,7 @@ import yaml
 from test_report_browser import chromium  # noqa: F401  (the fixture: Chromium's path and playwright)
 
 from gvbench_nb import explore_lab
-from gvbench_nb.runner import config, method_runs
+from gvbench_nb.runner import config, method_runs, sequence_build
 from gvbench_nb.studies import explore_pairs as explore
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
@@ -49,7 +49,7 @@ def run_folder(chromium, tmp_path_factory) -> Path:  # noqa: F811
     }
     (root / "tiny.yaml").write_text(yaml.safe_dump(params))
     loaded = config.load_params(root / "tiny.yaml")
-    sequence = config.prepare_sequence(loaded)
+    sequence = sequence_build.prepare_sequence(loaded)
     out = Path(loaded["output_dir"])
     for method in METHODS:
         method_runs.run_method(

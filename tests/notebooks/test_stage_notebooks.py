@@ -15,7 +15,7 @@ import yaml
 from helpers import check_stage_outputs
 
 from gvbench_nb.reporting import execute
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, sequence_build
 
 LIMIT = 24  # pairs of the sample; its first 24 hold true and false ones
 METHOD = "sift-nn"
@@ -51,7 +51,7 @@ def stage_run(sample_params) -> Path:
 
 @pytest.mark.slow
 def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sample_params, stage_run):
-    sequence = config.prepare_sequence(config.load_params(sample_params, limit=LIMIT))
+    sequence = sequence_build.prepare_sequence(config.load_params(sample_params, limit=LIMIT))
     assert len(sequence.pairs) == LIMIT and 0 < sum(p.label for p in sequence.pairs) < LIMIT
     row = check_stage_outputs(stage_run, METHOD, sequence.pairs)
     assert row["sequence"] == "sample" and row["profile"] == "repository"

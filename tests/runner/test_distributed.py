@@ -12,7 +12,7 @@ import yaml
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, write_pairs
-from gvbench_nb.runner import concurrency, config, distributed, image_features, method_runs, scoring
+from gvbench_nb.runner import concurrency, config, distributed, image_features, method_runs, scoring, sequence_build
 
 METHOD, PROFILE = "sift-nn", "repository"
 
@@ -58,7 +58,7 @@ def without_timings(table: pd.DataFrame) -> pd.DataFrame:
 def unsharded(shared_data, tmp_path_factory) -> pd.DataFrame:
     params = make_params(shared_data, tmp_path_factory.mktemp("runs") / "unsharded")
     method_runs.run_method(
-        config.prepare_sequence(params),
+        sequence_build.prepare_sequence(params),
         METHOD,
         PROFILE,
         Path(params["output_dir"]),
@@ -99,7 +99,7 @@ def test_dask_local_cluster_run_equals_the_unsharded_run(shared_data, unsharded,
     store = image_features.feature_store(
         Path(params["cache_dir"]), methods.resolve_method(METHOD, PROFILE)["extractor"]
     )
-    assert len(store) == len(config.prepare_sequence(params).images)
+    assert len(store) == len(sequence_build.prepare_sequence(params).images)
 
 
 @pytest.mark.real_data

@@ -25,7 +25,7 @@ from helpers import check_stage_outputs
 from gvbench_nb import cli, methods, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError
-from gvbench_nb.runner import config, image_features, method_runs, pair_matching, scoring
+from gvbench_nb.runner import config, image_features, method_runs, pair_matching, scoring, sequence_build
 from gvbench_nb.runner import store as store_module
 from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
@@ -158,7 +158,7 @@ def test_a_builder_pair_file_is_rebuilt_when_its_options_or_seed_change(tmp_path
         path = _params(
             tmp_path, pairs_builder="frame_tolerance", builder_options={**options, **option_changes}, seed=seed
         )
-        return config.prepare_sequence(config.load_params(path))
+        return sequence_build.prepare_sequence(config.load_params(path))
 
     def expected(candidates_per_query: int) -> int:
         names = [f"Image{frame:03d}.png" for frame in range(60)]
@@ -180,7 +180,7 @@ def test_a_builder_pair_file_is_rebuilt_when_its_options_or_seed_change(tmp_path
 def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root, tmp_path):
     pairs_file = write_pairs(tmp_path / "pairs.txt", PAIRS)
     params = config.load_params(_params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache")))
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     method_runs.run_method_of_params({**params, "device": "cpu"}, sequence, METHOD, progress=False, threads=1)
     recorded = json.loads((Path(params["output_dir"]) / METHOD / "run.json").read_text())
     assert recorded["pairs"]["pairs_sha256"] == hashlib.sha256(pairs_file.read_bytes()).hexdigest()

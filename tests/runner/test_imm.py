@@ -309,7 +309,7 @@ def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(share
     sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import peer_vismatch
 
-    from gvbench_nb.runner import config
+    from gvbench_nb.runner import config, sequence_build
 
     monkeypatch.setenv("GVBENCH_DATA", str(shared_data))
     params = config.load_params(
@@ -319,7 +319,7 @@ def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(share
         output_dir=str(tmp_path / "out"),
     )
     params["pairs"] = str(tmp_path / "pairs.txt")
-    sequence = config.prepare_sequence(params)
+    sequence = sequence_build.prepare_sequence(params)
     assert peer_vismatch.peer_image_size(params, "sift-nn", sequence) == (288, 512)  # 960x540, longest side 512
     assert peer_vismatch.peer_image_size(params, "imm:sift-nn", sequence) == (288, 512)  # resize_to
     peer_vismatch.write_pair_file(sequence, tmp_path / "peer.txt")

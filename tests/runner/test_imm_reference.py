@@ -18,7 +18,7 @@ import pytest
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.protocol.images import to_original_pixels
-from gvbench_nb.runner import config, pair_matching
+from gvbench_nb.runner import config, pair_matching, sequence_build
 
 imm = methods.imm_peer()  # benchmarks/imm.py
 
@@ -42,7 +42,7 @@ def test_imm_methods_give_vismatchs_own_matches_pair_by_pair(shared_data, tmp_pa
 
     params = config.load_params(PROJECT / "params" / "gardens_point.yaml", limit=10)
     root = Path(params["image_root"])
-    sequence = Sequence("gardens_point", root, config.frame_tolerance_sequence_pairs(params)[:10])
+    sequence = Sequence("gardens_point", root, sequence_build.frame_tolerance_sequence_pairs(params)[:10])
     conf = methods.resolve_method(f"imm:{name}", "repository")
     pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
     store = pair_matching.match_store(tmp_path / "out", conf)

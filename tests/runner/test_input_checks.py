@@ -1,12 +1,5 @@
-"""Inputs are checked before any work, and faults are named.
-
-Every params value (types, ranges, the device, keys given twice, method names from the
-command line or the file) is checked before a file is written or a model library is
-imported; a refused run leaves nothing behind. A pair file built by retrieval follows
-its image folders. A path that is a broken link, a loop, a folder, a FIFO or holds a NUL
-byte is named as what it is. A full disk and Ctrl-C each end in one sentence, and a
-rerun recovers. Images are scikit-image's sample photographs.
-"""
+"""Inputs are checked before any work (a refused run leaves nothing behind), odd paths are named
+as what they are, and a full disk or Ctrl-C ends in one sentence. Images: scikit-image's photographs."""
 
 from __future__ import annotations
 
@@ -28,7 +21,7 @@ from gvbench_nb import cli
 from gvbench_nb.data import build_inputs
 from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
-from gvbench_nb.runner import config, image_features, sequence_build
+from gvbench_nb.runner import config, image_features, input_checks, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -82,8 +75,7 @@ def write_params(tmp_path: Path, **changes: object) -> Path:
 
 @pytest.fixture
 def absent_images(tmp_path) -> Path:
-    """A params file whose pairs name images that are not there: a run that got past the
-    params checks would stop at the images, after creating its folders."""
+    """Pairs naming absent images: a run past the params checks would stop there, its folders made."""
     (tmp_path / "images").mkdir()
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     return tmp_path
@@ -149,34 +141,26 @@ def test_a_threshold_of_zero_is_refused_before_any_file_is_written(absent_images
 
 
 # -------------------------------------------------------------- the device --
-def test_cuda_on_a_torch_without_cuda_is_refused_before_any_work(absent_images, capsys, monkeypatch):
-    import torch
-
-    monkeypatch.setattr(torch.version, "cuda", None)
-    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    path = write_params(absent_images, device="cuda")
-    message = cli_error(capsys, "run", str(path))
-    assert f"error: {path}: device 'cuda' cannot be used: this torch ({torch.__version__}) is built without CUDA" in (
-        message
-    )
-    assert "set device: auto" in message
-    assert_nothing_written(absent_images)
-
-
-def test_a_cuda_index_beyond_the_visible_devices_is_refused(tmp_path, monkeypatch):
+def test_a_device_this_torch_or_machine_lacks_is_refused_before_any_work(absent_images, capsys, monkeypatch):
     import torch
 
     monkeypatch.setattr(torch.version, "cuda", "12.1")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
     monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
-    assert config.device_problem("cuda:0") is None
-    assert config.device_problem("cuda:1") == "only 1 CUDA device(s) are visible (cuda:0 to cuda:0)"
+    assert input_checks.device_problem("cuda:0") is None
+    assert input_checks.device_problem("cuda:1") == "only 1 CUDA device(s) are visible (cuda:0 to cuda:0)"
+    monkeypatch.setattr(torch.version, "cuda", None)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    path = write_params(absent_images, device="cuda")
+    message = cli_error(capsys, "run", str(path))
+    assert f"{path}: device 'cuda' cannot be used: this torch ({torch.__version__}) is built without CUDA" in message
+    assert "set device: auto" in message
+    assert_nothing_written(absent_images)
 
 
 # ------------------------------------------------ method names, and how fast --
 def answer_in_a_fresh_interpreter(argv: list[str], cwd: Path) -> dict:
-    """``cli.main(argv)`` in a new interpreter: its exit code, stderr and which of the
-    heavy modules it imported."""
+    """``cli.main(argv)`` in a new interpreter: its exit code, stderr and the heavy modules it imported."""
     heavy = ("papermill", "torch", "kornia", "nbclient")
     code = (
         "import contextlib, io, json, sys\nfrom gvbench_nb import cli\nerr = io.StringIO()\n"
@@ -195,7 +179,7 @@ def answer_in_a_fresh_interpreter(argv: list[str], cwd: Path) -> dict:
     return json.loads(done.stdout.strip().splitlines()[-1])
 
 
-def test_a_method_typo_is_blamed_on_where_it_came_from_before_heavy_imports(absent_images):
+def test_a_method_or_profile_typo_is_blamed_on_where_it_came_from_before_heavy_imports(absent_images, capsys):
     path = write_params(absent_images)
     answer = answer_in_a_fresh_interpreter(["run", str(path), "--methods", "sift-n"], absent_images)
     assert answer["rc"] == 2
@@ -206,10 +190,6 @@ def test_a_method_typo_is_blamed_on_where_it_came_from_before_heavy_imports(abse
     answer = answer_in_a_fresh_interpreter(["run", str(path)], absent_images)
     assert answer["rc"] == 2 and answer["imported"] == []
     assert answer["err"].startswith(f"error: {path}: unknown method 'orb-n'. Did you mean 'orb-nn'?")
-    assert_nothing_written(absent_images)
-
-
-def test_a_profile_typo_on_the_command_line_is_blamed_on_the_option(absent_images, capsys):
     message = cli_error(capsys, "run", str(write_params(absent_images)), "--profile", "papr")
     assert message.startswith("error: --profile: unknown profile 'papr'")
     assert_nothing_written(absent_images)
@@ -268,25 +248,15 @@ def retrieval_params(tmp_path: Path) -> Path:
     )
 
 
-@pytest.fixture
-def retrieval_sequence(tmp_path, monkeypatch):
-    """12 + 12 frames; ``prepare()`` prepares the sequence, ``builds`` counts the builds."""
+def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_added_or_replaced(tmp_path, monkeypatch):
     for folder in ("night", "day"):
         for frame in range(FRAMES):
             add_frame(tmp_path / "images", tmp_path / "cache", folder, frame)
     builds = []
-    build = config.PAIR_BUILDERS["retrieval"]
-    monkeypatch.setitem(config.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
+    build = sequence_build.PAIR_BUILDERS["retrieval"]
+    monkeypatch.setitem(sequence_build.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
     path = retrieval_params(tmp_path)
-
-    def prepare() -> Sequence:
-        return config.prepare_sequence(config.load_params(path))
-
-    return prepare, builds
-
-
-def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_added(retrieval_sequence, tmp_path):
-    prepare, builds = retrieval_sequence
+    prepare = lambda: sequence_build.prepare_sequence(config.load_params(path))
     assert len(prepare().pairs) == 3 * FRAMES and len(builds) == 1
     assert len(prepare().pairs) == 3 * FRAMES and len(builds) == 1  # unchanged: not rebuilt
     for folder in ("night", "day"):
@@ -295,19 +265,14 @@ def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_added(retrieval_sequen
     assert len(builds) == 2 and len(pairs) == 3 * (FRAMES + 1)
     assert any(p.query == f"night/Image{FRAMES:03d}.png" for p in pairs)
     assert any(p.reference == f"day/Image{FRAMES:03d}.png" for p in pairs)
-
-
-def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_replaced(retrieval_sequence, tmp_path):
-    prepare, builds = retrieval_sequence
-    prepare()
     image = tmp_path / "images" / "day" / "Image005.png"
     before = image.stat()
     add_frame(tmp_path / "images", tmp_path / "cache", "day", 5, shade=1)  # other bytes, same name
     os.utime(image, ns=(before.st_atime_ns, before.st_mtime_ns + 1))  # even with a near-identical mtime
     prepare()
-    assert len(builds) == 2
+    assert len(builds) == 3
     prepare()
-    assert len(builds) == 2
+    assert len(builds) == 3
 
 
 # ------------------------------------------------------------- path kinds --
@@ -381,8 +346,7 @@ def test_a_pair_file_that_is_a_fifo_is_named_so(tmp_path):
 
 # --------------------------------------------------------------- faults --
 def command(argv: list[str], cwd: Path, limit_kb: int | None = None) -> subprocess.CompletedProcess:
-    """``python -m gvbench_nb ARGV`` in a subprocess, under ``ulimit -f limit_kb`` when given
-    (files above it cannot be written: Python gets EFBIG, as on a full disk)."""
+    """``python -m gvbench_nb ARGV`` in a subprocess, under ``ulimit -f limit_kb`` (EFBIG, as a full disk)."""
     line = " ".join([sys.executable, "-m", "gvbench_nb", *argv])
     script = f"ulimit -f {limit_kb}; exec {line}" if limit_kb else f"exec {line}"
     environment = {**os.environ, "PYTHONPATH": str(PROJECT), "GVBENCH_THREADS": "1"}
@@ -468,21 +432,18 @@ def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_pa
 def test_frame_tolerance_options_are_checked_before_any_work(absent_images, capsys):
     for folder in ("night", "day"):
         (absent_images / "images" / folder).mkdir()
-    options = {"query_folder": "night", "reference_folder": "day", "tolerence": 2}
-    path = write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options)
-    message = cli_error(capsys, "run", str(path))
+    path = write_params(absent_images, pairs_builder="frame_tolerance")
+    run = lambda **options: cli_error(
+        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
+    )
+    message = run(query_folder="night", reference_folder="day", tolerence=2)
     assert f"{path}: builder_options: unknown option(s) 'tolerence' (did you mean 'tolerance'?)" in message
-    options = {"query_folder": "night", "reference_folder": "dya"}
-    message = cli_error(
-        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
+    assert f"image folder {absent_images / 'images' / 'dya'} not found" in run(
+        query_folder="night", reference_folder="dya"
     )
-    assert f"image folder {absent_images / 'images' / 'dya'} not found" in message
     (absent_images / "images" / "night" / "Image001.png").symlink_to(absent_images / "gone.png")
-    options = {"query_folder": "night", "reference_folder": "day"}
     (absent_images / "images" / "day" / "Image001.png").write_bytes(b"")
-    message = cli_error(
-        capsys, "run", str(write_params(absent_images, pairs_builder="frame_tolerance", builder_options=options))
-    )
+    message = run(query_folder="night", reference_folder="day")
     assert "first night/Image001.png, which is a broken symbolic link" in message
     assert_nothing_written(absent_images)
 

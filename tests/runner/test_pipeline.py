@@ -14,7 +14,7 @@ from helpers import check_stage_outputs
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence, read_pairs
-from gvbench_nb.runner import concurrency, config, image_features, method_runs, scoring
+from gvbench_nb.runner import concurrency, config, image_features, method_runs, scoring, sequence_build
 from gvbench_nb.runner.store import ShardedStore
 
 PAIRS_COLUMNS = {
@@ -129,7 +129,7 @@ def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
     assert set(results.columns) >= RESULTS_COLUMNS
     pairs = pd.read_csv(output / "sift-nn" / "pairs.csv")
     assert set(pairs.columns) >= PAIRS_COLUMNS
-    sequence = config.prepare_sequence(
+    sequence = sequence_build.prepare_sequence(
         config.load_params(config.PROJECT_ROOT / "params" / "gardens_point.yaml", limit=24)
     )
     assert len(sequence.pairs) == 24

@@ -42,6 +42,7 @@ from gvbench_nb.runner import (
     pair_matching,
     record,
     scoring,
+    sequence_build,
 )
 from gvbench_nb.runner import store as store_module
 from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
@@ -460,7 +461,7 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
             pairs=str(tmp_path / name),
             output_dir=str(tmp_path / "out"),
         )
-        config.prepare_sequence(params)
+        sequence_build.prepare_sequence(params)
         return (tmp_path / name).read_bytes()
 
     assert build(0, "first.txt") == build(0, "second.txt")

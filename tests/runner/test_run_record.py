@@ -28,7 +28,7 @@ from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.reporting import tables
-from gvbench_nb.runner import config, method_outputs, method_runs, record, scoring
+from gvbench_nb.runner import config, method_outputs, method_runs, record, scoring, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -45,7 +45,7 @@ def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None
     """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
     params = config.load_params(parameters["params_file"])
     if name == "02_verify.ipynb":
-        sequence = config.prepare_sequence(params)
+        sequence = sequence_build.prepare_sequence(params)
         method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
     elif name == "03_evaluate.ipynb":
         scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))

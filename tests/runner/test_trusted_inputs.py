@@ -1,13 +1,5 @@
-"""Inputs a reader can trust: every input checked by what it is before work, every reader as strict
-as ``results``.
-
-Part of ``pytest -m reliability``. Each test feeds ``python -m gvbench_nb`` (``cli.main``, the stage
-notebooks computed in this process as in tests/runner/test_run_record.py) a case that used to be
-scored or read silently: two images of one content, a damaged JPEG, a key given twice in a flow
-mapping, a method added under another verifier or seed, a reader on a folder ``results`` refuses,
-a mistyped ``--image-root`` beside a builder that renders, a bad environment variable. Four small
-photographs matched with ORB: seconds, no real data needed.
-"""
+"""Inputs checked by what they are before work, and every reader as strict as ``results``: each case
+once scored or read silently, fed to ``cli.main`` (notebooks in this process) with four small photographs."""
 
 from __future__ import annotations
 
@@ -25,9 +17,9 @@ from test_fault_injection import write_root
 from test_run_record import FLIPPED, PAIRS, in_process_notebooks, one_sentence, params_file, run_cli, snapshot
 
 from gvbench_nb import notebook, run_and_publish
-from gvbench_nb.data.sequences import Pair, write_pairs
+from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.reporting import report
-from gvbench_nb.runner import config, record
+from gvbench_nb.runner import config, input_checks, record, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -67,11 +59,7 @@ def test_two_images_of_one_content_are_a_self_pair_refused_with_file_and_line(
 
 @pytest.mark.real_data
 def test_two_queries_of_one_content_each_with_its_own_reference_are_scored(shared_data, tmp_path):
-    # Gardens Point's night_right frames 179 and 183 are byte-identical (the published data): two
-    # queries of one content are two queries, not a self-pair; the whole sequence must pass.
-    from gvbench_nb.data.sequences import Sequence
-    from gvbench_nb.runner import input_checks
-
+    # Gardens Point's night_right frames 179 and 183 are byte-identical: two queries, not a self-pair.
     root = shared_data / "gardens_point"
     assert (root / "night_right/Image179.jpg").read_bytes() == (root / "night_right/Image183.jpg").read_bytes()
     pairs = [Pair("night_right/Image179.jpg", "day_right/Image181.jpg", 1)]
@@ -87,9 +75,7 @@ def damaged_jpeg(images: Path) -> Path:
     data[middle : middle + 200] = bytes(200)
     path = images / "reference" / "c.jpg"
     path.write_bytes(bytes(data))
-    assert (
-        cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None
-    )  # it decodes, with a warning
+    assert cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None  # decodes, warning
     return path
 
 
@@ -161,10 +147,6 @@ def test_a_method_added_under_another_verifier_or_seed_is_refused_before_work(
 
 
 # ------------------------------------------- every reader as strict as results --
-def edit_labels(tmp_path: Path) -> None:
-    write_pairs(tmp_path / "params-pairs.txt", [PAIRS[0], FLIPPED[1], *PAIRS[2:]])
-
-
 def edit_scores(tmp_path: Path) -> None:
     table = tmp_path / "out" / "orb-nn" / "pairs.csv"
     frame = pd.read_csv(table)
@@ -172,8 +154,11 @@ def edit_scores(tmp_path: Path) -> None:
     frame.to_csv(table, index=False)
 
 
-def remove_record(tmp_path: Path) -> None:
-    (tmp_path / "out" / record.RECORD_NAME).unlink()
+EDITS = {
+    "labels": lambda tmp_path: write_pairs(tmp_path / "params-pairs.txt", [PAIRS[0], FLIPPED[1], *PAIRS[2:]]),
+    "scores": edit_scores,
+    "no-record": lambda tmp_path: (tmp_path / "out" / record.RECORD_NAME).unlink(),
+}
 
 
 @pytest.fixture
@@ -185,7 +170,7 @@ def started(monkeypatch) -> list[str]:
     return work
 
 
-@pytest.mark.parametrize("edit", [edit_labels, edit_scores, remove_record], ids=["labels", "scores", "no-record"])
+@pytest.mark.parametrize("edit", list(EDITS.values()), ids=list(EDITS))
 def test_every_reader_refuses_what_results_refuses_before_any_work_or_file(
     tmp_path, images, capsys, notebooks_here, started, edit
 ):
@@ -212,39 +197,18 @@ def test_every_reader_refuses_what_results_refuses_before_any_work_or_file(
 
 
 # ------------------------------------------------- typed paths are not built into --
-@pytest.fixture
-def builder_calls(monkeypatch) -> list[str]:
-    """The sample builder, stubbed: it records the image root it would render into and stops the run."""
-    calls: list[str] = []
+def test_an_image_root_typed_on_the_command_line_is_never_rendered_into(tmp_path, capsys, monkeypatch):
+    builder_calls: list[str] = []
 
-    def render(params: dict) -> None:
-        calls.append(params["image_root"])
-        raise KeyboardInterrupt  # the run stops here, exit code 130, nothing rendered
+    def render(params: dict) -> None:  # the sample builder, stubbed: the run stops (exit 130), nothing rendered
+        builder_calls.append(params["image_root"])
+        raise KeyboardInterrupt
 
-    monkeypatch.setitem(config.PAIR_BUILDERS, "sample", render)
-    return calls
-
-
-def sample_params(tmp_path: Path) -> Path:
+    monkeypatch.setitem(sequence_build.PAIR_BUILDERS, "sample", render)
+    params = {"sequence": "sample", "pairs_builder": "sample", "image_root": "data/sample", "output_dir": "out"}
+    params.update(pairs="data/sample/pairs.txt", methods=["orb-nn"], profile="repository")
     path = tmp_path / "sample.yaml"
-    path.write_text(
-        yaml.safe_dump(
-            {
-                "sequence": "sample",
-                "pairs_builder": "sample",
-                "image_root": "data/sample",
-                "pairs": "data/sample/pairs.txt",
-                "methods": ["orb-nn"],
-                "profile": "repository",
-                "output_dir": "out",
-            }
-        )
-    )
-    return path
-
-
-def test_an_image_root_typed_on_the_command_line_is_never_rendered_into(tmp_path, capsys, builder_calls):
-    path = sample_params(tmp_path)
+    path.write_text(yaml.safe_dump(params))
     typo = tmp_path / "dta" / "sample"
     code, _, err = run_cli(capsys, "run", str(path), "--image-root", str(typo))
     assert code == 2 and f"--image-root {typo} does not exist" in one_sentence(err)

@@ -20,7 +20,7 @@ from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file
 from gvbench_nb import run_and_publish
 from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import config, method_runs, record
+from gvbench_nb.runner import config, method_runs, record, sequence_build
 
 pytestmark = pytest.mark.reliability
 root, notebooks_here = test_run_record.root, test_run_record.notebooks_here  # the fixtures
@@ -99,7 +99,7 @@ def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, no
 def verify_on_its_own(path: Path, method: str = "orb-nn", **overrides) -> None:
     """What ``02_verify`` does when papermill, JupyterLab or nbmake runs it on its own."""
     params = config.load_params(path, **overrides)
-    method_runs.run_method_of_params(params, config.prepare_sequence(params), method, progress=False)
+    method_runs.run_method_of_params(params, sequence_build.prepare_sequence(params), method, progress=False)
 
 
 def test_a_notebook_run_on_its_own_that_fails_keeps_the_finished_results(tmp_path, root, capsys, notebooks_here):

@@ -14,7 +14,7 @@ import yaml
 
 from gvbench_nb import cli, explore_lab
 from gvbench_nb.evaluation import plots, run_tables
-from gvbench_nb.runner import config, method_runs
+from gvbench_nb.runner import config, method_runs, sequence_build
 from gvbench_nb.studies import explore_pairs as explore
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
@@ -44,7 +44,7 @@ def tiny_run(tmp_path_factory) -> Path:
     path = folder / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
     loaded = config.load_params(path)
-    sequence = config.prepare_sequence(loaded)
+    sequence = sequence_build.prepare_sequence(loaded)
     for method in METHODS:
         method_runs.run_method(
             sequence,

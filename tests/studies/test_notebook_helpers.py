@@ -11,7 +11,7 @@ import pytest
 from test_analysis import write_fake_run
 
 from gvbench_nb import notebook
-from gvbench_nb.runner import config, method_runs, scoring
+from gvbench_nb.runner import method_runs, scoring, sequence_build
 from gvbench_nb.studies import alternative_verifiers
 
 
@@ -54,7 +54,7 @@ def test_compute_missing_runs_only_what_is_missing(toy, monkeypatch):
         write_fake_run(output_dir)
 
     monkeypatch.setattr(method_runs, "run_method_of_params", fake_run)
-    monkeypatch.setattr(config, "prepare_sequence", lambda params: "the sequence")
+    monkeypatch.setattr(sequence_build, "prepare_sequence", lambda params: "the sequence")
     inputs = notebook.load_results(
         str(output_dir), output_dir / "analysis", str(params), ["sift-nn"], compute_missing=True
     )
@@ -101,7 +101,7 @@ def test_verifier_bench_names_the_run_with_its_output_folder_and_profile(toy, tm
     with pytest.raises(notebook.ResultsMissingError, match="run it on that sequence first"):
         notebook.open_verifier_bench(elsewhere, "sift-nn", tmp_path / "v")
     ran = []
-    monkeypatch.setattr(config, "prepare_sequence", lambda params: params)
+    monkeypatch.setattr(sequence_build, "prepare_sequence", lambda params: params)
     monkeypatch.setattr(
         method_runs, "run_method_of_params", lambda params, sequence, method: ran.append((method, params["output_dir"]))
     )

@@ -1,9 +1,5 @@
-"""Fault injection: no change of input leaves a stale result, and every error a user can
-cause is one sentence naming what, where and what to do.
-
-Part of ``pytest -m reliability``. The sequence is four small photographs (scikit-image's)
-and their warped copies, matched with SIFT at native size: seconds, no real data needed.
-"""
+"""Fault injection: no change of input leaves a stale result, and every user error is one sentence.
+Four small photographs (scikit-image's) and their warped copies, matched with SIFT: seconds."""
 
 from __future__ import annotations
 

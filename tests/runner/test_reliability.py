@@ -1,13 +1,6 @@
-"""Reliability: bad input gets a clear error, interrupted runs lose nothing, concurrent
-runs cannot corrupt the caches, the same input gives the same scores, nothing is executed.
-
-Runs use ``sift-nn`` on real Gardens Point frames downscaled to 320x180 (so a run
-takes a second or two). Interruptions are real SIGKILLs of a child process at
-deterministic points: the child (the ``CHILD`` script below, test code only) wraps
-``ShardWriter.put``, h5py's ``create_group`` or ``DataFrame.to_csv`` and kills itself
-at the n-th item. A parent polling the stores for a shard would race a run this
-small; this way the library holds no fault-injection code.
-"""
+"""Reliability on Gardens Point frames at 320x180 with ``sift-nn``: interrupted runs lose nothing,
+concurrent runs corrupt nothing, the same input gives the same scores. Kills are real SIGKILLs a
+child (``CHILD``) sends itself at the n-th stored item, so the library holds no fault injection."""
 
 from __future__ import annotations
 

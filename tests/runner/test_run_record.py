@@ -1,12 +1,6 @@
 """The run record: an output folder is one run's truth, never mixed, never stale, never a user's.
-
-Part of ``pytest -m reliability``. Each test is a way a careless or hostile user could make
-a table wrong while the exit code says 0; docs/reliability.md lists them beside their promise.
-The runs go through ``python -m gvbench_nb run``'s own code (``cli.main``) with the notebooks
-executed in this process (``in_process_notebooks``: what each stage notebook computes, without
-papermill), on four small photographs matched with ORB: seconds, no real data needed. One test
-runs the real notebooks in a second process.
-"""
+Runs go through ``cli.main`` with the notebooks computed in this process (``in_process_notebooks``),
+on four small photographs matched with ORB; docs/reliability.md lists each test beside its promise."""
 
 from __future__ import annotations
 

@@ -1,12 +1,5 @@
-"""Scores computed elsewhere, in and out: ``import-scores`` (the GV-Bench authors' per-pair .npy
-and plain tables) and ``results --export npy``.
-
-The authors' files are built here in the format their repository documents (``.asset/replicate.md``:
-``np.save`` of a dict with qImages, rImages, gt, inliers, prob, precision, recall, TH,
-average_precision, Max Recall; their single-process evaluation keeps each pair's inlier point rows
-in ``inliers``, their multiprocess one the counts). Runs go through ``cli.main`` with the stage
-notebooks computed in this process, on a small render of the synthetic ``sample`` route.
-"""
+"""``import-scores`` and ``results --export npy``: the GV-Bench authors' .npy is built here as their
+``.asset/replicate.md`` documents it (inliers as point rows or counts), on a small ``sample`` render."""
 
 from __future__ import annotations
 

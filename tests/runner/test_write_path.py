@@ -1,10 +1,5 @@
-"""The doors besides ``run``: shards, merges, the explorer's figures. Each writes results the
-way ``run`` does or is refused in one sentence before work; none removes a finished result or
-a file it did not write.
-
-Part of ``pytest -m reliability``; docs/reliability.md lists each test beside its promise. Same
-small photographs and in-process notebooks as test_run_record.py.
-"""
+"""The doors besides ``run`` (shards, merges, the explorer's figures) write results as ``run`` does
+or are refused before work; same photographs and in-process notebooks as test_run_record.py."""
 
 from __future__ import annotations
 

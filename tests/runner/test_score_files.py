@@ -158,16 +158,9 @@ def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, 
 def sample_params(tmp_path: Path) -> Path:
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(320, 240))
-    params = {
-        "sequence": "sample",
-        "image_root": str(root),
-        "pairs": str(root / "pairs.txt"),
-        "methods": ["orb-nn"],
-        "profile": "repository",
-        "output_dir": str(tmp_path / "out"),
-        "cache_dir": str(tmp_path / "cache"),
-        "device": "cpu",
-    }
+    params = {"sequence": "sample", "image_root": str(root), "pairs": str(root / "pairs.txt"), "methods": ["orb-nn"]}
+    params |= {"profile": "repository", "output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache")}
+    params["device"] = "cpu"
     path = tmp_path / "sample.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
@@ -192,17 +185,8 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
 
     # Back into the run's own folder (beside orb-nn) and into a folder of its own.
     for folder in (out, tmp_path / "back"):
-        code, _, err = run_cli(
-            capsys,
-            "import-scores",
-            str(exported),
-            "--sequence",
-            "sample",
-            "--method",
-            "orb-nn-back",
-            "--output-dir",
-            str(folder),
-        )
+        argv = ["import-scores", str(exported), "--sequence", "sample", "--method", "orb-nn-back"]
+        code, _, err = run_cli(capsys, *argv, "--output-dir", str(folder))
         assert code == 0, err
         back, original = results_row(capsys, folder, "orb-nn-back"), results_row(capsys, out, "orb-nn")
         assert (back["ap"], back["max_recall"]) == (original["ap"], original["max_recall"])

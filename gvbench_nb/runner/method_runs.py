@@ -68,9 +68,7 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
 
 
 def result_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
-    """What a method's finished result stands for, as its ``run.json`` records it: the sequence
-    and image folder, the pairs, labels and images scored (``scoring.sequence_binding``), the
-    resolved conf, the seed and the device asked for."""
+    """What a finished result stands for, as its ``run.json`` records it: inputs, conf, seed, device asked for."""
     identity = {
         "sequence": sequence.name,
         "image_root": str(sequence.image_root),
@@ -85,8 +83,7 @@ def result_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device:
 def finished_table(
     folder: Path, sequence: Sequence, conf: dict[str, Any], seed: int, device: str
 ) -> pd.DataFrame | None:
-    """The per-pair table ``folder`` holds when its finished result is of this sequence, conf,
-    seed and device request (``result_identity``), else None."""
+    """The per-pair table ``folder`` holds when its result is of these inputs (``result_identity``), else None."""
     try:
         run = json.loads((folder / "run.json").read_text(encoding="utf-8"))
         identity = result_identity(sequence, conf, seed, device)
@@ -111,8 +108,8 @@ def compute_method(
     jobs: int | None = None,
     verifier: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Extract and match what the caches lack for one method on a sequence (``run_method``'s
-    work, without writing ``pairs.csv`` or ``run.json``); the run record's ``environment`` and ``this_run``."""
+    """Extract and match what the caches lack (``run_method``'s work, nothing written); ``run.json``'s
+    ``environment`` and ``this_run``."""
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     record.claim(output_dir)  # its stores go into the folder: only into one that is the package's

@@ -156,8 +156,8 @@ def test_a_second_run_on_a_held_folder_is_refused_and_writes_nothing(tmp_path, r
             k: v for k, v in before.items() if k != record.HOLDER_NAME
         }
         # Meanwhile `results` shows what is published and says a run is writing the folder.
-        code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
-        assert code == 0 and "orb-nn" in out and f"a run (pid {holder.pid}" in out
+        code, out, err = run_cli(capsys, "results", str(tmp_path / "out"))
+        assert code == 0 and "orb-nn" in out and f"a run (pid {holder.pid}" in err
     finally:
         holder.kill()
         holder.wait()

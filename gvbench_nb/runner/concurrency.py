@@ -37,11 +37,8 @@ THREADS_ENV = "GVBENCH_THREADS"  # threads a job: torch, OpenCV and numpy's BLAS
 
 
 def configure_threads(n_threads: int | None = None, jobs: int = 1) -> int:
-    """Set torch's, OpenCV's and numpy's BLAS thread counts, the one place a run sets them:
-    ``n_threads``, else $GVBENCH_THREADS, else the available cores shared by ``jobs`` (every
-    core's worth: two jobs on two cores run one thread each, not two that would wait on each
-    other). On a machine shared with other work, fewer threads than cores can be much faster
-    (small matrix products then wait on busy cores); scores do not change."""
+    """Set torch's, OpenCV's and BLAS thread counts: ``n_threads``, else $GVBENCH_THREADS, else the
+    available cores shared by ``jobs`` (more threads than cores wait on each other)."""
     import torch
     from threadpoolctl import threadpool_limits
 
@@ -67,14 +64,8 @@ JOBS_ENV = "GVBENCH_JOBS"  # the run's parallelism, as `run --jobs` and the benc
 
 
 def job_count(jobs: int | None = None) -> int:
-    """How many images are extracted, and pairs matched and verified, at once (the run's
-    jobs): ``jobs``, else $GVBENCH_JOBS (what ``--jobs`` sets), else every available core
-    (``available_cores``), each job on its own threads (``configure_threads``).
-
-    Each image's and pair's timer is its own wall time on its job's threads: with one job a
-    core, close to that item's cost on one core (the jobs share memory bandwidth); with
-    ``--jobs 1`` on every core's threads. Scores are the same either way (tested).
-    """
+    """Images, then pairs, processed at once: ``jobs``, else $GVBENCH_JOBS, else every available core.
+    Each item's timer is its own wall time on its job's threads; scores are the same either way."""
     text = os.environ.get(JOBS_ENV) or ""
     try:
         n = jobs if jobs is not None else int(text) if text else available_cores()
@@ -89,12 +80,8 @@ def job_count(jobs: int | None = None) -> int:
 def prefetch(
     items: Iterable[T], load: Callable[[T], R], depth: int = 4, jobs: int = 2
 ) -> Iterator[tuple[T, R | BaseException]]:
-    """Yield (item, load(item)) in order while the next ``depth`` loads run in threads.
-
-    Decoding and resizing (OpenCV releases the GIL) then overlap the model's compute.
-    A failed load is yielded as its exception, in its place, for the caller to raise
-    with context.
-    """
+    """Yield (item, load(item)) in order while the next ``depth`` loads run in threads; a failed
+    load is yielded as its exception, for the caller to raise with context."""
     iterator = iter(items)
     pending: list[tuple[T, Future[R]]] = []
     with ThreadPoolExecutor(max_workers=jobs) as pool:

@@ -1,22 +1,6 @@
-"""Scale out: (sequence x method) jobs split into shards, run through Dask or by hand.
-
-A run is split in three phases, all through the pipeline's public functions and
-its crash- and concurrency-safe stores (every writer commits its own HDF5 shard
-files, so any number of processes may fill the same cache and match store):
-
-1. extraction shards: slice ``i::n`` of the sequence's unique images, once per
-   extractor conf (methods sharing an extractor share these tasks);
-2. matching shards: ``Sequence(pairs[i::n])`` (same image root) through
-   ``extract_features`` (a no-op once phase 1 is done; fills in anything missing
-   when shards run on their own) and ``match_and_verify``;
-3. merge: ``pairs_table`` of the FULL sequence, ``run.json`` and ``pairs.csv``, then
-   ``evaluate``. RANSAC is seeded per pair (``pair_matching.pair_seed``), so the merged
-   table equals an unsharded run's, timing columns aside.
-
-``run_sharded`` drives all three on a Dask ``LocalCluster`` (default) or an existing
-scheduler; ``run_shard`` + ``merge_runs`` do one shard on this machine and the merge
-(``python -m gvbench_nb run PARAMS --shard i/n`` then ``--merge``).
-"""
+"""Scale out: (sequence x method) jobs in shards (extraction, then matching, then a merge), by hand
+(``run --shard i/n``, ``--merge``) or on Dask. RANSAC is seeded per pair (``pair_matching.pair_seed``),
+so the merged table equals an unsharded run's, timing columns aside."""
 
 from __future__ import annotations
 
@@ -59,8 +43,7 @@ def pair_shard(sequence: Sequence, index: int, count: int) -> Sequence:
 
 
 def default_threads(workers_on_this_machine: int) -> int:
-    """torch/OpenCV threads per task so the tasks together use each core once (more
-    threads than cores makes torch spin-wait: measured 2-5x slower under load)."""
+    """Threads per task so tasks use each core once (more makes torch spin-wait: 2-5x slower)."""
     return max(1, (os.cpu_count() or 1) // max(1, workers_on_this_machine))
 
 
@@ -74,9 +57,7 @@ def extract_shard(
     threads: int | None = None,
 ) -> dict[str, int]:
     """Phase 1 task: extract image slice ``index::count`` of ``sequence`` into the cache."""
-    from gvbench_nb.protocol.features.base import (
-        resolve_device,  # imports torch: only where a device is resolved
-    )
+    from gvbench_nb.protocol.features.base import resolve_device  # imports torch
 
     jobs = concurrency.job_count()
     concurrency.configure_threads(threads, jobs)
@@ -103,13 +84,8 @@ def match_shard(
     threads: int | None = None,
     after: list[Any] | None = None,
 ) -> dict[str, Any]:
-    """Phase 2 task: extract what is still missing, then match and verify pair shard ``index::count``.
-
-    ``after`` only orders the task after its extraction shards (Dask passes their results).
-    """
-    from gvbench_nb.protocol.features.base import (
-        resolve_device,  # imports torch: only where a device is resolved
-    )
+    """Phase 2 task: extract what is missing, match and verify pair shard ``index::count`` (``after``: order only)."""
+    from gvbench_nb.protocol.features.base import resolve_device  # imports torch
 
     concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.job_count())
     if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
@@ -161,9 +137,7 @@ def merge_method(
     shards: list[dict[str, Any]] | None = None,
 ) -> pd.DataFrame:
     """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
-    from gvbench_nb.protocol.features.base import (
-        resolve_device,  # imports torch: only where a device is resolved
-    )
+    from gvbench_nb.protocol.features.base import resolve_device  # imports torch
 
     missing = unfinished_pairs(sequence, conf, output_dir, seed)
     if missing:
@@ -174,20 +148,13 @@ def merge_method(
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
-    return method_runs.write_results(
-        output_dir,
-        sequence,
-        conf,
-        seed,
-        concurrency.environment_info(resolve_device(device)),
-        {"sharded": True, "n_shards": len(shards or []), "shards": shards or []},
-        cache_dir,
-    )
+    environment = concurrency.environment_info(resolve_device(device))
+    sharding = {"sharded": True, "n_shards": len(shards or []), "shards": shards or []}
+    return method_runs.write_results(output_dir, sequence, conf, seed, environment, sharding, cache_dir)
 
 
 def kept_methods(params: dict[str, Any], sequence: Sequence) -> list[str]:
-    """The folder's other methods; ``RecordError`` when any scored other pairs, labels or images
-    (a merge must not make a table of two inputs, as a ``run`` must not)."""
+    """The folder's other methods; ``RecordError`` when any scored other inputs than this run's."""
     return record.kept_methods(Path(params["output_dir"]), params["methods"], scoring.sequence_binding(sequence))[0]
 
 
@@ -200,11 +167,7 @@ def _require_weights(params: dict[str, Any]) -> None:
 def run_shard(
     params: dict[str, Any], index: int, count: int, threads: int | None = None, progress: bool = True
 ) -> list[dict[str, Any]]:
-    """Shard ``index`` of ``count`` of every method of a params file, here (``run --shard i/n``).
-
-    Shards may run at the same time on machines sharing the cache and output folders,
-    or one after another; ``merge_runs`` then writes the results.
-    """
+    """Shard ``index`` of ``count`` of every method of a params file, here (``run --shard i/n``)."""
     from gvbench_nb.runner.sequence_build import prepare_sequence
 
     _require_weights(params)
@@ -216,16 +179,9 @@ def run_shard(
         if conf["extractor"]:
             extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
         result = match_shard(
-            sequence,
-            conf,
-            params["cache_dir"],
-            params["output_dir"],
-            index,
-            count,
-            params["device"],
-            params["seed"],
+            sequence, conf, params["cache_dir"], params["output_dir"], index, count, params["device"], params["seed"],
             threads,
-        )
+        )  # fmt: skip
         if progress:
             print(
                 f"{sequence.name} {method}: shard {index}/{count} done "
@@ -255,8 +211,7 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
 # -------------------------------------------------------------------------- Dask --
 @contextlib.contextmanager
 def dask_client(scheduler: str | None = None, n_workers: int | None = None, processes: bool = True) -> Iterator[Any]:
-    """A client of ``scheduler`` (an address such as tcp://host:8786), else of a new LocalCluster
-    with one single-threaded worker per core (torch threads are set per task instead)."""
+    """A client of ``scheduler`` (tcp://host:8786), else of a new LocalCluster of single-threaded workers."""
     from distributed import Client, LocalCluster
 
     if scheduler:
@@ -280,12 +235,8 @@ def run_many(
     threads: int | None = None,
     progress: bool = True,
 ) -> dict[str, pd.DataFrame]:
-    """Every (sequence x method) of ``params_list`` in ``n_shards`` shards on one Dask cluster.
-
-    All tasks are submitted at once (extraction shards first, matching shards after their
-    extractor's), so the cluster stays busy across sequences and methods. Returns each
-    sequence's results table (``evaluate``), keyed by output folder.
-    """
+    """Every (sequence x method) of ``params_list`` in ``n_shards`` shards on one Dask cluster, all
+    submitted at once; each sequence's results table, keyed by output folder."""
     from distributed import wait
     from tqdm import tqdm
 
@@ -327,8 +278,7 @@ def run_many(
 def _submit_shards(
     client: Any, params_list: list[dict[str, Any]], sequences: list[Sequence], n_shards: int, threads: int | None
 ) -> dict[tuple[int, str], list[Any]]:
-    """Submit every extraction shard (once per cache, images and extractor) and every matching
-    shard, after its extractor's; the matching futures by (params index, method)."""
+    """Submit extraction shards (once per extractor) and matching shards after them; the latter by (index, method)."""
     extraction: dict[tuple[str, str], list[Any]] = {}
     matching: dict[tuple[int, str], list[Any]] = {}
     for index, (params, sequence) in enumerate(zip(params_list, sequences)):
@@ -421,10 +371,7 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
         else:
             n_shards = args.shards or 2 * dask_workers
             results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
-    print(
-        results[["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]].to_string(
-            index=False
-        )
-    )
+    columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]
+    print(results[columns].to_string(index=False))
     print(f"results table: {Path(params['output_dir']) / 'results.csv'}")
     return 0

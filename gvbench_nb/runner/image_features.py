@@ -92,13 +92,8 @@ def first_pair_using(sequence: Sequence, name: str) -> str:
 def stored_features(
     features: dict[str, np.ndarray], image: np.ndarray, scale: np.ndarray, store_float16: bool = False
 ) -> dict[str, np.ndarray]:
-    """What the cache holds for one image: keypoints in original pixels, scores,
-    descriptors and the original (width, height).
-
-    ``store_float16`` (the extractor conf's key): float32 arrays are stored as float16, as
-    hloc's ``extract_features.main(as_half=True)`` stores them, so matching reads the
-    rounded values; integer arrays (binary descriptors, the size) stay as they are.
-    """
+    """What the cache holds for one image: keypoints in original pixels, scores, descriptors, size;
+    ``store_float16``: float32 arrays as float16, as hloc's ``extract_features.main(as_half=True)``."""
     stored = {
         "keypoints": to_original_pixels(features["keypoints"], scale),
         "scores": features["scores"],
@@ -121,10 +116,8 @@ def extract_features(
     jobs: int | None = None,
     run_id: str | None = None,
 ) -> dict[str, int]:
-    """Extract every unique image of ``sequence`` (or only ``images``, a shard of them)
-    not yet in the cache, ``jobs`` images at a time (default ``job_count()``).
-    Returns counts; ``cached_by_this_run`` (only when there are any): cached images that run
-    ``run_id`` extracted itself, for another method, in this process."""
+    """Extract the images of ``sequence`` (or ``images``) not yet cached, ``jobs`` at a time; counts,
+    with ``cached_by_this_run``: cached images run ``run_id`` extracted itself, for another method."""
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
     wanted: dict[str, str] = {}

@@ -1,10 +1,5 @@
-"""``--jobs N``: how many images, then pairs, a run processes at once (``concurrency.job_count``).
-
-One name for one concept: the flag of ``run`` and of the bench (``python benchmarks/speed.py``) and the environment variable
-$GVBENCH_JOBS that ``run`` exports for the processes it starts (``run`` passes it to its
-notebooks as their ``jobs`` parameter). A Dask cluster's size is
-another thing, ``run --dask-workers``.
-"""
+"""``--jobs N``: images, then pairs, a run processes at once (``concurrency.job_count``); the flag of
+``run`` and of the bench, exported as $GVBENCH_JOBS. A Dask cluster's size is ``--dask-workers``."""
 
 from __future__ import annotations
 

@@ -1,6 +1,4 @@
-"""Run one method on a sequence: compute (resumable), record what was computed, and write
-its per-pair table.
-"""
+"""Run one method on a sequence: compute (resumable), record what was computed, write its table."""
 
 from __future__ import annotations
 
@@ -70,9 +68,7 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
 
 
 def result_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device: str) -> dict[str, Any]:
-    """What a method's finished result stands for, as its ``run.json`` records it: the sequence
-    and image folder, the pairs, labels and images scored (``scoring.sequence_binding``), the
-    resolved conf, the seed and the device asked for."""
+    """What a finished result stands for, as its ``run.json`` records it: inputs, conf, seed, device asked for."""
     identity = {
         "sequence": sequence.name,
         "image_root": str(sequence.image_root),
@@ -87,8 +83,7 @@ def result_identity(sequence: Sequence, conf: dict[str, Any], seed: int, device:
 def finished_table(
     folder: Path, sequence: Sequence, conf: dict[str, Any], seed: int, device: str
 ) -> pd.DataFrame | None:
-    """The per-pair table ``folder`` holds when its finished result is of this sequence, conf,
-    seed and device request (``result_identity``), else None."""
+    """The per-pair table ``folder`` holds when its result is of these inputs (``result_identity``), else None."""
     try:
         run = json.loads((folder / "run.json").read_text(encoding="utf-8"))
         identity = result_identity(sequence, conf, seed, device)
@@ -113,8 +108,8 @@ def compute_method(
     jobs: int | None = None,
     verifier: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Extract and match what the caches lack for one method on a sequence (``run_method``'s
-    work, without writing ``pairs.csv`` or ``run.json``); the run record's ``environment`` and ``this_run``."""
+    """Extract and match what the caches lack (``run_method``'s work, nothing written); ``run.json``'s
+    ``environment`` and ``this_run``."""
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     record.claim(output_dir)  # its stores go into the folder: only into one that is the package's
@@ -166,29 +161,19 @@ def run_method(
     seed: int = 0,
     **options: Any,
 ) -> pd.DataFrame:
-    """Run one method on a sequence end to end; writes ``pairs.csv`` and ``run.json``.
-    ``options``: ``compute_method``'s progress, threads, jobs (images or pairs at once, default
-    ``job_count()``) and verifier (overrides of the profile's, ``methods.resolve_method``).
-
-    A finished result of the same pairs, labels, images, conf, seed and device request in
-    ``output_dir`` is returned as it is (``finished_table``): nothing is computed or written.
-    Missing weights fail here, before any work. Finished work found in the caches is
-    reused, so an interrupted run resumes.
-    """
+    """Run one method on a sequence end to end (``pairs.csv``, ``run.json``); a finished result of the
+    same inputs is returned as it is, and cached work is reused, so an interrupted run resumes."""
     conf = method_registry.resolve_method(method, profile, options.get("verifier"))
     method_registry.require(method, profile)
     folder = method_outputs.method_dir(output_dir, method)
     done = finished_table(folder, sequence, conf, seed, device)
     if done is not None:  # e.g. a run's 02_verify notebook, after the run computed the method
         return done
-    # Outside a run's stage (a notebook run on its own), the method writes its results into the
-    # output folder in place: only into a folder that is the package's, and one writer at a time
-    # while the results are written. The stores are filled first, by any number of processes at
-    # once (they are safe for that).
+    # Outside a run's stage (a notebook on its own) results are written in place, into a folder
+    # that is the package's, one writer at a time; the stores are filled first, by any number.
     in_place = not record.is_stage(output_dir)
     written = method_outputs.result_files(method)
     if in_place:
-        # The folder's results stay as they are until this method's are written, at the end.
         record.claim(output_dir)
         record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
     work = compute_method(sequence, method, profile, output_dir, cache_dir, device, seed, **options)
@@ -205,10 +190,8 @@ def write_results(
     cache_dir: Path,
     device: str = "auto",
 ) -> pd.DataFrame:
-    """The one way a method's results are written, whoever computed them (a run, a notebook on
-    its own, a merge of shards): its table from the stores, then ``run.json`` and ``pairs.csv``.
-    Outside a run's stage, under the folder's lock, never over a file the package did not write,
-    and recorded with what they are bound to."""
+    """The one way a method's results are written (a run, a notebook, a merge): table from the stores,
+    ``run.json``, ``pairs.csv``; in place only under the folder's lock, never over a foreign file."""
     folder = method_outputs.method_dir(output_dir, conf["method"])
     in_place = not record.is_stage(output_dir)
     written = method_outputs.result_files(conf["method"])

@@ -1,6 +1,4 @@
-"""Match each pair and verify it: memory-bounded feature caches, the sparse loop, the dense loop with
-hloc's merging, and the content-keyed match store the results come from.
-"""
+"""Match and verify each pair (sparse, or dense with hloc's merging) into a content-keyed match store."""
 
 from __future__ import annotations
 
@@ -19,11 +17,7 @@ from cachetools import LRUCache
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import progress_bar
-from gvbench_nb.protocol.images import (
-    ImageReadError,
-    load_for_extraction,
-    to_original_pixels,
-)
+from gvbench_nb.protocol.images import ImageReadError, load_for_extraction, to_original_pixels
 from gvbench_nb.protocol.ransac import verify_matches
 from gvbench_nb.runner import concurrency, image_features, method_outputs, record
 from gvbench_nb.runner.store import ShardedStore
@@ -34,16 +28,13 @@ if TYPE_CHECKING:
     from gvbench_nb.protocol.matching.base import PreparedMatcher
 
 
-# ---------------------------------------------------------- matching + verifying --
 def _bounded_lru(max_bytes: int, size_of: Callable[[Any], int]) -> LRUCache:
-    """An LRU cache of at most ``max_bytes``; an entry counts at least one byte and at most the
-    whole budget, so the newest entry always stays, however large."""
+    """An LRU of at most ``max_bytes``; an entry counts 1 to ``max_bytes``, so the newest always stays."""
     return LRUCache(maxsize=max_bytes, getsizeof=lambda value: min(max(size_of(value), 1), max_bytes))
 
 
 class PreparedCache:
-    """Per-image matcher states by image name in a byte-bounded LRU. Thread-safe: a thread
-    that asks for an image another thread is preparing waits for that state."""
+    """Per-image matcher states in a byte-bounded LRU; a thread asking for one being prepared waits."""
 
     def __init__(self, prepare: Callable[[dict[str, np.ndarray]], Any], max_bytes: int = 1 << 30):
         self.prepare = prepare
@@ -78,8 +69,7 @@ class PreparedCache:
 
 
 class FeatureCache:
-    """Feature dicts by image name, read on first use, in a byte-bounded LRU. Not thread-safe:
-    callers lock."""
+    """Feature dicts by image name, read on first use, in a byte-bounded LRU (callers lock)."""
 
     def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
         self.read = read
@@ -101,19 +91,9 @@ class FeatureCache:
 
 
 def pair_key(image_root: Path, query: str, reference: str, seed: int) -> str:
-    """Match-store key of a pair: both images' content keys (a changed image or root
-    matches again), their names and the seed (which seed its RANSAC: ``pair_seed``).
-    The extractor, matcher and verifier confs are the store's folder name (``match_store``);
-    dense matchers have no feature entry, and the content keys serve them the same way."""
-    return "\t".join(
-        [
-            query,
-            reference,
-            image_features.image_key(image_root, query),
-            image_features.image_key(image_root, reference),
-            f"seed={seed}",
-        ]
-    )
+    """Match-store key of a pair: names, both images' content keys (a changed image matches again), seed."""
+    keys = image_features.image_key(image_root, query), image_features.image_key(image_root, reference)
+    return "\t".join([query, reference, *keys, f"seed={seed}"])
 
 
 def pair_keys(sequence: Sequence, seed: int) -> dict[Any, str]:
@@ -135,13 +115,9 @@ def pair_seed(seed: int, query: str, reference: str) -> int:
 
 
 def stores_folder(output_dir: Path) -> Path:
-    """Where a run's match stores live: its output folder, also while the run's results are
-    staged (``record.open_stage``): stores are caches every run of the folder shares, keyed by
-    content; only results wait in the stage to be published whole."""
+    """The output folder, also for a stage: stores are content-keyed caches every run shares."""
     output_dir = Path(output_dir)
-    if record.is_stage(output_dir):
-        return output_dir.parent
-    return output_dir
+    return output_dir.parent if record.is_stage(output_dir) else output_dir
 
 
 def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
@@ -164,8 +140,7 @@ def match_and_verify(
     flush_every: int = 64,
     jobs: int | None = None,
 ) -> dict[str, int]:
-    """Match and verify every pair not yet in the method's match store, ``jobs``
-    pairs at a time (default: ``job_count()``; dense matchers run one pair at a time)."""
+    """Match and verify every pair not yet in the match store, ``jobs`` at a time (dense: one)."""
     matches = match_store(output_dir, conf)
     matches.refresh()
     keys = pair_keys(sequence, seed)
@@ -196,9 +171,7 @@ def match_and_verify(
         with reading:
             return recent.get(name)
 
-    # A matcher whose per-image work can be done once per image (LightGlue on a CPU:
-    # matching/lightglue_prepared.py) gets each image's state from a memory-bounded cache;
-    # the first pair using an image is charged for preparing it.
+    # Per-image work done once per image (LightGlue on a CPU); the first pair using it pays for it.
     prepared = (
         PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
     )
@@ -218,8 +191,7 @@ def match_and_verify(
         verified, verify_seconds = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
         return pair_matches, match_scores, verified, match_seconds, verify_seconds
 
-    # Pairs are matched and verified in worker threads (torch and OpenCV release the GIL),
-    # one or more ahead of this thread, which alone writes the store, in order.
+    # Worker threads match and verify ahead (torch and OpenCV release the GIL); this one writes, in order.
     jobs = concurrency.job_count(jobs)
     bar = progress_bar(total=len(todo), desc=f"match {conf['method']}", disable=not progress, unit="pair")
     with matches.writer(flush_every) as writer:
@@ -290,8 +262,7 @@ def _store_verified(
 
 
 def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
-    """The keypoint-merging options of a dense matcher conf (``merge_dense_matches``), or
-    None when its raw matches are verified pair by pair."""
+    """A dense matcher conf's keypoint-merging options, or None when pairs are verified one by one."""
     if matcher_conf.get("merge_max_keypoints") is None:
         return None
     return {
@@ -302,8 +273,7 @@ def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
 
 
 def pair_list_hash(keys: dict[Any, str]) -> str:
-    """Identity of a sequence's pair list (its pairs' keys in order): merged dense keypoints
-    depend on every pair."""
+    """Identity of a sequence's pair list: merged dense keypoints depend on every pair."""
     return hashlib.sha1("\n".join(keys.values()).encode()).hexdigest()[:10]
 
 
@@ -326,8 +296,7 @@ def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any,
 def _dense_raw_matches(
     sequence: Sequence, pairs: list, conf: dict[str, Any], matcher: Callable, progress: bool
 ) -> Iterator[tuple[Any, np.ndarray, np.ndarray, tuple[Any, Any], np.ndarray, float]]:
-    """Each pair's points in original pixels, both images' original sizes, scores, seconds;
-    decoding overlaps compute through the prefetching loader."""
+    """Each pair's points in original pixels, original sizes, scores, seconds (decoding prefetched)."""
     # A matcher with a loader of its own (vismatch's) sees the images as that loader makes them.
     load = getattr(matcher, "load", None) or (lambda path: load_for_extraction(path, conf["matcher"]))
 
@@ -365,9 +334,8 @@ def _match_dense_pairs(
     flush_every: int,
     output_dir: Path | None = None,
 ) -> None:
-    """Dense matchers (LoFTR, ``imm:`` methods) see both images of every pair: no per-image cache.
-    With merging options (``dense_merge_options``), as hloc's ``match_dense``, see
-    ``_merge_and_verify_dense``; without, each pair's raw matches are verified as they come."""
+    """Dense matchers (LoFTR, ``imm:``): merged as hloc's ``match_dense`` when the conf says so, else
+    each pair's raw matches are verified as they come."""
     merge = dense_merge_options(conf["matcher"])
     if merge is not None:
         if output_dir is None:
@@ -398,9 +366,8 @@ def _merge_and_verify_dense(
     progress: bool,
     flush_every: int,
 ) -> None:
-    """Every pair of the sequence is matched first (its raw points kept in ``raw``, so a rerun
-    resumes), then each image's keypoints are merged across all pairs
-    (``merge_dense_matches``) and each pair is verified on its merged matches."""
+    """Match every pair (raw points kept in ``raw`` so a rerun resumes), merge each image's keypoints
+    across all pairs, then verify each pair on its merged matches."""
     from gvbench_nb.protocol.matching.loftr import merge_dense_matches
 
     for key in matches.keys():

@@ -1,13 +1,6 @@
-"""The run record: what makes an output folder gvbench-nb's, who may write it, and how a run
-publishes its results into it.
-
-An output folder belongs to the package only while it holds ``gvbench-run.json`` (the record),
-written by the package; it lists every file the package published there with its SHA-256, so a
-file of the same name that the package did not write (or that was changed since) is never
-overwritten. One run at a time writes a folder (``FolderLock``). ``run`` builds everything in a
-stage (``<folder>/.run-<id>/``) and moves it into place only when the whole run succeeded
-(``publish``): a failed or interrupted run leaves the previous run's results as they were.
-"""
+"""The run record (``gvbench-run.json``): the SHA-256 of every file the package published in an
+output folder, so a file it did not write is never overwritten. One run writes a folder at a time
+(``FolderLock``), builds in a stage and publishes it whole (``publish``) or not at all."""
 
 from __future__ import annotations
 
@@ -84,8 +77,7 @@ def check_owned(folder: str | os.PathLike[str]) -> None:
 
 
 def foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> list[str]:
-    """Of ``names`` (paths relative to ``folder``), those present there that the package did not
-    write or that changed since it wrote them (their SHA-256 differs from the record's)."""
+    """Of ``names`` (relative to ``folder``), those present that the package did not write or that changed since."""
     folder = Path(folder)
     record = read_record(folder) or {"files": {}}
     being_written = set(record.get("pending", []))  # by a writer that may have been killed half way
@@ -135,8 +127,7 @@ def editing(folder: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:
 
 
 def owning_folder(path: str | os.PathLike[str]) -> Path | None:
-    """The output folder holding ``path`` (its folder or the one above, for a method's files)
-    when that folder has a record; None for a stage or any other folder."""
+    """The output folder with a record holding ``path`` (its folder or the one above); None for a stage."""
     path = Path(path)
     for folder in (path.parent, path.parent.parent):
         if is_stage(folder):
@@ -147,8 +138,7 @@ def owning_folder(path: str | os.PathLike[str]) -> Path | None:
 
 
 def register(paths: Iterable[str | os.PathLike[str]]) -> None:
-    """Record files the package has just written in place (a notebook run outside ``run``), so a
-    later run knows them for its own; files outside an output folder with a record are ignored."""
+    """Record files just written in place (a notebook run outside ``run``) so a later run knows them."""
     by_folder: dict[Path, list[Path]] = {}
     for path in map(Path, paths):
         folder = owning_folder(path)
@@ -162,9 +152,7 @@ def register(paths: Iterable[str | os.PathLike[str]]) -> None:
 
 
 def claim(folder: str | os.PathLike[str]) -> None:
-    """Make ``folder`` an output folder of the package (give it a record) unless it is one, or a
-    stage. Whoever writes a file there first checks that name (``check_no_foreign_files``);
-    ``run`` also refuses a non-empty folder without a record before it claims it (``check_owned``)."""
+    """Give ``folder`` a record unless it has one or is a stage (``run`` checks ``check_owned`` first)."""
     folder = Path(folder)
     if is_stage(folder) or read_record(folder) is not None:
         return
@@ -174,8 +162,7 @@ def claim(folder: str | os.PathLike[str]) -> None:
 
 @contextlib.contextmanager
 def pending(folder: str | os.PathLike[str] | None, names: list[str]) -> Iterator[None]:
-    """Mark ``names`` as being written by the package in ``folder`` (None: nothing to mark), so
-    that files a killed writer left half recorded are still known for the package's."""
+    """Mark ``names`` as being written in ``folder`` (None: no mark), so a killed writer's files stay ours."""
     if folder is None:
         yield
         return
@@ -192,8 +179,7 @@ def pending(folder: str | os.PathLike[str] | None, names: list[str]) -> Iterator
 
 
 def save_checked(path: str | os.PathLike[str], write: Any) -> Path:
-    """``write(path)`` where the package may write ``path``: not over a file of an output folder
-    that the package did not write there; the file is then recorded as the package's."""
+    """``write(path)`` unless it would overwrite a file we did not write; the file is then recorded."""
     path = Path(path)
     folder = owning_folder(path)
     if folder is None:
@@ -206,14 +192,12 @@ def save_checked(path: str | os.PathLike[str], write: Any) -> Path:
     return path
 
 
-# Folders whose lock this process holds, and how many times: the run's own steps (a method
-# run in place inside the command that holds the folder) take it again without waiting on it.
+# Folders whose lock this process holds, counted: a run's own steps take it again without waiting.
 _held: dict[Path, list[Any]] = {}  # folder -> [count, the FileLock that holds it]
 
 
 class FolderLock:
-    """The lock of one output folder, held by the run writing it (released when its process ends,
-    whatever way it ends), with who holds it beside it (``HOLDER_NAME``)."""
+    """The lock of one output folder, held by the run writing it (freed when its process ends)."""
 
     def __init__(self, folder: str | os.PathLike[str]):
         from filelock import FileLock
@@ -292,8 +276,7 @@ def running(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
 def kept_methods(
     output_dir: Path, methods: list[str], binding: dict[str, Any]
 ) -> tuple[list[str], dict[str, dict[str, Any]]]:
-    """The methods an output folder holds that this run does not rerun, with their bindings;
-    ``RecordError`` when any of them was scored on other pairs, labels or images than this run's."""
+    """The methods kept from earlier runs, with their bindings; refused when bound to other inputs."""
     published = (read_record(output_dir) or {}).get("methods", {})
     kept = {m: {k: v for k, v in entry.items() if k != "files"} for m, entry in published.items() if m not in methods}
     other = [  # an imported method read no images (images_digest None): its pairs and labels bind it
@@ -313,8 +296,7 @@ def kept_methods(
 
 # ---------------------------------------------------------------------- stage --
 def open_stage(folder: str | os.PathLike[str]) -> Path:
-    """A new, empty stage in ``folder`` for one run; the stages of earlier runs that stopped
-    (the lock holder's to remove: no run is using them) are deleted first."""
+    """A new stage in ``folder``; stopped runs' stages are deleted first (the lock holder's to remove)."""
     folder = Path(folder)
     for old in folder.glob(f"{STAGE_PREFIX}*"):
         if old.is_dir() and is_stage(old):
@@ -345,8 +327,7 @@ def staged_files(stage: Path) -> list[str]:
 
 
 def carry(folder: Path, stage: Path, methods: Iterable[str]) -> list[str]:
-    """Copy the published files of ``methods`` (kept from earlier runs) into the stage, so the
-    stage holds the folder's whole next state; returns the methods carried."""
+    """Copy the kept ``methods``' files into the stage (the folder's whole next state); those carried."""
     record = read_record(folder) or {"methods": {}, "files": {}}
     carried = []
     for method in methods:
@@ -370,12 +351,8 @@ def method_files(files: Iterable[str], method: str) -> list[str]:
 
 
 def publish(folder: Path, stage: Path, methods: dict[str, dict[str, Any]]) -> list[str]:
-    """Move a finished stage's files into ``folder`` and record them; the files of the previous
-    publication that the stage does not hold again are removed (its run wrote them).
-    ``methods``: method -> what its results are bound to, kept in the record.
-
-    The record says ``publishing`` while files move, so a reader never takes a half-moved folder
-    for a run's results; the next run on the folder finishes the move first (``finish_publishing``)."""
+    """Move a finished stage into ``folder``; the record says ``publishing`` meanwhile, so a reader never
+    takes a half-moved folder for results (``finish_publishing`` completes a killed move)."""
     check_no_foreign_files(folder, staged_files(stage))
     with editing(folder) as record:
         record["state"] = "publishing"
@@ -395,8 +372,7 @@ def _move_and_record(folder: Path, stage: Path) -> list[str]:
             os.replace(stage / name, target)
     fsync_folder(folder)
     with editing(folder) as record:
-        # Only what the previous publication itself published is replaced: files written in
-        # place by others (the explorer's figures, an analysis's) stay theirs.
+        # Only what the previous publication published is replaced: files written in place stay.
         for name in set(record.get("published", [])) - set(files):
             (folder / name).unlink(missing_ok=True)
             record["files"].pop(name, None)
@@ -428,8 +404,7 @@ def finish_publishing(folder: Path) -> bool:
 
 
 def changed_files(folder: str | os.PathLike[str], names: Iterable[str] | None = None) -> list[str]:
-    """Of the files the record lists (or of ``names`` among them), those changed or gone since
-    the package wrote them."""
+    """Of the recorded files (or ``names`` among them), those changed or gone since written."""
     folder = Path(folder)
     record = read_record(folder) or {"files": {}}
     listed = record["files"]
@@ -443,10 +418,8 @@ def _publications(folders: list[Path]) -> list[tuple[Any, ...] | None]:
 
 
 def read_whole(folders: str | os.PathLike[str] | Iterable[str | os.PathLike[str]], read: Callable[[], T]) -> T:
-    """``read()`` of one publication of each folder. A run publishing into one (its files move
-    in milliseconds) is waited for, and a read it overlapped starts again on the new
-    publication, so a reader polling a folder that runs publish into sees each run whole: never
-    half of two, never a refusal for the move. What ``read`` refuses otherwise is raised."""
+    """``read()`` of one whole publication of each folder: a publishing run is waited for, and a
+    read it overlapped starts again, so a reader never sees half of two runs."""
     import time
 
     paths = [Path(folders)] if isinstance(folders, (str, os.PathLike)) else [Path(f) for f in folders]
@@ -482,8 +455,7 @@ def check_published(folder: str | os.PathLike[str]) -> dict[str, Any]:
             "version); run the methods into a new folder (python -m gvbench_nb run PARAMS --output-dir NEW)"
         )
     if record.get("state") == "publishing" and running(folder) is None:
-        # A run killed while publishing left its files in its stage: the move is finished here, so
-        # the folder is that run's results, whole (when the move cannot finish, it is refused below).
+        # A run killed while publishing: finish its move (when that fails, it is refused below).
         with contextlib.suppress(RecordError, OSError), FolderLock(folder):
             finish_publishing(folder)
         record = read_record(folder) or record

@@ -1,13 +1,6 @@
 """Per-pair scores computed elsewhere, in and out: the GV-Bench authors' ``.npy`` (a pickled dict,
-``$seq_$feature_$match.npy``, documented in their repository's ``.asset/replicate.md``) and a plain
-table ``query reference label score`` (CSV or whitespace).
-
-``import_scores`` publishes such a file as one method of an output folder, through the run record
-like a run (``record.publish``), so every reader takes it for a result; its ``run.json`` says it
-was imported, from which file and that file's SHA-256. ``export_npy`` writes a method's pairs back
-in the authors' format. The ``.npy`` is read by an unpickler that builds only numpy arrays and
-scalars besides Python's plain data: a pickle naming anything else is refused before it runs.
-"""
+their ``.asset/replicate.md``; read by an unpickler that builds only numpy arrays and plain data) and
+a ``query reference label score`` table, published as one method like a run (``record.publish``)."""
 
 from __future__ import annotations
 

@@ -93,10 +93,8 @@ def timers_source(run: dict[str, Any]) -> str:
 
 
 def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = True) -> pd.DataFrame:
-    """AP, MR and seconds per pair for every method with results; writes ``results.csv``.
-
-    Every method must have scored the same pairs with the same labels (``pairs_digest``, from
-    the pairs tables themselves): a table that mixes pair files is refused, naming the rows."""
+    """AP, MR and seconds per pair for every method with results; writes ``results.csv``. Methods
+    scored on other pairs or labels (``pairs_digest``) are refused, naming the rows."""
     output_dir = Path(output_dir)
     methods = methods or methods_with_results(output_dir)
     if not methods:
@@ -212,12 +210,8 @@ def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
 def readable_methods(
     output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None, tables: Iterable[str] = ()
 ) -> list[str]:
-    """The one test every reader of results runs at its entry, before any work or file (``results``,
-    ``compare``, ``report``, ``explore``, the analysis notebooks): the folder holds a published
-    run's record; ``methods`` (default: every finished one) are finished, their files (and
-    ``tables``, e.g. ``results.csv``) unedited since the package wrote them, their pair file and
-    images unchanged since, and all scored on the same pairs and labels. Returns the methods;
-    raises the one sentence a user reads otherwise."""
+    """The check every reader of results runs first: a published record, ``methods`` finished, their
+    files (and ``tables``) and inputs unchanged, all on the same pairs and labels; the methods."""
     folder = Path(output_dir)
     if not folder.is_dir():
         evaluate(folder, write=False)  # says the folder does not exist

@@ -1,12 +1,6 @@
-"""A crash- and concurrency-safe key -> arrays store made of HDF5 shards.
-
-Each writer buffers entries and commits them as a new shard file: written under a
-temporary name, closed, fsynced and renamed. A killed run therefore loses only its
-uncommitted buffer, a reader never sees a half-written entry, and two runs writing
-the same store (two sequences sharing images, two methods at once) never touch the
-same file. A killed writer's hidden temporary file is deleted by the next writer on
-the same host. hloc keeps one HDF5 file a conf; we keep one folder a conf.
-"""
+"""A crash- and concurrency-safe key -> arrays store: a folder of HDF5 shards, each written under a
+temporary name, fsynced and renamed, so a killed run loses only its buffer and no two writers share a
+file. hloc keeps one HDF5 file a conf; we keep one folder a conf."""
 
 from __future__ import annotations
 
@@ -28,11 +22,7 @@ import numpy as np
 from gvbench_nb import GVBenchError
 from gvbench_nb.io_utils import WRITE_FAILURES, fsync_folder
 
-# The layout's version is in the name: a shard of another layout is not listed (its entries are
-# computed again) rather than read as damaged.
-SHARD_SUFFIX = ".v2.h5"
-
-
+SHARD_SUFFIX = ".v2.h5"  # a shard of another layout is not listed (recomputed), not read as damaged
 # In temporary names, so a writer only ever cleans up after dead writers of its own host.
 _HOST = quote(socket.gethostname(), safe="") or "host"
 
@@ -57,14 +47,9 @@ class StoreWriteError(GVBenchError, OSError):
     """A shard could not be written (disk full, quota, file size limit); nothing of it is kept."""
 
 
-# A shard holds one HDF5 group of datasets an entry, and one table of its entries (the JSON
-# dataset ``_entries``: each key's attributes, such as num_inliers, and the CRC-32 of each of
-# its datasets' dtype, shape and bytes), whose own CRC-32 is the file's attribute
-# ``_entries_digest``. One table a shard, not HDF5 attributes on each entry: reading the counts
-# of a sequence's pairs then costs a read a shard, not a dozen an entry. HDF5's Fletcher32
-# filter would need chunked datasets (not scalars), hence our own. CRC-32 catches damage; it is
-# no defence against someone who can rewrite the cache, and need not be: such a person can
-# rewrite the results too.
+# A shard: one HDF5 group an entry, and one JSON table of entries (attributes and each dataset's
+# CRC-32), itself checked by a CRC-32 attribute: one read a shard for a sequence's counts. CRC-32
+# catches damage, not tampering (whoever can rewrite the cache can rewrite the results).
 _ENTRIES = "entries table"  # a space: no quoted key is this name
 _ENTRIES_DIGEST = "_entries_digest"
 
@@ -108,8 +93,7 @@ class ShardedStore:
     def __init__(self, folder: str | os.PathLike[str], max_open: int = 16):
         self.folder = Path(folder)
         self._index: dict[str, Path] | None = None
-        # Shards open for reading with their entries tables, least recently read first. Bounded:
-        # reading every pair of a long sequence would otherwise hold every shard open.
+        # Shards open for reading, least recently read first; bounded so a long sequence holds few.
         self.max_open = max_open
         self._open: OrderedDict[Path, tuple[h5py.File, dict[str, dict]]] = OrderedDict()
 
@@ -128,8 +112,7 @@ class ShardedStore:
                 with h5py.File(shard, "r") as handle:
                     names = [name for name in handle.keys() if name != _ENTRIES]
             except OSError as error:
-                # Committed shards are complete (fsync then rename); one that is not was
-                # damaged afterwards (disk, copy, another tool): say which, and the way out.
+                # Committed shards are complete (fsync then rename): this one was damaged since.
                 raise StoreCorruptError(
                     f"cannot read shard {shard} of the store {self.folder}: {error}. Delete that file; "
                     "the entries it held are recomputed by the next run"
@@ -177,8 +160,7 @@ class ShardedStore:
         return entry
 
     def _opened(self, shard: Path) -> tuple[h5py.File, dict[str, dict]]:
-        """A shard's open handle and its checked entries table; the most recently read shards
-        stay open, at most max_open of them."""
+        """A shard's open handle and checked entries table; at most max_open stay open."""
         opened = self._open.pop(shard, None)
         if opened is None:
             try:
@@ -211,11 +193,7 @@ class ShardedStore:
         return ShardWriter(self, flush_every)
 
     def remove_dead_temporaries(self) -> list[Path]:
-        """Delete the half-written shards of killed writers (readers skip them anyway).
-
-        Only files of this host whose writing process is gone: on a shared folder a
-        live writer elsewhere, or here, keeps its file.
-        """
+        """Delete half-written shards of this host's writers that are gone (live ones keep theirs)."""
         removed: list[Path] = []
         if not self.folder.is_dir():
             return removed
@@ -248,11 +226,8 @@ class ShardWriter:
         name = f"shard-{os.getpid()}-{uuid.uuid4().hex[:12]}"
         temporary = folder / f".{name}.{_HOST}.tmp"
         final = folder / f"{name}{SHARD_SUFFIX}"
-        # The shard is built in memory and written with plain file I/O: a write that fails
-        # (a full disk, a quota, a file size limit) is then one OSError naming the file, where
-        # HDF5 writing to disk itself can end in a cascade of errors or a crash. The temporary
-        # file is opened first, so a writer killed while building leaves it for the next
-        # writer to delete, as one killed while writing does.
+        # Built in memory, written with plain file I/O: a failed write is one OSError naming the file
+        # (HDF5 on disk can cascade or crash). The temporary is opened first, for cleanup when killed.
         buffer = io.BytesIO()
         try:
             with open(temporary, "wb") as stream:

@@ -1,7 +1,5 @@
-"""A `run` of N methods computes each method, and each of its pairs, once: in the run's own
-process, not again in the notebook kernels it starts. Every process of the run (the command
-and each kernel) counts the calls into one file, through an import hook that a
-``sitecustomize`` on the PYTHONPATH installs as each process starts."""
+"""A `run` computes each method, and each pair, once, in its own process, not again in the kernels:
+every process counts its calls into one file through a ``sitecustomize`` import hook."""
 
 from __future__ import annotations
 

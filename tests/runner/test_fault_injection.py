@@ -1,9 +1,5 @@
-"""Fault injection: no change of input leaves a stale result, and every error a user can
-cause is one sentence naming what, where and what to do.
-
-Part of ``pytest -m reliability``. The sequence is four small photographs (scikit-image's)
-and their warped copies, matched with SIFT at native size: seconds, no real data needed.
-"""
+"""Fault injection: no change of input leaves a stale result, and every user error is one sentence.
+Four small photographs (scikit-image's) and their warped copies, matched with SIFT: seconds."""
 
 from __future__ import annotations
 
@@ -431,36 +427,30 @@ def valid(root, tmp_path) -> Path:
     return _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache"))
 
 
-def test_a_missing_pair_file_is_one_sentence(tmp_path, capsys, root):
-    params = _params(tmp_path, image_root=str(root), pairs=str(tmp_path / "absent.txt"))
-    message = cli_error(capsys, "run", str(params))
-    assert f"{params}: the pair file {tmp_path / 'absent.txt'} does not exist; set pairs" in message
-
-
-def test_output_dir_that_is_a_file_is_one_sentence(tmp_path, capsys, valid):
-    (tmp_path / "out").write_text("")
-    message = cli_error(capsys, "run", str(valid))
-    assert f"output_dir {tmp_path / 'out'} is a file, not a folder; set output_dir (or pass --output-dir)" in message
-
-
-def test_an_output_folder_that_cannot_be_written_is_one_sentence(tmp_path, capsys, valid):
-    # root writes anywhere a mode allows nothing; /proc refuses even root
-    target = Path("/proc/gvbench-nb-not-writable") if os.geteuid() == 0 else tmp_path / "read_only"
-    if os.geteuid() != 0:
-        target.mkdir(mode=0o500)
-    message = cli_error(capsys, "run", str(valid), "--output-dir", str(target))
-    assert f"cannot write in output_dir {target}" in message and "--output-dir" in message
-
-
-def test_results_on_a_folder_without_results_is_one_sentence(tmp_path, capsys):
-    (tmp_path / "empty").mkdir()
-    message = cli_error(capsys, "results", str(tmp_path / "empty"))
-    assert f"{tmp_path / 'empty'} holds no gvbench-run.json, so no gvbench-nb run wrote it" in message
-
-
-def test_a_missing_image_root_says_the_folder_does_not_exist(tmp_path, capsys, valid):
-    message = cli_error(capsys, "run", str(valid), "--image-root", str(tmp_path / "nowhere"))
-    assert f"image_root {tmp_path / 'nowhere'} does not exist" in message and "--image-root" in message
+@pytest.mark.parametrize("case", ["pair file missing", "output_dir a file", "not writable", "no results", "no root"])
+def test_a_user_error_is_one_sentence(tmp_path, capsys, valid, case):
+    out, nowhere, argv = tmp_path / "out", tmp_path / "nowhere", ["run", str(valid)]
+    if case == "pair file missing":
+        (tmp_path / "pairs.txt").unlink()
+        expected = [f"{valid}: the pair file {tmp_path / 'pairs.txt'} does not exist; set pairs"]
+    elif case == "output_dir a file":
+        out.write_text("")
+        expected = [f"output_dir {out} is a file, not a folder; set output_dir (or pass --output-dir)"]
+    elif case == "not writable":  # root writes anywhere a mode allows nothing; /proc refuses even root
+        target = Path("/proc/gvbench-nb-not-writable") if os.geteuid() == 0 else nowhere
+        if os.geteuid() != 0:
+            target.mkdir(mode=0o500)
+        argv += ["--output-dir", str(target)]
+        expected = [f"cannot write in output_dir {target}", "--output-dir"]
+    elif case == "no results":
+        nowhere.mkdir()
+        argv = ["results", str(nowhere)]
+        expected = [f"{nowhere} holds no gvbench-run.json, so no gvbench-nb run wrote it"]
+    else:
+        argv += ["--image-root", str(nowhere)]
+        expected = [f"image_root {nowhere} does not exist", "--image-root"]
+    message = cli_error(capsys, *argv)
+    assert all(part in message for part in expected), message
 
 
 def test_an_image_deleted_since_the_last_run_names_it_and_its_pair(tmp_path, capsys, valid, root):

@@ -1,8 +1,5 @@
-"""imm:<name> methods: any vismatch (image-matching-models) matcher as a pair matcher of ours.
-
-The first tests run everywhere: vismatch is replaced by a stand-in module, or reported absent.
-The parity tests need the opt-in environment (`make setup-imm`) and skip with a message without it.
-"""
+"""imm:<name> methods: any vismatch matcher as a pair matcher of ours (a stand-in module here; the
+parity tests need the opt-in environment, `make setup-imm`, and skip without it)."""
 
 from __future__ import annotations
 
@@ -265,9 +262,7 @@ def gardens_point_pairs(shared_data: Path) -> Sequence:
 
 
 def fork_ransac(matched0: np.ndarray, matched1: np.ndarray) -> tuple:
-    """The fork's RANSAC step (BaseMatcher.process_matches, branch gvbench), written from its
-    published code: fewer than 8 matches are all inliers; else the inliers of
-    cv2.findFundamentalMat(FM_RANSAC, 3, 0.95, 2000) on the points as the matcher gave them.
+    """The fork's RANSAC step (BaseMatcher.process_matches, branch gvbench), from its published code;
     vismatch 1.4.0 itself fits a homography (USAC_MAGSAC, 0.995) instead."""
     if len(matched0) < 8:
         return None, matched0, matched1

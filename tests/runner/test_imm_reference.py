@@ -1,11 +1,5 @@
-"""The reference tier for ``imm:`` methods: they give vismatch's own matches, pair by pair.
-
-vismatch's own loop loads each image with its loader (``BaseMatcher.load_image``: Pillow's RGB,
-torchvision's float tensor resized with antialiasing) and calls the matcher's ``_forward`` on
-the two tensors; an ``imm:`` method runs through our pair loop and stores. On the first 10 pairs
-of ``params/gardens_point.yaml`` (``--limit 10``) both must find the same matches at the same
-points. Runs only in the opt-in venv (``make test-reference``), and needs the real data.
-"""
+"""``imm:`` methods give vismatch's own matches (its ``load_image`` then ``_forward``), pair by pair,
+on the first 10 pairs of ``params/gardens_point.yaml``; opt-in venv (``make test-reference``) only."""
 
 from __future__ import annotations
 

@@ -104,45 +104,21 @@ def test_prefetch_preserves_order_and_surfaces_errors_in_place():
 @pytest.mark.slow
 @pytest.mark.real_data
 def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
-    output = tmp_path / "gp"
-    completed = subprocess.run(
-        [
-            sys.executable,
-            "-m",
-            "gvbench_nb",
-            "run",
-            str(config.PROJECT_ROOT / "params" / "gardens_point.yaml"),
-            "--methods",
-            "sift-nn",
-            "--limit",
-            "24",
-            "--output-dir",
-            str(output),
-        ],
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
+    output, params = tmp_path / "gp", config.PROJECT_ROOT / "params" / "gardens_point.yaml"
+    argv = ["run", str(params), "--methods", "sift-nn", "--limit", "24", "--output-dir", str(output)]
+    completed = subprocess.run([sys.executable, "-m", "gvbench_nb", *argv], capture_output=True, text=True, timeout=600)
     assert completed.returncode == 0, completed.stderr[-3000:]
     assert f"results table: {output / 'results.csv'}" in completed.stdout
     results = pd.read_csv(output / "results.csv")
     assert set(results.columns) >= RESULTS_COLUMNS
     pairs = pd.read_csv(output / "sift-nn" / "pairs.csv")
     assert set(pairs.columns) >= PAIRS_COLUMNS
-    sequence = sequence_build.prepare_sequence(
-        config.load_params(config.PROJECT_ROOT / "params" / "gardens_point.yaml", limit=24)
-    )
+    sequence = sequence_build.prepare_sequence(config.load_params(params, limit=24))
     assert len(sequence.pairs) == 24
     check_stage_outputs(output, "sift-nn", sequence.pairs)  # one row a pair, metrics recomputed from them
-    for name in (
-        "01_sequence.ipynb",
-        "02_verify_sift-nn.ipynb",
-        "03_evaluate.ipynb",
-        "pr_curves.png",
-        "sequence_examples.png",
-        "inliers_sift-nn.png",
-    ):
-        assert (output / name).is_file(), name
+    notebooks = ["01_sequence.ipynb", "02_verify_sift-nn.ipynb", "03_evaluate.ipynb"]
+    figures = ["pr_curves.png", "sequence_examples.png", "inliers_sift-nn.png"]
+    assert [name for name in notebooks + figures if not (output / name).is_file()] == []
 
 
 def test_cli_reports_bad_params_clearly(tmp_path):
@@ -177,13 +153,8 @@ def test_run_method_finds_its_finished_result_done_without_torch_and_redoes_anot
         "device='cpu', progress=False)\n"
         "print(len(table), json.dumps([m for m in ('torch', 'kornia') if m in sys.modules]))"
     )
-    done = subprocess.run(
-        [sys.executable, "-c", code],
-        capture_output=True,
-        text=True,
-        timeout=300,
-        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)},
-    )
+    env = {**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)}
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300, env=env)
     assert done.returncode == 0, done.stderr[-2000:]
     assert done.stdout.strip().splitlines()[-1] == "6 []"
     assert {name: (out / "sift-nn" / name).read_bytes() for name in written} == written  # found, not rewritten

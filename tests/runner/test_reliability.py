@@ -1,13 +1,6 @@
-"""Reliability: bad input gets a clear error, interrupted runs lose nothing, concurrent
-runs cannot corrupt the caches, the same input gives the same scores, nothing is executed.
-
-Runs use ``sift-nn`` on real Gardens Point frames downscaled to 320x180 (so a run
-takes a second or two). Interruptions are real SIGKILLs of a child process at
-deterministic points: the child (the ``CHILD`` script below, test code only) wraps
-``ShardWriter.put``, h5py's ``create_group`` or ``DataFrame.to_csv`` and kills itself
-at the n-th item. A parent polling the stores for a shard would race a run this
-small; this way the library holds no fault-injection code.
-"""
+"""Reliability on Gardens Point frames at 320x180 with ``sift-nn``: interrupted runs lose nothing,
+concurrent runs corrupt nothing, the same input gives the same scores. Kills are real SIGKILLs a
+child (``CHILD``) sends itself at the n-th stored item, so the library holds no fault injection."""
 
 from __future__ import annotations
 
@@ -55,6 +48,7 @@ PROFILE = "paper"
 FRAMES = list(range(0, 200, 10))  # 20 queries, 20 references -> 40 images
 N_PAIRS = 4 * len(FRAMES)  # 80 pairs: 20 true, 60 false
 EXTRACT_FLUSH, MATCH_FLUSH = 16, 64  # pipeline's shard sizes: kills are placed past one commit
+SCORES = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
 
 
 # ---------------------------------------------------------------- fixtures --
@@ -473,22 +467,11 @@ def test_the_params_seed_drives_every_random_choice_of_the_pair_builder(shared_d
 def test_two_jobs_store_what_one_job_stores(sequence, baseline, tmp_path):
     table = run_here(sequence, tmp_path, jobs=2)
     assert run_json(tmp_path / "out")["this_run"]["jobs"] == 2
-    expected = scoring.load_pairs_table(baseline["out"], METHOD)
-    columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
-    pd.testing.assert_frame_equal(table[columns], expected[columns])
-    conf = methods.resolve_method(METHOD, PROFILE)
-    ours, theirs = (
-        image_features.feature_store(cache, conf["extractor"]) for cache in (tmp_path / "cache", baseline["cache"])
-    )
-    assert sorted(ours.keys()) == sorted(theirs.keys()) and len(ours) == 40
-    for key in ours.keys():
-        for name in ("keypoints", "descriptors", "scores", "image_size"):
-            np.testing.assert_array_equal(ours.read(key)[name], theirs.read(key)[name])
-    mine, reference = (pair_matching.match_store(out, conf) for out in (tmp_path / "out", baseline["out"]))
-    for pair in sequence.pairs[::7]:
-        key = pair_matching.pair_key(sequence.image_root, pair.query, pair.reference, 0)
-        for name in ("matches", "inlier_mask"):
-            np.testing.assert_array_equal(mine.read(key)[name], reference.read(key)[name])
+    pd.testing.assert_frame_equal(table[SCORES], scoring.load_pairs_table(baseline["out"], METHOD)[SCORES])
+    (features, matches), (reference_features, reference_matches) = stores(tmp_path), stores(baseline["out"].parent)
+    assert len(features) == 40
+    assert_store_matches(features, reference_features)
+    assert_store_matches(matches, reference_matches)
 
 
 @pytest.mark.real_data
@@ -496,5 +479,4 @@ def test_scores_do_not_depend_on_the_order_pairs_run_in(sequence, baseline, tmp_
     reversed_sequence = Sequence(sequence.name, sequence.image_root, sequence.pairs[::-1])
     table = run_here(reversed_sequence, tmp_path, cache=baseline["cache"])
     expected = scoring.load_pairs_table(baseline["out"], METHOD)
-    columns = ["query", "reference", "label", "num_matches", "num_matches_filtered", "num_inliers", "score"]
-    pd.testing.assert_frame_equal(table[columns].iloc[::-1].reset_index(drop=True), expected[columns])
+    pd.testing.assert_frame_equal(table[SCORES].iloc[::-1].reset_index(drop=True), expected[SCORES])

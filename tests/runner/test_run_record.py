@@ -1,12 +1,6 @@
 """The run record: an output folder is one run's truth, never mixed, never stale, never a user's.
-
-Part of ``pytest -m reliability``. Each test is a way a careless or hostile user could make
-a table wrong while the exit code says 0; docs/reliability.md lists them beside their promise.
-The runs go through ``python -m gvbench_nb run``'s own code (``cli.main``) with the notebooks
-executed in this process (``in_process_notebooks``: what each stage notebook computes, without
-papermill), on four small photographs matched with ORB: seconds, no real data needed. One test
-runs the real notebooks in a second process.
-"""
+Runs go through ``cli.main`` with the notebooks computed in this process (``in_process_notebooks``),
+on four small photographs matched with ORB; docs/reliability.md lists each test beside its promise."""
 
 from __future__ import annotations
 
@@ -98,24 +92,20 @@ def snapshot(folder: Path) -> dict[str, bytes]:
 
 
 # ---------------------------------------------------------------- ownership --
-def test_a_folder_of_the_users_files_is_refused_and_left_byte_identical(tmp_path, root, capsys, notebooks_here):
-    out = tmp_path / "out"
-    (out / "orb-nn").mkdir(parents=True)
+@pytest.mark.parametrize("output_dir", ["out", ""])  # "": the params file's folder
+def test_a_folder_of_the_users_files_is_refused_and_left_byte_identical(
+    tmp_path, root, capsys, notebooks_here, output_dir
+):
+    out = tmp_path / output_dir
+    (out / "orb-nn").mkdir(parents=True, exist_ok=True)
     for name in ("results.csv", "orb-nn/pairs.csv", "pr_curves.png", "01_sequence.ipynb"):
         (out / name).write_text(f"the user's own {name}\n")
+    path = params_file(tmp_path, output_dir=str(out) if output_dir else "")
     before = snapshot(out)
-    code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)))
+    code, _, err = run_cli(capsys, "run", str(path))
     assert code == 2
     assert f"output folder {out} is not empty" in one_sentence(err) and "gvbench-run.json" in err
     assert snapshot(out) == before
-
-
-def test_an_empty_output_dir_string_is_the_params_folder_and_is_refused(tmp_path, root, capsys, notebooks_here):
-    path = params_file(tmp_path, output_dir="")
-    before = snapshot(tmp_path)
-    code, _, err = run_cli(capsys, "run", str(path))
-    assert code == 2 and "is not empty" in one_sentence(err)
-    assert snapshot(tmp_path) == before
 
 
 def test_a_file_the_package_wrote_and_the_user_edited_is_not_overwritten(tmp_path, root, capsys, notebooks_here):
@@ -166,8 +156,8 @@ def test_a_second_run_on_a_held_folder_is_refused_and_writes_nothing(tmp_path, r
             k: v for k, v in before.items() if k != record.HOLDER_NAME
         }
         # Meanwhile `results` shows what is published and says a run is writing the folder.
-        code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
-        assert code == 0 and "orb-nn" in out and f"a run (pid {holder.pid}" in out
+        code, out, err = run_cli(capsys, "results", str(tmp_path / "out"))
+        assert code == 0 and "orb-nn" in out and f"a run (pid {holder.pid}" in err
     finally:
         holder.kill()
         holder.wait()
@@ -219,43 +209,31 @@ def test_a_run_on_another_pair_file_into_a_folder_holding_other_methods_is_refus
     assert sorted(results["method"]) == ["orb-nn", "sift-opencv-nn"] and results["pairs_digest"].nunique() == 1
 
 
-def test_results_refuses_a_folder_whose_methods_scored_different_labels_naming_them(tmp_path, root, capsys):
-    out, cache = tmp_path / "out", tmp_path / "cache"
+def test_results_and_the_report_refuse_methods_scored_on_different_labels_naming_them(tmp_path, root, capsys):
+    out, cache, tables = tmp_path / "out", tmp_path / "cache", {}
     for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):  # the library writes in place
-        method_runs.run_method(
+        tables[method] = method_runs.run_method(
             Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
         )
     code, out_text, err = run_cli(capsys, "results", str(out))
     assert code == 2 and out_text == ""
     assert "scored on different pairs or labels (orb-nn: pairs" in one_sentence(err) and "sift-opencv-nn: pairs" in err
-
-
-def test_the_report_never_scores_one_method_against_another_methods_labels(tmp_path, root):
-    out, cache = tmp_path / "out", tmp_path / "cache"
-    tables = {}
-    for method, pairs in (("orb-nn", PAIRS), ("sift-opencv-nn", FLIPPED)):
-        tables[method] = method_runs.run_method(
-            Sequence("photos", root, pairs), method, "repository", out, cache, device="cpu", progress=False
-        )
     with pytest.raises(method_outputs.ResultsError, match="label 4 of the same pairs differently"):
-        run_tables.align_tables(tables)
+        run_tables.align_tables(tables)  # the report never scores one method against another's labels
 
 
-def test_a_label_edited_after_the_run_makes_results_refuse_naming_the_file(tmp_path, root, capsys, notebooks_here):
-    path = params_file(tmp_path)
-    assert run_cli(capsys, "run", str(path))[0] == 0
+@pytest.mark.parametrize("changed", ["label", "image"])
+def test_results_refuses_results_whose_inputs_changed_since_the_run(tmp_path, root, capsys, notebooks_here, changed):
+    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
     pairs_file = tmp_path / "params-pairs.txt"
-    write_pairs(pairs_file, [PAIRS[0], Pair(PAIRS[1].query, PAIRS[1].reference, 1), *PAIRS[2:]])
+    if changed == "label":
+        write_pairs(pairs_file, [PAIRS[0], Pair(PAIRS[1].query, PAIRS[1].reference, 1), *PAIRS[2:]])
+    else:
+        (root / "query" / "a.png").write_bytes((root / "query" / "b.png").read_bytes())
     code, out, err = run_cli(capsys, "results", str(tmp_path / "out"))
     assert code == 2 and out == ""
-    assert f"orb-nn: the pair file {pairs_file} changed" in one_sentence(err)
-
-
-def test_an_image_replaced_after_the_run_makes_results_refuse(tmp_path, root, capsys, notebooks_here):
-    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
-    (root / "query" / "a.png").write_bytes((root / "query" / "b.png").read_bytes())
-    code, _, err = run_cli(capsys, "results", str(tmp_path / "out"))
-    assert code == 2 and f"orb-nn: images under {root} changed" in one_sentence(err)
+    expected = f"the pair file {pairs_file} changed" if changed == "label" else f"images under {root} changed"
+    assert f"orb-nn: {expected}" in one_sentence(err)
 
 
 # ------------------------------------------------------------ published whole --

@@ -1,12 +1,5 @@
-"""Scores computed elsewhere, in and out: ``import-scores`` (the GV-Bench authors' per-pair .npy
-and plain tables) and ``results --export npy``.
-
-The authors' files are built here in the format their repository documents (``.asset/replicate.md``:
-``np.save`` of a dict with qImages, rImages, gt, inliers, prob, precision, recall, TH,
-average_precision, Max Recall; their single-process evaluation keeps each pair's inlier point rows
-in ``inliers``, their multiprocess one the counts). Runs go through ``cli.main`` with the stage
-notebooks computed in this process, on a small render of the synthetic ``sample`` route.
-"""
+"""``import-scores`` and ``results --export npy``: the GV-Bench authors' .npy is built here as their
+``.asset/replicate.md`` documents it (inliers as point rows or counts), on a small ``sample`` render."""
 
 from __future__ import annotations
 
@@ -165,16 +158,9 @@ def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, 
 def sample_params(tmp_path: Path) -> Path:
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(320, 240))
-    params = {
-        "sequence": "sample",
-        "image_root": str(root),
-        "pairs": str(root / "pairs.txt"),
-        "methods": ["orb-nn"],
-        "profile": "repository",
-        "output_dir": str(tmp_path / "out"),
-        "cache_dir": str(tmp_path / "cache"),
-        "device": "cpu",
-    }
+    params = {"sequence": "sample", "image_root": str(root), "pairs": str(root / "pairs.txt"), "methods": ["orb-nn"]}
+    params |= {"profile": "repository", "output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache")}
+    params["device"] = "cpu"
     path = tmp_path / "sample.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
@@ -199,17 +185,8 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
 
     # Back into the run's own folder (beside orb-nn) and into a folder of its own.
     for folder in (out, tmp_path / "back"):
-        code, _, err = run_cli(
-            capsys,
-            "import-scores",
-            str(exported),
-            "--sequence",
-            "sample",
-            "--method",
-            "orb-nn-back",
-            "--output-dir",
-            str(folder),
-        )
+        argv = ["import-scores", str(exported), "--sequence", "sample", "--method", "orb-nn-back"]
+        code, _, err = run_cli(capsys, *argv, "--output-dir", str(folder))
         assert code == 0, err
         back, original = results_row(capsys, folder, "orb-nn-back"), results_row(capsys, out, "orb-nn")
         assert (back["ap"], back["max_recall"]) == (original["ap"], original["max_recall"])

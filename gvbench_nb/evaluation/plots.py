@@ -154,22 +154,13 @@ def draw_matches(
     order = np.argsort(~inlier_mask)[:max_lines]
     for index in order:
         (x0, y0), (x1, y1) = points0[index], points1[index]
-        axis.plot(
-            [x0, x1 + offset],
-            [y0, y1],
-            color="lime" if inlier_mask[index] else "red",
-            linewidth=0.6,
-            alpha=0.8,
-        )
+        axis.plot([x0, x1 + offset], [y0, y1], color="lime" if inlier_mask[index] else "red", linewidth=0.6, alpha=0.8)
     axis.axis("off")
     return axis
 
 
 def pair_matches(
-    images: tuple[np.ndarray, np.ndarray],
-    view: pd.DataFrame,
-    lines: dict[str, dict[str, np.ndarray]],
-    title: str = "",
+    images: tuple[np.ndarray, np.ndarray], view: pd.DataFrame, lines: dict[str, dict[str, np.ndarray]], title: str = ""
 ) -> plt.Figure:
     """One pair's matches and inliers, one row a method of ``view`` (explore's table), each
     titled with its score and rank; ``lines``: each method's ``analysis.match_lines``."""

@@ -221,11 +221,7 @@ class VerifierBench:
         return features
 
     def evaluate(
-        self,
-        names: Iterable[str],
-        split: str = verifier_inputs.SPLIT_TEST,
-        n_resamples: int = 1000,
-        seed: int = 0,
+        self, names: Iterable[str], split: str = verifier_inputs.SPLIT_TEST, n_resamples: int = 1000, seed: int = 0
     ) -> tuple[pd.DataFrame, dict[str, pd.DataFrame], bootstrap.Bootstrap | None]:
         """AP, MR and their query-bootstrap 95% CIs of each verifier on ``split``.
 

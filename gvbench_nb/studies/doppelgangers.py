@@ -55,10 +55,7 @@ def train_in_domain(
     Returns the info: pairs used, seconds to build inputs and to train, the history."""
     import torch  # here only: reading cached matches and scoring them need no torch
 
-    from gvbench_nb.verification.doppelgangers import (
-        DoppelgangersClassifier,
-        train_classifier,
-    )
+    from gvbench_nb.verification.doppelgangers import DoppelgangersClassifier, train_classifier
 
     chosen = verifier_inputs.balanced_subset(train_pairs["label"].to_numpy(), conf["max_train_pairs"], conf["seed"])
     subset = train_pairs.iloc[chosen]

@@ -181,9 +181,8 @@ def pair_matches(
 
 
 def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, columns: int = 2) -> plt.Figure:
-    """Each method's scores of true and false pairs with one pair's score marked (explore's
-    ``view``): a grid of at most ``columns`` panels a row and one legend for all, so four
-    methods stay as legible as one."""
+    """Each method's true and false scores with one pair's score marked (explore's ``view``), at most
+    ``columns`` panels a row and one legend."""
     count = len(view)
     ncols = min(columns, count)
     nrows = -(-count // ncols)

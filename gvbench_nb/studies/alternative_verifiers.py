@@ -1,13 +1,6 @@
-"""Alternative verifiers, each scoring a pair from a run's CACHED matches (nothing re-matches).
-
-Each is a plain conf in ``ALTERNATIVE_VERIFIERS``, identified in every table by ``verifier``
-and ``conf_hash``. Families: ``gv-<model>-<estimator>-<score>`` (a robust fit: model ``F`` or
-``H``; estimator ``ransac`` (the paper's), ``degensac``, ``lo-ransac``, ``magsac``; score
-``inliers`` (the paper's), ``inlier_ratio`` or ``inliers_over_keypoints``), ``sue`` (SUE as a
-per-pair score), ``doppelgangers[-in-domain]`` (the classifier, official or trained here) and
-``learned_combination[+dg]`` (a logistic regression over ``FEATURES``). Learned verifiers never
-see a test place: ``place_disjoint_split`` leaves a gap wider than the ground-truth tolerance.
-"""
+"""Alternative verifiers scoring a pair from a run's CACHED matches: ``gv-<model>-<estimator>-<score>``,
+``sue``, ``doppelgangers[-in-domain]`` and ``learned_combination[+dg]``, each a conf in
+``ALTERNATIVE_VERIFIERS``; learned ones never see a test place (``place_disjoint_split``)."""
 
 from __future__ import annotations
 
@@ -113,13 +106,8 @@ def resolve_verifier(name: str, **overrides: Any) -> dict[str, Any]:
 # --------------------------------------------------------------- evaluation --
 @dataclass
 class VerifierBench:
-    """Scores verifiers on one run's cached matches, with a place-disjoint split.
-
-    ``pairs`` is the run's pairs table with a ``split`` column. Fits and inputs are
-    computed once and reused by every verifier that needs them. ``overrides`` maps a
-    verifier name to options replacing its registry conf (e.g. a smaller training);
-    the changed conf is what ``conf_hash`` and ``conf`` record.
-    """
+    """Scores verifiers on one run's cached matches (``pairs`` with a ``split`` column), fitting once.
+    ``overrides`` maps a verifier to options replacing its conf (recorded in ``conf_hash``/``conf``)."""
 
     cached: verifier_inputs.CachedMatches
     pairs: pd.DataFrame
@@ -223,11 +211,8 @@ class VerifierBench:
     def evaluate(
         self, names: Iterable[str], split: str = verifier_inputs.SPLIT_TEST, n_resamples: int = 1000, seed: int = 0
     ) -> tuple[pd.DataFrame, dict[str, pd.DataFrame], bootstrap.Bootstrap | None]:
-        """AP, MR and their query-bootstrap 95% CIs of each verifier on ``split``.
-
-        A verifier that cannot run (missing weights) gets a row with its reason in
-        ``status`` and no numbers. Returns (rows, per-verifier score tables, bootstrap).
-        """
+        """AP, MR and query-bootstrap 95% CIs of each verifier on ``split`` (a verifier that cannot run: its
+        reason in ``status``). Returns (rows, per-verifier score tables, bootstrap)."""
         rows, tables = [], {}
         part = self.used()[self.used()["split"] == split]
         for name in names:

@@ -1,23 +1,10 @@
 """Controlled condition study: how AP, MR and aliasing move as one condition strengthens.
 
-On the synthetic route the reference drive stays a clear day and the query drive is rendered
-once per (condition, strength) with only that condition set: poses, pairs and labels are the
-same in every cell, so any change in AP or MR is the condition's doing.
-
-Layout of ``out_dir``::
-
-    images/route.json            route parameters (a mismatch refuses to mix routes)
-    images/pairs.csv             query_frame, reference_frame, label, look_alike
-    images/reference/NNN.png     clear reference drive, rendered and extracted once
-    images/query_clear/NNN.png   query drive at strength 0 (shared by every condition)
-    images/query_<condition>_<strength>/NNN.png
-    runs/<profile>/<cell>/<method>/pairs.csv   the pipeline's per-pair results
-    cache/                       feature cache (keyed by resolved image path)
-    sweep.csv                    one row a (condition, strength, method, profile) cell
-
-Image folders are renamed into place when complete and ``sweep.csv`` is rewritten atomically
-after each cell, so an interrupted sweep resumes where it stopped.
-"""
+The reference drive stays a clear day; the query drive is rendered once per (condition, strength)
+with only that condition set, so poses, pairs and labels are the same in every cell. ``out_dir``
+holds images/ (route.json, pairs.csv, reference/, query_clear/, query_<condition>_<strength>/),
+runs/<profile>/<cell>/<method>/, cache/ and sweep.csv (one row a cell, rewritten atomically after
+each cell, so an interrupted sweep resumes)."""
 
 from __future__ import annotations
 

@@ -1,12 +1,6 @@
-"""What notebooks/analysis_paper.ipynb computes and draws: the report laid out as the paper.
-
-Table II, the sequence summary (traverse, condition, viewpoint; queries, pairs, positives) of
-every run's sequence and every official list found, counted, beside the paper's text where it
-states them (the two differ: ``reference_values.paper_sequences``); Table III, our AP and MR
-with an Average column and the 1st / 2nd / 3rd of each column marked; Fig. 1, the radar of the
-published MR alone, each line labelled as the paper's or the GV-Bench repository's; Fig. 8, one
-method's MR and AP across sequences side by side.
-"""
+"""What notebooks/analysis_paper.ipynb computes and draws, laid out as the paper: Table II (sequence
+summary beside the paper's text), Table III (AP, MR, Average, ranks marked), Fig. 1 (published MR
+radar) and Fig. 8 (one method's MR and AP across sequences)."""
 
 from __future__ import annotations
 

@@ -39,7 +39,7 @@ TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_se
 def find_output_dirs(
     root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs", sequences: SequenceType[str] | None = None
 ) -> list[Path]:
-    """Sequence output folders under ``root`` holding a ``results.csv`` (sorted), or exactly ``root/<name>`` of ``sequences``."""
+    """Output folders under ``root`` holding a ``results.csv`` (sorted), or exactly those of ``sequences``."""
     root = Path(root)
     if sequences:
         folders = [root / name for name in sequences]
@@ -148,7 +148,7 @@ def measured_methods(output_dir: str | os.PathLike[str]) -> list[str]:
 
 # ------------------------------------------------------------------ the table --
 def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool] = True) -> pd.DataFrame:
-    """True where a cell holds its column's best (ties all, NaN never); ``higher_is_better``: one flag or one a column."""
+    """True where a cell holds its column's best (ties all, NaN never); one flag or one a column."""
     marks = pd.DataFrame(False, index=table.index, columns=table.columns)
     for column in table.columns:
         values = pd.to_numeric(table[column], errors="coerce")
@@ -161,7 +161,7 @@ def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool
 
 
 def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """``cache_dir`` when given, else the one the run recorded in params.resolved.yaml, else ``<output_dir>/../cache``."""
+    """``cache_dir``, else the one the run recorded (params.resolved.yaml), else ``<output_dir>/../cache``."""
     if cache_dir:
         return Path(cache_dir)
     recorded = Path(output_dir) / config.RESOLVED_PARAMS_NAME

@@ -21,11 +21,8 @@ def recall_curves(
     max_k: int | None = None,
     progress: bool = True,
 ) -> pd.DataFrame:
-    """Retrieval recall@k, k = 1..max_k (default top_n), of each descriptor on the same
-    queries, references and ground truth. Columns: descriptor, k, recall, queries_evaluated.
-
-    ``descriptors``: names (each with the params' ``descriptor_options`` for it) or
-    ``{name: descriptor options}``."""
+    """Retrieval recall@k (k = 1..max_k) of each descriptor (names, or ``{name: options}``) on the same
+    queries and ground truth: descriptor, k, recall, queries_evaluated."""
     inputs = build_inputs.prepare_inputs(build_params)
     if not isinstance(descriptors, Mapping):
         descriptors = {n: inputs.descriptor_options(n) for n in descriptors}
@@ -51,10 +48,8 @@ def recall_curves(
 
 
 def best_experience_table(candidates: pd.DataFrame, pairs_table: pd.DataFrame, score: str = "score") -> pd.DataFrame:
-    """Per query, the best-scoring candidate over every experience (``retrieval.best_experience``).
-
-    ``candidates``: a ``<stem>.candidates.csv``; ``pairs_table``: a method's ``pairs.csv``
-    on that pair file. Columns: query, experience, reference, rank, score, label."""
+    """Per query, the best-scoring candidate over every experience (``retrieval.best_experience``):
+    query, experience, reference, rank, score, label."""
     scored = candidates.merge(pairs_table[["query", "reference", score]], on=["query", "reference"], how="left")
     if scored[score].isna().any():
         missing = scored[scored[score].isna()].iloc[0]

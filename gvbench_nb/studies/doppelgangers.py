@@ -1,6 +1,4 @@
-"""What notebooks/analysis_doppelgangers.ipynb computes: the Doppelgangers classifier (released and
-trained in domain) beside geometric verification, and the paper's comparison rows.
-"""
+"""What notebooks/analysis_doppelgangers.ipynb computes: the Doppelgangers classifier beside GV."""
 
 from __future__ import annotations
 

@@ -1,6 +1,4 @@
-"""What notebooks/analysis_failures.ipynb computes and draws: the worst false positives and false
-negatives, how far apart their frames are, and their matches.
-"""
+"""What notebooks/analysis_failures.ipynb computes and draws: the worst false positives and negatives."""
 
 from __future__ import annotations
 
@@ -97,9 +95,8 @@ def near_miss_false_positives(
     low: float = 3,
     high: float = 5,
 ) -> dict[str, Any]:
-    """How many of the ``top_k`` highest-scoring false pairs lie just outside the
-    ground-truth threshold (``low <= offset <= high``), against the share of such
-    pairs among all false pairs: the ground-truth ambiguity the paper discusses."""
+    """How many of the ``top_k`` highest false pairs lie just outside the ground-truth threshold
+    (``low <= offset <= high``), against that share among all false pairs."""
     false = table["label"] == 0
     near = offsets[column].between(low, high)
     top = top_false_positives(table, top_k)

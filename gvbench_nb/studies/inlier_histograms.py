@@ -1,6 +1,4 @@
-"""What notebooks/analysis_inlier_histograms.ipynb computes and draws: each method's inlier counts,
-normalised, for true and false pairs, and how far the two overlap.
-"""
+"""What notebooks/analysis_inlier_histograms.ipynb computes and draws: inlier counts of true vs false pairs."""
 
 from __future__ import annotations
 
@@ -19,11 +17,8 @@ def normalised_inliers(table: pd.DataFrame) -> pd.Series:
 
 
 def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
-    """What caps MR: the top false pair's score and the true pairs that do not beat it.
-
-    ``true_above_top_false`` is the share of true pairs scoring strictly above every
-    false pair - the recall reachable at 100% precision, i.e. MR.
-    """
+    """What caps MR: the top false pair's score and the share of true pairs strictly above it
+    (``true_above_top_false``, i.e. MR)."""
     true_scores = table.loc[table["label"] == 1, "score"].to_numpy(dtype=float)
     false_scores = table.loc[table["label"] == 0, "score"].to_numpy(dtype=float)
     if len(true_scores) == 0 or len(false_scores) == 0:
@@ -47,12 +42,8 @@ def inlier_overlap_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
 
 
 def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "", bins: int = 30) -> plt.Figure:
-    """Normalised inlier counts of true vs false pairs, one panel a run (Figs. 6, 8, 9), titled
-    with its method and profile (from the table's ``profile`` column).
-
-    Shaded: above the top false pair's score, where every true pair counts towards MR;
-    annotated: the share of true pairs with zero inliers (unreachable at any threshold).
-    """
+    """Normalised inlier counts of true vs false pairs, a panel a run (Figs. 6, 8, 9); shaded above the
+    top false score, annotated with the share of true pairs at zero inliers."""
     n = len(tables)
     columns = min(n, 3)
     rows = int(np.ceil(n / columns))

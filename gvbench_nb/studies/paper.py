@@ -56,9 +56,8 @@ def official_lists_dir() -> Path:
 def sequence_summary(
     output_dirs: Iterable[str | os.PathLike[str]], lists_dir: str | os.PathLike[str] | None = None
 ) -> pd.DataFrame:
-    """Table II: each run folder's sequence (its first method's pairs), each official list in
-    ``lists_dir`` (default: the data folder's; ``<name>.txt``, skipped when absent), and the paper's text values of the same
-    official sequences, each row labelled by its source (condition as the paper's sources name it)."""
+    """Table II: each run folder's sequence, each official list in ``lists_dir`` (default: the data
+    folder's) and the paper's text values of those sequences, each row labelled by its source."""
     rows = []
     folders = list(output_dirs)
     results = run_tables.load_results(folders) if folders else pd.DataFrame(columns=["output_dir"])

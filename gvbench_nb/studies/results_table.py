@@ -19,13 +19,8 @@ from gvbench_nb.evaluation import plots, reference_values, run_tables
 
 
 def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame:
-    """The paper's AP/MR (published in %) as fractions, with our method names where we have them.
-
-    Default: the table shipped in ``gvbench_nb/reference_values``; ``path``: a file in the
-    same format (``method,sequence,ap,max_recall`` in %), empty when it does not exist.
-    Columns: paper_name, method (ours, or None for methods we do not implement),
-    sequence, ap, max_recall.
-    """
+    """The paper's AP/MR as fractions, with our method names where we have them (None elsewhere); ``path``:
+    a file in the shipped format (``method,sequence,ap,max_recall`` in %), empty when absent."""
     columns = ["paper_name", "method", "sequence", *run_tables.METRICS]
     if path is None:
         return reference_values.paper_table().rename(columns={"reference_name": "paper_name"})[columns]
@@ -63,15 +58,9 @@ def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
 def join_paper_table(
     results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
 ) -> pd.DataFrame:
-    """Long table of ours and the published values, one row a (method, profile, sequence, source).
-
-    ``source`` is ``ours``, ``paper`` or ``GV-Bench repository``; ``profile`` is the
-    protocol the values come from: ours, the run's profile; the paper's table, ``paper``
-    (the hloc chain); the repository's, ``repository``. Published values are kept only
-    beside a run of the same method, sequence and profile, so no row sets one protocol's
-    numbers next to another's. ``label`` names the source for figures ("ours (paper profile)").
-    Two runs with the same (sequence, profile, method) are an error, not a silent choice.
-    """
+    """Long table of ours and the published values, one row a (method, profile, sequence, source); a
+    published value is kept only beside a run of the same method, sequence and profile. Two runs
+    with the same (sequence, profile, method) are an error."""
     if "profile" not in results:
         raise ValueError(
             "the results have no profile column: evaluate the runs again "
@@ -115,12 +104,8 @@ def pairs_text(n_pairs: int, limit: int | None) -> str:
 
 
 def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.METRICS) -> pd.DataFrame:
-    """Wide table: one row a (method, profile); columns (sequence, metric, source), ours beside
-    the published values of the same protocol, and (sequence, 'pairs', ours) where ``joined``
-    has our runs' ``pairs`` (``pairs_text``).
-
-    Rows, sequences keep first-seen order; a published column exists only where it has values.
-    """
+    """Wide table, a row a (method, profile), columns (sequence, metric, source): ours beside the published
+    values of the same protocol, and our ``pairs``; first-seen order."""
     wide = joined.pivot_table(
         index=["method", "profile"], columns=["sequence", "source"], values=list(metrics), aggfunc="first"
     )
@@ -215,12 +200,8 @@ def _line_style(source: str, profile: str) -> dict:
 
 
 def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
-    """MR in % of every (method, profile) across sequences (the paper's Fig. 1): ours solid (the
-    repository profile dash-dotted), the paper's dashed, the GV-Bench repository's dotted;
-    every line's label names its source and profile. The title names only what is drawn.
-
-    A radar needs three sequences or more; with fewer the same values are drawn as bars.
-    """
+    """MR in % of every (method, profile) across sequences (Fig. 1), each line labelled with its source and
+    profile; bars with fewer than three sequences."""
     sequences = list(dict.fromkeys(joined["sequence"]))
     methods = list(dict.fromkeys(joined["method"]))
     colours = plots.method_colours(methods)

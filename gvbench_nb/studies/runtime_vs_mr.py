@@ -1,6 +1,4 @@
-"""What notebooks/analysis_runtime_vs_mr.ipynb computes and draws: seconds a pair by stage, and
-speed against max recall.
-"""
+"""What notebooks/analysis_runtime_vs_mr.ipynb computes and draws: seconds a pair by stage, speed against MR."""
 
 from __future__ import annotations
 

@@ -1,7 +1,4 @@
-"""What the verifier comparison reads from a run: each pair's cached matches, a place-disjoint
-train/test split, and the scores each verifier computes from the matches (GV features, SUE,
-Doppelgangers' classifier inputs).
-"""
+"""What the verifier comparison reads from a run: cached matches, a place-disjoint split, per-verifier scores."""
 
 from __future__ import annotations
 
@@ -51,16 +48,9 @@ def place_disjoint_split(
     tolerance: int = 2,
     position: Callable[[str], int] = frame_index,
 ) -> pd.Series:
-    """'train' / 'test' / 'dropped' for each pair, so no place is in both splits.
-
-    Frames span [lo, hi] (queries and references together, n = hi - lo + 1). Train
-    holds the pairs whose query AND reference lie in [lo, lo + floor(train_fraction n) - 1],
-    test those with both in [train_end + gap_frames + 1, hi]; any pair touching the
-    gap or the other range is dropped. Frames i (train) and j (test) then differ by
-    more than ``gap_frames`` >= 2 * ``tolerance``, so the places i +- tolerance and
-    j +- tolerance never overlap. Gardens Point (frames 0-199), defaults: train
-    0-89, test 110-199.
-    """
+    """'train' / 'test' / 'dropped' for each pair: train holds pairs with both frames in the first
+    ``train_fraction`` of the frames, test those beyond a ``gap_frames`` gap (> 2 * ``tolerance``), so no
+    place is in both. Gardens Point, defaults: train 0-89, test 110-199."""
     if gap_frames < 2 * tolerance:
         raise ValueError(
             f"gap_frames={gap_frames} < 2 * tolerance ({2 * tolerance}): a place of tolerance "
@@ -117,12 +107,8 @@ class PairMatches:
 
 
 class CachedMatches:
-    """Read access to one finished run's matches (``<output_dir>/<method>``), never re-matching.
-
-    Sparse methods: matched keypoints from the feature cache (``cache_dir``, default
-    ``<output_dir>/../cache``) indexed by the stored ``matches``; dense methods: the
-    stored ``points0/points1`` (keypoints = matches there, as in ``pairs.csv``).
-    """
+    """Read access to one finished run's matches (``<output_dir>/<method>``), never re-matching: sparse
+    methods index the feature cache's keypoints, dense ones store their points."""
 
     def __init__(
         self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
@@ -217,11 +203,8 @@ class CachedMatches:
 
 
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
-    """(inlier mask over all the pair's matches, number of matches that entered the fit).
-
-    ``ransac.filter_and_fit``, the run's own step, so FM_RANSAC with the run's seed gives the
-    stored mask.
-    """
+    """(inlier mask, matches that entered the fit) by the run's own ``filter_and_fit``, so FM_RANSAC with
+    the run's seed gives the stored mask."""
     return filter_and_fit(
         pair.points0,
         pair.points1,
@@ -247,12 +230,8 @@ def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float
 
 
 def gv_features(pair: PairMatches, inlier_mask: np.ndarray, num_fitted: int) -> dict[str, float]:
-    """Per-pair GV numbers: counts, both normalised scores and where the inliers lie.
-
-    ``inlier_hull_area``: the smaller of the two images' inlier convex-hull areas, as
-    a fraction of the image; ``inlier_spread``: the smaller of the two images' mean
-    per-axis std of the inlier coordinates, over the image diagonal.
-    """
+    """Per-pair GV numbers: counts, normalised scores, the smaller inlier convex-hull area (fraction of
+    the image) and the smaller inlier spread (mean per-axis std over the image diagonal)."""
     n_inliers = int(inlier_mask.sum())
     inliers0, inliers1 = pair.points0[inlier_mask], pair.points1[inlier_mask]
 
@@ -298,20 +277,9 @@ def gv_feature_table(
 def sue_pair_scores(
     table: pd.DataFrame, slope: float = 10.0, top_k: int = 10, position: Callable[[str], int] = frame_index
 ) -> pd.DataFrame:
-    """SUE of each query's GV-ranked candidates, turned into a per-pair score.
-
-    ``table`` has query, reference and ``score`` (the base GV score, >= 0). For each query:
-    1. rank its candidates by score (the "retrieval" ranking; ties by reference name)
-       and keep the top ``top_k``;
-    2. distances d_i = 1 - s_i / max_j s_j (0 for the best; all 0 when no candidate
-       has a score, so the weights are uniform), positions p_i = frame index;
-    3. query SUE = the weighted positional variance (``sue.sue`` with ``slope``), in frames^2;
-    4. every pair of the query scores  score / (1 + sqrt(SUE)): its GV score
-       discounted by the positional std of where the query's GV evidence points.
-    A query whose strong candidates agree on one place keeps its scores; one whose
-    evidence is split between distant places is discounted. Returns a frame with
-    ``query_sue`` and ``score`` aligned to ``table``'s index.
-    """
+    """SUE as a per-pair score: per query, SUE (``sue.sue``, ``slope``) of its ``top_k`` GV-ranked candidates
+    with distances 1 - s/max(s) and frame positions; each pair scores ``score / (1 + sqrt(SUE))``.
+    Returns ``query_sue`` and ``score`` aligned to ``table``."""
     query_sue = pd.Series(np.nan, index=table.index)
     for _, group in table.groupby("query", sort=False):
         ranked = group.assign(_name=group["reference"]).sort_values(["score", "_name"], ascending=[False, True])

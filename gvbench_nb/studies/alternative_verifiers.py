@@ -37,15 +37,8 @@ def gv_conf(model: str, estimator: str, score: str) -> dict[str, Any]:
         )
     paper = recipes.profile_verifier("paper")
     thresholds = {key: paper[key] for key in ("threshold_px", "confidence", "max_iters")}
-    return {
-        "type": "gv",
-        "model": model,
-        "estimator": estimator,
-        "score": score,
-        **thresholds,
-        "min_matches": verifier_inputs.MIN_MATCHES[model],
-        "min_match_score": paper["min_match_score"],
-    }
+    return {"type": "gv", "model": model, "estimator": estimator, "score": score, **thresholds,
+            "min_matches": verifier_inputs.MIN_MATCHES[model], "min_match_score": paper["min_match_score"]}  # fmt: skip
 
 
 def gv_name(model: str, estimator: str, score: str) -> str:
@@ -57,36 +50,19 @@ ALTERNATIVE_VERIFIERS: dict[str, dict[str, Any]] = {
 }
 
 
+DOPPELGANGERS_IN_DOMAIN = {"type": "doppelgangers", "weights": "in-domain", "size": 96, "epochs": 3,
+                           "batch_size": 8, "lr": 5e-4, "max_train_pairs": 300, "seed": 0}  # fmt: skip
+LEARNED_COMBINATION = {"type": "learned_combination", "base": verifier_inputs.PAPER_VERIFIER,
+                       "features": list(verifier_inputs.FEATURES), "classifier": None, "C": 1.0}  # fmt: skip
 ALTERNATIVE_VERIFIERS.update(
     {
         # slope 10 on distances in [0, 1] (1 - score / best score): a candidate with 10% fewer
         # inliers than the best weighs e^-1 of it. The paper's 350 was for NetVLAD distances.
         "sue": {"type": "sue", "base": verifier_inputs.PAPER_VERIFIER, "slope": 10.0, "top_k": 10},
         "doppelgangers": {"type": "doppelgangers", "weights": "official", "size": 1024},
-        "doppelgangers-in-domain": {
-            "type": "doppelgangers",
-            "weights": "in-domain",
-            "size": 96,
-            "epochs": 3,
-            "batch_size": 8,
-            "lr": 5e-4,
-            "max_train_pairs": 300,
-            "seed": 0,
-        },
-        "learned_combination": {
-            "type": "learned_combination",
-            "base": verifier_inputs.PAPER_VERIFIER,
-            "features": list(verifier_inputs.FEATURES),
-            "classifier": None,
-            "C": 1.0,
-        },
-        "learned_combination+dg": {
-            "type": "learned_combination",
-            "base": verifier_inputs.PAPER_VERIFIER,
-            "features": list(verifier_inputs.FEATURES),
-            "classifier": "doppelgangers-in-domain",
-            "C": 1.0,
-        },
+        "doppelgangers-in-domain": DOPPELGANGERS_IN_DOMAIN,
+        "learned_combination": LEARNED_COMBINATION,
+        "learned_combination+dg": {**LEARNED_COMBINATION, "classifier": "doppelgangers-in-domain"},
     }
 )
 
@@ -217,15 +193,9 @@ class VerifierBench:
         part = self.used()[self.used()["split"] == split]
         for name in names:
             conf = self.conf(name)
-            row = {
-                "verifier": name,
-                "conf_hash": method_registry.conf_hash(conf),
-                "split": split,
-                "matches": self.cached.label,
-                "n_pairs": len(part),
-                "n_positives": int(part["label"].sum()),
-                "conf": json.dumps(conf, sort_keys=True),
-            }
+            row = {"verifier": name, "conf_hash": method_registry.conf_hash(conf), "split": split,
+                   "matches": self.cached.label, "n_pairs": len(part), "n_positives": int(part["label"].sum()),
+                   "conf": json.dumps(conf, sort_keys=True)}  # fmt: skip
             try:
                 start = time.perf_counter()
                 score = self.scores(name, conf)
@@ -253,16 +223,9 @@ class VerifierBench:
         return results.reindex(columns=RESULT_COLUMNS), tables, boot
 
 
-RESULT_COLUMNS = [
-    "verifier",
-    "split",
-    "ap",
-    "max_recall",
-    "ap_ci_low",
-    "ap_ci_high",
-    "max_recall_ci_low",
-    "max_recall_ci_high",
-] + ["n_pairs", "n_positives", "matches", "weights", "seconds", "status", "conf_hash", "conf"]
+RESULT_COLUMNS = ["verifier", "split", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low"]
+RESULT_COLUMNS += ["max_recall_ci_high", "n_pairs", "n_positives", "matches", "weights", "seconds", "status"]
+RESULT_COLUMNS += ["conf_hash", "conf"]
 
 
 def fit_combination(features: pd.DataFrame, labels: pd.Series, conf: dict[str, Any]) -> Any:

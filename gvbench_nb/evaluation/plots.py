@@ -51,13 +51,8 @@ def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str
         where = f"{method} ({profile} profile)"
         curve = pr_curve(labels, scores, where=where)
         max_recall = max_recall_at_full_precision(labels, scores, where=where)
-        (line,) = axis.plot(
-            curve["recall"],
-            curve["precision"],
-            color=colours.get(method),
-            linestyle=PROFILE_LINE_STYLES.get(profile, ":"),
-            label=f"{where}: MR {max_recall:.1%}",
-        )
+        (line,) = axis.plot(curve["recall"], curve["precision"], color=colours.get(method),
+                            linestyle=PROFILE_LINE_STYLES.get(profile, ":"), label=f"{where}: MR {max_recall:.1%}")  # fmt: skip
         colours.setdefault(method, line.get_color())
         axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
@@ -75,14 +70,8 @@ def inlier_histogram(table: pd.DataFrame, title: str = "") -> plt.Figure:
     for label, name, colour in ((1, "true loop closure", "tab:blue"), (0, "false", "tab:orange")):
         inliers = table.loc[table["label"] == label, "num_inliers"]
         if len(inliers):
-            axis.hist(
-                inliers,
-                bins=bins.tolist(),
-                histtype="stepfilled",
-                facecolor=to_rgba(colour, 0.25),
-                edgecolor=colour,
-                label=name,
-            )
+            axis.hist(inliers, bins=bins.tolist(), histtype="stepfilled", facecolor=to_rgba(colour, 0.25),
+                      edgecolor=colour, label=name)  # fmt: skip
     axis.set(xlabel="RANSAC inliers (score)", ylabel="Count", title=title)
     axis.legend(title="pair")
     return figure
@@ -191,19 +180,11 @@ def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, column
         table = tables[str(row.method)]
         bins = np.histogram_bin_edges(table["score"], bins=min(40, max(5, table["score"].nunique())))
         for label, colour, name in ((1, "tab:green", "true pairs"), (0, "tab:red", "false pairs")):
-            axis.hist(
-                table.loc[table["label"] == label, "score"],
-                bins=bins.tolist(),
-                histtype="step",
-                color=colour,
-                label=name,
-            )
+            axis.hist(table.loc[table["label"] == label, "score"], bins=bins.tolist(), histtype="step", color=colour,
+                      label=name)  # fmt: skip
         axis.axvline(float(row.score), color="black", linewidth=1.5, label="this pair")
-        axis.set(
-            xlabel="score (RANSAC inliers)",
-            ylabel="pairs",
-            title=f"{row.method}: this pair ranks {row.rank} of {row.n_pairs}",
-        )
+        axis.set(xlabel="score (RANSAC inliers)", ylabel="pairs",
+                 title=f"{row.method}: this pair ranks {row.rank} of {row.n_pairs}")  # fmt: skip
     for axis in axes.flat[count:]:
         axis.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()

@@ -160,19 +160,14 @@ def pair_views(
     first = view.iloc[0]
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
-    lines = {
-        method: run_tables.match_lines(output_dir, method, first["query"], first["reference"], cache_dir)
-        for method in view["method"]
-    }
+    lines = {method: run_tables.match_lines(output_dir, method, first["query"], first["reference"],
+             cache_dir) for method in view["method"]}  # fmt: skip
     kind = "true" if first["label"] == 1 else "false"
     title = f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}"
     matches = plots.pair_matches(images, view, lines, title)
     scores = plots.score_histograms(tables, view)
-    return {
-        "table": view,
-        "matches": figure_image(matches, figures / FIGURE_FILES["matches"]),
-        "scores": figure_image(scores, figures / FIGURE_FILES["scores"]),
-    }
+    return {"table": view, "matches": figure_image(matches, figures / FIGURE_FILES["matches"]),
+            "scores": figure_image(scores, figures / FIGURE_FILES["scores"])}  # fmt: skip
 
 
 class ExploreControls:
@@ -223,14 +218,8 @@ class ExploreControls:
     def widget(self) -> Any:
         import ipywidgets as widgets
 
-        return widgets.VBox(
-            [
-                widgets.HBox([self.pick, self.pair_index, self.pick_rank]),
-                widgets.HBox([self.pick_method, self.methods]),
-                self.status,
-                *(self.areas[name] for name in VIEWS),
-            ]
-        )
+        return widgets.VBox([widgets.HBox([self.pick, self.pair_index, self.pick_rank]), widgets.HBox([self.pick_method,
+                             self.methods]), self.status, *(self.areas[name] for name in VIEWS)])  # fmt: skip
 
     def shown_methods(self) -> list[str]:
         """The methods selected; none selected means all of them (the status says so)."""

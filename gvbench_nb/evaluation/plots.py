@@ -51,8 +51,8 @@ def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str
         where = f"{method} ({profile} profile)"
         curve = pr_curve(labels, scores, where=where)
         max_recall = max_recall_at_full_precision(labels, scores, where=where)
-        (line,) = axis.plot(curve["recall"], curve["precision"], color=colours.get(method),
-                            linestyle=PROFILE_LINE_STYLES.get(profile, ":"), label=f"{where}: MR {max_recall:.1%}")  # fmt: skip
+        style: dict[str, Any] = {"color": colours.get(method), "linestyle": PROFILE_LINE_STYLES.get(profile, ":")}
+        (line,) = axis.plot(curve["recall"], curve["precision"], **style, label=f"{where}: MR {max_recall:.1%}")
         colours.setdefault(method, line.get_color())
         axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")

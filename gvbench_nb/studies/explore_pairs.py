@@ -160,8 +160,8 @@ def pair_views(
     first = view.iloc[0]
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
-    lines = {method: run_tables.match_lines(output_dir, method, first["query"], first["reference"],
-             cache_dir) for method in view["method"]}  # fmt: skip
+    query, reference = first["query"], first["reference"]
+    lines = {m: run_tables.match_lines(output_dir, m, query, reference, cache_dir) for m in view["method"]}
     kind = "true" if first["label"] == 1 else "false"
     title = f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}"
     matches = plots.pair_matches(images, view, lines, title)
@@ -218,8 +218,11 @@ class ExploreControls:
     def widget(self) -> Any:
         import ipywidgets as widgets
 
-        return widgets.VBox([widgets.HBox([self.pick, self.pair_index, self.pick_rank]), widgets.HBox([self.pick_method,
-                             self.methods]), self.status, *(self.areas[name] for name in VIEWS)])  # fmt: skip
+        rows = [
+            widgets.HBox([self.pick, self.pair_index, self.pick_rank]),
+            widgets.HBox([self.pick_method, self.methods]),
+        ]
+        return widgets.VBox([*rows, self.status, *(self.areas[name] for name in VIEWS)])
 
     def shown_methods(self) -> list[str]:
         """The methods selected; none selected means all of them (the status says so)."""

@@ -16,11 +16,8 @@ def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
 
 
 def identical_queries(n_queries: int = 40) -> pd.DataFrame:
-    """Every query has the same three pairs: a true one scored 3, a false one 2, a true one 1.
-
-    Any draw of whole queries weights the three kinds equally, so AP (5/6) and MR (1/2)
-    never move; a draw of single pairs changes their mix, and both metrics with it.
-    """
+    """Every query has the same three pairs (true 3, false 2, true 1): a draw of whole queries never
+    moves AP (5/6) or MR (1/2); a draw of single pairs changes their mix, and both metrics with it."""
     queries = np.repeat([f"q{i}" for i in range(n_queries)], 3)
     references = [f"r{i}" for i in range(3 * n_queries)]
     return pairs_frame(queries, references, np.tile([1, 0, 1], n_queries), np.tile([3.0, 2.0, 1.0], n_queries))

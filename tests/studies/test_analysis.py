@@ -33,16 +33,12 @@ def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, sep
     return pairs_frame(queries, [f"r{i}" for i in range(n)], labels, scores)
 
 
-# ------------------------------------------------------------ best per column --
-def test_best_per_column_marks_all_ties_and_never_nan():
+def test_best_per_column_marks_all_ties_never_nan_and_lower_is_better_per_column():
     table = pd.DataFrame({"a": [0.5, 0.9, 0.9], "b": [np.nan, 0.1, 0.2], "c": [np.nan, np.nan, np.nan]})
     best = run_tables.best_per_column(table)
     assert best["a"].tolist() == [False, True, True]
     assert best["b"].tolist() == [False, False, True]
     assert not best["c"].any()
-
-
-def test_best_per_column_lower_is_better_per_column():
     table = pd.DataFrame({"max_recall": [0.2, 0.4], "seconds_per_pair": [0.3, 0.1]})
     best = run_tables.best_per_column(table, {"seconds_per_pair": False})
     assert best["max_recall"].tolist() == [False, True]
@@ -50,7 +46,6 @@ def test_best_per_column_lower_is_better_per_column():
     assert run_tables.best_per_column(table, False)["max_recall"].tolist() == [True, False]
 
 
-# ------------------------------------------------------------ the paper's table --
 def test_paper_table_join_labels_values_and_mapping(tmp_path):
     path = tmp_path / "paper_table.csv"
     path.write_text(
@@ -78,11 +73,6 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
     assert results_table._percent(wide.loc[("disk-nn (DISK+NN)", "paper"), ("night", "ap", "paper")]) == "-"
 
 
-def test_missing_paper_table_is_empty_not_an_error(tmp_path):
-    assert results_table.load_paper_table(tmp_path / "absent.csv").empty
-
-
-# ------------------------------------------------------------------ failures --
 def test_top_false_positives_and_negatives_with_frame_offsets():
     queries = [f"night/Image{i:03d}.jpg" for i in (10, 10, 10, 20, 20, 20)]
     references = [f"day/Image{j:03d}.jpg" for j in (10, 14, 40, 21, 23, 20)]
@@ -119,7 +109,6 @@ def test_pose_offsets_from_poses_csv(tmp_path):
         failures.ground_truth_offsets(pairs_frame(["night/009.png"], ["day/001.png"], [1], [1]), tmp_path)
 
 
-# ------------------------------------------------------------------- inliers --
 def test_normalised_inliers_and_overlap_summary():
     table = pairs_frame(["q"] * 6, list("abcdef"), [1, 1, 1, 0, 0, 1], [40, 10, 0, 10, 5, 0])
     assert inlier_histograms.normalised_inliers(table).tolist() == pytest.approx([1, 0.25, 0, 0.25, 0.125, 0])
@@ -133,7 +122,6 @@ def test_normalised_inliers_and_overlap_summary():
     assert inlier_histograms.normalised_inliers(table.assign(num_inliers=0)).tolist() == [0] * 6
 
 
-# ------------------------------------------------------------------ bootstrap --
 def test_weighted_metrics_equal_sklearn_on_repeated_pairs():
     rng = np.random.default_rng(3)
     checked = 0
@@ -198,7 +186,6 @@ def test_bootstrap_scores_all_resamples_in_one_vectorised_pass(monkeypatch):
         assert all(len(samples) == n_resamples for samples in result.samples.values())
 
 
-# ---------------------------------------------------------------- results I/O --
 def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="repository"):
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     table = table.assign(extract_seconds=0.1, match_seconds=0.2, verify_seconds=0.05)
@@ -232,7 +219,6 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
         run_tables.find_output_dirs(tmp_path, ["absent"])
 
 
-# -------------------------------------------------------------------- report --
 def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypatch):
     import argparse
 
@@ -273,6 +259,7 @@ def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
         {"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8], "max_recall": [0.1]}
     )
     paper = results_table.load_paper_table(tmp_path / "absent.csv")
+    assert paper.empty
     joined = results_table.join_paper_table(results, paper)
     assert joined["source"].tolist() == [run_tables.OURS_LABEL]
     assert results_table.results_table(joined).shape == (1, 2)
@@ -287,7 +274,6 @@ def test_results_table_says_how_many_pairs_a_row_has_and_whether_limit_cut_them(
     assert "24 (--limit)" in results_table.style_results_table(wide).to_html()
 
 
-# ------------------------------------------------------- profiles never mix --
 def two_profile_results() -> pd.DataFrame:
     """sift-nn under both profiles on one sequence, plus disk-lg under the repository's."""
     return pd.DataFrame({"sequence": ["night", "night", "night"], "method": ["sift-nn", "sift-nn", "disk-lg"],

@@ -1,6 +1,4 @@
-"""The bootstrap over queries: AP and MR of weighted resamples of a run's pairs, the resampling
-unit being the query (every pair of a drawn query comes along).
-"""
+"""The bootstrap over queries: AP and MR of weighted resamples of a run's pairs (a drawn query brings all its pairs)."""
 
 from __future__ import annotations
 
@@ -18,13 +16,9 @@ RANKED_SHARE = 0.95  # a ranking needs one method ahead in this share of the pai
 def weighted_ap_max_recall(
     labels: np.ndarray, scores: np.ndarray, weights: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """AP and MR of many weightings of the same pairs at once.
-
-    ``weights`` is (B, N): how often each pair counts in each of B resamples. Equals
-    scikit-learn's ``average_precision_score`` and our ``max_recall_at_full_precision``
-    on the repeated pairs (tied scores form one threshold, as there). NaN where a
-    resample holds no true pair.
-    """
+    """AP and MR of many weightings (``weights`` (B, N): each pair's count per resample) at once.
+    Equals scikit-learn's ``average_precision_score`` and ``max_recall_at_full_precision`` on the repeated
+    pairs; NaN where a resample holds no true pair."""
     labels = np.asarray(labels).astype(bool)
     scores = np.asarray(scores, dtype=np.float64)
     weights = np.atleast_2d(np.asarray(weights, dtype=np.float64))
@@ -82,27 +76,14 @@ class Bootstrap:
                 values = frame[method].to_numpy()
                 valid = values[~np.isnan(values)]
                 low, high = np.percentile(valid, [tail, 100 - tail]) if len(valid) else (np.nan, np.nan)
-                rows.append(
-                    {
-                        "method": method,
-                        "metric": metric,
-                        "estimate": self.estimates.loc[method, metric],
-                        "low": low,
-                        "high": high,
-                        "n_valid": len(valid),
-                    }
-                )
+                rows.append({"method": method, "metric": metric, "estimate": self.estimates.loc[method, metric],
+                             "low": low, "high": high, "n_valid": len(valid)})  # fmt: skip
         return pd.DataFrame(rows)
 
     def paired_shares(self, metric: str, ranked_share: float | None = None) -> pd.DataFrame:
-        """The one ranking rule. Every pair of methods once, the one with the higher value on all
-        pairs first: the share of paired resamples in which the first beats the second, is tied
-        with it, or loses, and the verdict.
-
-        A resample where both are equal (frequent for MR) counts for neither, so a ranking
-        needs ``ranked_share`` (default ``RANKED_SHARE``) strict wins in one direction;
-        anything else is a tie.
-        """
+        """Every pair of methods once (higher on all pairs first): shares of paired resamples won, tied
+        and lost, and the verdict. A resample where both are equal counts for neither; a ranking needs
+        ``ranked_share`` (default ``RANKED_SHARE``) strict wins in one direction, else a tie."""
         if metric not in run_tables.METRICS:
             raise ValueError(f"unknown metric {metric!r}: use one of {', '.join(run_tables.METRICS)}")
         share = RANKED_SHARE if ranked_share is None else ranked_share
@@ -121,19 +102,9 @@ class Bootstrap:
                 verdict = (
                     f"{first} > {second}" if wins >= share else f"{second} > {first}" if losses >= share else "tie"
                 )
-                rows.append(
-                    {
-                        "metric": metric,
-                        "first": first,
-                        "second": second,
-                        "first_value": float(estimates[first]),
-                        "second_value": float(estimates[second]),
-                        "first_beats_second": wins,
-                        "tied": ties,
-                        "second_beats_first": losses,
-                        "verdict": verdict,
-                    }
-                )
+                rows.append({"metric": metric, "first": first, "second": second, "first_value": float(estimates[first]),
+                             "second_value": float(estimates[second]), "first_beats_second": wins, "tied": ties,
+                             "second_beats_first": losses, "verdict": verdict})  # fmt: skip
         return pd.DataFrame(rows)
 
     def ranking_matrix(self, metric: str = "max_recall", ranked_share: float | None = None) -> pd.DataFrame:
@@ -148,11 +119,8 @@ class Bootstrap:
 
 
 def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = 1000, seed: int = 0) -> Bootstrap:
-    """Resample QUERIES with replacement (seeded) and recompute every method's AP and MR.
-
-    The same resamples serve every method (a paired bootstrap), so pairwise
-    comparisons are fair. 1000 resamples of 2000 pairs take well under a second a method.
-    """
+    """Resample QUERIES with replacement (seeded) and recompute every method's AP and MR; the same
+    resamples serve every method (a paired bootstrap)."""
     aligned = run_tables.align_tables(tables)
     query_codes = pd.factorize(aligned["query"])[0]
     weights = query_resample_weights(query_codes, n_resamples, seed)
@@ -165,11 +133,6 @@ def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = 1000, seed: in
         samples["ap"][method], samples["max_recall"][method] = weighted_ap_max_recall(labels, scores, weights)
         ap, max_recall = weighted_ap_max_recall(labels, scores, np.ones((1, len(labels))))
         estimates[method] = {"ap": ap[0], "max_recall": max_recall[0]}
-    return Bootstrap(
-        methods=methods,
-        estimates=pd.DataFrame(estimates).T,
-        samples={metric: pd.DataFrame(values) for metric, values in samples.items()},
-        n_queries=int(query_codes.max()) + 1,
-        n_pairs=len(aligned),
-        seed=seed,
-    )
+    return Bootstrap(methods=methods, estimates=pd.DataFrame(estimates).T,
+                     samples={metric: pd.DataFrame(values) for metric, values in samples.items()},
+                     n_queries=int(query_codes.max()) + 1, n_pairs=len(aligned), seed=seed)  # fmt: skip

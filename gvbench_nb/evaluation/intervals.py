@@ -1,8 +1,4 @@
-"""AP and MR with bootstrap intervals over queries, and paired rankings of methods.
-
-Queries are drawn with replacement (a query's pairs share its image, so they go together)
-and every method is scored on the same draws; every table names the resampling unit.
-"""
+"""AP and MR with bootstrap intervals over queries (a query's pairs go together), and paired rankings of methods."""
 
 from __future__ import annotations
 
@@ -19,12 +15,8 @@ INTERVAL_COLUMNS = ("ap_low", "ap_high", "max_recall_low", "max_recall_high", "i
 def query_intervals(
     tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = LEVEL
 ) -> pd.DataFrame:
-    """One row a method: ``ap`` and ``max_recall`` on all pairs, each with its ``level``
-    percentile interval over query resamples (``*_low``, ``*_high``), the unit resampled
-    (``interval_unit``), ``n_queries``, ``n_pairs``, ``n_resamples``, ``seed``.
-
-    Deterministic for a seed; the same draws serve every method.
-    """
+    """One row a method: ``ap``, ``max_recall``, their ``level`` percentile intervals (``*_low``, ``*_high``),
+    ``interval_unit``, ``n_queries``, ``n_pairs``, ``n_resamples``, ``seed``; deterministic for a seed."""
     return intervals_of(bootstrap.bootstrap(tables, n_resamples, seed), level)
 
 
@@ -51,13 +43,8 @@ def intervals_of(boot: bootstrap.Bootstrap, level: float = LEVEL) -> pd.DataFram
 def interval_columns(
     tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = LEVEL
 ) -> pd.DataFrame:
-    """The interval columns for a results table, indexed by method: ``ap_low``, ``ap_high``,
-    ``max_recall_low``, ``max_recall_high`` and ``interval_unit`` (what was resampled).
-
-    Each method is resampled over its own queries, so a folder whose methods ran on
-    different pairs (another ``--limit``) still gets its columns; methods of the same pairs
-    in the same order get the same draws, hence the intervals ``query_intervals`` gives.
-    """
+    """``ap_low``, ``ap_high``, ``max_recall_low``, ``max_recall_high``, ``interval_unit`` by method; each
+    method is resampled over its own queries, so methods on different pairs still get columns."""
     frames = [query_intervals({method: table}, n_resamples, seed, level) for method, table in tables.items()]
     if not frames:
         raise run_tables.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")

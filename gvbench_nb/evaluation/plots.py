@@ -51,13 +51,8 @@ def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str
         where = f"{method} ({profile} profile)"
         curve = pr_curve(labels, scores, where=where)
         max_recall = max_recall_at_full_precision(labels, scores, where=where)
-        (line,) = axis.plot(
-            curve["recall"],
-            curve["precision"],
-            color=colours.get(method),
-            linestyle=PROFILE_LINE_STYLES.get(profile, ":"),
-            label=f"{where}: MR {max_recall:.1%}",
-        )
+        style: dict[str, Any] = {"color": colours.get(method), "linestyle": PROFILE_LINE_STYLES.get(profile, ":")}
+        (line,) = axis.plot(curve["recall"], curve["precision"], **style, label=f"{where}: MR {max_recall:.1%}")
         colours.setdefault(method, line.get_color())
         axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
@@ -75,14 +70,8 @@ def inlier_histogram(table: pd.DataFrame, title: str = "") -> plt.Figure:
     for label, name, colour in ((1, "true loop closure", "tab:blue"), (0, "false", "tab:orange")):
         inliers = table.loc[table["label"] == label, "num_inliers"]
         if len(inliers):
-            axis.hist(
-                inliers,
-                bins=bins.tolist(),
-                histtype="stepfilled",
-                facecolor=to_rgba(colour, 0.25),
-                edgecolor=colour,
-                label=name,
-            )
+            axis.hist(inliers, bins=bins.tolist(), histtype="stepfilled", facecolor=to_rgba(colour, 0.25),
+                      edgecolor=colour, label=name)  # fmt: skip
     axis.set(xlabel="RANSAC inliers (score)", ylabel="Count", title=title)
     axis.legend(title="pair")
     return figure
@@ -154,22 +143,13 @@ def draw_matches(
     order = np.argsort(~inlier_mask)[:max_lines]
     for index in order:
         (x0, y0), (x1, y1) = points0[index], points1[index]
-        axis.plot(
-            [x0, x1 + offset],
-            [y0, y1],
-            color="lime" if inlier_mask[index] else "red",
-            linewidth=0.6,
-            alpha=0.8,
-        )
+        axis.plot([x0, x1 + offset], [y0, y1], color="lime" if inlier_mask[index] else "red", linewidth=0.6, alpha=0.8)
     axis.axis("off")
     return axis
 
 
 def pair_matches(
-    images: tuple[np.ndarray, np.ndarray],
-    view: pd.DataFrame,
-    lines: dict[str, dict[str, np.ndarray]],
-    title: str = "",
+    images: tuple[np.ndarray, np.ndarray], view: pd.DataFrame, lines: dict[str, dict[str, np.ndarray]], title: str = ""
 ) -> plt.Figure:
     """One pair's matches and inliers, one row a method of ``view`` (explore's table), each
     titled with its score and rank; ``lines``: each method's ``analysis.match_lines``."""
@@ -190,9 +170,8 @@ def pair_matches(
 
 
 def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, columns: int = 2) -> plt.Figure:
-    """Each method's scores of true and false pairs with one pair's score marked (explore's
-    ``view``): a grid of at most ``columns`` panels a row and one legend for all, so four
-    methods stay as legible as one."""
+    """Each method's true and false scores with one pair's score marked (explore's ``view``), at most
+    ``columns`` panels a row and one legend."""
     count = len(view)
     ncols = min(columns, count)
     nrows = -(-count // ncols)
@@ -201,19 +180,11 @@ def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, column
         table = tables[str(row.method)]
         bins = np.histogram_bin_edges(table["score"], bins=min(40, max(5, table["score"].nunique())))
         for label, colour, name in ((1, "tab:green", "true pairs"), (0, "tab:red", "false pairs")):
-            axis.hist(
-                table.loc[table["label"] == label, "score"],
-                bins=bins.tolist(),
-                histtype="step",
-                color=colour,
-                label=name,
-            )
+            axis.hist(table.loc[table["label"] == label, "score"], bins=bins.tolist(), histtype="step", color=colour,
+                      label=name)  # fmt: skip
         axis.axvline(float(row.score), color="black", linewidth=1.5, label="this pair")
-        axis.set(
-            xlabel="score (RANSAC inliers)",
-            ylabel="pairs",
-            title=f"{row.method}: this pair ranks {row.rank} of {row.n_pairs}",
-        )
+        axis.set(xlabel="score (RANSAC inliers)", ylabel="pairs",
+                 title=f"{row.method}: this pair ranks {row.rank} of {row.n_pairs}")  # fmt: skip
     for axis in axes.flat[count:]:
         axis.set_visible(False)
     handles, labels = axes.flat[0].get_legend_handles_labels()

@@ -1,19 +1,7 @@
-"""Published reference values, shipped with the package in ``gvbench_nb/reference_values/``, never
-labelled as ours.
-
-* ``paper_table.csv``: the GV-Bench paper's table (IROS 2024), AP and MR in percent, by the
-  paper's method names; produced with the hloc chain (our ``paper`` profile).
-* ``gvbench_repo_table.csv``: the table of the GV-Bench repository's README, AP and MR as
-  fractions, by its matcher names (image-matching-models); produced by its current code
-  (our ``repository`` profile). The two are not comparable with each other.
-* ``paper_sequences.csv``: the sequence summary as the paper's text gives it (Nordland 1,415
-  queries and 28,300 pairs, UAcampus 647 queries with their top 10), and each sequence's
-  condition as the GV-Bench project page names it (illumination: night, uacampus; seasonal:
-  season, nordland; weather; day the baseline). Blank: not stated in these sources. The official
-  lists differ (``studies.paper.sequence_summary`` counts them).
-
-Both loaders return fractions, with our method name where one of ours is the same method.
-"""
+"""Published reference values shipped in ``gvbench_nb/reference_values/``, never labelled as ours:
+``paper_table.csv`` (the paper's, %, hloc chain: our ``paper`` profile), ``gvbench_repo_table.csv``
+(the GV-Bench README's, fractions: our ``repository`` profile) and ``paper_sequences.csv`` (the
+paper's text's sequence summary and conditions; blank where not stated). Loaders return fractions."""
 
 from __future__ import annotations
 
@@ -29,13 +17,8 @@ COLUMNS = ["reference_name", "method", "sequence", *METRICS]
 # The repository's matcher names (image-matching-models) -> ours, where the method is the same:
 # its 'xfeat' is XFeat sparse with mutual nearest neighbours (our xfeat-nn); 'superpoint-lg' is
 # SuperPoint + LightGlue. master (MASt3R), roma, duster (DUSt3R) and sift-lg have no method here.
-REPOSITORY_METHODS: dict[str, str] = {
-    "sift-nn": "sift-nn",
-    "disk-lg": "disk-lg",
-    "superpoint-lg": "sp-lg",
-    "xfeat": "xfeat-nn",
-    "loftr": "loftr",
-}
+REPOSITORY_METHODS: dict[str, str] = {"sift-nn": "sift-nn", "disk-lg": "disk-lg", "superpoint-lg": "sp-lg",
+                         "xfeat": "xfeat-nn", "loftr": "loftr"}  # fmt: skip
 
 
 def _read(name: str) -> pd.DataFrame:

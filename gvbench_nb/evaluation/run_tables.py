@@ -1,14 +1,5 @@
-"""Reading written runs: the tables every analysis starts from, computed only from what runs wrote.
-
-Everything here reads ``<output_dir>/results.csv``, ``<output_dir>/<method>/pairs.csv`` and
-``run.json``, the match stores and the feature cache, and never recomputes features. Each
-analysis notebook's own computation and figures are its study module (``studies/``).
-
-Units: ``ap`` and ``max_recall`` are fractions in [0, 1] everywhere, ours and the
-published ones alike (the paper's table, in %, is divided by 100 when read); tables meant
-for people format them as %. Rows are keyed and labelled by (sequence, profile, method):
-two protocols' numbers never share a row or a line.
-"""
+"""Reading written runs (results.csv, pairs.csv, run.json, match stores, feature cache), never recomputing.
+``ap`` and ``max_recall`` are fractions everywhere; rows are keyed by (sequence, profile, method)."""
 
 from __future__ import annotations
 
@@ -28,18 +19,13 @@ from gvbench_nb.runner import config, image_features, method_outputs, pair_match
 
 METRICS = ("ap", "max_recall")
 
-
 PAPER_LABEL = reference_values.PAPER_LABEL  # how the paper's numbers are named in every table and figure
-
 
 REPOSITORY_LABEL = reference_values.REPOSITORY_LABEL  # and the GV-Bench repository's
 
-
 OURS_LABEL = "ours"
 
-
 RUN_KEY = ["sequence", "profile", "method"]  # what identifies a run in every table and figure
-
 
 TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair")
 
@@ -48,10 +34,7 @@ TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_se
 def find_output_dirs(
     root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs", sequences: SequenceType[str] | None = None
 ) -> list[Path]:
-    """Sequence output folders under ``root`` holding a ``results.csv`` (sorted by name).
-
-    With ``sequences``, exactly those folders (``root/<name>``); a missing one is an error.
-    """
+    """Output folders under ``root`` holding a ``results.csv`` (sorted), or exactly those of ``sequences``."""
     root = Path(root)
     if sequences:
         folders = [root / name for name in sequences]
@@ -122,10 +105,8 @@ def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[st
 def load_pairs_tables(
     output_dirs: str | os.PathLike[str] | SequenceType[str | os.PathLike[str]], methods: SequenceType[str] | None = None
 ) -> dict[str, pd.DataFrame]:
-    """The one reader of pair tables: ``pairs.csv`` of each method (default: every method with
-    results), as a run published them, from inputs unchanged since, every method on the same
-    pairs and labels (what ``results`` refuses, it refuses), one publication whole. Several
-    folders: each method from the one folder holding it."""
+    """The one reader of pair tables: each method's ``pairs.csv`` as its run published it, refused where
+    ``results`` refuses; several folders: each method from the one folder holding it."""
     if not isinstance(output_dirs, (str, os.PathLike)):
         return _several_folders_tables(list(output_dirs), methods)
     folder = Path(output_dirs)
@@ -162,10 +143,7 @@ def measured_methods(output_dir: str | os.PathLike[str]) -> list[str]:
 
 # ------------------------------------------------------------------ the table --
 def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool] = True) -> pd.DataFrame:
-    """True where a cell holds its column's best value; ties are all marked, NaN never.
-
-    ``higher_is_better`` may be one flag or a flag per column (e.g. seconds: lower).
-    """
+    """True where a cell holds its column's best (ties all, NaN never); one flag or one a column."""
     marks = pd.DataFrame(False, index=table.index, columns=table.columns)
     for column in table.columns:
         values = pd.to_numeric(table[column], errors="coerce")
@@ -178,9 +156,7 @@ def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool
 
 
 def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """The feature cache of an output folder: ``cache_dir`` when given, else the one its run
-    recorded (``cache_dir`` in ``<output_dir>/params.resolved.yaml``), else the params'
-    default ``<output_dir>/../cache`` (a folder written without ``run``)."""
+    """``cache_dir``, else the one the run recorded (params.resolved.yaml), else ``<output_dir>/../cache``."""
     if cache_dir:
         return Path(cache_dir)
     recorded = Path(output_dir) / config.RESOLVED_PARAMS_NAME
@@ -198,12 +174,7 @@ def match_lines(
     reference: str,
     cache_dir: str | os.PathLike[str] | None = None,
 ) -> dict[str, np.ndarray]:
-    """Matched points of one pair (original pixels) and its inlier mask, from the stores.
-
-    Reads the run's match store and, for detector-based methods, the keypoints in the
-    feature cache (``<output_dir>/../cache`` unless ``cache_dir``); dense matchers
-    store their matched points with the matches.
-    """
+    """Matched points of one pair (original pixels) and its inlier mask, from the match store and feature cache."""
     output_dir = Path(output_dir)
     run = load_run(output_dir, method)
     matches = pair_matching.match_store(output_dir, run["conf"])
@@ -229,11 +200,8 @@ def match_lines(
         features.close()
     pair_matches = entry["matches"].astype(int).reshape(-1, 2)
     # float32: the cache may hold float16 keypoints (as hloc stores them).
-    return {
-        "points0": points0[pair_matches[:, 0]].astype(np.float32),
-        "points1": points1[pair_matches[:, 1]].astype(np.float32),
-        "inlier_mask": inlier_mask,
-    }
+    return {"points0": points0[pair_matches[:, 0]].astype(np.float32), "points1": points1[pair_matches[:,
+            1]].astype(np.float32), "inlier_mask": inlier_mask}  # fmt: skip
 
 
 class IncomparableRunsError(method_outputs.ResultsError, ValueError):
@@ -241,11 +209,7 @@ class IncomparableRunsError(method_outputs.ResultsError, ValueError):
 
 
 def align_tables(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
-    """One row a pair: query, reference, label and a ``score:<method>`` column per method.
-
-    All methods must have scored the same pairs under the same labels (a bootstrap
-    compares them pair by pair).
-    """
+    """One row a pair: query, reference, label and ``score:<method>`` per method (all on the same pairs and labels)."""
     if not tables:
         raise IncomparableRunsError("no methods to compare: pass at least one pairs table")
     methods = list(tables)

@@ -1,13 +1,6 @@
-"""Alternative verifiers, each scoring a pair from a run's CACHED matches (nothing re-matches).
-
-Each is a plain conf in ``ALTERNATIVE_VERIFIERS``, identified in every table by ``verifier``
-and ``conf_hash``. Families: ``gv-<model>-<estimator>-<score>`` (a robust fit: model ``F`` or
-``H``; estimator ``ransac`` (the paper's), ``degensac``, ``lo-ransac``, ``magsac``; score
-``inliers`` (the paper's), ``inlier_ratio`` or ``inliers_over_keypoints``), ``sue`` (SUE as a
-per-pair score), ``doppelgangers[-in-domain]`` (the classifier, official or trained here) and
-``learned_combination[+dg]`` (a logistic regression over ``FEATURES``). Learned verifiers never
-see a test place: ``place_disjoint_split`` leaves a gap wider than the ground-truth tolerance.
-"""
+"""Alternative verifiers scoring a pair from a run's CACHED matches: ``gv-<model>-<estimator>-<score>``,
+``sue``, ``doppelgangers[-in-domain]`` and ``learned_combination[+dg]``, each a conf in
+``ALTERNATIVE_VERIFIERS``; learned ones never see a test place (``place_disjoint_split``)."""
 
 from __future__ import annotations
 
@@ -44,15 +37,8 @@ def gv_conf(model: str, estimator: str, score: str) -> dict[str, Any]:
         )
     paper = recipes.profile_verifier("paper")
     thresholds = {key: paper[key] for key in ("threshold_px", "confidence", "max_iters")}
-    return {
-        "type": "gv",
-        "model": model,
-        "estimator": estimator,
-        "score": score,
-        **thresholds,
-        "min_matches": verifier_inputs.MIN_MATCHES[model],
-        "min_match_score": paper["min_match_score"],
-    }
+    return {"type": "gv", "model": model, "estimator": estimator, "score": score, **thresholds,
+            "min_matches": verifier_inputs.MIN_MATCHES[model], "min_match_score": paper["min_match_score"]}  # fmt: skip
 
 
 def gv_name(model: str, estimator: str, score: str) -> str:
@@ -64,36 +50,19 @@ ALTERNATIVE_VERIFIERS: dict[str, dict[str, Any]] = {
 }
 
 
+DOPPELGANGERS_IN_DOMAIN = {"type": "doppelgangers", "weights": "in-domain", "size": 96, "epochs": 3,
+                           "batch_size": 8, "lr": 5e-4, "max_train_pairs": 300, "seed": 0}  # fmt: skip
+LEARNED_COMBINATION = {"type": "learned_combination", "base": verifier_inputs.PAPER_VERIFIER,
+                       "features": list(verifier_inputs.FEATURES), "classifier": None, "C": 1.0}  # fmt: skip
 ALTERNATIVE_VERIFIERS.update(
     {
         # slope 10 on distances in [0, 1] (1 - score / best score): a candidate with 10% fewer
         # inliers than the best weighs e^-1 of it. The paper's 350 was for NetVLAD distances.
         "sue": {"type": "sue", "base": verifier_inputs.PAPER_VERIFIER, "slope": 10.0, "top_k": 10},
         "doppelgangers": {"type": "doppelgangers", "weights": "official", "size": 1024},
-        "doppelgangers-in-domain": {
-            "type": "doppelgangers",
-            "weights": "in-domain",
-            "size": 96,
-            "epochs": 3,
-            "batch_size": 8,
-            "lr": 5e-4,
-            "max_train_pairs": 300,
-            "seed": 0,
-        },
-        "learned_combination": {
-            "type": "learned_combination",
-            "base": verifier_inputs.PAPER_VERIFIER,
-            "features": list(verifier_inputs.FEATURES),
-            "classifier": None,
-            "C": 1.0,
-        },
-        "learned_combination+dg": {
-            "type": "learned_combination",
-            "base": verifier_inputs.PAPER_VERIFIER,
-            "features": list(verifier_inputs.FEATURES),
-            "classifier": "doppelgangers-in-domain",
-            "C": 1.0,
-        },
+        "doppelgangers-in-domain": DOPPELGANGERS_IN_DOMAIN,
+        "learned_combination": LEARNED_COMBINATION,
+        "learned_combination+dg": {**LEARNED_COMBINATION, "classifier": "doppelgangers-in-domain"},
     }
 )
 
@@ -113,13 +82,8 @@ def resolve_verifier(name: str, **overrides: Any) -> dict[str, Any]:
 # --------------------------------------------------------------- evaluation --
 @dataclass
 class VerifierBench:
-    """Scores verifiers on one run's cached matches, with a place-disjoint split.
-
-    ``pairs`` is the run's pairs table with a ``split`` column. Fits and inputs are
-    computed once and reused by every verifier that needs them. ``overrides`` maps a
-    verifier name to options replacing its registry conf (e.g. a smaller training);
-    the changed conf is what ``conf_hash`` and ``conf`` record.
-    """
+    """Scores verifiers on one run's cached matches (``pairs`` with a ``split`` column), fitting once.
+    ``overrides`` maps a verifier to options replacing its conf (recorded in ``conf_hash``/``conf``)."""
 
     cached: verifier_inputs.CachedMatches
     pairs: pd.DataFrame
@@ -163,13 +127,9 @@ class VerifierBench:
                 info = json.loads(path.with_suffix(".json").read_text())
                 info["reused"] = True
             else:
-                info = doppelgangers.train_in_domain(
-                    self.cached,
-                    self.pairs[self.pairs["split"] == verifier_inputs.SPLIT_TRAIN],
-                    conf,
-                    path,
-                    self.progress,
-                )
+                info = doppelgangers.train_in_domain(self.cached,
+                                                     self.pairs[self.pairs["split"] == verifier_inputs.SPLIT_TRAIN],
+                                                     conf, path, self.progress)  # fmt: skip
                 info["reused"] = False
             model = load_doppelgangers(path)
             self.weights_info[name] = info
@@ -221,30 +181,17 @@ class VerifierBench:
         return features
 
     def evaluate(
-        self,
-        names: Iterable[str],
-        split: str = verifier_inputs.SPLIT_TEST,
-        n_resamples: int = 1000,
-        seed: int = 0,
+        self, names: Iterable[str], split: str = verifier_inputs.SPLIT_TEST, n_resamples: int = 1000, seed: int = 0
     ) -> tuple[pd.DataFrame, dict[str, pd.DataFrame], bootstrap.Bootstrap | None]:
-        """AP, MR and their query-bootstrap 95% CIs of each verifier on ``split``.
-
-        A verifier that cannot run (missing weights) gets a row with its reason in
-        ``status`` and no numbers. Returns (rows, per-verifier score tables, bootstrap).
-        """
+        """AP, MR and query-bootstrap 95% CIs of each verifier on ``split`` (a verifier that cannot run: its
+        reason in ``status``). Returns (rows, per-verifier score tables, bootstrap)."""
         rows, tables = [], {}
         part = self.used()[self.used()["split"] == split]
         for name in names:
             conf = self.conf(name)
-            row = {
-                "verifier": name,
-                "conf_hash": method_registry.conf_hash(conf),
-                "split": split,
-                "matches": self.cached.label,
-                "n_pairs": len(part),
-                "n_positives": int(part["label"].sum()),
-                "conf": json.dumps(conf, sort_keys=True),
-            }
+            row = {"verifier": name, "conf_hash": method_registry.conf_hash(conf), "split": split,
+                   "matches": self.cached.label, "n_pairs": len(part), "n_positives": int(part["label"].sum()),
+                   "conf": json.dumps(conf, sort_keys=True)}  # fmt: skip
             try:
                 start = time.perf_counter()
                 score = self.scores(name, conf)
@@ -253,11 +200,8 @@ class VerifierBench:
                 rows.append({**row, "status": f"unavailable: {str(error).splitlines()[0]}"})
                 continue
             tables[name] = part[["query", "reference", "label"]].assign(score=score.loc[part.index].to_numpy())
-            metrics = evaluate_scores(
-                tables[name]["label"].to_numpy(),
-                tables[name]["score"].to_numpy(),
-                where=f"verifier {name} on the {split} split of {self.cached.label}",
-            )
+            metrics = evaluate_scores(tables[name]["label"].to_numpy(), tables[name]["score"].to_numpy(),
+                                      where=f"verifier {name} on the {split} split of {self.cached.label}")  # fmt: skip
             weights = self.weights_info.get(name) or self.weights_info.get(conf.get("classifier") or "")
             row.update(ap=metrics["ap"], max_recall=metrics["max_recall"], status="ok")
             rows.append({**row, "weights": weights["weights"] if weights else ""})
@@ -272,16 +216,9 @@ class VerifierBench:
         return results.reindex(columns=RESULT_COLUMNS), tables, boot
 
 
-RESULT_COLUMNS = [
-    "verifier",
-    "split",
-    "ap",
-    "max_recall",
-    "ap_ci_low",
-    "ap_ci_high",
-    "max_recall_ci_low",
-    "max_recall_ci_high",
-] + ["n_pairs", "n_positives", "matches", "weights", "seconds", "status", "conf_hash", "conf"]
+RESULT_COLUMNS = ["verifier", "split", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low"]
+RESULT_COLUMNS += ["max_recall_ci_high", "n_pairs", "n_positives", "matches", "weights", "seconds", "status"]
+RESULT_COLUMNS += ["conf_hash", "conf"]
 
 
 def fit_combination(features: pd.DataFrame, labels: pd.Series, conf: dict[str, Any]) -> Any:
@@ -343,15 +280,10 @@ def verifier_table(results: pd.DataFrame) -> pd.DataFrame:
             return "-"
         return f"{100 * row[metric]:.1f} [{100 * row[f'{metric}_ci_low']:.1f}, {100 * row[f'{metric}_ci_high']:.1f}]"
 
-    return pd.DataFrame(
-        {
-            "verifier": results["verifier"],
-            "AP % [95% CI]": [cell(r, "ap") for _, r in results.iterrows()],
-            "MR % [95% CI]": [cell(r, "max_recall") for _, r in results.iterrows()],
-            "status": results["status"],
-            "weights": results["weights"].fillna(""),
-        }
-    ).set_index("verifier")
+    return pd.DataFrame({"verifier": results["verifier"], "AP % [95% CI]": [cell(r, "ap") for _,
+                         r in results.iterrows()], "MR % [95% CI]": [cell(r, "max_recall") for _,
+                         r in results.iterrows()], "status": results["status"],
+                         "weights": results["weights"].fillna("")}).set_index("verifier")  # fmt: skip
 
 
 def best_by(

@@ -21,11 +21,8 @@ def recall_curves(
     max_k: int | None = None,
     progress: bool = True,
 ) -> pd.DataFrame:
-    """Retrieval recall@k, k = 1..max_k (default top_n), of each descriptor on the same
-    queries, references and ground truth. Columns: descriptor, k, recall, queries_evaluated.
-
-    ``descriptors``: names (each with the params' ``descriptor_options`` for it) or
-    ``{name: descriptor options}``."""
+    """Retrieval recall@k (k = 1..max_k) of each descriptor (names, or ``{name: options}``) on the same
+    queries and ground truth: descriptor, k, recall, queries_evaluated."""
     inputs = build_inputs.prepare_inputs(build_params)
     if not isinstance(descriptors, Mapping):
         descriptors = {n: inputs.descriptor_options(n) for n in descriptors}
@@ -38,23 +35,14 @@ def recall_curves(
             sequence_build.retrieve(inputs, sequence_build.global_descriptors(inputs, name, options, progress), max_k),
         )
         recall = retrieval.retrieval_recall_at(range(1, max_k + 1), ranked, truth)
-        rows += [
-            {
-                "descriptor": name,
-                "k": k,
-                "recall": recall[f"recall@{k}"],
-                "queries_evaluated": recall["queries_evaluated"],
-            }
-            for k in range(1, max_k + 1)
-        ]
+        rows += [{"descriptor": name, "k": k, "recall": recall[f"recall@{k}"],
+                  "queries_evaluated": recall["queries_evaluated"]} for k in range(1, max_k + 1)]  # fmt: skip
     return pd.DataFrame(rows, columns=["descriptor", "k", "recall", "queries_evaluated"])
 
 
 def best_experience_table(candidates: pd.DataFrame, pairs_table: pd.DataFrame, score: str = "score") -> pd.DataFrame:
-    """Per query, the best-scoring candidate over every experience (``retrieval.best_experience``).
-
-    ``candidates``: a ``<stem>.candidates.csv``; ``pairs_table``: a method's ``pairs.csv``
-    on that pair file. Columns: query, experience, reference, rank, score, label."""
+    """Per query, the best-scoring candidate over every experience (``retrieval.best_experience``):
+    query, experience, reference, rank, score, label."""
     scored = candidates.merge(pairs_table[["query", "reference", score]], on=["query", "reference"], how="left")
     if scored[score].isna().any():
         missing = scored[scored[score].isna()].iloc[0]

@@ -1,23 +1,10 @@
 """Controlled condition study: how AP, MR and aliasing move as one condition strengthens.
 
-On the synthetic route the reference drive stays a clear day and the query drive is rendered
-once per (condition, strength) with only that condition set: poses, pairs and labels are the
-same in every cell, so any change in AP or MR is the condition's doing.
-
-Layout of ``out_dir``::
-
-    images/route.json            route parameters (a mismatch refuses to mix routes)
-    images/pairs.csv             query_frame, reference_frame, label, look_alike
-    images/reference/NNN.png     clear reference drive, rendered and extracted once
-    images/query_clear/NNN.png   query drive at strength 0 (shared by every condition)
-    images/query_<condition>_<strength>/NNN.png
-    runs/<profile>/<cell>/<method>/pairs.csv   the pipeline's per-pair results
-    cache/                       feature cache (keyed by resolved image path)
-    sweep.csv                    one row a (condition, strength, method, profile) cell
-
-Image folders are renamed into place when complete and ``sweep.csv`` is rewritten atomically
-after each cell, so an interrupted sweep resumes where it stopped.
-"""
+The reference drive stays a clear day; the query drive is rendered once per (condition, strength)
+with only that condition set, so poses, pairs and labels are the same in every cell. ``out_dir``
+holds images/ (route.json, pairs.csv, reference/, query_clear/, query_<condition>_<strength>/),
+runs/<profile>/<cell>/<method>/, cache/ and sweep.csv (one row a cell, rewritten atomically after
+each cell, so an interrupted sweep resumes)."""
 
 from __future__ import annotations
 
@@ -71,10 +58,8 @@ class SweepRoute:
         """The cell's pairs: its query folder against the shared reference folder."""
         folder, name = query_folder(condition, strength), f"synthetic-{cell_name(condition, strength)}"
         frames = zip(self.pairs["query_frame"], self.pairs["reference_frame"], self.pairs["label"])
-        pairs = [
-            Pair(self.frame_name(folder, int(q)), self.frame_name(REFERENCE_FOLDER, int(r)), int(y))
-            for q, r, y in frames
-        ]
+        pairs = [Pair(self.frame_name(folder, int(q)), self.frame_name(REFERENCE_FOLDER, int(r)), int(y)) for q, r,
+                 y in frames]  # fmt: skip
         return Sequence(name, self.image_root, pairs)
 
 
@@ -101,15 +86,10 @@ def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
 
 
 def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> dict[str, Any]:
-    return {
-        "generator_version": synthetic.GENERATOR_VERSION,
-        "seed": int(seed),
-        "n_frames": int(n_frames),
-        "image_size": [int(image_size[0]), int(image_size[1])],
-        "max_distance_m": synthetic.DEFAULT_MAX_DISTANCE_M,
-        "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
-        "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M,
-    }
+    return {"generator_version": synthetic.GENERATOR_VERSION, "seed": int(seed), "n_frames": int(n_frames),
+            "image_size": [int(image_size[0]), int(image_size[1])], "max_distance_m": synthetic.DEFAULT_MAX_DISTANCE_M,
+            "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
+            "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M}  # fmt: skip
 
 
 def prepare_route(
@@ -141,10 +121,8 @@ def prepare_route(
     else:
         chosen = synthetic.select_pairs(route.scene, route.query, route.reference, seed)
         look_alike = synthetic.look_alike_labels(route.scene, route.query, route.reference)
-        pairs = pd.DataFrame(
-            [(q, r, label, int(look_alike[q, r])) for q, r, label in chosen],
-            columns=["query_frame", "reference_frame", "label", "look_alike"],
-        )
+        pairs = pd.DataFrame([(q, r, label, int(look_alike[q, r])) for q, r, label in chosen], columns=["query_frame",
+                               "reference_frame", "label", "look_alike"])  # fmt: skip
         atomic_write_csv(pairs_path, pairs)
     return SweepRoute(route, image_root, pairs)
 
@@ -375,10 +353,8 @@ def breaking_strength_table(sweep: pd.DataFrame) -> pd.DataFrame:
     """Breaking strengths as a method x condition table of text ('0.43', 'not reached')."""
     table = breaking_strength(sweep)
     table["label"] = table["method"] + np.where(table["profile"] == "paper", "", " (" + table["profile"] + ")")
-    table["value"] = [
-        f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED)
-        for b, note in zip(table["breaking_strength"], table["note"])
-    ]
+    table["value"] = [f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED) for b,
+          note in zip(table["breaking_strength"], table["note"])]  # fmt: skip
     return table.pivot(index="label", columns="condition", values="value").rename_axis(index="method", columns=None)
 
 
@@ -456,11 +432,9 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
     return figure
 
 
-RENDER_SETTINGS: dict[str, dict[str, float]] = {
-    "clear": {},
-    **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
-    "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0),
-}
+RENDER_SETTINGS: dict[str, dict[str, float]] = {"clear": {},
+                      **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
+                      "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0)}  # fmt: skip
 
 
 RENDER_TIME_COLUMNS = ["setting", "conditions", "n_frames", "image_size", "repeats", "median_seconds", "min_seconds"]

@@ -1,13 +1,5 @@
-"""What notebooks/analysis_deployment.ipynb and ``python -m gvbench_nb transfer`` compute: an
-inlier threshold fixed on one sequence and used on another, as a SLAM system must.
-
-MR is recall at an oracle threshold chosen with the labels in hand. Here each method's oracle
-threshold of a calibration sequence (the one MR is read at: ``oracle_threshold``) is applied to
-every target sequence: precision, recall and the false loops it accepts there. At the loop-closure
-level each query keeps its best-scoring candidate (GV re-ranks the retrieval candidates): recall@1
-after GV, against the retrieval order where the pair file keeps it (a ``retrieval``-built pair
-file lists a query's candidates best first), and the queries that close a false loop.
-"""
+"""What notebooks/analysis_deployment.ipynb and ``transfer`` compute: each method's oracle threshold of a
+calibration sequence applied to other sequences (precision, recall, false loops), and recall@1 per query."""
 
 from __future__ import annotations
 
@@ -26,14 +18,8 @@ RETRIEVAL_BUILDER = "retrieval"  # the pairs builder whose pair files keep the r
 
 
 def oracle_threshold(labels: np.ndarray, scores: np.ndarray) -> float:
-    """The smallest score above every false pair's score: the threshold MR is read at.
-
-    ``metrics.max_recall_at_full_precision`` takes the largest recall among the PR curve's
-    thresholds (the scores) with precision 1; precision is 1 exactly when the threshold is
-    above every false score, and recall falls as the threshold rises, so that threshold is
-    the smallest score above the largest false one. A true pair tied with a false one lies
-    below it. With no such score, nothing passes at precision 1: infinity.
-    """
+    """The smallest score above every false pair's score (infinity when none): the threshold MR is read
+    at, since precision is 1 exactly above every false score."""
     labels = np.asarray(labels).astype(bool)
     scores = np.asarray(scores, dtype=np.float64)
     highest_false = scores[~labels].max() if (~labels).any() else -np.inf
@@ -48,12 +34,9 @@ def apply_threshold(labels: np.ndarray, scores: np.ndarray, threshold: float) ->
     true_accepted = int((accepted & labels).sum())
     false_accepted = int((accepted & ~labels).sum())
     n_accepted = true_accepted + false_accepted
-    return {
-        "precision": true_accepted / n_accepted if n_accepted else float("nan"),
-        "recall": true_accepted / int(labels.sum()) if labels.any() else float("nan"),
-        "false_loops": false_accepted,
-        "n_accepted": n_accepted,
-    }
+    return {"precision": true_accepted / n_accepted if n_accepted else float("nan"),
+            "recall": true_accepted / int(labels.sum()) if labels.any() else float("nan"),
+            "false_loops": false_accepted, "n_accepted": n_accepted}  # fmt: skip
 
 
 class DeploymentInputs:
@@ -162,20 +145,12 @@ def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.D
         findable = outcomes[outcomes["has_true"]]
         closed = outcomes[outcomes["best_passes"]]
         kept = inputs.keeps_retrieval_order[row.target]
-        rows.append(
-            {
-                "method": row.method,
-                "profile": row.profile,
-                "calibration": row.calibration,
-                "target": row.target,
-                "n_queries": len(outcomes),
-                "queries_with_true": len(findable),
-                "recall_at_1_gv": findable["best_true"].mean() if len(findable) else float("nan"),
-                "recall_at_1_retrieval": findable["first_true"].mean() if kept and len(findable) else float("nan"),
-                "true_loops_closed": int(closed["best_true"].sum()),
-                "false_loops_closed": int((~closed["best_true"]).sum()),
-            }
-        )
+        rows.append({"method": row.method, "profile": row.profile, "calibration": row.calibration, "target": row.target,
+                     "n_queries": len(outcomes), "queries_with_true": len(findable),
+                     "recall_at_1_gv": findable["best_true"].mean() if len(findable) else float("nan"),
+                     "recall_at_1_retrieval": findable["first_true"].mean() if kept and len(findable) else float("nan"),
+                     "true_loops_closed": int(closed["best_true"].sum()),
+                     "false_loops_closed": int((~closed["best_true"]).sum())})  # fmt: skip
     return pd.DataFrame(rows)
 
 

@@ -1,7 +1,4 @@
-"""One pair across methods, from what the runs wrote (``pairs.csv`` and the match stores):
-which pair to look at, its score and the rank of that score among each method's scores.
-``notebooks/explore_pairs.ipynb`` is thin over these functions and ``run_tables.match_lines``.
-"""
+"""One pair across methods, from what the runs wrote; ``notebooks/explore_pairs.ipynb`` is thin over these."""
 
 from __future__ import annotations
 
@@ -37,9 +34,8 @@ def choose_pair(
     pick_method: str | None = None,
     pick_rank: int = 1,
 ) -> int:
-    """The ``pair_index`` to show: ``pair_index`` itself (``pick='index'``), or the
-    ``pick_rank``-th top false positive (highest-scoring false pair) or false negative
-    (lowest-scoring true pair) of ``pick_method`` (default: the first method)."""
+    """The ``pair_index`` to show: itself (``pick='index'``), or ``pick_method``'s ``pick_rank``-th top false
+    positive or false negative (default: the first method)."""
     if pick not in PICKS:
         raise ValueError(f"pick must be one of {', '.join(PICKS)}, got {pick!r}")
     first = next(iter(tables.values()))
@@ -65,9 +61,8 @@ def choose_pair(
 
 
 def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.DataFrame:
-    """One row a method for pair ``pair_index``: its counts, score (``num_inliers``), the
-    rank of that score among the method's ``n_pairs`` scores, the method's highest false
-    score and whether the pair scores above it (how a true pair counts toward MR)."""
+    """One row a method for pair ``pair_index``: counts, score, its rank among the method's scores,
+    the highest false score and whether the pair beats it (counts toward MR)."""
     rows = []
     for method, table in tables.items():
         if not 0 <= pair_index < len(table):
@@ -152,9 +147,8 @@ def pair_views(
     figures_dir: str | os.PathLike[str],
     cache_dir: str | os.PathLike[str] | None = None,
 ) -> dict[str, Any]:
-    """Every view of one pair (``VIEWS``): the table across methods, the matches figure and the
-    score histograms; each is also written to ``figures_dir`` (``FIGURE_FILES``), each view
-    replacing the last, so the folder holds the pair shown, not one file a pair viewed."""
+    """Every view of one pair (``VIEWS``), each also written to ``figures_dir`` (``FIGURE_FILES``), so the
+    folder holds the pair shown."""
     from gvbench_nb.evaluation import plots
     from gvbench_nb.protocol.images import read_image
 
@@ -166,28 +160,19 @@ def pair_views(
     first = view.iloc[0]
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
-    lines = {
-        method: run_tables.match_lines(output_dir, method, first["query"], first["reference"], cache_dir)
-        for method in view["method"]
-    }
+    query, reference = first["query"], first["reference"]
+    lines = {m: run_tables.match_lines(output_dir, m, query, reference, cache_dir) for m in view["method"]}
     kind = "true" if first["label"] == 1 else "false"
     title = f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}"
     matches = plots.pair_matches(images, view, lines, title)
     scores = plots.score_histograms(tables, view)
-    return {
-        "table": view,
-        "matches": figure_image(matches, figures / FIGURE_FILES["matches"]),
-        "scores": figure_image(scores, figures / FIGURE_FILES["scores"]),
-    }
+    return {"table": view, "matches": figure_image(matches, figures / FIGURE_FILES["matches"]),
+            "scores": figure_image(scores, figures / FIGURE_FILES["scores"])}  # fmt: skip
 
 
 class ExploreControls:
-    """The notebook's controls: ``pick``, ``pair_index``, ``pick_rank``, ``pick_method`` and the
-    methods shown. Any change chooses the pair again and redraws every view (``draw(index,
-    methods)`` returns them, ``VIEWS``) into its own output area, the status saying so while it
-    draws; the ``pair_index`` box follows the pair a pick chose, and typing an index switches
-    ``pick`` to 'index'. ``pick_method`` offers the methods shown; a choice that names no pair (an
-    index out of range, a rank beyond the method's pairs) is said in the status, the views cleared."""
+    """The notebook's controls (``pick``, ``pair_index``, ``pick_rank``, ``pick_method``, methods); any change
+    redraws every view (``draw(index, methods)``), and a choice that names no pair is said in the status."""
 
     def __init__(
         self,
@@ -233,14 +218,11 @@ class ExploreControls:
     def widget(self) -> Any:
         import ipywidgets as widgets
 
-        return widgets.VBox(
-            [
-                widgets.HBox([self.pick, self.pair_index, self.pick_rank]),
-                widgets.HBox([self.pick_method, self.methods]),
-                self.status,
-                *(self.areas[name] for name in VIEWS),
-            ]
-        )
+        rows = [
+            widgets.HBox([self.pick, self.pair_index, self.pick_rank]),
+            widgets.HBox([self.pick_method, self.methods]),
+        ]
+        return widgets.VBox([*rows, self.status, *(self.areas[name] for name in VIEWS)])
 
     def shown_methods(self) -> list[str]:
         """The methods selected; none selected means all of them (the status says so)."""

@@ -1,6 +1,4 @@
-"""What notebooks/analysis_failures.ipynb computes and draws: the worst false positives and false
-negatives, how far apart their frames are, and their matches.
-"""
+"""What notebooks/analysis_failures.ipynb computes and draws: the worst false positives and negatives."""
 
 from __future__ import annotations
 
@@ -97,23 +95,16 @@ def near_miss_false_positives(
     low: float = 3,
     high: float = 5,
 ) -> dict[str, Any]:
-    """How many of the ``top_k`` highest-scoring false pairs lie just outside the
-    ground-truth threshold (``low <= offset <= high``), against the share of such
-    pairs among all false pairs: the ground-truth ambiguity the paper discusses."""
+    """How many of the ``top_k`` highest false pairs lie just outside the ground-truth threshold
+    (``low <= offset <= high``), against that share among all false pairs."""
     false = table["label"] == 0
     near = offsets[column].between(low, high)
     top = top_false_positives(table, top_k)
     n_near_top = int(near.loc[top.index].sum())
-    return {
-        "top_k": int(len(top)),
-        "column": column,
-        "low": low,
-        "high": high,
-        "near_in_top": n_near_top,
-        "near_share_in_top": n_near_top / max(len(top), 1),
-        "near_share_all_false": float(near[false].mean()) if false.any() else float("nan"),
-        "top_k_min_score": float(top["score"].min()) if len(top) else float("nan"),
-    }
+    return {"top_k": int(len(top)), "column": column, "low": low, "high": high, "near_in_top": n_near_top,
+            "near_share_in_top": n_near_top / max(len(top), 1),
+            "near_share_all_false": float(near[false].mean()) if false.any() else float("nan"),
+            "top_k_min_score": float(top["score"].min()) if len(top) else float("nan")}  # fmt: skip
 
 
 def failure_pairs(

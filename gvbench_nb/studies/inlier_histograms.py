@@ -1,6 +1,4 @@
-"""What notebooks/analysis_inlier_histograms.ipynb computes and draws: each method's inlier counts,
-normalised, for true and false pairs, and how far the two overlap.
-"""
+"""What notebooks/analysis_inlier_histograms.ipynb computes and draws: inlier counts of true vs false pairs."""
 
 from __future__ import annotations
 
@@ -19,27 +17,20 @@ def normalised_inliers(table: pd.DataFrame) -> pd.Series:
 
 
 def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
-    """What caps MR: the top false pair's score and the true pairs that do not beat it.
-
-    ``true_above_top_false`` is the share of true pairs scoring strictly above every
-    false pair - the recall reachable at 100% precision, i.e. MR.
-    """
+    """What caps MR: the top false pair's score and the share of true pairs strictly above it
+    (``true_above_top_false``, i.e. MR)."""
     true_scores = table.loc[table["label"] == 1, "score"].to_numpy(dtype=float)
     false_scores = table.loc[table["label"] == 0, "score"].to_numpy(dtype=float)
     if len(true_scores) == 0 or len(false_scores) == 0:
         raise ValueError("need both true and false pairs to describe their overlap")
     top_false = float(false_scores.max())
     largest = float(table["score"].max()) or 1.0
-    return {
-        "n_true": int(len(true_scores)),
-        "n_false": int(len(false_scores)),
-        "true_zero_inliers": float(np.mean(true_scores == 0)),
-        "false_zero_inliers": float(np.mean(false_scores == 0)),
-        "top_false_score": top_false,
-        "top_false_normalised": top_false / largest,
-        "true_above_top_false": float(np.mean(true_scores > top_false)),
-        "true_in_overlap": float(np.mean(true_scores <= top_false)),
-    }
+    return {"n_true": int(len(true_scores)), "n_false": int(len(false_scores)),
+            "true_zero_inliers": float(np.mean(true_scores == 0)),
+            "false_zero_inliers": float(np.mean(false_scores == 0)), "top_false_score": top_false,
+            "top_false_normalised": top_false / largest,
+            "true_above_top_false": float(np.mean(true_scores > top_false)),
+            "true_in_overlap": float(np.mean(true_scores <= top_false))}  # fmt: skip
 
 
 def inlier_overlap_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
@@ -47,12 +38,8 @@ def inlier_overlap_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
 
 
 def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "", bins: int = 30) -> plt.Figure:
-    """Normalised inlier counts of true vs false pairs, one panel a run (Figs. 6, 8, 9), titled
-    with its method and profile (from the table's ``profile`` column).
-
-    Shaded: above the top false pair's score, where every true pair counts towards MR;
-    annotated: the share of true pairs with zero inliers (unreachable at any threshold).
-    """
+    """Normalised inlier counts of true vs false pairs, a panel a run (Figs. 6, 8, 9); shaded above the
+    top false score, annotated with the share of true pairs at zero inliers."""
     n = len(tables)
     columns = min(n, 3)
     rows = int(np.ceil(n / columns))
@@ -62,14 +49,8 @@ def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "
         normalised = normalised_inliers(table)
         summary = inlier_overlap_summary(table)
         for label, name, colour in ((1, "true", "tab:green"), (0, "false", "tab:red")):
-            axis.hist(
-                normalised[table["label"] == label],
-                bins=edges,
-                color=colour,
-                alpha=0.55,
-                label=f"{name} ({int((table['label'] == label).sum())})",
-                density=True,
-            )
+            axis.hist(normalised[table["label"] == label], bins=edges, color=colour, alpha=0.55,
+                      label=f"{name} ({int((table['label'] == label).sum())})", density=True)  # fmt: skip
         top = summary["top_false_normalised"]
         axis.axvspan(top, 1.0, color="tab:blue", alpha=0.08)
         axis.axvline(top, color="tab:blue", linestyle="--", linewidth=1)

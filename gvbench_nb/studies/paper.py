@@ -1,12 +1,6 @@
-"""What notebooks/analysis_paper.ipynb computes and draws: the report laid out as the paper.
-
-Table II, the sequence summary (traverse, condition, viewpoint; queries, pairs, positives) of
-every run's sequence and every official list found, counted, beside the paper's text where it
-states them (the two differ: ``reference_values.paper_sequences``); Table III, our AP and MR
-with an Average column and the 1st / 2nd / 3rd of each column marked; Fig. 1, the radar of the
-published MR alone, each line labelled as the paper's or the GV-Bench repository's; Fig. 8, one
-method's MR and AP across sequences side by side.
-"""
+"""What notebooks/analysis_paper.ipynb computes and draws, laid out as the paper: Table II (sequence
+summary beside the paper's text), Table III (AP, MR, Average, ranks marked), Fig. 1 (published MR
+radar) and Fig. 8 (one method's MR and AP across sequences)."""
 
 from __future__ import annotations
 
@@ -41,15 +35,9 @@ def count_pairs(sequence: str, table: pd.DataFrame, source: str) -> dict[str, An
     references = sorted({_folder(r) for r in table["reference"]})
     per_query = table.groupby("query").size()
     low, high = int(per_query.min()), int(per_query.max())
-    return {
-        "sequence": sequence,
-        "source": source,
-        "traverse": f"{', '.join(queries)} vs {', '.join(references)}",
-        "queries": table["query"].nunique(),
-        "candidates": str(low) if low == high else f"{low}-{high}",
-        "pairs": len(table),
-        "positives": int(table["label"].sum()),
-    }
+    return {"sequence": sequence, "source": source, "traverse": f"{', '.join(queries)} vs {', '.join(references)}",
+            "queries": table["query"].nunique(), "candidates": str(low) if low == high else f"{low}-{high}",
+            "pairs": len(table), "positives": int(table["label"].sum())}  # fmt: skip
 
 
 def official_lists_dir() -> Path:
@@ -62,9 +50,8 @@ def official_lists_dir() -> Path:
 def sequence_summary(
     output_dirs: Iterable[str | os.PathLike[str]], lists_dir: str | os.PathLike[str] | None = None
 ) -> pd.DataFrame:
-    """Table II: each run folder's sequence (its first method's pairs), each official list in
-    ``lists_dir`` (default: the data folder's; ``<name>.txt``, skipped when absent), and the paper's text values of the same
-    official sequences, each row labelled by its source (condition as the paper's sources name it)."""
+    """Table II: each run folder's sequence, each official list in ``lists_dir`` (default: the data
+    folder's) and the paper's text values of those sequences, each row labelled by its source."""
     rows = []
     folders = list(output_dirs)
     results = run_tables.load_results(folders) if folders else pd.DataFrame(columns=["output_dir"])
@@ -120,11 +107,8 @@ def style_table_iii(wide: pd.DataFrame) -> Any:
     """Table III in %: 1st bold, 2nd underlined, 3rd italic in each column (the paper's marking)."""
     marks = places(wide)
     styles = marks.map(lambda place: PLACE_STYLES.get(place, ""))
-    return (
-        wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}")
-        .apply(lambda _: styles, axis=None)
-        .set_caption("1st bold, 2nd underlined, 3rd italic, in each column")
-    )
+    return (wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}") .apply(lambda _: styles,
+            axis=None) .set_caption("1st bold, 2nd underlined, 3rd italic, in each column"))  # fmt: skip
 
 
 def published_radar(source: str = run_tables.PAPER_LABEL) -> plt.Figure:

@@ -19,13 +19,8 @@ from gvbench_nb.evaluation import plots, reference_values, run_tables
 
 
 def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame:
-    """The paper's AP/MR (published in %) as fractions, with our method names where we have them.
-
-    Default: the table shipped in ``gvbench_nb/reference_values``; ``path``: a file in the
-    same format (``method,sequence,ap,max_recall`` in %), empty when it does not exist.
-    Columns: paper_name, method (ours, or None for methods we do not implement),
-    sequence, ap, max_recall.
-    """
+    """The paper's AP/MR as fractions, with our method names where we have them (None elsewhere); ``path``:
+    a file in the shipped format (``method,sequence,ap,max_recall`` in %), empty when absent."""
     columns = ["paper_name", "method", "sequence", *run_tables.METRICS]
     if path is None:
         return reference_values.paper_table().rename(columns={"reference_name": "paper_name"})[columns]
@@ -63,15 +58,9 @@ def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
 def join_paper_table(
     results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
 ) -> pd.DataFrame:
-    """Long table of ours and the published values, one row a (method, profile, sequence, source).
-
-    ``source`` is ``ours``, ``paper`` or ``GV-Bench repository``; ``profile`` is the
-    protocol the values come from: ours, the run's profile; the paper's table, ``paper``
-    (the hloc chain); the repository's, ``repository``. Published values are kept only
-    beside a run of the same method, sequence and profile, so no row sets one protocol's
-    numbers next to another's. ``label`` names the source for figures ("ours (paper profile)").
-    Two runs with the same (sequence, profile, method) are an error, not a silent choice.
-    """
+    """Long table of ours and the published values, one row a (method, profile, sequence, source); a
+    published value is kept only beside a run of the same method, sequence and profile. Two runs
+    with the same (sequence, profile, method) are an error."""
     if "profile" not in results:
         raise ValueError(
             "the results have no profile column: evaluate the runs again "
@@ -115,12 +104,8 @@ def pairs_text(n_pairs: int, limit: int | None) -> str:
 
 
 def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.METRICS) -> pd.DataFrame:
-    """Wide table: one row a (method, profile); columns (sequence, metric, source), ours beside
-    the published values of the same protocol, and (sequence, 'pairs', ours) where ``joined``
-    has our runs' ``pairs`` (``pairs_text``).
-
-    Rows, sequences keep first-seen order; a published column exists only where it has values.
-    """
+    """Wide table, a row a (method, profile), columns (sequence, metric, source): ours beside the published
+    values of the same protocol, and our ``pairs``; first-seen order."""
     wide = joined.pivot_table(
         index=["method", "profile"], columns=["sequence", "source"], values=list(metrics), aggfunc="first"
     )
@@ -133,13 +118,8 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.
         pairs = ours.pivot_table(index=["method", "profile"], columns="sequence", values="pairs", aggfunc="first")
         for sequence in pairs.columns:
             wide[(sequence, "pairs", run_tables.OURS_LABEL)] = pairs[sequence]
-    keys = [
-        (s, m, src)
-        for s in sequence_order
-        for m in ["pairs", *metrics]
-        for src in source_order
-        if (s, m, src) in wide.columns
-    ]
+    keys = [(s, m, src) for s in sequence_order for m in ["pairs", *metrics] for src in source_order if (s, m,
+             src) in wide.columns]  # fmt: skip
     wide = wide.loc[row_order, keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     wide.index = pd.MultiIndex.from_tuples(
@@ -159,12 +139,8 @@ def paper_reference_table(
         index="paper_name", columns=["sequence", "source"], values=list(run_tables.METRICS), aggfunc="first"
     )
     wide = wide.reorder_levels([1, 0, 2], axis=1)
-    keys = [
-        (s, m, source)
-        for s in dict.fromkeys(paper["sequence"])
-        for m in run_tables.METRICS
-        if (s, m, source) in wide.columns
-    ]
+    keys = [(s, m, source) for s in dict.fromkeys(paper["sequence"]) for m in run_tables.METRICS if (s, m,
+             source) in wide.columns]  # fmt: skip
     wide = wide.loc[list(dict.fromkeys(paper["paper_name"])), keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     return wide
@@ -196,11 +172,8 @@ def _percent(value: float) -> str:
     return "-" if pd.isna(value) else f"{100 * value:.1f}"
 
 
-SOURCE_STYLE = {
-    run_tables.OURS_LABEL: {"linestyle": "-", "alpha": 0.9},
-    run_tables.PAPER_LABEL: {"linestyle": "--", "alpha": 0.6},
-    run_tables.REPOSITORY_LABEL: {"linestyle": ":", "alpha": 0.6},
-}
+SOURCE_STYLE = {run_tables.OURS_LABEL: {"linestyle": "-", "alpha": 0.9}, run_tables.PAPER_LABEL: {"linestyle": "--",
+                "alpha": 0.6}, run_tables.REPOSITORY_LABEL: {"linestyle": ":", "alpha": 0.6}}  # fmt: skip
 
 
 # Ours under a second profile is told apart from the first by its line, as the label says.
@@ -215,12 +188,8 @@ def _line_style(source: str, profile: str) -> dict:
 
 
 def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
-    """MR in % of every (method, profile) across sequences (the paper's Fig. 1): ours solid (the
-    repository profile dash-dotted), the paper's dashed, the GV-Bench repository's dotted;
-    every line's label names its source and profile. The title names only what is drawn.
-
-    A radar needs three sequences or more; with fewer the same values are drawn as bars.
-    """
+    """MR in % of every (method, profile) across sequences (Fig. 1), each line labelled with its source and
+    profile; bars with fewer than three sequences."""
     sequences = list(dict.fromkeys(joined["sequence"]))
     methods = list(dict.fromkeys(joined["method"]))
     colours = plots.method_colours(methods)
@@ -234,15 +203,8 @@ def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
         if np.isnan(values).all():
             continue
         closed = np.r_[values, values[:1]]
-        axis.plot(
-            np.r_[angles, angles[:1]],
-            closed,
-            color=colours[method],
-            marker="o",
-            markersize=3,
-            label=f"{method} ({source_label(source, profile)})",
-            **_line_style(source, profile),
-        )
+        axis.plot(np.r_[angles, angles[:1]], closed, color=colours[method], marker="o", markersize=3,
+                  label=f"{method} ({source_label(source, profile)})", **_line_style(source, profile))  # fmt: skip
     axis.set_xticks(angles, sequences)
     axis.set_ylim(0, max(5.0, 110 * float(np.nanmax(joined["max_recall"]))))
     axis.set_title(title, pad=20)
@@ -265,16 +227,9 @@ def _max_recall_bars(
             if value.empty:
                 continue
             percent = 100 * float(value.iloc[0])
-            axis.barh(
-                row,
-                percent,
-                height=0.8,
-                color=colours[method],
-                hatch=None if source == run_tables.OURS_LABEL else "//",
-                alpha=SOURCE_STYLE[source]["alpha"],
-                edgecolor="black",
-                linewidth=0.4,
-            )
+            axis.barh(row, percent, height=0.8, color=colours[method],
+                      hatch=None if source == run_tables.OURS_LABEL else "//", alpha=SOURCE_STYLE[source]["alpha"],
+                      edgecolor="black", linewidth=0.4)  # fmt: skip
             axis.text(percent, row, f" {percent:.1f}%", va="center", fontsize=7)
         axis.set_yticks(range(len(rows)), [f"{m} ({source_label(src, p)})" for m, p, src in rows], fontsize=7)
         axis.invert_yaxis()

@@ -1,7 +1,4 @@
-"""What the verifier comparison reads from a run: each pair's cached matches, a place-disjoint
-train/test split, and the scores each verifier computes from the matches (GV features, SUE,
-Doppelgangers' classifier inputs).
-"""
+"""What the verifier comparison reads from a run: cached matches, a place-disjoint split, per-verifier scores."""
 
 from __future__ import annotations
 
@@ -24,12 +21,8 @@ from gvbench_nb.runner import image_features, pair_matching, scoring
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
 
 # ------------------------------------------------------------------ registry --
-ESTIMATOR_SHORT_NAMES: dict[str, str] = {
-    "FM_RANSAC": "ransac",
-    "USAC_DEFAULT": "degensac",
-    "USAC_ACCURATE": "lo-ransac",
-    "USAC_MAGSAC": "magsac",
-}
+ESTIMATOR_SHORT_NAMES: dict[str, str] = {"FM_RANSAC": "ransac", "USAC_DEFAULT": "degensac",
+                                         "USAC_ACCURATE": "lo-ransac", "USAC_MAGSAC": "magsac"}  # fmt: skip
 MODEL_SHORT_NAMES: dict[str, str] = {"fundamental": "F", "homography": "H"}
 PAPER_VERIFIER = "gv-F-ransac-inliers"
 # ------------------------------------------------------------------- split --
@@ -51,16 +44,9 @@ def place_disjoint_split(
     tolerance: int = 2,
     position: Callable[[str], int] = frame_index,
 ) -> pd.Series:
-    """'train' / 'test' / 'dropped' for each pair, so no place is in both splits.
-
-    Frames span [lo, hi] (queries and references together, n = hi - lo + 1). Train
-    holds the pairs whose query AND reference lie in [lo, lo + floor(train_fraction n) - 1],
-    test those with both in [train_end + gap_frames + 1, hi]; any pair touching the
-    gap or the other range is dropped. Frames i (train) and j (test) then differ by
-    more than ``gap_frames`` >= 2 * ``tolerance``, so the places i +- tolerance and
-    j +- tolerance never overlap. Gardens Point (frames 0-199), defaults: train
-    0-89, test 110-199.
-    """
+    """'train' / 'test' / 'dropped' for each pair: train holds pairs with both frames in the first
+    ``train_fraction`` of the frames, test those beyond a ``gap_frames`` gap (> 2 * ``tolerance``), so no
+    place is in both. Gardens Point, defaults: train 0-89, test 110-199."""
     if gap_frames < 2 * tolerance:
         raise ValueError(
             f"gap_frames={gap_frames} < 2 * tolerance ({2 * tolerance}): a place of tolerance "
@@ -89,15 +75,9 @@ def split_summary(pairs: pd.DataFrame, split: pd.Series, position: Callable[[str
     for name in (SPLIT_TRAIN, SPLIT_TEST, SPLIT_DROPPED):
         part = pairs[split == name]
         frames = pd.concat([part["query"], part["reference"]]).map(position) if len(part) else pd.Series([], dtype=int)
-        rows.append(
-            {
-                "split": name,
-                "pairs": len(part),
-                "positives": int(part["label"].sum()),
-                "queries": part["query"].nunique(),
-                "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-",
-            }
-        )
+        rows.append({"split": name, "pairs": len(part), "positives": int(part["label"].sum()),
+                     "queries": part["query"].nunique(),
+                     "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-"})  # fmt: skip
     return pd.DataFrame(rows)
 
 
@@ -117,12 +97,8 @@ class PairMatches:
 
 
 class CachedMatches:
-    """Read access to one finished run's matches (``<output_dir>/<method>``), never re-matching.
-
-    Sparse methods: matched keypoints from the feature cache (``cache_dir``, default
-    ``<output_dir>/../cache``) indexed by the stored ``matches``; dense methods: the
-    stored ``points0/points1`` (keypoints = matches there, as in ``pairs.csv``).
-    """
+    """Read access to one finished run's matches (``<output_dir>/<method>``), never re-matching: sparse
+    methods index the feature cache's keypoints, dense ones store their points."""
 
     def __init__(
         self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
@@ -136,13 +112,8 @@ class CachedMatches:
         self.image_root = Path(self.run["image_root"])
         self.pairs = scoring.load_pairs_table(self.output_dir, method)
         self.matches = pair_matching.match_store(self.output_dir, self.conf)
-        self.features = (
-            image_features.feature_store(
-                run_tables.resolve_cache_dir(self.output_dir, cache_dir), self.conf["extractor"]
-            )
-            if self.conf["extractor"]
-            else None
-        )
+        self.features = (image_features.feature_store(run_tables.resolve_cache_dir(self.output_dir, cache_dir),
+                         self.conf["extractor"]) if self.conf["extractor"] else None)  # fmt: skip
         self._read_features = lru_cache(maxsize=512)(self._features_of)
         self._read_image = lru_cache(maxsize=48)(self._image_of)
 
@@ -161,10 +132,8 @@ class CachedMatches:
             )
         entry = self.features.read(key)
         # float32: the cache may hold float16 (as hloc stores it), whose squares overflow in statistics.
-        return (
-            np.asarray(entry["keypoints"], dtype=np.float32),
-            (int(entry["image_size"][0]), int(entry["image_size"][1])),
-        )
+        return (np.asarray(entry["keypoints"], dtype=np.float32), (int(entry["image_size"][0]),
+                int(entry["image_size"][1])))  # fmt: skip
 
     def _image_of(self, name: str) -> np.ndarray:
         path = self.image_root / name
@@ -195,16 +164,8 @@ class CachedMatches:
         keypoints0, size0 = self._read_features(query)
         keypoints1, size1 = self._read_features(reference)
         index = np.asarray(entry["matches"], dtype=np.int64).reshape(-1, 2)
-        return PairMatches(
-            keypoints0[index[:, 0]],
-            keypoints1[index[:, 1]],
-            scores,
-            inlier_mask,
-            len(keypoints0),
-            len(keypoints1),
-            size0,
-            size1,
-        )
+        return PairMatches(keypoints0[index[:, 0]], keypoints1[index[:, 1]], scores, inlier_mask, len(keypoints0),
+                           len(keypoints1), size0, size1)  # fmt: skip
 
     def pair_seed(self, query: str, reference: str) -> int:
         """The RANSAC seed the run used for this pair."""
@@ -217,25 +178,12 @@ class CachedMatches:
 
 
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
-    """(inlier mask over all the pair's matches, number of matches that entered the fit).
-
-    ``ransac.filter_and_fit``, the run's own step, so FM_RANSAC with the run's seed gives the
-    stored mask.
-    """
-    return filter_and_fit(
-        pair.points0,
-        pair.points1,
-        pair.match_scores,
-        model=conf["model"],
-        method=conf["estimator"],
-        threshold_px=conf["threshold_px"],
-        confidence=conf["confidence"],
-        max_iters=conf["max_iters"],
-        min_matches=conf["min_matches"],
-        min_match_score=conf["min_match_score"],
-        few_matches=conf.get("few_matches", "zero"),
-        seed=seed,
-    )
+    """(inlier mask, matches that entered the fit) by the run's own ``filter_and_fit``, so FM_RANSAC with
+    the run's seed gives the stored mask."""
+    return filter_and_fit(pair.points0, pair.points1, pair.match_scores, model=conf["model"], method=conf["estimator"],
+                          threshold_px=conf["threshold_px"], confidence=conf["confidence"], max_iters=conf["max_iters"],
+                          min_matches=conf["min_matches"], min_match_score=conf["min_match_score"],
+                          few_matches=conf.get("few_matches", "zero"), seed=seed)  # fmt: skip
 
 
 def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:
@@ -247,31 +195,21 @@ def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float
 
 
 def gv_features(pair: PairMatches, inlier_mask: np.ndarray, num_fitted: int) -> dict[str, float]:
-    """Per-pair GV numbers: counts, both normalised scores and where the inliers lie.
-
-    ``inlier_hull_area``: the smaller of the two images' inlier convex-hull areas, as
-    a fraction of the image; ``inlier_spread``: the smaller of the two images' mean
-    per-axis std of the inlier coordinates, over the image diagonal.
-    """
+    """Per-pair GV numbers: counts, normalised scores, the smaller inlier convex-hull area (fraction of
+    the image) and the smaller inlier spread (mean per-axis std over the image diagonal)."""
     n_inliers = int(inlier_mask.sum())
     inliers0, inliers1 = pair.points0[inlier_mask], pair.points1[inlier_mask]
 
     def spread(points: np.ndarray, size: tuple[int, int]) -> float:
         return float(points.std(axis=0).mean() / np.hypot(*size)) if len(points) >= 2 else 0.0
 
-    return {
-        "num_matches": float(num_fitted),
-        "num_inliers": float(n_inliers),
-        "inliers": float(n_inliers),
-        "inlier_ratio": n_inliers / num_fitted if num_fitted else 0.0,
-        "inliers_over_keypoints": n_inliers / max(min(pair.num_keypoints0, pair.num_keypoints1), 1),
-        "log_inliers": float(np.log1p(n_inliers)),
-        "log_matches": float(np.log1p(num_fitted)),
-        "inlier_hull_area": min(
-            hull_area_fraction(inliers0, pair.image_size0), hull_area_fraction(inliers1, pair.image_size1)
-        ),
-        "inlier_spread": min(spread(inliers0, pair.image_size0), spread(inliers1, pair.image_size1)),
-    }
+    return {"num_matches": float(num_fitted), "num_inliers": float(n_inliers), "inliers": float(n_inliers),
+            "inlier_ratio": n_inliers / num_fitted if num_fitted else 0.0,
+            "inliers_over_keypoints": n_inliers / max(min(pair.num_keypoints0, pair.num_keypoints1), 1),
+            "log_inliers": float(np.log1p(n_inliers)), "log_matches": float(np.log1p(num_fitted)),
+            "inlier_hull_area": min(hull_area_fraction(inliers0, pair.image_size0), hull_area_fraction(inliers1,
+            pair.image_size1)), "inlier_spread": min(spread(inliers0, pair.image_size0), spread(inliers1,
+            pair.image_size1))}  # fmt: skip
 
 
 def gv_feature_table(
@@ -298,20 +236,9 @@ def gv_feature_table(
 def sue_pair_scores(
     table: pd.DataFrame, slope: float = 10.0, top_k: int = 10, position: Callable[[str], int] = frame_index
 ) -> pd.DataFrame:
-    """SUE of each query's GV-ranked candidates, turned into a per-pair score.
-
-    ``table`` has query, reference and ``score`` (the base GV score, >= 0). For each query:
-    1. rank its candidates by score (the "retrieval" ranking; ties by reference name)
-       and keep the top ``top_k``;
-    2. distances d_i = 1 - s_i / max_j s_j (0 for the best; all 0 when no candidate
-       has a score, so the weights are uniform), positions p_i = frame index;
-    3. query SUE = the weighted positional variance (``sue.sue`` with ``slope``), in frames^2;
-    4. every pair of the query scores  score / (1 + sqrt(SUE)): its GV score
-       discounted by the positional std of where the query's GV evidence points.
-    A query whose strong candidates agree on one place keeps its scores; one whose
-    evidence is split between distant places is discounted. Returns a frame with
-    ``query_sue`` and ``score`` aligned to ``table``'s index.
-    """
+    """SUE as a per-pair score: per query, SUE (``sue.sue``, ``slope``) of its ``top_k`` GV-ranked candidates
+    with distances 1 - s/max(s) and frame positions; each pair scores ``score / (1 + sqrt(SUE))``.
+    Returns ``query_sue`` and ``score`` aligned to ``table``."""
     query_sue = pd.Series(np.nan, index=table.index)
     for _, group in table.groupby("query", sort=False):
         ranked = group.assign(_name=group["reference"]).sort_values(["score", "_name"], ascending=[False, True])
@@ -341,11 +268,8 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
         leave=False,
     ):
         pair = cached.pair(query, reference)
-        inputs.append(
-            build_input(
-                cached.image(query), cached.image(reference), pair.points0, pair.points1, pair.match_scores, None, size
-            )
-        )
+        inputs.append(build_input(cached.image(query), cached.image(reference), pair.points0, pair.points1,
+                      pair.match_scores, None, size))  # fmt: skip
     return np.stack(inputs) if inputs else np.zeros((0, 10, size, size), np.float32)
 
 

@@ -33,7 +33,6 @@ def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
     return with_outlier_matches(rng, p0, p1, n_outliers)
 
 
-# ---------------------------------------------------------------- estimators --
 @pytest.mark.parametrize("estimator", list(ESTIMATORS))
 def test_every_fundamental_estimator_returns_the_planted_inliers(estimator):
     p0, p1, truth = two_view_scene()
@@ -88,25 +87,11 @@ def test_registry_has_every_combination_and_the_paper_verifier():
         alternative_verifiers.resolve_verifier("gv-F-ransack-inliers")
 
 
-# ----------------------------------------------------------------------- SUE --
 def test_sue_adapter_on_hand_made_positions():
     # Query a: its strong candidates agree on frames 10-12; query b's two best point 80 frames apart.
-    table = pd.DataFrame(
-        {
-            "query": ["a"] * 4 + ["b"] * 4,
-            "reference": [
-                "r/010.png",
-                "r/011.png",
-                "r/012.png",
-                "r/090.png",
-                "r/020.png",
-                "r/100.png",
-                "r/021.png",
-                "r/150.png",
-            ],
-            "score": [50, 50, 50, 0, 50, 50, 0, 0],
-        }
-    )
+    table = pd.DataFrame({"query": ["a"] * 4 + ["b"] * 4, "reference": ["r/010.png", "r/011.png", "r/012.png",
+                          "r/090.png", "r/020.png", "r/100.png", "r/021.png", "r/150.png"], "score": [50, 50, 50, 0, 50,
+                          50, 0, 0]})  # fmt: skip
     out = verifier_inputs.sue_pair_scores(table, slope=10.0, top_k=10)
     # a: weights 1, 1, 1, e^-10 (distance 1 at slope 10) on frames 10, 11, 12, 90, normalised.
     w = np.array([1, 1, 1, np.exp(-10.0)])
@@ -133,7 +118,6 @@ def test_sue_adapter_uses_only_the_top_k():
     assert spread.loc[0, "query_sue"] > 100
 
 
-# --------------------------------------------------------------------- split --
 def gardens_like_pairs(n_frames: int = 200, tolerance: int = 2) -> pd.DataFrame:
     queries = [f"night_right/Image{i:03d}.jpg" for i in range(n_frames)]
     references = [f"day_right/Image{i:03d}.jpg" for i in range(n_frames)]
@@ -172,7 +156,6 @@ def test_split_refuses_a_gap_narrower_than_a_place():
         verifier_inputs.place_disjoint_split(gardens_like_pairs(), gap_frames=3, tolerance=2)
 
 
-# --------------------------------------------------------- learned combination --
 def test_logistic_combination_fits_predicts_and_is_deterministic():
     rng = np.random.default_rng(0)
     labels = pd.Series(np.r_[np.ones(60), np.zeros(60)].astype(int))
@@ -192,7 +175,6 @@ def test_logistic_combination_fits_predicts_and_is_deterministic():
         alternative_verifiers.fit_combination(features[:10], pd.Series(np.ones(10, int)), conf)
 
 
-# ------------------------------------------------------------- cached matches --
 @pytest.fixture(scope="module")
 def cached_run(shared_data: Path, tmp_path_factory) -> Path:
     """sift-nn on 4 Gardens Point queries, 3 candidates each, in a temporary folder; the paper
@@ -225,16 +207,9 @@ def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
 
 @pytest.mark.real_data
 def test_bench_records_conf_and_reports_a_missing_official_checkpoint(cached_run, empty_hub):
-    bench = alternative_verifiers.open_bench(
-        cached_run / "out",
-        "sift-nn",
-        cached_run / "verifiers",
-        cached_run / "cache",
-        progress=False,
-        train_fraction=0.45,
-        gap_frames=20,
-        tolerance=2,
-    )
+    bench = alternative_verifiers.open_bench(cached_run / "out", "sift-nn", cached_run / "verifiers",
+                                             cached_run / "cache", progress=False, train_fraction=0.45, gap_frames=20,
+                                             tolerance=2)  # fmt: skip
     results, tables, boot = bench.evaluate(
         ["gv-F-ransac-inliers", "gv-H-magsac-inlier_ratio", "sue", "doppelgangers"], n_resamples=50
     )

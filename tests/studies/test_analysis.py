@@ -19,17 +19,8 @@ from gvbench_nb.studies import failures, inlier_histograms, results_table, runti
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
-    return pd.DataFrame(
-        {
-            "pair_index": range(len(labels)),
-            "query": queries,
-            "reference": references,
-            "label": labels,
-            "score": scores,
-            "num_inliers": scores,
-            "num_matches": np.asarray(scores) + 10,
-        }
-    )
+    return pd.DataFrame({"pair_index": range(len(labels)), "query": queries, "reference": references, "label": labels,
+                         "score": scores, "num_inliers": scores, "num_matches": np.asarray(scores) + 10})  # fmt: skip
 
 
 def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, separation: float = 1.0) -> pd.DataFrame:
@@ -42,16 +33,12 @@ def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, sep
     return pairs_frame(queries, [f"r{i}" for i in range(n)], labels, scores)
 
 
-# ------------------------------------------------------------ best per column --
-def test_best_per_column_marks_all_ties_and_never_nan():
+def test_best_per_column_marks_all_ties_never_nan_and_lower_is_better_per_column():
     table = pd.DataFrame({"a": [0.5, 0.9, 0.9], "b": [np.nan, 0.1, 0.2], "c": [np.nan, np.nan, np.nan]})
     best = run_tables.best_per_column(table)
     assert best["a"].tolist() == [False, True, True]
     assert best["b"].tolist() == [False, False, True]
     assert not best["c"].any()
-
-
-def test_best_per_column_lower_is_better_per_column():
     table = pd.DataFrame({"max_recall": [0.2, 0.4], "seconds_per_pair": [0.3, 0.1]})
     best = run_tables.best_per_column(table, {"seconds_per_pair": False})
     assert best["max_recall"].tolist() == [False, True]
@@ -59,7 +46,6 @@ def test_best_per_column_lower_is_better_per_column():
     assert run_tables.best_per_column(table, False)["max_recall"].tolist() == [True, False]
 
 
-# ------------------------------------------------------------ the paper's table --
 def test_paper_table_join_labels_values_and_mapping(tmp_path):
     path = tmp_path / "paper_table.csv"
     path.write_text(
@@ -69,15 +55,8 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
     paper = results_table.load_paper_table(path)
     assert paper.loc[paper.paper_name == "SIFT+NN", "method"].unique().tolist() == ["sift-nn"]
     assert paper.loc[paper.paper_name == "NotOurs+XX", "method"].isna().all()  # not one of ours
-    results = pd.DataFrame(
-        {
-            "method": ["sift-nn", "disk-nn"],
-            "sequence": ["night", "night"],
-            "profile": ["paper", "paper"],
-            "ap": [0.7, 0.5],
-            "max_recall": [0.1, 0.2],
-        }
-    )
+    results = pd.DataFrame({"method": ["sift-nn", "disk-nn"], "sequence": ["night", "night"], "profile": ["paper",
+                            "paper"], "ap": [0.7, 0.5], "max_recall": [0.1, 0.2]})  # fmt: skip
     joined = results_table.join_paper_table(results, paper)
     assert set(joined["source"]) == {"ours", "paper"}
     theirs = joined[joined.source == "paper"]
@@ -94,11 +73,6 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
     assert results_table._percent(wide.loc[("disk-nn (DISK+NN)", "paper"), ("night", "ap", "paper")]) == "-"
 
 
-def test_missing_paper_table_is_empty_not_an_error(tmp_path):
-    assert results_table.load_paper_table(tmp_path / "absent.csv").empty
-
-
-# ------------------------------------------------------------------ failures --
 def test_top_false_positives_and_negatives_with_frame_offsets():
     queries = [f"night/Image{i:03d}.jpg" for i in (10, 10, 10, 20, 20, 20)]
     references = [f"day/Image{j:03d}.jpg" for j in (10, 14, 40, 21, 23, 20)]
@@ -123,15 +97,8 @@ def test_pose_offsets_from_poses_csv(tmp_path):
     for name, x, yaw in (("night/000.png", 0.0, 0.0), ("day/001.png", 3.0, 0.0), ("day/002.png", 0.0, 90.0)):
         c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
         rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # optical axis turned by yaw
-        rows.append(
-            {
-                "image": name,
-                "x": x,
-                "y": 4.0,
-                "z": 1.5,
-                **{f"r{i}{j}": rotation[i, j] for i in range(3) for j in range(3)},
-            }
-        )
+        rows.append({"image": name, "x": x, "y": 4.0, "z": 1.5, **{f"r{i}{j}": rotation[i,
+                     j] for i in range(3) for j in range(3)}})  # fmt: skip
     pd.DataFrame(rows).to_csv(tmp_path / "poses.csv", index=False)
     table = pairs_frame(["night/000.png"] * 2, ["day/001.png", "day/002.png"], [1, 0], [5, 1])
     offsets = failures.ground_truth_offsets(table, tmp_path)
@@ -142,7 +109,6 @@ def test_pose_offsets_from_poses_csv(tmp_path):
         failures.ground_truth_offsets(pairs_frame(["night/009.png"], ["day/001.png"], [1], [1]), tmp_path)
 
 
-# ------------------------------------------------------------------- inliers --
 def test_normalised_inliers_and_overlap_summary():
     table = pairs_frame(["q"] * 6, list("abcdef"), [1, 1, 1, 0, 0, 1], [40, 10, 0, 10, 5, 0])
     assert inlier_histograms.normalised_inliers(table).tolist() == pytest.approx([1, 0.25, 0, 0.25, 0.125, 0])
@@ -156,7 +122,6 @@ def test_normalised_inliers_and_overlap_summary():
     assert inlier_histograms.normalised_inliers(table.assign(num_inliers=0)).tolist() == [0] * 6
 
 
-# ------------------------------------------------------------------ bootstrap --
 def test_weighted_metrics_equal_sklearn_on_repeated_pairs():
     rng = np.random.default_rng(3)
     checked = 0
@@ -221,22 +186,14 @@ def test_bootstrap_scores_all_resamples_in_one_vectorised_pass(monkeypatch):
         assert all(len(samples) == n_resamples for samples in result.samples.values())
 
 
-# ---------------------------------------------------------------- results I/O --
 def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="repository"):
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     table = table.assign(extract_seconds=0.1, match_seconds=0.2, verify_seconds=0.05)
     folder = method_outputs.method_dir(output_dir, method)
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
-    (folder / "run.json").write_text(
-        json.dumps(
-            {
-                "sequence": sequence,
-                "conf": {"paper_name": "SIFT+NN", "profile": profile},
-                "environment": {"device": "cpu"},
-            }
-        )
-    )
+    (folder / "run.json").write_text(json.dumps({"sequence": sequence, "conf": {"paper_name": "SIFT+NN",
+     "profile": profile}, "environment": {"device": "cpu"}}))  # fmt: skip
 
 
 def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
@@ -262,7 +219,6 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
         run_tables.find_output_dirs(tmp_path, ["absent"])
 
 
-# -------------------------------------------------------------------- report --
 def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypatch):
     import argparse
 
@@ -280,12 +236,9 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     report_dir = tmp_path / "report"
     (report_dir / "toy").mkdir(parents=True)
     (report_dir / "toy" / "analysis_failures.html").write_text("<html></html>")
-    executed = [
-        report.ExecutedNotebook(
-            "toy", report_dir / "toy" / "analysis_failures.ipynb", report_dir / "toy" / "analysis_failures.html"
-        ),
-        report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_uncertainty.ipynb", None, "ValueError: boom"),
-    ]
+    executed = [report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_failures.ipynb",
+                report_dir / "toy" / "analysis_failures.html"), report.ExecutedNotebook("toy",
+                report_dir / "toy" / "analysis_uncertainty.ipynb", None, "ValueError: boom")]  # fmt: skip
     page = report.summary_page(report_dir, [output_dir], executed)
     assert ">paper<" in page and ">ours<" in page
     assert ">12.5<" in page and ">50.0<" in page  # the paper's values, in %
@@ -306,6 +259,7 @@ def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
         {"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8], "max_recall": [0.1]}
     )
     paper = results_table.load_paper_table(tmp_path / "absent.csv")
+    assert paper.empty
     joined = results_table.join_paper_table(results, paper)
     assert joined["source"].tolist() == [run_tables.OURS_LABEL]
     assert results_table.results_table(joined).shape == (1, 2)
@@ -320,23 +274,13 @@ def test_results_table_says_how_many_pairs_a_row_has_and_whether_limit_cut_them(
     assert "24 (--limit)" in results_table.style_results_table(wide).to_html()
 
 
-# ------------------------------------------------------- profiles never mix --
 def two_profile_results() -> pd.DataFrame:
     """sift-nn under both profiles on one sequence, plus disk-lg under the repository's."""
-    return pd.DataFrame(
-        {
-            "sequence": ["night", "night", "night"],
-            "method": ["sift-nn", "sift-nn", "disk-lg"],
-            "profile": ["paper", "repository", "repository"],
-            "ap": [0.60, 0.55, 0.90],
-            "max_recall": [0.08, 0.05, 0.40],
-            "device": "cpu",
-            "extract_seconds_per_pair": [0.1, 0.02, 0.3],
-            "match_seconds_per_pair": 0.01,
-            "verify_seconds_per_pair": 0.01,
-            "seconds_per_pair": [0.12, 0.04, 0.32],
-        }
-    )
+    return pd.DataFrame({"sequence": ["night", "night", "night"], "method": ["sift-nn", "sift-nn", "disk-lg"],
+                         "profile": ["paper", "repository", "repository"], "ap": [0.60, 0.55, 0.90],
+                         "max_recall": [0.08, 0.05, 0.40], "device": "cpu", "extract_seconds_per_pair": [0.1, 0.02,
+                         0.3], "match_seconds_per_pair": 0.01, "verify_seconds_per_pair": 0.01,
+                         "seconds_per_pair": [0.12, 0.04, 0.32]})  # fmt: skip
 
 
 def test_results_table_keeps_one_row_a_method_and_profile():
@@ -344,11 +288,8 @@ def test_results_table_keeps_one_row_a_method_and_profile():
         two_profile_results(), results_table.load_paper_table(), results_table.load_repository_table()
     )
     wide = results_table.results_table(joined)
-    assert list(wide.index) == [
-        ("sift-nn (SIFT+NN)", "paper"),
-        ("sift-nn (SIFT+NN)", "repository"),
-        ("disk-lg (DISK+LG)", "repository"),
-    ]
+    assert list(wide.index) == [("sift-nn (SIFT+NN)", "paper"), ("sift-nn (SIFT+NN)", "repository"),
+                ("disk-lg (DISK+LG)", "repository")]  # fmt: skip
     assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "ours")] == pytest.approx(0.60)
     assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "ours")] == pytest.approx(0.55)
     # Published values only beside the same protocol: the paper's 62.1 % in the paper row,
@@ -360,12 +301,8 @@ def test_results_table_keeps_one_row_a_method_and_profile():
     )
     assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "paper")])
     assert np.isnan(wide.loc[("disk-lg (DISK+LG)", "repository"), ("night", "ap", "paper")])
-    assert set(joined["label"]) == {
-        "ours (paper profile)",
-        "ours (repository profile)",
-        "paper",
-        run_tables.REPOSITORY_LABEL,
-    }
+    assert set(joined["label"]) == {"ours (paper profile)", "ours (repository profile)", "paper",
+               run_tables.REPOSITORY_LABEL}  # fmt: skip
 
 
 def test_the_same_run_twice_in_one_table_is_an_error():
@@ -415,11 +352,8 @@ def test_runtime_figures_and_histograms_name_the_profile():
 
     runtime = runtime_vs_mr.runtime_table(two_profile_results())
     stacked = runtime_vs_mr.seconds_per_pair_stacked(runtime)
-    assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == [
-        "sift-nn [paper]",
-        "sift-nn [repository]",
-        "disk-lg [repository]",
-    ]
+    assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == ["sift-nn [paper]", "sift-nn [repository]",
+            "disk-lg [repository]"]  # fmt: skip
     scatter = runtime_vs_mr.fps_vs_max_recall(runtime)
     assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
     # The log axis reads: at least three labelled ticks inside it, whatever the speeds.
@@ -431,10 +365,8 @@ def test_runtime_figures_and_histograms_name_the_profile():
         shown = [t.get_text() for t in axis.get_xticklabels() if low <= t.get_position()[0] <= high]
         assert len([t for t in shown if t]) >= 3, shown
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
-    tables = {
-        "sift-nn (paper)": table.assign(profile="paper"),
-        "sift-nn (repository)": table.assign(profile="repository"),
-    }
+    tables = {"sift-nn (paper)": table.assign(profile="paper"),
+              "sift-nn (repository)": table.assign(profile="repository")}  # fmt: skip
     figure = inlier_histograms.normalised_inlier_histograms(tables)
     assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper) [paper]", "sift-nn (repository) [repository]"]
     with pytest.raises(ValueError, match="mixes profiles"):

@@ -16,11 +16,8 @@ def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
 
 
 def identical_queries(n_queries: int = 40) -> pd.DataFrame:
-    """Every query has the same three pairs: a true one scored 3, a false one 2, a true one 1.
-
-    Any draw of whole queries weights the three kinds equally, so AP (5/6) and MR (1/2)
-    never move; a draw of single pairs changes their mix, and both metrics with it.
-    """
+    """Every query has the same three pairs (true 3, false 2, true 1): a draw of whole queries never
+    moves AP (5/6) or MR (1/2); a draw of single pairs changes their mix, and both metrics with it."""
     queries = np.repeat([f"q{i}" for i in range(n_queries)], 3)
     references = [f"r{i}" for i in range(3 * n_queries)]
     return pairs_frame(queries, references, np.tile([1, 0, 1], n_queries), np.tile([3.0, 2.0, 1.0], n_queries))
@@ -119,10 +116,8 @@ def test_interval_columns_keyed_by_method():
     # Methods run on different pairs still get their own intervals, over their own queries.
     shorter = intervals.interval_columns({"a": tables["a"], "c": tables["a"].iloc[:100]}, 200, seed=0)
     pd.testing.assert_series_equal(shorter.loc["a"], columns.loc["a"])
-    assert (
-        shorter.loc["c", "ap_high"] - shorter.loc["c", "ap_low"]
-        > columns.loc["a", "ap_high"] - columns.loc["a", "ap_low"]
-    )
+    assert (shorter.loc["c", "ap_high"] - shorter.loc["c", "ap_low"] > columns.loc["a", "ap_high"] - columns.loc["a",
+            "ap_low"])  # fmt: skip
 
 
 def test_refuses_methods_with_different_labels():
@@ -137,14 +132,9 @@ def test_refuses_methods_with_different_labels():
 def test_the_notebooks_matrix_and_compares_table_rank_by_one_rule():
     # A wins 96 of 100 draws: ranked at the rule's 95 %, where a 97.5 % reading would call a tie.
     samples = pd.DataFrame({"a": [0.6] * 96 + [0.4] * 4, "b": [0.5] * 100})
-    boot = bootstrap.Bootstrap(
-        methods=["a", "b"],
-        estimates=pd.DataFrame({"ap": [0.6, 0.5], "max_recall": [0.6, 0.5]}, index=["a", "b"]),
-        samples={"ap": samples, "max_recall": samples},
-        n_queries=10,
-        n_pairs=20,
-        seed=0,
-    )
+    boot = bootstrap.Bootstrap(methods=["a", "b"], estimates=pd.DataFrame({"ap": [0.6, 0.5], "max_recall": [0.6, 0.5]},
+                               index=["a", "b"]), samples={"ap": samples, "max_recall": samples}, n_queries=10,
+                               n_pairs=20, seed=0)  # fmt: skip
     assert boot.paired_shares("ap").iloc[0]["verdict"] == "a > b"
     matrix = boot.ranking_matrix("ap")
     assert (matrix.loc["a", "b"], matrix.loc["b", "a"]) == (">", "<")

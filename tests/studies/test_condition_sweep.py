@@ -32,7 +32,6 @@ def _read_png(path: Path) -> np.ndarray:
     return cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
-# ---------------------------------------------------------------- the table --
 def test_sweep_table_has_one_row_a_cell(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     assert list(sweep.columns) == cs.SWEEP_COLUMNS
     cells = sorted(zip(sweep["condition"], sweep["strength"]))
@@ -70,7 +69,6 @@ def test_reference_drive_is_extracted_once(sweep: pd.DataFrame, sweep_dir: Path)
             assert counts == {"images": 2 * n, "cached": n, "extracted": n}, name
 
 
-# ----------------------------------------------------------------- resuming --
 def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     images = {p: p.stat().st_mtime_ns for p in (sweep_dir / "images").rglob("*.png")}
 
@@ -113,7 +111,6 @@ def test_bad_inputs_are_refused(tmp_path: Path) -> None:
         cs.method_profiles(["sift-nn", "disk-nn"], {"sift-nn": "paper"})
 
 
-# ------------------------------------------------------------ clear renders --
 def test_strength_zero_of_each_condition_equals_the_clear_render(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     route = synthetic.make_route(TINY["seed"], TINY["n_frames"], TINY["image_size"])
     clear = route.render_query({})
@@ -136,7 +133,6 @@ def test_reference_folder_is_the_clear_reference_drive(sweep: pd.DataFrame, swee
     assert all(np.array_equal(a, b) for a, b in zip(on_disk, reference))
 
 
-# ---------------------------------------------------------- aliasing share --
 def test_aliasing_share_counts_look_alikes_among_top_false_pairs() -> None:
     labels = np.array([1, 1, 0, 0, 0, 0, 0, 0])
     scores = np.array([90, 10, 80, 70, 60, 5, 4, 3])
@@ -167,13 +163,9 @@ def test_aliasing_share_rejects_a_true_look_alike() -> None:
         cs.aliasing_share(np.array([1, 0]), np.array([5, 3]), np.array([1, 0]))
 
 
-# ------------------------------------------------------- breaking strength --
 def _hand_table(curves: dict[str, list[float]], strengths=(0.0, 0.25, 0.5, 0.75, 1.0)) -> pd.DataFrame:
-    rows = [
-        {"condition": condition, "strength": s, "method": "m", "profile": "paper", "max_recall": mr}
-        for condition, values in curves.items()
-        for s, mr in zip(strengths, values)
-    ]
+    rows = [{"condition": condition, "strength": s, "method": "m", "profile": "paper", "max_recall": mr} for condition,
+             values in curves.items() for s, mr in zip(strengths, values)]  # fmt: skip
     return pd.DataFrame(rows).sample(frac=1.0, random_state=0)  # row order must not matter
 
 

@@ -64,11 +64,7 @@ def test_query_outcomes_rerank_by_score_and_keep_file_order_on_ties():
     # q0: retrieval puts a false first (score 3), GV ranks the true (9) first.
     # q1: the true is first, but a false scores higher (8 > 6): GV puts the false first.
     # q2: no true candidate. q3: both score 5; the first in file order (true) stays first.
-    table = pairs_table(
-        ["q0", "q0", "q1", "q1", "q2", "q3", "q3"],
-        [0, 1, 1, 0, 0, 1, 0],
-        [3, 9, 6, 8, 2, 5, 5],
-    )
+    table = pairs_table(["q0", "q0", "q1", "q1", "q2", "q3", "q3"], [0, 1, 1, 0, 0, 1, 0], [3, 9, 6, 8, 2, 5, 5])
     outcomes = deployment.query_outcomes(table, threshold=6)
     assert outcomes["has_true"].tolist() == [True, True, False, True]
     assert outcomes["first_true"].tolist() == [False, True, False, True]
@@ -83,12 +79,8 @@ def write_run(folder, sequence: str, labels, scores, builder: str = "frame_toler
     method_dir = method_outputs.method_dir(folder, "sift-nn")
     method_dir.mkdir(parents=True)
     table.to_csv(method_dir / "pairs.csv", index=False)
-    run = {
-        "sequence": sequence,
-        "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
-        "environment": {"device": "cpu"},
-        "pairs": {"pairs_builder": builder},
-    }
+    run = {"sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
+           "environment": {"device": "cpu"}, "pairs": {"pairs_builder": builder}}  # fmt: skip
     (method_dir / "run.json").write_text(json.dumps(run))
     scoring.evaluate(folder)
 

@@ -76,8 +76,16 @@ class Bootstrap:
                 values = frame[method].to_numpy()
                 valid = values[~np.isnan(values)]
                 low, high = np.percentile(valid, [tail, 100 - tail]) if len(valid) else (np.nan, np.nan)
-                rows.append({"method": method, "metric": metric, "estimate": self.estimates.loc[method, metric],
-                             "low": low, "high": high, "n_valid": len(valid)})  # fmt: skip
+                rows.append(
+                    {
+                        "method": method,
+                        "metric": metric,
+                        "estimate": self.estimates.loc[method, metric],
+                        "low": low,
+                        "high": high,
+                        "n_valid": len(valid),
+                    }
+                )
         return pd.DataFrame(rows)
 
     def paired_shares(self, metric: str, ranked_share: float | None = None) -> pd.DataFrame:
@@ -102,9 +110,19 @@ class Bootstrap:
                 verdict = (
                     f"{first} > {second}" if wins >= share else f"{second} > {first}" if losses >= share else "tie"
                 )
-                rows.append({"metric": metric, "first": first, "second": second, "first_value": float(estimates[first]),
-                             "second_value": float(estimates[second]), "first_beats_second": wins, "tied": ties,
-                             "second_beats_first": losses, "verdict": verdict})  # fmt: skip
+                rows.append(
+                    {
+                        "metric": metric,
+                        "first": first,
+                        "second": second,
+                        "first_value": float(estimates[first]),
+                        "second_value": float(estimates[second]),
+                        "first_beats_second": wins,
+                        "tied": ties,
+                        "second_beats_first": losses,
+                        "verdict": verdict,
+                    }
+                )
         return pd.DataFrame(rows)
 
     def ranking_matrix(self, metric: str = "max_recall", ranked_share: float | None = None) -> pd.DataFrame:
@@ -133,6 +151,11 @@ def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = 1000, seed: in
         samples["ap"][method], samples["max_recall"][method] = weighted_ap_max_recall(labels, scores, weights)
         ap, max_recall = weighted_ap_max_recall(labels, scores, np.ones((1, len(labels))))
         estimates[method] = {"ap": ap[0], "max_recall": max_recall[0]}
-    return Bootstrap(methods=methods, estimates=pd.DataFrame(estimates).T,
-                     samples={metric: pd.DataFrame(values) for metric, values in samples.items()},
-                     n_queries=int(query_codes.max()) + 1, n_pairs=len(aligned), seed=seed)  # fmt: skip
+    return Bootstrap(
+        methods=methods,
+        estimates=pd.DataFrame(estimates).T,
+        samples={metric: pd.DataFrame(values) for metric, values in samples.items()},
+        n_queries=int(query_codes.max()) + 1,
+        n_pairs=len(aligned),
+        seed=seed,
+    )

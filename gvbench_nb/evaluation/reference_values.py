@@ -17,8 +17,13 @@ COLUMNS = ["reference_name", "method", "sequence", *METRICS]
 # The repository's matcher names (image-matching-models) -> ours, where the method is the same:
 # its 'xfeat' is XFeat sparse with mutual nearest neighbours (our xfeat-nn); 'superpoint-lg' is
 # SuperPoint + LightGlue. master (MASt3R), roma, duster (DUSt3R) and sift-lg have no method here.
-REPOSITORY_METHODS: dict[str, str] = {"sift-nn": "sift-nn", "disk-lg": "disk-lg", "superpoint-lg": "sp-lg",
-                         "xfeat": "xfeat-nn", "loftr": "loftr"}  # fmt: skip
+REPOSITORY_METHODS: dict[str, str] = {
+    "sift-nn": "sift-nn",
+    "disk-lg": "disk-lg",
+    "superpoint-lg": "sp-lg",
+    "xfeat": "xfeat-nn",
+    "loftr": "loftr",
+}
 
 
 def _read(name: str) -> pd.DataFrame:

@@ -19,13 +19,18 @@ from gvbench_nb.runner import config, image_features, method_outputs, pair_match
 
 METRICS = ("ap", "max_recall")
 
+
 PAPER_LABEL = reference_values.PAPER_LABEL  # how the paper's numbers are named in every table and figure
+
 
 REPOSITORY_LABEL = reference_values.REPOSITORY_LABEL  # and the GV-Bench repository's
 
+
 OURS_LABEL = "ours"
 
+
 RUN_KEY = ["sequence", "profile", "method"]  # what identifies a run in every table and figure
+
 
 TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair")
 
@@ -200,8 +205,11 @@ def match_lines(
         features.close()
     pair_matches = entry["matches"].astype(int).reshape(-1, 2)
     # float32: the cache may hold float16 keypoints (as hloc stores them).
-    return {"points0": points0[pair_matches[:, 0]].astype(np.float32), "points1": points1[pair_matches[:,
-            1]].astype(np.float32), "inlier_mask": inlier_mask}  # fmt: skip
+    return {
+        "points0": points0[pair_matches[:, 0]].astype(np.float32),
+        "points1": points1[pair_matches[:, 1]].astype(np.float32),
+        "inlier_mask": inlier_mask,
+    }
 
 
 class IncomparableRunsError(method_outputs.ResultsError, ValueError):

@@ -127,9 +127,13 @@ class VerifierBench:
                 info = json.loads(path.with_suffix(".json").read_text())
                 info["reused"] = True
             else:
-                info = doppelgangers.train_in_domain(self.cached,
-                                                     self.pairs[self.pairs["split"] == verifier_inputs.SPLIT_TRAIN],
-                                                     conf, path, self.progress)  # fmt: skip
+                info = doppelgangers.train_in_domain(
+                    self.cached,
+                    self.pairs[self.pairs["split"] == verifier_inputs.SPLIT_TRAIN],
+                    conf,
+                    path,
+                    self.progress,
+                )
                 info["reused"] = False
             model = load_doppelgangers(path)
             self.weights_info[name] = info
@@ -200,8 +204,11 @@ class VerifierBench:
                 rows.append({**row, "status": f"unavailable: {str(error).splitlines()[0]}"})
                 continue
             tables[name] = part[["query", "reference", "label"]].assign(score=score.loc[part.index].to_numpy())
-            metrics = evaluate_scores(tables[name]["label"].to_numpy(), tables[name]["score"].to_numpy(),
-                                      where=f"verifier {name} on the {split} split of {self.cached.label}")  # fmt: skip
+            metrics = evaluate_scores(
+                tables[name]["label"].to_numpy(),
+                tables[name]["score"].to_numpy(),
+                where=f"verifier {name} on the {split} split of {self.cached.label}",
+            )
             weights = self.weights_info.get(name) or self.weights_info.get(conf.get("classifier") or "")
             row.update(ap=metrics["ap"], max_recall=metrics["max_recall"], status="ok")
             rows.append({**row, "weights": weights["weights"] if weights else ""})
@@ -280,10 +287,15 @@ def verifier_table(results: pd.DataFrame) -> pd.DataFrame:
             return "-"
         return f"{100 * row[metric]:.1f} [{100 * row[f'{metric}_ci_low']:.1f}, {100 * row[f'{metric}_ci_high']:.1f}]"
 
-    return pd.DataFrame({"verifier": results["verifier"], "AP % [95% CI]": [cell(r, "ap") for _,
-                         r in results.iterrows()], "MR % [95% CI]": [cell(r, "max_recall") for _,
-                         r in results.iterrows()], "status": results["status"],
-                         "weights": results["weights"].fillna("")}).set_index("verifier")  # fmt: skip
+    return pd.DataFrame(
+        {
+            "verifier": results["verifier"],
+            "AP % [95% CI]": [cell(r, "ap") for _, r in results.iterrows()],
+            "MR % [95% CI]": [cell(r, "max_recall") for _, r in results.iterrows()],
+            "status": results["status"],
+            "weights": results["weights"].fillna(""),
+        }
+    ).set_index("verifier")
 
 
 def best_by(

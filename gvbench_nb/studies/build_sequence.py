@@ -35,8 +35,15 @@ def recall_curves(
             sequence_build.retrieve(inputs, sequence_build.global_descriptors(inputs, name, options, progress), max_k),
         )
         recall = retrieval.retrieval_recall_at(range(1, max_k + 1), ranked, truth)
-        rows += [{"descriptor": name, "k": k, "recall": recall[f"recall@{k}"],
-                  "queries_evaluated": recall["queries_evaluated"]} for k in range(1, max_k + 1)]  # fmt: skip
+        rows += [
+            {
+                "descriptor": name,
+                "k": k,
+                "recall": recall[f"recall@{k}"],
+                "queries_evaluated": recall["queries_evaluated"],
+            }
+            for k in range(1, max_k + 1)
+        ]
     return pd.DataFrame(rows, columns=["descriptor", "k", "recall", "queries_evaluated"])
 
 

@@ -58,8 +58,10 @@ class SweepRoute:
         """The cell's pairs: its query folder against the shared reference folder."""
         folder, name = query_folder(condition, strength), f"synthetic-{cell_name(condition, strength)}"
         frames = zip(self.pairs["query_frame"], self.pairs["reference_frame"], self.pairs["label"])
-        pairs = [Pair(self.frame_name(folder, int(q)), self.frame_name(REFERENCE_FOLDER, int(r)), int(y)) for q, r,
-                 y in frames]  # fmt: skip
+        pairs = [
+            Pair(self.frame_name(folder, int(q)), self.frame_name(REFERENCE_FOLDER, int(r)), int(y))
+            for q, r, y in frames
+        ]
         return Sequence(name, self.image_root, pairs)
 
 
@@ -86,10 +88,15 @@ def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
 
 
 def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> dict[str, Any]:
-    return {"generator_version": synthetic.GENERATOR_VERSION, "seed": int(seed), "n_frames": int(n_frames),
-            "image_size": [int(image_size[0]), int(image_size[1])], "max_distance_m": synthetic.DEFAULT_MAX_DISTANCE_M,
-            "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
-            "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M}  # fmt: skip
+    return {
+        "generator_version": synthetic.GENERATOR_VERSION,
+        "seed": int(seed),
+        "n_frames": int(n_frames),
+        "image_size": [int(image_size[0]), int(image_size[1])],
+        "max_distance_m": synthetic.DEFAULT_MAX_DISTANCE_M,
+        "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
+        "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M,
+    }
 
 
 def prepare_route(
@@ -121,8 +128,10 @@ def prepare_route(
     else:
         chosen = synthetic.select_pairs(route.scene, route.query, route.reference, seed)
         look_alike = synthetic.look_alike_labels(route.scene, route.query, route.reference)
-        pairs = pd.DataFrame([(q, r, label, int(look_alike[q, r])) for q, r, label in chosen], columns=["query_frame",
-                               "reference_frame", "label", "look_alike"])  # fmt: skip
+        pairs = pd.DataFrame(
+            [(q, r, label, int(look_alike[q, r])) for q, r, label in chosen],
+            columns=["query_frame", "reference_frame", "label", "look_alike"],
+        )
         atomic_write_csv(pairs_path, pairs)
     return SweepRoute(route, image_root, pairs)
 
@@ -353,8 +362,10 @@ def breaking_strength_table(sweep: pd.DataFrame) -> pd.DataFrame:
     """Breaking strengths as a method x condition table of text ('0.43', 'not reached')."""
     table = breaking_strength(sweep)
     table["label"] = table["method"] + np.where(table["profile"] == "paper", "", " (" + table["profile"] + ")")
-    table["value"] = [f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED) for b,
-          note in zip(table["breaking_strength"], table["note"])]  # fmt: skip
+    table["value"] = [
+        f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED)
+        for b, note in zip(table["breaking_strength"], table["note"])
+    ]
     return table.pivot(index="label", columns="condition", values="value").rename_axis(index="method", columns=None)
 
 
@@ -432,9 +443,11 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
     return figure
 
 
-RENDER_SETTINGS: dict[str, dict[str, float]] = {"clear": {},
-                      **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
-                      "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0)}  # fmt: skip
+RENDER_SETTINGS: dict[str, dict[str, float]] = {
+    "clear": {},
+    **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
+    "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0),
+}
 
 
 RENDER_TIME_COLUMNS = ["setting", "conditions", "n_frames", "image_size", "repeats", "median_seconds", "min_seconds"]

@@ -34,9 +34,12 @@ def apply_threshold(labels: np.ndarray, scores: np.ndarray, threshold: float) ->
     true_accepted = int((accepted & labels).sum())
     false_accepted = int((accepted & ~labels).sum())
     n_accepted = true_accepted + false_accepted
-    return {"precision": true_accepted / n_accepted if n_accepted else float("nan"),
-            "recall": true_accepted / int(labels.sum()) if labels.any() else float("nan"),
-            "false_loops": false_accepted, "n_accepted": n_accepted}  # fmt: skip
+    return {
+        "precision": true_accepted / n_accepted if n_accepted else float("nan"),
+        "recall": true_accepted / int(labels.sum()) if labels.any() else float("nan"),
+        "false_loops": false_accepted,
+        "n_accepted": n_accepted,
+    }
 
 
 class DeploymentInputs:
@@ -145,12 +148,20 @@ def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.D
         findable = outcomes[outcomes["has_true"]]
         closed = outcomes[outcomes["best_passes"]]
         kept = inputs.keeps_retrieval_order[row.target]
-        rows.append({"method": row.method, "profile": row.profile, "calibration": row.calibration, "target": row.target,
-                     "n_queries": len(outcomes), "queries_with_true": len(findable),
-                     "recall_at_1_gv": findable["best_true"].mean() if len(findable) else float("nan"),
-                     "recall_at_1_retrieval": findable["first_true"].mean() if kept and len(findable) else float("nan"),
-                     "true_loops_closed": int(closed["best_true"].sum()),
-                     "false_loops_closed": int((~closed["best_true"]).sum())})  # fmt: skip
+        rows.append(
+            {
+                "method": row.method,
+                "profile": row.profile,
+                "calibration": row.calibration,
+                "target": row.target,
+                "n_queries": len(outcomes),
+                "queries_with_true": len(findable),
+                "recall_at_1_gv": findable["best_true"].mean() if len(findable) else float("nan"),
+                "recall_at_1_retrieval": findable["first_true"].mean() if kept and len(findable) else float("nan"),
+                "true_loops_closed": int(closed["best_true"].sum()),
+                "false_loops_closed": int((~closed["best_true"]).sum()),
+            }
+        )
     return pd.DataFrame(rows)
 
 

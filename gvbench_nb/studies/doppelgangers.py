@@ -25,9 +25,15 @@ def in_domain_weights_path(
 ) -> Path:
     """Where in-domain weights live; the name says what they are (sequence, matches, split,
     size, epochs, seed) and ends in the hash of everything that made them."""
-    matches = {"method": cached.method, "conf_hash": method_registry.conf_hash(cached.conf),
-               "sequence": cached.sequence}  # fmt: skip
-    identity = {"verifier": conf, "split": split_conf, "matches": matches}
+    identity = {
+        "verifier": conf,
+        "split": split_conf,
+        "matches": {
+            "method": cached.method,
+            "conf_hash": method_registry.conf_hash(cached.conf),
+            "sequence": cached.sequence,
+        },
+    }
     name = (
         f"doppelgangers_in-domain_{cached.sequence}_{cached.method}-{cached.conf['profile']}_train-split"
         f"_size{conf['size']}_ep{conf['epochs']}_seed{conf['seed']}_{method_registry.conf_hash(identity)}.pt"
@@ -58,12 +64,28 @@ def train_in_domain(
     model = DoppelgangersClassifier()
     start = time.perf_counter()
     labels = np.array(subset["label"], dtype=np.int64)  # a writable copy (torch refuses read-only arrays)
-    history = train_classifier(model, inputs, labels, epochs=conf["epochs"], lr=conf["lr"],
-                               batch_size=conf["batch_size"], seed=conf["seed"], progress=progress)  # fmt: skip
+    history = train_classifier(
+        model,
+        inputs,
+        labels,
+        epochs=conf["epochs"],
+        lr=conf["lr"],
+        batch_size=conf["batch_size"],
+        seed=conf["seed"],
+        progress=progress,
+    )
     train_seconds = time.perf_counter() - start
-    info = {"weights": path.name, "matches": cached.label, "conf": conf, "n_train_pairs": int(len(subset)),
-            "n_train_positives": int(subset["label"].sum()), "input_seconds": input_seconds,
-            "train_seconds": train_seconds, "torch_threads": torch.get_num_threads(), "history": history}  # fmt: skip
+    info = {
+        "weights": path.name,
+        "matches": cached.label,
+        "conf": conf,
+        "n_train_pairs": int(len(subset)),
+        "n_train_positives": int(subset["label"].sum()),
+        "input_seconds": input_seconds,
+        "train_seconds": train_seconds,
+        "torch_threads": torch.get_num_threads(),
+        "history": history,
+    }
     path.parent.mkdir(parents=True, exist_ok=True)
     torch.save({"dec": model.state_dict(), "info": info}, path)
     atomic_write_json(path.with_suffix(".json"), info)
@@ -89,6 +111,17 @@ def doppelgangers_comparison(
     theirs = theirs.assign(
         source=run_tables.PAPER_LABEL, verifier=theirs["paper_name"].map(PAPER_ROWS), weights="", status="published"
     )
-    columns = ["source", "sequence", "verifier", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low",
-               "max_recall_ci_high", "status", "weights"]  # fmt: skip
+    columns = [
+        "source",
+        "sequence",
+        "verifier",
+        "ap",
+        "max_recall",
+        "ap_ci_low",
+        "ap_ci_high",
+        "max_recall_ci_low",
+        "max_recall_ci_high",
+        "status",
+        "weights",
+    ]
     return pd.concat([ours.reindex(columns=columns), theirs.reindex(columns=columns)], ignore_index=True)

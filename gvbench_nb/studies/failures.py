@@ -101,10 +101,16 @@ def near_miss_false_positives(
     near = offsets[column].between(low, high)
     top = top_false_positives(table, top_k)
     n_near_top = int(near.loc[top.index].sum())
-    return {"top_k": int(len(top)), "column": column, "low": low, "high": high, "near_in_top": n_near_top,
-            "near_share_in_top": n_near_top / max(len(top), 1),
-            "near_share_all_false": float(near[false].mean()) if false.any() else float("nan"),
-            "top_k_min_score": float(top["score"].min()) if len(top) else float("nan")}  # fmt: skip
+    return {
+        "top_k": int(len(top)),
+        "column": column,
+        "low": low,
+        "high": high,
+        "near_in_top": n_near_top,
+        "near_share_in_top": n_near_top / max(len(top), 1),
+        "near_share_all_false": float(near[false].mean()) if false.any() else float("nan"),
+        "top_k_min_score": float(top["score"].min()) if len(top) else float("nan"),
+    }
 
 
 def failure_pairs(

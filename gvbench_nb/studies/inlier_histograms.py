@@ -25,12 +25,16 @@ def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
         raise ValueError("need both true and false pairs to describe their overlap")
     top_false = float(false_scores.max())
     largest = float(table["score"].max()) or 1.0
-    return {"n_true": int(len(true_scores)), "n_false": int(len(false_scores)),
-            "true_zero_inliers": float(np.mean(true_scores == 0)),
-            "false_zero_inliers": float(np.mean(false_scores == 0)), "top_false_score": top_false,
-            "top_false_normalised": top_false / largest,
-            "true_above_top_false": float(np.mean(true_scores > top_false)),
-            "true_in_overlap": float(np.mean(true_scores <= top_false))}  # fmt: skip
+    return {
+        "n_true": int(len(true_scores)),
+        "n_false": int(len(false_scores)),
+        "true_zero_inliers": float(np.mean(true_scores == 0)),
+        "false_zero_inliers": float(np.mean(false_scores == 0)),
+        "top_false_score": top_false,
+        "top_false_normalised": top_false / largest,
+        "true_above_top_false": float(np.mean(true_scores > top_false)),
+        "true_in_overlap": float(np.mean(true_scores <= top_false)),
+    }
 
 
 def inlier_overlap_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
@@ -49,8 +53,14 @@ def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "
         normalised = normalised_inliers(table)
         summary = inlier_overlap_summary(table)
         for label, name, colour in ((1, "true", "tab:green"), (0, "false", "tab:red")):
-            axis.hist(normalised[table["label"] == label], bins=edges, color=colour, alpha=0.55,
-                      label=f"{name} ({int((table['label'] == label).sum())})", density=True)  # fmt: skip
+            axis.hist(
+                normalised[table["label"] == label],
+                bins=edges,
+                color=colour,
+                alpha=0.55,
+                label=f"{name} ({int((table['label'] == label).sum())})",
+                density=True,
+            )
         top = summary["top_false_normalised"]
         axis.axvspan(top, 1.0, color="tab:blue", alpha=0.08)
         axis.axvline(top, color="tab:blue", linestyle="--", linewidth=1)

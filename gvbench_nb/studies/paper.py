@@ -35,9 +35,15 @@ def count_pairs(sequence: str, table: pd.DataFrame, source: str) -> dict[str, An
     references = sorted({_folder(r) for r in table["reference"]})
     per_query = table.groupby("query").size()
     low, high = int(per_query.min()), int(per_query.max())
-    return {"sequence": sequence, "source": source, "traverse": f"{', '.join(queries)} vs {', '.join(references)}",
-            "queries": table["query"].nunique(), "candidates": str(low) if low == high else f"{low}-{high}",
-            "pairs": len(table), "positives": int(table["label"].sum())}  # fmt: skip
+    return {
+        "sequence": sequence,
+        "source": source,
+        "traverse": f"{', '.join(queries)} vs {', '.join(references)}",
+        "queries": table["query"].nunique(),
+        "candidates": str(low) if low == high else f"{low}-{high}",
+        "pairs": len(table),
+        "positives": int(table["label"].sum()),
+    }
 
 
 def official_lists_dir() -> Path:
@@ -107,8 +113,11 @@ def style_table_iii(wide: pd.DataFrame) -> Any:
     """Table III in %: 1st bold, 2nd underlined, 3rd italic in each column (the paper's marking)."""
     marks = places(wide)
     styles = marks.map(lambda place: PLACE_STYLES.get(place, ""))
-    return (wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}") .apply(lambda _: styles,
-            axis=None) .set_caption("1st bold, 2nd underlined, 3rd italic, in each column"))  # fmt: skip
+    return (
+        wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}")
+        .apply(lambda _: styles, axis=None)
+        .set_caption("1st bold, 2nd underlined, 3rd italic, in each column")
+    )
 
 
 def published_radar(source: str = run_tables.PAPER_LABEL) -> plt.Figure:

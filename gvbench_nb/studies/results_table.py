@@ -118,8 +118,13 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.
         pairs = ours.pivot_table(index=["method", "profile"], columns="sequence", values="pairs", aggfunc="first")
         for sequence in pairs.columns:
             wide[(sequence, "pairs", run_tables.OURS_LABEL)] = pairs[sequence]
-    keys = [(s, m, src) for s in sequence_order for m in ["pairs", *metrics] for src in source_order if (s, m,
-             src) in wide.columns]  # fmt: skip
+    keys = [
+        (s, m, src)
+        for s in sequence_order
+        for m in ["pairs", *metrics]
+        for src in source_order
+        if (s, m, src) in wide.columns
+    ]
     wide = wide.loc[row_order, keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     wide.index = pd.MultiIndex.from_tuples(
@@ -139,8 +144,12 @@ def paper_reference_table(
         index="paper_name", columns=["sequence", "source"], values=list(run_tables.METRICS), aggfunc="first"
     )
     wide = wide.reorder_levels([1, 0, 2], axis=1)
-    keys = [(s, m, source) for s in dict.fromkeys(paper["sequence"]) for m in run_tables.METRICS if (s, m,
-             source) in wide.columns]  # fmt: skip
+    keys = [
+        (s, m, source)
+        for s in dict.fromkeys(paper["sequence"])
+        for m in run_tables.METRICS
+        if (s, m, source) in wide.columns
+    ]
     wide = wide.loc[list(dict.fromkeys(paper["paper_name"])), keys]
     wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     return wide
@@ -172,8 +181,11 @@ def _percent(value: float) -> str:
     return "-" if pd.isna(value) else f"{100 * value:.1f}"
 
 
-SOURCE_STYLE = {run_tables.OURS_LABEL: {"linestyle": "-", "alpha": 0.9}, run_tables.PAPER_LABEL: {"linestyle": "--",
-                "alpha": 0.6}, run_tables.REPOSITORY_LABEL: {"linestyle": ":", "alpha": 0.6}}  # fmt: skip
+SOURCE_STYLE = {
+    run_tables.OURS_LABEL: {"linestyle": "-", "alpha": 0.9},
+    run_tables.PAPER_LABEL: {"linestyle": "--", "alpha": 0.6},
+    run_tables.REPOSITORY_LABEL: {"linestyle": ":", "alpha": 0.6},
+}
 
 
 # Ours under a second profile is told apart from the first by its line, as the label says.
@@ -203,8 +215,15 @@ def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
         if np.isnan(values).all():
             continue
         closed = np.r_[values, values[:1]]
-        axis.plot(np.r_[angles, angles[:1]], closed, color=colours[method], marker="o", markersize=3,
-                  label=f"{method} ({source_label(source, profile)})", **_line_style(source, profile))  # fmt: skip
+        axis.plot(
+            np.r_[angles, angles[:1]],
+            closed,
+            color=colours[method],
+            marker="o",
+            markersize=3,
+            label=f"{method} ({source_label(source, profile)})",
+            **_line_style(source, profile),
+        )
     axis.set_xticks(angles, sequences)
     axis.set_ylim(0, max(5.0, 110 * float(np.nanmax(joined["max_recall"]))))
     axis.set_title(title, pad=20)
@@ -227,9 +246,16 @@ def _max_recall_bars(
             if value.empty:
                 continue
             percent = 100 * float(value.iloc[0])
-            axis.barh(row, percent, height=0.8, color=colours[method],
-                      hatch=None if source == run_tables.OURS_LABEL else "//", alpha=SOURCE_STYLE[source]["alpha"],
-                      edgecolor="black", linewidth=0.4)  # fmt: skip
+            axis.barh(
+                row,
+                percent,
+                height=0.8,
+                color=colours[method],
+                hatch=None if source == run_tables.OURS_LABEL else "//",
+                alpha=SOURCE_STYLE[source]["alpha"],
+                edgecolor="black",
+                linewidth=0.4,
+            )
             axis.text(percent, row, f" {percent:.1f}%", va="center", fontsize=7)
         axis.set_yticks(range(len(rows)), [f"{m} ({source_label(src, p)})" for m, p, src in rows], fontsize=7)
         axis.invert_yaxis()

@@ -85,15 +85,20 @@ def run_description(
     )
 
 
-STAGE_LABELS = {"extract_seconds_per_pair": "extraction (amortised)", "match_seconds_per_pair": "matching",
-                "verify_seconds_per_pair": "verification (RANSAC)"}  # fmt: skip
+STAGE_LABELS = {
+    "extract_seconds_per_pair": "extraction (amortised)",
+    "match_seconds_per_pair": "matching",
+    "verify_seconds_per_pair": "verification (RANSAC)",
+}
 
 
 def seconds_per_pair_stacked(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     """Seconds per pair by stage, stacked, one bar a (sequence, profile, method)."""
     several = runtime["sequence"].nunique() > 1
-    labels = [plots.run_label(m, p, s if several else None) for s, p, m in zip(runtime["sequence"], runtime["profile"],
-              runtime["method"])]  # fmt: skip
+    labels = [
+        plots.run_label(m, p, s if several else None)
+        for s, p, m in zip(runtime["sequence"], runtime["profile"], runtime["method"])
+    ]
     figure, axis = plt.subplots(figsize=(7, 0.45 * len(runtime) + 1.8))
     left = np.zeros(len(runtime))
     for column, label in STAGE_LABELS.items():
@@ -119,11 +124,23 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     colours = plots.method_colours(list(dict.fromkeys(runtime["method"])))
     markers = dict(zip(dict.fromkeys(runtime["sequence"]), "osD^vP*X"))
     for row in runtime.itertuples():
-        axis.scatter(row.fps, row.max_recall, color=colours[row.method], marker=markers[row.sequence], s=60,
-                     edgecolor="black", linewidth=0.5)  # fmt: skip
+        axis.scatter(
+            row.fps,
+            row.max_recall,
+            color=colours[row.method],
+            marker=markers[row.sequence],
+            s=60,
+            edgecolor="black",
+            linewidth=0.5,
+        )
         sequence = row.sequence if runtime["sequence"].nunique() > 1 else None
-        axis.annotate(plots.run_label(row.method, row.profile, sequence), (row.fps, row.max_recall),
-                      textcoords="offset points", xytext=(5, 4), fontsize=8)  # fmt: skip
+        axis.annotate(
+            plots.run_label(row.method, row.profile, sequence),
+            (row.fps, row.max_recall),
+            textcoords="offset points",
+            xytext=(5, 4),
+            fontsize=8,
+        )
     axis.set_xscale("log")
     # At least a decade shown, so a log axis keeps readable ticks.
     low, high = float(runtime["fps"].min()), float(runtime["fps"].max())
@@ -135,8 +152,11 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     axis.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
     axis.xaxis.set_minor_formatter(NullFormatter())
     axis.yaxis.set_major_formatter(PercentFormatter(xmax=1))
-    axis.set(xlabel="FPS (pairs a second, 1 / seconds per pair; log scale)", ylabel="max recall at 100% precision (%)",
-             ylim=(-0.02, max(0.1, float(runtime["max_recall"].max()) * 1.2)))  # fmt: skip
+    axis.set(
+        xlabel="FPS (pairs a second, 1 / seconds per pair; log scale)",
+        ylabel="max recall at 100% precision (%)",
+        ylim=(-0.02, max(0.1, float(runtime["max_recall"].max()) * 1.2)),
+    )
     axis.grid(alpha=0.3, which="both")
     axis.set_title("speed vs max recall", fontsize=11)
     figure.tight_layout()

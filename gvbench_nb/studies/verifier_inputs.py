@@ -21,8 +21,12 @@ from gvbench_nb.runner import image_features, pair_matching, scoring
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
 
 # ------------------------------------------------------------------ registry --
-ESTIMATOR_SHORT_NAMES: dict[str, str] = {"FM_RANSAC": "ransac", "USAC_DEFAULT": "degensac",
-                                         "USAC_ACCURATE": "lo-ransac", "USAC_MAGSAC": "magsac"}  # fmt: skip
+ESTIMATOR_SHORT_NAMES: dict[str, str] = {
+    "FM_RANSAC": "ransac",
+    "USAC_DEFAULT": "degensac",
+    "USAC_ACCURATE": "lo-ransac",
+    "USAC_MAGSAC": "magsac",
+}
 MODEL_SHORT_NAMES: dict[str, str] = {"fundamental": "F", "homography": "H"}
 PAPER_VERIFIER = "gv-F-ransac-inliers"
 # ------------------------------------------------------------------- split --
@@ -75,9 +79,15 @@ def split_summary(pairs: pd.DataFrame, split: pd.Series, position: Callable[[str
     for name in (SPLIT_TRAIN, SPLIT_TEST, SPLIT_DROPPED):
         part = pairs[split == name]
         frames = pd.concat([part["query"], part["reference"]]).map(position) if len(part) else pd.Series([], dtype=int)
-        rows.append({"split": name, "pairs": len(part), "positives": int(part["label"].sum()),
-                     "queries": part["query"].nunique(),
-                     "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-"})  # fmt: skip
+        rows.append(
+            {
+                "split": name,
+                "pairs": len(part),
+                "positives": int(part["label"].sum()),
+                "queries": part["query"].nunique(),
+                "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-",
+            }
+        )
     return pd.DataFrame(rows)
 
 
@@ -112,8 +122,13 @@ class CachedMatches:
         self.image_root = Path(self.run["image_root"])
         self.pairs = scoring.load_pairs_table(self.output_dir, method)
         self.matches = pair_matching.match_store(self.output_dir, self.conf)
-        self.features = (image_features.feature_store(run_tables.resolve_cache_dir(self.output_dir, cache_dir),
-                         self.conf["extractor"]) if self.conf["extractor"] else None)  # fmt: skip
+        self.features = (
+            image_features.feature_store(
+                run_tables.resolve_cache_dir(self.output_dir, cache_dir), self.conf["extractor"]
+            )
+            if self.conf["extractor"]
+            else None
+        )
         self._read_features = lru_cache(maxsize=512)(self._features_of)
         self._read_image = lru_cache(maxsize=48)(self._image_of)
 
@@ -132,8 +147,10 @@ class CachedMatches:
             )
         entry = self.features.read(key)
         # float32: the cache may hold float16 (as hloc stores it), whose squares overflow in statistics.
-        return (np.asarray(entry["keypoints"], dtype=np.float32), (int(entry["image_size"][0]),
-                int(entry["image_size"][1])))  # fmt: skip
+        return (
+            np.asarray(entry["keypoints"], dtype=np.float32),
+            (int(entry["image_size"][0]), int(entry["image_size"][1])),
+        )
 
     def _image_of(self, name: str) -> np.ndarray:
         path = self.image_root / name
@@ -164,8 +181,16 @@ class CachedMatches:
         keypoints0, size0 = self._read_features(query)
         keypoints1, size1 = self._read_features(reference)
         index = np.asarray(entry["matches"], dtype=np.int64).reshape(-1, 2)
-        return PairMatches(keypoints0[index[:, 0]], keypoints1[index[:, 1]], scores, inlier_mask, len(keypoints0),
-                           len(keypoints1), size0, size1)  # fmt: skip
+        return PairMatches(
+            keypoints0[index[:, 0]],
+            keypoints1[index[:, 1]],
+            scores,
+            inlier_mask,
+            len(keypoints0),
+            len(keypoints1),
+            size0,
+            size1,
+        )
 
     def pair_seed(self, query: str, reference: str) -> int:
         """The RANSAC seed the run used for this pair."""
@@ -180,10 +205,20 @@ class CachedMatches:
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
     """(inlier mask, matches that entered the fit) by the run's own ``filter_and_fit``, so FM_RANSAC with
     the run's seed gives the stored mask."""
-    return filter_and_fit(pair.points0, pair.points1, pair.match_scores, model=conf["model"], method=conf["estimator"],
-                          threshold_px=conf["threshold_px"], confidence=conf["confidence"], max_iters=conf["max_iters"],
-                          min_matches=conf["min_matches"], min_match_score=conf["min_match_score"],
-                          few_matches=conf.get("few_matches", "zero"), seed=seed)  # fmt: skip
+    return filter_and_fit(
+        pair.points0,
+        pair.points1,
+        pair.match_scores,
+        model=conf["model"],
+        method=conf["estimator"],
+        threshold_px=conf["threshold_px"],
+        confidence=conf["confidence"],
+        max_iters=conf["max_iters"],
+        min_matches=conf["min_matches"],
+        min_match_score=conf["min_match_score"],
+        few_matches=conf.get("few_matches", "zero"),
+        seed=seed,
+    )
 
 
 def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:
@@ -203,13 +238,19 @@ def gv_features(pair: PairMatches, inlier_mask: np.ndarray, num_fitted: int) -> 
     def spread(points: np.ndarray, size: tuple[int, int]) -> float:
         return float(points.std(axis=0).mean() / np.hypot(*size)) if len(points) >= 2 else 0.0
 
-    return {"num_matches": float(num_fitted), "num_inliers": float(n_inliers), "inliers": float(n_inliers),
-            "inlier_ratio": n_inliers / num_fitted if num_fitted else 0.0,
-            "inliers_over_keypoints": n_inliers / max(min(pair.num_keypoints0, pair.num_keypoints1), 1),
-            "log_inliers": float(np.log1p(n_inliers)), "log_matches": float(np.log1p(num_fitted)),
-            "inlier_hull_area": min(hull_area_fraction(inliers0, pair.image_size0), hull_area_fraction(inliers1,
-            pair.image_size1)), "inlier_spread": min(spread(inliers0, pair.image_size0), spread(inliers1,
-            pair.image_size1))}  # fmt: skip
+    return {
+        "num_matches": float(num_fitted),
+        "num_inliers": float(n_inliers),
+        "inliers": float(n_inliers),
+        "inlier_ratio": n_inliers / num_fitted if num_fitted else 0.0,
+        "inliers_over_keypoints": n_inliers / max(min(pair.num_keypoints0, pair.num_keypoints1), 1),
+        "log_inliers": float(np.log1p(n_inliers)),
+        "log_matches": float(np.log1p(num_fitted)),
+        "inlier_hull_area": min(
+            hull_area_fraction(inliers0, pair.image_size0), hull_area_fraction(inliers1, pair.image_size1)
+        ),
+        "inlier_spread": min(spread(inliers0, pair.image_size0), spread(inliers1, pair.image_size1)),
+    }
 
 
 def gv_feature_table(
@@ -268,8 +309,11 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
         leave=False,
     ):
         pair = cached.pair(query, reference)
-        inputs.append(build_input(cached.image(query), cached.image(reference), pair.points0, pair.points1,
-                      pair.match_scores, None, size))  # fmt: skip
+        inputs.append(
+            build_input(
+                cached.image(query), cached.image(reference), pair.points0, pair.points1, pair.match_scores, None, size
+            )
+        )
     return np.stack(inputs) if inputs else np.zeros((0, 10, size, size), np.float32)
 
 

@@ -89,9 +89,22 @@ def test_registry_has_every_combination_and_the_paper_verifier():
 
 def test_sue_adapter_on_hand_made_positions():
     # Query a: its strong candidates agree on frames 10-12; query b's two best point 80 frames apart.
-    table = pd.DataFrame({"query": ["a"] * 4 + ["b"] * 4, "reference": ["r/010.png", "r/011.png", "r/012.png",
-                          "r/090.png", "r/020.png", "r/100.png", "r/021.png", "r/150.png"], "score": [50, 50, 50, 0, 50,
-                          50, 0, 0]})  # fmt: skip
+    table = pd.DataFrame(
+        {
+            "query": ["a"] * 4 + ["b"] * 4,
+            "reference": [
+                "r/010.png",
+                "r/011.png",
+                "r/012.png",
+                "r/090.png",
+                "r/020.png",
+                "r/100.png",
+                "r/021.png",
+                "r/150.png",
+            ],
+            "score": [50, 50, 50, 0, 50, 50, 0, 0],
+        }
+    )
     out = verifier_inputs.sue_pair_scores(table, slope=10.0, top_k=10)
     # a: weights 1, 1, 1, e^-10 (distance 1 at slope 10) on frames 10, 11, 12, 90, normalised.
     w = np.array([1, 1, 1, np.exp(-10.0)])
@@ -207,9 +220,16 @@ def test_rescoring_cached_matches_reproduces_the_stored_inliers(cached_run):
 
 @pytest.mark.real_data
 def test_bench_records_conf_and_reports_a_missing_official_checkpoint(cached_run, empty_hub):
-    bench = alternative_verifiers.open_bench(cached_run / "out", "sift-nn", cached_run / "verifiers",
-                                             cached_run / "cache", progress=False, train_fraction=0.45, gap_frames=20,
-                                             tolerance=2)  # fmt: skip
+    bench = alternative_verifiers.open_bench(
+        cached_run / "out",
+        "sift-nn",
+        cached_run / "verifiers",
+        cached_run / "cache",
+        progress=False,
+        train_fraction=0.45,
+        gap_frames=20,
+        tolerance=2,
+    )
     results, tables, boot = bench.evaluate(
         ["gv-F-ransac-inliers", "gv-H-magsac-inlier_ratio", "sue", "doppelgangers"], n_resamples=50
     )

@@ -19,8 +19,17 @@ from gvbench_nb.studies import failures, inlier_histograms, results_table, runti
 
 
 def pairs_frame(queries, references, labels, scores) -> pd.DataFrame:
-    return pd.DataFrame({"pair_index": range(len(labels)), "query": queries, "reference": references, "label": labels,
-                         "score": scores, "num_inliers": scores, "num_matches": np.asarray(scores) + 10})  # fmt: skip
+    return pd.DataFrame(
+        {
+            "pair_index": range(len(labels)),
+            "query": queries,
+            "reference": references,
+            "label": labels,
+            "score": scores,
+            "num_inliers": scores,
+            "num_matches": np.asarray(scores) + 10,
+        }
+    )
 
 
 def grouped_scores(rng: np.random.Generator, n_queries: int, per_query: int, separation: float = 1.0) -> pd.DataFrame:
@@ -55,8 +64,15 @@ def test_paper_table_join_labels_values_and_mapping(tmp_path):
     paper = results_table.load_paper_table(path)
     assert paper.loc[paper.paper_name == "SIFT+NN", "method"].unique().tolist() == ["sift-nn"]
     assert paper.loc[paper.paper_name == "NotOurs+XX", "method"].isna().all()  # not one of ours
-    results = pd.DataFrame({"method": ["sift-nn", "disk-nn"], "sequence": ["night", "night"], "profile": ["paper",
-                            "paper"], "ap": [0.7, 0.5], "max_recall": [0.1, 0.2]})  # fmt: skip
+    results = pd.DataFrame(
+        {
+            "method": ["sift-nn", "disk-nn"],
+            "sequence": ["night", "night"],
+            "profile": ["paper", "paper"],
+            "ap": [0.7, 0.5],
+            "max_recall": [0.1, 0.2],
+        }
+    )
     joined = results_table.join_paper_table(results, paper)
     assert set(joined["source"]) == {"ours", "paper"}
     theirs = joined[joined.source == "paper"]
@@ -97,8 +113,15 @@ def test_pose_offsets_from_poses_csv(tmp_path):
     for name, x, yaw in (("night/000.png", 0.0, 0.0), ("day/001.png", 3.0, 0.0), ("day/002.png", 0.0, 90.0)):
         c, s = np.cos(np.radians(yaw)), np.sin(np.radians(yaw))
         rotation = np.array([[c, 0, s], [0, 1, 0], [-s, 0, c]])  # optical axis turned by yaw
-        rows.append({"image": name, "x": x, "y": 4.0, "z": 1.5, **{f"r{i}{j}": rotation[i,
-                     j] for i in range(3) for j in range(3)}})  # fmt: skip
+        rows.append(
+            {
+                "image": name,
+                "x": x,
+                "y": 4.0,
+                "z": 1.5,
+                **{f"r{i}{j}": rotation[i, j] for i in range(3) for j in range(3)},
+            }
+        )
     pd.DataFrame(rows).to_csv(tmp_path / "poses.csv", index=False)
     table = pairs_frame(["night/000.png"] * 2, ["day/001.png", "day/002.png"], [1, 0], [5, 1])
     offsets = failures.ground_truth_offsets(table, tmp_path)
@@ -192,8 +215,15 @@ def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="reposi
     folder = method_outputs.method_dir(output_dir, method)
     folder.mkdir(parents=True)
     table.to_csv(folder / "pairs.csv", index=False)
-    (folder / "run.json").write_text(json.dumps({"sequence": sequence, "conf": {"paper_name": "SIFT+NN",
-     "profile": profile}, "environment": {"device": "cpu"}}))  # fmt: skip
+    (folder / "run.json").write_text(
+        json.dumps(
+            {
+                "sequence": sequence,
+                "conf": {"paper_name": "SIFT+NN", "profile": profile},
+                "environment": {"device": "cpu"},
+            }
+        )
+    )
 
 
 def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
@@ -236,9 +266,12 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
     report_dir = tmp_path / "report"
     (report_dir / "toy").mkdir(parents=True)
     (report_dir / "toy" / "analysis_failures.html").write_text("<html></html>")
-    executed = [report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_failures.ipynb",
-                report_dir / "toy" / "analysis_failures.html"), report.ExecutedNotebook("toy",
-                report_dir / "toy" / "analysis_uncertainty.ipynb", None, "ValueError: boom")]  # fmt: skip
+    executed = [
+        report.ExecutedNotebook(
+            "toy", report_dir / "toy" / "analysis_failures.ipynb", report_dir / "toy" / "analysis_failures.html"
+        ),
+        report.ExecutedNotebook("toy", report_dir / "toy" / "analysis_uncertainty.ipynb", None, "ValueError: boom"),
+    ]
     page = report.summary_page(report_dir, [output_dir], executed)
     assert ">paper<" in page and ">ours<" in page
     assert ">12.5<" in page and ">50.0<" in page  # the paper's values, in %
@@ -276,11 +309,20 @@ def test_results_table_says_how_many_pairs_a_row_has_and_whether_limit_cut_them(
 
 def two_profile_results() -> pd.DataFrame:
     """sift-nn under both profiles on one sequence, plus disk-lg under the repository's."""
-    return pd.DataFrame({"sequence": ["night", "night", "night"], "method": ["sift-nn", "sift-nn", "disk-lg"],
-                         "profile": ["paper", "repository", "repository"], "ap": [0.60, 0.55, 0.90],
-                         "max_recall": [0.08, 0.05, 0.40], "device": "cpu", "extract_seconds_per_pair": [0.1, 0.02,
-                         0.3], "match_seconds_per_pair": 0.01, "verify_seconds_per_pair": 0.01,
-                         "seconds_per_pair": [0.12, 0.04, 0.32]})  # fmt: skip
+    return pd.DataFrame(
+        {
+            "sequence": ["night", "night", "night"],
+            "method": ["sift-nn", "sift-nn", "disk-lg"],
+            "profile": ["paper", "repository", "repository"],
+            "ap": [0.60, 0.55, 0.90],
+            "max_recall": [0.08, 0.05, 0.40],
+            "device": "cpu",
+            "extract_seconds_per_pair": [0.1, 0.02, 0.3],
+            "match_seconds_per_pair": 0.01,
+            "verify_seconds_per_pair": 0.01,
+            "seconds_per_pair": [0.12, 0.04, 0.32],
+        }
+    )
 
 
 def test_results_table_keeps_one_row_a_method_and_profile():
@@ -288,8 +330,11 @@ def test_results_table_keeps_one_row_a_method_and_profile():
         two_profile_results(), results_table.load_paper_table(), results_table.load_repository_table()
     )
     wide = results_table.results_table(joined)
-    assert list(wide.index) == [("sift-nn (SIFT+NN)", "paper"), ("sift-nn (SIFT+NN)", "repository"),
-                ("disk-lg (DISK+LG)", "repository")]  # fmt: skip
+    assert list(wide.index) == [
+        ("sift-nn (SIFT+NN)", "paper"),
+        ("sift-nn (SIFT+NN)", "repository"),
+        ("disk-lg (DISK+LG)", "repository"),
+    ]
     assert wide.loc[("sift-nn (SIFT+NN)", "paper"), ("night", "ap", "ours")] == pytest.approx(0.60)
     assert wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "ours")] == pytest.approx(0.55)
     # Published values only beside the same protocol: the paper's 62.1 % in the paper row,
@@ -301,8 +346,12 @@ def test_results_table_keeps_one_row_a_method_and_profile():
     )
     assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "paper")])
     assert np.isnan(wide.loc[("disk-lg (DISK+LG)", "repository"), ("night", "ap", "paper")])
-    assert set(joined["label"]) == {"ours (paper profile)", "ours (repository profile)", "paper",
-               run_tables.REPOSITORY_LABEL}  # fmt: skip
+    assert set(joined["label"]) == {
+        "ours (paper profile)",
+        "ours (repository profile)",
+        "paper",
+        run_tables.REPOSITORY_LABEL,
+    }
 
 
 def test_the_same_run_twice_in_one_table_is_an_error():
@@ -352,8 +401,11 @@ def test_runtime_figures_and_histograms_name_the_profile():
 
     runtime = runtime_vs_mr.runtime_table(two_profile_results())
     stacked = runtime_vs_mr.seconds_per_pair_stacked(runtime)
-    assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == ["sift-nn [paper]", "sift-nn [repository]",
-            "disk-lg [repository]"]  # fmt: skip
+    assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == [
+        "sift-nn [paper]",
+        "sift-nn [repository]",
+        "disk-lg [repository]",
+    ]
     scatter = runtime_vs_mr.fps_vs_max_recall(runtime)
     assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
     # The log axis reads: at least three labelled ticks inside it, whatever the speeds.
@@ -365,8 +417,10 @@ def test_runtime_figures_and_histograms_name_the_profile():
         shown = [t.get_text() for t in axis.get_xticklabels() if low <= t.get_position()[0] <= high]
         assert len([t for t in shown if t]) >= 3, shown
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
-    tables = {"sift-nn (paper)": table.assign(profile="paper"),
-              "sift-nn (repository)": table.assign(profile="repository")}  # fmt: skip
+    tables = {
+        "sift-nn (paper)": table.assign(profile="paper"),
+        "sift-nn (repository)": table.assign(profile="repository"),
+    }
     figure = inlier_histograms.normalised_inlier_histograms(tables)
     assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper) [paper]", "sift-nn (repository) [repository]"]
     with pytest.raises(ValueError, match="mixes profiles"):

@@ -116,8 +116,10 @@ def test_interval_columns_keyed_by_method():
     # Methods run on different pairs still get their own intervals, over their own queries.
     shorter = intervals.interval_columns({"a": tables["a"], "c": tables["a"].iloc[:100]}, 200, seed=0)
     pd.testing.assert_series_equal(shorter.loc["a"], columns.loc["a"])
-    assert (shorter.loc["c", "ap_high"] - shorter.loc["c", "ap_low"] > columns.loc["a", "ap_high"] - columns.loc["a",
-            "ap_low"])  # fmt: skip
+    assert (
+        shorter.loc["c", "ap_high"] - shorter.loc["c", "ap_low"]
+        > columns.loc["a", "ap_high"] - columns.loc["a", "ap_low"]
+    )
 
 
 def test_refuses_methods_with_different_labels():
@@ -132,9 +134,14 @@ def test_refuses_methods_with_different_labels():
 def test_the_notebooks_matrix_and_compares_table_rank_by_one_rule():
     # A wins 96 of 100 draws: ranked at the rule's 95 %, where a 97.5 % reading would call a tie.
     samples = pd.DataFrame({"a": [0.6] * 96 + [0.4] * 4, "b": [0.5] * 100})
-    boot = bootstrap.Bootstrap(methods=["a", "b"], estimates=pd.DataFrame({"ap": [0.6, 0.5], "max_recall": [0.6, 0.5]},
-                               index=["a", "b"]), samples={"ap": samples, "max_recall": samples}, n_queries=10,
-                               n_pairs=20, seed=0)  # fmt: skip
+    boot = bootstrap.Bootstrap(
+        methods=["a", "b"],
+        estimates=pd.DataFrame({"ap": [0.6, 0.5], "max_recall": [0.6, 0.5]}, index=["a", "b"]),
+        samples={"ap": samples, "max_recall": samples},
+        n_queries=10,
+        n_pairs=20,
+        seed=0,
+    )
     assert boot.paired_shares("ap").iloc[0]["verdict"] == "a > b"
     matrix = boot.ranking_matrix("ap")
     assert (matrix.loc["a", "b"], matrix.loc["b", "a"]) == (">", "<")

@@ -164,8 +164,11 @@ def test_aliasing_share_rejects_a_true_look_alike() -> None:
 
 
 def _hand_table(curves: dict[str, list[float]], strengths=(0.0, 0.25, 0.5, 0.75, 1.0)) -> pd.DataFrame:
-    rows = [{"condition": condition, "strength": s, "method": "m", "profile": "paper", "max_recall": mr} for condition,
-             values in curves.items() for s, mr in zip(strengths, values)]  # fmt: skip
+    rows = [
+        {"condition": condition, "strength": s, "method": "m", "profile": "paper", "max_recall": mr}
+        for condition, values in curves.items()
+        for s, mr in zip(strengths, values)
+    ]
     return pd.DataFrame(rows).sample(frac=1.0, random_state=0)  # row order must not matter
 
 

@@ -79,8 +79,12 @@ def write_run(folder, sequence: str, labels, scores, builder: str = "frame_toler
     method_dir = method_outputs.method_dir(folder, "sift-nn")
     method_dir.mkdir(parents=True)
     table.to_csv(method_dir / "pairs.csv", index=False)
-    run = {"sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
-           "environment": {"device": "cpu"}, "pairs": {"pairs_builder": builder}}  # fmt: skip
+    run = {
+        "sequence": sequence,
+        "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
+        "environment": {"device": "cpu"},
+        "pairs": {"pairs_builder": builder},
+    }
     (method_dir / "run.json").write_text(json.dumps(run))
     scoring.evaluate(folder)
 

@@ -30,16 +30,32 @@ def expected_rank(table: pd.DataFrame, index: int) -> int:
 def tiny_run(tmp_path_factory) -> Path:
     """sift-nn and orb-nn on the synthetic route, 6 frames of 160x120 (36 pairs, 4 false)."""
     folder = tmp_path_factory.mktemp("explore")
-    params = {"sequence": "tiny", "pairs_builder": "sample", "builder_options": {"n_frames": 6, "image_size": [160,
-              120]}, "image_root": str(folder / "data"), "pairs": str(folder / "data" / "pairs.txt"),
-              "methods": METHODS, "profile": "repository", "output_dir": str(folder / "out"), "seed": 0}  # fmt: skip
+    params = {
+        "sequence": "tiny",
+        "pairs_builder": "sample",
+        "builder_options": {"n_frames": 6, "image_size": [160, 120]},
+        "image_root": str(folder / "data"),
+        "pairs": str(folder / "data" / "pairs.txt"),
+        "methods": METHODS,
+        "profile": "repository",
+        "output_dir": str(folder / "out"),
+        "seed": 0,
+    }
     path = folder / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
     loaded = config.load_params(path)
     sequence = sequence_build.prepare_sequence(loaded)
     for method in METHODS:
-        method_runs.run_method(sequence, method, "repository", Path(loaded["output_dir"]), Path(loaded["cache_dir"]),
-                               device="cpu", progress=False, threads=1)  # fmt: skip
+        method_runs.run_method(
+            sequence,
+            method,
+            "repository",
+            Path(loaded["output_dir"]),
+            Path(loaded["cache_dir"]),
+            device="cpu",
+            progress=False,
+            threads=1,
+        )
     config.write_resolved_params(loaded, loaded["output_dir"])  # the record `run` writes
     return path
 
@@ -77,10 +93,20 @@ def test_explore_notebook_shows_the_scores_and_ranks_of_pairs_csv(tiny_run, tmp_
 
     figures = tmp_path / "figures"
     executed = tmp_path / "explore_pairs.ipynb"
-    papermill.execute_notebook(str(NOTEBOOKS / "explore_pairs.ipynb"), str(executed), cwd=str(NOTEBOOKS),
-                               kernel_name="python3", progress_bar=False, parameters={"params_file": str(tiny_run),
-                               "methods": METHODS, "pick": "false_positive", "pick_method": "orb-nn",
-                               "figures_dir": str(figures)})  # fmt: skip
+    papermill.execute_notebook(
+        str(NOTEBOOKS / "explore_pairs.ipynb"),
+        str(executed),
+        cwd=str(NOTEBOOKS),
+        kernel_name="python3",
+        progress_bar=False,
+        parameters={
+            "params_file": str(tiny_run),
+            "methods": METHODS,
+            "pick": "false_positive",
+            "pick_method": "orb-nn",
+            "figures_dir": str(figures),
+        },
+    )
     shown = pd.read_csv(figures / "explore_pair.csv")
     out = tiny_run.parent / "out"
     tables = {m: pd.read_csv(out / m / "pairs.csv") for m in METHODS}

@@ -106,8 +106,15 @@ def test_verifier_bench_names_the_run_with_its_output_folder_and_profile(toy, tm
         method_runs, "run_method_of_params", lambda params, sequence, method: ran.append((method, params["output_dir"]))
     )
     monkeypatch.setattr(alternative_verifiers, "open_bench", lambda *a, **k: ("bench", a, k))
-    bench = notebook.open_verifier_bench(elsewhere, "sift-nn", tmp_path / "v", params_file=params, compute_missing=True,
-                                         classifier={"epochs": 1}, gap_frames=8)  # fmt: skip
+    bench = notebook.open_verifier_bench(
+        elsewhere,
+        "sift-nn",
+        tmp_path / "v",
+        params_file=params,
+        compute_missing=True,
+        classifier={"epochs": 1},
+        gap_frames=8,
+    )
     assert ran == [("sift-nn", str(elsewhere))]
     assert bench[2] == {"overrides": {"doppelgangers-in-domain": {"epochs": 1}}, "gap_frames": 8}
 

@@ -395,13 +395,8 @@ def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:
 
 @contextlib.contextmanager
 def stop_on_interrupt(argv: SequenceType[str], module: str = "gvbench_nb") -> Iterator[None]:
-    """While inside, Ctrl-C (SIGINT) prints ``resume_hint`` and ends the process at once, exit code 130.
-
-    Ending at once is safe: every file a run writes is committed by a rename, so a run
-    stopped anywhere resumes from what it committed, as after kill -9 (docs/reliability.md).
-    Unwinding instead would wait for the notebooks' threads and kernels, and can hang.
-    The notebooks' kernels run in sessions of their own, so they are stopped here.
-    """
+    """Ctrl-C prints ``resume_hint`` and ends at once (exit 130), killing the kernels: every file is
+    committed by a rename, so this is as safe as kill -9, and unwinding could hang on the notebooks."""
     import signal
 
     def stop(signum: int, frame: object) -> None:

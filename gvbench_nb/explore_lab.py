@@ -1,10 +1,5 @@
-"""``python -m gvbench_nb explore [OUTPUT_DIR]``: JupyterLab on a working copy of
-``notebooks/explore_pairs.ipynb`` pointed at one finished run's folder.
-
-The copy lives in ``<OUTPUT_DIR>/explore/explore_pairs.ipynb`` and JupyterLab's root is that
-folder, so what autosave and Run All write lands there, never in the tracked notebook or its
-jupytext twin. A copy that exists is opened as the user left it.
-"""
+"""``python -m gvbench_nb explore [OUTPUT_DIR]``: JupyterLab on a working copy of explore_pairs.ipynb
+in ``<OUTPUT_DIR>/explore/`` (its root), so autosave never touches the tracked notebook."""
 
 from __future__ import annotations
 

@@ -1,9 +1,4 @@
-"""``python -m gvbench_nb compare OUTPUT_DIR``: which method rankings the pairs support.
-
-Prints every method's AP and MR with 95 % bootstrap intervals over queries, then for
-every pair of methods the share of paired query resamples in which the first beats the
-second, and a verdict: ranked when one side wins at least 95 % of them, else a tie.
-"""
+"""``python -m gvbench_nb compare OUTPUT_DIR``: which method rankings a paired bootstrap over queries supports."""
 
 from __future__ import annotations
 

@@ -23,18 +23,8 @@ PRELOAD = ("pandas", "matplotlib.pyplot", "gvbench_nb.runner.method_runs", "gvbe
 
 
 class KernelPool:
-    """Fresh kernels started ahead of the notebooks that will run in them.
-
-    A kernel takes one to two seconds to start; started while the run is still extracting
-    and matching, it is ready when its notebook is. Every notebook still gets a kernel of
-    its own, started for it and shut down after it, so nothing passes between notebooks.
-    ``count`` kernels in all, at most ``ahead`` started and waiting at any time.
-
-    A kernel imports the ``preload`` modules as it starts (IPython's ``exec_lines``: outside
-    the history, defining no name in the notebook's namespace); its notebook's own imports
-    then find them loaded. A module that fails to import fails again in the notebook, where
-    the error is kept.
-    """
+    """Fresh kernels (``count`` in all, at most ``ahead`` waiting) started, with ``preload`` imported,
+    while the run still computes; each notebook still gets a kernel of its own."""
 
     def __init__(self, count: int, ahead: int = 3, preload: tuple[str, ...] = PRELOAD):
         self._preload = preload
@@ -87,9 +77,7 @@ def _client_recording_manager() -> type[KernelManager]:
 
 
 def transport_encryption() -> str:
-    """CurveZMQ between this process and its kernels where pyzmq has it ('auto': when the
-    kernelspec declares support, as ipykernel's does). Besides encrypting the local sockets,
-    it spares every kernel's "running over TCP without encryption" warning on the terminal."""
+    """CurveZMQ to the kernels where pyzmq has it: it also spares each kernel's "without encryption" warning."""
     import zmq
 
     return "auto" if zmq.has("curve") else "disabled"
@@ -106,9 +94,8 @@ QUIET_WARNINGS = "__import__('warnings').filterwarnings('ignore', 'IProgress not
 
 
 def preload_arguments(modules: tuple[str, ...]) -> list[str]:
-    """The kernel's command-line arguments that silence ``QUIET_WARNINGS`` and import ``modules``
-    at start-up (the line evaluates to None so that nothing is displayed or bound, not even ``_``),
-    and keep its history in memory."""
+    """Kernel arguments that silence ``QUIET_WARNINGS`` and import ``modules`` (binding nothing, not
+    even ``_``), with the history in memory."""
     imports = f" or list(map(__import__, {tuple(modules)!r})).clear()" if modules else ""
     # History in memory: a batch kernel keeps none, and kernels running at once then never
     # contend for (or, on a full disk, fail to write) the one history file.

@@ -218,26 +218,10 @@ def test_scaling_table_sums_the_measured_stage_costs(shared_data):
 
 
 def test_the_bench_parser_reads_its_options():
-    args = speed_cli.build_parser().parse_args(
-        [
-            "p.yaml",
-            "--methods",
-            "sift-nn,disk-lg",
-            "--limit",
-            "50",
-            "--repeats",
-            "2",
-            "--profile",
-            "repository",
-        ]
-    )
-    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == (
-        "p.yaml",
-        "sift-nn,disk-lg",
-        50,
-        2,
-        "repository",
-    )
+    argv = ["p.yaml", "--methods", "sift-nn,disk-lg", "--limit", "50", "--repeats", "2", "--profile", "repository"]
+    args = speed_cli.build_parser().parse_args(argv)
+    expected = ("p.yaml", "sift-nn,disk-lg", 50, 2, "repository")
+    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == expected
     assert args.handler is speed_cli.command_bench
 
 

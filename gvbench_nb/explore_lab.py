@@ -13,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gvbench_nb.io_utils import add_described_command
 from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
 from gvbench_nb.runner import config, method_outputs, scoring
 
@@ -194,13 +195,7 @@ def command_explore(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``explore`` on the CLI's subcommands."""
-    parser = subparsers.add_parser(
-        "explore",
-        help=HELP,
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = add_described_command(subparsers, "explore", HELP, DESCRIPTION, EPILOG)
     parser.add_argument(
         "output_dir",
         nargs="?",

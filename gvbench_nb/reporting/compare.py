@@ -8,7 +8,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb.io_utils import whole_number_at_least
+from gvbench_nb.io_utils import add_described_command, whole_number_at_least
 
 log = logging.getLogger(__name__)
 
@@ -83,13 +83,7 @@ def command_compare(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``compare`` on the CLI's subcommands."""
-    parser = subparsers.add_parser(
-        "compare",
-        help=HELP,
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = add_described_command(subparsers, "compare", HELP, DESCRIPTION, EPILOG)
     parser.add_argument(
         "output_dirs",
         nargs="+",

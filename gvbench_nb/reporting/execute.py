@@ -63,8 +63,7 @@ class KernelPool:
 
 @functools.cache
 def _client_recording_manager() -> type[KernelManager]:
-    """A KernelManager that remembers the clients it made: nbclient leaves the channels of a
-    client open when it did not start the kernel, so ``stop_kernel`` closes them."""
+    """A KernelManager remembering its clients, whose channels nbclient leaves open: ``stop_kernel`` closes them."""
     from jupyter_client.manager import KernelManager
 
     class ClientRecordingKernelManager(KernelManager):
@@ -128,20 +127,16 @@ def kernels_ahead(count: int) -> Iterator[KernelPool]:
 
 
 def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
-    # jsonschema (under papermill's nbformat) compiles an IRI grammar at import when
-    # rfc3987-syntax is installed: more CPU than the rest of papermill's import, for a
-    # format no notebook schema uses. Without it jsonschema simply lacks that checker.
+    # jsonschema would compile rfc3987-syntax's IRI grammar at import (more CPU than papermill's
+    # import) for a format no notebook schema uses.
     sys.modules.setdefault("rfc3987_syntax", None)  # type: ignore[arg-type]
     import papermill
 
     output_path.parent.mkdir(parents=True, exist_ok=True)
-    # A started kernel from the pool, else one of ours that nbclient starts (with the same
-    # transport encryption) and leaves running: stopped below.
+    # A pooled kernel, else one nbclient starts and leaves running (stopped below). Kernel stderr
+    # (the tqdm bars) goes to the terminal; the kernel starts in notebooks/ through nbclient's
+    # resources, not papermill's cwd, which would change this whole (threaded) process's folder.
     manager = (_pool.take() if _pool is not None else None) or new_kernel_manager()
-    # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
-    # The kernel starts in notebooks/ (a started one was started there; papermill starts
-    # others there through nbclient's resources rather than papermill's cwd, which changes
-    # this whole process's folder and is unsafe for notebooks run in threads).
     try:
         papermill.execute_notebook(
             str(NOTEBOOKS_DIR / name),
@@ -179,8 +174,7 @@ def _user_error_names() -> set[str]:
 
 
 class NotebookFailedError(GVBenchError):
-    """A notebook's cell raised: a user error reads as it would outside a notebook; any other
-    error exits 1, pointing at the executed notebook's traceback."""
+    """A notebook's cell raised: a user error reads as outside a notebook; any other exits 1."""
 
     def __init__(self, ename: str, evalue: str, exec_count: int | None) -> None:
         self.ename, self.evalue = ename, evalue

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from gvbench_nb.io_utils import atomic_write_text
+from gvbench_nb.io_utils import add_described_command, atomic_write_text
 from gvbench_nb.reporting.execute import NotebookFailedError, execute_notebook
 from gvbench_nb.runner import config
 
@@ -426,13 +426,7 @@ def command_report(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``report`` on the CLI's subcommands."""
-    parser = subparsers.add_parser(
-        "report",
-        help=HELP,
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = add_described_command(subparsers, "report", HELP, DESCRIPTION, EPILOG)
     parser.add_argument(
         "output_dirs",
         nargs="*",

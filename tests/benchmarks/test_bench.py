@@ -1,5 +1,4 @@
-"""The bench: both pipelines agree on scores, mismatches fail loudly, the arithmetic of
-summaries, scaling and estimates is right."""
+"""The bench: both pipelines agree on scores, mismatches fail loudly, summaries and estimates add up."""
 
 import sys
 from pathlib import Path

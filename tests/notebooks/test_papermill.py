@@ -1,6 +1,5 @@
-"""The stage notebooks under plain papermill, as a user runs them from any folder: with
-``-p params_file``, with ``-f PARAMS.yaml`` (the file's keys as parameters) and with no
-parameters (the sample); ``--help-notebook`` shows each parameter's type."""
+"""The stage notebooks under plain papermill from any folder: ``-p params_file``, ``-f PARAMS.yaml``
+or no parameters (the sample); every parameter typed."""
 
 from __future__ import annotations
 

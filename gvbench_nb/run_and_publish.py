@@ -66,13 +66,8 @@ def execute_run_notebooks(
 # What a run publishes besides each method's files (``run_files``); anything else a stage holds
 # is checked against the folder's record when it is published.
 RUN_FILES = (
-    "params.resolved.yaml",
-    "01_sequence.ipynb",
-    "sequence_positives_per_query.png",
-    "sequence_examples.png",
-    "03_evaluate.ipynb",
-    "results.csv",
-    "pr_curves.png",
+    *("params.resolved.yaml", "01_sequence.ipynb", "sequence_positives_per_query.png", "sequence_examples.png"),
+    *("03_evaluate.ipynb", "results.csv", "pr_curves.png"),
 )
 
 

@@ -113,11 +113,6 @@ def command_weights(args: argparse.Namespace) -> int:
     return 0
 
 
-def positive_int(text: str) -> int:
-    """argparse type of --limit: a whole number of at least 1."""
-    return whole_number_at_least(text, 1, "a positive whole number of pairs")
-
-
 def command_build(args: argparse.Namespace) -> int:
 
     from gvbench_nb.data import build_inputs
@@ -221,16 +216,6 @@ def configure_data_parser(parser: argparse.ArgumentParser) -> None:
     parser.set_defaults(handler=command_data)
 
 
-def add_data_command(commands: Any) -> None:
-    parser = commands.add_parser(
-        "data",
-        help="fetch, list and check datasets (Gardens Point, the GV-Bench pair lists)",
-        description="Datasets: `data list` shows them, `data fetch NAME...` downloads and verifies them, "
-        "`data check PARAMS` verifies a sequence's images before a run.",
-    )
-    configure_data_parser(parser)
-
-
 def data_main(argv: SequenceType[str]) -> int:
     """``python -m gvbench_nb data ...`` without building the whole CLI (which imports torch)."""
     from gvbench_nb.data import fetch
@@ -274,7 +259,8 @@ def add_run_command(commands: Any) -> None:
         help="comma-separated method names, 'all', 'all-available', or imm:<vismatch name> "
         "(needs `make setup-imm`) (default: the params')",
     )
-    run.add_argument("--limit", type=positive_int, help="only the first N pairs")
+    pairs_count = lambda text: whole_number_at_least(text, 1, "a positive whole number of pairs")
+    run.add_argument("--limit", type=pairs_count, help="only the first N pairs")
     run.add_argument(
         "--profile",
         help="'paper' (the paper's protocol, hloc's chain) or 'repository' (the GV-Bench "
@@ -326,7 +312,13 @@ def build_parser() -> argparse.ArgumentParser:
     from gvbench_nb.reporting import compare, report
     from gvbench_nb.studies import deployment
 
-    add_data_command(commands)
+    data = commands.add_parser(
+        "data",
+        help="fetch, list and check datasets (Gardens Point, the GV-Bench pair lists)",
+        description="Datasets: `data list` shows them, `data fetch NAME...` downloads and verifies them, "
+        "`data check PARAMS` verifies a sequence's images before a run.",
+    )
+    configure_data_parser(data)
     add_build_command(commands)
     tables.add_command(commands)
     add_weights_fetch_command(weights_parser)
@@ -395,13 +387,8 @@ def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:
 
 @contextlib.contextmanager
 def stop_on_interrupt(argv: SequenceType[str], module: str = "gvbench_nb") -> Iterator[None]:
-    """While inside, Ctrl-C (SIGINT) prints ``resume_hint`` and ends the process at once, exit code 130.
-
-    Ending at once is safe: every file a run writes is committed by a rename, so a run
-    stopped anywhere resumes from what it committed, as after kill -9 (docs/reliability.md).
-    Unwinding instead would wait for the notebooks' threads and kernels, and can hang.
-    The notebooks' kernels run in sessions of their own, so they are stopped here.
-    """
+    """Ctrl-C prints ``resume_hint`` and ends at once (exit 130), killing the kernels: every file is
+    committed by a rename, so this is as safe as kill -9, and unwinding could hang on the notebooks."""
     import signal
 
     def stop(signum: int, frame: object) -> None:

@@ -1,10 +1,5 @@
-"""``python -m gvbench_nb explore [OUTPUT_DIR]``: JupyterLab on a working copy of
-``notebooks/explore_pairs.ipynb`` pointed at one finished run's folder.
-
-The copy lives in ``<OUTPUT_DIR>/explore/explore_pairs.ipynb`` and JupyterLab's root is that
-folder, so what autosave and Run All write lands there, never in the tracked notebook or its
-jupytext twin. A copy that exists is opened as the user left it.
-"""
+"""``python -m gvbench_nb explore [OUTPUT_DIR]``: JupyterLab on a working copy of explore_pairs.ipynb
+in ``<OUTPUT_DIR>/explore/`` (its root), so autosave never touches the tracked notebook."""
 
 from __future__ import annotations
 
@@ -18,6 +13,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from gvbench_nb.io_utils import add_described_command
 from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
 from gvbench_nb.runner import config, method_outputs, scoring
 
@@ -199,13 +195,7 @@ def command_explore(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``explore`` on the CLI's subcommands."""
-    parser = subparsers.add_parser(
-        "explore",
-        help=HELP,
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = add_described_command(subparsers, "explore", HELP, DESCRIPTION, EPILOG)
     parser.add_argument(
         "output_dir",
         nargs="?",

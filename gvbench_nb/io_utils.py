@@ -123,6 +123,12 @@ def unknown_keys_hint(unknown: list[str], valid: list[str]) -> str:
     return ", ".join(hints)
 
 
+def add_described_command(commands: Any, name: str, summary: str, description: str, epilog: str) -> Any:
+    """A sub-command whose description and examples keep their line breaks in ``--help``."""
+    raw = argparse.RawDescriptionHelpFormatter
+    return commands.add_parser(name, help=summary, description=description, epilog=epilog, formatter_class=raw)
+
+
 class SuggestingParser(argparse.ArgumentParser):
     """argparse's parser, with a did-you-mean for a mistyped command or choice (``rn`` -> ``run``).
     Its sub-command parsers are of this class too (argparse makes them of their parent's)."""

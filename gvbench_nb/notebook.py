@@ -1,10 +1,5 @@
-"""What the notebooks share before they plot: loading a sequence, the written results or a
-verifier bench, from the notebooks' parameters.
-
-Reading never runs the pipeline behind a reader's back: when results a notebook needs are
-missing, ``ResultsMissingError`` says which and names the command that makes them, unless
-the notebook asks with ``compute_missing=True`` (then only what is missing is run).
-"""
+"""What the notebooks share before they plot: a sequence, written results or a verifier bench.
+Missing results raise ``ResultsMissingError`` naming the command, unless ``compute_missing=True``."""
 
 from __future__ import annotations
 
@@ -91,12 +86,8 @@ def params_keys(namespace: dict[str, Any]) -> dict[str, Any]:
 
 
 def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
-    """A stage notebook's params: ``params_file`` with ``keys`` (not None) replacing its own.
-
-    Without ``params_file``, a ``sequence`` names it: the file of the repository's params/
-    of that sequence (papermill's ``-f params/NAME.yaml`` passes its keys, ``sequence``
-    among them); else params/sample.yaml.
-    """
+    """``params_file`` with ``keys`` (not None) replacing its own; without it, the params/ file of
+    ``sequence`` (papermill's ``-f params/NAME.yaml`` passes its keys), else params/sample.yaml."""
     given = {key: value for key, value in keys.items() if value is not None}
     if params_file is None and "sequence" in given:
         folder = DEFAULT_PARAMS_FILE.parent
@@ -128,12 +119,8 @@ def require_results(
     evaluate: bool = True,
     **overrides: Any,
 ) -> Path:
-    """Check that the params' output folder holds ``methods``' results; return the folder.
-
-    ``compute_missing=True`` runs only the missing methods (and, with ``evaluate``, makes
-    ``results.csv`` current); otherwise a gap raises ``ResultsMissingError`` naming the command.
-    ``overrides`` go to ``config.load_params`` (``output_dir``, ``profile``, ``limit``).
-    """
+    """The params' output folder, checked to hold ``methods``' results (and a current results.csv with
+    ``evaluate``); ``compute_missing=True`` runs what is missing, else ``ResultsMissingError``."""
     params = config.load_params(params_file, **overrides)
     output_dir = Path(params["output_dir"])
     missing = missing_methods(output_dir, methods)
@@ -170,12 +157,8 @@ def load_results(
     methods: SequenceType[str] = ("sift-nn",),
     compute_missing: bool = False,
 ) -> AnalysisInputs:
-    """What an analysis notebook reads: the ``results.csv`` of ``output_dirs``.
-
-    Each of ``params_files`` is first checked to hold ``methods``' results
-    (``require_results``; ``compute_missing=True`` runs what is missing); ``[]`` checks
-    nothing, as the report does, which reads only finished runs.
-    """
+    """The ``results.csv`` of ``output_dirs``, each of ``params_files`` first checked by
+    ``require_results`` (``[]``, as the report passes, checks nothing)."""
     from gvbench_nb.evaluation import run_tables
 
     folders = as_list(output_dirs)
@@ -215,15 +198,8 @@ def open_verifier_bench(
     classifier: dict[str, Any] | None = None,
     **split_options: Any,
 ) -> VerifierBench:
-    """An ``alternative_verifiers.VerifierBench`` on ``results_dir/method``'s cached matches.
-
-    ``results_dir`` is taken relative to the current folder (the notebook's), not the params
-    file. When its ``pairs.csv`` is missing: with ``params_file`` and ``compute_missing=True``
-    the method is run (``profile`` overriding the params'), else ``ResultsMissingError``
-    names the command. ``classifier`` overrides the in-domain Doppelgangers training
-    (``size``, ``epochs``, ``max_train_pairs``); ``split_options`` go to ``place_disjoint_split``.
-    """
-
+    """A ``VerifierBench`` on ``results_dir/method``'s cached matches (``results_dir`` relative to the
+    notebook); ``classifier`` overrides the in-domain Doppelgangers training."""
     results_dir = Path(results_dir).resolve()
     if params_file:
         require_results(

@@ -20,17 +20,9 @@ log = logging.getLogger(__name__)
 def execute_run_notebooks(
     jobs: list[tuple[str, str, dict[str, Any]]], output_dir: Path, compute: Callable[[str], None]
 ) -> None:
-    """Execute a run's notebooks (``jobs``: 01_sequence, one 02_verify a method, 03_evaluate):
-    01_sequence at once; each method's 02_verify once ``compute(method)`` has written its
-    result here (torch is imported once for all methods; the notebook's ``run_method`` then
-    finds the result done); 03_evaluate once every method's result is written (it reads their
-    pairs.csv and run.json only), while the 02_verify notebooks and 01_sequence may still run.
-
-    Errors are raised in job order, as when the notebooks ran one after another. A method
-    whose computation fails here is left to its notebook, whose ``run_method`` does the same
-    work (resuming from the caches) and, failing the same way, keeps the traceback; the
-    methods after it are not started.
-    """
+    """Execute 01_sequence at once, each 02_verify once ``compute(method)`` wrote its result (torch
+    imported once), 03_evaluate once all are written; errors are raised in job order, and a failed
+    computation is left to its notebook (which keeps the traceback), the methods after it not started."""
     from concurrent.futures import Future, ThreadPoolExecutor
 
     def execute(job: tuple[str, str, dict[str, Any]]) -> None:
@@ -74,13 +66,8 @@ def execute_run_notebooks(
 # What a run publishes besides each method's files (``run_files``); anything else a stage holds
 # is checked against the folder's record when it is published.
 RUN_FILES = (
-    "params.resolved.yaml",
-    "01_sequence.ipynb",
-    "sequence_positives_per_query.png",
-    "sequence_examples.png",
-    "03_evaluate.ipynb",
-    "results.csv",
-    "pr_curves.png",
+    *("params.resolved.yaml", "01_sequence.ipynb", "sequence_positives_per_query.png", "sequence_examples.png"),
+    *("03_evaluate.ipynb", "results.csv", "pr_curves.png"),
 )
 
 

@@ -1,9 +1,4 @@
-"""``python -m gvbench_nb compare OUTPUT_DIR``: which method rankings the pairs support.
-
-Prints every method's AP and MR with 95 % bootstrap intervals over queries, then for
-every pair of methods the share of paired query resamples in which the first beats the
-second, and a verdict: ranked when one side wins at least 95 % of them, else a tie.
-"""
+"""``python -m gvbench_nb compare OUTPUT_DIR``: which method rankings a paired bootstrap over queries supports."""
 
 from __future__ import annotations
 
@@ -13,7 +8,7 @@ import logging
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb.io_utils import whole_number_at_least
+from gvbench_nb.io_utils import add_described_command, whole_number_at_least
 
 log = logging.getLogger(__name__)
 
@@ -88,13 +83,7 @@ def command_compare(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``compare`` on the CLI's subcommands."""
-    parser = subparsers.add_parser(
-        "compare",
-        help=HELP,
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = add_described_command(subparsers, "compare", HELP, DESCRIPTION, EPILOG)
     parser.add_argument(
         "output_dirs",
         nargs="+",

@@ -23,18 +23,8 @@ PRELOAD = ("pandas", "matplotlib.pyplot", "gvbench_nb.runner.method_runs", "gvbe
 
 
 class KernelPool:
-    """Fresh kernels started ahead of the notebooks that will run in them.
-
-    A kernel takes one to two seconds to start; started while the run is still extracting
-    and matching, it is ready when its notebook is. Every notebook still gets a kernel of
-    its own, started for it and shut down after it, so nothing passes between notebooks.
-    ``count`` kernels in all, at most ``ahead`` started and waiting at any time.
-
-    A kernel imports the ``preload`` modules as it starts (IPython's ``exec_lines``: outside
-    the history, defining no name in the notebook's namespace); its notebook's own imports
-    then find them loaded. A module that fails to import fails again in the notebook, where
-    the error is kept.
-    """
+    """Fresh kernels (``count`` in all, at most ``ahead`` waiting) started, with ``preload`` imported,
+    while the run still computes; each notebook still gets a kernel of its own."""
 
     def __init__(self, count: int, ahead: int = 3, preload: tuple[str, ...] = PRELOAD):
         self._preload = preload
@@ -73,8 +63,7 @@ class KernelPool:
 
 @functools.cache
 def _client_recording_manager() -> type[KernelManager]:
-    """A KernelManager that remembers the clients it made: nbclient leaves the channels of a
-    client open when it did not start the kernel, so ``stop_kernel`` closes them."""
+    """A KernelManager remembering its clients, whose channels nbclient leaves open: ``stop_kernel`` closes them."""
     from jupyter_client.manager import KernelManager
 
     class ClientRecordingKernelManager(KernelManager):
@@ -87,9 +76,7 @@ def _client_recording_manager() -> type[KernelManager]:
 
 
 def transport_encryption() -> str:
-    """CurveZMQ between this process and its kernels where pyzmq has it ('auto': when the
-    kernelspec declares support, as ipykernel's does). Besides encrypting the local sockets,
-    it spares every kernel's "running over TCP without encryption" warning on the terminal."""
+    """CurveZMQ to the kernels where pyzmq has it: it also spares each kernel's "without encryption" warning."""
     import zmq
 
     return "auto" if zmq.has("curve") else "disabled"
@@ -106,9 +93,8 @@ QUIET_WARNINGS = "__import__('warnings').filterwarnings('ignore', 'IProgress not
 
 
 def preload_arguments(modules: tuple[str, ...]) -> list[str]:
-    """The kernel's command-line arguments that silence ``QUIET_WARNINGS`` and import ``modules``
-    at start-up (the line evaluates to None so that nothing is displayed or bound, not even ``_``),
-    and keep its history in memory."""
+    """Kernel arguments that silence ``QUIET_WARNINGS`` and import ``modules`` (binding nothing, not
+    even ``_``), with the history in memory."""
     imports = f" or list(map(__import__, {tuple(modules)!r})).clear()" if modules else ""
     # History in memory: a batch kernel keeps none, and kernels running at once then never
     # contend for (or, on a full disk, fail to write) the one history file.
@@ -141,20 +127,16 @@ def kernels_ahead(count: int) -> Iterator[KernelPool]:
 
 
 def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
-    # jsonschema (under papermill's nbformat) compiles an IRI grammar at import when
-    # rfc3987-syntax is installed: more CPU than the rest of papermill's import, for a
-    # format no notebook schema uses. Without it jsonschema simply lacks that checker.
+    # jsonschema would compile rfc3987-syntax's IRI grammar at import (more CPU than papermill's
+    # import) for a format no notebook schema uses.
     sys.modules.setdefault("rfc3987_syntax", None)  # type: ignore[arg-type]
     import papermill
 
     output_path.parent.mkdir(parents=True, exist_ok=True)
-    # A started kernel from the pool, else one of ours that nbclient starts (with the same
-    # transport encryption) and leaves running: stopped below.
+    # A pooled kernel, else one nbclient starts and leaves running (stopped below). Kernel stderr
+    # (the tqdm bars) goes to the terminal; the kernel starts in notebooks/ through nbclient's
+    # resources, not papermill's cwd, which would change this whole (threaded) process's folder.
     manager = (_pool.take() if _pool is not None else None) or new_kernel_manager()
-    # Kernel stderr (the stages' tqdm bars) goes to the terminal, so long runs show progress.
-    # The kernel starts in notebooks/ (a started one was started there; papermill starts
-    # others there through nbclient's resources rather than papermill's cwd, which changes
-    # this whole process's folder and is unsafe for notebooks run in threads).
     try:
         papermill.execute_notebook(
             str(NOTEBOOKS_DIR / name),
@@ -192,8 +174,7 @@ def _user_error_names() -> set[str]:
 
 
 class NotebookFailedError(GVBenchError):
-    """A notebook's cell raised: a user error reads as it would outside a notebook; any other
-    error exits 1, pointing at the executed notebook's traceback."""
+    """A notebook's cell raised: a user error reads as outside a notebook; any other exits 1."""
 
     def __init__(self, ename: str, evalue: str, exec_count: int | None) -> None:
         self.ename, self.evalue = ename, evalue

@@ -1,12 +1,5 @@
-"""``python -m gvbench_nb report``: the analysis notebooks over every finished sequence,
-as HTML, behind one summary page.
-
-For each sequence output folder with a ``results.csv`` the per-sequence analysis
-notebooks run with papermill (reading only written results), the results table runs
-once across all of them, nbconvert turns every executed notebook into HTML, and
-``index.html`` shows the combined table (ours beside the paper's, labelled), the key
-figures and links to each notebook.
-"""
+"""``python -m gvbench_nb report``: the analysis notebooks over every finished sequence, executed by
+papermill and converted by nbconvert, behind one summary page (index.html)."""
 
 from __future__ import annotations
 
@@ -19,7 +12,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from gvbench_nb.io_utils import atomic_write_text
+from gvbench_nb.io_utils import add_described_command, atomic_write_text
 from gvbench_nb.reporting.execute import NotebookFailedError, execute_notebook
 from gvbench_nb.runner import config
 
@@ -74,12 +67,8 @@ class ExecutedNotebook:
 def execute_and_convert(
     source: str, target: Path, parameters: dict, sequence: str = "", index: Path | None = None
 ) -> ExecutedNotebook:
-    """Execute one analysis notebook with papermill, then write its HTML beside it (linked back
-    to the report's ``index`` page when given).
-
-    A failing notebook is still converted (its traceback is the useful part) and its
-    error is returned rather than raised, so one sequence cannot sink the report.
-    """
+    """Execute one analysis notebook and write its HTML beside it; a failing one is still converted and
+    its error returned, not raised, so one sequence cannot sink the report."""
     error = None
     try:
         execute_notebook(source, target, parameters)
@@ -217,8 +206,7 @@ def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
 
 
 def pr_curve_figures(report_dir: Path, output_dirs: list[Path]) -> dict[str, Path]:
-    """``<report_dir>/pr_curves_<sequence>.png`` for each sequence: every (method, profile) of
-    the folders that ran it, from their ``pairs.csv``; the profile is the one results.csv names."""
+    """``<report_dir>/pr_curves_<sequence>.png``: every (method, profile) that ran the sequence."""
     import matplotlib.pyplot as plt
     import pandas as pd
 
@@ -272,11 +260,8 @@ VERIFIERS_FOLDER = "verifiers"  # the verifier notebooks' output folder in a run
 
 
 def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Path, dict, str]]:
-    """The studies' pages, where their inputs exist: the verifier comparison and Doppelgangers
-    where a folder's sift-nn matches were compared (``<folder>/verifiers/verifiers.csv``: their
-    training and predictions, minutes on a CPU, are reused), the sequence build of a
-    retrieval-built folder, and every condition sweep (a folder holding ``sweep.csv``) beside the
-    sequence folders, with the parameters it was run with (so nothing is computed anew)."""
+    """The studies' pages where their inputs exist (verifiers.csv, a retrieval build, a sweep.csv beside
+    the folders), with the parameters they were run with, so nothing is computed anew."""
     import json
 
     import yaml
@@ -320,8 +305,7 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
 
 
 def _run_params_file(folder: Path) -> Path | None:
-    """The params a folder's run used: its ``params.resolved.yaml``, else the file its first
-    method's record names (a sharded run writes no resolved copy), when it still exists."""
+    """A folder's ``params.resolved.yaml``, else the params file its first run.json names (sharded runs)."""
     import json
 
     resolved = folder / config.RESOLVED_PARAMS_NAME
@@ -334,8 +318,7 @@ def _run_params_file(folder: Path) -> Path | None:
 
 
 def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
-    """Table II, Table III, Fig. 1 (published values alone), Fig. 8, and deployment: the threshold
-    transfer figure and the loop-closure table the deployment notebook wrote."""
+    """Table II, Table III, Fig. 1, Fig. 8, and the deployment notebook's figure and table."""
     import pandas as pd
 
     from gvbench_nb.evaluation import run_tables
@@ -403,9 +386,7 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
 
 
 def run_folders(args: argparse.Namespace) -> list[Path]:
-    """The run folders a ``report`` command line names: its OUTPUT_DIRs, else ``--outputs-root``
-    itself when it is a run folder, else the folders under it (``--sequences``: those only).
-    Raises ``ResultsError`` saying which folder holds no results.csv."""
+    """The OUTPUT_DIRs, else ``--outputs-root`` when it is a run folder, else the run folders under it."""
     from gvbench_nb.evaluation import run_tables
     from gvbench_nb.runner.method_outputs import ResultsError
 
@@ -445,13 +426,7 @@ def command_report(args: argparse.Namespace) -> int:
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
     """Register ``report`` on the CLI's subcommands."""
-    parser = subparsers.add_parser(
-        "report",
-        help=HELP,
-        description=DESCRIPTION,
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
-    )
+    parser = add_described_command(subparsers, "report", HELP, DESCRIPTION, EPILOG)
     parser.add_argument(
         "output_dirs",
         nargs="*",

@@ -1,5 +1,4 @@
-"""The bench: both pipelines agree on scores, mismatches fail loudly, the arithmetic of
-summaries, scaling and estimates is right."""
+"""The bench: both pipelines agree on scores, mismatches fail loudly, summaries and estimates add up."""
 
 import sys
 from pathlib import Path
@@ -87,36 +86,18 @@ def test_a_score_mismatch_fails_loudly_naming_the_pair():
 
 
 def timing_rows(cached_rates, per_pair_rates) -> pd.DataFrame:
+    run = {"sequence": "s", "method": "sift-nn", "profile": "repository", "n_pairs": 100, "n_images": 40}
+    machine = {"device": "cpu", "device_name": "x86_64", "torch_threads": 1, "opencv_threads": 1, "cpu_count": 2}
     rows = []
     for repeat, (fast, slow) in enumerate(zip(cached_rates, per_pair_rates)):
         for which, rate in ((bench.CACHED, fast), (bench.PER_PAIR, slow)):
-            rows.append(
-                {
-                    "sequence": "s",
-                    "method": "sift-nn",
-                    "profile": "repository",
-                    "n_pairs": 100,
-                    "n_images": 40,
-                    "repeat": repeat,
-                    "pipeline": which,
-                    "wall_seconds": 100 / rate,
-                    "pairs_per_second": rate,
-                    "extract_seconds_per_pair": 0.5 / rate,
-                    "match_seconds_per_pair": 0.3 / rate,
-                    "verify_seconds_per_pair": 0.2 / rate,
-                    "other_seconds_per_pair": 0.0,
-                    # ours overlaps matching with verification: less wall time than their sum
-                    "match_verify_wall_seconds_per_pair": (0.35 if which == bench.CACHED else 0.5) / rate,
-                    "device": "cpu",
-                    "device_name": "x86_64",
-                    "torch_threads": 1,
-                    "opencv_threads": 1,
-                    "cpu_count": 2,
-                    "loadavg_1m": 1.0 + repeat,
-                    "loadavg_5m": 1.0,
-                    "date": "2026-01-01",
-                }
-            )
+            timed = {"repeat": repeat, "pipeline": which, "wall_seconds": 100 / rate, "pairs_per_second": rate}
+            for stage, share in (("extract", 0.5), ("match", 0.3), ("verify", 0.2), ("other", 0.0)):
+                timed[f"{stage}_seconds_per_pair"] = share / rate
+            # ours overlaps matching with verification: less wall time than their sum
+            timed["match_verify_wall_seconds_per_pair"] = (0.35 if which == bench.CACHED else 0.5) / rate
+            load = {"loadavg_1m": 1.0 + repeat, "loadavg_5m": 1.0, "date": "2026-01-01"}
+            rows.append(run | timed | machine | load)
     return pd.DataFrame(rows)
 
 
@@ -218,26 +199,10 @@ def test_scaling_table_sums_the_measured_stage_costs(shared_data):
 
 
 def test_the_bench_parser_reads_its_options():
-    args = speed_cli.build_parser().parse_args(
-        [
-            "p.yaml",
-            "--methods",
-            "sift-nn,disk-lg",
-            "--limit",
-            "50",
-            "--repeats",
-            "2",
-            "--profile",
-            "repository",
-        ]
-    )
-    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == (
-        "p.yaml",
-        "sift-nn,disk-lg",
-        50,
-        2,
-        "repository",
-    )
+    argv = ["p.yaml", "--methods", "sift-nn,disk-lg", "--limit", "50", "--repeats", "2", "--profile", "repository"]
+    args = speed_cli.build_parser().parse_args(argv)
+    expected = ("p.yaml", "sift-nn,disk-lg", 50, 2, "repository")
+    assert (args.params, args.methods, args.limit, args.repeats, args.profile) == expected
     assert args.handler is speed_cli.command_bench
 
 

@@ -13,22 +13,8 @@ import compute_bound
 @pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample
 @pytest.mark.slow
 def test_the_bound_is_the_one_core_work_shared_over_the_cores(tmp_path, capsys):
-    code = compute_bound.main(
-        [
-            "params/sample.yaml",
-            "--method",
-            "orb-nn",
-            "--limit",
-            "12",
-            "--cores",
-            "3",
-            "--peer-seconds",
-            "9",
-            "--out",
-            str(tmp_path),
-        ]
-    )
-    assert code == 0
+    options = ["--method", "orb-nn", "--limit", "12", "--cores", "3", "--peer-seconds", "9", "--out", str(tmp_path)]
+    assert compute_bound.main(["params/sample.yaml", *options]) == 0
     row = pd.read_csv(tmp_path / "compute_bound.csv").iloc[0]
     pairs = pd.read_csv(tmp_path / "run" / "output" / "orb-nn" / "pairs.csv")
     run = pd.read_json(tmp_path / "run" / "output" / "orb-nn" / "run.json", typ="series")

@@ -52,22 +52,9 @@ def test_variants_that_do_not_apply_say_why():
 @pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample
 @pytest.mark.slow
 def test_ablation_on_sample_writes_one_row_a_variant(tmp_path, capsys):
-    code = protocol_ablation.main(
-        [
-            "params/sample.yaml",
-            "--methods",
-            "sift-nn",
-            "--variants",
-            "paper,ratio-on-rows,no-resize-max",
-            "--limit",
-            "60",
-            "--output-dir",
-            str(tmp_path / "out"),
-            "--cache-dir",
-            str(tmp_path / "cache"),
-        ]
-    )
-    assert code == 0
+    options = ["--methods", "sift-nn", "--variants", "paper,ratio-on-rows,no-resize-max", "--limit", "60"]
+    folders = ["--output-dir", str(tmp_path / "out"), "--cache-dir", str(tmp_path / "cache")]
+    assert protocol_ablation.main(["params/sample.yaml", *options, *folders]) == 0
     frame = pd.read_csv(tmp_path / "out" / "sample" / "ablation.csv")
     assert frame["variant"].tolist() == ["paper", "ratio-on-rows", "no-resize-max"]
     paper, rows = frame.iloc[0], frame.iloc[1]

@@ -1,12 +1,5 @@
-"""``explore`` in a real browser: JupyterLab opens the working copy (unmodified, no pop-up), Run
-All draws the controls, and every pick and every method redraws every view, each replacing the
-last one's figures; the tracked notebooks stay untouched.
-
-A tiny run (two cheap methods on a small synthetic route) is made in a temporary folder,
-``python -m gvbench_nb explore`` serves it on a free localhost port, and headless Chromium (the
-system's, driven by playwright) works the page. Skips, naming the install commands, when
-Chromium or playwright is missing.
-"""
+"""``explore`` in headless Chromium: JupyterLab opens the working copy (unmodified, no pop-up), Run All
+draws the controls, every pick and method redraws every view, and the tracked notebooks stay untouched."""
 
 from __future__ import annotations
 
@@ -19,7 +12,6 @@ import urllib.request
 from pathlib import Path
 
 import pytest
-import yaml
 from test_report_browser import chromium  # noqa: F401  (the fixture: Chromium's path and playwright)
 
 from gvbench_nb import explore_lab
@@ -33,21 +25,13 @@ TIMEOUT_MS = 60_000
 
 @pytest.fixture(scope="module")
 def run_folder(chromium, tmp_path_factory) -> Path:  # noqa: F811
-    """A finished run's folder: 8 frames of 240x180 on the synthetic route, two methods, the
-    record `run` writes (built only once the browser is found)."""
+    """A finished run's folder, 8 frames of 240x180 (built only once the browser is found)."""
     root = tmp_path_factory.mktemp("explore_browser")
-    params = {
-        "sequence": "tiny",
-        "pairs_builder": "sample",
-        "builder_options": {"n_frames": 8, "image_size": [240, 180]},
-        "image_root": str(root / "data"),
-        "pairs": str(root / "data" / "pairs.txt"),
-        "methods": METHODS,
-        "profile": "repository",
-        "output_dir": str(root / "outputs" / "tiny"),
-        "seed": 0,
-    }
-    (root / "tiny.yaml").write_text(yaml.safe_dump(params))
+    (root / "tiny.yaml").write_text(
+        "sequence: tiny\npairs_builder: sample\nbuilder_options: {n_frames: 8, image_size: [240, 180]}\n"
+        f"image_root: {root / 'data'}\npairs: {root / 'data' / 'pairs.txt'}\nmethods: {METHODS}\n"
+        f"profile: repository\noutput_dir: {root / 'outputs' / 'tiny'}\nseed: 0\n"
+    )
     loaded = config.load_params(root / "tiny.yaml")
     sequence = sequence_build.prepare_sequence(loaded)
     out = Path(loaded["output_dir"])
@@ -110,8 +94,7 @@ def sources_status() -> str:
 
 
 def sources_bytes() -> dict[str, bytes]:
-    """The tracked explore notebook and its twin, byte for byte (a checkout with edits of its
-    own still shows whether this test wrote them)."""
+    """The tracked explore notebook and its twin, byte for byte (a checkout's own edits aside)."""
     return {
         name: (PROJECT_ROOT / "notebooks" / name).read_bytes() for name in ("explore_pairs.ipynb", "explore_pairs.py")
     }

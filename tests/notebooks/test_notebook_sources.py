@@ -1,6 +1,5 @@
-"""Each notebook is a pair: ``notebooks/NAME.ipynb`` and its jupytext percent-format twin
-``notebooks/NAME.py``. Either may be edited; these checks fail when the two disagree, when a
-notebook is committed with outputs, or when papermill would find no ``parameters`` cell."""
+"""Each notebook and its jupytext percent-format twin agree, carry no outputs, and have one
+``parameters`` cell with only imports above it."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""The stage notebooks under plain papermill, as a user runs them from any folder: with
-``-p params_file``, with ``-f PARAMS.yaml`` (the file's keys as parameters) and with no
-parameters (the sample); ``--help-notebook`` shows each parameter's type."""
+"""The stage notebooks under plain papermill from any folder: ``-p params_file``, ``-f PARAMS.yaml``
+or no parameters (the sample); every parameter typed."""
 
 from __future__ import annotations
 
@@ -65,20 +64,8 @@ def test_papermill_runs_the_stage_notebooks_as_they_are_from_the_repository_and_
     cwd = config.PROJECT_ROOT if folder == "repository" else tmp_path
     params = os.path.relpath(config.PROJECT_ROOT / "params" / "sample.yaml", cwd)
     out, cache = tmp_path / "out", tmp_path / "cache"
-    elsewhere = [
-        "-p",
-        "method",
-        "orb-nn",
-        "-p",
-        "limit",
-        "4",
-        "-p",
-        "output_dir",
-        str(out),
-        "-p",
-        "cache_dir",
-        str(cache),
-    ]
+    options = ["-p", "method", "orb-nn", "-p", "limit", "4", "-p", "output_dir", str(out)]
+    elsewhere = [*options, "-p", "cache_dir", str(cache)]
     papermill_cli(cwd, "02_verify", tmp_path / "p.ipynb", "-p", "params_file", params, *elsewhere)
     written = (out / "orb-nn" / "pairs.csv").read_bytes()
     assert written.count(b"\n") == 1 + 4

@@ -1,12 +1,5 @@
-"""The HTML report as a page in a real browser: every image loads (the PR curves among them),
-every link resolves, the tables name their runs' profiles, the notebook pages show no code, and
-no page logs an error.
-
-A small report is built from the embedded ``sample`` route (two cheap methods, the first
-pairs only), then headless Chromium (the system's, driven by playwright) opens
-``index.html`` over file:// and every notebook page it links to. Skips, naming the install
-commands, when Chromium or playwright is missing.
-"""
+"""The HTML report of a small sample run in headless Chromium: every image loads, every link resolves,
+the tables name their runs' profiles, the notebook pages show no code, and no page logs an error."""
 
 from __future__ import annotations
 
@@ -97,9 +90,8 @@ MAX_PAGE_BYTES = 2_000_000
 
 
 def check_page(browser, url: str) -> tuple[object, list[str]]:
-    """Open a page; assert it is under 2 MB, its images loaded, its anchors exist, it holds no
-    stray printout and nothing logged an error. Returns the page (still open) and the local
-    files its links point to."""
+    """Open a page and check its size, images, anchors, text and console; return it (open) and the
+    local pages it links to."""
     size = Path(unquote(urlparse(url).path)).stat().st_size
     assert size < MAX_PAGE_BYTES, f"{url}: {size:,} bytes"
     page = browser.new_page()

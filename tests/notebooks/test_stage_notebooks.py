@@ -1,7 +1,5 @@
-"""The notebooks, executed with papermill as `run` and `report` execute them, write the
-right values: pairs.csv has one row a pair of the sequence, results.csv holds the metrics
-those rows give, and the analyses agree with results.csv. An analysis notebook whose
-results are missing stops with the command that makes them instead of running it."""
+"""The notebooks, executed with papermill as `run` and `report` do, write the right values and agree
+with results.csv; an analysis notebook whose results are missing names the command that makes them."""
 
 from __future__ import annotations
 
@@ -57,12 +55,8 @@ def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sa
     assert row["sequence"] == "sample" and row["profile"] == "repository"
     for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
         assert errors_in(stage_run / name) == [], name
-    for figure in (
-        "sequence_positives_per_query.png",
-        "sequence_examples.png",
-        f"inliers_{METHOD}.png",
-        "pr_curves.png",
-    ):
+    figures = ("sequence_positives_per_query.png", "sequence_examples.png", f"inliers_{METHOD}.png", "pr_curves.png")
+    for figure in figures:
         assert (stage_run / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", figure
 
 
@@ -99,11 +93,8 @@ def test_analysis_notebooks_agree_with_the_results_they_read(stage_run, tmp_path
 def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_nothing(sample_params, tmp_path):
     empty = tmp_path / "empty"
     raw = yaml.safe_load(sample_params.read_text())
-    raw.update(
-        image_root=str(sample_params.parent / "data"),
-        pairs=str(sample_params.parent / "data" / "pairs.txt"),
-        output_dir=str(empty),
-    )
+    data = sample_params.parent / "data"
+    raw.update(image_root=str(data), pairs=str(data / "pairs.txt"), output_dir=str(empty))
     params = tmp_path / "empty.yaml"
     params.write_text(yaml.safe_dump(raw))
     with pytest.raises(execute.NotebookFailedError) as failure:

@@ -1,6 +1,5 @@
-"""The package's layout holds: the import contracts of pyproject.toml (data flows one way through
-the layers, no import circles, the protocol imports nothing else of the package; import-linter
-counts imports inside functions too), the protocol stays small, and every folder the docs name exists."""
+"""The package's layout holds: pyproject.toml's import contracts (imports inside functions count too),
+a small protocol, and every folder the docs name."""
 
 from __future__ import annotations
 
@@ -34,10 +33,8 @@ def test_the_layer_contract_finds_an_import_back_up(tmp_path: Path) -> None:
     config = (REPO / "pyproject.toml").read_text().split("[tool.importlinter]", 1)[1]
     (tmp_path / "pyproject.toml").write_text("[tool.importlinter]" + config)
     package = tmp_path / "gvbench_nb"
-    for room in {path.stem for path in PACKAGE.iterdir() if path.suffix == ".py" or path.is_dir()} - {
-        "__pycache__",
-        "__init__",
-    }:
+    rooms = {path.stem for path in PACKAGE.iterdir() if path.suffix == ".py" or path.is_dir()}
+    for room in rooms - {"__pycache__", "__init__"}:
         (package / room).mkdir(parents=True)
         (package / room / "__init__.py").write_text("")
     (package / "__init__.py").write_text("")

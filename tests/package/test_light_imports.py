@@ -115,22 +115,12 @@ if _folder:
 
 def tiny_sample_params(tmp_path: Path, methods: list[str]) -> Path:
     """A params file of the synthetic route, 6 frames of 160x120, first 6 pairs (one false)."""
-    import yaml
-
-    params = {
-        "sequence": "tiny",
-        "pairs_builder": "sample",
-        "builder_options": {"n_frames": 6, "image_size": [160, 120]},
-        "image_root": str(tmp_path / "data"),
-        "pairs": str(tmp_path / "data" / "pairs.txt"),
-        "methods": methods,
-        "profile": "repository",
-        "output_dir": str(tmp_path / "out"),
-        "limit": 6,
-        "seed": 0,
-    }
     path = tmp_path / "tiny.yaml"
-    path.write_text(yaml.safe_dump(params))
+    path.write_text(
+        "sequence: tiny\npairs_builder: sample\nbuilder_options: {n_frames: 6, image_size: [160, 120]}\n"
+        f"image_root: {tmp_path / 'data'}\npairs: {tmp_path / 'data' / 'pairs.txt'}\nmethods: {methods}\n"
+        f"profile: repository\noutput_dir: {tmp_path / 'out'}\nlimit: 6\nseed: 0\n"
+    )
     return path
 
 

@@ -1,6 +1,5 @@
-"""Output fits where it runs. Progress bars: a widget in JupyterLab's kernels, few lines in a file
-or a batch-executed notebook, the usual redrawn bar in a terminal. Status lines: the package's
-logger, into the stdout of the moment, silenced by --quiet while the asked-for table stays."""
+"""Output fits where it runs: progress bars as widgets, sparse lines or terminal bars; status lines to
+the current stdout, silenced by --quiet while the asked-for table stays."""
 
 from __future__ import annotations
 

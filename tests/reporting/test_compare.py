@@ -18,18 +18,10 @@ def noisy_table(seed: int = 0, n_queries: int = 50, per_query: int = 4) -> pd.Da
     n = n_queries * per_query
     labels = (rng.random(n) < 0.4).astype(int)
     labels[0], labels[1] = 1, 0
-    return pd.DataFrame(
-        {
-            "pair_index": range(n),
-            "query": np.repeat([f"q{i}" for i in range(n_queries)], per_query),
-            "reference": [f"r{i}" for i in range(n)],
-            "label": labels,
-            "score": rng.normal(labels, 1.0),
-            "extract_seconds": 0.1,
-            "match_seconds": 0.1,
-            "verify_seconds": 0.1,
-        }
-    )
+    queries = np.repeat([f"q{i}" for i in range(n_queries)], per_query)
+    table = {"pair_index": range(n), "query": queries, "reference": [f"r{i}" for i in range(n)], "label": labels}
+    timers = {"extract_seconds": 0.1, "match_seconds": 0.1, "verify_seconds": 0.1}
+    return pd.DataFrame(table | {"score": rng.normal(labels, 1.0)} | timers)
 
 
 def write_run(output_dir, method: str, table: pd.DataFrame, profile: str = "repository") -> None:

@@ -1,6 +1,5 @@
-"""``python -m gvbench_nb report``: the page a researcher reads first. Its table's header
-explains only the columns the table has, PR curves of every method and profile per sequence,
-notebook pages without code cells, and a run's own cache found from its record."""
+"""``python -m gvbench_nb report``: a header explaining only the table's columns, PR curves of every
+method and profile, notebook pages without code, and a run's own cache found from its record."""
 
 from __future__ import annotations
 
@@ -10,7 +9,6 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-import yaml
 
 from gvbench_nb import cli
 from gvbench_nb.evaluation import plots
@@ -66,20 +64,9 @@ def test_report_on_a_run_with_its_own_cache_dir_hides_code_and_shows_pr_curves(t
     cache = tmp_path / "elsewhere" / "features_cache"
     params = tmp_path / "sample.yaml"
     params.write_text(
-        yaml.safe_dump(
-            {
-                "sequence": "sample",
-                "pairs_builder": "sample",
-                "builder_options": {},
-                "image_root": str(tmp_path / "data"),
-                "pairs": str(tmp_path / "data" / "pairs.txt"),
-                "methods": ["sift-nn", "orb-nn"],
-                "profile": "repository",
-                "output_dir": str(tmp_path / "outputs" / "sample"),
-                "cache_dir": str(cache),
-                "seed": 0,
-            }
-        )
+        f"sequence: sample\npairs_builder: sample\nbuilder_options: {{}}\nimage_root: {tmp_path / 'data'}\n"
+        f"pairs: {tmp_path / 'data' / 'pairs.txt'}\nmethods: [sift-nn, orb-nn]\nprofile: repository\n"
+        f"output_dir: {tmp_path / 'outputs' / 'sample'}\ncache_dir: {cache}\nseed: 0\n"
     )
     assert cli.main(["run", str(params), "--limit", "24"]) == 0
     assert (cache / "features").is_dir() and not (tmp_path / "outputs" / "cache").exists()

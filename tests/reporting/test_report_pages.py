@@ -1,5 +1,4 @@
-"""The report's study pages appear exactly where their inputs exist, with the parameters the
-inputs were made with (so executing them computes nothing anew)."""
+"""The report's study pages appear exactly where their inputs exist, with the inputs' parameters."""
 
 from __future__ import annotations
 

@@ -127,15 +127,7 @@ def command_run(args: argparse.Namespace) -> int:
         # succeeds; the methods it does not run are carried over, so the folder's table lists them all.
         stage = record.open_stage(output_dir)
         record.carry(output_dir, stage, kept)
-        # The params are resolved once: the notebooks load them from the stage, with the same sequence.
-        run_params = {**params, "output_dir": str(stage)}
-        common = {"params_file": str(config.write_resolved_params(run_params, stage))}
-        jobs: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
-        jobs += [
-            ("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m, "jobs": args.jobs})
-            for m in params["methods"]
-        ]
-        jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
+        run_params, jobs = stage_notebooks(params, stage, args.jobs)
         log.info(
             f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
             f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}"
@@ -148,10 +140,7 @@ def command_run(args: argparse.Namespace) -> int:
         execute_run_notebooks(jobs, stage, compute)
         config.write_resolved_params(params, stage)  # as published: the output folder's own paths
         for method in params["methods"]:
-            # What the method's results were scored on, as its run read the inputs.
-            scored = stage / method / "run.json"
-            scored_binding = json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
-            bindings[method] = scored_binding | ({"damaged_images": damaged} if damaged else {})
+            bindings[method] = scored_binding(stage, method, binding) | ({"damaged_images": damaged} if damaged else {})
         record.publish(output_dir, stage, bindings)
     except Exception:
         if (record.read_record(output_dir) or {}).get("state") == "publishing":
@@ -169,6 +158,29 @@ def command_run(args: argparse.Namespace) -> int:
         lock.release()
     print_run_results(output_dir)
     return 0
+
+
+def stage_notebooks(
+    params: dict[str, Any], stage: Path, jobs: int | None
+) -> tuple[dict[str, Any], list[tuple[str, str, dict[str, Any]]]]:
+    """The params as the stage's notebooks load them (resolved once, the same sequence) and the
+    notebooks to execute: (template, executed name, parameters)."""
+    from gvbench_nb.runner import config
+
+    run_params = {**params, "output_dir": str(stage)}
+    common = {"params_file": str(config.write_resolved_params(run_params, stage))}
+    notebooks: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
+    notebooks += [
+        ("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m, "jobs": jobs}) for m in params["methods"]
+    ]
+    notebooks.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
+    return run_params, notebooks
+
+
+def scored_binding(stage: Path, method: str, binding: dict[str, Any]) -> dict[str, Any]:
+    """What the method's results were scored on, as its run read the inputs."""
+    scored = stage / method / "run.json"
+    return json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
 
 
 def print_run_results(output_dir: Path) -> None:

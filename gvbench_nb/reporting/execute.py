@@ -126,18 +126,39 @@ def kernels_ahead(count: int) -> Iterator[KernelPool]:
         pool.shutdown()
 
 
+# A new kernel's ports are found free, then bound by the kernel: another process starting one at
+# the same moment can take a port in between, and the kernel dies before it answers. Nothing of
+# the notebook ran then, so it is started again on a fresh kernel.
+KERNEL_START_TRIES = 3
+
+
 def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -> None:
+    output_path.parent.mkdir(parents=True, exist_ok=True)
+    # A pooled kernel, else one nbclient starts and leaves running (stopped below).
+    manager = (_pool.take() if _pool is not None else None) or new_kernel_manager()
+    try:
+        for attempt in range(1, KERNEL_START_TRIES + 1):
+            try:
+                _execute_on(manager, name, output_path, parameters)
+                return
+            except RuntimeError as error:
+                if "before replying to kernel_info" not in str(error) or attempt == KERNEL_START_TRIES:
+                    raise
+                stop_kernel(manager)
+                manager = new_kernel_manager()
+    finally:  # nbclient stops only the kernels of managers it made
+        stop_kernel(manager)
+
+
+def _execute_on(manager: KernelManager, name: str, output_path: Path, parameters: dict[str, Any]) -> None:
     # jsonschema would compile rfc3987-syntax's IRI grammar at import (more CPU than papermill's
     # import) for a format no notebook schema uses.
     sys.modules.setdefault("rfc3987_syntax", None)  # type: ignore[arg-type]
     import papermill
 
-    output_path.parent.mkdir(parents=True, exist_ok=True)
-    # A pooled kernel, else one nbclient starts and leaves running (stopped below). Kernel stderr
-    # (the tqdm bars) goes to the terminal; the kernel starts in notebooks/ through nbclient's
-    # resources, not papermill's cwd, which would change this whole (threaded) process's folder.
-    manager = (_pool.take() if _pool is not None else None) or new_kernel_manager()
     try:
+        # Kernel stderr (the tqdm bars) goes to the terminal; the kernel starts in notebooks/ through
+        # nbclient's resources, not papermill's cwd, which would change this whole (threaded) process's folder.
         papermill.execute_notebook(
             str(NOTEBOOKS_DIR / name),
             str(output_path),
@@ -159,8 +180,6 @@ def execute_notebook(name: str, output_path: Path, parameters: dict[str, Any]) -
             f"cannot write {output_path} ({error.strerror}); free disk space (or raise the quota or file "
             "size limit) and run again",
         ) from error
-    finally:  # nbclient stops only the kernels of managers it made
-        stop_kernel(manager)
 
 
 def _user_error_names() -> set[str]:

@@ -100,3 +100,34 @@ def test_kernels_run_encrypted_and_print_no_transport_or_iprogress_warning(tmp_p
     for executed in ("pooled.ipynb", "alone.ipynb"):
         outputs = [o for c in nbformat.read(tmp_path / executed, as_version=4).cells for o in c.get("outputs", [])]
         assert "IProgress" not in json.dumps(outputs), executed
+
+
+@pytest.mark.parametrize(
+    ("failures", "message", "calls", "raises"),
+    [
+        (1, "Kernel died before replying to kernel_info", 2, False),  # a port taken between pick and bind
+        (9, "Kernel died before replying to kernel_info", execute.KERNEL_START_TRIES, True),
+        (1, "something else", 1, True),  # any other error is not retried
+    ],
+)
+def test_a_kernel_that_dies_before_answering_is_replaced_and_each_kernel_stopped(
+    monkeypatch, tmp_path, failures, message, calls, raises
+):
+    import papermill
+
+    managers, stopped = [], []
+
+    def execute_notebook(*args, km, **kwargs):
+        managers.append(km)
+        if len(managers) <= failures:
+            raise RuntimeError(message)
+
+    monkeypatch.setattr(papermill, "execute_notebook", execute_notebook)
+    monkeypatch.setattr(execute, "stop_kernel", stopped.append)
+    if raises:
+        with pytest.raises(RuntimeError, match=message):
+            execute.execute_notebook("01_sequence.ipynb", tmp_path / "out.ipynb", {})
+    else:
+        execute.execute_notebook("01_sequence.ipynb", tmp_path / "out.ipynb", {})
+    assert len(managers) == calls and len({id(m) for m in managers}) == calls  # a fresh kernel each try
+    assert stopped == managers  # each stopped once

@@ -3,6 +3,7 @@ the ground-truth rule's parameters, and a digest of the inputs that says when a 
 
 from __future__ import annotations
 
+import hashlib
 import json
 from collections.abc import Mapping
 from collections.abc import Sequence as SequenceType
@@ -145,48 +146,31 @@ def list_images(image_root: Path, folder: str) -> list[str]:
     return names
 
 
+def _stat_digest(path: Path, folder: bool) -> str | None:
+    """BLAKE2b of a folder's images' (or a file's) names, sizes, mtimes and inodes; None when unreadable."""
+    try:
+        found = (
+            sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
+            if folder
+            else [path]
+        )
+        lines = [f"{p.name}\0{s.st_size}\0{s.st_mtime_ns}\0{s.st_ino}\n" for p, s in ((p, p.stat()) for p in found)]
+    except OSError:
+        return None
+    return hashlib.blake2b("".join(lines).encode(), digest_size=16).hexdigest()
+
+
 def inputs_digest(image_root: str | Path, options: Mapping[str, Any]) -> dict[str, str | None]:
-    """One BLAKE2b digest per image folder (names, sizes, mtimes, inodes) and per metadata or
-    label_params file a build read, None when absent; read from the raw options, so a stale
-    pair file shows before they are parsed."""
-    import hashlib
-    import os
-
-    def digest(entries: list[tuple[str, os.stat_result]]) -> str:
-        blake = hashlib.blake2b(digest_size=16)
-        for name, info in sorted(entries, key=lambda entry: entry[0]):
-            blake.update(f"{name}\0{info.st_size}\0{info.st_mtime_ns}\0{info.st_ino}\n".encode())
-        return blake.hexdigest()
-
-    def folder_digest(folder: Path) -> str | None:
-        try:
-            with os.scandir(folder) as listing:
-                entries = [
-                    (entry.name, entry.stat())
-                    for entry in listing
-                    if Path(entry.name).suffix.lower() in IMAGE_EXTENSIONS and entry.is_file()
-                ]
-        except OSError:
-            return None
-        return digest(entries)
-
-    def file_digest(path: Path) -> str | None:
-        try:
-            return digest([(path.name, path.stat())])
-        except OSError:
-            return None
-
-    root = Path(image_root)
+    """A digest per image folder and per metadata or label_params file a build reads, from the raw
+    options, so a stale pair file shows before they are parsed."""
     references = options.get("reference_folders") or ()
     folders = [options.get("query_folder"), *([references] if isinstance(references, str) else references)]
-    found: dict[str, str | None] = {
-        f"folder:{folder}": folder_digest(root / folder) for folder in folders if isinstance(folder, str)
-    }
     metadata = options.get("metadata")
-    for name in (metadata.get("csv") if isinstance(metadata, Mapping) else None, options.get("label_params_file")):
-        if isinstance(name, str):
-            found[f"file:{name}"] = file_digest(root / name)
-    return found
+    files = [metadata.get("csv") if isinstance(metadata, Mapping) else None, options.get("label_params_file")]
+    named = [("folder", f) for f in folders] + [("file", f) for f in files]
+    return {
+        f"{kind}:{n}": _stat_digest(Path(image_root) / n, kind == "folder") for kind, n in named if isinstance(n, str)
+    }
 
 
 def _frames_from_names(names: list[str]) -> np.ndarray | None:
@@ -247,16 +231,16 @@ def load_traversal(
 
 def resolve_label_params(options: RetrievalOptions, image_root: Path) -> dict[str, Any]:
     """The rule's parameters: its defaults, then ``label_params_file``, then ``label_params``."""
-    rule = retrieval.get_label_rule(options.label_rule)
     loaded: dict[str, Any] = {}
     if options.label_params_file:
         path = Path(image_root) / options.label_params_file
         if not path.is_file():
             raise BuildError(f"label_params_file not found: {path} (relative to image_root)")
         loaded = json.loads(path.read_text(encoding="utf-8"))
-        loaded = {k: v for k, v in loaded.get("params", loaded).items() if k in rule.default_params}
+        defaults = retrieval.LABEL_RULES[options.label_rule].default_params
+        loaded = {k: v for k, v in loaded.get("params", loaded).items() if k in defaults}
     try:
-        return retrieval.rule_params(rule, {**loaded, **options.label_params})
+        return retrieval.rule_params(options.label_rule, {**loaded, **options.label_params})
     except KeyError as error:
         raise BuildError(error.args[0]) from None
 

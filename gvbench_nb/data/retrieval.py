@@ -31,9 +31,6 @@ def frame_table(
         table["position"] = np.asarray(positions, dtype=np.float64)
     if headings is not None:
         table["heading"] = np.asarray(headings, dtype=np.float64)
-    for column, values in table.items():
-        if len(values) != len(names):
-            raise ValueError(f"column {column!r} has {len(values)} rows, names have {len(names)}")
     return table
 
 
@@ -77,85 +74,51 @@ def _manual_rule(
     params: Mapping[str, Any], query: FrameTable, reference: FrameTable, qi: np.ndarray, ri: np.ndarray
 ) -> np.ndarray:
     """True exactly for the listed ``true_pairs`` of (query name, reference name)."""
-    q_names = _column(query, "name", "manual")
+    q_row = {str(n): i for i, n in enumerate(_column(query, "name", "manual"))}
     r_names = _column(reference, "name", "manual")
-    q_row = {str(n): i for i, n in enumerate(q_names)}
     r_row = {str(n): i for i, n in enumerate(r_names)}
     # pairs as codes q * R + r; pairs naming frames outside these tables are irrelevant here
-    true_codes = np.array(
-        [
-            q_row[str(q)] * len(r_names) + r_row[str(r)]
-            for q, r in params["true_pairs"]
-            if str(q) in q_row and str(r) in r_row
-        ],
-        dtype=np.int64,
-    )
-    codes = np.asarray(qi, np.int64) * len(r_names) + np.asarray(ri, np.int64)
-    return np.isin(codes, true_codes)
+    true_codes = [
+        q_row[str(q)] * len(r_names) + r_row[str(r)]
+        for q, r in params["true_pairs"]
+        if str(q) in q_row and str(r) in r_row
+    ]
+    return np.isin(np.asarray(qi, np.int64) * len(r_names) + np.asarray(ri, np.int64), np.array(true_codes, np.int64))
 
 
 @dataclass(frozen=True)
 class LabelRule:
     """``evaluate(params, query, reference, qi, ri)``: booleans for index arrays that broadcast."""
 
-    name: str
     default_params: Mapping[str, Any]
     evaluate: Callable[[Mapping[str, Any], FrameTable, FrameTable, np.ndarray, np.ndarray], np.ndarray]
 
 
 LABEL_RULES: dict[str, LabelRule] = {
-    rule.name: rule
-    for rule in [
-        LabelRule("pose", {"max_distance_m": 25.0, "max_heading_deg": 40.0}, _pose_rule),  # MSLS: 25 m, 40 deg
-        LabelRule("frame_tolerance", {"k": 2}, _frame_tolerance_rule),  # Nordland, Gardens Point: k = 2
-        LabelRule("manual", {"true_pairs": ()}, _manual_rule),
-    ]
+    "pose": LabelRule({"max_distance_m": 25.0, "max_heading_deg": 40.0}, _pose_rule),  # MSLS: 25 m, 40 deg
+    "frame_tolerance": LabelRule({"k": 2}, _frame_tolerance_rule),  # Nordland, Gardens Point: k = 2
+    "manual": LabelRule({"true_pairs": ()}, _manual_rule),
 }
 
 
-def get_label_rule(rule_name: str) -> LabelRule:
-    return registry.lookup("label rule", rule_name, LABEL_RULES)
-
-
-def rule_params(rule: LabelRule, params: Mapping[str, Any] | None) -> dict[str, Any]:
-    """The rule's defaults overridden by ``params``; a parameter it lacks raises KeyError."""
-    merged = {**rule.default_params, **(params or {})}
-    unknown = set(merged) - set(rule.default_params)
+def rule_params(rule_name: str, params: Mapping[str, Any] | None) -> dict[str, Any]:
+    """The rule's defaults overridden by ``params``; an unknown rule or parameter raises KeyError."""
+    defaults = registry.lookup("label rule", rule_name, LABEL_RULES).default_params
+    merged = {**defaults, **(params or {})}
+    unknown = set(merged) - set(defaults)
     if unknown:
-        raise KeyError(
-            f"label rule {rule.name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(rule.default_params)}"
-        )
+        raise KeyError(f"label rule {rule_name!r} has no parameter(s) {sorted(unknown)}; known: {sorted(defaults)}")
     return merged
-
-
-def label_pairs(
-    rule_name: str,
-    params: Mapping[str, Any] | None,
-    query_meta: FrameTable,
-    reference_meta: FrameTable,
-    pairs: Sequence[tuple[int, int]] | np.ndarray,
-) -> np.ndarray:
-    """Labels (P,) bool for (query row, reference row) index pairs under a named rule;
-    ``params`` override the rule's defaults."""
-    rule = get_label_rule(rule_name)
-    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-    return np.asarray(
-        rule.evaluate(rule_params(rule, params), query_meta, reference_meta, pairs[:, 0], pairs[:, 1]), bool
-    )
-
-
-def _num_rows(table: FrameTable) -> int:
-    return len(next(iter(table.values())))
 
 
 def ground_truth_matrix(
     rule_name: str, params: Mapping[str, Any] | None, query_meta: FrameTable, reference_meta: FrameTable
 ) -> np.ndarray:
-    """(Q, R) bool: every query against every reference under a named rule."""
-    rule = get_label_rule(rule_name)
-    qi = np.arange(_num_rows(query_meta))[:, None]
-    ri = np.arange(_num_rows(reference_meta))[None, :]
-    truth = rule.evaluate(rule_params(rule, params), query_meta, reference_meta, qi, ri)
+    """(Q, R) bool: every query against every reference under a named rule (``params`` override its defaults)."""
+    merged = rule_params(rule_name, params)
+    qi = np.arange(len(query_meta["name"]))[:, None]
+    ri = np.arange(len(reference_meta["name"]))[None, :]
+    truth = LABEL_RULES[rule_name].evaluate(merged, query_meta, reference_meta, qi, ri)
     return np.broadcast_to(np.asarray(truth, bool), (qi.shape[0], ri.shape[1])).copy()
 
 
@@ -167,8 +130,15 @@ def _as_float_words(descriptors: np.ndarray) -> np.ndarray:
     return descriptors.astype(np.float32, copy=False)
 
 
-def _training_sample(local: LocalDescriptors, max_descriptors: int, seed: int) -> np.ndarray:
-    """Up to ``max_descriptors`` rows, images sorted by name: the mapping's order does not matter."""
+def fit_vocabulary(
+    local: LocalDescriptors, num_words: int, seed: int = 0, max_descriptors: int = 100_000
+) -> np.ndarray:
+    """Seeded mini-batch k-means centres (num_words, D) over up to ``max_descriptors`` rows, images sorted
+    by name (the mapping's order does not matter). One OpenMP thread: OpenMP's busy-waiting makes
+    k-means 10x+ slower on shared, oversubscribed cores."""
+    from sklearn.cluster import MiniBatchKMeans
+    from threadpoolctl import threadpool_limits
+
     stacked = [_as_float_words(local[name]) for name in sorted(local) if len(local[name])]
     if not stacked:
         raise ValueError("no local descriptors to fit a vocabulary on")
@@ -176,34 +146,10 @@ def _training_sample(local: LocalDescriptors, max_descriptors: int, seed: int) -
     if len(data) > max_descriptors:
         rows = np.random.default_rng(seed).choice(len(data), size=max_descriptors, replace=False)
         data = data[np.sort(rows)]
-    return data
-
-
-def fit_vocabulary(
-    local: LocalDescriptors,
-    num_words: int,
-    seed: int = 0,
-    max_descriptors: int = 100_000,
-    kmeans: str = "minibatch",
-    num_threads: int | None = 1,
-) -> np.ndarray:
-    """Seeded k-means centres (num_words, D), "minibatch" or "full". One OpenMP thread by
-    default: OpenMP's busy-waiting makes k-means 10x+ slower on shared, oversubscribed cores."""
-    from sklearn.cluster import KMeans, MiniBatchKMeans
-    from threadpoolctl import threadpool_limits
-
-    data = _training_sample(local, max_descriptors, seed)
     if len(data) < num_words:
         raise ValueError(f"{len(data)} descriptors cannot make {num_words} words")
-    if kmeans == "minibatch":
-        model = MiniBatchKMeans(
-            num_words, random_state=seed, batch_size=max(4096, 4 * num_words), n_init=1, max_iter=100
-        )
-    elif kmeans == "full":
-        model = KMeans(num_words, random_state=seed, n_init=1, max_iter=100)
-    else:
-        raise ValueError(f"kmeans must be 'minibatch' or 'full', got {kmeans!r}")
-    with threadpool_limits(limits=num_threads, user_api="openmp"):
+    model = MiniBatchKMeans(num_words, random_state=seed, batch_size=max(4096, 4 * num_words), n_init=1, max_iter=100)
+    with threadpool_limits(limits=1, user_api="openmp"):
         model.fit(data)
     return model.cluster_centers_.astype(np.float32)
 
@@ -226,140 +172,89 @@ def _l2_rows(x: np.ndarray) -> np.ndarray:
     return np.divide(x, norms, out=np.zeros_like(x), where=norms > 0)
 
 
-@dataclass
-class VladEncoder:
-    """VLAD (Jegou et al.) with a k-means vocabulary: per word the sum of residuals
-    x - c_k of the descriptors assigned to it, then power (signed sqrt), intra (per
-    word L2) and global L2 normalisation (Arandjelovic & Zisserman, "All about VLAD")."""
+def vlad_encode(descriptors: np.ndarray, centres: np.ndarray) -> np.ndarray:
+    """VLAD (Jegou et al.): per word the sum of residuals x - c_k of the descriptors assigned to it, then
+    signed square root, intra (per word) and global L2 normalisation (Arandjelovic & Zisserman, "All about
+    VLAD"); (K * D,) float32, all zeros for an image without descriptors."""
+    vlad = np.zeros(centres.shape, dtype=np.float64)
+    if len(descriptors):
+        data = _as_float_words(descriptors).astype(np.float64)
+        words = assign_words(data, centres)
+        np.add.at(vlad, words, data - centres[words])
+    vlad = _l2_rows(np.sign(vlad) * np.abs(vlad) ** 0.5)  # intra-normalisation: stops bursty words dominating
+    return _l2_rows(vlad.reshape(-1)).astype(np.float32)
 
-    centres: np.ndarray  # (K, D)
-    power: float = 0.5
 
-    @classmethod
-    def fit(
-        cls, reference_local: LocalDescriptors, num_words: int = 64, seed: int = 0, **vocabulary: Any
-    ) -> VladEncoder:
-        return cls(fit_vocabulary(reference_local, num_words, seed, **vocabulary))
+def vlad(
+    reference_local: LocalDescriptors,
+    query_local: LocalDescriptors,
+    num_words: int = 64,
+    seed: int = 0,
+    **vocabulary: Any,
+) -> tuple[np.ndarray, np.ndarray]:
+    """VLAD rows (reference, query), the vocabulary fitted on the references."""
+    centres = fit_vocabulary(reference_local, num_words, seed, **vocabulary)
+    encode = lambda local: np.array([vlad_encode(d, centres) for d in local.values()], np.float32).reshape(
+        len(local), centres.size
+    )
+    return encode(reference_local), encode(query_local)
 
-    @property
-    def dim(self) -> int:
-        return int(self.centres.size)
 
-    def encode(self, descriptors: np.ndarray) -> np.ndarray:
-        """(K * D,) float32, unit norm; all zeros for an image without descriptors."""
-        num_words, dim = self.centres.shape
-        vlad = np.zeros((num_words, dim), dtype=np.float64)
+def bow(
+    reference_local: LocalDescriptors,
+    query_local: LocalDescriptors,
+    num_words: int = 1000,
+    seed: int = 0,
+    **vocabulary: Any,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Bag of visual words, tf-idf weighted and L2-normalised (DBoW2 scores ORB-SLAM's candidates so);
+    idf = log(N / n_w) over the N references (log N for unseen words)."""
+    centres = fit_vocabulary(reference_local, num_words, seed, **vocabulary)
+    counts = np.zeros(num_words, dtype=np.int64)
+    for descriptors in reference_local.values():
         if len(descriptors):
-            data = _as_float_words(descriptors).astype(np.float64)
-            words = assign_words(data, self.centres)
-            np.add.at(vlad, words, data - self.centres[words])
-        vlad = np.sign(vlad) * np.abs(vlad) ** self.power
-        vlad = _l2_rows(vlad)  # intra-normalisation: stops bursty words dominating
-        return _l2_rows(vlad.reshape(-1)).astype(np.float32)
+            counts[np.unique(assign_words(descriptors, centres))] += 1
+    idf = np.log(len(reference_local) / np.maximum(counts, 1)).astype(np.float32)
 
-
-@dataclass
-class BowEncoder:
-    """Bag of visual words, tf-idf weighted and L2-normalised (DBoW2 scores ORB-SLAM's
-    candidates so); idf = log(N / n_w) over the N references (log N for unseen words)."""
-
-    centres: np.ndarray  # (K, D); binary descriptors live here as 0/1 bit floats
-    idf: np.ndarray  # (K,)
-
-    @classmethod
-    def fit(
-        cls, reference_local: LocalDescriptors, num_words: int = 1000, seed: int = 0, **vocabulary: Any
-    ) -> BowEncoder:
-        centres = fit_vocabulary(reference_local, num_words, seed, **vocabulary)
-        counts = np.zeros(num_words, dtype=np.int64)
-        for descriptors in reference_local.values():
-            if len(descriptors):
-                counts[np.unique(assign_words(descriptors, centres))] += 1
-        num_images = len(reference_local)
-        idf = np.log(num_images / np.maximum(counts, 1)).astype(np.float32)
-        return cls(centres, idf)
-
-    @property
-    def dim(self) -> int:
-        return int(self.centres.shape[0])
-
-    def encode(self, descriptors: np.ndarray) -> np.ndarray:
-        """(K,) float32, unit norm; all zeros when there are no descriptors."""
+    def encode(descriptors: np.ndarray) -> np.ndarray:
         if not len(descriptors):
-            return np.zeros(self.dim, dtype=np.float32)
-        counts = np.bincount(assign_words(descriptors, self.centres), minlength=self.dim)
-        return _l2_rows(counts / counts.sum() * self.idf).astype(np.float32)
+            return np.zeros(num_words, dtype=np.float32)
+        words = np.bincount(assign_words(descriptors, centres), minlength=num_words)
+        return _l2_rows(words / words.sum() * idf).astype(np.float32)
+
+    stack = lambda local: np.array([encode(d) for d in local.values()], np.float32).reshape(len(local), num_words)
+    return stack(reference_local), stack(query_local)
 
 
-@dataclass(frozen=True)
-class GlobalDescriptors:
-    """Descriptor rows for references and queries, in the given names' order."""
-
-    reference_names: list[str]
-    reference: np.ndarray  # (R, D)
-    query_names: list[str]
-    query: np.ndarray  # (Q, D)
-
-
-def _encoded(encoder_class: type[VladEncoder] | type[BowEncoder]) -> Callable[..., GlobalDescriptors]:
-    """VLAD or bag of words with the vocabulary (and idf) fitted on the reference traversal."""
-
-    def compute(reference_local: LocalDescriptors, query_local: LocalDescriptors, **params: Any) -> GlobalDescriptors:
-        encoder = encoder_class.fit(reference_local, **params)
-        encode = lambda local: (
-            np.stack([encoder.encode(d) for d in local.values()])
-            if local
-            else np.zeros((0, encoder.dim), dtype=np.float32)
-        )
-        return GlobalDescriptors(list(reference_local), encode(reference_local), list(query_local), encode(query_local))
-
-    return compute
-
-
-def netvlad_global_descriptors(
+def netvlad(
     reference_images: Mapping[str, str],
     query_images: Mapping[str, str],
     weights_path: str | None = None,
     device: str = "cpu",
     max_side: int = 1024,
-) -> GlobalDescriptors:
-    """NetVLAD (Pitts30K) over image files: ``{name: path}``; needs the .mat weights."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """NetVLAD (Pitts30K) rows (reference, query) over image files ``{name: path}``; needs the .mat weights."""
     from gvbench_nb.data.netvlad import describe_images, load_netvlad
 
     model = load_netvlad(weights_path, device)
-    return GlobalDescriptors(
-        list(reference_images),
-        describe_images(model, reference_images.values(), max_side),
-        list(query_images),
-        describe_images(model, query_images.values(), max_side),
+    return describe_images(model, reference_images.values(), max_side), describe_images(
+        model, query_images.values(), max_side
     )
 
 
-@dataclass(frozen=True)
-class GlobalDescriptorMethod:
-    """``compute(reference_inputs, query_inputs, **params)``; ``inputs``: what the mappings
-    hold, "images" ({name: path}) or "local_descriptors" ({name: (N, D) array})."""
-
-    name: str
-    inputs: str
-    compute: Callable[..., GlobalDescriptors]
-
-
-GLOBAL_DESCRIPTORS: dict[str, GlobalDescriptorMethod] = {
-    m.name: m
-    for m in [
-        GlobalDescriptorMethod("netvlad", "images", netvlad_global_descriptors),  # GV-Bench's retrieval
-        GlobalDescriptorMethod("vlad", "local_descriptors", _encoded(VladEncoder)),
-        GlobalDescriptorMethod("bow", "local_descriptors", _encoded(BowEncoder)),  # tf-idf, DBoW-like
-    ]
+# name -> compute(reference_inputs, query_inputs, **options): (reference rows, query rows)
+GLOBAL_DESCRIPTORS: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {
+    "netvlad": netvlad,  # GV-Bench's retrieval
+    "vlad": vlad,
+    "bow": bow,  # tf-idf, DBoW-like
 }
+IMAGE_DESCRIPTORS = ("netvlad",)  # read {name: image path}; the others aggregate {name: local descriptors}
 
 
 def compute_global_descriptors(
     method: str, reference_inputs: Mapping[str, Any], query_inputs: Mapping[str, Any], **params: Any
-) -> GlobalDescriptors:
-    entry = registry.lookup("global descriptor", method, GLOBAL_DESCRIPTORS)
-    return entry.compute(reference_inputs, query_inputs, **params)
+) -> tuple[np.ndarray, np.ndarray]:
+    return registry.lookup("global descriptor", method, GLOBAL_DESCRIPTORS)(reference_inputs, query_inputs, **params)
 
 
 def retrieve_top_n(
@@ -382,73 +277,6 @@ def retrieve_top_n(
         indices[start : start + chunk] = order
         similarities[start : start + chunk] = np.take_along_axis(block, order, axis=1)
     return indices, similarities
-
-
-@dataclass(frozen=True)
-class Candidates:
-    """Retrieved (query, reference) pairs, ``rank`` 0 = most similar; ``reference`` indexes its ``experience``."""
-
-    query: np.ndarray  # (P,) int64, query row
-    experience: np.ndarray  # (P,) object, experience name
-    reference: np.ndarray  # (P,) int64, row within the experience
-    rank: np.ndarray  # (P,) int64
-    similarity: np.ndarray  # (P,) float32
-
-    def __len__(self) -> int:
-        return len(self.query)
-
-
-def retrieve_top_n_experiences(
-    query_descriptors: np.ndarray, experiences: Mapping[str, np.ndarray], n: int
-) -> Candidates:
-    """Top-n over the union of several reference traversals ("experiences"): every
-    experience competes for the same n slots, as a multi-session map would."""
-    names = list(experiences)
-    if not names:
-        raise ValueError("no reference experiences")
-    stacked = np.concatenate([np.asarray(experiences[e], np.float32) for e in names])
-    owner = np.concatenate([np.full(len(experiences[e]), i) for i, e in enumerate(names)])
-    offset = np.concatenate([np.arange(len(experiences[e])) for e in names])
-    indices, similarities = retrieve_top_n(query_descriptors, stacked, n)
-    num_queries, width = indices.shape
-    flat = indices.reshape(-1)
-    return Candidates(
-        query=np.repeat(np.arange(num_queries), width),
-        experience=np.asarray(names, dtype=object)[owner[flat]],
-        reference=offset[flat],
-        rank=np.tile(np.arange(width), num_queries),
-        similarity=similarities.reshape(-1),
-    )
-
-
-@dataclass(frozen=True)
-class BestExperience:
-    """Per query (rows sorted by query id): the highest-scoring pair over all experiences."""
-
-    query: np.ndarray  # (Q',) query ids that had candidates
-    experience: np.ndarray  # (Q',) experience of the best pair
-    reference: np.ndarray  # (Q',) reference row of the best pair
-    score: np.ndarray  # (Q',) its score
-    pair_row: np.ndarray  # (Q',) row of the best pair in the candidates (for its label)
-
-
-def best_experience(candidates: Candidates, scores: np.ndarray) -> BestExperience:
-    """Reduce per-pair scores (e.g. verification inliers) to each query's best pair;
-    ties keep the earlier candidate row (the better retrieval rank)."""
-    scores = np.asarray(scores, dtype=np.float64)
-    if scores.shape != (len(candidates),):
-        raise ValueError(f"need one score per candidate pair ({len(candidates)}), got shape {scores.shape}")
-    rows = np.arange(len(candidates))
-    # sort by query, then score descending, then row: the first row of each query wins
-    order = np.lexsort((rows, -scores, candidates.query))
-    first = order[np.r_[True, np.diff(candidates.query[order]) != 0]] if len(order) else order
-    return BestExperience(
-        query=candidates.query[first],
-        experience=candidates.experience[first],
-        reference=candidates.reference[first],
-        score=scores[first],
-        pair_row=first,
-    )
 
 
 def retrieval_recall_at(ks: Iterable[int], ranked_indices: np.ndarray, ground_truth: np.ndarray) -> dict[str, float]:

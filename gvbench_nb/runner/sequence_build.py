@@ -27,7 +27,7 @@ CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "
 MULTI_EXPERIENCE_NOTE = (
     "Every reference experience competes for the same top-N slots, so the pair file lists candidates from "
     "all of them. To score a query, verify every candidate pair and keep the pair with the highest score "
-    "(retrieval.best_experience; ties go to the better retrieval rank); the query's label is that pair's label."
+    "(build_sequence.best_experience_table of gvbench_nb.studies; ties go to the better retrieval rank); the query's label is that pair's label."
 )
 
 
@@ -66,27 +66,20 @@ def global_descriptors(
     descriptor: str,
     descriptor_options: Mapping[str, Any] | None = None,
     progress: bool = True,
-) -> retrieval.GlobalDescriptors:
-    """Rows for the chosen queries and every reference (experiences stacked; vlad/bow fit on them all)."""
-    method = registry.lookup("descriptor", descriptor, retrieval.GLOBAL_DESCRIPTORS, error=build_inputs.BuildError)
+) -> tuple[np.ndarray, np.ndarray]:
+    """Rows (reference, query): every reference, experiences stacked (vlad/bow fit on them all), and the chosen queries."""
+    compute = registry.lookup("descriptor", descriptor, retrieval.GLOBAL_DESCRIPTORS, error=build_inputs.BuildError)
     options = dict(descriptor_options or {})
     references, queries = inputs.reference_names, inputs.query.names
-    if method.inputs == "images":
+    if descriptor in retrieval.IMAGE_DESCRIPTORS:
         from gvbench_nb.protocol.features.base import resolve_device
 
         device = str(resolve_device(inputs.params.get("device", "auto")))
         paths = lambda names: {n: str(inputs.image_root / n) for n in names}
-        return retrieval.compute_global_descriptors(
-            descriptor, paths(references), paths(queries), device=device, **options
-        )
-    local = load_local_descriptors(inputs, list(references) + list(queries), progress)
-    return retrieval.compute_global_descriptors(
-        descriptor,
-        {n: local[n] for n in references},
-        {n: local[n] for n in queries},
-        seed=inputs.params.get("seed", 0),
-        **options,
-    )
+        return compute(paths(references), paths(queries), device=device, **options)
+    local = load_local_descriptors(inputs, [*references, *queries], progress)
+    seed = inputs.params.get("seed", 0)
+    return compute({n: local[n] for n in references}, {n: local[n] for n in queries}, seed=seed, **options)
 
 
 def ground_truth(inputs: build_inputs.BuildInputs) -> np.ndarray:
@@ -98,54 +91,21 @@ def ground_truth(inputs: build_inputs.BuildInputs) -> np.ndarray:
     return np.concatenate(blocks, axis=1)
 
 
-def _offsets(inputs: build_inputs.BuildInputs) -> dict[str, int]:
-    """Each experience's first row among the stacked references."""
-    sizes = [len(t.names) for t in inputs.experiences.values()]
-    return dict(zip(inputs.experiences, np.cumsum([0, *sizes[:-1]]).tolist()))
-
-
-def retrieve(
-    inputs: build_inputs.BuildInputs, descriptors: retrieval.GlobalDescriptors, n: int
-) -> retrieval.Candidates:
-    """Top-n candidates a chosen query over every experience."""
-    rows = {
-        folder: descriptors.reference[start : start + len(inputs.experiences[folder].names)]
-        for folder, start in _offsets(inputs).items()
-    }
-    return retrieval.retrieve_top_n_experiences(descriptors.query, rows, n)
-
-
-def stacked_indices(inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
-    """(Q, n) candidate columns in the stacked reference order of ``ground_truth``."""
-    offsets = _offsets(inputs)
-    columns = np.array([offsets[e] for e in candidates.experience], dtype=np.int64) + candidates.reference
-    return columns.reshape(len(inputs.query.names), -1)
-
-
-def label_candidates(inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates) -> np.ndarray:
-    """(P,) labels of candidate pairs, by the rule applied experience by experience."""
-    labels = np.zeros(len(candidates), dtype=bool)
-    for folder, traversal in inputs.experiences.items():
-        mine = candidates.experience == folder
-        pairs = np.stack([candidates.query[mine], candidates.reference[mine]], axis=1)
-        labels[mine] = retrieval.label_pairs(
-            inputs.options.label_rule, inputs.rule_params, inputs.query.table, traversal.table, pairs
-        )
-    return labels
-
-
 def candidate_frame(
-    inputs: build_inputs.BuildInputs, candidates: retrieval.Candidates, labels: np.ndarray
+    inputs: build_inputs.BuildInputs, indices: np.ndarray, similarities: np.ndarray, truth: np.ndarray
 ) -> pd.DataFrame:
-    """One row a candidate pair with image names: query, experience, reference, rank, similarity, label."""
+    """One row a retrieved pair (query, experience, reference, rank, similarity, label), ``indices`` and
+    ``truth`` over the stacked references: every experience competes for the same top-N slots."""
+    experiences = np.repeat(list(inputs.experiences), [len(t.names) for t in inputs.experiences.values()])
+    columns = indices.reshape(-1)
     return pd.DataFrame(
         {
-            "query": [inputs.query.names[q] for q in candidates.query],
-            "experience": candidates.experience.astype(str),
-            "reference": [inputs.experiences[e].names[r] for e, r in zip(candidates.experience, candidates.reference)],
-            "rank": candidates.rank,
-            "similarity": candidates.similarity,
-            "label": labels.astype(int),
+            "query": np.repeat(inputs.query.names, indices.shape[1]),
+            "experience": experiences[columns],
+            "reference": np.asarray(inputs.reference_names)[columns],
+            "rank": np.tile(np.arange(indices.shape[1]), len(indices)),
+            "similarity": similarities.reshape(-1),
+            "label": np.take_along_axis(truth, indices, axis=1).reshape(-1).astype(int),
         },
         columns=CANDIDATE_COLUMNS,
     )
@@ -177,7 +137,7 @@ def make_card(
     options = inputs.options
     feature_conf = (
         local_feature_conf(options, inputs.params["profile"])
-        if retrieval.GLOBAL_DESCRIPTORS[options.descriptor].inputs == "local_descriptors"
+        if options.descriptor not in retrieval.IMAGE_DESCRIPTORS
         else None
     )
     pairs = [Pair(q, r, int(label)) for q, r, label in zip(frame["query"], frame["reference"], frame["label"])]
@@ -272,18 +232,17 @@ def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> di
     inputs = build_inputs.prepare_inputs(build_params)
     options = inputs.options
     started = time.perf_counter()
-    descriptors = global_descriptors(
+    reference, query = global_descriptors(
         inputs, options.descriptor, inputs.descriptor_options(options.descriptor), progress
     )
     described = time.perf_counter()
-    candidates = retrieve(inputs, descriptors, options.top_n)
-    labels = label_candidates(inputs, candidates)
+    indices, similarities = retrieval.retrieve_top_n(query, reference, options.top_n)
     truth = ground_truth(inputs)
-    top_n = min(options.top_n, truth.shape[1])
+    top_n = indices.shape[1]
     ks = sorted({k for k in (1, 5, top_n) if k <= top_n})  # the card's recall@1, 5 and N
-    recall = retrieval.retrieval_recall_at(ks, stacked_indices(inputs, candidates), truth)
+    recall = retrieval.retrieval_recall_at(ks, indices, truth)
     retrieved = time.perf_counter()
-    frame = candidate_frame(inputs, candidates, labels)
+    frame = candidate_frame(inputs, indices, similarities, truth)
     files = card_paths(build_params["pairs"])
     write_pairs(files["pairs"], zip(frame["query"], frame["reference"], frame["label"]))
     seconds = {"descriptors": described - started, "retrieval_and_labels": retrieved - described}

@@ -30,10 +30,8 @@ def recall_curves(
     max_k = min(max_k or inputs.options.top_n, truth.shape[1])
     rows = []
     for name, options in descriptors.items():
-        ranked = sequence_build.stacked_indices(
-            inputs,
-            sequence_build.retrieve(inputs, sequence_build.global_descriptors(inputs, name, options, progress), max_k),
-        )
+        reference, query = sequence_build.global_descriptors(inputs, name, options, progress)
+        ranked, _ = retrieval.retrieve_top_n(query, reference, max_k)
         recall = retrieval.retrieval_recall_at(range(1, max_k + 1), ranked, truth)
         rows += [
             {
@@ -48,8 +46,8 @@ def recall_curves(
 
 
 def best_experience_table(candidates: pd.DataFrame, pairs_table: pd.DataFrame, score: str = "score") -> pd.DataFrame:
-    """Per query, the best-scoring candidate over every experience (``retrieval.best_experience``):
-    query, experience, reference, rank, score, label."""
+    """Per query (in candidate order), its best-scoring pair over every experience, a tie going to the
+    better retrieval rank: query, experience, reference, rank, score, label."""
     scored = candidates.merge(pairs_table[["query", "reference", score]], on=["query", "reference"], how="left")
     if scored[score].isna().any():
         missing = scored[scored[score].isna()].iloc[0]
@@ -57,17 +55,9 @@ def best_experience_table(candidates: pd.DataFrame, pairs_table: pd.DataFrame, s
             f"no {score!r} for candidate pair {missing['query']} {missing['reference']} in the pairs table; "
             "run the method on the built pair file first (without --limit)"
         )
-    query_ids = pd.factorize(scored["query"])[0]
-    table = retrieval.Candidates(
-        query_ids,
-        scored["experience"].to_numpy(object),
-        np.zeros(len(scored), np.int64),
-        scored["rank"].to_numpy(np.int64),
-        scored["similarity"].to_numpy(np.float32),
-    )
-    best = retrieval.best_experience(table, scored[score].to_numpy(np.float64))
-    chosen = scored.iloc[best.pair_row]
-    return chosen[["query", "experience", "reference", "rank", score, "label"]].reset_index(drop=True)
+    scored["order"] = pd.factorize(scored["query"])[0]
+    best = scored.sort_values(["order", score], ascending=[True, False], kind="stable").drop_duplicates("query")
+    return best[["query", "experience", "reference", "rank", score, "label"]].reset_index(drop=True)
 
 
 def plot_recall_curves(curves: pd.DataFrame, title: str = "") -> Any:

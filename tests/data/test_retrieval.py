@@ -8,6 +8,10 @@ import pytest
 from gvbench_nb.data import retrieval as rt
 
 
+def labels(rule: str, params: dict | None, query: dict, reference: dict, pairs: list) -> np.ndarray:
+    return rt.ground_truth_matrix(rule, params, query, reference)[tuple(np.array(pairs).T)]
+
+
 def test_heading_difference_wraps_at_360() -> None:
     np.testing.assert_allclose(
         rt.heading_difference_deg([359.0, 10.0, 0.0, 90.0], [1.0, 350.0, 180.0, -270.0]), [2.0, 20.0, 180.0, 0.0]
@@ -21,33 +25,20 @@ def test_pose_rule_distance_and_wrapped_heading() -> None:
         [f"r{i}" for i in range(5)], positions=positions, headings=[1.0, 0.0, 45.0, 300.0, 180.0]
     )
     pairs = [(0, 0), (0, 1), (0, 2), (0, 3), (1, 4), (0, 4)]
-    labels = rt.label_pairs("pose", None, query, reference, pairs)
     # r0: 10 m, 2 deg across 0 | r1: 25 m exactly (inclusive), 1 deg | r2: 46 deg |
     # r3: 59 deg | r4 vs q1: 10 m but 90 deg | r4 vs q0: 110 m
-    np.testing.assert_array_equal(labels, [True, True, False, False, False, False])
-    loose = rt.label_pairs("pose", {"max_heading_deg": 60.0}, query, reference, pairs)
-    np.testing.assert_array_equal(loose, [True, True, True, True, False, False])
-    no_heading = rt.label_pairs("pose", {"max_heading_deg": None, "max_distance_m": 10.0}, query, reference, pairs)
-    np.testing.assert_array_equal(no_heading, [True, False, True, True, True, False])
+    np.testing.assert_array_equal(labels("pose", None, query, reference, pairs), [1, 1, 0, 0, 0, 0])
+    loose = labels("pose", {"max_heading_deg": 60.0}, query, reference, pairs)
+    np.testing.assert_array_equal(loose, [1, 1, 1, 1, 0, 0])
+    no_heading = labels("pose", {"max_heading_deg": None, "max_distance_m": 10.0}, query, reference, pairs)
+    np.testing.assert_array_equal(no_heading, [1, 0, 1, 1, 1, 0])
 
 
-def test_frame_tolerance_rule_and_matrix() -> None:
-    query = rt.frame_table([f"q{i}" for i in range(4)])
-    reference = rt.frame_table([f"r{i}" for i in range(6)])
-    labels = rt.label_pairs("frame_tolerance", {"k": 2}, query, reference, [(0, 2), (0, 3), (3, 1), (3, 5), (2, 2)])
-    np.testing.assert_array_equal(labels, [True, False, True, True, True])
-    truth = rt.ground_truth_matrix("frame_tolerance", None, query, reference)  # default k = 2
-    assert truth.shape == (4, 6)
-    expected = np.abs(np.arange(4)[:, None] - np.arange(6)[None, :]) <= 2
-    np.testing.assert_array_equal(truth, expected)
-
-
-def test_manual_rule() -> None:
-    query = rt.frame_table(["a", "b"])
-    reference = rt.frame_table(["x", "y", "z"])
+def test_frame_tolerance_and_manual_rules() -> None:
+    truth = rt.ground_truth_matrix("frame_tolerance", None, rt.frame_table(["q"] * 4), rt.frame_table(["r"] * 6))
+    np.testing.assert_array_equal(truth, np.abs(np.arange(4)[:, None] - np.arange(6)[None, :]) <= 2)  # default k 2
+    query, reference = rt.frame_table(["a", "b"]), rt.frame_table(["x", "y", "z"])
     params = {"true_pairs": [("a", "y"), ("b", "x"), ("b", "z"), ("c", "x")]}  # 'c' is not a query here
-    labels = rt.label_pairs("manual", params, query, reference, [(0, 0), (0, 1), (1, 0), (1, 1), (1, 2)])
-    np.testing.assert_array_equal(labels, [False, True, True, False, True])
     truth = rt.ground_truth_matrix("manual", params, query, reference)
     np.testing.assert_array_equal(truth, [[False, True, False], [True, False, True]])
 
@@ -63,7 +54,7 @@ def test_manual_rule() -> None:
 def test_rule_errors_are_clear(rule: str, params: dict | None, message: str) -> None:
     table = rt.frame_table(["a"])
     with pytest.raises(KeyError, match=message):
-        rt.label_pairs(rule, params, table, table, [(0, 0)])
+        rt.ground_truth_matrix(rule, params, table, table)
 
 
 def test_retrieve_top_n_known_answer() -> None:
@@ -74,22 +65,6 @@ def test_retrieve_top_n_known_answer() -> None:
     np.testing.assert_allclose(similarities, [[0.9, 0.3], [1.0, 0.0], [0.5, 0.5]])
     indices, _ = rt.retrieve_top_n(query, reference, 10)  # n capped at R
     assert indices.shape == (3, 4)
-
-
-def test_multi_experience_union_and_best_experience() -> None:
-    query = np.array([[1.0, 0.0], [0.0, 1.0]], np.float32)
-    experiences = {
-        "day": np.array([[0.9, 0.1], [0.2, 0.8]], np.float32),
-        "night": np.array([[0.95, 0.05], [0.0, 0.3], [0.1, 0.99]], np.float32),
-    }
-    candidates = rt.retrieve_top_n_experiences(query, experiences, 2)
-    got = list(zip(candidates.query, candidates.experience, candidates.reference, candidates.rank))
-    assert got == [(0, "night", 0, 0), (0, "day", 0, 1), (1, "night", 2, 0), (1, "day", 1, 1)]
-    best = rt.best_experience(candidates, scores=np.array([10, 40, 7, 7]))
-    np.testing.assert_array_equal(best.query, [0, 1])
-    np.testing.assert_array_equal(best.experience, ["day", "night"])  # query 1: tie -> better rank
-    np.testing.assert_array_equal(best.score, [40, 7])
-    np.testing.assert_array_equal(best.pair_row, [1, 2])
 
 
 def test_recall_at_known_ranking() -> None:
@@ -127,39 +102,28 @@ def synthetic_local(seed: int, num_images: int = 12, dim: int = 16, binary: bool
     return local
 
 
-@pytest.mark.parametrize("method, params", [("vlad", {"num_words": 8}), ("bow", {"num_words": 16})])
-def test_encodings_deterministic_and_normalised(method: str, params: dict) -> None:
-    reference = synthetic_local(0)
-    query = {k: v[::2] for k, v in synthetic_local(1).items()}
-    a = rt.compute_global_descriptors(method, reference, query, seed=7, **params)
-    b = rt.compute_global_descriptors(method, dict(reversed(reference.items())), query, seed=7, **params)
-    np.testing.assert_array_equal(a.query, b.query)  # same seed: identical, whatever the dict order
-    assert a.reference_names == list(reference) and a.query_names == list(query)
-    np.testing.assert_allclose(np.linalg.norm(np.vstack([a.reference, a.query]), axis=1), 1.0, rtol=1e-5)
-    # each reference image retrieves itself first
-    indices, _ = rt.retrieve_top_n(a.reference, a.reference, 1)
+@pytest.mark.parametrize("method, num_words, binary", [("vlad", 8, False), ("bow", 16, False), ("bow", 12, True)])
+def test_encodings_deterministic_and_normalised(method: str, num_words: int, binary: bool) -> None:
+    reference = synthetic_local(0, binary=binary)
+    query = {k: v[::2] for k, v in synthetic_local(1, binary=binary).items()} | {"empty": reference["img00"][:0]}
+    a = rt.compute_global_descriptors(method, reference, query, num_words=num_words, seed=7)
+    b = rt.compute_global_descriptors(method, dict(reversed(reference.items())), query, num_words=num_words, seed=7)
+    np.testing.assert_array_equal(a[1], b[1])  # same seed: identical, whatever the dict order
+    norms = np.linalg.norm(np.vstack(a), axis=1)
+    np.testing.assert_allclose(norms[:-1], 1.0, rtol=1e-5)
+    assert norms[-1] == 0  # no descriptors -> zeros
+    indices, _ = rt.retrieve_top_n(a[0], a[0], 1)  # each reference image retrieves itself first
     np.testing.assert_array_equal(indices[:, 0], np.arange(len(reference)))
 
 
-def test_vlad_intra_normalised_blocks() -> None:
+def test_vlad_intra_normalised_blocks_and_binary_words() -> None:
     reference = synthetic_local(0)
-    encoder = rt.VladEncoder.fit(reference, num_words=8, seed=0)
-    vector = encoder.encode(reference["img03"]).reshape(8, 16)
+    vector = rt.vlad_encode(reference["img03"], rt.fit_vocabulary(reference, 8)).reshape(8, 16)
     norms = np.linalg.norm(vector, axis=1)
     used = norms > 0
     np.testing.assert_allclose(norms[used], 1 / np.sqrt(used.sum()), rtol=1e-5)  # equal blocks before L2
-    assert not np.any(encoder.encode(np.zeros((0, 16), np.float32)))  # no descriptors -> zeros
-
-
-def test_bow_on_binary_descriptors() -> None:
-    reference = synthetic_local(2, binary=True)
-    encoder = rt.BowEncoder.fit(reference, num_words=12, seed=0)
-    assert encoder.centres.shape == (12, reference["img00"].shape[1] * 8)  # unpacked bits
-    again = rt.BowEncoder.fit(reference, num_words=12, seed=0)
-    np.testing.assert_array_equal(encoder.centres, again.centres)
-    vector = encoder.encode(reference["img00"])
-    assert vector.shape == (12,) and np.isclose(np.linalg.norm(vector), 1.0)
-    assert np.all(encoder.idf >= 0)
+    binary = synthetic_local(2, binary=True)
+    assert rt.fit_vocabulary(binary, 12).shape == (12, binary["img00"].shape[1] * 8)  # unpacked bits
 
 
 def test_unknown_global_descriptor() -> None:

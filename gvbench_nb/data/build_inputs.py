@@ -6,13 +6,13 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Mapping
-from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 import numpy as np
 import pandas as pd
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, ValidationError
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.data import retrieval
@@ -30,93 +30,89 @@ class BuildError(GVBenchError, ValueError):
     """Retrieval build options or inputs are wrong: says which, where, and what to do."""
 
 
-@dataclass(frozen=True)
-class MetadataSpec:
+# A name, or a list of names, as a tuple.
+Names = Annotated[tuple[str, ...], BeforeValidator(lambda value: (value,) if isinstance(value, str) else value)]
+
+
+class MetadataSpec(BaseModel):
     """Per-image metadata from a CSV (relative to image_root): ``name`` holds the image path
     relative to image_root or a bare file name inside the traversal's folder; ``frame``
     defaults to the number in the name (``sequences.frame_index``)."""
 
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
     csv: str
     name: str = "name"
-    position: tuple[str, ...] = ("x", "y")
+    position: Annotated[Names, Field(min_length=1, max_length=3)] = ("x", "y")
     heading: str | None = "heading"
     frame: str | None = None
 
 
-@dataclass(frozen=True)
-class RetrievalOptions:
+class RetrievalOptions(BaseModel):
     """The ``builder_options`` of ``pairs_builder: retrieval`` (docs/usage.md). Descriptor
     options are kept per descriptor name, so switching descriptor keeps each one's own;
     ``label_params_file`` (JSON, its mapping or its ``params``) yields to ``label_params``."""
 
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
     query_folder: str
-    reference_folders: tuple[str, ...]
+    reference_folders: Names
     descriptor: str = "vlad"
-    descriptor_options: Mapping[str, Mapping[str, Any]] = field(default_factory=dict)
+    descriptor_options: dict[str, dict[str, Any]] = {}
     local_features: str = "sift"
     feature_profile: str | None = None
-    top_n: int = 20
-    num_queries: int | None = None
+    top_n: Annotated[StrictInt, Field(ge=1)] = 20
+    num_queries: Annotated[StrictInt, Field(ge=1)] | None = None
     label_rule: str = "frame_tolerance"
-    label_params: Mapping[str, Any] = field(default_factory=dict)
+    label_params: dict[str, Any] = {}
     label_params_file: str | None = None
     metadata: MetadataSpec | None = None
     render_sample: bool = False
 
 
-def _unknown_keys(given: Mapping[str, Any], valid: SequenceType[str], where: str) -> None:
-    unknown = [k for k in given if k not in valid]
-    if unknown:
-        raise BuildError(
-            f"{where}: unknown key(s) {unknown_keys_hint(unknown, list(valid))}; valid: {', '.join(valid)}"
-        )
+def _refusal(errors: list[Any], raw: Mapping[str, Any]) -> str:
+    """The one sentence (after ``where``) a user reads for pydantic's errors: unknown keys first."""
+    error = next((e for e in errors if e["type"] == "extra_forbidden"), errors[0])
+    key, loc = str(error["loc"][0]), error["loc"]
+    if error["type"] == "extra_forbidden":
+        model, place = (MetadataSpec, " metadata") if len(loc) > 1 else (RetrievalOptions, "")
+        unknown = [str(e["loc"][-1]) for e in errors if e["type"] == "extra_forbidden" and e["loc"][:-1] == loc[:-1]]
+        return f"{place}: unknown key(s) {unknown_keys_hint(unknown, list(model.model_fields))}; valid: {', '.join(model.model_fields)}"
+    if error["type"] == "missing" and len(loc) == 1:
+        return f": missing {key!r} (folders under image_root, e.g. night_right / [day_right])"
+    if loc[:2] == ("metadata", "position"):
+        return f": metadata position must name 1 to 3 columns, got {error['input']!r}"
+    if key == "metadata" and (len(loc) == 1 or error["type"] == "missing"):
+        return f": metadata must be null or a mapping with at least 'csv', got {raw[key]!r}"
+    if key == "descriptor_options":
+        got = f"{loc[1]!r}: {error['input']!r}" if len(loc) > 1 else repr(error["input"])
+        return f": {DESCRIPTOR_OPTIONS_HINT}; got {got}"
+    what = {"top_n": "a positive integer", "num_queries": "a positive integer or null"}.get(key)
+    if what:
+        return f": {key} must be {what}, got {raw[key]!r}"
+    return f": {'.'.join(map(str, loc))}: {error['msg']}, got {error['input']!r}"
 
 
-def _metadata_spec(raw: Any, where: str) -> MetadataSpec | None:
-    if raw is None:
-        return None
-    if not isinstance(raw, Mapping) or "csv" not in raw:
-        raise BuildError(f"{where}: metadata must be null or a mapping with at least 'csv', got {raw!r}")
-    _unknown_keys(raw, list(MetadataSpec.__dataclass_fields__), f"{where} metadata")
-    values = dict(raw)
-    if "position" in values:
-        position = values["position"]
-        position = [position] if isinstance(position, str) else list(position)
-        if not 1 <= len(position) <= 3:
-            raise BuildError(f"{where}: metadata position must name 1 to 3 columns, got {position!r}")
-        values["position"] = tuple(position)
-    return MetadataSpec(**values)
+DESCRIPTOR_OPTIONS_HINT = (
+    f"descriptor_options maps descriptor names ({', '.join(retrieval.GLOBAL_DESCRIPTORS)}) "
+    "to their options, e.g. {vlad: {num_words: 64}}"
+)
 
 
 def parse_options(raw: Mapping[str, Any], where: str = "builder_options") -> RetrievalOptions:
     """Validated ``RetrievalOptions`` from a params file's ``builder_options``."""
-    _unknown_keys(raw, list(RetrievalOptions.__dataclass_fields__), where)
-    for key in ("query_folder", "reference_folders"):
-        if key not in raw:
-            raise BuildError(f"{where}: missing {key!r} (folders under image_root, e.g. night_right / [day_right])")
-    values = dict(raw)
-    references = values["reference_folders"]
-    values["reference_folders"] = (references,) if isinstance(references, str) else tuple(references)
-    if not values["reference_folders"] or len(set(values["reference_folders"])) != len(values["reference_folders"]):
-        raise BuildError(f"{where}: reference_folders must list distinct folders, got {references!r}")
-    values["metadata"] = _metadata_spec(values.get("metadata"), where)
-    options = RetrievalOptions(**values)
+    try:
+        options = RetrievalOptions.model_validate(dict(raw))
+    except ValidationError as error:
+        raise BuildError(where + _refusal(error.errors(), raw)) from None
+    if not options.reference_folders or len(set(options.reference_folders)) != len(options.reference_folders):
+        raise BuildError(f"{where}: reference_folders must list distinct folders, got {raw['reference_folders']!r}")
     registry.lookup("descriptor", options.descriptor, retrieval.GLOBAL_DESCRIPTORS, where, error=BuildError)
-    for name, descriptor_conf in options.descriptor_options.items():
-        if name not in retrieval.GLOBAL_DESCRIPTORS or not isinstance(descriptor_conf, Mapping):
-            raise BuildError(
-                f"{where}: descriptor_options maps descriptor names ({', '.join(retrieval.GLOBAL_DESCRIPTORS)}) "
-                f"to their options, e.g. {{vlad: {{num_words: 64}}}}; got {name!r}: {descriptor_conf!r}"
-            )
-    if options.local_features not in LOCAL_FEATURE_METHODS:
-        raise BuildError(
-            f"{where}: local_features must be one of {', '.join(LOCAL_FEATURE_METHODS)}, got {options.local_features!r}"
-        )
+    unknown = [name for name in options.descriptor_options if name not in retrieval.GLOBAL_DESCRIPTORS]
+    if unknown:
+        raise BuildError(f"{where}: {DESCRIPTOR_OPTIONS_HINT}; got {unknown[0]!r}")
+    registry.check_choice("local_features", options.local_features, LOCAL_FEATURE_METHODS, where, error=BuildError)
     registry.lookup("label_rule", options.label_rule, retrieval.LABEL_RULES, where, error=BuildError)
-    if not isinstance(options.top_n, int) or isinstance(options.top_n, bool) or options.top_n < 1:
-        raise BuildError(f"{where}: top_n must be a positive integer, got {options.top_n!r}")
-    if options.num_queries is not None and (not isinstance(options.num_queries, int) or options.num_queries < 1):
-        raise BuildError(f"{where}: num_queries must be a positive integer or null, got {options.num_queries!r}")
     if options.query_folder in options.reference_folders:
         raise BuildError(f"{where}: the query folder {options.query_folder!r} is also a reference folder")
     return options

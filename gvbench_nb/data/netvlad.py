@@ -41,22 +41,16 @@ class VGG16Conv5(nn.Module):
 
     def __init__(self) -> None:
         super().__init__()
-        in_channels = 3
-        for block, count, channels in VGG16_BLOCKS:
-            for i in range(1, count + 1):
-                self.add_module(f"conv{block}_{i}", nn.Conv2d(in_channels, channels, 3, padding=1))
-                in_channels = channels
+        channels = [3, *(c for _, count, c in VGG16_BLOCKS for _ in range(count))]
+        for name, in_channels, out_channels in zip(VGG16_CONV_NAMES, channels, channels[1:]):
+            self.add_module(name, nn.Conv2d(in_channels, out_channels, 3, padding=1))
 
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        x = image
-        for name in VGG16_CONV_NAMES:
-            x = getattr(self, name)(x)
-            if name == "conv5_3":
-                break  # NetVLAD crops at conv5_3 before its ReLU
-            x = F.relu(x)
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        for name in VGG16_CONV_NAMES[:-1]:  # NetVLAD crops at conv5_3 before its ReLU
+            x = F.relu(getattr(self, name)(x))
             if name in ("conv1_2", "conv2_2", "conv3_3", "conv4_3"):
                 x = F.max_pool2d(x, 2, 2)
-        return x
+        return self.conv5_3(x)
 
 
 class NetVLADLayer(nn.Module):
@@ -65,8 +59,6 @@ class NetVLADLayer(nn.Module):
 
     def __init__(self, num_clusters: int = NUM_CLUSTERS, dim: int = FEATURE_DIM) -> None:
         super().__init__()
-        self.num_clusters = num_clusters
-        self.dim = dim
         self.assignment = nn.Conv2d(dim, num_clusters, 1, bias=False)
         self.centres = nn.Parameter(torch.empty(num_clusters, dim))
         nn.init.normal_(self.centres, std=dim**-0.5)
@@ -86,35 +78,32 @@ class NetVLADLayer(nn.Module):
 
 
 class NetVLAD(nn.Module):
-    """VGG16-NetVLAD with optional whitening: image (B, 3, H, W) RGB 0..255 -> descriptor."""
+    """VGG16-NetVLAD with whitening: image (B, 3, H, W) RGB 0..255 -> descriptor."""
 
     average_rgb: torch.Tensor  # a buffer (register_buffer below)
 
     def __init__(
         self,
         num_clusters: int = NUM_CLUSTERS,
-        whitened_dim: int | None = WHITENED_DIM,
+        whitened_dim: int = WHITENED_DIM,
         average_rgb: Sequence[float] = (123.68, 116.779, 103.939),
     ) -> None:
         super().__init__()
         self.backbone = VGG16Conv5()
         self.vlad = NetVLADLayer(num_clusters, FEATURE_DIM)
-        self.whiten = nn.Linear(num_clusters * FEATURE_DIM, whitened_dim) if whitened_dim else None
+        self.whiten = nn.Linear(num_clusters * FEATURE_DIM, whitened_dim)
         # A buffer set from the .mat, kept out of the state dict (not a learnt weight).
         self.register_buffer("average_rgb", torch.tensor(average_rgb, dtype=torch.float32), persistent=False)
 
     @property
     def output_dim(self) -> int:
-        return self.whiten.out_features if self.whiten is not None else self.vlad.num_clusters * FEATURE_DIM
+        return self.whiten.out_features
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         """image: (B, 3, H, W) RGB in 0..255 (mean not yet removed)."""
         x = image - self.average_rgb.view(1, 3, 1, 1)
         features = l2_normalise(self.backbone(x), dim=1)  # preL2, per location
-        descriptor = self.vlad(features)
-        if self.whiten is not None:
-            descriptor = l2_normalise(self.whiten(descriptor), dim=1)
-        return descriptor
+        return l2_normalise(self.whiten(self.vlad(features)), dim=1)
 
 
 def _mat_field(obj: Any, name: str) -> Any:

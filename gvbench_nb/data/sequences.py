@@ -171,19 +171,10 @@ def pair_line_numbers(path: str | os.PathLike[str]) -> list[int]:
     return [n for n, line in enumerate(lines, start=1) if line.strip() and not line.strip().startswith("#")]
 
 
-def quote_path(path_text: str) -> str:
-    """A path as a pair file writes it: in quotes when it holds spaces or quotes."""
-    if path_text and not any(ch.isspace() or ch in "'\"" for ch in path_text):
-        return path_text
-    return shlex.quote(path_text)
-
-
-def format_pairs(pairs: Iterable[Pair | tuple[str, str, int]]) -> str:
-    lines = []
-    for pair in pairs:
-        query, reference, label = (pair.query, pair.reference, pair.label) if isinstance(pair, Pair) else pair
-        lines.append(f"{quote_path(query)} {quote_path(reference)} {int(label)}")
-    return "\n".join(lines) + "\n"
+def format_pairs(pairs: Iterable[Pair]) -> str:
+    """Pair-file text; a path holding spaces or quotes is written in quotes."""
+    quote = lambda path: path if path and not any(c.isspace() or c in "'\"" for c in path) else shlex.quote(path)
+    return "".join(f"{quote(p.query)} {quote(p.reference)} {int(p.label)}\n" for p in pairs)
 
 
 def write_pairs(path: str | os.PathLike[str], pairs: Iterable[Pair | tuple[str, str, int]]) -> Path:
@@ -217,14 +208,8 @@ class Sequence:
         return list(dict.fromkeys(pair.query for pair in self.pairs))
 
     def to_frame(self) -> pd.DataFrame:
-        return pd.DataFrame(
-            {
-                "pair_index": range(len(self.pairs)),
-                "query": [p.query for p in self.pairs],
-                "reference": [p.reference for p in self.pairs],
-                "label": [p.label for p in self.pairs],
-            }
-        )
+        frame = pd.DataFrame(self.pairs, columns=["query", "reference", "label"])
+        return frame.rename_axis("pair_index").reset_index()
 
     def limited(self, limit: int | None) -> Sequence:
         """The first ``limit`` pairs (the same prefix every time, so runs are comparable)."""
@@ -323,8 +308,6 @@ def frame_tolerance_pairs(
         chosen_near = rng.sample(near, min(near_negatives, len(near)))
         n_far = max(candidates_per_query - len(positives) - len(chosen_near), 0)
         chosen_far = rng.sample(far, min(n_far, len(far)))
-        for j in positives:
-            pairs.append(Pair(query, references[j], 1))
-        for j in chosen_near + chosen_far:
-            pairs.append(Pair(query, references[j], 0))
+        pairs += [Pair(query, references[j], 1) for j in positives]
+        pairs += [Pair(query, references[j], 0) for j in chosen_near + chosen_far]
     return pairs

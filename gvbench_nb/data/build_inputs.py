@@ -217,12 +217,7 @@ def load_traversal(
             frames = rows[spec.frame].to_numpy(np.int64)
         positions = rows[list(spec.position)].to_numpy(np.float64)
         headings = rows[spec.heading].to_numpy(np.float64) if spec.heading else None
-    table = retrieval.frame_table(
-        names, frames if frames is not None else np.arange(len(names)), positions=positions, headings=headings
-    )
-    if frames is None:
-        del table["frame"]
-    return Traversal(folder, names, table)
+    return Traversal(folder, names, retrieval.frame_table(names, frames, positions, headings))
 
 
 def resolve_label_params(options: RetrievalOptions, image_root: Path) -> dict[str, Any]:

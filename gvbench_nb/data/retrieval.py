@@ -22,16 +22,10 @@ def frame_table(
     positions: Sequence[Sequence[float]] | np.ndarray | None = None,
     headings: Sequence[float] | np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
-    """A frame table; ``frames`` defaults to the row index (frame-aligned traversals)."""
-    table: dict[str, np.ndarray] = {
-        "name": np.asarray(names, dtype=object),
-        "frame": np.arange(len(names)) if frames is None else np.asarray(frames, dtype=np.int64),
-    }
-    if positions is not None:
-        table["position"] = np.asarray(positions, dtype=np.float64)
-    if headings is not None:
-        table["heading"] = np.asarray(headings, dtype=np.float64)
-    return table
+    """A frame table of the columns given."""
+    columns = {"name": (names, object), "frame": (frames, np.int64), "position": (positions, np.float64)}
+    columns["heading"] = (headings, np.float64)
+    return {key: np.asarray(values, dtype) for key, (values, dtype) in columns.items() if values is not None}
 
 
 def _column(table: FrameTable, column: str, rule: str) -> np.ndarray:

@@ -27,7 +27,8 @@ CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "
 MULTI_EXPERIENCE_NOTE = (
     "Every reference experience competes for the same top-N slots, so the pair file lists candidates from "
     "all of them. To score a query, verify every candidate pair and keep the pair with the highest score "
-    "(build_sequence.best_experience_table of gvbench_nb.studies; ties go to the better retrieval rank); the query's label is that pair's label."
+    "(gvbench_nb.studies.build_sequence.best_experience_table; ties go to the better retrieval rank); "
+    "the query's label is that pair's label."
 )
 
 
@@ -126,6 +127,7 @@ def card_paths(pairs_path: str | Path) -> dict[str, Path]:
 def make_card(
     inputs: build_inputs.BuildInputs,
     frame: pd.DataFrame,
+    pairs: list[Pair],
     truth: np.ndarray,
     recall: dict[str, float],
     seconds: dict[str, float],
@@ -140,7 +142,6 @@ def make_card(
         if options.descriptor not in retrieval.IMAGE_DESCRIPTORS
         else None
     )
-    pairs = [Pair(q, r, int(label)) for q, r, label in zip(frame["query"], frame["reference"], frame["label"])]
     counts = summarize(Sequence(inputs.params.get("sequence", "build"), inputs.image_root, pairs))
     per_experience = {
         e: {
@@ -244,9 +245,10 @@ def build_sequence(build_params: Mapping[str, Any], progress: bool = True) -> di
     retrieved = time.perf_counter()
     frame = candidate_frame(inputs, indices, similarities, truth)
     files = card_paths(build_params["pairs"])
-    write_pairs(files["pairs"], zip(frame["query"], frame["reference"], frame["label"]))
+    pairs = [Pair(q, r, int(label)) for q, r, label in zip(frame["query"], frame["reference"], frame["label"])]
+    write_pairs(files["pairs"], pairs)
     seconds = {"descriptors": described - started, "retrieval_and_labels": retrieved - described}
-    card = make_card(inputs, frame, truth, recall, seconds, files)
+    card = make_card(inputs, frame, pairs, truth, recall, seconds, files)
     atomic_write_csv(files["candidates"], frame)
     atomic_write_json(files["card_json"], card)
     atomic_write_text(files["card_markdown"], card_markdown(card))
@@ -285,8 +287,7 @@ def build_sample(params: dict[str, Any]) -> None:
     """The embedded default: a synthetic route rendered by the package (seconds, no download)."""
     from gvbench_nb.data import synthetic
 
-    options = dict(params["builder_options"])
-    synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **options)
+    synthetic.generate_sample(Path(params["image_root"]), seed=params["seed"], **params["builder_options"])
 
 
 def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:

@@ -35,7 +35,9 @@ def test_pose_rule_distance_and_wrapped_heading() -> None:
 
 
 def test_frame_tolerance_and_manual_rules() -> None:
-    truth = rt.ground_truth_matrix("frame_tolerance", None, rt.frame_table(["q"] * 4), rt.frame_table(["r"] * 6))
+    truth = rt.ground_truth_matrix(
+        "frame_tolerance", None, rt.frame_table(["q"] * 4, range(4)), rt.frame_table(["r"] * 6, range(6))
+    )
     np.testing.assert_array_equal(truth, np.abs(np.arange(4)[:, None] - np.arange(6)[None, :]) <= 2)  # default k 2
     query, reference = rt.frame_table(["a", "b"]), rt.frame_table(["x", "y", "z"])
     params = {"true_pairs": [("a", "y"), ("b", "x"), ("b", "z"), ("c", "x")]}  # 'c' is not a query here

@@ -82,8 +82,15 @@ def built(tmp_path: Path, **options: object) -> dict:
     )
 
 
-def test_pair_file_round_trips_and_card_counts_match(tiny: Path) -> None:
-    card = built(tiny)
+def test_pair_file_round_trips_card_counts_match_and_recall_curves_reach_the_card(tiny: Path) -> None:
+    params = sequence_build.load_build_params(write_params(tiny))
+    card = sequence_build.build_sequence(params, progress=False)
+    curves = build_study.recall_curves(params, ["vlad", "bow"], progress=False)
+    assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3
+    for _, group in curves.groupby("descriptor"):
+        assert np.all(np.diff(group["recall"]) >= 0)
+    vlad = curves[curves["descriptor"] == "vlad"].set_index("k")["recall"]
+    assert vlad[1] == card["retrieval_recall"]["recall@1"] and vlad[3] == card["retrieval_recall"]["recall@3"]
     pairs = sequences.read_pairs(card["files"]["pairs"])
     candidates = pd.read_csv(card["files"]["candidates"])
     assert len(pairs) == NUM_FRAMES * 3 == len(candidates)
@@ -191,17 +198,6 @@ def test_pose_labels_from_metadata_agree_with_the_sample_generator(tmp_path: Pat
     assert 0 < sum(ours) < len(ours)
 
 
-def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
-    (tiny / "images" / "meta.csv").write_text("name,x,y\nImage000.png,0,0\n")
-    for spec, message in [
-        ({"csv": "meta.csv", "heading": None}, r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv"),
-        ({"csv": "meta.csv"}, r"missing column\(s\) \['heading'\]"),
-    ]:
-        options = build_inputs.parse_options({**NIGHT_DAY, "metadata": spec})
-        with pytest.raises(build_inputs.BuildError, match=message):
-            build_inputs.prepare_inputs({"image_root": str(tiny / "images"), "seed": 0}, options)
-
-
 @pytest.mark.parametrize(
     "options, message",
     [
@@ -212,11 +208,23 @@ def test_metadata_missing_rows_and_columns_are_named(tiny: Path) -> None:
         (NIGHT_DAY | {"top_n": 0}, "top_n must be a positive integer"),
         (NIGHT_DAY | {"descriptor_options": {"num_words": 8}}, "descriptor_options maps descriptor names"),
         (NIGHT_DAY | {"label_rule": "gps"}, "unknown label_rule 'gps'"),
+        (
+            NIGHT_DAY | {"metadata": {"csv": "m.csv", "hed": 1}},
+            "metadata: unknown key\\(s\\) 'hed' \\(did you mean 'heading'",
+        ),
+        (
+            NIGHT_DAY | {"metadata": {"csv": "meta.csv", "heading": None}},
+            r"7 image\(s\) of 'night' have no row in the metadata CSV meta.csv",
+        ),
+        (NIGHT_DAY | {"metadata": {"csv": "meta.csv"}}, r"missing column\(s\) \['heading'\]"),
     ],
 )
-def test_bad_options_say_what_is_wrong(options: dict, message: str) -> None:
+def test_bad_options_and_metadata_say_what_is_wrong(tiny: Path, options: dict, message: str) -> None:
+    (tiny / "images" / "meta.csv").write_text("name,x,y\nImage000.png,0,0\n")
     with pytest.raises(build_inputs.BuildError, match=message):
-        build_inputs.parse_options(options)
+        build_inputs.prepare_inputs(
+            {"image_root": str(tiny / "images"), "seed": 0}, build_inputs.parse_options(options)
+        )
 
 
 def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -234,14 +242,3 @@ def test_cli_build_overrides_top_n_and_prints_the_card(tiny: Path, capsys: pytes
     args = parser.parse_args(["build", str(write_params(tiny, query_folder="nowhere"))])
     assert args.handler(args) == 2
     assert "image folder not found" in capsys.readouterr().err
-
-
-def test_recall_curves_are_monotone_and_reach_the_card(tiny: Path) -> None:
-    params = sequence_build.load_build_params(write_params(tiny))
-    card = sequence_build.build_sequence(params, progress=False)
-    curves = build_study.recall_curves(params, ["vlad", "bow"], progress=False)
-    assert set(curves["descriptor"]) == {"vlad", "bow"} and curves["k"].max() == 3
-    for _, group in curves.groupby("descriptor"):
-        assert np.all(np.diff(group["recall"]) >= 0)
-    vlad = curves[curves["descriptor"] == "vlad"].set_index("k")["recall"]
-    assert vlad[1] == card["retrieval_recall"]["recall@1"] and vlad[3] == card["retrieval_recall"]["recall@3"]

@@ -98,7 +98,7 @@ def files_under(root: Path) -> list[str]:
     return sorted(p.relative_to(root).as_posix() for p in root.rglob("*") if p.is_file())
 
 
-def test_download_places_every_file_verified_and_a_rerun_downloads_nothing(server, tmp_path):
+def test_download_places_every_file_verified_a_rerun_downloads_nothing_and_a_corrupted_file_again(server, tmp_path):
     serve(server, TOY)
     toy = make_dataset(TOY, server.url)
     assert fetch_toy(tmp_path, toy) == {"toy": 3}
@@ -107,6 +107,9 @@ def test_download_places_every_file_verified_and_a_rerun_downloads_nothing(serve
     assert files_under(tmp_path) == sorted(f"toy/{p}" for p in TOY)
     assert fetch_toy(tmp_path, toy) == {"toy": 0}
     assert len(server.requests) == len(TOY)
+    (tmp_path / "toy" / "three.txt").write_bytes(b"query reference 0\n")  # corrupted: fetched again
+    assert fetch_toy(tmp_path, toy) == {"toy": 1}
+    assert (tmp_path / "toy" / "three.txt").read_bytes() == TOY["three.txt"]
 
 
 def test_a_cut_connection_is_tried_again_and_the_file_arrives_whole(server, tmp_path, monkeypatch):
@@ -148,7 +151,11 @@ def test_an_unreachable_source_says_so_names_no_file_and_leaves_no_empty_folder(
     assert not root.exists()  # the data folder this fetch created, and the dataset's folders, are gone
 
 
-def test_a_mirror_folder_with_the_data_layout_is_copied_and_checked(tmp_path):
+def test_a_mirror_folder_or_url_with_the_data_layout_is_copied_and_checked(server, tmp_path):
+    serve(server, TOY, prefix="/mirror/toy/")
+    fetch_toy(tmp_path / "url", make_dataset(TOY, "http://127.0.0.1:9"), mirror=server.url + "/mirror/")
+    assert sorted(server.requests) == sorted(f"/mirror/toy/{p}" for p in TOY)
+    assert (tmp_path / "url" / "toy" / "a" / "one.bin").read_bytes() == TOY["a/one.bin"]
     mirror = tmp_path / "mirror"
     for path, body in TOY.items():
         (mirror / "toy" / path).parent.mkdir(parents=True, exist_ok=True)
@@ -165,22 +172,6 @@ def test_a_mirror_folder_with_the_data_layout_is_copied_and_checked(tmp_path):
     with pytest.raises(data.DataError, match="SHA-256"):
         fetch_toy(tmp_path / "data", toy, mirror=str(mirror))
     assert not (tmp_path / "data" / "toy" / "three.txt").exists()
-
-
-def test_a_mirror_url_is_asked_for_the_data_layout(server, tmp_path):
-    serve(server, TOY, prefix="/mirror/toy/")
-    fetch_toy(tmp_path, make_dataset(TOY, "http://127.0.0.1:9"), mirror=server.url + "/mirror/")
-    assert sorted(server.requests) == sorted(f"/mirror/toy/{p}" for p in TOY)
-    assert (tmp_path / "toy" / "a" / "one.bin").read_bytes() == TOY["a/one.bin"]
-
-
-def test_a_corrupted_file_in_the_data_folder_is_fetched_again(server, tmp_path):
-    serve(server, TOY)
-    toy = make_dataset(TOY, server.url)
-    fetch_toy(tmp_path, toy)
-    (tmp_path / "toy" / "three.txt").write_bytes(b"query reference 0\n")
-    assert fetch_toy(tmp_path, toy) == {"toy": 1}
-    assert (tmp_path / "toy" / "three.txt").read_bytes() == TOY["three.txt"]
 
 
 def test_a_data_folder_that_cannot_be_written_says_where_to_write_instead(server, tmp_path, monkeypatch):

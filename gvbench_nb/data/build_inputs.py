@@ -16,7 +16,7 @@ from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, StrictInt, V
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.data import retrieval
-from gvbench_nb.data.sequences import frame_index
+from gvbench_nb.data.sequences import folder_images, frame_index
 from gvbench_nb.io_utils import unknown_keys_hint
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
@@ -136,7 +136,7 @@ def list_images(image_root: Path, folder: str) -> list[str]:
     directory = Path(image_root) / folder
     if not directory.is_dir():
         raise BuildError(f"image folder not found: {directory} (image_root {image_root}, folder {folder!r})")
-    names = sorted(f"{folder}/{p.name}" for p in directory.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS)
+    names = folder_images(image_root, folder)
     if not names:
         raise BuildError(f"no images ({', '.join(IMAGE_EXTENSIONS)}) in {directory}")
     return names

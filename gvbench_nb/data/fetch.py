@@ -202,22 +202,18 @@ def fetch(
 def images_of_params(params: dict[str, Any]) -> tuple[list[str], str, list[str]]:
     """The images a sequence names (relative to its image root), where the names came from (a builder's
     folders when it has them: its pair file is made from them; else the pair list) and the missing folders."""
-    from gvbench_nb.protocol.images import IMAGE_EXTENSIONS
+    from gvbench_nb.data.sequences import Sequence, folder_images, read_pairs
 
     options, root = dict(params["builder_options"]), Path(str(params["image_root"]))
     named = [options.get("query_folder"), options.get("reference_folder"), *(options.get("reference_folders") or [])]
     if params["pairs_builder"] and any(named):
         folders = [f for f in named if f]
-        listed = [(f, sorted((root / f).iterdir())) for f in folders if (root / f).is_dir()]
-        names = [f"{f}/{p.name}" for f, paths in listed for p in paths if p.suffix.lower() in IMAGE_EXTENSIONS]
+        names = [n for f in folders if (root / f).is_dir() for n in folder_images(root, f)]
         origin = f"the folders {', '.join(folders)} (the {params['pairs_builder']} builder makes the pairs from them)"
         return names, origin, [f"{f}/" for f in folders if not (root / f).is_dir()]
     pairs = Path(params["pairs"])
     if pairs.is_file():
-        from gvbench_nb.data.sequences import read_pairs
-
-        found = read_pairs(pairs)
-        return list(dict.fromkeys(n for p in found for n in (p.query, p.reference))), f"the pair list {pairs}", []
+        return Sequence(params["sequence"], root, read_pairs(pairs)).images, f"the pair list {pairs}", []
     raise DataError(
         f"{params['params_file']}: its pair list {pairs} does not exist; for an official sequence run "
         "`python -m gvbench_nb data fetch gvbench-lists` (or set GVBENCH_DATA to the folder holding gvbench_gt/)"

@@ -18,7 +18,7 @@ import pandas as pd
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.io_utils import atomic_write_text
-from gvbench_nb.protocol.images import path_problem
+from gvbench_nb.protocol.images import IMAGE_EXTENSIONS, path_problem
 
 
 class PairFileError(GVBenchError, ValueError):
@@ -261,6 +261,12 @@ def summarize(sequence: Sequence) -> dict[str, object]:
         "queries_without_positive": sum(1 for q in queries if positives_per_query[q] == 0),
         "max_candidates_per_query": max(candidates_per_query.values()) if queries else 0,
     }
+
+
+def folder_images(image_root: str | os.PathLike[str], folder: str) -> list[str]:
+    """The images of ``image_root/folder``, named ``folder/file`` (relative to the root), sorted."""
+    paths = (Path(image_root) / folder).iterdir()
+    return sorted(f"{folder}/{p.name}" for p in paths if p.suffix.lower() in IMAGE_EXTENSIONS)
 
 
 def frame_index(name: str) -> int:

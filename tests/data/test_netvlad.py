@@ -44,32 +44,24 @@ def unit_features(batch: int, dim: int, h: int, w: int, seed: int = 0) -> torch.
     return nv.l2_normalise(torch.randn(batch, dim, h, w, generator=g), dim=1)
 
 
-def test_vlad_layer_intra_then_l2_normalisation() -> None:
-    torch.manual_seed(0)
-    layer = nv.NetVLADLayer()
-    features = unit_features(2, 512, 5, 7)
-    blocks = layer.aggregate(features)  # (B, D, K) before the final L2
-    assert blocks.shape == (2, 512, 64)
-    torch.testing.assert_close(blocks.norm(dim=1), torch.ones(2, 64))  # each cluster unit norm
-    out = layer(features)
-    assert out.shape == (2, 32768)
-    torch.testing.assert_close(out.norm(dim=1), torch.ones(2))
-    # d-major flattening: out[d * K + k] is cluster k's component d, scaled by 1/sqrt(K)
-    torch.testing.assert_close(out.view(2, 512, 64), blocks / 64**0.5)
-
-
-def test_vlad_layer_matches_a_direct_loop() -> None:
+def test_vlad_layer_matches_a_direct_loop_then_l2_normalises_d_major() -> None:
     torch.manual_seed(1)
     layer = nv.NetVLADLayer(num_clusters=3, dim=4)
-    features = unit_features(1, 4, 2, 3, seed=2)
+    features = unit_features(2, 4, 2, 3, seed=2)
     x = features[0].flatten(1)  # (D, N)
     soft = torch.softmax(layer.assignment.weight[:, :, 0, 0] @ x, dim=0)  # (K, N)
     expected = torch.zeros(4, 3)
     for k in range(3):
         for n in range(x.shape[1]):
             expected[:, k] += soft[k, n] * (x[:, n] - layer.centres[k])
-    expected = expected / expected.norm(dim=0, keepdim=True)
-    torch.testing.assert_close(layer.aggregate(features)[0], expected.detach(), rtol=1e-5, atol=1e-6)
+    expected = expected / expected.norm(dim=0, keepdim=True)  # intra-normalised: each cluster unit norm
+    blocks = layer.aggregate(features)  # (B, D, K) before the final L2
+    torch.testing.assert_close(blocks[0], expected.detach(), rtol=1e-5, atol=1e-6)
+    out = layer(features)
+    assert out.shape == (2, 12)
+    torch.testing.assert_close(out.norm(dim=1), torch.ones(2))
+    # d-major flattening: out[d * K + k] is cluster k's component d, scaled by 1/sqrt(K)
+    torch.testing.assert_close(out.view(2, 4, 3), blocks / 3**0.5)
 
 
 def test_preprocessing_caps_longest_side_and_model_gives_unit_4096_descriptor() -> None:

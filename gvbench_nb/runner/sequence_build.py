@@ -344,12 +344,7 @@ def builder_stamp_path(pairs: str | os.PathLike[str]) -> Path:
 
 def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
     """What a builder's output depends on, as JSON reads it back (retrieval: also what it read there)."""
-    stamp = {
-        "pairs_builder": params["pairs_builder"],
-        "builder_options": params["builder_options"],
-        "seed": params["seed"],
-        "image_root": params["image_root"],
-    }
+    stamp = {key: params[key] for key in ("pairs_builder", "builder_options", "seed", "image_root")}
     if params["pairs_builder"] == BUILDER_NAME and params["image_root"] is not None:
         stamp["inputs"] = build_inputs.inputs_digest(params["image_root"], params["builder_options"])
     return json.loads(json.dumps(stamp, sort_keys=True, default=str))

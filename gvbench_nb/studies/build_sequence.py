@@ -16,32 +16,19 @@ from gvbench_nb.runner import sequence_build
 
 
 def recall_curves(
-    build_params: Mapping[str, Any],
-    descriptors: SequenceType[str] | Mapping[str, Mapping[str, Any]],
-    max_k: int | None = None,
-    progress: bool = True,
+    build_params: Mapping[str, Any], descriptors: SequenceType[str], progress: bool = True
 ) -> pd.DataFrame:
-    """Retrieval recall@k (k = 1..max_k) of each descriptor (names, or ``{name: options}``) on the same
+    """Retrieval recall@k (k = 1..top_n) of each descriptor, with the params' options, on the same
     queries and ground truth: descriptor, k, recall, queries_evaluated."""
     inputs = build_inputs.prepare_inputs(build_params)
-    if not isinstance(descriptors, Mapping):
-        descriptors = {n: inputs.descriptor_options(n) for n in descriptors}
     truth = sequence_build.ground_truth(inputs)
-    max_k = min(max_k or inputs.options.top_n, truth.shape[1])
+    max_k = min(inputs.options.top_n, truth.shape[1])
     rows = []
-    for name, options in descriptors.items():
-        reference, query = sequence_build.global_descriptors(inputs, name, options, progress)
+    for name in descriptors:
+        reference, query = sequence_build.global_descriptors(inputs, name, inputs.descriptor_options(name), progress)
         ranked, _ = retrieval.retrieve_top_n(query, reference, max_k)
         recall = retrieval.retrieval_recall_at(range(1, max_k + 1), ranked, truth)
-        rows += [
-            {
-                "descriptor": name,
-                "k": k,
-                "recall": recall[f"recall@{k}"],
-                "queries_evaluated": recall["queries_evaluated"],
-            }
-            for k in range(1, max_k + 1)
-        ]
+        rows += [(name, k, recall[f"recall@{k}"], recall["queries_evaluated"]) for k in range(1, max_k + 1)]
     return pd.DataFrame(rows, columns=["descriptor", "k", "recall", "queries_evaluated"])
 
 
@@ -97,8 +84,7 @@ def candidate_strips(
             for spine in axis.spines.values():
                 spine.set(edgecolor=colour, linewidth=3)
         for axis in axis_row:
-            axis.set_xticks([])
-            axis.set_yticks([])
+            axis.set(xticks=[], yticks=[])
     if title:
         figure.suptitle(title)
     figure.tight_layout()

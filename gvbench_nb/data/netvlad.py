@@ -50,7 +50,7 @@ class VGG16Conv5(nn.Module):
             x = F.relu(getattr(self, name)(x))
             if name in ("conv1_2", "conv2_2", "conv3_3", "conv4_3"):
                 x = F.max_pool2d(x, 2, 2)
-        return self.conv5_3(x)
+        return getattr(self, VGG16_CONV_NAMES[-1])(x)
 
 
 class NetVLADLayer(nn.Module):

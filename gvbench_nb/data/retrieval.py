@@ -23,8 +23,8 @@ def frame_table(
     headings: Sequence[float] | np.ndarray | None = None,
 ) -> dict[str, np.ndarray]:
     """A frame table of the columns given."""
-    columns = {"name": (names, object), "frame": (frames, np.int64), "position": (positions, np.float64)}
-    columns["heading"] = (headings, np.float64)
+    columns: dict[str, tuple[Any, Any]] = {"name": (names, object), "frame": (frames, np.int64)}
+    columns |= {"position": (positions, np.float64), "heading": (headings, np.float64)}
     return {key: np.asarray(values, dtype) for key, (values, dtype) in columns.items() if values is not None}
 
 

@@ -64,11 +64,6 @@ def _check_length(path_text: str, where: str) -> None:
         )
 
 
-def normalise_path(path_text: str) -> str:
-    """``night/./a.jpg``, ``night//a.jpg`` -> ``night/a.jpg``: one spelling a file."""
-    return posixpath.normpath(path_text)
-
-
 def _split_fields(line: str, where: str) -> list[str]:
     if '"' not in line and "'" not in line:
         return line.split()
@@ -118,7 +113,8 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
         for path_text in (query, reference):
             _check_length(path_text, where)
             _check_relative(path_text, where)
-        query, reference = normalise_path(query), normalise_path(reference)
+        # night/./a.jpg, night//a.jpg -> night/a.jpg: one spelling a file
+        query, reference = posixpath.normpath(query), posixpath.normpath(reference)
         label = int(label_text)
         if query == reference:
             raise PairFileError(

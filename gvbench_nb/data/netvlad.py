@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 from collections.abc import Iterable, Sequence
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -157,14 +156,13 @@ def state_dict_from_mat(mat_net: Any) -> dict[str, torch.Tensor]:
     return state
 
 
-def load_netvlad(path: str | os.PathLike[str] | None = None, device: str | torch.device = "cpu") -> NetVLAD:
-    """NetVLAD with the Pitts30K weights, in eval mode (default ``path``:
-    ``<torch hub dir>/checkpoints/Pitts30K_struct.mat``; missing -> ``MissingWeightsError``)."""
+def load_netvlad(device: str | torch.device = "cpu") -> NetVLAD:
+    """NetVLAD with the Pitts30K weights (``<torch hub dir>/checkpoints/Pitts30K_struct.mat``, a MATLAB
+    file: not one for torch.load), in eval mode."""
     from scipy.io import loadmat  # scipy only needed when loading real weights
 
-    if path is None:
-        path = weights.require(CHECKPOINT_NAME)[0]
-    elif not Path(path).is_file():
+    path = weights.checkpoint_path(CHECKPOINT_NAME)
+    if not path.is_file():
         raise weights.MissingWeightsError(f"{path} not found\n" + weights.missing_message(CHECKPOINT_NAME))
     mat_net = loadmat(str(path), struct_as_record=False, squeeze_me=True)["net"]
     state = state_dict_from_mat(mat_net)
@@ -192,13 +190,10 @@ def image_to_tensor(image_rgb: np.ndarray, max_side: int = MAX_SIDE) -> torch.Te
 
 
 @torch.inference_mode()
-def describe_images(
-    model: NetVLAD, image_paths: Iterable[str | os.PathLike[str]], max_side: int = MAX_SIDE
-) -> np.ndarray:
+def describe_images(model: NetVLAD, image_paths: Iterable[str | os.PathLike[str]]) -> np.ndarray:
     """NetVLAD descriptors (N, output_dim) float32, one image at a time (sizes differ)."""
     device = next(model.parameters()).device
     rows = [
-        model(image_to_tensor(read_image(p, exif_orientation=True), max_side).to(device))[0].cpu().numpy()
-        for p in image_paths
+        model(image_to_tensor(read_image(p, exif_orientation=True)).to(device))[0].cpu().numpy() for p in image_paths
     ]
     return np.stack(rows).astype(np.float32) if rows else np.zeros((0, model.output_dim), np.float32)

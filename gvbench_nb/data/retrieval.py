@@ -221,19 +221,13 @@ def bow(
 
 
 def netvlad(
-    reference_images: Mapping[str, str],
-    query_images: Mapping[str, str],
-    weights_path: str | None = None,
-    device: str = "cpu",
-    max_side: int = 1024,
+    reference_images: Mapping[str, str], query_images: Mapping[str, str], device: str = "cpu"
 ) -> tuple[np.ndarray, np.ndarray]:
     """NetVLAD (Pitts30K) rows (reference, query) over image files ``{name: path}``; needs the .mat weights."""
     from gvbench_nb.data.netvlad import describe_images, load_netvlad
 
-    model = load_netvlad(weights_path, device)
-    return describe_images(model, reference_images.values(), max_side), describe_images(
-        model, query_images.values(), max_side
-    )
+    model = load_netvlad(device)
+    return describe_images(model, reference_images.values()), describe_images(model, query_images.values())
 
 
 # name -> compute(reference_inputs, query_inputs, **options): (reference rows, query rows)

@@ -107,9 +107,10 @@ def fake_mat(path: Path, whitened_dim: int, rng: np.random.Generator) -> dict[st
     return arrays
 
 
-def test_load_netvlad_maps_mat_layers(tmp_path: Path) -> None:
-    arrays = fake_mat(tmp_path / "Pitts30K_struct.mat", whitened_dim=8, rng=np.random.default_rng(0))
-    model = nv.load_netvlad(tmp_path / "Pitts30K_struct.mat")
+def test_load_netvlad_maps_mat_layers(empty_hub: Path) -> None:
+    empty_hub.mkdir(parents=True)
+    arrays = fake_mat(empty_hub / "Pitts30K_struct.mat", whitened_dim=8, rng=np.random.default_rng(0))
+    model = nv.load_netvlad()  # from where `weights fetch` puts it
     state = model.state_dict()
     # MATLAB (h, w, in, out) -> torch (out, in, h, w)
     np.testing.assert_array_equal(state["backbone.conv2_1.weight"][5, 7].numpy(), arrays["conv2_1"][:, :, 7, 5])

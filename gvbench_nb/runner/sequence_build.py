@@ -15,16 +15,8 @@ from typing import Any
 import numpy as np
 import pandas as pd
 
-from gvbench_nb.data import build_inputs, fetch, retrieval
-from gvbench_nb.data.sequences import (
-    Pair,
-    Sequence,
-    folder_images,
-    frame_tolerance_pairs,
-    read_pairs,
-    summarize,
-    write_pairs,
-)
+from gvbench_nb.data import build_inputs, fetch, retrieval, sequences
+from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, summarize, write_pairs
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import path_problem
@@ -312,7 +304,7 @@ def frame_tolerance_sequence_pairs(params: dict[str, Any]) -> list[Pair]:
                 f"{params['params_file']}: image folder {directory} not found (image_root {root}, folder {folder!r})"
                 + (fetch.fetch_hint(directory) or "; set image_root to the folder holding it")
             )
-        return folder_images(root, folder)
+        return sequences.folder_images(root, folder)
 
     try:
         return frame_tolerance_pairs(names(query_folder), names(reference_folder), seed=params["seed"], **options)

@@ -23,7 +23,6 @@ from gvbench_nb.protocol.images import path_problem
 from gvbench_nb.runner import config
 
 BUILDER_NAME = "retrieval"
-CANDIDATE_COLUMNS = ["query", "experience", "reference", "rank", "similarity", "label"]
 MULTI_EXPERIENCE_NOTE = (
     "Every reference experience competes for the same top-N slots, so the pair file lists candidates from "
     "all of them. To score a query, verify every candidate pair and keep the pair with the highest score "
@@ -107,8 +106,7 @@ def candidate_frame(
             "rank": np.tile(np.arange(indices.shape[1]), len(indices)),
             "similarity": similarities.reshape(-1),
             "label": np.take_along_axis(truth, indices, axis=1).reshape(-1).astype(int),
-        },
-        columns=CANDIDATE_COLUMNS,
+        }
     )
 
 

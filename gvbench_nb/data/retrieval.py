@@ -292,6 +292,4 @@ def choose_queries(num_frames: int, count: int | None = None, seed: int = 0) -> 
     """Query rows: all frames (``count=None``) or a seeded random subset, sorted."""
     if count is None or count >= num_frames:
         return np.arange(num_frames)
-    if count < 0:
-        raise ValueError(f"count must be >= 0, got {count}")
     return np.sort(np.random.default_rng(seed).choice(num_frames, size=count, replace=False))

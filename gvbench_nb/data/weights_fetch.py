@@ -16,7 +16,7 @@ import pooch
 import requests
 
 from gvbench_nb.data import fetch
-from gvbench_nb.io_utils import atomic_write_json
+from gvbench_nb.io_utils import atomic_write_json, file_sha256
 from gvbench_nb.protocol import weights
 
 RECORDED_NAME = "gvbench-weights-sha256.json"  # file name -> SHA-256 of its first fetch
@@ -56,7 +56,7 @@ def fetch_checkpoint(name: str, source_dir: str | os.PathLike[str] | None = None
     checkpoint, target, recorded = weights.get(name), weights.checkpoint_path(name), recorded_hashes()
     expected = (sha256 or recorded.get(checkpoint.file) or "").lower()
     whence = "given by --sha256" if sha256 else "recorded at its first fetch"
-    if target.is_file() and expected and pooch.file_hash(str(target)) == expected:
+    if target.is_file() and expected and file_sha256(target) == expected:
         return f"{name}: {target} is there, SHA-256 {expected} ({whence}); licence: {checkpoint.licence}"
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".fetch-") as work:  # gone whatever happens
@@ -68,7 +68,7 @@ def fetch_checkpoint(name: str, source_dir: str | os.PathLike[str] | None = None
                     raise fetch.DataError(f"the archive of {name} holds no {checkpoint.file}; {checkpoint.notes}")
                 found[0].name, path = checkpoint.file, Path(work) / checkpoint.file
                 archive.extract(found[0], work, filter="data")
-        digest = pooch.file_hash(str(path))
+        digest = file_sha256(path)
         if expected and digest != expected:
             hint = f"({whence}), so it was not saved; fetch it again from the official URL or check the hash"
             raise fetch.DataError(f"{checkpoint.file} from {source} has SHA-256 {digest}, not {expected} {hint}")

@@ -7,10 +7,10 @@ import importlib.util
 import os
 import shutil
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
@@ -310,3 +310,17 @@ def load_state_dict_strict(module: torch.nn.Module, state_dict: Mapping[str, tor
                 parts.append(f"  {title} tensors: {shown}")
         raise WeightsLayoutError("\n".join(parts))
     module.load_state_dict(state_dict, strict=True)
+
+
+Module = TypeVar("Module", bound="torch.nn.Module")
+
+
+def load_pretrained(
+    module: Module, name: str, device: str | torch.device = "cpu", unwrap: Callable[[Any], Any] | None = None
+) -> Module:
+    """``module`` with the named checkpoint's tensors (``unwrap`` takes them out of the file's
+    object; a bare state dict by default), strictly loaded, in eval mode on ``device``."""
+    (path,) = require(name)
+    checkpoint = load_checkpoint(path)
+    load_state_dict_strict(module, unwrap(checkpoint) if unwrap else checkpoint, str(path))
+    return module.eval().to(device)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import cv2
 import numpy as np
@@ -33,13 +33,6 @@ MATCH_CONFIDENCE = 0.8  # matches above this enter the F-RANSAC (original value)
 F_RANSAC_THRESHOLD = 3.0
 F_RANSAC_CONFIDENCE = 0.99
 AFFINE_RANSAC_THRESHOLD = 20.0
-
-# The released trainer's recipe (trainers/utils/utils.py): FocalLoss() (gamma 1, alpha None),
-# Adam at lr 5e-4 for 20 epochs.
-PUBLISHED_GAMMA = 1.0
-PUBLISHED_ALPHA: float | None = None
-PUBLISHED_LR = 5e-4
-PUBLISHED_EPOCHS = 20
 
 
 def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
@@ -75,23 +68,19 @@ class DoppelgangersClassifier(nn.Module):
     """conv 7x7/2 (10 -> 128), three stages of two BasicBlocks (128/256/512), average pool, linear
     512 -> 2; total stride 16, logits[:, 1] is "same place"."""
 
-    def __init__(
-        self, in_channels: int = INPUT_CHANNELS, initial_dim: int = 128, block_dims: Sequence[int] = (128, 256, 512)
-    ) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(in_channels, initial_dim, kernel_size=7, stride=2, padding=3, bias=False)
-        self.bn1 = nn.BatchNorm2d(initial_dim)
+        self.conv1 = nn.Conv2d(INPUT_CHANNELS, 128, kernel_size=7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(128)
         self.relu = nn.ReLU(inplace=True)
-        dims = [initial_dim, *block_dims]
-        self.layer1 = self._stage(dims[0], dims[1])
-        self.layer2 = self._stage(dims[1], dims[2])
-        self.layer3 = self._stage(dims[2], dims[3])
+        dims = (128, 128, 256, 512)
+        for stage in range(1, 4):  # layer1..layer3, each of two BasicBlocks
+            block = nn.Sequential(
+                BasicBlock(dims[stage - 1], dims[stage], stride=2), BasicBlock(dims[stage], dims[stage])
+            )
+            self.add_module(f"layer{stage}", block)
         self.fc = nn.Linear(dims[3], 2)
         self._init_weights()
-
-    @staticmethod
-    def _stage(cin: int, cout: int) -> nn.Sequential:
-        return nn.Sequential(BasicBlock(cin, cout, stride=2), BasicBlock(cout, cout, stride=1))
 
     def _init_weights(self) -> None:
         # LoFTR's backbone initialisation: He (fan_out) for convs, BN as identity.
@@ -264,23 +253,16 @@ def build_input(
 
 
 def focal_loss(
-    logits: torch.Tensor,
-    targets: torch.Tensor,
-    gamma: float = PUBLISHED_GAMMA,
-    alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
+    logits: torch.Tensor, targets: torch.Tensor, gamma: float = 1.0, alpha: float | None = None
 ) -> torch.Tensor:
-    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t (Lin et al.), release defaults (gamma 1, no
-    class weights); ``alpha`` float a -> (a, 1 - a); (1 - p_t) not differentiated, as in the original."""
+    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t (Lin et al.) with the released trainer's
+    defaults (gamma 1, no class weights); ``alpha`` a weighs the classes (a, 1 - a); (1 - p_t)
+    is not differentiated, as in the original."""
     targets = targets.long().view(-1)
     logpt = F.log_softmax(logits, dim=1).gather(1, targets[:, None]).squeeze(1)
     pt = logpt.detach().exp()
     if alpha is not None:
-        weights = torch.tensor(
-            [alpha, 1 - alpha] if isinstance(alpha, (int, float)) else list(alpha),
-            dtype=logits.dtype,
-            device=logits.device,
-        )
-        logpt = logpt * weights[targets]
+        logpt = logpt * torch.tensor([alpha, 1 - alpha], dtype=logits.dtype, device=logits.device)[targets]
     return (-((1 - pt) ** gamma) * logpt).mean()
 
 
@@ -288,18 +270,17 @@ def train_classifier(
     model: nn.Module,
     inputs: np.ndarray | torch.Tensor,
     labels: np.ndarray | torch.Tensor,
-    epochs: int = PUBLISHED_EPOCHS,
-    lr: float = PUBLISHED_LR,
+    epochs: int = 20,
+    lr: float = 5e-4,
     batch_size: int = 8,
     seed: int = 0,
     progress: bool = True,
-    gamma: float = PUBLISHED_GAMMA,
-    alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
 ) -> dict[str, list[float]]:
-    """Train ``model`` in place by the published recipe (Adam lr 5e-4, focal loss, seeded shuffled
-    batches); returns per-epoch ``{'loss', 'accuracy', 'seconds'}`` lists."""
-    x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
-    y = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels).long().view(-1)
+    """Train ``model`` in place by the released trainer's recipe (trainers/utils/utils.py: Adam at lr
+    5e-4 for 20 epochs, focal loss, seeded shuffled batches); returns per-epoch ``{'loss',
+    'accuracy', 'seconds'}`` lists."""
+    x = torch.as_tensor(inputs, dtype=torch.float32)
+    y = torch.as_tensor(labels).long().view(-1)
     if len(x) != len(y):
         raise ValueError(f"{len(x)} inputs but {len(y)} labels")
     device = next(model.parameters()).device
@@ -316,7 +297,7 @@ def train_classifier(
             xb, yb = x[idx].to(device), y[idx].to(device)
             optimiser.zero_grad()
             logits = model(xb)
-            loss = focal_loss(logits, yb, gamma, alpha)
+            loss = focal_loss(logits, yb)
             loss.backward()
             optimiser.step()
             total += loss.item() * len(idx)
@@ -338,6 +319,6 @@ def predict(model: nn.Module, inputs: np.ndarray | torch.Tensor, batch_size: int
     """P(same place) for (N, 10, S, S) inputs, in eval mode, batch by batch."""
     model.eval()
     device = next(model.parameters()).device
-    x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
+    x = torch.as_tensor(inputs, dtype=torch.float32)
     out = [F.softmax(model(x[i : i + batch_size].to(device)), dim=1)[:, 1].cpu() for i in range(0, len(x), batch_size)]
     return torch.cat(out).numpy() if out else np.zeros(0, dtype=np.float32)

@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, as_features, to_tensor
 
 
 class AlikedExtractor(Extractor):
@@ -32,8 +32,4 @@ class AlikedExtractor(Extractor):
     @torch.inference_mode()
     def __call__(self, image: np.ndarray) -> Features:
         features = self.model(to_tensor(image, self.device))[0]
-        return {
-            "keypoints": features.keypoints.cpu().numpy().astype(np.float32),
-            "scores": features.keypoint_scores.cpu().numpy().astype(np.float32),
-            "descriptors": features.descriptors.cpu().numpy().astype(np.float32),
-        }
+        return as_features(features.keypoints, features.keypoint_scores, features.descriptors)

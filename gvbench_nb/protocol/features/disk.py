@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, as_features, to_tensor
 
 
 class DiskExtractor(Extractor):
@@ -32,8 +32,4 @@ class DiskExtractor(Extractor):
             score_threshold=self.conf["detection_threshold"],
             pad_if_not_divisible=True,
         )[0]
-        return {
-            "keypoints": features.keypoints.cpu().numpy().astype(np.float32),
-            "scores": features.detection_scores.cpu().numpy().astype(np.float32),
-            "descriptors": features.descriptors.cpu().numpy().astype(np.float32),
-        }
+        return as_features(features.keypoints, features.detection_scores, features.descriptors)

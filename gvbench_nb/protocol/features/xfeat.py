@@ -8,7 +8,7 @@ import numpy as np
 import torch
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, as_features, to_tensor
 
 
 class XFeatExtractor(Extractor):
@@ -27,8 +27,4 @@ class XFeatExtractor(Extractor):
     @torch.inference_mode()
     def __call__(self, image: np.ndarray) -> Features:
         output = self.model.detectAndCompute(to_tensor(image, self.device))[0]
-        return {
-            "keypoints": output["keypoints"].cpu().numpy().astype(np.float32),
-            "scores": output["scores"].cpu().numpy().astype(np.float32),
-            "descriptors": output["descriptors"].cpu().numpy().astype(np.float32),
-        }
+        return as_features(output["keypoints"], output["scores"], output["descriptors"])

@@ -13,34 +13,28 @@ from helpers import random_state_dict, read_layout
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.features import superpoint as sp
 from gvbench_nb.protocol.matching import superglue as sg
-from gvbench_nb.verification.doppelgangers import load_doppelgangers
+from gvbench_nb.verification.doppelgangers import DoppelgangersClassifier, load_doppelgangers
 
-MODELS = {"superpoint_v1": lambda: sp.SuperPoint(), "superglue_outdoor": lambda: sg.SuperGlue()}
+MODELS = {
+    "superpoint_v1": sp.SuperPoint,
+    "superglue_outdoor": sg.SuperGlue,
+    "doppelgangers_classifier_loftr": DoppelgangersClassifier,
+}
 
 
-# ----------------------------------------------------------------------------- layouts
-
-
-@pytest.mark.parametrize("name,count", [("superpoint_v1", 24), ("superglue_outdoor", 339)])
-def test_state_dict_matches_official_layout(reference_dir, name, count):
+@pytest.mark.parametrize(
+    "name,count", [("superpoint_v1", 24), ("superglue_outdoor", 339), ("doppelgangers_classifier_loftr", 98)]
+)
+def test_state_dict_matches_official_layout_and_loads_strictly(reference_dir, name, count):
     layout = read_layout(reference_dir, name)
     ours = {k: list(v.shape) for k, v in MODELS[name]().state_dict().items()}
     assert len(layout) == count
-    assert len(ours) == count
-    assert sorted(set(ours) ^ set(layout)) == []
-    wrong = {k: (ours[k], layout[k]) for k in ours if ours[k] != layout[k]}
-    assert wrong == {}
-
-
-@pytest.mark.parametrize("name", ["superpoint_v1", "superglue_outdoor"])
-def test_synthetic_checkpoint_loads_strictly(reference_dir, name):
-    layout = read_layout(reference_dir, name)
+    assert ours == layout and list(ours) == list(layout)  # same order too
     state = random_state_dict(layout)
     model = MODELS[name]()
     weights.load_state_dict_strict(model, state, f"synthetic {name}")
-    loaded = model.state_dict()
     some = next(k for k in layout if k.endswith("weight"))
-    assert torch.equal(loaded[some], state[some])
+    assert torch.equal(model.state_dict()[some], state[some])
 
 
 @pytest.mark.parametrize(

@@ -164,6 +164,16 @@ def test_empty_and_single_column_inputs():
     np.testing.assert_array_equal(matches, [[0, 0]])
     distance = _l2_distance(eye[:1], near_pair)
     np.testing.assert_array_equal(hloc_matches(distance, True, 0.8, None), [[0, 0]])
+    # The same on binary descriptors (Hamming).
+    binary0 = np.random.default_rng(3).integers(0, 256, (20, 32), dtype=np.uint8)
+    one = binary0[4:5] ^ np.uint8(1)
+    for mutual in (True, False):
+        for rows, columns in ((binary0, one), (one, binary0)):
+            matches, _ = hamming_nearest_neighbour_matches(rows, columns, mutual=mutual, ratio_threshold=0.8)
+            np.testing.assert_array_equal(matches, hloc_matches(bit_distances(rows, columns), mutual, 0.8, None))
+    matches, scores = hamming_nearest_neighbour_matches(binary0[:0], binary0, ratio_threshold=0.8)
+    assert matches.shape == (0, 2) and scores.shape == (0,)
+    assert hamming_nearest_neighbour_matches(binary0, binary0[:0])[0].shape == (0, 2)
 
 
 # hloc/match_features.py (the authors' fork, gvbench@427cc99) as (mutual, ratio, distance):
@@ -291,22 +301,6 @@ def test_hamming_ties_go_to_the_lower_index():
     # A tie at the nearest distance fails the ratio test (d1 == d2), unless both are 0 bits.
     matches, _ = hamming_nearest_neighbour_matches(binary0, binary1, mutual=False, ratio_threshold=0.8)
     np.testing.assert_array_equal(matches, [[1, 0]])
-
-
-def test_hamming_single_descriptor_and_empty_sides():
-    rng = np.random.default_rng(3)
-    binary0 = rng.integers(0, 256, (20, 32), dtype=np.uint8)
-    one = binary0[4:5] ^ np.uint8(1)
-    for mutual in (True, False):
-        matches, scores = hamming_nearest_neighbour_matches(binary0, one, mutual=mutual, ratio_threshold=0.8)
-        expected = hloc_matches(bit_distances(binary0, one), mutual, 0.8, None)
-        np.testing.assert_array_equal(matches, expected)
-        matches, _ = hamming_nearest_neighbour_matches(one, binary0, mutual=mutual, ratio_threshold=0.8)
-        np.testing.assert_array_equal(matches, hloc_matches(bit_distances(one, binary0), mutual, 0.8, None))
-    matches, scores = hamming_nearest_neighbour_matches(binary0[:0], binary0, ratio_threshold=0.8)
-    assert matches.shape == (0, 2) and scores.shape == (0,)
-    matches, _ = hamming_nearest_neighbour_matches(binary0, binary0[:0])
-    assert matches.shape == (0, 2)
 
 
 def test_the_nn_matcher_dispatches_hamming_here():

@@ -178,7 +178,7 @@ class SuperPointExtractor(Extractor):
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device
         model_conf = {k: conf[k] for k in ("nms_radius", "keypoint_threshold", "max_keypoints", "remove_borders")}
-        self.model = load_superpoint(model_conf, device=device).eval()
+        self.model = load_superpoint(model_conf, device=device)
 
     @torch.inference_mode()
     def __call__(self, image: np.ndarray) -> Features:

@@ -19,16 +19,14 @@ from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 CHECKPOINTS = {"outdoor": "superglue_outdoor"}
 
 
-def mlp(channels: Sequence[int], do_bn: bool = True) -> nn.Sequential:
+def mlp(channels: Sequence[int]) -> nn.Sequential:
     """1x1 Conv1d layers with BatchNorm + ReLU between them; the Sequential indices are the
     checkpoint's tensor names, so the layer order matters."""
     layers: list[nn.Module] = []
     for i in range(1, len(channels)):
         layers.append(nn.Conv1d(channels[i - 1], channels[i], kernel_size=1, bias=True))
         if i < len(channels) - 1:
-            if do_bn:
-                layers.append(nn.BatchNorm1d(channels[i]))
-            layers.append(nn.ReLU())
+            layers += [nn.BatchNorm1d(channels[i]), nn.ReLU()]
     return nn.Sequential(*layers)
 
 
@@ -243,7 +241,7 @@ class SuperGlueMatcher(Matcher):
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device
         model_conf: dict[str, Any] = {k: conf[k] for k in ("sinkhorn_iterations", "match_threshold") if k in conf}
-        self.model = load_superglue(model_conf, device=device).eval()
+        self.model = load_superglue(model_conf, device=device)
 
     @torch.inference_mode()
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:

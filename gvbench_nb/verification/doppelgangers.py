@@ -73,12 +73,10 @@ class DoppelgangersClassifier(nn.Module):
         self.conv1 = nn.Conv2d(INPUT_CHANNELS, 128, kernel_size=7, stride=2, padding=3, bias=False)
         self.bn1 = nn.BatchNorm2d(128)
         self.relu = nn.ReLU(inplace=True)
-        dims = (128, 128, 256, 512)
-        for stage in range(1, 4):  # layer1..layer3, each of two BasicBlocks
-            block = nn.Sequential(
-                BasicBlock(dims[stage - 1], dims[stage], stride=2), BasicBlock(dims[stage], dims[stage])
-            )
-            self.add_module(f"layer{stage}", block)
+        dims = (128, 128, 256, 512)  # layer1..layer3, each of two BasicBlocks, the first halving
+        self.layer1, self.layer2, self.layer3 = (
+            nn.Sequential(BasicBlock(cin, cout, stride=2), BasicBlock(cout, cout)) for cin, cout in zip(dims, dims[1:])
+        )
         self.fc = nn.Linear(dims[3], 2)
         self._init_weights()
 

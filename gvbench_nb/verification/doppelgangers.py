@@ -176,14 +176,10 @@ def _pixel_index(values: np.ndarray, limit: int) -> np.ndarray:
 
 
 def _as_bgr(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image)
-    if image.ndim == 2:
-        image = image[:, :, None]
-    if image.shape[2] == 1:
-        image = np.repeat(image, 3, axis=2)
-    if image.shape[2] != 3:
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) BGR image, got shape {image.shape}")
-    return image.astype(np.float32)
+    return image
 
 
 def build_input(
@@ -192,12 +188,11 @@ def build_input(
     keypoints0: np.ndarray,
     keypoints1: np.ndarray,
     confidence: np.ndarray,
-    inlier_mask: np.ndarray | None = None,
     size: int = 1024,
 ) -> np.ndarray:
     """The classifier's (10, S, S) float32 input for one pair (S = max resized side): BGR images,
-    matched points in original pixels with their ``confidence``; ``inlier_mask`` overrides
-    ``match_mask``. Image 0 is warped onto image 1 unless the warp fails or lands outside."""
+    matched points in original pixels with their ``confidence`` (``match_mask`` picks the matches).
+    Image 0 is warped onto image 1 unless the warp fails or lands outside."""
     img0, img1 = _as_bgr(image0_bgr), _as_bgr(image1_bgr)
     h0, w0 = img0.shape[:2]
     h1, w1 = img1.shape[:2]
@@ -210,9 +205,7 @@ def build_input(
     conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
     if not (len(kp0) == len(kp1) == len(conf)):
         raise ValueError(f"keypoints0 {len(kp0)}, keypoints1 {len(kp1)} and confidence {len(conf)} differ in length")
-    matched = match_mask(kp0, kp1, conf) if inlier_mask is None else np.asarray(inlier_mask, dtype=bool).reshape(-1)
-    if len(matched) != len(conf):
-        raise ValueError(f"inlier_mask has {len(matched)} entries for {len(conf)} matches")
+    matched = match_mask(kp0, kp1, conf)
 
     # Warp image 0's keypoints into image 1's frame; keep those that land inside it.
     warp = estimate_warp(kp0[matched], kp1[matched]) if matched.any() else None

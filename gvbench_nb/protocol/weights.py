@@ -273,15 +273,15 @@ def _torch_load_reason(error: Exception) -> str:
     return f"{type(error).__name__}: {reason}" if reason else type(error).__name__
 
 
-def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Any:
-    """torch.load with ``weights_only=True``: a checkpoint cannot run code."""
+def load_checkpoint(path: str | os.PathLike[str]) -> Any:
+    """torch.load onto the CPU with ``weights_only=True``: a checkpoint cannot run code."""
     import torch
 
     path = Path(path)
     if not path.is_file():
         raise MissingWeightsError(f"checkpoint not found: {path}")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises UnpicklingError, RuntimeError or EOFError here
         raise CheckpointReadError(
             f"{path} ({path.stat().st_size} bytes) is not a loadable checkpoint ({_torch_load_reason(error)}). "

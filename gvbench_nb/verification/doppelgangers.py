@@ -105,7 +105,7 @@ def load_doppelgangers(
         path = require(CHECKPOINT_NAME)[0]
     elif not os.path.isfile(path):
         raise MissingWeightsError(f"{path} does not exist.\n" + missing_message(CHECKPOINT_NAME))
-    checkpoint = load_checkpoint(path, map_location="cpu")
+    checkpoint = load_checkpoint(path)
     state = checkpoint["dec"] if isinstance(checkpoint, Mapping) and "dec" in checkpoint else checkpoint
     state = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
     model = DoppelgangersClassifier()

@@ -53,12 +53,10 @@ def check_ratio_test_on(ratio_test_on: str) -> None:
     registry.check_choice("ratio_test_on", ratio_test_on, RATIO_TEST_ON)
 
 
-def hamming_distances(
-    descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64, threads: int | None = None
-) -> np.ndarray:
+def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
     """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors: popcount of the XOR of
-    64-bit words, in cache-sized row blocks spread over ``threads`` threads (numpy releases the GIL;
-    default OpenCV's thread count, as the L2 product uses)."""
+    64-bit words, in cache-sized row blocks spread over OpenCV's thread count, as the L2 product
+    uses (numpy releases the GIL)."""
     n_bytes = descriptors0.shape[1]
     padded = -n_bytes % 8
 
@@ -85,7 +83,7 @@ def hamming_distances(
                 block += count[:n]
 
     starts = range(0, len(words0), rows_per_block)
-    threads = max(1, min(threads or cv2.getNumThreads(), len(starts)))
+    threads = max(1, min(cv2.getNumThreads(), len(starts)))
     if threads == 1:
         fill(starts)
     else:

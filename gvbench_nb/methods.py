@@ -20,7 +20,6 @@ from gvbench_nb.protocol.recipes import RECIPES, check_profile, conf_hash
 
 __all__ = ["RECIPES", "check_profile", "conf_hash"]
 
-UnknownNameError = registry.UnknownNameError
 IMM_PREFIX = "imm:"  # a vismatch matcher, run by the peer module benchmarks/imm.py
 
 
@@ -43,10 +42,6 @@ def imm_peer() -> ModuleType:
 
 # Methods added by ``register_method`` in this process: only this process knows them.
 REGISTERED_FROM_CODE: set[str] = set()
-
-
-def _unknown(kind: str, name: str, known: list[str]) -> UnknownNameError:
-    return UnknownNameError(registry.unknown_name_message(kind, name, known))
 
 
 def method_names() -> list[str]:
@@ -161,8 +156,8 @@ def resolve_method(name: str, profile: str = "paper", verifier: dict[str, Any] |
         if name not in RECIPES[profile]:
             known = method_names()
             if name in known:
-                raise UnknownNameError(f"method {name!r} has no recipe under profile {profile!r}")
-            raise _unknown("method", name, known)
+                raise registry.UnknownNameError(f"method {name!r} has no recipe under profile {profile!r}")
+            raise registry.UnknownNameError(registry.unknown_name_message("method", name, known))
         whole = recipes.recipe(name, profile)
         base_verifier = whole["verifier"]
     return {
@@ -256,5 +251,6 @@ def expand_methods(names: list[str] | str) -> list[str]:
             imm_peer().check_name(name)
             expanded.append(name)
         else:
-            raise _unknown("method", name, method_names() + ["all", "all-available", "imm:<vismatch name>"])
+            known = method_names() + ["all", "all-available", "imm:<vismatch name>"]
+            raise registry.UnknownNameError(registry.unknown_name_message("method", name, known))
     return list(dict.fromkeys(expanded))

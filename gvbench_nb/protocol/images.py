@@ -17,6 +17,23 @@ from gvbench_nb.protocol import registry
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".ppm", ".bmp")
 
 
+# What keeps a path from being read as a file: by the errno of its stat, then by its kind.
+_STAT_ERRORS = {
+    errno.ELOOP: "is a symbolic link loop (following it leads back to itself)",
+    errno.ENOENT: "does not exist",
+    errno.ENOTDIR: "does not exist (a folder on its path is a file)",
+    errno.EACCES: "cannot be reached (permission denied on a folder of its path)",
+    errno.ENAMETOOLONG: "has a name longer than the file system allows",
+}
+_NOT_FILES = (
+    (stat.S_ISDIR, "is a folder, not a file"),
+    (stat.S_ISFIFO, "is a FIFO (named pipe), not a file"),
+    (stat.S_ISCHR, "is a device, not a file"),
+    (stat.S_ISBLK, "is a device, not a file"),
+    (stat.S_ISSOCK, "is a socket, not a file"),
+)
+
+
 def path_problem(path: str | os.PathLike[str]) -> str | None:
     """What keeps ``path`` from being read as a regular file, in words following its name, or
     None; reads metadata only (a FIFO is named, never opened: opening one blocks)."""
@@ -24,33 +41,14 @@ def path_problem(path: str | os.PathLike[str]) -> str | None:
     if "\0" in text:
         return "holds a NUL byte, which no file name can"
     try:
-        info = os.stat(text)
+        mode = os.stat(text).st_mode
     except OSError as error:
-        if error.errno == errno.ELOOP:
-            return "is a symbolic link loop (following it leads back to itself)"
         if error.errno == errno.ENOENT and os.path.islink(text):
             return f"is a broken symbolic link (to {os.readlink(text)}, which does not exist)"
-        if error.errno == errno.ENOENT:
-            return "does not exist"
-        if error.errno == errno.ENOTDIR:
-            return "does not exist (a folder on its path is a file)"
-        if error.errno == errno.EACCES:
-            return "cannot be reached (permission denied on a folder of its path)"
-        if error.errno == errno.ENAMETOOLONG:
-            return "has a name longer than the file system allows"
-        return f"cannot be used ({error.strerror or error})"
-    mode = info.st_mode
+        return _STAT_ERRORS.get(error.errno or 0, f"cannot be used ({error.strerror or error})")
     if stat.S_ISREG(mode):
         return None if os.access(text, os.R_OK) else "cannot be read (permission denied)"
-    if stat.S_ISDIR(mode):
-        return "is a folder, not a file"
-    if stat.S_ISFIFO(mode):
-        return "is a FIFO (named pipe), not a file"
-    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
-        return "is a device, not a file"
-    if stat.S_ISSOCK(mode):
-        return "is a socket, not a file"
-    return "is not a regular file"
+    return next((problem for is_kind, problem in _NOT_FILES if is_kind(mode)), "is not a regular file")
 
 
 class ImageReadError(GVBenchError, OSError):
@@ -209,11 +207,8 @@ def _prepare_as_repository(path: str | os.PathLike[str], conf: dict) -> tuple[np
         # the grey conversion and min-max scaling then round as there, which truncation exposes.
         rgb /= np.float32(255.0)
     height, width = rgb.shape[:2]
-    fixed = conf.get("resize_to")
-    size = (
-        (int(fixed[0]), int(fixed[1]))
-        if fixed
-        else target_size(width, height, conf.get("resize_max"), conf.get("resize_force", False))
+    size = target_size(
+        width, height, conf.get("resize_max"), conf.get("resize_force", False), resize_to=conf.get("resize_to")
     )
     image = resize_bilinear_antialias(rgb, size)
     if conf.get("grayscale", False):
@@ -240,11 +235,13 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
     original; ``interpolation`` "area_or_linear" is hloc's ``ImageDataset`` (resized as float32),
     "bilinear_antialias" the GV-Bench repository's torchvision chain."""
     interpolation = conf.get("interpolation", "area_or_linear")
+    where = f"the conf of {conf.get('name', '?')!r}"
+    registry.check_choice("interpolation", interpolation, ("area_or_linear", "bilinear_antialias"), where)
     if interpolation == "bilinear_antialias":
         resized8, (width, height) = _prepare_as_repository(path, conf)
         resized = resized8.astype(np.float32)
         size = resized.shape[1::-1]
-    elif interpolation == "area_or_linear":
+    else:
         # hloc's read_image (cv2.imread) applies EXIF orientation.
         image = read_image(path, grayscale=conf.get("grayscale", False), exif_orientation=True).astype(np.float32)
         height, width = image.shape[:2]
@@ -266,14 +263,6 @@ def load_for_extraction(path: str | os.PathLike[str], conf: dict) -> tuple[np.nd
             size = (size[0] // multiple * multiple, size[1] // multiple * multiple)
             unit = resize_bilinear_antialias(resized / np.float32(255.0), size)
             resized = unit * np.float32(255.0)
-    else:
-        registry.check_choice(
-            "interpolation",
-            interpolation,
-            ("area_or_linear", "bilinear_antialias"),
-            f"the conf of {conf.get('name', '?')!r}",
-        )
-        raise AssertionError("unreachable")
     scale = (np.array([width, height]) / np.array(size)).astype(np.float32)
     return resized, scale
 

@@ -19,15 +19,6 @@ ESTIMATORS: dict[str, int] = {
 }
 
 
-def as_point_arrays(points0: np.ndarray, points1: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Matched points as the contiguous float64 (N, 2) arrays OpenCV's estimators take."""
-    points0 = np.ascontiguousarray(points0, dtype=np.float64).reshape(-1, 2)
-    points1 = np.ascontiguousarray(points1, dtype=np.float64).reshape(-1, 2)
-    if len(points0) != len(points1):
-        raise ValueError(f"point arrays differ in length: {len(points0)} vs {len(points1)}")
-    return points0, points1
-
-
 FEW_MATCHES_RULES = ("zero", "all")
 MODELS = ("fundamental", "homography")
 
@@ -65,7 +56,11 @@ def fit_inliers(
     period and the repository's code). OpenCV's fixed seed makes it depend only on the pair."""
     registry.check_choice("few_matches rule", few_matches, FEW_MATCHES_RULES, "the verifier conf")
     registry.lookup("verifier model", model, dict.fromkeys(MODELS))
-    points0, points1 = as_point_arrays(points0, points1)
+    # The contiguous float64 (N, 2) arrays OpenCV's estimators take.
+    points0 = np.ascontiguousarray(points0, dtype=np.float64).reshape(-1, 2)
+    points1 = np.ascontiguousarray(points1, dtype=np.float64).reshape(-1, 2)
+    if len(points0) != len(points1):
+        raise ValueError(f"point arrays differ in length: {len(points0)} vs {len(points1)}")
     unverifiable = np.full(len(points0), few_matches == "all", dtype=bool)
     if len(points0) < max(min_matches, 8 if model == "fundamental" else 4):
         return unverifiable

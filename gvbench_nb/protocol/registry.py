@@ -37,14 +37,13 @@ def lookup(
     name: str,
     table: Mapping[str, T],
     where: str = "",
-    also: Iterable[str] = (),
     error: type[Exception] = UnknownNameError,
 ) -> T:
-    """``table[name]``, or ``error`` with the closest known name (``also``: further valid spellings)."""
+    """``table[name]``, or ``error`` with the closest known name."""
     try:
         return table[name]
     except (KeyError, TypeError):
-        raise error(unknown_name_message(kind, name, [*table, *also], where)) from None
+        raise error(unknown_name_message(kind, name, list(table), where)) from None
 
 
 def check_choice(

@@ -7,10 +7,10 @@ import importlib.util
 import os
 import shutil
 import sys
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
@@ -273,15 +273,15 @@ def _torch_load_reason(error: Exception) -> str:
     return f"{type(error).__name__}: {reason}" if reason else type(error).__name__
 
 
-def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> Any:
-    """torch.load with ``weights_only=True``: a checkpoint cannot run code."""
+def load_checkpoint(path: str | os.PathLike[str]) -> Any:
+    """torch.load onto the CPU with ``weights_only=True``: a checkpoint cannot run code."""
     import torch
 
     path = Path(path)
     if not path.is_file():
         raise MissingWeightsError(f"checkpoint not found: {path}")
     try:
-        return torch.load(path, map_location=map_location, weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises UnpicklingError, RuntimeError or EOFError here
         raise CheckpointReadError(
             f"{path} ({path.stat().st_size} bytes) is not a loadable checkpoint ({_torch_load_reason(error)}). "
@@ -310,3 +310,17 @@ def load_state_dict_strict(module: torch.nn.Module, state_dict: Mapping[str, tor
                 parts.append(f"  {title} tensors: {shown}")
         raise WeightsLayoutError("\n".join(parts))
     module.load_state_dict(state_dict, strict=True)
+
+
+Module = TypeVar("Module", bound="torch.nn.Module")
+
+
+def load_pretrained(
+    module: Module, name: str, device: str | torch.device = "cpu", unwrap: Callable[[Any], Any] | None = None
+) -> Module:
+    """``module`` with the named checkpoint's tensors (``unwrap`` takes them out of the file's
+    object; a bare state dict by default), strictly loaded, in eval mode on ``device``."""
+    (path,) = require(name)
+    checkpoint = load_checkpoint(path)
+    load_state_dict_strict(module, unwrap(checkpoint) if unwrap else checkpoint, str(path))
+    return module.eval().to(device)

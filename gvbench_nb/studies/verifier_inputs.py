@@ -311,7 +311,7 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
         pair = cached.pair(query, reference)
         inputs.append(
             build_input(
-                cached.image(query), cached.image(reference), pair.points0, pair.points1, pair.match_scores, None, size
+                cached.image(query), cached.image(reference), pair.points0, pair.points1, pair.match_scores, size
             )
         )
     return np.stack(inputs) if inputs else np.zeros((0, 10, size, size), np.float32)

@@ -8,7 +8,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 
 import cv2
 import numpy as np
@@ -33,13 +33,6 @@ MATCH_CONFIDENCE = 0.8  # matches above this enter the F-RANSAC (original value)
 F_RANSAC_THRESHOLD = 3.0
 F_RANSAC_CONFIDENCE = 0.99
 AFFINE_RANSAC_THRESHOLD = 20.0
-
-# The released trainer's recipe (trainers/utils/utils.py): FocalLoss() (gamma 1, alpha None),
-# Adam at lr 5e-4 for 20 epochs.
-PUBLISHED_GAMMA = 1.0
-PUBLISHED_ALPHA: float | None = None
-PUBLISHED_LR = 5e-4
-PUBLISHED_EPOCHS = 20
 
 
 def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
@@ -75,23 +68,17 @@ class DoppelgangersClassifier(nn.Module):
     """conv 7x7/2 (10 -> 128), three stages of two BasicBlocks (128/256/512), average pool, linear
     512 -> 2; total stride 16, logits[:, 1] is "same place"."""
 
-    def __init__(
-        self, in_channels: int = INPUT_CHANNELS, initial_dim: int = 128, block_dims: Sequence[int] = (128, 256, 512)
-    ) -> None:
+    def __init__(self) -> None:
         super().__init__()
-        self.conv1 = nn.Conv2d(in_channels, initial_dim, kernel_size=7, stride=2, padding=3, bias=False)
-        self.bn1 = nn.BatchNorm2d(initial_dim)
+        self.conv1 = nn.Conv2d(INPUT_CHANNELS, 128, kernel_size=7, stride=2, padding=3, bias=False)
+        self.bn1 = nn.BatchNorm2d(128)
         self.relu = nn.ReLU(inplace=True)
-        dims = [initial_dim, *block_dims]
-        self.layer1 = self._stage(dims[0], dims[1])
-        self.layer2 = self._stage(dims[1], dims[2])
-        self.layer3 = self._stage(dims[2], dims[3])
+        dims = (128, 128, 256, 512)  # layer1..layer3, each of two BasicBlocks, the first halving
+        self.layer1, self.layer2, self.layer3 = (
+            nn.Sequential(BasicBlock(cin, cout, stride=2), BasicBlock(cout, cout)) for cin, cout in zip(dims, dims[1:])
+        )
         self.fc = nn.Linear(dims[3], 2)
         self._init_weights()
-
-    @staticmethod
-    def _stage(cin: int, cout: int) -> nn.Sequential:
-        return nn.Sequential(BasicBlock(cin, cout, stride=2), BasicBlock(cout, cout, stride=1))
 
     def _init_weights(self) -> None:
         # LoFTR's backbone initialisation: He (fan_out) for convs, BN as identity.
@@ -118,7 +105,7 @@ def load_doppelgangers(
         path = require(CHECKPOINT_NAME)[0]
     elif not os.path.isfile(path):
         raise MissingWeightsError(f"{path} does not exist.\n" + missing_message(CHECKPOINT_NAME))
-    checkpoint = load_checkpoint(path, map_location="cpu")
+    checkpoint = load_checkpoint(path)
     state = checkpoint["dec"] if isinstance(checkpoint, Mapping) and "dec" in checkpoint else checkpoint
     state = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
     model = DoppelgangersClassifier()
@@ -189,14 +176,10 @@ def _pixel_index(values: np.ndarray, limit: int) -> np.ndarray:
 
 
 def _as_bgr(image: np.ndarray) -> np.ndarray:
-    image = np.asarray(image)
-    if image.ndim == 2:
-        image = image[:, :, None]
-    if image.shape[2] == 1:
-        image = np.repeat(image, 3, axis=2)
-    if image.shape[2] != 3:
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(f"expected an (H, W, 3) BGR image, got shape {image.shape}")
-    return image.astype(np.float32)
+    return image
 
 
 def build_input(
@@ -205,12 +188,11 @@ def build_input(
     keypoints0: np.ndarray,
     keypoints1: np.ndarray,
     confidence: np.ndarray,
-    inlier_mask: np.ndarray | None = None,
     size: int = 1024,
 ) -> np.ndarray:
     """The classifier's (10, S, S) float32 input for one pair (S = max resized side): BGR images,
-    matched points in original pixels with their ``confidence``; ``inlier_mask`` overrides
-    ``match_mask``. Image 0 is warped onto image 1 unless the warp fails or lands outside."""
+    matched points in original pixels with their ``confidence`` (``match_mask`` picks the matches).
+    Image 0 is warped onto image 1 unless the warp fails or lands outside."""
     img0, img1 = _as_bgr(image0_bgr), _as_bgr(image1_bgr)
     h0, w0 = img0.shape[:2]
     h1, w1 = img1.shape[:2]
@@ -223,9 +205,7 @@ def build_input(
     conf = np.asarray(confidence, dtype=np.float32).reshape(-1)
     if not (len(kp0) == len(kp1) == len(conf)):
         raise ValueError(f"keypoints0 {len(kp0)}, keypoints1 {len(kp1)} and confidence {len(conf)} differ in length")
-    matched = match_mask(kp0, kp1, conf) if inlier_mask is None else np.asarray(inlier_mask, dtype=bool).reshape(-1)
-    if len(matched) != len(conf):
-        raise ValueError(f"inlier_mask has {len(matched)} entries for {len(conf)} matches")
+    matched = match_mask(kp0, kp1, conf)
 
     # Warp image 0's keypoints into image 1's frame; keep those that land inside it.
     warp = estimate_warp(kp0[matched], kp1[matched]) if matched.any() else None
@@ -264,23 +244,16 @@ def build_input(
 
 
 def focal_loss(
-    logits: torch.Tensor,
-    targets: torch.Tensor,
-    gamma: float = PUBLISHED_GAMMA,
-    alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
+    logits: torch.Tensor, targets: torch.Tensor, gamma: float = 1.0, alpha: float | None = None
 ) -> torch.Tensor:
-    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t (Lin et al.), release defaults (gamma 1, no
-    class weights); ``alpha`` float a -> (a, 1 - a); (1 - p_t) not differentiated, as in the original."""
+    """Mean focal loss -alpha_t (1 - p_t)^gamma log p_t (Lin et al.) with the released trainer's
+    defaults (gamma 1, no class weights); ``alpha`` a weighs the classes (a, 1 - a); (1 - p_t)
+    is not differentiated, as in the original."""
     targets = targets.long().view(-1)
     logpt = F.log_softmax(logits, dim=1).gather(1, targets[:, None]).squeeze(1)
     pt = logpt.detach().exp()
     if alpha is not None:
-        weights = torch.tensor(
-            [alpha, 1 - alpha] if isinstance(alpha, (int, float)) else list(alpha),
-            dtype=logits.dtype,
-            device=logits.device,
-        )
-        logpt = logpt * weights[targets]
+        logpt = logpt * torch.tensor([alpha, 1 - alpha], dtype=logits.dtype, device=logits.device)[targets]
     return (-((1 - pt) ** gamma) * logpt).mean()
 
 
@@ -288,18 +261,17 @@ def train_classifier(
     model: nn.Module,
     inputs: np.ndarray | torch.Tensor,
     labels: np.ndarray | torch.Tensor,
-    epochs: int = PUBLISHED_EPOCHS,
-    lr: float = PUBLISHED_LR,
+    epochs: int = 20,
+    lr: float = 5e-4,
     batch_size: int = 8,
     seed: int = 0,
     progress: bool = True,
-    gamma: float = PUBLISHED_GAMMA,
-    alpha: float | Sequence[float] | None = PUBLISHED_ALPHA,
 ) -> dict[str, list[float]]:
-    """Train ``model`` in place by the published recipe (Adam lr 5e-4, focal loss, seeded shuffled
-    batches); returns per-epoch ``{'loss', 'accuracy', 'seconds'}`` lists."""
-    x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
-    y = torch.as_tensor(np.asarray(labels) if not isinstance(labels, torch.Tensor) else labels).long().view(-1)
+    """Train ``model`` in place by the released trainer's recipe (trainers/utils/utils.py: Adam at lr
+    5e-4 for 20 epochs, focal loss, seeded shuffled batches); returns per-epoch ``{'loss',
+    'accuracy', 'seconds'}`` lists."""
+    x = torch.as_tensor(inputs, dtype=torch.float32)
+    y = torch.as_tensor(labels).long().view(-1)
     if len(x) != len(y):
         raise ValueError(f"{len(x)} inputs but {len(y)} labels")
     device = next(model.parameters()).device
@@ -316,7 +288,7 @@ def train_classifier(
             xb, yb = x[idx].to(device), y[idx].to(device)
             optimiser.zero_grad()
             logits = model(xb)
-            loss = focal_loss(logits, yb, gamma, alpha)
+            loss = focal_loss(logits, yb)
             loss.backward()
             optimiser.step()
             total += loss.item() * len(idx)
@@ -338,6 +310,6 @@ def predict(model: nn.Module, inputs: np.ndarray | torch.Tensor, batch_size: int
     """P(same place) for (N, 10, S, S) inputs, in eval mode, batch by batch."""
     model.eval()
     device = next(model.parameters()).device
-    x = torch.as_tensor(np.asarray(inputs) if not isinstance(inputs, torch.Tensor) else inputs, dtype=torch.float32)
+    x = torch.as_tensor(inputs, dtype=torch.float32)
     out = [F.softmax(model(x[i : i + batch_size].to(device)), dim=1)[:, 1].cpu() for i in range(0, len(x), batch_size)]
     return torch.cat(out).numpy() if out else np.zeros(0, dtype=np.float32)

@@ -79,6 +79,8 @@ def test_points_of_one_cell_across_pairs_become_one_keypoint():
     np.testing.assert_array_equal(keypoints["a"], [[5.5, 5.5]])
     np.testing.assert_array_equal(keypoints["b"], [[7.5, 7.5]])
     assert [m.tolist() for m, _ in merged] == [[[0, 0]], [[0, 0]]]
+    with pytest.raises(ValueError, match="2 pairs but 1 raw match sets"):
+        merge_dense_matches(pairs, raw[:1])
 
 
 def test_the_cap_keeps_the_best_cells_and_reassigns_to_a_neighbouring_kept_cell():
@@ -140,11 +142,6 @@ def test_merging_equals_hloc_rule_on_random_dense_matches(seed):
     assert kept > 50 and dropped > 50  # the rule keeps and removes matches here
 
 
-def test_merging_refuses_mismatched_inputs():
-    with pytest.raises(ValueError, match="2 pairs but 1 raw match sets"):
-        merge_dense_matches([("a", "b"), ("a", "c")], [_raw([], [], [])])
-
-
 def test_loftr_runs_on_the_swapped_pair_and_returns_points_in_our_order():
     seen = {}
 
@@ -163,22 +160,12 @@ def test_loftr_runs_on_the_swapped_pair_and_returns_points_in_our_order():
     np.testing.assert_array_equal(points0, [[2.0, 2.0]])  # our image 0 was the network's second
     np.testing.assert_array_equal(points1, [[3.0, 3.0]])
     np.testing.assert_array_equal(confidence, np.float32([0.7]))
-
-
-def test_the_repository_runs_loftr_on_the_pair_as_it_is():
     # The fork's matching/im_models/loftr.py hands LoFTR image0 and image1 in the pair's order;
     # hloc's matchers/loftr.py swaps them. The recipes say which each profile does.
-    seen = {}
-
-    def model(data):
-        seen.update(data)
-        return {"keypoints0": torch.zeros(1, 2), "keypoints1": torch.ones(1, 2), "confidence": torch.tensor([0.5])}
-
-    image0, image1 = torch.zeros(1, 1, 8, 8), torch.ones(1, 1, 8, 8)
     points0, points1, _ = loftr_call(model, image0, image1, swap_images=False)
     assert seen["image0"] is image0 and seen["image1"] is image1
-    np.testing.assert_array_equal(points0, [[0.0, 0.0]])
-    np.testing.assert_array_equal(points1, [[1.0, 1.0]])
+    np.testing.assert_array_equal(points0, [[1.0, 1.0]])
+    np.testing.assert_array_equal(points1, [[6.0, 6.0]])
     assert methods.resolve_method("loftr", "repository")["matcher"]["swap_images"] is False
     assert methods.resolve_method("loftr", "paper")["matcher"]["swap_images"] is True
 

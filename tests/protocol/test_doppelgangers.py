@@ -1,4 +1,5 @@
-"""Doppelgangers classifier: checkpoint layout, 10-channel input, training smoke."""
+"""Doppelgangers classifier: checkpoint loading, 10-channel input, training smoke (its layout:
+test_superpoint_superglue.py)."""
 
 from __future__ import annotations
 
@@ -33,13 +34,7 @@ def layout(reference_dir: Path) -> dict[str, list[int]]:
 # --------------------------------------------------------------------------- weights
 
 
-def test_state_dict_matches_official_layout(layout):
-    ours = {k: list(v.shape) for k, v in DoppelgangersClassifier().state_dict().items()}
-    assert ours == layout
-    assert list(ours) == list(layout)  # same order too
-
-
-def test_load_official_format_strips_module_prefix(layout, tmp_path):
+def test_loading_strips_the_module_prefix_and_names_a_missing_file_or_bad_tensors(layout, tmp_path):
     state = random_state_dict(layout)
     path = tmp_path / "doppelgangers_classifier_loftr.pt"
     torch.save({"dec": {"module." + k: v for k, v in state.items()}, "epoch": 20}, path)
@@ -50,25 +45,16 @@ def test_load_official_format_strips_module_prefix(layout, tmp_path):
         assert torch.equal(loaded[k], v), k
     with torch.no_grad():
         assert model(torch.zeros(1, 10, 64, 64)).shape == (1, 2)
-
-
-def test_a_missing_given_path_names_the_download(tmp_path):
-    with pytest.raises(MissingWeightsError, match="checkpoint.tar.gz"):
+    with pytest.raises(MissingWeightsError, match="checkpoint.tar.gz"):  # the download is named
         load_doppelgangers(tmp_path / "nowhere.pt")
-
-
-def test_wrong_layout_names_bad_tensors(layout, tmp_path):
-    state = random_state_dict(layout)
     del state["layer2.1.conv1.weight"]
     state["fc.weight"] = torch.zeros(3, 512)
     state["head.extra"] = torch.zeros(1)
-    path = tmp_path / "bad.pt"
     torch.save({"dec": state}, path)
     with pytest.raises(WeightsLayoutError) as info:
         load_doppelgangers(path)
-    message = str(info.value)
     for name in ("layer2.1.conv1.weight", "fc.weight", "head.extra"):
-        assert name in message
+        assert name in str(info.value)
 
 
 # --------------------------------------------------------------------------- input

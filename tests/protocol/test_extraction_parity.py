@@ -160,19 +160,16 @@ def test_colmap_sift_passes_max_keypoints_to_pycolmap():
     # detections (finishing that octave; two orientations can share a position): a cap of 50
     # keeps a few dozen positions of the uncapped set.
     image = _textured(480, 640, seed=5)[..., 0].astype(np.float32)
-    uncapped = extractors.build_extractor(methods.RECIPES["paper"]["sift-nn"]["extractor"], torch.device("cpu"))(image)
+    extractor = extractors.build_extractor(methods.RECIPES["paper"]["sift-nn"]["extractor"], torch.device("cpu"))
+    uncapped = extractor(image)
     capped = extractors.build_extractor(
         {**methods.RECIPES["paper"]["sift-nn"]["extractor"], "max_keypoints": 50}, torch.device("cpu")
     )(image)
     all_positions = {tuple(p) for p in uncapped["keypoints"].tolist()}
     positions = {tuple(p) for p in capped["keypoints"].tolist()}
     assert positions <= all_positions and 50 <= len(positions) < len(all_positions) / 10
-
-
-def test_colmap_sift_refuses_a_colour_image_saying_what_to_set():
-    extractor = extractors.build_extractor(methods.RECIPES["paper"]["sift-nn"]["extractor"], torch.device("cpu"))
-    with pytest.raises(ValueError, match="'grayscale': True"):
-        extractor(np.zeros((32, 32, 3), np.float32))
+    with pytest.raises(ValueError, match="'grayscale': True"):  # a colour image: it says what to set
+        extractor(image[..., None].repeat(3, 2))
 
 
 # ---------------------------------------------------------- float16 storage --

@@ -58,60 +58,43 @@ def disk_features(shared_data):
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize(
-    "options",
-    [{}, {"depth_confidence": -1, "width_confidence": -1}],
-    ids=["paper-early-stop-and-pruning", "all-layers-no-pruning"],
+    "method, options",
+    [
+        ("disk-lg", {}),
+        ("disk-lg", {"depth_confidence": -1, "width_confidence": -1}),
+        ("aliked-lg", {}),  # other weights, widths and depths
+        ("xfeat-lg", {}),
+    ],
+    ids=["paper-early-stop-and-pruning", "all-layers-no-pruning", "aliked-lg", "xfeat-lg"],
 )
-def test_prepared_matches_equal_kornia_bit_for_bit(disk_features, options):
-    conf, features = disk_features
+def test_prepared_matches_equal_kornia_bit_for_bit(disk_features, shared_data, method, options):
+    conf, features = disk_features if method == "disk-lg" else features_of(shared_data, method)
     matcher = matchers.build_matcher({**conf["matcher"], **options}, torch.device("cpu"))
     assert matcher.can_prepare
     prepared = [matcher.prepare(f) for f in features]
     counts = []
-    for i, j in [(0, 1), (0, 2), (1, 0), (0, 3), (4, 3), (4, 1)]:
+    for i, j in [(0, 1), (0, 2), (1, 0), (0, 3), (4, 3), (4, 1)] if method == "disk-lg" else [(0, 1), (0, 3)]:
         expected_matches, expected_scores = matcher(features[i], features[j])
         got_matches, got_scores = matcher.match_prepared(prepared[i], prepared[j])
         assert got_matches.dtype == np.int64 and got_scores.dtype == np.float32
-        np.testing.assert_array_equal(got_matches, expected_matches, err_msg=f"pair {IMAGES[i]} {IMAGES[j]}")
-        np.testing.assert_array_equal(got_scores, expected_scores, err_msg=f"pair {IMAGES[i]} {IMAGES[j]}")
+        np.testing.assert_array_equal(got_matches, expected_matches, err_msg=f"{method} {IMAGES[i]} {IMAGES[j]}")
+        np.testing.assert_array_equal(got_scores, expected_scores, err_msg=f"{method} {IMAGES[i]} {IMAGES[j]}")
         counts.append(len(expected_matches))
-    assert max(counts) > 100 and min(counts) < max(counts) / 2  # true and false pairs, not all alike
+    if method == "disk-lg":  # true and false pairs, not all alike
+        assert max(counts) > 100 and min(counts) < max(counts) / 2
 
 
 @pytest.mark.slow
 @pytest.mark.real_data
-@pytest.mark.parametrize("method", ["aliked-lg", "xfeat-lg"])  # other weights, widths and depths
-def test_prepared_matches_equal_kornia_for_other_lightglue_weights(shared_data, method):
-    conf, features = features_of(shared_data, method)
-    matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
-    assert matcher.can_prepare
-    for i, j in [(0, 1), (0, 3)]:
-        expected = matcher(features[i], features[j])
-        got = matcher.match_prepared(matcher.prepare(features[i]), matcher.prepare(features[j]))
-        np.testing.assert_array_equal(got[0], expected[0], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
-        np.testing.assert_array_equal(got[1], expected[1], err_msg=f"{method} pair {IMAGES[i]} {IMAGES[j]}")
-
-
-@pytest.mark.slow
-@pytest.mark.real_data
-def test_prepared_image_without_keypoints_matches_nothing(disk_features):
+def test_prepared_image_without_keypoints_matches_nothing_and_mixed_precision_refuses(disk_features):
     conf, features = disk_features
     matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
     empty = {**features[0], "keypoints": features[0]["keypoints"][:0], "descriptors": features[0]["descriptors"][:0]}
     assert matcher.prepare(empty) is None
     pair_matches, scores = matcher.match_prepared(None, matcher.prepare(features[1]))
     assert pair_matches.shape == (0, 2) and scores.shape == (0,)
-
-
-@pytest.mark.slow
-@pytest.mark.real_data
-def test_mixed_precision_lightglue_refuses_to_prepare(disk_features):
-    conf, features = disk_features
-    matcher = matchers.build_matcher(conf["matcher"], torch.device("cpu"))
     matcher.model.conf.mp = True
-    from gvbench_nb.protocol.matching.lightglue_prepared import supports_prepared
-
-    assert not supports_prepared(matcher.model)
+    assert not lightglue_prepared.supports_prepared(matcher.model)
 
 
 class Sized:

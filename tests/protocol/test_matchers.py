@@ -74,11 +74,9 @@ def test_ratio_applies_to_columns_too_minimal_case():
     assert one_way_matches(distance, True, 0.8, None).tolist() == [[0, 0]]
     assert hloc_matches(distance, True, 0.8, None).shape == (0, 2)
 
-    matches, scores = nearest_neighbour_matches(torch.from_numpy(rows), torch.from_numpy(columns), ratio_threshold=0.8)
+    matches, scores = nearest_neighbour_matches(rows, columns, ratio_threshold=0.8)
     assert matches.shape == (0, 2) and scores.shape == (0,)
-    one_way, _ = nearest_neighbour_matches(
-        torch.from_numpy(rows), torch.from_numpy(columns), ratio_threshold=0.8, ratio_test_on="rows"
-    )
+    one_way, _ = nearest_neighbour_matches(rows, columns, ratio_threshold=0.8, ratio_test_on="rows")
     assert one_way.tolist() == [[0, 0]]
 
 
@@ -102,10 +100,7 @@ def test_ratio_is_two_way_as_hlocs_or_rows_only_one_way(seed, metric):
     assert len(one_way) > len(two_way) > 5
 
     def ours(rows: np.ndarray, columns: np.ndarray, **options) -> np.ndarray:
-        found = nearest_neighbour_matches(
-            torch.from_numpy(rows), torch.from_numpy(columns), ratio_threshold=0.8, metric=metric, **options
-        )[0]
-        return found.numpy()
+        return nearest_neighbour_matches(rows, columns, ratio_threshold=0.8, metric=metric, **options)[0]
 
     np.testing.assert_array_equal(ours(descriptors0, descriptors1), two_way)
     np.testing.assert_array_equal(ours(descriptors0, descriptors1, ratio_test_on="rows"), one_way)
@@ -119,7 +114,7 @@ def test_ratio_is_two_way_as_hlocs_or_rows_only_one_way(seed, metric):
 )
 def test_unknown_option_values_are_named(option, message):
     with pytest.raises(ValueError, match=message):
-        nearest_neighbour_matches(torch.ones((2, 4)), torch.ones((2, 4)), ratio_threshold=0.8, **option)
+        nearest_neighbour_matches(np.ones((2, 4)), np.ones((2, 4)), ratio_threshold=0.8, **option)
 
 
 RULES = [
@@ -145,33 +140,40 @@ def test_l2_matches_equal_hloc_rule_with_duplicated_descriptors(mutual, ratio, t
     expected = hloc_matches(distance, mutual, ratio, threshold)
 
     matches, scores = nearest_neighbour_matches(
-        torch.from_numpy(descriptors0),
-        torch.from_numpy(descriptors1),
-        mutual=mutual,
-        ratio_threshold=ratio,
-        distance_threshold=threshold,
+        descriptors0, descriptors1, mutual=mutual, ratio_threshold=ratio, distance_threshold=threshold
     )
 
     assert len(expected) > 20  # the case is not vacuous
-    np.testing.assert_array_equal(matches.numpy(), expected)
+    np.testing.assert_array_equal(matches, expected)
     similarity = 1 - distance[expected[:, 0], expected[:, 1]] ** 2 / 2
-    np.testing.assert_allclose(scores.numpy(), (similarity + 1) / 2, atol=1e-5)
+    np.testing.assert_allclose(scores, (similarity + 1) / 2, atol=1e-5)
     if mutual:
-        assert len(np.unique(matches[:, 1].numpy())) == len(matches)  # one-to-one despite the duplicates
+        assert len(np.unique(matches[:, 1])) == len(matches)  # one-to-one despite the duplicates
 
 
 def test_empty_and_single_column_inputs():
-    empty, _ = nearest_neighbour_matches(torch.zeros((0, 8)), torch.ones((5, 8)), ratio_threshold=0.8)
+    empty, _ = nearest_neighbour_matches(np.zeros((0, 8)), np.ones((5, 8)), ratio_threshold=0.8)
     assert empty.shape == (0, 2)
     # One reference descriptor: the ratio test has no second neighbour and is skipped.
-    matches, _ = nearest_neighbour_matches(torch.eye(3), torch.eye(3)[:1], ratio_threshold=0.8)
-    np.testing.assert_array_equal(matches.numpy(), [[0, 0]])
+    eye = np.eye(3, dtype=np.float32)
+    matches, _ = nearest_neighbour_matches(eye, eye[:1], ratio_threshold=0.8)
+    np.testing.assert_array_equal(matches, [[0, 0]])
     # hloc skips it when either image has one descriptor, even where image 1 has two near ones.
-    near_pair = torch.tensor([[1.0, 0.0, 0.0], [0.99, 0.14, 0.0]])
-    matches, _ = nearest_neighbour_matches(torch.eye(3)[:1], near_pair, ratio_threshold=0.8)
-    np.testing.assert_array_equal(matches.numpy(), [[0, 0]])
-    distance = _l2_distance(np.eye(3)[:1], near_pair.numpy())
+    near_pair = np.array([[1.0, 0.0, 0.0], [0.99, 0.14, 0.0]], np.float32)
+    matches, _ = nearest_neighbour_matches(eye[:1], near_pair, ratio_threshold=0.8)
+    np.testing.assert_array_equal(matches, [[0, 0]])
+    distance = _l2_distance(eye[:1], near_pair)
     np.testing.assert_array_equal(hloc_matches(distance, True, 0.8, None), [[0, 0]])
+    # The same on binary descriptors (Hamming).
+    binary0 = np.random.default_rng(3).integers(0, 256, (20, 32), dtype=np.uint8)
+    one = binary0[4:5] ^ np.uint8(1)
+    for mutual in (True, False):
+        for rows, columns in ((binary0, one), (one, binary0)):
+            matches, _ = hamming_nearest_neighbour_matches(rows, columns, mutual=mutual, ratio_threshold=0.8)
+            np.testing.assert_array_equal(matches, hloc_matches(bit_distances(rows, columns), mutual, 0.8, None))
+    matches, scores = hamming_nearest_neighbour_matches(binary0[:0], binary0, ratio_threshold=0.8)
+    assert matches.shape == (0, 2) and scores.shape == (0,)
+    assert hamming_nearest_neighbour_matches(binary0, binary0[:0])[0].shape == (0, 2)
 
 
 # hloc/match_features.py (the authors' fork, gvbench@427cc99) as (mutual, ratio, distance):
@@ -299,22 +301,6 @@ def test_hamming_ties_go_to_the_lower_index():
     # A tie at the nearest distance fails the ratio test (d1 == d2), unless both are 0 bits.
     matches, _ = hamming_nearest_neighbour_matches(binary0, binary1, mutual=False, ratio_threshold=0.8)
     np.testing.assert_array_equal(matches, [[1, 0]])
-
-
-def test_hamming_single_descriptor_and_empty_sides():
-    rng = np.random.default_rng(3)
-    binary0 = rng.integers(0, 256, (20, 32), dtype=np.uint8)
-    one = binary0[4:5] ^ np.uint8(1)
-    for mutual in (True, False):
-        matches, scores = hamming_nearest_neighbour_matches(binary0, one, mutual=mutual, ratio_threshold=0.8)
-        expected = hloc_matches(bit_distances(binary0, one), mutual, 0.8, None)
-        np.testing.assert_array_equal(matches, expected)
-        matches, _ = hamming_nearest_neighbour_matches(one, binary0, mutual=mutual, ratio_threshold=0.8)
-        np.testing.assert_array_equal(matches, hloc_matches(bit_distances(one, binary0), mutual, 0.8, None))
-    matches, scores = hamming_nearest_neighbour_matches(binary0[:0], binary0, ratio_threshold=0.8)
-    assert matches.shape == (0, 2) and scores.shape == (0,)
-    matches, _ = hamming_nearest_neighbour_matches(binary0, binary0[:0])
-    assert matches.shape == (0, 2)
 
 
 def test_the_nn_matcher_dispatches_hamming_here():

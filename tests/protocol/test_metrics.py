@@ -23,17 +23,12 @@ def test_average_precision_equals_scikit_learn_on_random_scores():
     [
         ([1, 1, 0, 1, 0], [50, 40, 30, 20, 10], 2 / 3),  # T T F T F: precision 1.0 down to recall 2/3
         ([0, 1, 1, 1], [99, 50, 40, 30], 0.0),  # a false pair scores highest
+        ([1, 0, 1], [10, 10, 5], 0.0),  # the best true pair ties with a false one: precision 1/2 there
+        ([1, 1, 0, 1], [10, 10, 5, 1], 2 / 3),  # a tie among true pairs only keeps precision 1
     ],
 )
-def test_max_recall_hand_computed(labels, scores, expected):
+def test_max_recall_hand_computed_ties_counting_against_precision(labels, scores, expected):
     assert max_recall_at_full_precision(np.array(labels), np.array(scores)) == pytest.approx(expected)
-
-
-def test_max_recall_counts_ties_against_precision():
-    # The best true pair ties with a false pair: at that threshold precision is 1/2, so MR = 0.
-    assert max_recall_at_full_precision(np.array([1, 0, 1]), np.array([10, 10, 5])) == 0.0
-    # A tie among true pairs only keeps precision 1.
-    assert max_recall_at_full_precision(np.array([1, 1, 0, 1]), np.array([10, 10, 5, 1])) == pytest.approx(2 / 3)
 
 
 def test_perfect_separation():

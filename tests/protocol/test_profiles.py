@@ -75,6 +75,8 @@ def test_to_verifier_frame_maps_pixel_centres():
     mapped = ransac.to_verifier_frame(corners, np.array([1280, 960]), conf)
     np.testing.assert_allclose(mapped, [[-0.5, -0.5], [511.5, 287.5]])
     assert ransac.to_verifier_frame(corners, None, {"coordinates": "original"}) is corners
+    with pytest.raises(ValueError, match="no original image size"):  # it says what to do
+        ransac.to_verifier_frame(corners, None, conf)
 
 
 def test_resized_coordinates_change_which_matches_are_inliers():
@@ -109,12 +111,6 @@ def test_resized_coordinates_change_which_matches_are_inliers():
     )
     assert original["inlier_mask"][40:].mean() > 0.95 and original["inlier_mask"][:40].mean() < 0.2
     assert resized["inlier_mask"].mean() > 0.95
-
-
-def test_resized_coordinates_without_image_size_say_what_to_do():
-    points0, points1 = five_matches()
-    with pytest.raises(ValueError, match="no original image size"):
-        ransac.to_verifier_frame(points0, None, {"coordinates": "resize_to", "resize_to": [512, 288]})
 
 
 def test_bilinear_antialias_resize_equals_pil_bilinear():

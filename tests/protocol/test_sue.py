@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from gvbench_nb.verification.sue import SLOPE, sue, sue_confidence, sue_weights
+from gvbench_nb.verification.sue import SLOPE, sue, sue_weights
 
 
 def test_clustered_more_confident_than_scattered():
@@ -13,19 +13,10 @@ def test_clustered_more_confident_than_scattered():
     distances = np.tile(np.linspace(0.9, 1.0, 10), (2, 1))
     clustered = rng.normal([100.0, 50.0], 1.0, (10, 2))
     scattered = rng.uniform(0, 500, (10, 2))
-    conf = sue_confidence(distances, np.stack([clustered, scattered]))
+    conf = -sue(distances, np.stack([clustered, scattered]))
     assert conf.shape == (2,)
     assert conf[0] > conf[1]
     assert np.all(conf <= 0)
-
-
-def test_equal_distances_give_plain_variance():
-    rng = np.random.default_rng(1)
-    positions = rng.uniform(-10, 10, (5, 10, 2))
-    distances = np.full((5, 10), 0.7)
-    expected = positions.var(axis=1).mean(axis=1)  # (var_x + var_y) / 2, population variance
-    np.testing.assert_allclose(sue(distances, positions), expected, rtol=1e-12)
-    np.testing.assert_allclose(sue_confidence(distances, positions), -expected, rtol=1e-12)
 
 
 def test_weights_normalised_and_follow_formula():
@@ -49,21 +40,18 @@ def test_weighted_mean_and_spread_by_hand():
     assert sue(d, positions)[0] == pytest.approx(a * (1 - a) * 100 / 2)
 
 
-def test_one_dimensional_frame_index():
+def test_equal_distances_give_plain_variance_of_2d_and_1d_positions():
+    rng = np.random.default_rng(1)
+    positions = rng.uniform(-10, 10, (5, 10, 2))
+    distances = np.full((5, 10), 0.7)
+    expected = positions.var(axis=1).mean(axis=1)  # (var_x + var_y) / 2, population variance
+    np.testing.assert_allclose(sue(distances, positions), expected, rtol=1e-12)
     distances = np.full((2, 5), 1.0)
     frames = np.array([[100, 101, 102, 103, 104], [100, 400, 20, 900, 5]], dtype=float)
     s = sue(distances, frames)
     np.testing.assert_allclose(s, frames.var(axis=1))
-    assert sue_confidence(distances, frames)[0] > sue_confidence(distances, frames)[1]
     # 1-D equals 2-D with a constant second axis times 2 (mean over one axis, not two)
     flat = np.stack([frames, np.zeros_like(frames)], axis=-1)
     np.testing.assert_allclose(sue(distances, flat) * 2, s)
-
-
-def test_single_query_and_top_k():
-    d = np.array([0.1, 0.1, 0.1, 0.1])
-    p = np.array([[0, 0], [0, 0], [50, 50], [90, 90]], dtype=float)
-    assert sue(d, p).shape == (1,)
-    assert sue(d, p, k=2)[0] == 0.0
-    with pytest.raises(ValueError):
+    with pytest.raises(ValueError, match="do not match"):
         sue(np.zeros((2, 3)), np.zeros((2, 4, 2)))

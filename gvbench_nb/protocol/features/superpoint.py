@@ -13,7 +13,7 @@ import torch.nn.functional as F
 from torch import Tensor, nn
 
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.features.base import Extractor, Features, to_tensor
+from gvbench_nb.protocol.features.base import Extractor, Features, as_features, to_tensor
 
 CHECKPOINT = "superpoint_v1"
 
@@ -101,17 +101,13 @@ class SuperPoint(nn.Module):
 
         self.relu = nn.ReLU(inplace=True)
         self.pool = nn.MaxPool2d(kernel_size=2, stride=2)
-        c1, c2, c3, c4, c5 = 64, 64, 128, 128, 256
-
-        # Shared VGG-style encoder: four blocks of two 3x3 convs, pooling after 1-3.
-        self.conv1a = nn.Conv2d(1, c1, kernel_size=3, stride=1, padding=1)
-        self.conv1b = nn.Conv2d(c1, c1, kernel_size=3, stride=1, padding=1)
-        self.conv2a = nn.Conv2d(c1, c2, kernel_size=3, stride=1, padding=1)
-        self.conv2b = nn.Conv2d(c2, c2, kernel_size=3, stride=1, padding=1)
-        self.conv3a = nn.Conv2d(c2, c3, kernel_size=3, stride=1, padding=1)
-        self.conv3b = nn.Conv2d(c3, c3, kernel_size=3, stride=1, padding=1)
-        self.conv4a = nn.Conv2d(c3, c4, kernel_size=3, stride=1, padding=1)
-        self.conv4b = nn.Conv2d(c4, c4, kernel_size=3, stride=1, padding=1)
+        # Shared VGG-style encoder: four blocks of two 3x3 convs (conv1a, conv1b, ..., conv4b),
+        # pooling after blocks 1-3; registered in the release's order, which names its tensors.
+        channels = (1, 64, 64, 128, 128)
+        for block in range(1, 5):
+            self.add_module(f"conv{block}a", nn.Conv2d(channels[block - 1], channels[block], 3, stride=1, padding=1))
+            self.add_module(f"conv{block}b", nn.Conv2d(channels[block], channels[block], 3, stride=1, padding=1))
+        c4, c5 = 128, 256
 
         # Detector head: 64 pixel positions of an 8x8 cell + 1 "no keypoint" bin.
         self.convPa = nn.Conv2d(c4, c5, kernel_size=3, stride=1, padding=1)
@@ -123,14 +119,12 @@ class SuperPoint(nn.Module):
 
     def encode(self, image: Tensor) -> Tensor:
         """Shared encoder: (B, 1, H, W) -> (B, 128, H/8, W/8)."""
-        x = self.relu(self.conv1a(image))
-        x = self.pool(self.relu(self.conv1b(x)))
-        x = self.relu(self.conv2a(x))
-        x = self.pool(self.relu(self.conv2b(x)))
-        x = self.relu(self.conv3a(x))
-        x = self.pool(self.relu(self.conv3b(x)))
-        x = self.relu(self.conv4a(x))
-        return self.relu(self.conv4b(x))
+        x = image
+        for block in range(1, 5):
+            x = self.relu(getattr(self, f"conv{block}a")(x))
+            x = self.relu(getattr(self, f"conv{block}b")(x))
+            x = self.pool(x) if block < 4 else x
+        return x
 
     def dense_scores(self, features: Tensor) -> Tensor:
         """Detector head -> full-resolution keypoint probabilities (B, 8h, 8w), before NMS."""
@@ -169,20 +163,11 @@ class SuperPoint(nn.Module):
         descriptors_all = [sample_descriptors(k[None], d[None], 8)[0].t() for k, d in zip(keypoints_all, dense)]
         return {"keypoints": keypoints_all, "scores": scores_all, "descriptors": descriptors_all}
 
-    @classmethod
-    def from_pretrained(cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperPoint:
-        """Same as :func:`load_superpoint`."""
-        return load_superpoint(conf, device)
-
 
 def load_superpoint(conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperPoint:
     """SuperPoint with the official ``superpoint_v1.pth`` weights, in eval mode; raises
     ``MissingWeightsError`` or ``WeightsLayoutError`` (see ``weights``)."""
-    (path,) = weights.require(CHECKPOINT)
-    model = SuperPoint(conf)
-    # Magic Leap ships a bare state dict.
-    weights.load_state_dict_strict(model, weights.load_checkpoint(path), str(path))
-    return model.eval().to(device)
+    return weights.load_pretrained(SuperPoint(conf), CHECKPOINT, device)
 
 
 class SuperPointExtractor(Extractor):
@@ -193,13 +178,9 @@ class SuperPointExtractor(Extractor):
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device
         model_conf = {k: conf[k] for k in ("nms_radius", "keypoint_threshold", "max_keypoints", "remove_borders")}
-        self.model = load_superpoint(model_conf, device=device).eval()
+        self.model = load_superpoint(model_conf, device=device)
 
     @torch.inference_mode()
     def __call__(self, image: np.ndarray) -> Features:
         output = self.model(to_tensor(image, self.device))
-        return {
-            "keypoints": output["keypoints"][0].cpu().numpy().astype(np.float32),
-            "scores": output["scores"][0].cpu().numpy().astype(np.float32),
-            "descriptors": output["descriptors"][0].cpu().numpy().astype(np.float32),
-        }
+        return as_features(output["keypoints"][0], output["scores"][0], output["descriptors"][0])

@@ -116,22 +116,6 @@ def _projections(cross: CrossBlock, x: torch.Tensor) -> tuple[torch.Tensor, torc
     return query_key * cross.scale**0.5, value
 
 
-def _first_cross_block(
-    model: LightGlue, image0: PreparedImage, image1: PreparedImage, attention: str
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """kornia ``CrossBlock.forward`` of layer 0 from prepared projections."""
-    return _cross_block(
-        _transformer(model, 0).cross_attn,
-        image0.descriptors,
-        image1.descriptors,
-        image0.query_key,
-        image1.query_key,
-        image0.value,
-        image1.value,
-        attention,
-    )
-
-
 def _layer(
     model: LightGlue,
     index: int,
@@ -172,11 +156,6 @@ def match_prepared(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Matches (K, 2) and scores (K,) of one pair from its prepared images, as kornia's ``model(...)``
     with ``cross_attention="kornia"``; ``"sdpa"`` (``_cross_messages``) can change a near-threshold match."""
-    if cross_attention not in CROSS_ATTENTIONS:
-        raise ValueError(
-            f"unknown LightGlue cross_attention {cross_attention!r} in the matcher conf; "
-            f"use one of {', '.join(CROSS_ATTENTIONS)}"
-        )
     if image0.descriptors.device.type == "cuda" and _transformer(model, 0).cross_attn.flash is not None:
         raise ValueError(
             "match_prepared reproduces LightGlue's CPU cross-attention only; use LightGlue.forward on CUDA"
@@ -192,8 +171,17 @@ def match_prepared(
     encoding0, encoding1 = image0.encoding, image1.encoding
     desc0 = desc1 = None
     for i in range(conf.n_layers):
-        if i == 0:
-            desc0, desc1 = _first_cross_block(model, image0, image1, cross_attention)
+        if i == 0:  # kornia's CrossBlock.forward of layer 0, from the prepared projections
+            desc0, desc1 = _cross_block(
+                _transformer(model, 0).cross_attn,
+                image0.descriptors,
+                image1.descriptors,
+                image0.query_key,
+                image1.query_key,
+                image0.value,
+                image1.value,
+                cross_attention,
+            )
         else:
             assert desc0 is not None and desc1 is not None, "layer 0 sets the descriptors"
             desc0, desc1 = _layer(model, i, desc0, desc1, encoding0, encoding1, cross_attention)

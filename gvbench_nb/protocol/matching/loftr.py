@@ -44,16 +44,16 @@ class LoFTRMatcher(Matcher):
     def __init__(self, conf: dict[str, Any], device: torch.device):
         from kornia.feature import LoFTR
 
-        (path,) = weights.require(*conf["checkpoints"])
         self.device = device
         self.swap_images = conf.get("swap_images", True)
-        self.model = LoFTR(pretrained=None)
-        self.model.coarse_matching.thr = conf.get("coarse_threshold", 0.2)
-        checkpoint = weights.load_checkpoint(path)
-        state_dict = checkpoint.get("state_dict", checkpoint)
-        state_dict = {k.removeprefix("matcher."): v for k, v in state_dict.items()}
-        weights.load_state_dict_strict(self.model, state_dict, str(path))
-        self.model = self.model.to(device).eval()
+        model = LoFTR(pretrained=None)
+        model.coarse_matching.thr = conf.get("coarse_threshold", 0.2)
+
+        def unwrap(checkpoint: dict[str, Any]) -> dict[str, Any]:
+            return {k.removeprefix("matcher."): v for k, v in checkpoint.get("state_dict", checkpoint).items()}
+
+        (checkpoint,) = conf["checkpoints"]
+        self.model = weights.load_pretrained(model, checkpoint, device, unwrap)
 
     @torch.inference_mode()
     def __call__(self, image0: np.ndarray, image1: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

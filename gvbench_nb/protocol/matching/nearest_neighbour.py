@@ -14,34 +14,33 @@ from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
 
 def nearest_neighbour_matches(
-    descriptors0: torch.Tensor,
-    descriptors1: torch.Tensor,
+    descriptors0: np.ndarray,
+    descriptors1: np.ndarray,
     mutual: bool = True,
     ratio_threshold: float | None = None,
     distance_threshold: float | None = None,
     metric: str = "l2",
     ratio_test_on: str = "rows_and_columns",
-) -> tuple[torch.Tensor, torch.Tensor]:
+    device: torch.device | str = "cpu",
+) -> Matches:
     """Nearest-neighbour matches with hloc's rule (``hloc/matchers/nearest_neighbor.py``):
-    ``l2`` through ``two_way_l2_matches``, ``hamming`` (binary uint8 descriptors) through
-    ``hamming_nearest_neighbour_matches``. Returns (matches (M, 2) long, scores (M,) float)."""
+    ``l2`` through ``two_way_l2_matches`` (on ``device``), ``hamming`` (binary uint8 descriptors)
+    through ``hamming_nearest_neighbour_matches``. Returns (matches (M, 2) int64, scores (M,) float32)."""
     check_ratio_test_on(ratio_test_on)
-    if metric == "l2":
-        return two_way_l2_matches(
+    registry.check_choice("metric", metric, ("l2", "hamming"))
+    if metric == "hamming":
+        return hamming_nearest_neighbour_matches(
             descriptors0, descriptors1, mutual, ratio_threshold, distance_threshold, ratio_test_on
         )
-    if metric == "hamming":
-        matches, scores = hamming_nearest_neighbour_matches(
-            descriptors0.cpu().numpy(),
-            descriptors1.cpu().numpy(),
-            mutual,
-            ratio_threshold,
-            distance_threshold,
-            ratio_test_on,
-        )
-        return torch.from_numpy(matches), torch.from_numpy(scores)
-    registry.check_choice("metric", metric, ("l2", "hamming"))
-    raise AssertionError("unreachable")
+    matches, scores = two_way_l2_matches(
+        torch.as_tensor(descriptors0).to(device),
+        torch.as_tensor(descriptors1).to(device),
+        mutual,
+        ratio_threshold,
+        distance_threshold,
+        ratio_test_on,
+    )
+    return matches.numpy().astype(np.int64), scores.numpy().astype(np.float32)
 
 
 # Where the Lowe ratio test applies under the mutual check: hloc applies it to the rows AND the
@@ -54,12 +53,10 @@ def check_ratio_test_on(ratio_test_on: str) -> None:
     registry.check_choice("ratio_test_on", ratio_test_on, RATIO_TEST_ON)
 
 
-def hamming_distances(
-    descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64, threads: int | None = None
-) -> np.ndarray:
+def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
     """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors: popcount of the XOR of
-    64-bit words, in cache-sized row blocks spread over ``threads`` threads (numpy releases the GIL;
-    default OpenCV's thread count, as the L2 product uses)."""
+    64-bit words, in cache-sized row blocks spread over OpenCV's thread count, as the L2 product
+    uses (numpy releases the GIL)."""
     n_bytes = descriptors0.shape[1]
     padded = -n_bytes % 8
 
@@ -86,7 +83,7 @@ def hamming_distances(
                 block += count[:n]
 
     starts = range(0, len(words0), rows_per_block)
-    threads = max(1, min(threads or cv2.getNumThreads(), len(starts)))
+    threads = max(1, min(cv2.getNumThreads(), len(starts)))
     if threads == 1:
         fill(starts)
     else:
@@ -273,29 +270,12 @@ def two_nearest_l2_as_opencv(
     return nearest, root(norms0 - 2 * best), root(norms0 - 2 * runner_up)
 
 
-def knn_ratio_matches(distance: np.ndarray, ratio_threshold: float) -> tuple[np.ndarray, np.ndarray]:
-    """The repository's rule: nearest column kept when strictly below ``ratio_threshold`` times the
-    second-nearest (float64, as Python compares OpenCV's float32); ties never pass; one column keeps
-    nothing. Returns (matches (M, 2) int64, nearest distances (M,) float64)."""
-    if distance.shape[0] == 0 or distance.shape[1] < 2:
-        return np.zeros((0, 2), np.int64), np.zeros((0,), np.float64)
-    return knn_ratio_of_nearest(*_two_nearest(distance), ratio_threshold)
-
-
-def knn_ratio_of_nearest(
-    nearest: np.ndarray, first: np.ndarray, second: np.ndarray, ratio_threshold: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """``knn_ratio_matches`` given each row's nearest column and two smallest distances."""
-    keep = first < ratio_threshold * second
-    rows = np.flatnonzero(keep)
-    return np.stack([rows, nearest[rows]], axis=1).astype(np.int64), first[rows]
-
-
 class NearestNeighbourMatcher(Matcher):
     type = "nn"
 
     def __init__(self, conf: dict[str, Any], device: torch.device):
         check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
+        registry.check_choice("metric", conf.get("metric", "l2"), ("l2", "hamming"))
         check_rule(conf.get("rule", "hloc"))
         if conf.get("rule", "hloc") == "knn_ratio" and (conf.get("mutual") or not conf.get("ratio_threshold")):
             raise ValueError(
@@ -305,24 +285,22 @@ class NearestNeighbourMatcher(Matcher):
         self.conf, self.device = conf, device
 
     def knn_ratio(self, descriptors0: np.ndarray, descriptors1: np.ndarray) -> Matches:
-        """The repository's OpenCV rule (``knn_ratio_matches``) on raw descriptors: Hamming bits
-        for binary ones, OpenCV's L2 distance for float ones. Scores: 1 - distance / bits, or
-        (cosine similarity + 1) / 2 (the repository applies no score filter)."""
-        if len(descriptors0) == 0 or len(descriptors1) == 0:
+        """The repository's OpenCV rule on raw descriptors (Hamming bits for binary ones, OpenCV's L2
+        distance for float ones): each row's nearest column, kept when strictly below
+        ``ratio_threshold`` times the second-nearest (float64, as Python compares OpenCV's float32;
+        ties never pass; one column keeps nothing). Scores: 1 - distance / bits, or (cosine
+        similarity + 1) / 2 (the repository applies no score filter)."""
+        if len(descriptors0) == 0 or len(descriptors1) < 2:
             return empty_matches()
         hamming = self.conf.get("metric", "l2") == "hamming"
         if hamming:
-            matches, first = knn_ratio_matches(
-                hamming_distances(descriptors0, descriptors1), self.conf["ratio_threshold"]
-            )
-        elif len(descriptors1) < 2:
-            return empty_matches()  # no second neighbour (``knn_ratio_matches``)
+            nearest, first, second = _two_nearest(hamming_distances(descriptors0, descriptors1))
         else:
-            matches, first = knn_ratio_of_nearest(
-                *two_nearest_l2_as_opencv(descriptors0, descriptors1), self.conf["ratio_threshold"]
-            )
+            nearest, first, second = two_nearest_l2_as_opencv(descriptors0, descriptors1)
+        rows = np.flatnonzero(first < self.conf["ratio_threshold"] * second)
+        matches = np.stack([rows, nearest[rows]], axis=1).astype(np.int64)
         if hamming:
-            return matches, (1 - first / (8 * descriptors0.shape[1])).astype(np.float32)
+            return matches, (1 - first[rows] / (8 * descriptors0.shape[1])).astype(np.float32)
         a = descriptors0[matches[:, 0]].astype(np.float64)
         b = descriptors1[matches[:, 1]].astype(np.float64)
         norms = np.maximum(np.linalg.norm(a, axis=1) * np.linalg.norm(b, axis=1), 1e-12)
@@ -331,22 +309,13 @@ class NearestNeighbourMatcher(Matcher):
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
         if self.conf.get("rule", "hloc") == "knn_ratio":
             return self.knn_ratio(features0["descriptors"], features1["descriptors"])
-        if self.conf.get("metric", "l2") == "hamming":
-            return hamming_nearest_neighbour_matches(
-                features0["descriptors"],
-                features1["descriptors"],
-                mutual=self.conf.get("mutual", True),
-                ratio_threshold=self.conf.get("ratio_threshold"),
-                distance_threshold=self.conf.get("distance_threshold"),
-                ratio_test_on=self.conf.get("ratio_test_on", "rows_and_columns"),
-            )
-        matches, scores = nearest_neighbour_matches(
-            torch.from_numpy(features0["descriptors"]).to(self.device),
-            torch.from_numpy(features1["descriptors"]).to(self.device),
+        return nearest_neighbour_matches(
+            features0["descriptors"],
+            features1["descriptors"],
             mutual=self.conf.get("mutual", True),
             ratio_threshold=self.conf.get("ratio_threshold"),
             distance_threshold=self.conf.get("distance_threshold"),
             metric=self.conf.get("metric", "l2"),
             ratio_test_on=self.conf.get("ratio_test_on", "rows_and_columns"),
+            device=self.device,
         )
-        return matches.numpy().astype(np.int64), scores.numpy().astype(np.float32)

@@ -19,36 +19,23 @@ from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 CHECKPOINTS = {"outdoor": "superglue_outdoor"}
 
 
-def mlp(channels: Sequence[int], do_bn: bool = True) -> nn.Sequential:
+def mlp(channels: Sequence[int]) -> nn.Sequential:
     """1x1 Conv1d layers with BatchNorm + ReLU between them; the Sequential indices are the
     checkpoint's tensor names, so the layer order matters."""
     layers: list[nn.Module] = []
     for i in range(1, len(channels)):
         layers.append(nn.Conv1d(channels[i - 1], channels[i], kernel_size=1, bias=True))
         if i < len(channels) - 1:
-            if do_bn:
-                layers.append(nn.BatchNorm1d(channels[i]))
-            layers.append(nn.ReLU())
+            layers += [nn.BatchNorm1d(channels[i]), nn.ReLU()]
     return nn.Sequential(*layers)
 
 
-def _image_size_wh(size: Any, batch: int, like: Tensor) -> Tensor:
-    """(H, W) given as a tuple, a (2,) tensor or a (B, 2) tensor -> (B, 2) as (W, H)."""
-    size_t = torch.as_tensor(size, dtype=like.dtype, device=like.device)
-    if size_t.dim() == 1:
-        size_t = size_t[None].expand(batch, 2)
-    if size_t.shape != (batch, 2):
-        raise ValueError(f"image size must be (H, W) or (B, 2), got shape {tuple(size_t.shape)}")
-    return size_t.flip(-1)
-
-
-def normalize_keypoints(kpts: Tensor, image_size: Any) -> Tensor:
+def normalize_keypoints(kpts: Tensor, image_size: tuple[int, int]) -> Tensor:
     """Centre (B, N, 2) keypoints on the image of ``image_size`` (H, W) and scale by 0.7 * the
     longest side."""
-    size = _image_size_wh(image_size, kpts.shape[0], kpts)  # (B, 2) as (W, H)
-    center = size / 2
-    scaling = size.max(dim=1, keepdim=True).values * 0.7
-    return (kpts - center[:, None, :]) / scaling[:, None, :]
+    height, width = image_size
+    size = kpts.new_tensor([width, height])
+    return (kpts - size / 2) / (size.max() * 0.7)
 
 
 class KeypointEncoder(nn.Module):
@@ -80,21 +67,16 @@ class MultiHeadedAttention(nn.Module):
         self.merge = nn.Conv1d(d_model, d_model, kernel_size=1)
         self.proj = nn.ModuleList([deepcopy(self.merge) for _ in range(3)])
 
-    def split_heads(self, x: Tensor) -> Tensor:
-        """(B, dim*heads, N) -> (B, heads, N, dim), head index fastest in the channels."""
-        b, _, n = x.shape
-        return x.view(b, self.dim, self.num_heads, n).permute(0, 2, 3, 1)
-
-    def merge_heads(self, x: Tensor) -> Tensor:
-        """(B, heads, N, dim) -> (B, dim*heads, N), inverse of :meth:`split_heads`."""
-        b, _, n, _ = x.shape
-        return x.permute(0, 3, 1, 2).reshape(b, self.dim * self.num_heads, n)
-
     def forward(self, query: Tensor, key: Tensor, value: Tensor) -> Tensor:
-        q, k, v = (self.split_heads(layer(x)) for layer, x in zip(self.proj, (query, key, value)))
+        # (B, dim*heads, N) -> (B, heads, N, dim), head index fastest in the channels.
+        b, _, n = query.shape
+        q, k, v = (
+            layer(x).unflatten(1, (self.dim, self.num_heads)).permute(0, 2, 3, 1)
+            for layer, x in zip(self.proj, (query, key, value))
+        )
         # softmax(q k^T / sqrt(dim)) v; the fused kernel saves memory on long sets.
         out = F.scaled_dot_product_attention(q, k, v)
-        return self.merge(self.merge_heads(out))
+        return self.merge(out.permute(0, 3, 1, 2).reshape(b, self.dim * self.num_heads, n))
 
 
 class AttentionalPropagation(nn.Module):
@@ -166,7 +148,7 @@ def log_optimal_transport(scores: Tensor, alpha: Tensor, iters: int) -> Tensor:
 
 class SuperGlue(nn.Module):
     """SuperGlue with the official checkpoint's layout. ``forward`` takes ``keypoints0/1`` (B, N, 2),
-    ``scores0/1``, ``descriptors0/1`` (B, N, D) and ``image_size0/1`` (H, W) (or ``image0/1``), and
+    ``scores0/1``, ``descriptors0/1`` (B, N, D) and ``image_size0/1`` (H, W), and
     returns mutual ``matches0/1`` (-1 unmatched, also below ``match_threshold``) and
     ``matching_scores0/1``, as in the release. Call ``eval()`` first (``load_superglue`` does)."""
 
@@ -189,14 +171,6 @@ class SuperGlue(nn.Module):
         self.final_proj = nn.Conv1d(dim, dim, kernel_size=1, bias=True)
         self.bin_score = nn.Parameter(torch.tensor(1.0))
 
-    @staticmethod
-    def _image_size(data: Mapping[str, Any], i: int) -> Any:
-        if f"image_size{i}" in data:
-            return data[f"image_size{i}"]
-        if f"image{i}" in data:
-            return tuple(data[f"image{i}"].shape[-2:])
-        raise KeyError(f"SuperGlue needs 'image_size{i}' (H, W) or 'image{i}'")
-
     def forward(self, data: Mapping[str, Any]) -> dict[str, Tensor]:
         kpts0, kpts1 = data["keypoints0"], data["keypoints1"]
         desc0 = data["descriptors0"].transpose(1, 2)  # (B, N, D) -> (B, D, N)
@@ -212,8 +186,8 @@ class SuperGlue(nn.Module):
             }
 
         # Positional encoding, on normalised coordinates.
-        norm0 = normalize_keypoints(kpts0, self._image_size(data, 0))
-        norm1 = normalize_keypoints(kpts1, self._image_size(data, 1))
+        norm0 = normalize_keypoints(kpts0, data["image_size0"])
+        norm1 = normalize_keypoints(kpts1, data["image_size1"])
         desc0 = desc0 + self.kenc(norm0, data["scores0"])
         desc1 = desc1 + self.kenc(norm1, data["scores1"])
 
@@ -223,11 +197,6 @@ class SuperGlue(nn.Module):
         scores = torch.einsum("bdn,bdm->bnm", mdesc0, mdesc1) / self.conf["descriptor_dim"] ** 0.5
         scores = log_optimal_transport(scores, self.bin_score, self.conf["sinkhorn_iterations"])
         return mutual_matches(scores, self.conf["match_threshold"])
-
-    @classmethod
-    def from_pretrained(cls, conf: Mapping[str, Any] | None = None, device: str | torch.device = "cpu") -> SuperGlue:
-        """Same as :func:`load_superglue`."""
-        return load_superglue(conf, device)
 
 
 def mutual_matches(log_assignment: Tensor, threshold: float) -> dict[str, Tensor]:
@@ -259,10 +228,9 @@ def load_superglue(conf: Mapping[str, Any] | None = None, device: str | torch.de
     ``MissingWeightsError`` or ``WeightsLayoutError`` (see ``weights``)."""
     model = SuperGlue(conf)
     which = model.conf["weights"]
-    (path,) = weights.require(registry.lookup("SuperGlue weights", which, CHECKPOINTS, error=ValueError))
-    # Magic Leap ships a bare state dict.
-    weights.load_state_dict_strict(model, weights.load_checkpoint(path), str(path))
-    return model.eval().to(device)
+    return weights.load_pretrained(
+        model, registry.lookup("SuperGlue weights", which, CHECKPOINTS, error=ValueError), device
+    )
 
 
 class SuperGlueMatcher(Matcher):
@@ -273,18 +241,17 @@ class SuperGlueMatcher(Matcher):
     def __init__(self, conf: dict[str, Any], device: torch.device):
         self.device = device
         model_conf: dict[str, Any] = {k: conf[k] for k in ("sinkhorn_iterations", "match_threshold") if k in conf}
-        self.model = load_superglue(model_conf, device=device).eval()
+        self.model = load_superglue(model_conf, device=device)
 
     @torch.inference_mode()
     def __call__(self, features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> Matches:
         if len(features0["keypoints"]) == 0 or len(features1["keypoints"]) == 0:
             return empty_matches()
-        data: dict[str, Tensor | tuple[int, int]] = {}
+        data: dict[str, Any] = {}
         for i, features in enumerate((features0, features1)):
+            for key in ("keypoints", "scores", "descriptors"):
+                data[f"{key}{i}"] = torch.from_numpy(features[key]).float()[None].to(self.device)
             width, height = (int(v) for v in features["image_size"])
-            data[f"keypoints{i}"] = torch.from_numpy(features["keypoints"]).float()[None].to(self.device)
-            data[f"scores{i}"] = torch.from_numpy(features["scores"]).float()[None].to(self.device)
-            data[f"descriptors{i}"] = torch.from_numpy(features["descriptors"]).float()[None].to(self.device)
             data[f"image_size{i}"] = (height, width)
         output = self.model(data)
         matches0 = output["matches0"][0].cpu().numpy()

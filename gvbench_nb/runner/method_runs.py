@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import datetime as _dt
 import json
 import time
 from collections import Counter
@@ -11,6 +10,7 @@ from typing import Any
 
 import pandas as pd
 
+from gvbench_nb import __version__
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
@@ -203,7 +203,20 @@ def write_results(
             record.check_no_foreign_files(output_dir, written)
         with record.pending(output_dir if in_place else None, written):
             table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-            write_method_outputs(folder, sequence, conf, seed, environment, this_run, table, device)
+            atomic_write_json(
+                folder / "run.json",
+                {
+                    **result_identity(sequence, conf, seed, device),
+                    "n_pairs": len(sequence.pairs),
+                    "pairs": sequence.origin,
+                    "package_version": __version__,
+                    "run_id": record.stage_run_id(output_dir),
+                    "environment": environment,
+                    "this_run": this_run,
+                    "finished_at": record.now(),
+                },
+            )
+            atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
             if in_place:
                 record_method_in_place(output_dir, conf["method"], sequence)
     finally:
@@ -233,51 +246,17 @@ def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) ->
         entry["methods"][method] = {**binding, "files": written}
 
 
-def write_method_outputs(
-    folder: Path,
-    sequence: Sequence,
-    conf: dict[str, Any],
-    seed: int,
-    environment: dict[str, Any],
-    this_run: dict[str, Any],
-    table: pd.DataFrame,
-    device: str = "auto",
-) -> None:
-    """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
-    finished run, ``methods_with_results``)."""
-    from gvbench_nb import __version__
-
-    atomic_write_json(
-        folder / "run.json",
-        {
-            **result_identity(sequence, conf, seed, device),
-            "n_pairs": len(sequence.pairs),
-            "pairs": sequence.origin,
-            "package_version": __version__,
-            "run_id": record.stage_run_id(folder.parent),
-            "environment": environment,
-            "this_run": this_run,
-            "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        },
-    )
-    atomic_write_csv(folder / "pairs.csv", table)
-
-
-# ------------------------------------------------------------------- evaluation --
-def params_arguments(params: dict[str, Any]) -> dict[str, Any]:
-    """What a loaded params file sets for ``run_method`` and ``compute_method``: profile, output and
-    cache folders, device, seed and verifier overrides."""
-    return {
-        "profile": params["profile"],
-        "output_dir": Path(params["output_dir"]),
-        "cache_dir": Path(params["cache_dir"]),
-        "device": params["device"],
-        "seed": params["seed"],
-        "verifier": params.get("verifier") or None,
-    }
-
-
 def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
     """``run_method`` with what a loaded params file sets: profile, output and cache folders,
     device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
-    return run_method(sequence, method, **params_arguments(params), **options)
+    return run_method(
+        sequence,
+        method,
+        params["profile"],
+        Path(params["output_dir"]),
+        Path(params["cache_dir"]),
+        params["device"],
+        params["seed"],
+        verifier=params.get("verifier") or None,
+        **options,
+    )

@@ -5,7 +5,6 @@ a ``query reference label score`` table, published as one method like a run (``r
 from __future__ import annotations
 
 import csv
-import datetime as _dt
 import importlib
 import io
 import json
@@ -235,7 +234,7 @@ def _run_record(
         "environment": {"device": "imported"},
         "this_run": {},
         "imported": {"file": str(path), "sha256": file_sha256(path), "format": kind, "stated": stated},
-        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "finished_at": record.now(),
     }
 
 

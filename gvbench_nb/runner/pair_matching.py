@@ -69,22 +69,25 @@ class PreparedCache:
 
 
 class FeatureCache:
-    """Feature dicts by image name, read on first use, in a byte-bounded LRU (callers lock)."""
+    """Feature dicts by image name, read on first use, in a byte-bounded LRU; one thread reads at a time
+    (h5py serialises reads anyway, and a store's handle cache is not thread-safe)."""
 
     def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
         self.read = read
         self._entries = _bounded_lru(
             max_bytes, lambda entry: sum(v.nbytes for v in entry.values() if isinstance(v, np.ndarray))
         )
+        self._lock = threading.Lock()
 
     @property
     def nbytes(self) -> int:
         return int(self._entries.currsize)
 
     def get(self, name: str) -> dict[str, np.ndarray]:
-        if name not in self._entries:
-            self._entries[name] = self.read(name)
-        return self._entries[name]
+        with self._lock:
+            if name not in self._entries:
+                self._entries[name] = self.read(name)
+            return self._entries[name]
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -157,7 +160,6 @@ def match_and_verify(
         counts["matched"] = len(todo)
         return counts
     features = image_features.feature_store(cache_dir, conf["extractor"])
-    reading = threading.Lock()  # h5py serialises reads anyway; the handle cache is not thread-safe
 
     def read(name: str) -> dict[str, np.ndarray]:
         key = image_features.image_key(sequence.image_root, name)
@@ -166,18 +168,13 @@ def match_and_verify(
         return features.read(key)
 
     recent = FeatureCache(read)  # a query's candidates are consecutive and references recur
-
-    def load(name: str) -> dict[str, np.ndarray]:
-        with reading:
-            return recent.get(name)
-
     # Per-image work done once per image (LightGlue on a CPU); the first pair using it pays for it.
     prepared = (
         PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
     )
 
     def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
-        features0, features1 = load(pair.query), load(pair.reference)
+        features0, features1 = recent.get(pair.query), recent.get(pair.reference)
         start = time.perf_counter()
         if prepared is not None:
             pair_matches, match_scores = cast("PreparedMatcher", matcher).match_prepared(
@@ -332,14 +329,12 @@ def _match_dense_pairs(
     seed: int,
     progress: bool,
     flush_every: int,
-    output_dir: Path | None = None,
+    output_dir: Path,
 ) -> None:
     """Dense matchers (LoFTR, ``imm:``): merged as hloc's ``match_dense`` when the conf says so, else
     each pair's raw matches are verified as they come."""
     merge = dense_merge_options(conf["matcher"])
     if merge is not None:
-        if output_dir is None:
-            raise ValueError("merging dense matches needs the output_dir holding the raw matches")
         raw = raw_dense_store(output_dir, conf)
         _merge_and_verify_dense(sequence, todo, keys, conf, matcher, matches, raw, merge, seed, progress, flush_every)
         return

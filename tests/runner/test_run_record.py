@@ -276,20 +276,19 @@ def test_a_failed_rerun_leaves_the_folder_as_the_last_good_run_published_it(
     assert not stage.exists()
 
 
-def test_a_run_refused_before_work_leaves_nothing_and_names_the_params_file_once(tmp_path, capsys, notebooks_here):
-    path = params_file(tmp_path, image_root=str(tmp_path / "no-such-images"))
-    code, _, err = run_cli(capsys, "run", str(path))
-    assert code == 2 and err.count(str(path)) == 1, err
+def test_a_run_refused_before_work_leaves_nothing_and_names_the_params_file_once(
+    tmp_path, root, capsys, notebooks_here
+):
+    no_root = params_file(tmp_path, "no-root.yaml", image_root=str(tmp_path / "no-such-images"))
+    code, _, err = run_cli(capsys, "run", str(no_root))
+    assert code == 2 and err.count(str(no_root)) == 1, err
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
-
-
-def test_a_mistyped_pair_file_keeps_the_finished_run(tmp_path, root, capsys, notebooks_here):
+    # A mistyped pair file keeps the finished run.
     path = params_file(tmp_path)
     assert run_cli(capsys, "run", str(path))[0] == 0
     before = snapshot(tmp_path / "out")
     typo = params_file(tmp_path, "typo.yaml")
-    raw = yaml.safe_load(typo.read_text())
-    typo.write_text(yaml.safe_dump({**raw, "pairs": str(tmp_path / "params-pairs.txtt")}))
+    typo.write_text(yaml.safe_dump({**yaml.safe_load(typo.read_text()), "pairs": str(tmp_path / "params-pairs.txtt")}))
     code, _, err = run_cli(capsys, "run", str(typo))
     assert code == 2 and "does not exist" in one_sentence(err)
     assert snapshot(tmp_path / "out") == before

@@ -37,10 +37,7 @@ def test_a_shard_or_merge_on_other_labels_into_a_folder_of_other_methods_is_refu
         assert code == 2 and "holds results of orb-nn computed on other pairs, labels or images" in one_sentence(err)
         assert published(tmp_path / "out") == before
     assert not (tmp_path / "out" / "sift-opencv-nn" / "pairs.csv").exists()
-
-
-def test_a_merge_lists_every_method_of_the_folder(tmp_path, root, capsys, notebooks_here):
-    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    # On the folder's own pairs and labels, a merge's results.csv lists every method of the folder.
     sift = params_file(tmp_path, "sift.yaml", PAIRS, methods=["sift-opencv-nn"])
     assert run_cli(capsys, "run", str(sift), "--shard", "0/1")[0] == 0
     assert run_cli(capsys, "run", str(sift), "--merge")[0] == 0

@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -85,33 +84,16 @@ def match_shard(
     after: list[Any] | None = None,
 ) -> dict[str, Any]:
     """Phase 2 task: extract what is missing, match and verify pair shard ``index::count`` (``after``: order only)."""
-    from gvbench_nb.protocol.features.base import resolve_device  # imports torch
-
-    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.job_count())
     if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
         raise ValueError(
             f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
             "so its pairs cannot be matched in shards; run it with one matching shard"
         )
     shard = pair_shard(sequence, index, count)
-    resolved = resolve_device(device)
-    started = time.perf_counter()
-    extraction = (
-        image_features.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
-        if conf["extractor"]
-        else {"images": 0, "cached": 0, "extracted": 0}
+    work = method_runs.compute_method(
+        shard, conf, Path(output_dir), Path(cache_dir), device, seed, progress=False, threads=threads
     )
-    extracted = time.perf_counter()
-    matching = pair_matching.match_and_verify(
-        shard, conf, Path(cache_dir), Path(output_dir), resolved, seed, progress=False
-    )
-    return {
-        "shard": f"{index}/{count}",
-        "extraction": extraction,
-        "matching": matching,
-        "extract_wall_seconds": extracted - started,
-        "match_verify_wall_seconds": time.perf_counter() - extracted,
-    }
+    return {"shard": f"{index}/{count}", **work["this_run"]}
 
 
 # ------------------------------------------------------------------------- merge --

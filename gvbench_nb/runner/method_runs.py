@@ -97,8 +97,7 @@ def finished_table(
 
 def compute_method(
     sequence: Sequence,
-    method: str,
-    profile: str,
+    conf: dict[str, Any],
     output_dir: Path,
     cache_dir: Path,
     device: str = "auto",
@@ -106,13 +105,9 @@ def compute_method(
     progress: bool = True,
     threads: int | None = None,
     jobs: int | None = None,
-    verifier: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Extract and match what the caches lack (``run_method``'s work, nothing written); ``run.json``'s
-    ``environment`` and ``this_run``."""
-    conf = method_registry.resolve_method(method, profile, verifier)
-    method_registry.require(method, profile)
-    record.claim(output_dir)  # its stores go into the folder: only into one that is the package's
+    """Extract and match what the caches lack (the work of ``run_method`` and of a shard, nothing
+    written); ``run.json``'s ``environment`` and ``this_run``."""
     from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)
@@ -159,11 +154,12 @@ def run_method(
     cache_dir: Path,
     device: str = "auto",
     seed: int = 0,
+    verifier: dict[str, Any] | None = None,
     **options: Any,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end (``pairs.csv``, ``run.json``); a finished result of the
     same inputs is returned as it is, and cached work is reused, so an interrupted run resumes."""
-    conf = method_registry.resolve_method(method, profile, options.get("verifier"))
+    conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     folder = method_outputs.method_dir(output_dir, method)
     done = finished_table(folder, sequence, conf, seed, device)
@@ -173,10 +169,10 @@ def run_method(
     # that is the package's, one writer at a time; the stores are filled first, by any number.
     in_place = not record.is_stage(output_dir)
     written = method_outputs.result_files(method)
-    if in_place:
+    if in_place:  # its stores go into the folder too: only into one that is the package's
         record.claim(output_dir)
         record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
-    work = compute_method(sequence, method, profile, output_dir, cache_dir, device, seed, **options)
+    work = compute_method(sequence, conf, output_dir, cache_dir, device, seed, **options)
     return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
 
 

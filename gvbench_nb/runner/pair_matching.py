@@ -173,7 +173,7 @@ def match_and_verify(
         PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
     )
 
-    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
+    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float]:
         features0, features1 = recent.get(pair.query), recent.get(pair.reference)
         start = time.perf_counter()
         if prepared is not None:
@@ -185,8 +185,8 @@ def match_and_verify(
         match_seconds = time.perf_counter() - start
         keypoints = features0["keypoints"], features1["keypoints"]
         sizes = image_sizes(features0, features1)
-        verified, verify_seconds = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
-        return pair_matches, match_scores, verified, match_seconds, verify_seconds
+        verified = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
+        return pair_matches, match_scores, verified, match_seconds
 
     # Worker threads match and verify ahead (torch and OpenCV release the GIL); this one writes, in order.
     jobs = concurrency.job_count(jobs)
@@ -195,9 +195,9 @@ def match_and_verify(
         for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * jobs, jobs=jobs):
             if isinstance(done, BaseException):
                 raise done
-            pair_matches, match_scores, verified, match_seconds, verify_seconds = done
-            arrays = {"matches": pair_matches.astype(np.int32)}
-            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds)
+            pair_matches, match_scores, verified, match_seconds = done
+            arrays = {"matches": pair_matches.astype(np.int32), "match_scores": match_scores.astype(np.float32)}
+            _store_verified(writer, keys[pair], arrays, verified, match_seconds)
             counts["matched"] += 1
             bar.update()
     bar.close()
@@ -218,8 +218,8 @@ def _verify_pair(
     pair_matches: np.ndarray,
     match_scores: np.ndarray,
     sizes: tuple[Any, Any] = (None, None),
-) -> tuple[dict[str, Any], float]:
-    """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
+) -> dict[str, Any]:
+    """RANSAC on one pair's matches, seeded by the pair: the verdict, with its ``verify_seconds``."""
     start = time.perf_counter()
     verified = verify_matches(
         keypoints0,
@@ -230,32 +230,16 @@ def _verify_pair(
         seed=pair_seed(seed, pair.query, pair.reference),
         image_sizes=sizes,
     )
-    return verified, time.perf_counter() - start
+    return {**verified, "verify_seconds": time.perf_counter() - start}
 
 
 def _store_verified(
-    writer: Any,
-    key: str,
-    match_scores: np.ndarray,
-    verified: dict[str, Any],
-    arrays: dict[str, np.ndarray],
-    match_seconds: float,
-    verify_seconds: float,
-    extra_attrs: dict[str, Any] | None = None,
+    writer: Any, key: str, arrays: dict[str, np.ndarray], verified: dict[str, Any], match_seconds: float, **extra: Any
 ) -> None:
-    """Commit one verified pair: its matches, inlier mask, counts and timings."""
-    writer.put(
-        key,
-        {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
-        {
-            "num_matches": verified["num_matches"],
-            "num_matches_filtered": verified["num_matches_filtered"],
-            "num_inliers": verified["num_inliers"],
-            "match_seconds": match_seconds,
-            "verify_seconds": verify_seconds,
-            **(extra_attrs or {}),
-        },
-    )
+    """Commit one verified pair: its matches (``arrays``) and inlier mask, its counts and timings."""
+    counts = {name: verified[name] for name in ("num_matches", "num_matches_filtered", "num_inliers")}
+    timings = {"match_seconds": match_seconds, "verify_seconds": verified["verify_seconds"]}
+    writer.put(key, {**arrays, "inlier_mask": verified["inlier_mask"]}, {**counts, **timings, **extra})
 
 
 def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
@@ -343,9 +327,9 @@ def _match_dense_pairs(
             sequence, todo, conf, matcher, progress
         ):
             identity = _identity(len(points0))
-            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
-            arrays = {"points0": points0, "points1": points1}
-            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds)
+            verified = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
+            arrays = {"points0": points0, "points1": points1, "match_scores": match_scores.astype(np.float32)}
+            _store_verified(writer, keys[pair], arrays, verified, match_seconds)
 
 
 def _merge_and_verify_dense(
@@ -396,8 +380,7 @@ def _merge_and_verify_dense(
             points1 = keypoints[pair.reference][pair_matches[:, 1]]
             sizes = (entry["image_size0"], entry["image_size1"])
             identity = _identity(len(points0))
-            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
+            verified = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
             match_seconds = float(entry["attr:match_seconds"]) + merge_seconds
-            arrays = {"points0": points0, "points1": points1}
-            extra = {"merged_over": merged_over}
-            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds, extra)
+            arrays = {"points0": points0, "points1": points1, "match_scores": match_scores.astype(np.float32)}
+            _store_verified(writer, keys[pair], arrays, verified, match_seconds, merged_over=merged_over)

@@ -33,21 +33,10 @@ def make_params(shared_data: Path, folder: Path) -> dict:
     pairs = folder.parent / "pairs.txt"
     if not pairs.is_file():
         write_pairs(pairs, twelve_pairs())
-    path = folder / "params.yaml"
-    path.write_text(
-        yaml.safe_dump(
-            {
-                "sequence": "gp_shards",
-                "pairs": str(pairs),
-                "image_root": str(shared_data / "gardens_point"),
-                "methods": [METHOD],
-                "profile": PROFILE,
-                "output_dir": str(folder / "out"),
-                "cache_dir": str(folder / "cache"),
-            }
-        )
-    )
-    return config.load_params(path)
+    params = {"sequence": "gp_shards", "pairs": str(pairs), "image_root": str(shared_data / "gardens_point")}
+    params |= {"methods": [METHOD], "profile": PROFILE, "output_dir": str(folder / "out")}
+    (folder / "params.yaml").write_text(yaml.safe_dump(params | {"cache_dir": str(folder / "cache")}))
+    return config.load_params(folder / "params.yaml")
 
 
 def without_timings(table: pd.DataFrame) -> pd.DataFrame:

@@ -59,17 +59,9 @@ def root(tmp_path) -> Path:
 def params_file(tmp_path: Path, name: str = "params.yaml", pairs: list[Pair] = PAIRS, **changes) -> Path:
     pairs_path = tmp_path / f"{Path(name).stem}-pairs.txt"
     write_pairs(pairs_path, pairs)
-    params = {
-        "sequence": "photos",
-        "image_root": str(tmp_path / "images"),
-        "pairs": str(pairs_path),
-        "methods": ["orb-nn"],
-        "profile": "repository",
-        "output_dir": str(tmp_path / "out"),
-        "cache_dir": str(tmp_path / "cache"),
-        "device": "cpu",
-    }
-    params.update(changes)
+    params = {"sequence": "photos", "image_root": str(tmp_path / "images"), "pairs": str(pairs_path)}
+    params |= {"methods": ["orb-nn"], "profile": "repository", "device": "cpu"}
+    params |= {"output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache"), **changes}
     path = tmp_path / name
     path.write_text(yaml.safe_dump(params))
     return path

@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import importlib
 import io
-import json
 import pickle
 import shlex
 import shutil
@@ -244,7 +243,7 @@ def export_npy(output_dir: str | Path, method: str) -> Path:
     ``all_matches`` (the match coordinates are not in pairs.csv)."""
     output_dir = Path(output_dir)
     table = scoring.load_pairs_table(output_dir, method)
-    run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+    run = method_outputs.read_run_json(output_dir, method)
     labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
     prob = scores / scores.max() if scores.max() > 0 else scores
     metrics = evaluate_scores(labels, prob, where=f"{output_dir / method / 'pairs.csv'}")

@@ -5,7 +5,6 @@ images), AP/MR per method, and the checks that a table is still the one its inpu
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceType
@@ -100,13 +99,9 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
         )
     rows = []
     for method in methods:
-        table = load_pairs_table(output_dir, method)
-        run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text())
-        metrics = evaluate_scores(
-            table["label"].to_numpy(),
-            table["score"].to_numpy(),
-            where=f"{method_outputs.method_dir(output_dir, method) / 'pairs.csv'}",
-        )
+        table, run = load_pairs_table(output_dir, method), method_outputs.read_run_json(output_dir, method)
+        where = str(method_outputs.method_dir(output_dir, method) / "pairs.csv")
+        metrics = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy(), where=where)
         rows.append(
             {
                 "sequence": run["sequence"],
@@ -153,7 +148,7 @@ def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
     SHA-256, or the images' contents); inputs no longer there to check are not reported."""
     changed = {}
     for method in methods:
-        run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+        run = method_outputs.read_run_json(output_dir, method)
         pairs = run.get("pairs") or {}
         pairs_file = pairs.get("pairs_file")
         if pairs_file and Path(pairs_file).is_file() and record.file_sha256(pairs_file) != pairs.get("pairs_sha256"):

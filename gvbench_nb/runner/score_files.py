@@ -25,16 +25,12 @@ from gvbench_nb.runner import method_outputs, record, scoring
 TABLE_COLUMNS = ["query", "reference", "label", "score"]
 IMPORTED_PROFILE = "imported"  # the profile column of an imported method: we did not run its chain
 # What a pickled numpy array, numpy scalar or dtype needs (numpy 1 writes numpy.core, numpy 2 numpy._core).
-_NUMPY_GLOBALS = {
-    ("numpy", "ndarray"): np.ndarray,
-    ("numpy", "dtype"): np.dtype,
-}
 _CORE = "numpy._core" if int(np.__version__.split(".")[0]) >= 2 else "numpy.core"
-for _spelling in ("numpy.core", "numpy._core"):
-    for _module, _name in (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer")):
-        _NUMPY_GLOBALS[(f"{_spelling}.{_module}", _name)] = getattr(
-            importlib.import_module(f"{_CORE}.{_module}"), _name
-        )
+_NUMPY_GLOBALS = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype} | {
+    (f"{spelling}.{module}", name): getattr(importlib.import_module(f"{_CORE}.{module}"), name)
+    for spelling in ("numpy.core", "numpy._core")
+    for module, name in (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer"))
+}
 
 
 class ScoreFileError(GVBenchError, ValueError):

@@ -41,11 +41,6 @@ def pair_shard(sequence: Sequence, index: int, count: int) -> Sequence:
     return Sequence(sequence.name, sequence.image_root, sequence.pairs[index::count])
 
 
-def default_threads(workers_on_this_machine: int) -> int:
-    """Threads per task so tasks use each core once (more makes torch spin-wait: 2-5x slower)."""
-    return max(1, (os.cpu_count() or 1) // max(1, workers_on_this_machine))
-
-
 def extract_shard(
     sequence: Sequence,
     extractor_conf: dict[str, Any],
@@ -221,7 +216,8 @@ def run_sharded(
     sequence = prepare_sequence(params)
     kept_methods(params, sequence)
     if threads is None and scheduler is None:
-        threads = default_threads(n_workers or os.cpu_count() or 1)
+        # Each core used by one task's threads: more makes torch spin-wait (2-5x slower).
+        threads = max(1, (os.cpu_count() or 1) // (n_workers or os.cpu_count() or 1))
     with dask_client(scheduler, n_workers, processes) as client:
         matching = _submit_shards(client, params, sequence, n_shards, threads)
         bar = tqdm(total=sum(len(f) for f in matching.values()), desc="shards", unit="shard", disable=not progress)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
 import time
 from collections import Counter
@@ -197,7 +198,7 @@ def write_results(
     try:
         if in_place:
             record.check_no_foreign_files(output_dir, written)
-        with record.pending(output_dir if in_place else None, written):
+        with record.pending(output_dir, written) if in_place else contextlib.nullcontext():
             table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
             atomic_write_json(
                 folder / "run.json",

@@ -151,11 +151,8 @@ def claim(folder: str | os.PathLike[str]) -> None:
 
 
 @contextlib.contextmanager
-def pending(folder: str | os.PathLike[str] | None, names: list[str]) -> Iterator[None]:
-    """Mark ``names`` as being written in ``folder`` (None: no mark), so a killed writer's files stay ours."""
-    if folder is None:
-        yield
-        return
+def pending(folder: str | os.PathLike[str], names: list[str]) -> Iterator[None]:
+    """Mark ``names`` as being written in ``folder``, so a killed writer's files stay ours."""
     with editing(folder) as record:
         record["pending"] = sorted({*record.get("pending", []), *names})
     yield

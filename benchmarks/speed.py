@@ -14,7 +14,7 @@ import speed_estimate as estimate
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.runner import concurrency
-from gvbench_nb.runner.jobs import add_jobs_argument
+from gvbench_nb.runner.concurrency import add_jobs_argument
 
 
 def build_parser() -> argparse.ArgumentParser:

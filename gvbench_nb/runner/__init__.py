@@ -1,7 +1,7 @@
 """The runner: what stands around the protocol to make a run a record.
 
 Params files and their checks (``config``), the content-keyed stores (``store``), threads and
-jobs (``concurrency``, ``jobs``), features once per image (``image_features``), the pair loop
+jobs (``concurrency``), features once per image (``image_features``), the pair loop
 (``pair_matching``), one method's run (``method_runs``) and its folder (``method_outputs``),
 scoring (``scoring``), the output folder's record (``record``) and the Dask backend
 (``distributed``).

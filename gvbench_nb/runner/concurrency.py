@@ -1,7 +1,10 @@
-"""How many threads and jobs a run uses, the prefetching executor, and the machine it ran on."""
+"""How many threads and jobs a run uses (``--jobs N``: images, then pairs, at once, exported as
+$GVBENCH_JOBS; a Dask cluster's size is ``--dask-workers``), the prefetching executor, and the machine
+it ran on."""
 
 from __future__ import annotations
 
+import argparse
 import os
 import platform
 import sys
@@ -12,6 +15,8 @@ from typing import TYPE_CHECKING, Any, TypeVar
 import cv2
 import numpy as np
 
+from gvbench_nb.io_utils import whole_number_at_least
+
 if TYPE_CHECKING:
     import torch
 
@@ -19,8 +24,6 @@ if TYPE_CHECKING:
 # torch and the model modules (extractors, matchers) are imported by the functions that
 # run models: a notebook or command that only reads results never pays for them.
 T = TypeVar("T")
-
-
 R = TypeVar("R")
 
 
@@ -77,6 +80,33 @@ def job_count(jobs: int | None = None) -> int:
     return n
 
 
+def jobs_value(text: str) -> int | None:
+    """argparse type of --jobs: a whole number of at least 1; "" (no flag, no $GVBENCH_JOBS) is None."""
+    if text == "":
+        return None
+    return whole_number_at_least(text, 1, f"a whole number of at least 1 (--jobs or ${JOBS_ENV})")
+
+
+class ExportJobs(argparse.Action):
+    """Keep --jobs and export it as $GVBENCH_JOBS, which the processes this one starts (a
+    Dask cluster's workers, a shard's) read."""
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        os.environ[JOBS_ENV] = str(values)
+        setattr(namespace, self.dest, values)
+
+
+def add_jobs_argument(
+    parser: argparse.ArgumentParser | argparse._ArgumentGroup, default: int | None, help: str
+) -> None:
+    """``--jobs N``. Without ``default``, $GVBENCH_JOBS is the default (checked as the flag is);
+    the default stays a string so that argparse passes it through ``jobs_value`` too."""
+    fallback = str(default) if default is not None else os.environ.get(JOBS_ENV, "")
+    parser.add_argument(
+        "--jobs", type=jobs_value, default=fallback, action=ExportJobs, metavar="N", dest="jobs", help=help
+    )
+
+
 def prefetch(
     items: Iterable[T], load: Callable[[T], R], depth: int = 4, jobs: int = 2
 ) -> Iterator[tuple[T, R | BaseException]]:
@@ -126,7 +156,7 @@ def _version(module: str) -> str:
 def environment_info(device: torch.device) -> dict[str, Any]:
     import torch
 
-    info = {
+    return {
         "device": str(device),
         "device_name": torch.cuda.get_device_name(device) if device.type == "cuda" else cpu_name(),
         "cpu_count": os.cpu_count(),
@@ -137,4 +167,3 @@ def environment_info(device: torch.device) -> dict[str, Any]:
         "python": platform.python_version(),
         "platform": platform.platform(),
     }
-    return info

@@ -7,7 +7,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -16,7 +15,7 @@ import pandas as pd
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, record, scoring
 
 
@@ -40,11 +39,6 @@ def parse_shard(text: str) -> tuple[int, int]:
 def pair_shard(sequence: Sequence, index: int, count: int) -> Sequence:
     """Shard ``index`` of ``count``: every ``count``-th pair from ``index``, same image root."""
     return Sequence(sequence.name, sequence.image_root, sequence.pairs[index::count])
-
-
-def default_threads(workers_on_this_machine: int) -> int:
-    """Threads per task so tasks use each core once (more makes torch spin-wait: 2-5x slower)."""
-    return max(1, (os.cpu_count() or 1) // max(1, workers_on_this_machine))
 
 
 def extract_shard(
@@ -85,48 +79,19 @@ def match_shard(
     after: list[Any] | None = None,
 ) -> dict[str, Any]:
     """Phase 2 task: extract what is missing, match and verify pair shard ``index::count`` (``after``: order only)."""
-    from gvbench_nb.protocol.features.base import resolve_device  # imports torch
-
-    concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else concurrency.job_count())
     if count > 1 and method_registry.is_dense(conf) and pair_matching.dense_merge_options(conf["matcher"]) is not None:
         raise ValueError(
             f"method {conf['method']!r} merges its dense keypoints across all pairs of the sequence, "
             "so its pairs cannot be matched in shards; run it with one matching shard"
         )
     shard = pair_shard(sequence, index, count)
-    resolved = resolve_device(device)
-    started = time.perf_counter()
-    extraction = (
-        image_features.extract_features(shard, conf["extractor"], Path(cache_dir), resolved, progress=False)
-        if conf["extractor"]
-        else {"images": 0, "cached": 0, "extracted": 0}
+    work = method_runs.compute_method(
+        shard, conf, Path(output_dir), Path(cache_dir), device, seed, progress=False, threads=threads
     )
-    extracted = time.perf_counter()
-    matching = pair_matching.match_and_verify(
-        shard, conf, Path(cache_dir), Path(output_dir), resolved, seed, progress=False
-    )
-    return {
-        "shard": f"{index}/{count}",
-        "extraction": extraction,
-        "matching": matching,
-        "extract_wall_seconds": extracted - started,
-        "match_verify_wall_seconds": time.perf_counter() - extracted,
-    }
+    return {"shard": f"{index}/{count}", **work["this_run"]}
 
 
 # ------------------------------------------------------------------------- merge --
-def unfinished_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Pair]:
-    store = pair_matching.match_store(output_dir, conf)
-    store.refresh()
-    missing = [
-        p
-        for p in sequence.pairs
-        if pair_matching.pair_key(sequence.image_root, p.query, p.reference, seed) not in store
-    ]
-    store.close()
-    return missing
-
-
 def merge_method(
     sequence: Sequence,
     conf: dict[str, Any],
@@ -139,12 +104,15 @@ def merge_method(
     """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
     from gvbench_nb.protocol.features.base import resolve_device  # imports torch
 
-    missing = unfinished_pairs(sequence, conf, output_dir, seed)
+    store = pair_matching.match_store(output_dir, conf)
+    store.refresh()
+    missing = [pair for pair, key in pair_matching.pair_keys(sequence, seed).items() if key not in store]
+    store.close()
     if missing:
         first = sequence.pairs.index(missing[0])
         raise ShardError(
             f"cannot merge {conf['method']} on {sequence.name}: {len(missing)} of {len(sequence.pairs)} pairs have "
-            f"no result in {pair_matching.match_store(output_dir, conf).folder} (first: pair {first}, "
+            f"no result in {store.folder} (first: pair {first}, "
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
@@ -226,89 +194,6 @@ def dask_client(scheduler: str | None = None, n_workers: int | None = None, proc
         yield client
 
 
-def run_many(
-    params_list: list[dict[str, Any]],
-    n_shards: int,
-    scheduler: str | None = None,
-    n_workers: int | None = None,
-    processes: bool = True,
-    threads: int | None = None,
-    progress: bool = True,
-) -> dict[str, pd.DataFrame]:
-    """Every (sequence x method) of ``params_list`` in ``n_shards`` shards on one Dask cluster, all
-    submitted at once; each sequence's results table, keyed by output folder."""
-    from distributed import wait
-    from tqdm import tqdm
-
-    from gvbench_nb.runner.sequence_build import prepare_sequence
-
-    if n_shards < 1:
-        raise ValueError(f"n_shards must be at least 1, got {n_shards}")
-    for params in params_list:
-        _require_weights(params)
-    sequences = [prepare_sequence(params) for params in params_list]
-    for params, sequence in zip(params_list, sequences):
-        kept_methods(params, sequence)
-    if threads is None and scheduler is None:
-        threads = default_threads(n_workers or os.cpu_count() or 1)
-    results: dict[str, pd.DataFrame] = {}
-    with dask_client(scheduler, n_workers, processes) as client:
-        matching = _submit_shards(client, params_list, sequences, n_shards, threads)
-        bar = tqdm(total=sum(len(f) for f in matching.values()), desc="shards", unit="shard", disable=not progress)
-        for index, (params, sequence) in enumerate(zip(params_list, sequences)):
-            shards: dict[str, list[dict[str, Any]]] = {}
-            for method in params["methods"]:
-                futures = matching[(index, method)]
-                wait(futures)
-                shards[method] = []
-                for i, future in enumerate(futures):
-                    try:
-                        shards[method].append(future.result())
-                    except Exception as error:
-                        raise ShardError(
-                            f"shard {i}/{n_shards} of {method} on {sequence.name} failed: "
-                            f"{type(error).__name__}: {error}"
-                        ) from error
-                    bar.update()
-            results[params["output_dir"]] = merge_runs(params, shards)
-        bar.close()
-    return results
-
-
-def _submit_shards(
-    client: Any, params_list: list[dict[str, Any]], sequences: list[Sequence], n_shards: int, threads: int | None
-) -> dict[tuple[int, str], list[Any]]:
-    """Submit extraction shards (once per extractor) and matching shards after them; the latter by (index, method)."""
-    extraction: dict[tuple[str, str], list[Any]] = {}
-    matching: dict[tuple[int, str], list[Any]] = {}
-    for index, (params, sequence) in enumerate(zip(params_list, sequences)):
-        output_dir, cache_dir, device = params["output_dir"], params["cache_dir"], params["device"]
-        for method in params["methods"]:
-            conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
-            after: list[Any] = []
-            if conf["extractor"]:
-                extractor = conf["extractor"]
-                key = (f"{cache_dir}\t{sequence.image_root}\t{sequence.name}", method_registry.conf_hash(extractor))
-                if key not in extraction:  # methods sharing an extractor share its shards
-                    name = f"extract-{sequence.name}-{extractor['name']}"
-                    extraction[key] = [
-                        client.submit(
-                            extract_shard, sequence, extractor, cache_dir, i, n_shards, device, threads,
-                            pure=False, key=f"{name}-{i}of{n_shards}-{index}",
-                        )
-                        for i in range(n_shards)
-                    ]  # fmt: skip
-                after = extraction[key]
-            matching[(index, method)] = [
-                client.submit(
-                    match_shard, sequence, conf, cache_dir, output_dir, i, n_shards, device, params["seed"], threads,
-                    after, pure=False, key=f"match-{sequence.name}-{method}-{i}of{n_shards}-{index}",
-                )
-                for i in range(n_shards)
-            ]  # fmt: skip
-    return matching
-
-
 def run_sharded(
     params: dict[str, Any],
     n_shards: int,
@@ -318,14 +203,77 @@ def run_sharded(
     threads: int | None = None,
     progress: bool = True,
 ) -> pd.DataFrame:
-    """One params file's methods in ``n_shards`` shards on Dask; returns its results table."""
-    return run_many([params], n_shards, scheduler, n_workers, processes, threads, progress)[params["output_dir"]]
+    """One params file's methods in ``n_shards`` shards on one Dask cluster, all submitted at once;
+    returns its results table."""
+    from distributed import wait
+    from tqdm import tqdm
+
+    from gvbench_nb.runner.sequence_build import prepare_sequence
+
+    if n_shards < 1:
+        raise ValueError(f"n_shards must be at least 1, got {n_shards}")
+    _require_weights(params)
+    sequence = prepare_sequence(params)
+    kept_methods(params, sequence)
+    if threads is None and scheduler is None:
+        # Each core used by one task's threads: more makes torch spin-wait (2-5x slower).
+        threads = max(1, (os.cpu_count() or 1) // (n_workers or os.cpu_count() or 1))
+    with dask_client(scheduler, n_workers, processes) as client:
+        matching = _submit_shards(client, params, sequence, n_shards, threads)
+        bar = tqdm(total=sum(len(f) for f in matching.values()), desc="shards", unit="shard", disable=not progress)
+        shards: dict[str, list[dict[str, Any]]] = {}
+        for method, futures in matching.items():
+            wait(futures)
+            shards[method] = []
+            for i, future in enumerate(futures):
+                try:
+                    shards[method].append(future.result())
+                except Exception as error:
+                    raise ShardError(
+                        f"shard {i}/{n_shards} of {method} on {sequence.name} failed: {type(error).__name__}: {error}"
+                    ) from error
+                bar.update()
+        bar.close()
+        return merge_runs(params, shards)
+
+
+def _submit_shards(
+    client: Any, params: dict[str, Any], sequence: Sequence, n_shards: int, threads: int | None
+) -> dict[str, list[Any]]:
+    """Submit extraction shards (once per extractor) and matching shards after them, by method."""
+    extraction: dict[str, list[Any]] = {}
+    matching: dict[str, list[Any]] = {}
+    output_dir, cache_dir, device = params["output_dir"], params["cache_dir"], params["device"]
+    for method in params["methods"]:
+        conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
+        after: list[Any] = []
+        if conf["extractor"]:
+            extractor = conf["extractor"]
+            key = method_registry.conf_hash(extractor)
+            if key not in extraction:  # methods sharing an extractor share its shards
+                name = f"extract-{sequence.name}-{extractor['name']}-{key}"
+                extraction[key] = [
+                    client.submit(
+                        extract_shard, sequence, extractor, cache_dir, i, n_shards, device, threads,
+                        pure=False, key=f"{name}-{i}of{n_shards}",
+                    )
+                    for i in range(n_shards)
+                ]  # fmt: skip
+            after = extraction[key]
+        matching[method] = [
+            client.submit(
+                match_shard, sequence, conf, cache_dir, output_dir, i, n_shards, device, params["seed"], threads,
+                after, pure=False, key=f"match-{sequence.name}-{method}-{i}of{n_shards}",
+            )
+            for i in range(n_shards)
+        ]  # fmt: skip
+    return matching
 
 
 # -------------------------------------------------------------------------- CLI --
 def add_run_arguments(run: argparse.ArgumentParser) -> None:
     """The ``run`` command's --jobs and scale-out options (cli.py calls this on its ``run`` parser)."""
-    from gvbench_nb.runner.jobs import add_jobs_argument
+    from gvbench_nb.runner.concurrency import add_jobs_argument
 
     add_jobs_argument(
         run,

@@ -11,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
+from cachetools import cached
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
@@ -35,14 +36,6 @@ def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedSto
     )
 
 
-# (resolved path, size, mtime_ns, inode, device) -> content key: a file is hashed again
-# only when one of those changes, so a run hashes each image once.
-_content_keys: dict[tuple[str, int, int, int, int], str] = {}
-
-
-_content_keys_lock = threading.Lock()
-
-
 # run id -> (store folder, key) of every image that run extracted in this process: a later method
 # of the same run that finds them cached is served by this run's own work, timed by this run.
 _extracted_by_run: dict[str, set[tuple[str, str]]] = {}
@@ -58,11 +51,12 @@ def content_key(path: str | os.PathLike[str]) -> str:
     if stat is None or not path.is_file():
         what = "is a folder, not an image file" if path.is_dir() else "not found"
         raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
-    memo = (str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_dev)
-    with _content_keys_lock:
-        known = _content_keys.get(memo)
-    if known is not None:
-        return known
+    # Hashed again only when its resolved path, size, mtime, inode or device change: a run hashes each image once.
+    return _content_digest(path, str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_dev)
+
+
+@cached(cache={}, key=lambda path, *memo: memo, lock=threading.Lock())
+def _content_digest(path: Path, *memo: object) -> str:
     digest = hashlib.blake2b(digest_size=20)
     try:
         with open(path, "rb") as stream:
@@ -70,10 +64,7 @@ def content_key(path: str | os.PathLike[str]) -> str:
                 digest.update(block)
     except OSError as error:
         raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
-    key = f"blake2b-{digest.hexdigest()}"
-    with _content_keys_lock:
-        _content_keys[memo] = key
-    return key
+    return f"blake2b-{digest.hexdigest()}"
 
 
 def image_key(image_root: Path, name: str) -> str:

@@ -142,8 +142,7 @@ def check_same_recipes(params: dict[str, Any]) -> None:
         if method in params["methods"]:
             continue
         try:
-            run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
-            differences = _recipe_differences(run, params)
+            differences = _recipe_differences(method_outputs.read_run_json(output_dir, method), params)
         except (OSError, ValueError, KeyError, TypeError):
             continue  # no run record to compare: the results readers refuse such a folder
         if differences:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from collections.abc import Iterable
 from pathlib import Path
+from typing import Any
 
 from gvbench_nb import GVBenchError
 
@@ -32,6 +33,10 @@ def method_dir(output_dir: Path, method: str) -> Path:
     return Path(output_dir) / method
 
 
+def read_run_json(output_dir: Path, method: str) -> dict[str, Any]:
+    return json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+
+
 FINISHED_OUTPUTS = ("pairs.csv", "run.json")
 
 
@@ -50,8 +55,7 @@ def replaced_profiles(output_dir: Path, methods: Iterable[str], profile: str) ->
     replaced = {}
     for method in methods:
         try:
-            run = json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
-            previous = run["conf"]["profile"]
+            previous = read_run_json(output_dir, method)["conf"]["profile"]
         except (OSError, ValueError, KeyError, TypeError):
             continue
         if previous != profile:

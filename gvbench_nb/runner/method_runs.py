@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-import datetime as _dt
+import contextlib
 import json
 import time
 from collections import Counter
@@ -11,6 +11,7 @@ from typing import Any
 
 import pandas as pd
 
+from gvbench_nb import __version__
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
@@ -97,8 +98,7 @@ def finished_table(
 
 def compute_method(
     sequence: Sequence,
-    method: str,
-    profile: str,
+    conf: dict[str, Any],
     output_dir: Path,
     cache_dir: Path,
     device: str = "auto",
@@ -106,13 +106,9 @@ def compute_method(
     progress: bool = True,
     threads: int | None = None,
     jobs: int | None = None,
-    verifier: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Extract and match what the caches lack (``run_method``'s work, nothing written); ``run.json``'s
-    ``environment`` and ``this_run``."""
-    conf = method_registry.resolve_method(method, profile, verifier)
-    method_registry.require(method, profile)
-    record.claim(output_dir)  # its stores go into the folder: only into one that is the package's
+    """Extract and match what the caches lack (the work of ``run_method`` and of a shard, nothing
+    written); ``run.json``'s ``environment`` and ``this_run``."""
     from gvbench_nb.protocol.features.base import resolve_device
 
     resolved_device = resolve_device(device)
@@ -159,11 +155,12 @@ def run_method(
     cache_dir: Path,
     device: str = "auto",
     seed: int = 0,
+    verifier: dict[str, Any] | None = None,
     **options: Any,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end (``pairs.csv``, ``run.json``); a finished result of the
     same inputs is returned as it is, and cached work is reused, so an interrupted run resumes."""
-    conf = method_registry.resolve_method(method, profile, options.get("verifier"))
+    conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
     folder = method_outputs.method_dir(output_dir, method)
     done = finished_table(folder, sequence, conf, seed, device)
@@ -173,10 +170,10 @@ def run_method(
     # that is the package's, one writer at a time; the stores are filled first, by any number.
     in_place = not record.is_stage(output_dir)
     written = method_outputs.result_files(method)
-    if in_place:
+    if in_place:  # its stores go into the folder too: only into one that is the package's
         record.claim(output_dir)
         record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
-    work = compute_method(sequence, method, profile, output_dir, cache_dir, device, seed, **options)
+    work = compute_method(sequence, conf, output_dir, cache_dir, device, seed, **options)
     return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
 
 
@@ -201,9 +198,22 @@ def write_results(
     try:
         if in_place:
             record.check_no_foreign_files(output_dir, written)
-        with record.pending(output_dir if in_place else None, written):
+        with record.pending(output_dir, written) if in_place else contextlib.nullcontext():
             table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-            write_method_outputs(folder, sequence, conf, seed, environment, this_run, table, device)
+            atomic_write_json(
+                folder / "run.json",
+                {
+                    **result_identity(sequence, conf, seed, device),
+                    "n_pairs": len(sequence.pairs),
+                    "pairs": sequence.origin,
+                    "package_version": __version__,
+                    "run_id": record.stage_run_id(output_dir),
+                    "environment": environment,
+                    "this_run": this_run,
+                    "finished_at": record.now(),
+                },
+            )
+            atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
             if in_place:
                 record_method_in_place(output_dir, conf["method"], sequence)
     finally:
@@ -233,51 +243,17 @@ def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) ->
         entry["methods"][method] = {**binding, "files": written}
 
 
-def write_method_outputs(
-    folder: Path,
-    sequence: Sequence,
-    conf: dict[str, Any],
-    seed: int,
-    environment: dict[str, Any],
-    this_run: dict[str, Any],
-    table: pd.DataFrame,
-    device: str = "auto",
-) -> None:
-    """A method's finished outputs: ``run.json``, then ``pairs.csv`` (last: its presence marks a
-    finished run, ``methods_with_results``)."""
-    from gvbench_nb import __version__
-
-    atomic_write_json(
-        folder / "run.json",
-        {
-            **result_identity(sequence, conf, seed, device),
-            "n_pairs": len(sequence.pairs),
-            "pairs": sequence.origin,
-            "package_version": __version__,
-            "run_id": record.stage_run_id(folder.parent),
-            "environment": environment,
-            "this_run": this_run,
-            "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        },
-    )
-    atomic_write_csv(folder / "pairs.csv", table)
-
-
-# ------------------------------------------------------------------- evaluation --
-def params_arguments(params: dict[str, Any]) -> dict[str, Any]:
-    """What a loaded params file sets for ``run_method`` and ``compute_method``: profile, output and
-    cache folders, device, seed and verifier overrides."""
-    return {
-        "profile": params["profile"],
-        "output_dir": Path(params["output_dir"]),
-        "cache_dir": Path(params["cache_dir"]),
-        "device": params["device"],
-        "seed": params["seed"],
-        "verifier": params.get("verifier") or None,
-    }
-
-
 def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
     """``run_method`` with what a loaded params file sets: profile, output and cache folders,
     device, seed and verifier overrides (how the CLI, the notebooks and the analyses run a method)."""
-    return run_method(sequence, method, **params_arguments(params), **options)
+    return run_method(
+        sequence,
+        method,
+        params["profile"],
+        Path(params["output_dir"]),
+        Path(params["cache_dir"]),
+        params["device"],
+        params["seed"],
+        verifier=params.get("verifier") or None,
+        **options,
+    )

@@ -69,22 +69,25 @@ class PreparedCache:
 
 
 class FeatureCache:
-    """Feature dicts by image name, read on first use, in a byte-bounded LRU (callers lock)."""
+    """Feature dicts by image name, read on first use, in a byte-bounded LRU; one thread reads at a time
+    (h5py serialises reads anyway, and a store's handle cache is not thread-safe)."""
 
     def __init__(self, read: Callable[[str], dict[str, np.ndarray]], max_bytes: int = 256 << 20):
         self.read = read
         self._entries = _bounded_lru(
             max_bytes, lambda entry: sum(v.nbytes for v in entry.values() if isinstance(v, np.ndarray))
         )
+        self._lock = threading.Lock()
 
     @property
     def nbytes(self) -> int:
         return int(self._entries.currsize)
 
     def get(self, name: str) -> dict[str, np.ndarray]:
-        if name not in self._entries:
-            self._entries[name] = self.read(name)
-        return self._entries[name]
+        with self._lock:
+            if name not in self._entries:
+                self._entries[name] = self.read(name)
+            return self._entries[name]
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -157,7 +160,6 @@ def match_and_verify(
         counts["matched"] = len(todo)
         return counts
     features = image_features.feature_store(cache_dir, conf["extractor"])
-    reading = threading.Lock()  # h5py serialises reads anyway; the handle cache is not thread-safe
 
     def read(name: str) -> dict[str, np.ndarray]:
         key = image_features.image_key(sequence.image_root, name)
@@ -166,18 +168,13 @@ def match_and_verify(
         return features.read(key)
 
     recent = FeatureCache(read)  # a query's candidates are consecutive and references recur
-
-    def load(name: str) -> dict[str, np.ndarray]:
-        with reading:
-            return recent.get(name)
-
     # Per-image work done once per image (LightGlue on a CPU); the first pair using it pays for it.
     prepared = (
         PreparedCache(cast("PreparedMatcher", matcher).prepare) if getattr(matcher, "can_prepare", False) else None
     )
 
-    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float, float]:
-        features0, features1 = load(pair.query), load(pair.reference)
+    def match_and_verify_pair(pair: Any) -> tuple[np.ndarray, np.ndarray, dict[str, Any], float]:
+        features0, features1 = recent.get(pair.query), recent.get(pair.reference)
         start = time.perf_counter()
         if prepared is not None:
             pair_matches, match_scores = cast("PreparedMatcher", matcher).match_prepared(
@@ -188,8 +185,8 @@ def match_and_verify(
         match_seconds = time.perf_counter() - start
         keypoints = features0["keypoints"], features1["keypoints"]
         sizes = image_sizes(features0, features1)
-        verified, verify_seconds = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
-        return pair_matches, match_scores, verified, match_seconds, verify_seconds
+        verified = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
+        return pair_matches, match_scores, verified, match_seconds
 
     # Worker threads match and verify ahead (torch and OpenCV release the GIL); this one writes, in order.
     jobs = concurrency.job_count(jobs)
@@ -198,9 +195,9 @@ def match_and_verify(
         for pair, done in concurrency.prefetch(todo, match_and_verify_pair, depth=2 * jobs, jobs=jobs):
             if isinstance(done, BaseException):
                 raise done
-            pair_matches, match_scores, verified, match_seconds, verify_seconds = done
-            arrays = {"matches": pair_matches.astype(np.int32)}
-            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds)
+            pair_matches, match_scores, verified, match_seconds = done
+            arrays = {"matches": pair_matches.astype(np.int32), "match_scores": match_scores.astype(np.float32)}
+            _store_verified(writer, keys[pair], arrays, verified, match_seconds)
             counts["matched"] += 1
             bar.update()
     bar.close()
@@ -221,8 +218,8 @@ def _verify_pair(
     pair_matches: np.ndarray,
     match_scores: np.ndarray,
     sizes: tuple[Any, Any] = (None, None),
-) -> tuple[dict[str, Any], float]:
-    """RANSAC on one pair's matches, seeded by the pair: the verdict and its seconds."""
+) -> dict[str, Any]:
+    """RANSAC on one pair's matches, seeded by the pair: the verdict, with its ``verify_seconds``."""
     start = time.perf_counter()
     verified = verify_matches(
         keypoints0,
@@ -233,32 +230,16 @@ def _verify_pair(
         seed=pair_seed(seed, pair.query, pair.reference),
         image_sizes=sizes,
     )
-    return verified, time.perf_counter() - start
+    return {**verified, "verify_seconds": time.perf_counter() - start}
 
 
 def _store_verified(
-    writer: Any,
-    key: str,
-    match_scores: np.ndarray,
-    verified: dict[str, Any],
-    arrays: dict[str, np.ndarray],
-    match_seconds: float,
-    verify_seconds: float,
-    extra_attrs: dict[str, Any] | None = None,
+    writer: Any, key: str, arrays: dict[str, np.ndarray], verified: dict[str, Any], match_seconds: float, **extra: Any
 ) -> None:
-    """Commit one verified pair: its matches, inlier mask, counts and timings."""
-    writer.put(
-        key,
-        {**arrays, "match_scores": match_scores.astype(np.float32), "inlier_mask": verified["inlier_mask"]},
-        {
-            "num_matches": verified["num_matches"],
-            "num_matches_filtered": verified["num_matches_filtered"],
-            "num_inliers": verified["num_inliers"],
-            "match_seconds": match_seconds,
-            "verify_seconds": verify_seconds,
-            **(extra_attrs or {}),
-        },
-    )
+    """Commit one verified pair: its matches (``arrays``) and inlier mask, its counts and timings."""
+    counts = {name: verified[name] for name in ("num_matches", "num_matches_filtered", "num_inliers")}
+    timings = {"match_seconds": match_seconds, "verify_seconds": verified["verify_seconds"]}
+    writer.put(key, {**arrays, "inlier_mask": verified["inlier_mask"]}, {**counts, **timings, **extra})
 
 
 def dense_merge_options(matcher_conf: dict[str, Any]) -> dict[str, Any] | None:
@@ -332,14 +313,12 @@ def _match_dense_pairs(
     seed: int,
     progress: bool,
     flush_every: int,
-    output_dir: Path | None = None,
+    output_dir: Path,
 ) -> None:
     """Dense matchers (LoFTR, ``imm:``): merged as hloc's ``match_dense`` when the conf says so, else
     each pair's raw matches are verified as they come."""
     merge = dense_merge_options(conf["matcher"])
     if merge is not None:
-        if output_dir is None:
-            raise ValueError("merging dense matches needs the output_dir holding the raw matches")
         raw = raw_dense_store(output_dir, conf)
         _merge_and_verify_dense(sequence, todo, keys, conf, matcher, matches, raw, merge, seed, progress, flush_every)
         return
@@ -348,9 +327,9 @@ def _match_dense_pairs(
             sequence, todo, conf, matcher, progress
         ):
             identity = _identity(len(points0))
-            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
-            arrays = {"points0": points0, "points1": points1}
-            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds)
+            verified = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
+            arrays = {"points0": points0, "points1": points1, "match_scores": match_scores.astype(np.float32)}
+            _store_verified(writer, keys[pair], arrays, verified, match_seconds)
 
 
 def _merge_and_verify_dense(
@@ -401,8 +380,7 @@ def _merge_and_verify_dense(
             points1 = keypoints[pair.reference][pair_matches[:, 1]]
             sizes = (entry["image_size0"], entry["image_size1"])
             identity = _identity(len(points0))
-            verified, verify_seconds = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
+            verified = _verify_pair(pair, conf, seed, points0, points1, identity, match_scores, sizes)
             match_seconds = float(entry["attr:match_seconds"]) + merge_seconds
-            arrays = {"points0": points0, "points1": points1}
-            extra = {"merged_over": merged_over}
-            _store_verified(writer, keys[pair], match_scores, verified, arrays, match_seconds, verify_seconds, extra)
+            arrays = {"points0": points0, "points1": points1, "match_scores": match_scores.astype(np.float32)}
+            _store_verified(writer, keys[pair], arrays, verified, match_seconds, merged_over=merged_over)

@@ -76,8 +76,9 @@ def check_owned(folder: str | os.PathLike[str]) -> None:
         )
 
 
-def foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> list[str]:
-    """Of ``names`` (relative to ``folder``), those present that the package did not write or that changed since."""
+def check_no_foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> None:
+    """Refuse when any of ``names`` (relative to ``folder``) is present and the package did not write it, or it
+    changed since."""
     folder = Path(folder)
     record = read_record(folder) or {"files": {}}
     being_written = set(record.get("pending", []))  # by a writer that may have been killed half way
@@ -88,11 +89,6 @@ def foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> list[
             continue
         if path.is_symlink() or not path.is_file() or record["files"].get(name) != file_sha256(path):
             foreign.append(name)
-    return foreign
-
-
-def check_no_foreign_files(folder: str | os.PathLike[str], names: Iterable[str]) -> None:
-    foreign = foreign_files(folder, names)
     if foreign:
         raise RecordError(
             f"{Path(folder)} holds {_shown(foreign)}, which gvbench-nb did not write there (or which changed since "
@@ -101,19 +97,13 @@ def check_no_foreign_files(folder: str | os.PathLike[str], names: Iterable[str])
 
 
 @contextlib.contextmanager
-def _file_lock(path: Path, timeout: float) -> Iterator[None]:
-    from filelock import FileLock
-
-    with FileLock(str(path), timeout=timeout):
-        yield
-
-
-@contextlib.contextmanager
 def editing(folder: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:
     """The folder's record (a new one when it has none), rewritten atomically after the block."""
+    from filelock import FileLock
+
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
-    with _file_lock(folder / RECORD_LOCK_NAME, timeout=60):
+    with FileLock(str(folder / RECORD_LOCK_NAME), timeout=60):
         record = read_record(folder) or {
             "package": PACKAGE,
             "created_at": now(),
@@ -161,11 +151,8 @@ def claim(folder: str | os.PathLike[str]) -> None:
 
 
 @contextlib.contextmanager
-def pending(folder: str | os.PathLike[str] | None, names: list[str]) -> Iterator[None]:
-    """Mark ``names`` as being written in ``folder`` (None: no mark), so a killed writer's files stay ours."""
-    if folder is None:
-        yield
-        return
+def pending(folder: str | os.PathLike[str], names: list[str]) -> Iterator[None]:
+    """Mark ``names`` as being written in ``folder``, so a killed writer's files stay ours."""
     with editing(folder) as record:
         record["pending"] = sorted({*record.get("pending", []), *names})
     yield
@@ -215,9 +202,11 @@ class FolderLock:
         try:
             self._lock.acquire(timeout=wait_seconds)
         except Timeout:
+            holder = _holder(self.folder)
+            who = f"pid {holder.get('pid')} on {holder.get('host')}, started {holder.get('started_at')}"
             raise RecordError(
-                f"another run is writing {self.folder} ({describe_holder(self.folder)}); wait for it to finish or "
-                "give another output_dir (or --output-dir)"
+                f"another run is writing {self.folder} ({who if holder else 'its holder is not known'}); wait for it "
+                "to finish or give another output_dir (or --output-dir)"
             ) from None
         atomic_write_json(
             self.folder / HOLDER_NAME,
@@ -248,13 +237,6 @@ def _holder(folder: Path) -> dict[str, Any]:
     except (OSError, ValueError):
         return {}
     return holder if isinstance(holder, dict) else {}
-
-
-def describe_holder(folder: str | os.PathLike[str]) -> str:
-    holder = _holder(Path(folder))
-    if not holder:
-        return "its holder is not known"
-    return f"pid {holder.get('pid')} on {holder.get('host')}, started {holder.get('started_at')}"
 
 
 def running(folder: str | os.PathLike[str]) -> dict[str, Any] | None:
@@ -318,12 +300,11 @@ def stage_run_id(stage: str | os.PathLike[str]) -> str | None:
 
 def staged_files(stage: Path) -> list[str]:
     """The files a stage will publish (relative paths), its working state left out."""
-    files = []
-    for path in sorted(stage.rglob("*")):
-        relative = path.relative_to(stage)
-        if path.is_file() and path.name != STAGE_MARKER and not path.name.startswith(".write-check-"):
-            files.append(relative.as_posix())
-    return files
+    return [
+        path.relative_to(stage).as_posix()
+        for path in sorted(stage.rglob("*"))
+        if path.is_file() and path.name != STAGE_MARKER and not path.name.startswith(".write-check-")
+    ]
 
 
 def carry(folder: Path, stage: Path, methods: Iterable[str]) -> list[str]:

@@ -5,10 +5,8 @@ a ``query reference label score`` table, published as one method like a run (``r
 from __future__ import annotations
 
 import csv
-import datetime as _dt
 import importlib
 import io
-import json
 import pickle
 import shlex
 import shutil
@@ -27,16 +25,12 @@ from gvbench_nb.runner import method_outputs, record, scoring
 TABLE_COLUMNS = ["query", "reference", "label", "score"]
 IMPORTED_PROFILE = "imported"  # the profile column of an imported method: we did not run its chain
 # What a pickled numpy array, numpy scalar or dtype needs (numpy 1 writes numpy.core, numpy 2 numpy._core).
-_NUMPY_GLOBALS = {
-    ("numpy", "ndarray"): np.ndarray,
-    ("numpy", "dtype"): np.dtype,
-}
 _CORE = "numpy._core" if int(np.__version__.split(".")[0]) >= 2 else "numpy.core"
-for _spelling in ("numpy.core", "numpy._core"):
-    for _module, _name in (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer")):
-        _NUMPY_GLOBALS[(f"{_spelling}.{_module}", _name)] = getattr(
-            importlib.import_module(f"{_CORE}.{_module}"), _name
-        )
+_NUMPY_GLOBALS = {("numpy", "ndarray"): np.ndarray, ("numpy", "dtype"): np.dtype} | {
+    (f"{spelling}.{module}", name): getattr(importlib.import_module(f"{_CORE}.{module}"), name)
+    for spelling in ("numpy.core", "numpy._core")
+    for module, name in (("multiarray", "_reconstruct"), ("multiarray", "scalar"), ("numeric", "_frombuffer"))
+}
 
 
 class ScoreFileError(GVBenchError, ValueError):
@@ -235,7 +229,7 @@ def _run_record(
         "environment": {"device": "imported"},
         "this_run": {},
         "imported": {"file": str(path), "sha256": file_sha256(path), "format": kind, "stated": stated},
-        "finished_at": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "finished_at": record.now(),
     }
 
 
@@ -245,7 +239,7 @@ def export_npy(output_dir: str | Path, method: str) -> Path:
     ``all_matches`` (the match coordinates are not in pairs.csv)."""
     output_dir = Path(output_dir)
     table = scoring.load_pairs_table(output_dir, method)
-    run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+    run = method_outputs.read_run_json(output_dir, method)
     labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
     prob = scores / scores.max() if scores.max() > 0 else scores
     metrics = evaluate_scores(labels, prob, where=f"{output_dir / method / 'pairs.csv'}")

@@ -5,26 +5,20 @@ images), AP/MR per method, and the checks that a table is still the one its inpu
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import pandas as pd
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv
-from gvbench_nb.protocol.images import (
-    ImageReadError,
-)
+from gvbench_nb.protocol.images import ImageReadError
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.runner import image_features, method_outputs, record
-
-if TYPE_CHECKING:
-    pass
 
 
 def pairs_digest(rows: Iterable[tuple[str, str, int]]) -> str:
@@ -105,13 +99,9 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
         )
     rows = []
     for method in methods:
-        table = load_pairs_table(output_dir, method)
-        run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text())
-        metrics = evaluate_scores(
-            table["label"].to_numpy(),
-            table["score"].to_numpy(),
-            where=f"{method_outputs.method_dir(output_dir, method) / 'pairs.csv'}",
-        )
+        table, run = load_pairs_table(output_dir, method), method_outputs.read_run_json(output_dir, method)
+        where = str(method_outputs.method_dir(output_dir, method) / "pairs.csv")
+        metrics = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy(), where=where)
         rows.append(
             {
                 "sequence": run["sequence"],
@@ -158,7 +148,7 @@ def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
     SHA-256, or the images' contents); inputs no longer there to check are not reported."""
     changed = {}
     for method in methods:
-        run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+        run = method_outputs.read_run_json(output_dir, method)
         pairs = run.get("pairs") or {}
         pairs_file = pairs.get("pairs_file")
         if pairs_file and Path(pairs_file).is_file() and record.file_sha256(pairs_file) != pairs.get("pairs_sha256"):
@@ -178,40 +168,12 @@ def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
     return changed
 
 
-def check_results_current(output_dir: Path, methods: Iterable[str], tables: Iterable[str] = ()) -> None:
-    """Raise unless ``methods``' results in ``output_dir`` are what a finished run published
-    (the folder's record), unedited (their files' SHA-256 are the record's; ``tables``: more such
-    files, e.g. ``results.csv``), from a pair file and images unchanged since."""
-    output_dir = Path(output_dir)
-    methods = list(methods)
-    record.check_published(output_dir)
-    names = [name for m in methods for name in method_outputs.result_files(m)] + list(tables)
-    edited = record.changed_files(output_dir, names)
-    if edited:
-        raise record.RecordError(
-            f"{output_dir}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a "
-            f"run's; run those methods again (python -m gvbench_nb run PARAMS --output-dir {output_dir}) after "
-            "moving the edited files away"
-        )
-    check_inputs_unchanged(output_dir, methods)
-
-
-def check_inputs_unchanged(output_dir: Path, methods: Iterable[str]) -> None:
-    """``ResultsError`` naming the methods whose pair file or images changed since they ran."""
-    changed = changed_inputs(output_dir, methods)
-    if changed:
-        described = "; ".join(f"{method}: {why}" for method, why in changed.items())
-        raise method_outputs.ResultsError(
-            f"{output_dir}: results computed from inputs that have changed since ({described}); run those methods "
-            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {output_dir})"
-        )
-
-
 def readable_methods(
     output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None, tables: Iterable[str] = ()
 ) -> list[str]:
     """The check every reader of results runs first: a published record, ``methods`` finished, their
-    files (and ``tables``) and inputs unchanged, all on the same pairs and labels; the methods."""
+    files (their SHA-256 the record's; ``tables``: more such files, e.g. ``results.csv``) and inputs
+    unchanged, all on the same pairs and labels; the methods."""
     folder = Path(output_dir)
     if not folder.is_dir():
         evaluate(folder, write=False)  # says the folder does not exist
@@ -229,7 +191,21 @@ def readable_methods(
             method_outputs.check_results_finished(folder)  # names the unfinished methods, if any
             evaluate(folder, write=False)  # says the folder holds no results
     methods = list(methods)
-    check_results_current(folder, methods, tables)
+    names = [name for m in methods for name in method_outputs.result_files(m)] + list(tables)
+    edited = record.changed_files(folder, names)
+    if edited:
+        raise record.RecordError(
+            f"{folder}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a "
+            f"run's; run those methods again (python -m gvbench_nb run PARAMS --output-dir {folder}) after "
+            "moving the edited files away"
+        )
+    changed = changed_inputs(folder, methods)
+    if changed:
+        described = "; ".join(f"{method}: {why}" for method, why in changed.items())
+        raise method_outputs.ResultsError(
+            f"{folder}: results computed from inputs that have changed since ({described}); run those methods "
+            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {folder})"
+        )
     digests = [table_pairs_digest(load_pairs_table(folder, m))[:12] for m in methods]
     check_one_binding(folder, pd.DataFrame({"method": methods, "pairs_digest": digests}))
     return methods

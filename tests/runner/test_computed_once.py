@@ -27,7 +27,7 @@ WATCHED = {
 }
 WHAT = {  # from the positional arguments: the method (and the pair) a call works on
     "_verify_pair": lambda args: f"{args[1]['method']} {args[0].query} {args[0].reference}",
-    "compute_method": lambda args: args[1],
+    "compute_method": lambda args: args[1]["method"],
     "pairs_table": lambda args: args[1]["method"],
 }
 

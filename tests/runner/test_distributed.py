@@ -11,7 +11,7 @@ import torch
 import yaml
 
 from gvbench_nb import methods
-from gvbench_nb.data.sequences import Pair, write_pairs
+from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.runner import concurrency, config, distributed, image_features, method_runs, scoring, sequence_build
 
 METHOD, PROFILE = "sift-nn", "repository"
@@ -20,11 +20,11 @@ METHOD, PROFILE = "sift-nn", "repository"
 def twelve_pairs() -> list[Pair]:
     """Three day queries, each with two true neighbouring frames and two false ones (12 pairs).
     Day frames: COLMAP SIFT finds hardly any night-to-day matches at 512 px, so no inliers."""
-    pairs = []
-    for q in (30, 90, 150):
-        for r, label in ((q + 1, 1), (q + 2, 1), ((q + 50) % 200, 0), ((q + 100) % 200, 0)):
-            pairs.append(Pair(f"day_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label))
-    return pairs
+    return [
+        Pair(f"day_right/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label)
+        for q in (30, 90, 150)
+        for r, label in ((q + 1, 1), (q + 2, 1), ((q + 50) % 200, 0), ((q + 100) % 200, 0))
+    ]
 
 
 def make_params(shared_data: Path, folder: Path) -> dict:
@@ -33,21 +33,10 @@ def make_params(shared_data: Path, folder: Path) -> dict:
     pairs = folder.parent / "pairs.txt"
     if not pairs.is_file():
         write_pairs(pairs, twelve_pairs())
-    path = folder / "params.yaml"
-    path.write_text(
-        yaml.safe_dump(
-            {
-                "sequence": "gp_shards",
-                "pairs": str(pairs),
-                "image_root": str(shared_data / "gardens_point"),
-                "methods": [METHOD],
-                "profile": PROFILE,
-                "output_dir": str(folder / "out"),
-                "cache_dir": str(folder / "cache"),
-            }
-        )
-    )
-    return config.load_params(path)
+    params = {"sequence": "gp_shards", "pairs": str(pairs), "image_root": str(shared_data / "gardens_point")}
+    params |= {"methods": [METHOD], "profile": PROFILE, "output_dir": str(folder / "out")}
+    (folder / "params.yaml").write_text(yaml.safe_dump(params | {"cache_dir": str(folder / "cache")}))
+    return config.load_params(folder / "params.yaml")
 
 
 def without_timings(table: pd.DataFrame) -> pd.DataFrame:
@@ -57,14 +46,7 @@ def without_timings(table: pd.DataFrame) -> pd.DataFrame:
 @pytest.fixture(scope="module")
 def unsharded(shared_data, tmp_path_factory) -> pd.DataFrame:
     params = make_params(shared_data, tmp_path_factory.mktemp("runs") / "unsharded")
-    method_runs.run_method(
-        sequence_build.prepare_sequence(params),
-        METHOD,
-        PROFILE,
-        Path(params["output_dir"]),
-        Path(params["cache_dir"]),
-        progress=False,
-    )
+    method_runs.run_method_of_params(params, sequence_build.prepare_sequence(params), METHOD, progress=False)
     return scoring.load_pairs_table(Path(params["output_dir"]), METHOD)
 
 
@@ -112,21 +94,16 @@ def test_merge_with_a_missing_shard_names_the_missing_pairs(shared_data, tmp_pat
 
 
 def test_pair_shards_partition_the_pairs():
-    from gvbench_nb.data.sequences import Sequence
-
     sequence = Sequence("s", Path("/images"), twelve_pairs())
     shards = [distributed.pair_shard(sequence, i, 5) for i in range(5)]
     assert sorted((p for s in shards for p in s.pairs), key=sequence.pairs.index) == sequence.pairs
 
 
 @pytest.mark.parametrize("text", ["3/3", "-1/2", "1", "a/b", "0/0"])
-def test_parse_shard_rejects_bad_values(text):
+def test_parse_shard_reads_index_and_count_and_rejects_bad_values(text):
+    assert distributed.parse_shard("2/5") == (2, 5)
     with pytest.raises(ValueError, match="shard"):
         distributed.parse_shard(text)
-
-
-def test_parse_shard_reads_index_and_count():
-    assert distributed.parse_shard("2/5") == (2, 5)
 
 
 def test_job_count_comes_from_the_argument_then_gvbench_jobs(monkeypatch):

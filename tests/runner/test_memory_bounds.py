@@ -60,21 +60,10 @@ def _fake_sequence(root: Path, references_per_query: int) -> Sequence:
 
 def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
     sequence = _fake_sequence(tmp_path / "images", references_per_query)
-    conf = {
-        "method": "fake-nn",
-        "profile": "test",
-        "extractor": {"type": "colmap_sift", "name": "fake"},
-        "matcher": {"type": "nn", "metric": "l2", "mutual": True, "ratio_threshold": 0.8},
-        "verifier": {
-            "type": "fundamental",
-            "method": "FM_RANSAC",
-            "threshold_px": 3.0,
-            "confidence": 0.99,
-            "max_iters": 20,
-            "min_matches": 10**6,
-            "min_match_score": 0.5,
-        },
-    }
+    verifier = {"type": "fundamental", "method": "FM_RANSAC", "threshold_px": 3.0, "confidence": 0.99, "max_iters": 20}
+    verifier |= {"min_matches": 10**6, "min_match_score": 0.5}  # RANSAC skipped
+    conf = {"method": "fake-nn", "profile": "test", "extractor": {"type": "colmap_sift", "name": "fake"}}
+    conf |= {"matcher": {"type": "nn", "metric": "l2", "mutual": True, "ratio_threshold": 0.8}, "verifier": verifier}
     cache_dir, output_dir = tmp_path / f"cache{references_per_query}", tmp_path / f"out{references_per_query}"
     rng = np.random.default_rng(0)
     base = rng.normal(size=(200, 32))

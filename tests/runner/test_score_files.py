@@ -10,11 +10,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+import test_run_record
 import yaml
 from sklearn.metrics import average_precision_score, precision_recall_curve
-from test_run_record import in_process_notebooks, one_sentence, run_cli, snapshot
+from test_run_record import one_sentence, run_cli, snapshot
 
-from gvbench_nb import run_and_publish
 from gvbench_nb.data import synthetic
 from gvbench_nb.protocol.metrics import evaluate_scores
 from gvbench_nb.runner import scoring
@@ -23,11 +23,7 @@ QUERIES = [f"night/{i:03d}.png" for i in (0, 0, 1, 1, 2, 2)]
 REFERENCES = [f"day/{i:03d}.png" for i in (0, 5, 1, 6, 2, 7)]
 LABELS = [1, 0, 1, 0, 1, 0]
 INLIERS = [40, 12, 9, 15, 30, 3]  # a false pair above a true one: MR below 1
-
-
-@pytest.fixture
-def notebooks_here(monkeypatch):
-    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
+notebooks_here = test_run_record.notebooks_here  # the fixture
 
 
 def authors_npy(path: Path, inliers_as: str = "points", **changes) -> Path:
@@ -56,6 +52,11 @@ def authors_npy(path: Path, inliers_as: str = "points", **changes) -> Path:
     return path
 
 
+def import_scores(capsys, source: Path, method: str, folder: Path, sequence: str = "s") -> tuple[int, str, str]:
+    argv = ["import-scores", str(source), "--sequence", sequence, "--method", method, "--output-dir", str(folder)]
+    return run_cli(capsys, *argv)
+
+
 def results_row(capsys, folder: Path, method: str) -> dict:
     code, _, err = run_cli(capsys, "results", str(folder))
     assert code == 0, err
@@ -67,9 +68,7 @@ def results_row(capsys, folder: Path, method: str) -> dict:
 def test_the_authors_npy_imports_with_their_ap_and_mr(tmp_path, capsys, inliers_as):
     source = authors_npy(tmp_path / "night_superpoint_superglue.npy", inliers_as)
     out = tmp_path / "out"
-    code, said, err = run_cli(
-        capsys, "import-scores", str(source), "--sequence", "night", "--method", "sp-sg", "--output-dir", str(out)
-    )
+    code, said, err = import_scores(capsys, source, "sp-sg", out, "night")
     assert code == 0, err
     expected = evaluate_scores(np.array(LABELS), np.array(INLIERS, dtype=float))
     assert 0 < expected["max_recall"] < 1 and expected["ap"] < 1
@@ -99,9 +98,7 @@ def test_a_npy_whose_pickle_would_run_code_is_refused_without_running_it(tmp_pat
     marker = tmp_path / "ran"
     source = authors_npy(tmp_path / "evil.npy", gt=[RunsCode(marker)] * 6)
     out = tmp_path / "out"
-    code, _, err = run_cli(
-        capsys, "import-scores", str(source), "--sequence", "night", "--method", "x", "--output-dir", str(out)
-    )
+    code, _, err = import_scores(capsys, source, "x", out)
     assert code == 2 and "posix.system" in one_sentence(err) and "refused without running it" in err
     assert not marker.exists() and not out.exists()
     np.load(source, allow_pickle=True)  # numpy's own loader does run it: the file is what the test says
@@ -120,17 +117,7 @@ def test_tables_import_as_csv_with_a_header_and_as_whitespace_with_quoted_paths(
     text.write_text("".join(f'"{q}" {r}  {lab}\t{s}\n' for q, r, lab, s in zip(spaced, REFERENCES, LABELS, scores)))
     expected = evaluate_scores(np.array(LABELS), np.array(scores))
     for source, method in ((csv, "from-csv"), (text, "from-text")):
-        code, _, err = run_cli(
-            capsys,
-            "import-scores",
-            str(source),
-            "--sequence",
-            "s",
-            "--method",
-            method,
-            "--output-dir",
-            str(tmp_path / method),
-        )
+        code, _, err = import_scores(capsys, source, method, tmp_path / method)
         assert code == 0, err
         row = results_row(capsys, tmp_path / method, method)
         assert (row["ap"], row["max_recall"]) == (expected["ap"], expected["max_recall"])
@@ -148,9 +135,7 @@ def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, 
         (short, "differ in length"),
         (tmp_path / "no.npy", "does not exist"),
     ):
-        code, _, err = run_cli(
-            capsys, "import-scores", str(source), "--sequence", "s", "--method", "m", "--output-dir", str(out)
-        )
+        code, _, err = import_scores(capsys, source, "m", out)
         assert code == 2 and words in one_sentence(err), err
     assert not out.exists()
 
@@ -185,8 +170,7 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
 
     # Back into the run's own folder (beside orb-nn) and into a folder of its own.
     for folder in (out, tmp_path / "back"):
-        argv = ["import-scores", str(exported), "--sequence", "sample", "--method", "orb-nn-back"]
-        code, _, err = run_cli(capsys, *argv, "--output-dir", str(folder))
+        code, _, err = import_scores(capsys, exported, "orb-nn-back", folder, "sample")
         assert code == 0, err
         back, original = results_row(capsys, folder, "orb-nn-back"), results_row(capsys, out, "orb-nn")
         assert (back["ap"], back["max_recall"]) == (original["ap"], original["max_recall"])
@@ -198,8 +182,6 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
     assert results_row(capsys, out, "orb-nn-back")["ap"] == original["ap"]
     flipped = authors_npy(tmp_path / "other.npy")
     before = snapshot(out)
-    code, _, err = run_cli(
-        capsys, "import-scores", str(flipped), "--sequence", "sample", "--method", "other", "--output-dir", str(out)
-    )
+    code, _, err = import_scores(capsys, flipped, "other", out, "sample")
     assert code == 2 and "scored on other pairs or labels" in one_sentence(err)
     assert snapshot(out) == before

@@ -4,6 +4,8 @@ or are refused before work; same photographs and in-process notebooks as test_ru
 from __future__ import annotations
 
 import os
+import threading
+import time
 from pathlib import Path
 
 import matplotlib.pyplot as plt
@@ -15,7 +17,7 @@ from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file
 from gvbench_nb import run_and_publish
 from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import config, method_runs, record, sequence_build
+from gvbench_nb.runner import config, method_runs, record, scoring, sequence_build
 
 pytestmark = pytest.mark.reliability
 root, notebooks_here = test_run_record.root, test_run_record.notebooks_here  # the fixtures
@@ -37,10 +39,7 @@ def test_a_shard_or_merge_on_other_labels_into_a_folder_of_other_methods_is_refu
         assert code == 2 and "holds results of orb-nn computed on other pairs, labels or images" in one_sentence(err)
         assert published(tmp_path / "out") == before
     assert not (tmp_path / "out" / "sift-opencv-nn" / "pairs.csv").exists()
-
-
-def test_a_merge_lists_every_method_of_the_folder(tmp_path, root, capsys, notebooks_here):
-    assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
+    # On the folder's own pairs and labels, a merge's results.csv lists every method of the folder.
     sift = params_file(tmp_path, "sift.yaml", PAIRS, methods=["sift-opencv-nn"])
     assert run_cli(capsys, "run", str(sift), "--shard", "0/1")[0] == 0
     assert run_cli(capsys, "run", str(sift), "--merge")[0] == 0
@@ -166,11 +165,6 @@ def test_a_method_registered_from_code_is_refused_by_run_before_any_folder(tmp_p
 
 
 def test_a_reader_polling_while_a_run_publishes_sees_each_run_whole(tmp_path, root, capsys, monkeypatch):
-    import threading
-    import time
-
-    from gvbench_nb.runner import scoring
-
     both = {"methods": ["orb-nn", "sift-opencv-nn"]}
     assert run_cli(capsys, "run", str(params_file(tmp_path, **both)))[0] == 0
     out = tmp_path / "out"

@@ -10,6 +10,8 @@ import pandas as pd
 from gvbench_nb.evaluation import run_tables
 
 RANKED_SHARE = 0.95  # a ranking needs one method ahead in this share of the paired resamples
+SHARE_COLUMNS = ["metric", "first", "second", "first_value", "second_value", "first_beats_second", "tied"]
+SHARE_COLUMNS += ["second_beats_first", "verdict"]
 
 
 # ------------------------------------------------------------------ bootstrap --
@@ -73,20 +75,11 @@ class Bootstrap:
         rows = []
         for metric, frame in self.samples.items():
             for method in self.methods:
-                values = frame[method].to_numpy()
-                valid = values[~np.isnan(values)]
+                valid = frame[method].dropna().to_numpy()
                 low, high = np.percentile(valid, [tail, 100 - tail]) if len(valid) else (np.nan, np.nan)
-                rows.append(
-                    {
-                        "method": method,
-                        "metric": metric,
-                        "estimate": self.estimates.loc[method, metric],
-                        "low": low,
-                        "high": high,
-                        "n_valid": len(valid),
-                    }
-                )
-        return pd.DataFrame(rows)
+                estimate = self.estimates.loc[method, metric]
+                rows.append((method, metric, estimate, low, high, len(valid)))
+        return pd.DataFrame(rows, columns=["method", "metric", "estimate", "low", "high", "n_valid"])
 
     def paired_shares(self, metric: str, ranked_share: float | None = None) -> pd.DataFrame:
         """Every pair of methods once (higher on all pairs first): shares of paired resamples won, tied
@@ -110,20 +103,9 @@ class Bootstrap:
                 verdict = (
                     f"{first} > {second}" if wins >= share else f"{second} > {first}" if losses >= share else "tie"
                 )
-                rows.append(
-                    {
-                        "metric": metric,
-                        "first": first,
-                        "second": second,
-                        "first_value": float(estimates[first]),
-                        "second_value": float(estimates[second]),
-                        "first_beats_second": wins,
-                        "tied": ties,
-                        "second_beats_first": losses,
-                        "verdict": verdict,
-                    }
-                )
-        return pd.DataFrame(rows)
+                values = (float(estimates[first]), float(estimates[second]), wins, ties, losses, verdict)
+                rows.append((metric, first, second, *values))
+        return pd.DataFrame(rows, columns=SHARE_COLUMNS)
 
     def ranking_matrix(self, metric: str = "max_recall", ranked_share: float | None = None) -> pd.DataFrame:
         """Square table of ``paired_shares``' verdicts: '>' where the row method ranks above the

@@ -22,22 +22,18 @@ def query_intervals(
 
 def intervals_of(boot: bootstrap.Bootstrap, level: float = LEVEL) -> pd.DataFrame:
     """``query_intervals``' table from a bootstrap already drawn (so shares and intervals share its draws)."""
-    long = boot.intervals(level).set_index(["method", "metric"])
-    rows = []
-    for method in boot.methods:
-        row: dict[str, object] = {"method": method}
-        for metric in run_tables.METRICS:
-            row[metric] = float(long.loc[(method, metric), "estimate"])
-            row[f"{metric}_low"] = float(long.loc[(method, metric), "low"])
-            row[f"{metric}_high"] = float(long.loc[(method, metric), "high"])
-        rows.append(row)
-    table = pd.DataFrame(rows)
-    table["interval_unit"] = RESAMPLING_UNIT
-    table["n_queries"] = boot.n_queries
-    table["n_pairs"] = boot.n_pairs
-    table["n_resamples"] = len(boot.samples["ap"])
-    table["seed"] = boot.seed
-    return table
+    wide = boot.intervals(level).pivot(index="method", columns="metric", values=["estimate", "low", "high"])
+    wide.columns = [metric if stat == "estimate" else f"{metric}_{stat}" for stat, metric in wide.columns]
+    columns = [c for metric in run_tables.METRICS for c in (metric, f"{metric}_low", f"{metric}_high")]
+    table = wide.loc[boot.methods, columns].astype(float).reset_index().rename_axis(columns=None)
+    n_resamples = len(boot.samples["ap"])
+    return table.assign(
+        interval_unit=RESAMPLING_UNIT,
+        n_queries=boot.n_queries,
+        n_pairs=boot.n_pairs,
+        n_resamples=n_resamples,
+        seed=boot.seed,
+    )
 
 
 def interval_columns(

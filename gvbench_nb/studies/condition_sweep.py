@@ -87,8 +87,13 @@ def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
     return width, height
 
 
-def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> dict[str, Any]:
-    return {
+def prepare_route(
+    out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
+) -> SweepRoute:
+    """Build the route, render the clear reference drive once and write the pair list; a folder
+    holding another route is refused (its cached results would not belong to this one)."""
+    image_root = Path(out_dir) / "images"
+    params = {
         "generator_version": synthetic.GENERATOR_VERSION,
         "seed": int(seed),
         "n_frames": int(n_frames),
@@ -97,15 +102,6 @@ def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> di
         "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
         "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M,
     }
-
-
-def prepare_route(
-    out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
-) -> SweepRoute:
-    """Build the route, render the clear reference drive once and write the pair list; a folder
-    holding another route is refused (its cached results would not belong to this one)."""
-    image_root = Path(out_dir) / "images"
-    params = _route_params(seed, n_frames, image_size)
     params_path = image_root / "route.json"
     if params_path.exists():
         recorded = json.loads(params_path.read_text())
@@ -361,7 +357,7 @@ def _crossing(strengths: np.ndarray, values: np.ndarray, level: float) -> tuple[
 def breaking_strength_table(sweep: pd.DataFrame) -> pd.DataFrame:
     """Breaking strengths as a method x condition table of text ('0.43', 'not reached')."""
     table = breaking_strength(sweep)
-    table["label"] = table["method"] + np.where(table["profile"] == "paper", "", " (" + table["profile"] + ")")
+    table["label"] = [_label(method, profile) for method, profile in zip(table["method"], table["profile"])]
     table["value"] = [
         f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED)
         for b, note in zip(table["breaking_strength"], table["note"])

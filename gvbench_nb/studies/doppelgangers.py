@@ -111,17 +111,6 @@ def doppelgangers_comparison(
     theirs = theirs.assign(
         source=run_tables.PAPER_LABEL, verifier=theirs["paper_name"].map(PAPER_ROWS), weights="", status="published"
     )
-    columns = [
-        "source",
-        "sequence",
-        "verifier",
-        "ap",
-        "max_recall",
-        "ap_ci_low",
-        "ap_ci_high",
-        "max_recall_ci_low",
-        "max_recall_ci_high",
-        "status",
-        "weights",
-    ]
+    columns = ["source", "sequence", "verifier", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low"]
+    columns += ["max_recall_ci_high", "status", "weights"]
     return pd.concat([ours.reindex(columns=columns), theirs.reindex(columns=columns)], ignore_index=True)

@@ -23,20 +23,12 @@ def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame
     a file in the shipped format (``method,sequence,ap,max_recall`` in %), empty when absent."""
     columns = ["paper_name", "method", "sequence", *run_tables.METRICS]
     if path is None:
-        return reference_values.paper_table().rename(columns={"reference_name": "paper_name"})[columns]
-    path = Path(path)
-    if not path.is_file():
+        table = reference_values.paper_table()
+    elif not Path(path).is_file():
         return pd.DataFrame(columns=columns)
-    raw = pd.read_csv(path)
-    expected = {"method", "sequence", *run_tables.METRICS}
-    if not expected <= set(raw.columns):
-        raise ValueError(f"{path}: expected columns {sorted(expected)}, got {list(raw.columns)}")
-    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.RECIPES["paper"].items()}
-    table = raw.rename(columns={"method": "paper_name"})
-    table["method"] = table["paper_name"].map(by_paper_name)
-    for metric in run_tables.METRICS:
-        table[metric] = table[metric] / 100.0
-    return table[columns]
+    else:
+        table = reference_values.paper_table(pd.read_csv(path), where=str(path))
+    return table.rename(columns={"reference_name": "paper_name"})[columns]
 
 
 def load_repository_table() -> pd.DataFrame:

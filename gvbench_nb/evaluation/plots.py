@@ -156,7 +156,7 @@ def pair_matches(
     images: tuple[np.ndarray, np.ndarray], view: pd.DataFrame, lines: dict[str, dict[str, np.ndarray]], title: str = ""
 ) -> plt.Figure:
     """One pair's matches and inliers, one row a method of ``view`` (explore's table), each
-    titled with its score and rank; ``lines``: each method's ``analysis.match_lines``."""
+    titled with its score and rank; ``lines``: each method's ``verifier_inputs.match_lines``."""
     figure, axes = plt.subplots(len(view), 1, figsize=(10, 3.4 * len(view)), squeeze=False)
     for axis, row in zip(axes[:, 0], view.itertuples()):
         method = str(row.method)

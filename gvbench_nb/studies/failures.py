@@ -11,8 +11,9 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb.data.sequences import frame_index
-from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.evaluation import plots
 from gvbench_nb.protocol.images import read_image
+from gvbench_nb.studies import verifier_inputs
 
 
 # -------------------------------------------------------------- failures --
@@ -124,7 +125,7 @@ def failure_pairs(
     """Each pair of ``rows`` (a failures table) drawn with inlier matches green, outliers red."""
     figure, axes = plt.subplots(len(rows), 1, figsize=(10, 3.4 * max(len(rows), 1)), squeeze=False)
     for axis, row in zip(axes[:, 0], rows.itertuples()):
-        lines = run_tables.match_lines(output_dir, method, row.query, row.reference, cache_dir)
+        lines = verifier_inputs.match_lines(output_dir, method, row.query, row.reference, cache_dir)
         image0 = read_image(Path(image_root) / row.query)
         image1 = read_image(Path(image_root) / row.reference)
         plots.draw_matches(image0, image1, lines["points0"], lines["points1"], lines["inlier_mask"], axis=axis)

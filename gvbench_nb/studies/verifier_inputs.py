@@ -187,6 +187,22 @@ class CachedMatches:
             self.features.close()
 
 
+def match_lines(
+    output_dir: str | os.PathLike[str],
+    method: str,
+    query: str,
+    reference: str,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, np.ndarray]:
+    """Matched points of one pair (original pixels) and its inlier mask, for drawing."""
+    cached = CachedMatches(output_dir, method, cache_dir)
+    try:
+        pair = cached.pair(query, reference)
+    finally:
+        cached.close()
+    return {"points0": pair.points0, "points1": pair.points1, "inlier_mask": pair.inlier_mask}
+
+
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
     """(inlier mask, matches that entered the fit) by the run's own ``filter_and_fit``, so FM_RANSAC with
     the run's seed gives the stored mask."""

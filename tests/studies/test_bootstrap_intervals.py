@@ -85,7 +85,7 @@ def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
     assert np.mean(boot.samples["ap"]["better"].to_numpy() > apart.to_numpy()) < 0.8
 
 
-def test_same_ranking_is_tied_in_every_paired_resample():
+def test_same_ranking_is_tied_in_every_paired_resample_and_a_better_one_ranked_first():
     table = noisy_queries(2)
     rescaled = table.assign(score=2 * table["score"] + 1)  # the same order of pairs
     boot = bootstrap.bootstrap({"a": table, "b": rescaled}, 300, seed=0)
@@ -94,9 +94,7 @@ def test_same_ranking_is_tied_in_every_paired_resample():
         assert shares["tied"] == 1.0
         assert shares["first_beats_second"] == shares["second_beats_first"] == 0.0
         assert shares["verdict"] == "tie"
-
-
-def test_ranking_in_either_direction_and_ties_between():
+    # A ranking in either direction: the leader on all pairs is first.
     table = noisy_queries(3)
     perfect = table.assign(score=table["label"] * 10.0)
     boot = bootstrap.bootstrap({"weak": table, "perfect": perfect}, 300, seed=0)

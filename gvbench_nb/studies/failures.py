@@ -48,9 +48,7 @@ def ground_truth_offsets(table: pd.DataFrame, image_root: str | os.PathLike[str]
             )
         centres = poses[["x", "y", "z"]].to_numpy(dtype=float)
         axes = poses[["r02", "r12", "r22"]].to_numpy(dtype=float)  # optical axis (camera z) in the world
-        row = {name: i for i, name in enumerate(poses.index)}
-        q = np.array([row[n] for n in table["query"]], dtype=int)
-        r = np.array([row[n] for n in table["reference"]], dtype=int)
+        q, r = poses.index.get_indexer(table["query"]), poses.index.get_indexer(table["reference"])
         out["distance_m"] = np.linalg.norm(centres[q] - centres[r], axis=1)
         cosine = np.einsum("ij,ij->i", axes[q], axes[r]) / (
             np.linalg.norm(axes[q], axis=1) * np.linalg.norm(axes[r], axis=1)

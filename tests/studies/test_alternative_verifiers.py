@@ -33,12 +33,16 @@ def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
     return with_outlier_matches(rng, p0, p1, n_outliers)
 
 
+def fit(pair: verifier_inputs.PairMatches, model: str, estimator: str = "FM_RANSAC") -> tuple[np.ndarray, int]:
+    """The pair's inlier mask and fitted count under one GV verifier's conf, seed 0."""
+    return verifier_inputs.fit_inliers(pair, alternative_verifiers.gv_conf(model, estimator, "inliers"), seed=0)
+
+
 @pytest.mark.parametrize("estimator", list(ESTIMATORS))
 @pytest.mark.parametrize("model,scene,stray", [("fundamental", two_view_scene, 3), ("homography", planar_scene, 2)])
 def test_every_estimator_returns_the_planted_inliers(estimator, model, scene, stray):
     p0, p1, truth = scene()
-    conf = alternative_verifiers.gv_conf(model, estimator, "inliers")
-    mask, fitted = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
+    mask, fitted = fit(as_pair(p0, p1), model, estimator)
     assert fitted == len(p0)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
     assert (mask & ~truth).sum() <= stray  # a random match may fall near its epipolar line
@@ -46,12 +50,7 @@ def test_every_estimator_returns_the_planted_inliers(estimator, model, scene, st
 
 def test_homography_rejects_a_non_planar_scene_more_than_the_fundamental_matrix():
     p0, p1, truth = two_view_scene(seed=2)
-    h_mask, _ = verifier_inputs.fit_inliers(
-        as_pair(p0, p1), alternative_verifiers.gv_conf("homography", "FM_RANSAC", "inliers"), 0
-    )
-    f_mask, _ = verifier_inputs.fit_inliers(
-        as_pair(p0, p1), alternative_verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers"), 0
-    )
+    (h_mask, _), (f_mask, _) = fit(as_pair(p0, p1), "homography"), fit(as_pair(p0, p1), "fundamental")
     assert h_mask.sum() < 0.8 * f_mask.sum()
 
 
@@ -59,9 +58,7 @@ def test_normalised_scores_follow_their_definitions():
     p0, p1, truth = two_view_scene(n_inliers=80, n_outliers=20)
     pair = as_pair(p0, p1, n_keypoints=400)
     pair.num_keypoints1 = 200  # the smaller count divides
-    mask, fitted = verifier_inputs.fit_inliers(
-        pair, alternative_verifiers.gv_conf("fundamental", "USAC_MAGSAC", "inliers"), 0
-    )
+    mask, fitted = fit(pair, "fundamental", "USAC_MAGSAC")
     features = verifier_inputs.gv_features(pair, mask, fitted)
     assert features["inliers"] == mask.sum()
     assert features["inlier_ratio"] == pytest.approx(mask.sum() / 100)

@@ -276,13 +276,18 @@ def run_sweep(
     # One run a query folder: strength 0 is a single clear run whose rows serve every condition.
     cells = [(0.0, conditions)] + [(s, [c]) for c in conditions for s in strengths if s > 0.0]
     bar = progress_bar(total=len(cells) * len(profiles), desc="condition sweep", unit="cell", disable=not progress)
+    options: dict[str, Any] = {"device": device, "seed": seed, "progress": progress, "threads": threads}
     for strength, targets in cells:
         for method, method_profile in profiles.items():
             wanted = [c for c in targets if (c, strength, method, method_profile) not in finished]
             if wanted:
-                rows += _run_cell(
-                    sweep_route, out_dir, wanted, strength, method, method_profile, device, seed, threads, progress
-                )
+                # The cell's query folder rendered (if needed), the method run, one row a condition.
+                render_query(sweep_route, wanted[0], strength)
+                run_dir = out_dir / "runs" / method_profile / cell_name(wanted[0], strength)
+                sequence = sweep_route.sequence(wanted[0], strength)
+                scored = method_runs.run_method(sequence, method, method_profile, run_dir, out_dir / "cache", **options)
+                where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")
+                rows += [_cell_row(sweep_route, scored, c, strength, method, method_profile, where) for c in wanted]
                 finished.update((c, strength, method, method_profile) for c in wanted)
                 atomic_write_csv(out_dir / "sweep.csv", _ordered(pd.DataFrame(rows, columns=SWEEP_COLUMNS)))
             bar.update()
@@ -291,30 +296,6 @@ def run_sweep(
     profile_asked = np.array([profiles.get(m) == p for m, p in zip(table["method"], table["profile"])], dtype=bool)
     keep = table["condition"].isin(conditions) & table["strength"].round(6).isin(strengths) & profile_asked
     return table[keep].reset_index(drop=True)
-
-
-def _run_cell(
-    sweep_route: SweepRoute,
-    out_dir: Path,
-    conditions: list[str],
-    strength: float,
-    method: str,
-    profile: str,
-    device: str,
-    seed: int,
-    threads: int | None,
-    progress: bool,
-) -> list[dict[str, Any]]:
-    """Render the cell's query folder (if needed), run the method, one row a condition."""
-    render_query(sweep_route, conditions[0], strength)
-    sequence = sweep_route.sequence(conditions[0], strength)
-    run_dir = out_dir / "runs" / profile / cell_name(conditions[0], strength)
-    cache = out_dir / "cache"
-    table = method_runs.run_method(
-        sequence, method, profile, run_dir, cache, device=device, seed=seed, progress=progress, threads=threads
-    )
-    where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")
-    return [_cell_row(sweep_route, table, condition, strength, method, profile, where) for condition in conditions]
 
 
 def _ordered(table: pd.DataFrame) -> pd.DataFrame:

@@ -64,16 +64,8 @@ def train_in_domain(
     model = DoppelgangersClassifier()
     start = time.perf_counter()
     labels = np.array(subset["label"], dtype=np.int64)  # a writable copy (torch refuses read-only arrays)
-    history = train_classifier(
-        model,
-        inputs,
-        labels,
-        epochs=conf["epochs"],
-        lr=conf["lr"],
-        batch_size=conf["batch_size"],
-        seed=conf["seed"],
-        progress=progress,
-    )
+    training = {key: conf[key] for key in ("epochs", "lr", "batch_size", "seed")}
+    history = train_classifier(model, inputs, labels, progress=progress, **training)
     train_seconds = time.perf_counter() - start
     info = {
         "weights": path.name,

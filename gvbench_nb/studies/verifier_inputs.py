@@ -206,20 +206,11 @@ def match_lines(
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
     """(inlier mask, matches that entered the fit) by the run's own ``filter_and_fit``, so FM_RANSAC with
     the run's seed gives the stored mask."""
-    return filter_and_fit(
-        pair.points0,
-        pair.points1,
-        pair.match_scores,
-        model=conf["model"],
-        method=conf["estimator"],
-        threshold_px=conf["threshold_px"],
-        confidence=conf["confidence"],
-        max_iters=conf["max_iters"],
-        min_matches=conf["min_matches"],
-        min_match_score=conf["min_match_score"],
-        few_matches=conf.get("few_matches", "zero"),
-        seed=seed,
+    options = {key: conf[key] for key in ("threshold_px", "confidence", "max_iters", "min_matches", "min_match_score")}
+    options.update(
+        model=conf["model"], method=conf["estimator"], few_matches=conf.get("few_matches", "zero"), seed=seed
     )
+    return filter_and_fit(pair.points0, pair.points1, pair.match_scores, **options)
 
 
 def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:

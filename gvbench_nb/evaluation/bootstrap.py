@@ -1,4 +1,5 @@
-"""The bootstrap over queries: AP and MR of weighted resamples of a run's pairs (a drawn query brings all its pairs)."""
+"""The bootstrap over queries: AP and MR of weighted resamples of a run's pairs (a drawn query brings all its pairs),
+their intervals, and paired rankings of methods."""
 
 from __future__ import annotations
 
@@ -10,6 +11,12 @@ import pandas as pd
 from gvbench_nb.evaluation import run_tables
 
 RANKED_SHARE = 0.95  # a ranking needs one method ahead in this share of the paired resamples
+RESAMPLING_UNIT = "query"
+LEVEL = 0.95  # the intervals' coverage
+DEFAULT_RESAMPLES = 1000
+INTERVAL_COLUMNS = ("ap_low", "ap_high", "max_recall_low", "max_recall_high", "interval_unit")
+SHARE_COLUMNS = ["metric", "first", "second", "first_value", "second_value", "first_beats_second", "tied"]
+SHARE_COLUMNS += ["second_beats_first", "verdict"]
 
 
 # ------------------------------------------------------------------ bootstrap --
@@ -67,26 +74,17 @@ class Bootstrap:
     n_pairs: int
     seed: int
 
-    def intervals(self, level: float = 0.95) -> pd.DataFrame:
+    def intervals(self, level: float = LEVEL) -> pd.DataFrame:
         """Percentile CIs: method, metric, estimate, low, high, n_valid (resamples with a true pair)."""
         tail = 100 * (1 - level) / 2
         rows = []
         for metric, frame in self.samples.items():
             for method in self.methods:
-                values = frame[method].to_numpy()
-                valid = values[~np.isnan(values)]
+                valid = frame[method].dropna().to_numpy()
                 low, high = np.percentile(valid, [tail, 100 - tail]) if len(valid) else (np.nan, np.nan)
-                rows.append(
-                    {
-                        "method": method,
-                        "metric": metric,
-                        "estimate": self.estimates.loc[method, metric],
-                        "low": low,
-                        "high": high,
-                        "n_valid": len(valid),
-                    }
-                )
-        return pd.DataFrame(rows)
+                estimate = self.estimates.loc[method, metric]
+                rows.append((method, metric, estimate, low, high, len(valid)))
+        return pd.DataFrame(rows, columns=["method", "metric", "estimate", "low", "high", "n_valid"])
 
     def paired_shares(self, metric: str, ranked_share: float | None = None) -> pd.DataFrame:
         """Every pair of methods once (higher on all pairs first): shares of paired resamples won, tied
@@ -110,20 +108,9 @@ class Bootstrap:
                 verdict = (
                     f"{first} > {second}" if wins >= share else f"{second} > {first}" if losses >= share else "tie"
                 )
-                rows.append(
-                    {
-                        "metric": metric,
-                        "first": first,
-                        "second": second,
-                        "first_value": float(estimates[first]),
-                        "second_value": float(estimates[second]),
-                        "first_beats_second": wins,
-                        "tied": ties,
-                        "second_beats_first": losses,
-                        "verdict": verdict,
-                    }
-                )
-        return pd.DataFrame(rows)
+                values = (float(estimates[first]), float(estimates[second]), wins, ties, losses, verdict)
+                rows.append((metric, first, second, *values))
+        return pd.DataFrame(rows, columns=SHARE_COLUMNS)
 
     def ranking_matrix(self, metric: str = "max_recall", ranked_share: float | None = None) -> pd.DataFrame:
         """Square table of ``paired_shares``' verdicts: '>' where the row method ranks above the
@@ -136,7 +123,7 @@ class Bootstrap:
         return matrix
 
 
-def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = 1000, seed: int = 0) -> Bootstrap:
+def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0) -> Bootstrap:
     """Resample QUERIES with replacement (seeded) and recompute every method's AP and MR; the same
     resamples serve every method (a paired bootstrap)."""
     aligned = run_tables.align_tables(tables)
@@ -159,3 +146,31 @@ def bootstrap(tables: dict[str, pd.DataFrame], n_resamples: int = 1000, seed: in
         n_pairs=len(aligned),
         seed=seed,
     )
+
+
+def intervals_of(boot: Bootstrap, level: float = LEVEL) -> pd.DataFrame:
+    """One row a method: ``ap``, ``max_recall``, their ``level`` percentile intervals (``*_low``, ``*_high``),
+    ``interval_unit``, ``n_queries``, ``n_pairs``, ``n_resamples``, ``seed``; deterministic for a seed."""
+    wide = boot.intervals(level).pivot(index="method", columns="metric", values=["estimate", "low", "high"])
+    wide.columns = [metric if stat == "estimate" else f"{metric}_{stat}" for stat, metric in wide.columns]
+    columns = [c for metric in run_tables.METRICS for c in (metric, f"{metric}_low", f"{metric}_high")]
+    table = wide.loc[boot.methods, columns].astype(float).reset_index().rename_axis(columns=None)
+    n_resamples = len(boot.samples["ap"])
+    return table.assign(
+        interval_unit=RESAMPLING_UNIT,
+        n_queries=boot.n_queries,
+        n_pairs=boot.n_pairs,
+        n_resamples=n_resamples,
+        seed=boot.seed,
+    )
+
+
+def interval_columns(
+    tables: dict[str, pd.DataFrame], n_resamples: int = DEFAULT_RESAMPLES, seed: int = 0, level: float = LEVEL
+) -> pd.DataFrame:
+    """``ap_low``, ``ap_high``, ``max_recall_low``, ``max_recall_high``, ``interval_unit`` by method; each
+    method is resampled over its own queries, so methods on different pairs still get columns."""
+    frames = [intervals_of(bootstrap({method: table}, n_resamples, seed), level) for method, table in tables.items()]
+    if not frames:
+        raise run_tables.IncomparableRunsError("no methods to give intervals: pass at least one pairs table")
+    return pd.concat(frames, ignore_index=True).set_index("method")[list(INTERVAL_COLUMNS)]

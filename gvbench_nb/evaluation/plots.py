@@ -23,18 +23,28 @@ def save(figure: plt.Figure, path: str | Path) -> Path:
     return record.save_checked(path, lambda target: figure.savefig(target, dpi=120, bbox_inches="tight"))
 
 
+def _pr_curve(axis: plt.Axes, table: pd.DataFrame, where: str, label: tuple[str, str], **style: Any) -> Any:
+    """One PR curve with its MR dotted at precision 1, labelled ``label[0]`` + MR in % + ``label[1]``."""
+    labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
+    curve = pr_curve(labels, scores, where=where)
+    max_recall = max_recall_at_full_precision(labels, scores, where=where)
+    (line,) = axis.plot(curve["recall"], curve["precision"], label=f"{label[0]}{max_recall:.1%}{label[1]}", **style)
+    axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
+    return line
+
+
+def _pr_axes(axis: plt.Axes, title: str) -> None:
+    axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
+    axis.grid(alpha=0.3)
+    axis.legend(loc="lower left", fontsize=8)
+
+
 def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:
     """PR curve per method with its MR (recall at precision 1.0) marked."""
     figure, axis = plt.subplots(figsize=(6.5, 5))
     for method, table in tables.items():
-        labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
-        curve = pr_curve(labels, scores, where=method)
-        max_recall = max_recall_at_full_precision(labels, scores, where=method)
-        (line,) = axis.plot(curve["recall"], curve["precision"], label=f"{method} (MR {max_recall:.1%})")
-        axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
-    axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
-    axis.grid(alpha=0.3)
-    axis.legend(loc="lower left", fontsize=8)
+        _pr_curve(axis, table, method, (f"{method} (MR ", ")"))
+    _pr_axes(axis, title)
     return figure
 
 
@@ -47,17 +57,11 @@ def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str
     figure, axis = plt.subplots(figsize=(7, 5.5))
     colours: dict[str, Any] = {}
     for (method, profile), table in tables.items():
-        labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
         where = f"{method} ({profile} profile)"
-        curve = pr_curve(labels, scores, where=where)
-        max_recall = max_recall_at_full_precision(labels, scores, where=where)
-        style: dict[str, Any] = {"color": colours.get(method), "linestyle": PROFILE_LINE_STYLES.get(profile, ":")}
-        (line,) = axis.plot(curve["recall"], curve["precision"], **style, label=f"{where}: MR {max_recall:.1%}")
+        style = {"color": colours.get(method), "linestyle": PROFILE_LINE_STYLES.get(profile, ":")}
+        line = _pr_curve(axis, table, where, (f"{where}: MR ", ""), **style)
         colours.setdefault(method, line.get_color())
-        axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
-    axis.set(xlabel="recall", ylabel="precision", xlim=(0, 1.01), ylim=(0, 1.03), title=title or "precision-recall")
-    axis.grid(alpha=0.3)
-    axis.legend(loc="lower left", fontsize=8)
+    _pr_axes(axis, title)
     return figure
 
 
@@ -152,7 +156,7 @@ def pair_matches(
     images: tuple[np.ndarray, np.ndarray], view: pd.DataFrame, lines: dict[str, dict[str, np.ndarray]], title: str = ""
 ) -> plt.Figure:
     """One pair's matches and inliers, one row a method of ``view`` (explore's table), each
-    titled with its score and rank; ``lines``: each method's ``analysis.match_lines``."""
+    titled with its score and rank; ``lines``: each method's ``verifier_inputs.match_lines``."""
     figure, axes = plt.subplots(len(view), 1, figsize=(10, 3.4 * len(view)), squeeze=False)
     for axis, row in zip(axes[:, 0], view.itertuples()):
         method = str(row.method)

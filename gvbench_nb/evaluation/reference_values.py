@@ -26,22 +26,22 @@ REPOSITORY_METHODS: dict[str, str] = {
 }
 
 
-def _read(name: str) -> pd.DataFrame:
-    table = _read_csv(name)
-    expected = {"sequence", *METRICS}
-    if not expected <= set(table.columns):
-        raise ValueError(f"{name}: expected columns {sorted(expected)}, got {list(table.columns)}")
+def _read(
+    name: str, table: pd.DataFrame | None = None, columns: tuple[str, ...] = ("sequence", *METRICS)
+) -> pd.DataFrame:
+    table = _read_csv(name) if table is None else table
+    if not set(columns) <= set(table.columns):
+        raise ValueError(f"{name}: expected columns {sorted(columns)}, got {list(table.columns)}")
     return table
 
 
-def paper_table() -> pd.DataFrame:
-    """The paper's AP/MR as fractions. ``reference_name`` is the paper's (e.g. SIFT+NN)."""
+def paper_table(table: pd.DataFrame | None = None, where: str = "paper_table.csv") -> pd.DataFrame:
+    """The paper's AP/MR as fractions, ``reference_name`` the paper's (e.g. SIFT+NN); ``table``: one in
+    the shipped format (``method,sequence,ap,max_recall`` in %) read from ``where``, default the shipped one."""
     from gvbench_nb import methods as method_registry
 
-    raw = _read("paper_table.csv").rename(columns={"method": "reference_name"})
-    by_paper_name = {
-        conf["paper_name"]: name for name, conf in method_registry.RECIPES["paper"].items() if conf["in_paper"]
-    }
+    raw = _read(where, table, ("method", "sequence", *METRICS)).rename(columns={"method": "reference_name"})
+    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.RECIPES["paper"].items()}
     raw["method"] = raw["reference_name"].map(by_paper_name)
     for metric in METRICS:
         raw[metric] = raw[metric] / 100.0

@@ -10,12 +10,11 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import pandas as pd
 import yaml
 
 from gvbench_nb.evaluation import reference_values
-from gvbench_nb.runner import config, image_features, method_outputs, pair_matching, record, scoring
+from gvbench_nb.runner import config, method_outputs, record, scoring
 
 METRICS = ("ap", "max_recall")
 
@@ -170,46 +169,6 @@ def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.Pa
         if isinstance(params, dict) and params.get("cache_dir"):
             return Path(params["cache_dir"])
     return Path(output_dir).parent / "cache"
-
-
-def match_lines(
-    output_dir: str | os.PathLike[str],
-    method: str,
-    query: str,
-    reference: str,
-    cache_dir: str | os.PathLike[str] | None = None,
-) -> dict[str, np.ndarray]:
-    """Matched points of one pair (original pixels) and its inlier mask, from the match store and feature cache."""
-    output_dir = Path(output_dir)
-    run = load_run(output_dir, method)
-    matches = pair_matching.match_store(output_dir, run["conf"])
-    key = pair_matching.pair_key(Path(run["image_root"]), query, reference, int(run["seed"]))
-    if key not in matches:
-        raise KeyError(f"pair {query} {reference} is not in the match store {matches.folder} of {method!r}")
-    entry = matches.read(key)
-    matches.close()
-    inlier_mask = entry["inlier_mask"].astype(bool)
-    if "points0" in entry:  # dense matcher
-        return {"points0": entry["points0"], "points1": entry["points1"], "inlier_mask": inlier_mask}
-    features = image_features.feature_store(resolve_cache_dir(output_dir, cache_dir), run["conf"]["extractor"])
-    image_root = Path(run["image_root"])
-    try:
-        points0 = features.read(image_features.image_key(image_root, query))["keypoints"]
-        points1 = features.read(image_features.image_key(image_root, reference))["keypoints"]
-    except KeyError as error:
-        raise KeyError(
-            f"{error}; the run's cache {features.folder.parent.parent} does not hold that pair's features: "
-            "rerun its method (python -m gvbench_nb run PARAMS --methods NAME) to fill it"
-        ) from None
-    finally:
-        features.close()
-    pair_matches = entry["matches"].astype(int).reshape(-1, 2)
-    # float32: the cache may hold float16 keypoints (as hloc stores them).
-    return {
-        "points0": points0[pair_matches[:, 0]].astype(np.float32),
-        "points1": points1[pair_matches[:, 1]].astype(np.float32),
-        "inlier_mask": inlier_mask,
-    }
 
 
 class IncomparableRunsError(method_outputs.ResultsError, ValueError):

@@ -12,7 +12,7 @@ from gvbench_nb.io_utils import add_described_command, whole_number_at_least
 
 log = logging.getLogger(__name__)
 
-# `intervals` (and through it torch) is imported inside the handler: `--help` stays instant.
+# `bootstrap` (and through it torch) is imported inside the handler: `--help` stays instant.
 
 HELP = "AP and MR with bootstrap intervals over queries, and which method rankings a paired bootstrap supports"
 DESCRIPTION = """\
@@ -39,7 +39,7 @@ def resample_count(text: str) -> int:
 
 
 def command_compare(args: argparse.Namespace) -> int:
-    from gvbench_nb.evaluation import bootstrap, intervals, run_tables
+    from gvbench_nb.evaluation import bootstrap, run_tables
     from gvbench_nb.reporting.tables import markdown_table
     from gvbench_nb.runner import method_outputs, record, scoring
 
@@ -61,7 +61,7 @@ def command_compare(args: argparse.Namespace) -> int:
     boot = bootstrap.bootstrap(tables, args.resamples, args.seed)
     found = run_tables.method_folders(folders)
     runs = {m: json.loads((method_outputs.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
-    table = intervals.intervals_of(boot)
+    table = bootstrap.intervals_of(boot)
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])
     sequences = ", ".join(dict.fromkeys(run["sequence"] for run in runs.values()))
     show = lambda frame: markdown_table(frame) if args.markdown else frame.to_string(index=False, float_format="%.3f")

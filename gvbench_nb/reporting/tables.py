@@ -69,7 +69,7 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
 
 
 def command_results(args: argparse.Namespace) -> int:
-    from gvbench_nb.evaluation import intervals
+    from gvbench_nb.evaluation import bootstrap
     from gvbench_nb.runner import method_outputs, record, scoring
 
     for folder in map(Path, args.output_dirs):
@@ -77,7 +77,7 @@ def command_results(args: argparse.Namespace) -> int:
         def read(folder: Path = folder) -> tuple[Any, dict[str, str], list[dict[str, Any]]]:
             results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
             pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
-            results = results.join(intervals.interval_columns(pair_tables), on="method")
+            results = results.join(bootstrap.interval_columns(pair_tables), on="method")
             runs = [
                 json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]
             ]

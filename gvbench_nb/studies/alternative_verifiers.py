@@ -168,11 +168,8 @@ class VerifierBench:
             return self.classifier_probability(name, conf)
         if kind == "learned_combination":
             features = self.combination_features(conf)
-            model = fit_combination(
-                features[self.used()["split"] == verifier_inputs.SPLIT_TRAIN],
-                self.used().loc[self.used()["split"] == verifier_inputs.SPLIT_TRAIN, "label"],
-                conf,
-            )
+            train = self.used()["split"] == verifier_inputs.SPLIT_TRAIN
+            model = fit_combination(features[train], self.used().loc[train, "label"], conf)
             return pd.Series(model.predict_proba(features.to_numpy())[:, 1], index=features.index)
         raise KeyError(f"verifier {name!r} has unknown type {kind!r}")
 

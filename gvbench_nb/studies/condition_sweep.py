@@ -87,8 +87,13 @@ def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
     return width, height
 
 
-def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> dict[str, Any]:
-    return {
+def prepare_route(
+    out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
+) -> SweepRoute:
+    """Build the route, render the clear reference drive once and write the pair list; a folder
+    holding another route is refused (its cached results would not belong to this one)."""
+    image_root = Path(out_dir) / "images"
+    params = {
         "generator_version": synthetic.GENERATOR_VERSION,
         "seed": int(seed),
         "n_frames": int(n_frames),
@@ -97,15 +102,6 @@ def _route_params(seed: int, n_frames: int, image_size: SequenceType[int]) -> di
         "max_heading_deg": synthetic.DEFAULT_MAX_HEADING_DEG,
         "look_alike_look_ahead_m": synthetic.LOOK_ALIKE_LOOK_AHEAD_M,
     }
-
-
-def prepare_route(
-    out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
-) -> SweepRoute:
-    """Build the route, render the clear reference drive once and write the pair list; a folder
-    holding another route is refused (its cached results would not belong to this one)."""
-    image_root = Path(out_dir) / "images"
-    params = _route_params(seed, n_frames, image_size)
     params_path = image_root / "route.json"
     if params_path.exists():
         recorded = json.loads(params_path.read_text())
@@ -280,13 +276,18 @@ def run_sweep(
     # One run a query folder: strength 0 is a single clear run whose rows serve every condition.
     cells = [(0.0, conditions)] + [(s, [c]) for c in conditions for s in strengths if s > 0.0]
     bar = progress_bar(total=len(cells) * len(profiles), desc="condition sweep", unit="cell", disable=not progress)
+    options: dict[str, Any] = {"device": device, "seed": seed, "progress": progress, "threads": threads}
     for strength, targets in cells:
         for method, method_profile in profiles.items():
             wanted = [c for c in targets if (c, strength, method, method_profile) not in finished]
             if wanted:
-                rows += _run_cell(
-                    sweep_route, out_dir, wanted, strength, method, method_profile, device, seed, threads, progress
-                )
+                # The cell's query folder rendered (if needed), the method run, one row a condition.
+                render_query(sweep_route, wanted[0], strength)
+                run_dir = out_dir / "runs" / method_profile / cell_name(wanted[0], strength)
+                sequence = sweep_route.sequence(wanted[0], strength)
+                scored = method_runs.run_method(sequence, method, method_profile, run_dir, out_dir / "cache", **options)
+                where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")
+                rows += [_cell_row(sweep_route, scored, c, strength, method, method_profile, where) for c in wanted]
                 finished.update((c, strength, method, method_profile) for c in wanted)
                 atomic_write_csv(out_dir / "sweep.csv", _ordered(pd.DataFrame(rows, columns=SWEEP_COLUMNS)))
             bar.update()
@@ -295,30 +296,6 @@ def run_sweep(
     profile_asked = np.array([profiles.get(m) == p for m, p in zip(table["method"], table["profile"])], dtype=bool)
     keep = table["condition"].isin(conditions) & table["strength"].round(6).isin(strengths) & profile_asked
     return table[keep].reset_index(drop=True)
-
-
-def _run_cell(
-    sweep_route: SweepRoute,
-    out_dir: Path,
-    conditions: list[str],
-    strength: float,
-    method: str,
-    profile: str,
-    device: str,
-    seed: int,
-    threads: int | None,
-    progress: bool,
-) -> list[dict[str, Any]]:
-    """Render the cell's query folder (if needed), run the method, one row a condition."""
-    render_query(sweep_route, conditions[0], strength)
-    sequence = sweep_route.sequence(conditions[0], strength)
-    run_dir = out_dir / "runs" / profile / cell_name(conditions[0], strength)
-    cache = out_dir / "cache"
-    table = method_runs.run_method(
-        sequence, method, profile, run_dir, cache, device=device, seed=seed, progress=progress, threads=threads
-    )
-    where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")
-    return [_cell_row(sweep_route, table, condition, strength, method, profile, where) for condition in conditions]
 
 
 def _ordered(table: pd.DataFrame) -> pd.DataFrame:
@@ -361,7 +338,7 @@ def _crossing(strengths: np.ndarray, values: np.ndarray, level: float) -> tuple[
 def breaking_strength_table(sweep: pd.DataFrame) -> pd.DataFrame:
     """Breaking strengths as a method x condition table of text ('0.43', 'not reached')."""
     table = breaking_strength(sweep)
-    table["label"] = table["method"] + np.where(table["profile"] == "paper", "", " (" + table["profile"] + ")")
+    table["label"] = [_label(method, profile) for method, profile in zip(table["method"], table["profile"])]
     table["value"] = [
         f"{b:.2f}" if math.isfinite(b) else (note or NOT_REACHED)
         for b, note in zip(table["breaking_strength"], table["note"])

@@ -148,21 +148,16 @@ def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.D
         findable = outcomes[outcomes["has_true"]]
         closed = outcomes[outcomes["best_passes"]]
         kept = inputs.keeps_retrieval_order[row.target]
-        rows.append(
-            {
-                "method": row.method,
-                "profile": row.profile,
-                "calibration": row.calibration,
-                "target": row.target,
-                "n_queries": len(outcomes),
-                "queries_with_true": len(findable),
-                "recall_at_1_gv": findable["best_true"].mean() if len(findable) else float("nan"),
-                "recall_at_1_retrieval": findable["first_true"].mean() if kept and len(findable) else float("nan"),
-                "true_loops_closed": int(closed["best_true"].sum()),
-                "false_loops_closed": int((~closed["best_true"]).sum()),
-            }
-        )
-    return pd.DataFrame(rows)
+        recall_gv = findable["best_true"].mean() if len(findable) else float("nan")
+        recall_retrieval = findable["first_true"].mean() if kept and len(findable) else float("nan")
+        counts = (len(outcomes), len(findable), recall_gv, recall_retrieval)
+        closures = (int(closed["best_true"].sum()), int((~closed["best_true"]).sum()))
+        rows.append((row.method, row.profile, row.calibration, row.target, *counts, *closures))
+    return pd.DataFrame(rows, columns=LOOP_COLUMNS)
+
+
+LOOP_COLUMNS = ["method", "profile", "calibration", "target", "n_queries", "queries_with_true", "recall_at_1_gv"]
+LOOP_COLUMNS += ["recall_at_1_retrieval", "true_loops_closed", "false_loops_closed"]
 
 
 def transfer_text(inputs: DeploymentInputs, calibrations: list[str]) -> str:

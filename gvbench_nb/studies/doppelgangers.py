@@ -64,16 +64,8 @@ def train_in_domain(
     model = DoppelgangersClassifier()
     start = time.perf_counter()
     labels = np.array(subset["label"], dtype=np.int64)  # a writable copy (torch refuses read-only arrays)
-    history = train_classifier(
-        model,
-        inputs,
-        labels,
-        epochs=conf["epochs"],
-        lr=conf["lr"],
-        batch_size=conf["batch_size"],
-        seed=conf["seed"],
-        progress=progress,
-    )
+    training = {key: conf[key] for key in ("epochs", "lr", "batch_size", "seed")}
+    history = train_classifier(model, inputs, labels, progress=progress, **training)
     train_seconds = time.perf_counter() - start
     info = {
         "weights": path.name,
@@ -111,17 +103,6 @@ def doppelgangers_comparison(
     theirs = theirs.assign(
         source=run_tables.PAPER_LABEL, verifier=theirs["paper_name"].map(PAPER_ROWS), weights="", status="published"
     )
-    columns = [
-        "source",
-        "sequence",
-        "verifier",
-        "ap",
-        "max_recall",
-        "ap_ci_low",
-        "ap_ci_high",
-        "max_recall_ci_low",
-        "max_recall_ci_high",
-        "status",
-        "weights",
-    ]
+    columns = ["source", "sequence", "verifier", "ap", "max_recall", "ap_ci_low", "ap_ci_high", "max_recall_ci_low"]
+    columns += ["max_recall_ci_high", "status", "weights"]
     return pd.concat([ours.reindex(columns=columns), theirs.reindex(columns=columns)], ignore_index=True)

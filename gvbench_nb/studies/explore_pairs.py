@@ -14,7 +14,7 @@ import pandas as pd
 
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.runner import scoring
-from gvbench_nb.studies import failures
+from gvbench_nb.studies import failures, verifier_inputs
 
 PICKS = ("index", "false_positive", "false_negative")
 VIEW_COLUMNS = ["method", "pair_index", "query", "reference", "label", "num_matches", "num_inliers", "score"]
@@ -161,7 +161,7 @@ def pair_views(
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
     query, reference = first["query"], first["reference"]
-    lines = {m: run_tables.match_lines(output_dir, m, query, reference, cache_dir) for m in view["method"]}
+    lines = {m: verifier_inputs.match_lines(output_dir, m, query, reference, cache_dir) for m in view["method"]}
     kind = "true" if first["label"] == 1 else "false"
     title = f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}"
     matches = plots.pair_matches(images, view, lines, title)

@@ -11,8 +11,9 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb.data.sequences import frame_index
-from gvbench_nb.evaluation import plots, run_tables
+from gvbench_nb.evaluation import plots
 from gvbench_nb.protocol.images import read_image
+from gvbench_nb.studies import verifier_inputs
 
 
 # -------------------------------------------------------------- failures --
@@ -47,9 +48,7 @@ def ground_truth_offsets(table: pd.DataFrame, image_root: str | os.PathLike[str]
             )
         centres = poses[["x", "y", "z"]].to_numpy(dtype=float)
         axes = poses[["r02", "r12", "r22"]].to_numpy(dtype=float)  # optical axis (camera z) in the world
-        row = {name: i for i, name in enumerate(poses.index)}
-        q = np.array([row[n] for n in table["query"]], dtype=int)
-        r = np.array([row[n] for n in table["reference"]], dtype=int)
+        q, r = poses.index.get_indexer(table["query"]), poses.index.get_indexer(table["reference"])
         out["distance_m"] = np.linalg.norm(centres[q] - centres[r], axis=1)
         cosine = np.einsum("ij,ij->i", axes[q], axes[r]) / (
             np.linalg.norm(axes[q], axis=1) * np.linalg.norm(axes[r], axis=1)
@@ -124,7 +123,7 @@ def failure_pairs(
     """Each pair of ``rows`` (a failures table) drawn with inlier matches green, outliers red."""
     figure, axes = plt.subplots(len(rows), 1, figsize=(10, 3.4 * max(len(rows), 1)), squeeze=False)
     for axis, row in zip(axes[:, 0], rows.itertuples()):
-        lines = run_tables.match_lines(output_dir, method, row.query, row.reference, cache_dir)
+        lines = verifier_inputs.match_lines(output_dir, method, row.query, row.reference, cache_dir)
         image0 = read_image(Path(image_root) / row.query)
         image1 = read_image(Path(image_root) / row.reference)
         plots.draw_matches(image0, image1, lines["points0"], lines["points1"], lines["inlier_mask"], axis=axis)

@@ -123,11 +123,9 @@ def style_table_iii(wide: pd.DataFrame) -> Any:
 def published_radar(source: str = run_tables.PAPER_LABEL) -> plt.Figure:
     """Fig. 1 of the published MR alone: the paper's table (or the GV-Bench repository's), every
     method it reports, each line labelled with its source; nothing of ours."""
-    table = results_table.load_paper_table() if source == run_tables.PAPER_LABEL else None
-    if table is None:
-        table = results_table.load_repository_table()
-    profile = "paper" if source == run_tables.PAPER_LABEL else "repository"
-    frame = table.assign(method=table["paper_name"], source=source, profile=profile)
+    paper = source == run_tables.PAPER_LABEL
+    table = results_table.load_paper_table() if paper else results_table.load_repository_table()
+    frame = table.assign(method=table["paper_name"], source=source, profile="paper" if paper else "repository")
     return results_table.max_recall_radar(
         frame, title=f"max recall at 100% precision, published by the {source} (values as published)"
     )

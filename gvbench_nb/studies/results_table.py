@@ -23,20 +23,12 @@ def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame
     a file in the shipped format (``method,sequence,ap,max_recall`` in %), empty when absent."""
     columns = ["paper_name", "method", "sequence", *run_tables.METRICS]
     if path is None:
-        return reference_values.paper_table().rename(columns={"reference_name": "paper_name"})[columns]
-    path = Path(path)
-    if not path.is_file():
+        table = reference_values.paper_table()
+    elif not Path(path).is_file():
         return pd.DataFrame(columns=columns)
-    raw = pd.read_csv(path)
-    expected = {"method", "sequence", *run_tables.METRICS}
-    if not expected <= set(raw.columns):
-        raise ValueError(f"{path}: expected columns {sorted(expected)}, got {list(raw.columns)}")
-    by_paper_name = {conf["paper_name"]: name for name, conf in method_registry.RECIPES["paper"].items()}
-    table = raw.rename(columns={"method": "paper_name"})
-    table["method"] = table["paper_name"].map(by_paper_name)
-    for metric in run_tables.METRICS:
-        table[metric] = table[metric] / 100.0
-    return table[columns]
+    else:
+        table = reference_values.paper_table(pd.read_csv(path), where=str(path))
+    return table.rename(columns={"reference_name": "paper_name"})[columns]
 
 
 def load_repository_table() -> pd.DataFrame:
@@ -106,30 +98,30 @@ def pairs_text(n_pairs: int, limit: int | None) -> str:
 def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.METRICS) -> pd.DataFrame:
     """Wide table, a row a (method, profile), columns (sequence, metric, source): ours beside the published
     values of the same protocol, and our ``pairs``; first-seen order."""
-    wide = joined.pivot_table(
-        index=["method", "profile"], columns=["sequence", "source"], values=list(metrics), aggfunc="first"
-    )
-    wide = wide.reorder_levels([1, 0, 2], axis=1)
-    sequence_order = list(dict.fromkeys(joined["sequence"]))
+    values = ["pairs", *metrics] if "pairs" in joined else list(metrics)
+    wide = _by_sequence(joined, ["method", "profile"], values)
     row_order = [r for r in dict.fromkeys(zip(joined["method"], joined["profile"])) if r in wide.index]
-    source_order = [run_tables.OURS_LABEL, run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL]
-    if "pairs" in joined:
-        ours = joined[joined["source"] == run_tables.OURS_LABEL]
-        pairs = ours.pivot_table(index=["method", "profile"], columns="sequence", values="pairs", aggfunc="first")
-        for sequence in pairs.columns:
-            wide[(sequence, "pairs", run_tables.OURS_LABEL)] = pairs[sequence]
-    keys = [
-        (s, m, src)
-        for s in sequence_order
-        for m in ["pairs", *metrics]
-        for src in source_order
-        if (s, m, src) in wide.columns
-    ]
-    wide = wide.loc[row_order, keys]
-    wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
+    wide = wide.loc[row_order]
     wide.index = pd.MultiIndex.from_tuples(
         [(f"{m} ({method_registry.paper_name(m)})", p) for m, p in wide.index], names=["method", "profile"]
     )
+    return wide
+
+
+def _by_sequence(table: pd.DataFrame, index: str | list[str], values: list[str]) -> pd.DataFrame:
+    """``values`` pivoted to columns (sequence, metric, source): sequences first-seen, then ``values``'
+    order, ours before the published; a column without any value is left out."""
+    wide = table.pivot_table(index=index, columns=["sequence", "source"], values=values, aggfunc="first")
+    sources = [run_tables.OURS_LABEL, run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL]
+    keys = [
+        (s, m, src)
+        for s in dict.fromkeys(table["sequence"])
+        for m in values
+        for src in sources
+        if (m, s, src) in wide.columns
+    ]
+    wide = wide[[(m, s, src) for s, m, src in keys]]
+    wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
     return wide
 
 
@@ -140,19 +132,8 @@ def paper_reference_table(
     methods we do not implement when ``methods`` is None), columns (sequence, metric, source)."""
     if methods is not None:
         paper = paper[paper["method"].isin(list(methods))]
-    wide = paper.assign(source=source).pivot_table(
-        index="paper_name", columns=["sequence", "source"], values=list(run_tables.METRICS), aggfunc="first"
-    )
-    wide = wide.reorder_levels([1, 0, 2], axis=1)
-    keys = [
-        (s, m, source)
-        for s in dict.fromkeys(paper["sequence"])
-        for m in run_tables.METRICS
-        if (s, m, source) in wide.columns
-    ]
-    wide = wide.loc[list(dict.fromkeys(paper["paper_name"])), keys]
-    wide.columns = pd.MultiIndex.from_tuples(keys, names=["sequence", "metric", "source"])
-    return wide
+    wide = _by_sequence(paper.assign(source=source), "paper_name", list(run_tables.METRICS))
+    return wide.loc[list(dict.fromkeys(paper["paper_name"]))]
 
 
 def metric_columns(wide: pd.DataFrame) -> list[tuple]:

@@ -75,10 +75,8 @@ def run_description(
         native = f"{size[0]}x{size[1]}" if size else "?"
         longest = f"{'=' if resizing.get('resize_force') else '<='}{resize}" if resize else "native"
         fixed = resizing.get("resize_to")
-        sizes.add(
-            f"{resizing['name']}: {native}, "
-            + (f"resized to {fixed[0]}x{fixed[1]}" if fixed else f"longest side {longest}")
-        )
+        resized = f"resized to {fixed[0]}x{fixed[1]}" if fixed else f"longest side {longest}"
+        sizes.add(f"{resizing['name']}: {native}, {resized}")
     return (
         f"device {' / '.join(sorted(devices))}; profile {' / '.join(sorted(profiles))}; "
         f"images {'; '.join(sorted(sizes))}"

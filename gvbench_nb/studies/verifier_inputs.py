@@ -79,16 +79,9 @@ def split_summary(pairs: pd.DataFrame, split: pd.Series, position: Callable[[str
     for name in (SPLIT_TRAIN, SPLIT_TEST, SPLIT_DROPPED):
         part = pairs[split == name]
         frames = pd.concat([part["query"], part["reference"]]).map(position) if len(part) else pd.Series([], dtype=int)
-        rows.append(
-            {
-                "split": name,
-                "pairs": len(part),
-                "positives": int(part["label"].sum()),
-                "queries": part["query"].nunique(),
-                "frames": f"{frames.min()}-{frames.max()}" if len(frames) else "-",
-            }
-        )
-    return pd.DataFrame(rows)
+        extent = f"{frames.min()}-{frames.max()}" if len(frames) else "-"
+        rows.append((name, len(part), int(part["label"].sum()), part["query"].nunique(), extent))
+    return pd.DataFrame(rows, columns=["split", "pairs", "positives", "queries", "frames"])
 
 
 # ----------------------------------------------------------- cached matches --
@@ -175,22 +168,14 @@ class CachedMatches:
         inlier_mask = np.asarray(entry["inlier_mask"], dtype=bool).reshape(-1)
         if "points0" in entry:  # dense matcher: its matched points are its keypoints
             p0, p1 = entry["points0"].reshape(-1, 2), entry["points1"].reshape(-1, 2)
-            size0 = self.image(query).shape[1::-1]
-            size1 = self.image(reference).shape[1::-1]
-            return PairMatches(p0, p1, scores, inlier_mask, len(p0), len(p1), tuple(size0), tuple(size1))
-        keypoints0, size0 = self._read_features(query)
-        keypoints1, size1 = self._read_features(reference)
-        index = np.asarray(entry["matches"], dtype=np.int64).reshape(-1, 2)
-        return PairMatches(
-            keypoints0[index[:, 0]],
-            keypoints1[index[:, 1]],
-            scores,
-            inlier_mask,
-            len(keypoints0),
-            len(keypoints1),
-            size0,
-            size1,
-        )
+            n0, n1 = len(p0), len(p1)
+            size0, size1 = tuple(self.image(query).shape[1::-1]), tuple(self.image(reference).shape[1::-1])
+        else:
+            keypoints0, size0 = self._read_features(query)
+            keypoints1, size1 = self._read_features(reference)
+            index = np.asarray(entry["matches"], dtype=np.int64).reshape(-1, 2)
+            p0, p1, n0, n1 = keypoints0[index[:, 0]], keypoints1[index[:, 1]], len(keypoints0), len(keypoints1)
+        return PairMatches(p0, p1, scores, inlier_mask, n0, n1, size0, size1)
 
     def pair_seed(self, query: str, reference: str) -> int:
         """The RANSAC seed the run used for this pair."""
@@ -202,23 +187,30 @@ class CachedMatches:
             self.features.close()
 
 
+def match_lines(
+    output_dir: str | os.PathLike[str],
+    method: str,
+    query: str,
+    reference: str,
+    cache_dir: str | os.PathLike[str] | None = None,
+) -> dict[str, np.ndarray]:
+    """Matched points of one pair (original pixels) and its inlier mask, for drawing."""
+    cached = CachedMatches(output_dir, method, cache_dir)
+    try:
+        pair = cached.pair(query, reference)
+    finally:
+        cached.close()
+    return {"points0": pair.points0, "points1": pair.points1, "inlier_mask": pair.inlier_mask}
+
+
 def fit_inliers(pair: PairMatches, conf: dict[str, Any], seed: int) -> tuple[np.ndarray, int]:
     """(inlier mask, matches that entered the fit) by the run's own ``filter_and_fit``, so FM_RANSAC with
     the run's seed gives the stored mask."""
-    return filter_and_fit(
-        pair.points0,
-        pair.points1,
-        pair.match_scores,
-        model=conf["model"],
-        method=conf["estimator"],
-        threshold_px=conf["threshold_px"],
-        confidence=conf["confidence"],
-        max_iters=conf["max_iters"],
-        min_matches=conf["min_matches"],
-        min_match_score=conf["min_match_score"],
-        few_matches=conf.get("few_matches", "zero"),
-        seed=seed,
+    options = {key: conf[key] for key in ("threshold_px", "confidence", "max_iters", "min_matches", "min_match_score")}
+    options.update(
+        model=conf["model"], method=conf["estimator"], few_matches=conf.get("few_matches", "zero"), seed=seed
     )
+    return filter_and_fit(pair.points0, pair.points1, pair.match_scores, **options)
 
 
 def hull_area_fraction(points: np.ndarray, image_size: tuple[int, int]) -> float:
@@ -253,20 +245,19 @@ def gv_features(pair: PairMatches, inlier_mask: np.ndarray, num_fitted: int) -> 
     }
 
 
+def _pair_names(pairs: pd.DataFrame, desc: str, progress: bool) -> Any:
+    """(query, reference) of each pair, under a progress bar that goes when done."""
+    names = zip(pairs["query"], pairs["reference"])
+    return progress_bar(names, total=len(pairs), desc=desc, disable=not progress, unit="pair", leave=False)
+
+
 def gv_feature_table(
     cached: CachedMatches, pairs: pd.DataFrame, conf: dict[str, Any], progress: bool = True
 ) -> pd.DataFrame:
     """``gv_features`` of every pair (query, reference order kept), fitting once a pair with its run seed."""
     rows = []
     desc = f"{MODEL_SHORT_NAMES[conf['model']]}-{ESTIMATOR_SHORT_NAMES[conf['estimator']]}"
-    for query, reference in progress_bar(
-        zip(pairs["query"], pairs["reference"]),
-        total=len(pairs),
-        desc=desc,
-        disable=not progress,
-        unit="pair",
-        leave=False,
-    ):
+    for query, reference in _pair_names(pairs, desc, progress):
         pair = cached.pair(query, reference)
         mask, num_fitted = fit_inliers(pair, conf, cached.pair_seed(query, reference))
         rows.append({"query": query, "reference": reference, **gv_features(pair, mask, num_fitted)})
@@ -300,14 +291,7 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
     from gvbench_nb.verification.doppelgangers import build_input
 
     inputs = []
-    for query, reference in progress_bar(
-        zip(pairs["query"], pairs["reference"]),
-        total=len(pairs),
-        desc=f"doppelgangers inputs {size}px",
-        disable=not progress,
-        unit="pair",
-        leave=False,
-    ):
+    for query, reference in _pair_names(pairs, f"doppelgangers inputs {size}px", progress):
         pair = cached.pair(query, reference)
         inputs.append(
             build_input(

@@ -239,13 +239,12 @@ def test_run_method_writes_imm_rows_labelled_as_such(fake_vismatch, tmp_path):
     results = scoring.evaluate(tmp_path / "out")
     assert results["method"].tolist() == ["imm:fake-nn"]
     assert results["paper_name"].tolist() == ["vismatch fake-nn"]
-    from gvbench_nb.evaluation import run_tables
-    from gvbench_nb.studies import results_table, runtime_vs_mr
+    from gvbench_nb.studies import results_table, runtime_vs_mr, verifier_inputs
 
     assert "resized to 512x288" in runtime_vs_mr.run_description(tmp_path / "out", ["imm:fake-nn"], tmp_path / "cache")
     joined = results_table.join_paper_table(results, results_table.load_paper_table(Path("/nonexistent.csv")))
     assert results_table.results_table(joined).index.tolist() == [("imm:fake-nn (vismatch fake-nn)", "paper")]
-    lines = run_tables.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
+    lines = verifier_inputs.match_lines(tmp_path / "out", "imm:fake-nn", "q.png", "r.png", tmp_path / "cache")
     assert lines["points0"].shape == (60, 2) and lines["inlier_mask"].sum() == table["num_inliers"].iloc[0]
 
 

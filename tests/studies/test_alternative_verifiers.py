@@ -33,33 +33,24 @@ def planar_scene(n_inliers: int = 120, n_outliers: int = 60, seed: int = 0):
     return with_outlier_matches(rng, p0, p1, n_outliers)
 
 
+def fit(pair: verifier_inputs.PairMatches, model: str, estimator: str = "FM_RANSAC") -> tuple[np.ndarray, int]:
+    """The pair's inlier mask and fitted count under one GV verifier's conf, seed 0."""
+    return verifier_inputs.fit_inliers(pair, alternative_verifiers.gv_conf(model, estimator, "inliers"), seed=0)
+
+
 @pytest.mark.parametrize("estimator", list(ESTIMATORS))
-def test_every_fundamental_estimator_returns_the_planted_inliers(estimator):
-    p0, p1, truth = two_view_scene()
-    conf = alternative_verifiers.gv_conf("fundamental", estimator, "inliers")
-    mask, fitted = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
+@pytest.mark.parametrize("model,scene,stray", [("fundamental", two_view_scene, 3), ("homography", planar_scene, 2)])
+def test_every_estimator_returns_the_planted_inliers(estimator, model, scene, stray):
+    p0, p1, truth = scene()
+    mask, fitted = fit(as_pair(p0, p1), model, estimator)
     assert fitted == len(p0)
     assert (mask & truth).sum() >= 0.95 * truth.sum()
-    assert (mask & ~truth).sum() <= 3  # a random match may fall near its epipolar line
-
-
-@pytest.mark.parametrize("estimator", list(ESTIMATORS))
-def test_homography_on_a_planar_scene_returns_the_planted_inliers(estimator):
-    p0, p1, truth = planar_scene()
-    conf = alternative_verifiers.gv_conf("homography", estimator, "inliers")
-    mask, _ = verifier_inputs.fit_inliers(as_pair(p0, p1), conf, seed=0)
-    assert (mask & truth).sum() >= 0.95 * truth.sum()
-    assert (mask & ~truth).sum() <= 2
+    assert (mask & ~truth).sum() <= stray  # a random match may fall near its epipolar line
 
 
 def test_homography_rejects_a_non_planar_scene_more_than_the_fundamental_matrix():
     p0, p1, truth = two_view_scene(seed=2)
-    h_mask, _ = verifier_inputs.fit_inliers(
-        as_pair(p0, p1), alternative_verifiers.gv_conf("homography", "FM_RANSAC", "inliers"), 0
-    )
-    f_mask, _ = verifier_inputs.fit_inliers(
-        as_pair(p0, p1), alternative_verifiers.gv_conf("fundamental", "FM_RANSAC", "inliers"), 0
-    )
+    (h_mask, _), (f_mask, _) = fit(as_pair(p0, p1), "homography"), fit(as_pair(p0, p1), "fundamental")
     assert h_mask.sum() < 0.8 * f_mask.sum()
 
 
@@ -67,9 +58,7 @@ def test_normalised_scores_follow_their_definitions():
     p0, p1, truth = two_view_scene(n_inliers=80, n_outliers=20)
     pair = as_pair(p0, p1, n_keypoints=400)
     pair.num_keypoints1 = 200  # the smaller count divides
-    mask, fitted = verifier_inputs.fit_inliers(
-        pair, alternative_verifiers.gv_conf("fundamental", "USAC_MAGSAC", "inliers"), 0
-    )
+    mask, fitted = fit(pair, "fundamental", "USAC_MAGSAC")
     features = verifier_inputs.gv_features(pair, mask, fitted)
     assert features["inliers"] == mask.sum()
     assert features["inlier_ratio"] == pytest.approx(mask.sum() / 100)
@@ -92,16 +81,7 @@ def test_sue_adapter_on_hand_made_positions():
     table = pd.DataFrame(
         {
             "query": ["a"] * 4 + ["b"] * 4,
-            "reference": [
-                "r/010.png",
-                "r/011.png",
-                "r/012.png",
-                "r/090.png",
-                "r/020.png",
-                "r/100.png",
-                "r/021.png",
-                "r/150.png",
-            ],
+            "reference": [f"r/{frame:03d}.png" for frame in (10, 11, 12, 90, 20, 100, 21, 150)],
             "score": [50, 50, 50, 0, 50, 50, 0, 0],
         }
     )
@@ -155,16 +135,13 @@ def test_split_shares_no_place(tolerance, gap):
         assert pairs.loc[split == name, "label"].nunique() == 2  # both kinds: AP is defined
 
 
-def test_split_default_ranges_on_gardens_point():
+def test_split_default_ranges_on_gardens_point_and_refuses_a_gap_narrower_than_a_place():
     pairs = gardens_like_pairs()
     split = verifier_inputs.place_disjoint_split(pairs)
     train = pairs[split == "train"]
     test = pairs[split == "test"]
     assert pd.concat([train["query"], train["reference"]]).map(frame_index).max() <= 89
     assert pd.concat([test["query"], test["reference"]]).map(frame_index).min() >= 110
-
-
-def test_split_refuses_a_gap_narrower_than_a_place():
     with pytest.raises(ValueError, match="widen the gap"):
         verifier_inputs.place_disjoint_split(gardens_like_pairs(), gap_frames=3, tolerance=2)
 

@@ -287,7 +287,7 @@ def test_report_summary_page_labels_paper_and_links_notebooks(tmp_path, monkeypa
         report.run_folders(args)
 
 
-def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
+def test_results_table_without_the_papers_table_shows_ours_only_and_every_rows_pairs(tmp_path):
     results = pd.DataFrame(
         {"method": ["sift-nn"], "sequence": ["sample"], "profile": ["paper"], "ap": [0.8], "max_recall": [0.1]}
     )
@@ -296,9 +296,7 @@ def test_results_table_without_the_papers_table_shows_ours_only(tmp_path):
     joined = results_table.join_paper_table(results, paper)
     assert joined["source"].tolist() == [run_tables.OURS_LABEL]
     assert results_table.results_table(joined).shape == (1, 2)
-
-
-def test_results_table_says_how_many_pairs_a_row_has_and_whether_limit_cut_them():
+    # With the published tables: how many pairs a row has, and whether --limit cut them.
     results = two_profile_results().assign(n_pairs=[240, 24, 240], limit=[None, 24, None])
     wide = results_table.results_table(results_table.join_paper_table(results, results_table.load_paper_table()))
     assert wide[("night", "pairs", "ours")].tolist() == ["240 (all)", "24 (--limit)", "240 (all)"]

@@ -7,7 +7,7 @@ import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
 
-from gvbench_nb.evaluation import bootstrap, intervals, run_tables
+from gvbench_nb.evaluation import bootstrap, run_tables
 from gvbench_nb.protocol import metrics
 
 
@@ -32,9 +32,13 @@ def noisy_queries(seed: int, n_queries: int = 60, per_query: int = 5) -> pd.Data
     return pairs_frame(queries, [f"r{i}" for i in range(n)], labels, rng.normal(labels, 1.0))
 
 
+def query_intervals(tables: dict[str, pd.DataFrame], n_resamples: int, seed: int = 0) -> pd.DataFrame:
+    return bootstrap.intervals_of(bootstrap.bootstrap(tables, n_resamples, seed))
+
+
 def test_intervals_resample_queries_not_pairs():
     table = identical_queries()
-    result = intervals.query_intervals({"m": table}, n_resamples=300, seed=0).set_index("method")
+    result = query_intervals({"m": table}, n_resamples=300, seed=0).set_index("method")
     row = result.loc["m"]
     assert row["ap"] == pytest.approx(average_precision_score(table["label"], table["score"]))
     assert row["ap"] == pytest.approx(5 / 6)
@@ -54,9 +58,9 @@ def test_intervals_resample_queries_not_pairs():
 
 def test_intervals_are_deterministic_for_a_seed():
     tables = {"a": noisy_queries(0), "b": noisy_queries(0).assign(score=lambda t: t["score"] + t["label"])}
-    first = intervals.query_intervals(tables, 200, seed=3)
-    pd.testing.assert_frame_equal(first, intervals.query_intervals(tables, 200, seed=3))
-    other = intervals.query_intervals(tables, 200, seed=4)
+    first = query_intervals(tables, 200, seed=3)
+    pd.testing.assert_frame_equal(first, query_intervals(tables, 200, seed=3))
+    other = query_intervals(tables, 200, seed=4)
     assert not np.allclose(first[["ap_low", "ap_high"]], other[["ap_low", "ap_high"]])
     assert first["seed"].tolist() == [3, 3]
     shares = [bootstrap.bootstrap(tables, 200, seed=3).paired_shares("ap") for _ in range(2)]
@@ -68,7 +72,7 @@ def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
     # Every false pair moves up: no pair order improves, so B is at best equal on any draw.
     worse = better.assign(score=better["score"] + 0.1 * (1 - better["label"]))
     boot = bootstrap.bootstrap({"better": better, "worse": worse}, 500, seed=0)
-    table = intervals.intervals_of(boot).set_index("method")
+    table = bootstrap.intervals_of(boot).set_index("method")
     assert table.loc["worse", "ap_high"] > table.loc["better", "ap_low"]  # the intervals alone: a tie
     shares = boot.paired_shares("ap").iloc[0]
     assert (shares["first"], shares["second"]) == ("better", "worse")
@@ -81,7 +85,7 @@ def test_a_consistent_small_loss_is_ranked_though_the_intervals_overlap():
     assert np.mean(boot.samples["ap"]["better"].to_numpy() > apart.to_numpy()) < 0.8
 
 
-def test_same_ranking_is_tied_in_every_paired_resample():
+def test_same_ranking_is_tied_in_every_paired_resample_and_a_better_one_ranked_first():
     table = noisy_queries(2)
     rescaled = table.assign(score=2 * table["score"] + 1)  # the same order of pairs
     boot = bootstrap.bootstrap({"a": table, "b": rescaled}, 300, seed=0)
@@ -90,9 +94,7 @@ def test_same_ranking_is_tied_in_every_paired_resample():
         assert shares["tied"] == 1.0
         assert shares["first_beats_second"] == shares["second_beats_first"] == 0.0
         assert shares["verdict"] == "tie"
-
-
-def test_ranking_in_either_direction_and_ties_between():
+    # A ranking in either direction: the leader on all pairs is first.
     table = noisy_queries(3)
     perfect = table.assign(score=table["label"] * 10.0)
     boot = bootstrap.bootstrap({"weak": table, "perfect": perfect}, 300, seed=0)
@@ -107,14 +109,14 @@ def test_ranking_in_either_direction_and_ties_between():
 
 def test_interval_columns_keyed_by_method():
     tables = {"a": noisy_queries(4), "b": noisy_queries(4).assign(score=lambda t: -t["score"])}
-    columns = intervals.interval_columns(tables, 200, seed=0)
+    columns = bootstrap.interval_columns(tables, 200, seed=0)
     assert list(columns.index) == ["a", "b"]
     assert list(columns.columns) == ["ap_low", "ap_high", "max_recall_low", "max_recall_high", "interval_unit"]
-    full = intervals.query_intervals(tables, 200, seed=0).set_index("method")
+    full = query_intervals(tables, 200, seed=0).set_index("method")
     pd.testing.assert_frame_equal(columns, full[list(columns.columns)])
     assert (columns["ap_low"] <= full["ap"]).all() and (full["ap"] <= columns["ap_high"]).all()
     # Methods run on different pairs still get their own intervals, over their own queries.
-    shorter = intervals.interval_columns({"a": tables["a"], "c": tables["a"].iloc[:100]}, 200, seed=0)
+    shorter = bootstrap.interval_columns({"a": tables["a"], "c": tables["a"].iloc[:100]}, 200, seed=0)
     pd.testing.assert_series_equal(shorter.loc["a"], columns.loc["a"])
     assert (
         shorter.loc["c", "ap_high"] - shorter.loc["c", "ap_low"]
@@ -126,9 +128,9 @@ def test_refuses_methods_with_different_labels():
     table = noisy_queries(5)
     relabelled = table.assign(label=1 - table["label"])
     with pytest.raises(run_tables.IncomparableRunsError, match="label 300 of the same pairs differently"):
-        intervals.query_intervals({"a": table, "b": relabelled}, 100)
+        query_intervals({"a": table, "b": relabelled}, 100)
     with pytest.raises(run_tables.IncomparableRunsError, match="scored different pairs"):
-        intervals.query_intervals({"a": table, "b": table.iloc[:-5]}, 100)
+        query_intervals({"a": table, "b": table.iloc[:-5]}, 100)
 
 
 def test_the_notebooks_matrix_and_compares_table_rank_by_one_rule():

@@ -32,7 +32,7 @@ def _read_png(path: Path) -> np.ndarray:
     return cv2.cvtColor(cv2.imread(str(path), cv2.IMREAD_COLOR), cv2.COLOR_BGR2RGB)
 
 
-def test_sweep_table_has_one_row_a_cell(sweep: pd.DataFrame, sweep_dir: Path) -> None:
+def test_sweep_table_has_one_row_a_cell_and_one_shared_clear_run(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     assert list(sweep.columns) == cs.SWEEP_COLUMNS
     cells = sorted(zip(sweep["condition"], sweep["strength"]))
     assert cells == sorted((c, s) for c in synthetic.CONDITIONS for s in (0.0, 1.0))
@@ -43,9 +43,7 @@ def test_sweep_table_has_one_row_a_cell(sweep: pd.DataFrame, sweep_dir: Path) ->
     on_disk = cs.read_sweep(sweep_dir)
     on_disk = on_disk[on_disk["strength"].isin([0.0, 1.0])].reset_index(drop=True)  # other tests add cells
     pd.testing.assert_frame_equal(on_disk, sweep)
-
-
-def test_clear_cell_is_shared_by_every_condition(sweep: pd.DataFrame, sweep_dir: Path) -> None:
+    # The clear cell is one run, shared by every condition.
     clear = sweep[sweep["strength"] == 0.0]
     assert clear[["ap", "max_recall", "n_pairs"]].nunique().max() == 1
     runs = sorted(p.name for p in (sweep_dir / "runs" / "paper").iterdir())
@@ -69,7 +67,9 @@ def test_reference_drive_is_extracted_once(sweep: pd.DataFrame, sweep_dir: Path)
             assert counts == {"images": 2 * n, "cached": n, "extracted": n}, name
 
 
-def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_second_call_recomputes_nothing_and_another_route_is_refused(
+    sweep: pd.DataFrame, sweep_dir: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     images = {p: p.stat().st_mtime_ns for p in (sweep_dir / "images").rglob("*.png")}
 
     def must_not_run(*args, **kwargs):
@@ -79,6 +79,8 @@ def test_second_call_recomputes_nothing(sweep: pd.DataFrame, sweep_dir: Path, mo
     again = cs.run_sweep(sweep_dir, ["sift-nn"], strengths=(0.0, 1.0), threads=1, progress=False, **TINY)
     pd.testing.assert_frame_equal(again, sweep)
     assert {p: p.stat().st_mtime_ns for p in (sweep_dir / "images").rglob("*.png")} == images
+    with pytest.raises(cs.SweepError, match="n_frames"):  # another route in the same folder
+        cs.prepare_route(sweep_dir, seed=0, n_frames=7, image_size=TINY["image_size"])
 
 
 def test_a_new_strength_runs_only_its_cell(sweep: pd.DataFrame, sweep_dir: Path) -> None:
@@ -95,11 +97,6 @@ def test_a_new_strength_runs_only_its_cell(sweep: pd.DataFrame, sweep_dir: Path)
     pd.testing.assert_frame_equal(after.merge(before, how="inner"), before)
 
 
-def test_other_route_in_the_same_folder_is_refused(sweep: pd.DataFrame, sweep_dir: Path) -> None:
-    with pytest.raises(cs.SweepError, match="n_frames"):
-        cs.prepare_route(sweep_dir, seed=0, n_frames=7, image_size=TINY["image_size"])
-
-
 def test_bad_inputs_are_refused(tmp_path: Path) -> None:
     with pytest.raises(cs.SweepError, match="sandstorm"):
         cs.run_sweep(tmp_path, ["sift-nn"], conditions=("sandstorm",), progress=False, **TINY)
@@ -111,7 +108,7 @@ def test_bad_inputs_are_refused(tmp_path: Path) -> None:
         cs.method_profiles(["sift-nn", "disk-nn"], {"sift-nn": "paper"})
 
 
-def test_strength_zero_of_each_condition_equals_the_clear_render(sweep: pd.DataFrame, sweep_dir: Path) -> None:
+def test_strength_zero_and_the_reference_folder_are_the_clear_renders(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     route = synthetic.make_route(TINY["seed"], TINY["n_frames"], TINY["image_size"])
     clear = route.render_query({})
     for condition in synthetic.CONDITIONS:
@@ -124,10 +121,7 @@ def test_strength_zero_of_each_condition_equals_the_clear_render(sweep: pd.DataF
     # ... and a positive strength does change the images.
     strong = _read_png(sweep_dir / "images" / cs.query_folder("weather", 1.0) / "002.png")
     assert np.abs(strong.astype(np.int16) - clear[2].astype(np.int16)).mean() > 5
-
-
-def test_reference_folder_is_the_clear_reference_drive(sweep: pd.DataFrame, sweep_dir: Path) -> None:
-    route = synthetic.make_route(TINY["seed"], TINY["n_frames"], TINY["image_size"])
+    # The reference folder is the clear reference drive.
     reference = route.render_reference()
     on_disk = [_read_png(p) for p in sorted((sweep_dir / "images" / "reference").glob("*.png"))]
     assert all(np.array_equal(a, b) for a, b in zip(on_disk, reference))
@@ -148,7 +142,7 @@ def test_aliasing_share_counts_look_alikes_among_top_false_pairs() -> None:
     assert np.isnan(cs.aliasing_share(labels, scores, np.zeros(8)))
 
 
-def test_aliasing_share_splits_ties_at_the_cut() -> None:
+def test_aliasing_share_splits_ties_at_the_cut_and_rejects_a_true_look_alike() -> None:
     labels = np.zeros(4, dtype=int)
     scores = np.array([0, 0, 0, 0])  # all tied: expected share = fraction of look-alikes
     look_alike = np.array([1, 0, 0, 0])
@@ -156,9 +150,6 @@ def test_aliasing_share_splits_ties_at_the_cut() -> None:
     assert cs.aliasing_share(labels, scores[::-1], look_alike[::-1], top_fraction=0.5) == pytest.approx(0.25)
     scores = np.array([9, 5, 5, 1])  # top 2: the 9 (a look-alike) and one of the tied 5s (half a look-alike)
     assert cs.aliasing_share(labels, scores, np.array([1, 1, 0, 0]), top_fraction=0.5) == pytest.approx(0.75)
-
-
-def test_aliasing_share_rejects_a_true_look_alike() -> None:
     with pytest.raises(cs.SweepError, match="true pair"):
         cs.aliasing_share(np.array([1, 0]), np.array([5, 3]), np.array([1, 0]))
 
@@ -191,13 +182,10 @@ def test_breaking_strength_interpolates_between_grid_points() -> None:
     assert text.loc["m", "season"].startswith(cs.NOT_REACHED)
 
 
-def test_breaking_strength_is_undefined_when_clear_mr_is_zero() -> None:
+def test_breaking_strength_is_undefined_when_clear_mr_is_zero_and_not_reached_at_exactly_half() -> None:
     result = cs.breaking_strength(_hand_table({"weather": [0.0, 0.0, 0.0, 0.0, 0.0]}))
     assert np.isnan(result.loc[0, "breaking_strength"])
     assert "clear MR is 0" in result.loc[0, "note"]
-
-
-def test_breaking_strength_exactly_at_half_is_not_below() -> None:
     result = cs.breaking_strength(_hand_table({"weather": [0.8, 0.4, 0.4, 0.3, 0.0]}))
     # 0.4 is not below half of 0.8; the curve drops below it between 0.5 and 0.75,
     # where it leaves 0.4 at 0.5 exactly.

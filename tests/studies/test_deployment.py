@@ -22,10 +22,15 @@ CALIBRATION = {"label": [1, 1, 1, 0, 0, 1, 0], "score": [10, 7, 5, 7, 3, 12, 2]}
 TARGET = {"label": [1, 0, 1, 0, 1], "score": [11, 10, 9, 15, 10]}
 
 
-def test_oracle_threshold_is_the_smallest_score_above_every_false_one():
+def test_oracle_threshold_is_the_smallest_score_above_every_false_one_and_transfers():
     assert deployment.oracle_threshold(CALIBRATION["label"], CALIBRATION["score"]) == 10
     assert deployment.oracle_threshold([1, 0], [4, 4]) == float("inf")  # a tie at the top: nothing passes
     assert deployment.oracle_threshold([1, 0, 1], [2.5, 1.0, 1.5]) == 1.5
+    # Applied to the target, it counts what it accepts there.
+    applied = deployment.apply_threshold(TARGET["label"], TARGET["score"], 10)
+    assert applied == {"precision": 0.5, "recall": pytest.approx(2 / 3), "false_loops": 2, "n_accepted": 4}
+    nothing = deployment.apply_threshold(TARGET["label"], TARGET["score"], float("inf"))
+    assert np.isnan(nothing["precision"]) and nothing["recall"] == 0 and nothing["false_loops"] == 0
 
 
 @pytest.mark.parametrize("seed", range(5))
@@ -39,13 +44,6 @@ def test_the_threshold_gives_mr_on_its_own_sequence(seed):
     applied = deployment.apply_threshold(labels, scores, threshold)
     assert applied["recall"] == pytest.approx(metrics.max_recall_at_full_precision(labels, scores))
     assert applied["false_loops"] == 0
-
-
-def test_transferred_threshold_counts_what_it_accepts_on_the_target():
-    applied = deployment.apply_threshold(TARGET["label"], TARGET["score"], 10)
-    assert applied == {"precision": 0.5, "recall": pytest.approx(2 / 3), "false_loops": 2, "n_accepted": 4}
-    nothing = deployment.apply_threshold(TARGET["label"], TARGET["score"], float("inf"))
-    assert np.isnan(nothing["precision"]) and nothing["recall"] == 0 and nothing["false_loops"] == 0
 
 
 def pairs_table(queries, labels, scores) -> pd.DataFrame:

@@ -60,12 +60,8 @@ def tiny_run(tmp_path_factory) -> Path:
     return path
 
 
-def test_score_ranks_share_the_best_rank_of_a_tie():
-    table = pd.DataFrame({"score": [5, 9, 5, 0, 9]})
-    assert list(explore.score_ranks(table)) == [3, 1, 3, 5, 1]
-
-
-def test_choose_pair_by_index_and_by_a_methods_failures():
+def test_choose_pair_by_index_and_by_a_methods_failures_and_a_tie_shares_the_best_rank():
+    assert list(explore.score_ranks(pd.DataFrame({"score": [5, 9, 5, 0, 9]}))) == [3, 1, 3, 5, 1]
     table = pd.DataFrame({"pair_index": range(5), "label": [1, 0, 1, 0, 1], "score": [3, 7, 1, 7, 9]})
     tables = {"a": table, "b": table.assign(score=[0, 1, 2, 3, 4])}
     assert explore.choose_pair(tables, "index", 2) == 2
@@ -139,22 +135,15 @@ def test_matches_canvas_has_a_white_gap_between_the_two_images():
 def test_score_histograms_of_four_methods_share_one_legend_in_a_grid():
     rng = np.random.default_rng(0)
     tables = {f"m{i}": pd.DataFrame({"label": [1, 0] * 20, "score": rng.integers(0, 50, 40)}) for i in range(4)}
-    view = pd.DataFrame(
-        [{"method": m, "score": t["score"].iloc[0], "rank": 1, "n_pairs": 40} for m, t in tables.items()]
-    )
+    view = pd.DataFrame({"method": list(tables), "score": [t["score"].iloc[0] for t in tables.values()]})
+    view = view.assign(rank=1, n_pairs=40)
     figure = plots.score_histograms(tables, view)
     visible = [axis for axis in figure.axes if axis.get_visible()]
     assert len(visible) == 4
-    assert {round(axis.get_position().x0, 2) for axis in visible} == {
-        round(visible[0].get_position().x0, 2),
-        round(visible[1].get_position().x0, 2),
-    }  # two columns
+    columns = {round(axis.get_position().x0, 2) for axis in visible}
+    assert columns == {round(axis.get_position().x0, 2) for axis in visible[:2]}  # two columns
     assert all(axis.get_legend() is None for axis in visible) and len(figure.legends) == 1
     assert [t.get_text() for t in figure.legends[0].get_texts()] == ["true pairs", "false pairs", "this pair"]
-
-
-def test_explore_defaults_to_every_method_the_run_holds(tiny_run):
-    assert explore.default_methods(tiny_run) == METHODS
 
 
 @pytest.mark.parametrize("pick", explore.PICKS)
@@ -224,7 +213,7 @@ def test_controls_say_what_they_do_and_leave_no_stale_view_under_a_message(tiny_
     assert "fewer than pick_rank 99999" in controls.status.value and controls.drawn == {}
 
 
-def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run):
+def test_explore_writes_a_working_copy_pointed_at_the_run_showing_every_method_and_keeps_it(tiny_run):
     out = tiny_run.parent / "out"
     source = NOTEBOOKS / "explore_pairs.ipynb"
     before = source.read_bytes()
@@ -237,6 +226,7 @@ def test_explore_writes_a_working_copy_pointed_at_the_run_and_keeps_it(tiny_run)
     exec("".join(parameters["source"]), namespace)
     assert namespace["params_file"] == str(out / "params.resolved.yaml") and namespace["output_dir"] == str(out)
     assert namespace["methods"] is None and "jupytext" not in notebook["metadata"]
+    assert explore.default_methods(tiny_run) == METHODS  # None: every method the run holds
     copy.write_text(copy.read_text().replace("Explore one pair", "My notes"))
     edited = copy.read_bytes()
     assert explore_lab.prepare_copy(out) == (copy, False) and copy.read_bytes() == edited

@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
+from helpers import truncated
 
 import gvbench_nb
 from gvbench_nb.data.sequences import Pair, PairFileError, format_pairs, parse_pairs, read_pairs, write_pairs
@@ -27,24 +28,28 @@ PACKAGE_DIR = Path(gvbench_nb.__file__).resolve().parent
 
 
 # -------------------------------------------------------- 1. bad input, clear error --
-def _truncated(source: Path, target: Path) -> Path:
-    data = source.read_bytes()
-    target.write_bytes(data[: len(data) // 2])
-    return target
-
-
-@pytest.mark.parametrize("kind", ["missing", "empty", "truncated_jpeg", "truncated_png", "text_as_jpg", "folder"])
-def test_unreadable_images_raise_an_error_naming_the_file(tmp_path, kind):
+@pytest.mark.parametrize(
+    "kind, what",
+    [
+        ("missing", "not found"),
+        ("empty", "empty"),
+        ("truncated_jpeg", "truncated"),
+        ("truncated_png", "truncated"),
+        ("text_as_jpg", "<html>"),
+        ("folder", "folder"),
+    ],
+)
+def test_unreadable_images_raise_an_error_naming_the_file(tmp_path, kind, what):
     real = tmp_path / "real.jpg"
     cv2.imwrite(str(real), np.random.default_rng(0).integers(0, 256, (90, 160, 3), dtype=np.uint8))
     path = tmp_path / ("bad.png" if kind == "truncated_png" else "bad.jpg")
     if kind == "empty":
         path.write_bytes(b"")
     elif kind == "truncated_jpeg":
-        _truncated(real, path)
+        truncated(real, path)
     elif kind == "truncated_png":
         cv2.imwrite(str(tmp_path / "whole.png"), cv2.imread(str(real)))
-        _truncated(tmp_path / "whole.png", path)
+        truncated(tmp_path / "whole.png", path)
     elif kind == "text_as_jpg":
         path.write_text("<html>404 Not Found</html>\n")
     elif kind == "folder":
@@ -52,16 +57,7 @@ def test_unreadable_images_raise_an_error_naming_the_file(tmp_path, kind):
     with pytest.raises(ImageReadError) as error:
         read_image(path)
     message = str(error.value)
-    assert str(path) in message
-    what = {
-        "missing": "not found",
-        "empty": "empty",
-        "truncated_jpeg": "truncated",
-        "truncated_png": "truncated",
-        "text_as_jpg": "<html>",
-        "folder": "folder",
-    }[kind]
-    assert what in message
+    assert str(path) in message and what in message
     assert "image_root" in message or "remove the pairs" in message  # what to do
 
 

@@ -20,8 +20,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from helpers import truncated
 
-import gvbench_nb
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol.images import ImageReadError
@@ -42,7 +42,6 @@ from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
 
-PACKAGE_DIR = Path(gvbench_nb.__file__).resolve().parent
 METHOD = "sift-nn"
 PROFILE = "paper"
 FRAMES = list(range(0, 200, 10))  # 20 queries, 20 references -> 40 images
@@ -287,12 +286,6 @@ def stores(work: Path) -> tuple[ShardedStore, ShardedStore]:
 
 
 # -------------------------------------------------------- 1. bad input, clear error --
-def _truncated(source: Path, target: Path) -> Path:
-    data = source.read_bytes()
-    target.write_bytes(data[: len(data) // 2])
-    return target
-
-
 @pytest.mark.real_data
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small_root, tmp_path, monkeypatch, jobs):
@@ -308,7 +301,7 @@ def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small
     finished = (method_outputs.method_dir(out, METHOD) / "pairs.csv").read_bytes()
 
     broken = root / "day_right" / "Image010.jpg"
-    _truncated(small_root / "day_right" / "Image010.jpg", broken)
+    truncated(small_root / "day_right" / "Image010.jpg", broken)
     bad_pair = Pair("night_right/Image020.jpg", "day_right/Image010.jpg", 0)
     bigger = Sequence("s", root, good + [Pair("night_right/Image020.jpg", "day_right/Image000.jpg", 0), bad_pair])
     with pytest.raises(ImageReadError) as error:

@@ -12,8 +12,17 @@ import pytest
 import yaml
 
 from gvbench_nb import cli
+from gvbench_nb.data.sequences import Pair
 from gvbench_nb.protocol import metrics
 from gvbench_nb.runner import method_outputs
+
+# Two queries, each with its own view (true) and the other one (false).
+PAIRS = [
+    Pair("query/a.png", "reference/a.png", 1),
+    Pair("query/a.png", "reference/b.png", 0),
+    Pair("query/b.png", "reference/b.png", 1),
+    Pair("query/b.png", "reference/a.png", 0),
+]
 
 
 def photo(name: str, warped: bool, size: tuple[int, int] = (320, 240)) -> np.ndarray:
@@ -63,6 +72,11 @@ def cli_error(capsys, *argv: str) -> str:
     message = capsys.readouterr().err
     assert "Traceback" not in message and len(message.strip().splitlines()) == 1, message
     return message
+
+
+def assert_nothing_written(tmp_path: Path) -> None:
+    """A refused run made neither ``tmp_path/out`` nor ``tmp_path/cache``."""
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
 def truncated(source: Path, target: Path) -> Path:

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from helpers import check_stage_outputs, cli_error, photo, write_params, write_root
+from helpers import PAIRS, check_stage_outputs, cli_error, photo, write_params, write_root
 
 from gvbench_nb import cli, methods, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, write_pairs
@@ -30,14 +30,6 @@ pytestmark = pytest.mark.reliability
 METHOD, PROFILE = "sift-nn", "paper"
 SCORE_COLUMNS = ["query", "reference", "label", "num_keypoints_query", "num_keypoints_reference"]
 SCORE_COLUMNS += ["num_matches", "num_inliers", "score"]
-
-
-PAIRS = [
-    Pair("query/a.png", "reference/a.png", 1),
-    Pair("query/a.png", "reference/b.png", 0),
-    Pair("query/b.png", "reference/b.png", 1),
-    Pair("query/b.png", "reference/a.png", 0),
-]
 
 
 def run(root: Path, work: Path, pairs: list[Pair] = PAIRS, seed: int = 0) -> pd.DataFrame:

@@ -15,23 +15,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from helpers import cli_error, write_params, write_root
+from helpers import PAIRS, assert_nothing_written, cli_error, write_params, write_root
 
 from gvbench_nb import cli
 from gvbench_nb.data import build_inputs
-from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
+from gvbench_nb.data.sequences import MissingImagesError, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
 from gvbench_nb.runner import config, image_features, input_checks, sequence_build
 
 pytestmark = pytest.mark.reliability
 
 PROJECT = Path(__file__).resolve().parents[2]
-PAIRS = [
-    Pair("query/a.png", "reference/a.png", 1),
-    Pair("query/a.png", "reference/b.png", 0),
-    Pair("query/b.png", "reference/b.png", 1),
-    Pair("query/b.png", "reference/a.png", 0),
-]
 
 
 @pytest.fixture
@@ -40,10 +34,6 @@ def absent_images(tmp_path) -> Path:
     (tmp_path / "images").mkdir()
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     return tmp_path
-
-
-def assert_nothing_written(tmp_path: Path) -> None:
-    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
 # ----------------------------------------------------------- params in range --

@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from test_fault_injection import write_root
+from helpers import assert_nothing_written, write_root
 from test_run_record import FLIPPED, PAIRS, in_process_notebooks, one_sentence, params_file, run_cli, snapshot
 
 from gvbench_nb import notebook, run_and_publish
@@ -34,11 +34,6 @@ def images(tmp_path) -> Path:
     return write_root(tmp_path / "images")
 
 
-def written(tmp_path: Path) -> list[str]:
-    """What a run made besides the test's own inputs."""
-    return sorted(p.name for p in tmp_path.iterdir() if p.name in ("out", "cache"))
-
-
 # ------------------------------------------------------- images by content --
 @pytest.mark.parametrize("how", ["copy", "symlink"])
 def test_two_images_of_one_content_are_a_self_pair_refused_with_file_and_line(
@@ -54,7 +49,7 @@ def test_two_images_of_one_content_are_a_self_pair_refused_with_file_and_line(
     assert code == 2
     assert f"{tmp_path / 'params-pairs.txt'}:5: self-pair by content" in one_sentence(err)
     assert "query/a.png and reference/same.png hold the same bytes" in err
-    assert written(tmp_path) == []
+    assert_nothing_written(tmp_path)
 
 
 @pytest.mark.real_data
@@ -83,7 +78,8 @@ def test_a_damaged_jpeg_is_named_and_refused_before_work_unless_allowed(tmp_path
     jpeg = damaged_jpeg(images)
     pairs = [*PAIRS, Pair("query/b.png", "reference/c.jpg", 1)]
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, pairs=pairs)))
-    assert code == 2 and written(tmp_path) == []
+    assert code == 2
+    assert_nothing_written(tmp_path)
     assert f"first {jpeg} (pair 4: query/b.png reference/c.jpg)" in one_sentence(err)
     assert "Corrupt JPEG data" in err and "allow_damaged_images: true" in err  # libjpeg's words, from its stderr
     # Allowed explicitly: scored, and listed in the folder's record.
@@ -100,7 +96,8 @@ def test_an_image_that_does_not_decode_is_refused_before_work_even_when_damage_i
 ):
     (images / "reference" / "b.png").write_bytes((images / "reference" / "b.png").read_bytes()[:2000])
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, allow_damaged_images=True)))
-    assert code == 2 and written(tmp_path) == []
+    assert code == 2
+    assert_nothing_written(tmp_path)
     assert f"cannot decode image {images / 'reference' / 'b.png'}" in one_sentence(err)
 
 
@@ -244,7 +241,7 @@ def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
     monkeypatch.setenv(name, value)
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)))
     assert code == 2 and name in one_sentence(err) and repr(value) in err
-    assert written(tmp_path) == []
+    assert_nothing_written(tmp_path)
 
 
 @pytest.mark.parametrize(
@@ -254,4 +251,4 @@ def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
 def test_a_bad_run_option_is_one_sentence_naming_it_before_any_folder(tmp_path, images, capsys, option):
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)), *option)
     assert code == 2 and option[-2] in one_sentence(err)
-    assert written(tmp_path) == []
+    assert_nothing_written(tmp_path)

@@ -138,6 +138,14 @@ def reference_dir() -> Path:
 
 
 @pytest.fixture
+def root(tmp_path) -> Path:
+    """Four small photographs under ``tmp_path/images`` (``helpers.write_root``)."""
+    from helpers import write_root
+
+    return write_root(tmp_path / "images")
+
+
+@pytest.fixture
 def empty_hub(tmp_path, monkeypatch) -> Path:
     """Point the torch hub cache at an empty folder: no checkpoint is present.
     Yields the checkpoints folder a missing file should be put in."""

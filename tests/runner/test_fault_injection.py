@@ -43,11 +43,6 @@ def this_run(work: Path) -> dict:
     return json.loads((work / "out" / METHOD / "run.json").read_text())["this_run"]
 
 
-@pytest.fixture
-def root(tmp_path) -> Path:
-    return write_root(tmp_path / "images")
-
-
 # ------------------------------------------------------- 1, 2: content-keyed caches --
 def test_an_image_replaced_in_place_is_extracted_and_matched_again(root, tmp_path):
     first = run(root, tmp_path / "work")

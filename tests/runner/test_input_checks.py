@@ -248,8 +248,7 @@ PATH_KINDS = [
 
 
 @pytest.mark.parametrize("make, expected", PATH_KINDS, ids=["broken-link", "link-loop", "folder", "fifo"])
-def test_an_image_path_is_named_as_what_it_is(tmp_path, make, expected):
-    root = write_root(tmp_path / "images")
+def test_an_image_path_is_named_as_what_it_is(root, make, expected):
     make(root)
     sequence = Sequence("s", root, PAIRS, origin={"pairs_file": "pairs.txt"})
     with pytest.raises(MissingImagesError) as error:
@@ -264,8 +263,7 @@ def test_an_image_path_is_named_as_what_it_is(tmp_path, make, expected):
 
 
 @pytest.mark.parametrize("make, expected", PATH_KINDS[2:], ids=["folder", "fifo"])
-def test_a_run_naming_a_folder_or_fifo_stops_before_any_work(tmp_path, capsys, make, expected):
-    root = write_root(tmp_path / "images")
+def test_a_run_naming_a_folder_or_fifo_stops_before_any_work(tmp_path, root, capsys, make, expected):
     make(root)
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     message = cli_error(capsys, "run", str(write_params(tmp_path)))
@@ -331,8 +329,7 @@ def test_a_full_disk_while_a_notebook_is_written_names_the_notebook(tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_path):
-    write_root(tmp_path / "images")
+def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_path, root):
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     params = str(write_params(tmp_path))
     environment = {**os.environ, "PYTHONPATH": str(PROJECT), "GVBENCH_THREADS": "1"}

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import hashlib
 import os
+import sys
 import tempfile
 from collections.abc import Iterator
 from pathlib import Path
@@ -17,6 +18,7 @@ from typing import Any
 import pytest
 
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(PROJECT_ROOT / "benchmarks"))  # the benchmark scripts, imported by their tests
 
 # The tests that read or write the repository's outputs/sample and outputs/cache (the notebooks'
 # default params, and runs of params/sample.yaml, which renders its images there) run one at a
@@ -106,10 +108,6 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         return (yield)
 
 
-def _first_dir(*candidates: Path | None) -> Path | None:
-    return next((c for c in candidates if c is not None and c.is_dir()), None)
-
-
 REAL_DATASETS = ("gvbench-lists", "gardens_point")
 
 
@@ -133,10 +131,18 @@ def shared_data() -> Path:
 def reference_dir() -> Path:
     """``$GVBENCH_REFERENCE`` or ``<repo>/../shared/reference`` (holding ``layouts/``)."""
     env = os.environ.get("GVBENCH_REFERENCE")
-    found = _first_dir(Path(env) if env else None, PROJECT_ROOT.parent / "shared" / "reference")
-    if found is None or not (found / "layouts").is_dir():
+    found = Path(env) if env and Path(env).is_dir() else PROJECT_ROOT.parent / "shared" / "reference"
+    if not (found / "layouts").is_dir():
         pytest.skip("reference layouts not found: set GVBENCH_REFERENCE to the folder holding layouts/")
     return found
+
+
+@pytest.fixture
+def root(tmp_path) -> Path:
+    """Four small photographs under ``tmp_path/images`` (``helpers.write_root``)."""
+    from helpers import write_root
+
+    return write_root(tmp_path / "images")
 
 
 @pytest.fixture

@@ -5,12 +5,85 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pandas as pd
 import pytest
+import yaml
 
+from gvbench_nb import cli
+from gvbench_nb.data.sequences import Pair
 from gvbench_nb.protocol import metrics
 from gvbench_nb.runner import method_outputs
+
+# Two queries, each with its own view (true) and the other one (false).
+PAIRS = [
+    Pair("query/a.png", "reference/a.png", 1),
+    Pair("query/a.png", "reference/b.png", 0),
+    Pair("query/b.png", "reference/b.png", 1),
+    Pair("query/b.png", "reference/a.png", 0),
+]
+
+
+def photo(name: str, warped: bool, size: tuple[int, int] = (320, 240)) -> np.ndarray:
+    """One of scikit-image's photographs, BGR at ``size``; warped (a small rotation and zoom) for a query view."""
+    import skimage.data
+
+    image = getattr(skimage.data, name)()
+    image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
+    image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
+    if warped:
+        matrix = cv2.getRotationMatrix2D((size[0] / 2, size[1] / 2), 4.0, 1.05)
+        image = cv2.warpAffine(image, matrix, size, borderMode=cv2.BORDER_REFLECT)
+    return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
+
+
+def write_root(root: Path, photos: tuple[str, str] = ("astronaut", "coffee"), size=(320, 240)) -> Path:
+    """``query/a.png``, ``query/b.png`` (warped) and ``reference/a.png``, ``reference/b.png``."""
+    for folder, warped in (("query", True), ("reference", False)):
+        (root / folder).mkdir(parents=True, exist_ok=True)
+        for letter, name in zip("ab", photos):
+            cv2.imwrite(str(root / folder / f"{letter}.png"), photo(name, warped, size))
+    return root
+
+
+def write_params(tmp_path: Path, **changes: object) -> Path:
+    """``tmp_path/params.yaml``: sift-nn (paper) on ``tmp_path``'s images and pairs.txt, ``changes`` applied."""
+    params = {
+        "sequence": "s",
+        "image_root": str(tmp_path / "images"),
+        "pairs": str(tmp_path / "pairs.txt"),
+        "methods": ["sift-nn"],
+        "profile": "paper",
+        "output_dir": str(tmp_path / "out"),
+        "cache_dir": str(tmp_path / "cache"),
+        "seed": 0,
+    }
+    params.update(changes)
+    path = tmp_path / "params.yaml"
+    path.write_text(yaml.safe_dump(params, sort_keys=False))
+    return path
+
+
+def cli_error(capsys, *argv: str) -> str:
+    """Run the CLI expecting a user error: exit 2 and one line on stderr, no traceback."""
+    capsys.readouterr()
+    assert cli.main(list(argv)) == 2
+    message = capsys.readouterr().err
+    assert "Traceback" not in message and len(message.strip().splitlines()) == 1, message
+    return message
+
+
+def assert_nothing_written(tmp_path: Path) -> None:
+    """A refused run made neither ``tmp_path/out`` nor ``tmp_path/cache``."""
+    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
+
+
+def truncated(source: Path, target: Path) -> Path:
+    """``target``: the first half of ``source``'s bytes."""
+    data = source.read_bytes()
+    target.write_bytes(data[: len(data) // 2])
+    return target
 
 
 def read_layout(reference_dir: Path, name: str) -> dict[str, list[int]]:

@@ -1,51 +1,37 @@
 """The bench: both pipelines agree on scores, mismatches fail loudly, summaries and estimates add up."""
 
-import sys
 from pathlib import Path
 
 import numpy as np
 import pandas as pd
 import pytest
+import speed as speed_cli
+import speed_bench as bench
+import speed_estimate as estimate
 import torch
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import speed as speed_cli
-import speed_bench as bench
-import speed_estimate as estimate
 
-
-def few_pairs(shared_data: Path) -> Sequence:
-    """Two queries, each with a true and a false reference, plus one reused reference (5 pairs)."""
+def gardens_point_pairs(shared_data: Path, night: bool) -> Sequence:
+    """Five pairs: two queries, each with a true and a false reference, plus one reused reference. Night
+    queries against day references, or day against day (COLMAP SIFT finds too few night-to-day matches for
+    scores to vary)."""
+    query, frames = ("night_right", (60, 60, 140, 140, 61)) if night else ("day_right", (60, 60, 140, 140, 62))
+    references = (60, 140, 141, 60, 60) if night else (61, 140, 141, 62, 61)
     pairs = [
-        Pair("night_right/Image060.jpg", "day_right/Image060.jpg", 1),
-        Pair("night_right/Image060.jpg", "day_right/Image140.jpg", 0),
-        Pair("night_right/Image140.jpg", "day_right/Image141.jpg", 1),
-        Pair("night_right/Image140.jpg", "day_right/Image060.jpg", 0),
-        Pair("night_right/Image061.jpg", "day_right/Image060.jpg", 1),
+        Pair(f"{query}/Image{q:03d}.jpg", f"day_right/Image{r:03d}.jpg", label)
+        for q, r, label in zip(frames, references, (1, 0, 1, 0, 1))
     ]
-    return Sequence("gp_bench", shared_data / "gardens_point", pairs)
-
-
-def day_pairs(shared_data: Path) -> Sequence:
-    """Day frames: COLMAP SIFT finds too few night-to-day matches for scores to vary."""
-    pairs = [
-        Pair("day_right/Image060.jpg", "day_right/Image061.jpg", 1),
-        Pair("day_right/Image060.jpg", "day_right/Image140.jpg", 0),
-        Pair("day_right/Image140.jpg", "day_right/Image141.jpg", 1),
-        Pair("day_right/Image140.jpg", "day_right/Image062.jpg", 0),
-        Pair("day_right/Image062.jpg", "day_right/Image061.jpg", 1),
-    ]
-    return Sequence("gp_bench_day", shared_data / "gardens_point", pairs)
+    return Sequence("gp_bench" if night else "gp_bench_day", shared_data / "gardens_point", pairs)
 
 
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.parametrize("method", ["sift-nn", "disk-lg"])  # disk-lg: ours prepares LightGlue once per image
 def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path, method):
-    sequence = day_pairs(shared_data) if method == "sift-nn" else few_pairs(shared_data)
+    sequence = gardens_point_pairs(shared_data, night=method != "sift-nn")
     conf = methods.resolve_method(method, "repository")
     if method == "disk-lg":  # half the keypoints, a quarter of LightGlue's attention, DISK on a quarter of
         # the pixels (512 on the long side, not 1024): the same comparison
@@ -64,7 +50,9 @@ def test_per_pair_pipeline_and_ours_give_identical_scores(shared_data, tmp_path,
 
 @pytest.mark.real_data
 def test_the_bench_runs_ours_with_two_workers_and_the_reference_with_one(shared_data):
-    rows = bench.bench_method(few_pairs(shared_data), "sift-nn", "repository", repeats=1, device="cpu", progress=False)
+    rows = bench.bench_method(
+        gardens_point_pairs(shared_data, night=True), "sift-nn", "repository", repeats=1, device="cpu", progress=False
+    )
     assert dict(zip(rows["pipeline"], rows["workers"])) == {bench.CACHED: 2, bench.PER_PAIR: 1}
     summary = bench.summarize_bench(rows).iloc[0]
     assert summary["cached_workers"] == 2 and summary["scores_identical"]
@@ -185,7 +173,7 @@ def test_official_sizes_count_unique_images(shared_data):
 
 @pytest.mark.real_data
 def test_scaling_table_sums_the_measured_stage_costs(shared_data):
-    sequence = few_pairs(shared_data)
+    sequence = gardens_point_pairs(shared_data, night=True)
     table = bench.scaling_table(sequence, "sift-nn", "repository", limits=(2, 5, 50), device="cpu").set_index("n_pairs")
     assert list(table.index) == [2, 5]  # 50 is capped at the sequence's length
     assert table.loc[5, "n_images"] == len(sequence.images) == 6

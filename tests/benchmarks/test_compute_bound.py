@@ -1,13 +1,8 @@
 """benchmarks/compute_bound.py: the one-core run's timers, summed and shared over the cores."""
 
-import sys
-from pathlib import Path
-
+import compute_bound
 import pandas as pd
 import pytest
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import compute_bound
 
 
 @pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample

@@ -3,12 +3,12 @@ constructed inputs, and leaves the package as it found it."""
 
 from __future__ import annotations
 
-import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pandas as pd
+import parity_effects
 import pytest
 import torch
 
@@ -17,9 +17,6 @@ from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import images, weights
 from gvbench_nb.protocol.matching import build_matcher
 from gvbench_nb.runner import image_features
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import parity_effects
 
 
 def test_float16_scores_move_scores_just_above_the_filter_below_it():

@@ -3,16 +3,12 @@
 from __future__ import annotations
 
 import copy
-import sys
-from pathlib import Path
 
 import pandas as pd
+import protocol_ablation
 import pytest
 
 from gvbench_nb import methods
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
-import protocol_ablation
 
 
 @pytest.mark.parametrize(

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from helpers import write_params
 
 from gvbench_nb import methods
 from gvbench_nb.data import synthetic
@@ -125,15 +126,11 @@ def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, 
 def test_verifier_overrides_are_checked_with_a_did_you_mean(tmp_path: Path) -> None:
     from gvbench_nb.runner import config
 
-    path = tmp_path / "p.yaml"
-    path.write_text(
-        "sequence: s\npairs: p.txt\nimage_root: .\nmethods: [orb-nn]\nprofile: paper\noutput_dir: out\n"
-        "verifier: {threshold: 2.0}\n"
-    )
+    path = write_params(tmp_path, methods=["orb-nn"], verifier={"threshold": 2.0})
     with pytest.raises(
         config.ParamsError, match=r"verifier: unknown key\(s\) 'threshold' \(did you mean 'threshold_px'\?\)"
     ):
         config.load_params(path)
-    path.write_text(path.read_text().replace("{threshold: 2.0}", "{method: MAGSAC}"))
+    path = write_params(tmp_path, methods=["orb-nn"], verifier={"method": "MAGSAC"})
     with pytest.raises(config.ParamsError, match="unknown estimator 'MAGSAC'.*Did you mean 'USAC_MAGSAC'"):
         config.load_params(path)

@@ -16,7 +16,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from helpers import check_stage_outputs
+from helpers import PAIRS, check_stage_outputs, cli_error, photo, write_params, write_root
 
 from gvbench_nb import cli, methods, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, write_pairs
@@ -28,38 +28,8 @@ from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 pytestmark = pytest.mark.reliability
 
 METHOD, PROFILE = "sift-nn", "paper"
-PHOTOS = ("astronaut", "coffee", "chelsea", "rocket", "camera")
 SCORE_COLUMNS = ["query", "reference", "label", "num_keypoints_query", "num_keypoints_reference"]
 SCORE_COLUMNS += ["num_matches", "num_inliers", "score"]
-
-
-def _photo(name: str, warped: bool) -> np.ndarray:
-    import skimage.data
-
-    image = getattr(skimage.data, name)()
-    image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
-    image = cv2.resize(image, (320, 240), interpolation=cv2.INTER_AREA)
-    if warped:  # the "query" view: a small rotation and zoom
-        matrix = cv2.getRotationMatrix2D((160, 120), 4.0, 1.05)
-        image = cv2.warpAffine(image, matrix, (320, 240), borderMode=cv2.BORDER_REFLECT)
-    return image
-
-
-def write_root(root: Path, photos: tuple[str, str] = ("astronaut", "coffee")) -> Path:
-    """``query/a.png``, ``query/b.png`` (warped) and ``reference/a.png``, ``reference/b.png``."""
-    for folder, warped in (("query", True), ("reference", False)):
-        (root / folder).mkdir(parents=True, exist_ok=True)
-        for letter, photo in zip("ab", photos):
-            cv2.imwrite(str(root / folder / f"{letter}.png"), cv2.cvtColor(_photo(photo, warped), cv2.COLOR_RGB2BGR))
-    return root
-
-
-PAIRS = [
-    Pair("query/a.png", "reference/a.png", 1),
-    Pair("query/a.png", "reference/b.png", 0),
-    Pair("query/b.png", "reference/b.png", 1),
-    Pair("query/b.png", "reference/a.png", 0),
-]
 
 
 def run(root: Path, work: Path, pairs: list[Pair] = PAIRS, seed: int = 0) -> pd.DataFrame:
@@ -73,15 +43,10 @@ def this_run(work: Path) -> dict:
     return json.loads((work / "out" / METHOD / "run.json").read_text())["this_run"]
 
 
-@pytest.fixture
-def root(tmp_path) -> Path:
-    return write_root(tmp_path / "images")
-
-
 # ------------------------------------------------------- 1, 2: content-keyed caches --
 def test_an_image_replaced_in_place_is_extracted_and_matched_again(root, tmp_path):
     first = run(root, tmp_path / "work")
-    other = cv2.cvtColor(_photo("chelsea", warped=True), cv2.COLOR_RGB2BGR)
+    other = photo("chelsea", warped=True)
     cv2.imwrite(str(root / "query" / "a.png"), other)  # another photo, same name
     second = run(root, tmp_path / "work")
     fresh = run(root, tmp_path / "fresh")
@@ -137,21 +102,12 @@ def _frame_root(root: Path) -> Path:
     return root
 
 
-def _params(tmp_path: Path, **changes) -> Path:
-    params = {"sequence": "s", "image_root": str(tmp_path / "images"), "pairs": str(tmp_path / "pairs.txt")}
-    params |= {"methods": [METHOD], "profile": PROFILE, "output_dir": str(tmp_path / "out"), "seed": 0}
-    params.update(changes)
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(params))
-    return path
-
-
 def test_a_builder_pair_file_is_rebuilt_when_its_options_or_seed_change(tmp_path):
     _frame_root(tmp_path / "images")
     options = {"query_folder": "night", "reference_folder": "day", "candidates_per_query": 10}
 
     def build(seed: int = 0, **option_changes) -> Sequence:
-        path = _params(
+        path = write_params(
             tmp_path, pairs_builder="frame_tolerance", builder_options={**options, **option_changes}, seed=seed
         )
         return sequence_build.prepare_sequence(config.load_params(path))
@@ -175,7 +131,7 @@ def test_a_builder_pair_file_is_rebuilt_when_its_options_or_seed_change(tmp_path
 
 def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root, tmp_path):
     pairs_file = write_pairs(tmp_path / "pairs.txt", PAIRS)
-    params = config.load_params(_params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache")))
+    params = config.load_params(write_params(tmp_path, image_root=str(root)))
     sequence = sequence_build.prepare_sequence(params)
     method_runs.run_method_of_params({**params, "device": "cpu"}, sequence, METHOD, progress=False, threads=1)
     recorded = json.loads((Path(params["output_dir"]) / METHOD / "run.json").read_text())
@@ -188,7 +144,7 @@ def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root
 # ------------------------------------------------------ 4, 5: a run owns its outputs --
 def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(root, tmp_path, monkeypatch):
     write_pairs(tmp_path / "pairs.txt", PAIRS)
-    params_path = _params(tmp_path, image_root=None)  # as the official lists ship: no image root
+    params_path = write_params(tmp_path, image_root=None)  # as the official lists ship: no image root
     seen: list[dict] = []
 
     def fake_execute(name, output_path, parameters):  # what each notebook's first cell loads
@@ -227,7 +183,7 @@ def test_image_root_given_on_the_command_line_reaches_the_real_notebooks(root, t
     import sys
 
     write_pairs(tmp_path / "pairs.txt", PAIRS)
-    params_path = _params(tmp_path, image_root=None, cache_dir=str(tmp_path / "cache"))
+    params_path = write_params(tmp_path, image_root=None)
     done = subprocess.run(
         [sys.executable, "-m", "gvbench_nb", "run", str(params_path), "--image-root", str(root)],
         capture_output=True,
@@ -252,6 +208,12 @@ def test_the_stage_notebooks_load_the_params_file_they_are_given():
         assert re.search(r"\b(notebook\.load_params|notebook\.load_sequence)\(\s*params_file\b", source), name
 
 
+def stage_jobs(methods: str) -> list[tuple[str, str, dict]]:
+    """The run's notebooks: 01_sequence, one 02_verify a method (one letter each), 03_evaluate."""
+    verify = [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in methods]
+    return [("01_sequence.ipynb", "01_sequence.ipynb", {}), *verify, ("03_evaluate.ipynb", "03_evaluate.ipynb", {})]
+
+
 def test_a_method_that_fails_in_the_command_fails_in_its_notebook_and_stops_the_run(tmp_path, monkeypatch):
     """The notebook of the method whose work failed runs it again (from the caches) and keeps
     the traceback; the methods after it are not started and nothing is evaluated."""
@@ -268,11 +230,8 @@ def test_a_method_that_fails_in_the_command_fails_in_its_notebook_and_stops_the_
             raise RuntimeError("b failed")
 
     monkeypatch.setattr(run_and_publish, "execute_notebook", fake_execute)
-    jobs = [("01_sequence.ipynb", "01_sequence.ipynb", {})]
-    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in "abc"]
-    jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {}))
     with pytest.raises(RuntimeError, match="in its notebook too"):
-        run_and_publish.execute_run_notebooks(jobs, tmp_path, compute)
+        run_and_publish.execute_run_notebooks(stage_jobs("abc"), tmp_path, compute)
     assert computed == ["a", "b"]
     assert sorted(executed) == ["01_sequence.ipynb", "02_verify_a.ipynb", "02_verify_b.ipynb"]
 
@@ -290,10 +249,7 @@ def test_evaluate_waits_for_every_verify_notebook_but_not_for_the_sequence_noteb
             sequence_may_finish.set()
 
     monkeypatch.setattr(run_and_publish, "execute_notebook", fake_execute)
-    jobs = [("01_sequence.ipynb", "01_sequence.ipynb", {})]
-    jobs += [("02_verify.ipynb", f"02_verify_{m}.ipynb", {"method": m}) for m in "ab"]
-    jobs.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {}))
-    run_and_publish.execute_run_notebooks(jobs, tmp_path, lambda method: None)
+    run_and_publish.execute_run_notebooks(stage_jobs("ab"), tmp_path, lambda method: None)
     assert events[-2:] == ["03_evaluate.ipynb", "01_sequence.ipynb"]
     assert sorted(events[:2]) == ["02_verify_a.ipynb", "02_verify_b.ipynb"]
 
@@ -302,7 +258,7 @@ def test_a_run_that_fails_leaves_the_previous_results_whole_and_says_where_its_w
     root, tmp_path, monkeypatch, capsys
 ):
     write_pairs(tmp_path / "pairs.txt", PAIRS)
-    params_path = _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "work" / "cache"))
+    params_path = write_params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "work" / "cache"))
     out = tmp_path / "work" / "out"
     run_first = run(root, tmp_path / "work")  # an earlier finished run in the same folder
     scoring.evaluate(out)
@@ -412,19 +368,10 @@ def test_a_symlink_leaving_the_image_root_is_followed_as_documented(root, tmp_pa
 
 
 # ----------------------------------------------------- errors are one sentence --
-def cli_error(capsys, *argv: str) -> str:
-    """Run the CLI expecting a user error: exit 2 and one line on stderr, no traceback."""
-    capsys.readouterr()
-    assert cli.main(list(argv)) == 2
-    message = capsys.readouterr().err
-    assert "Traceback" not in message and len(message.strip().splitlines()) == 1, message
-    return message
-
-
 @pytest.fixture
 def valid(root, tmp_path) -> Path:
     write_pairs(tmp_path / "pairs.txt", PAIRS)
-    return _params(tmp_path, image_root=str(root), cache_dir=str(tmp_path / "cache"))
+    return write_params(tmp_path, image_root=str(root))
 
 
 @pytest.mark.parametrize("case", ["pair file missing", "output_dir a file", "not writable", "no results", "no root"])

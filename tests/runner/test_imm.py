@@ -300,7 +300,6 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
 
 @pytest.mark.real_data
 def test_peer_bench_gives_vismatch_the_pairs_and_image_size_of_our_profile(shared_data, tmp_path, monkeypatch):
-    sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "benchmarks"))
     import peer_vismatch
 
     from gvbench_nb.runner import config, sequence_build

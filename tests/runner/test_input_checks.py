@@ -15,62 +15,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-import yaml
+from helpers import PAIRS, assert_nothing_written, cli_error, write_params, write_root
 
 from gvbench_nb import cli
 from gvbench_nb.data import build_inputs
-from gvbench_nb.data.sequences import MissingImagesError, Pair, PairFileError, Sequence, read_pairs, write_pairs
+from gvbench_nb.data.sequences import MissingImagesError, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
 from gvbench_nb.runner import config, image_features, input_checks, sequence_build
 
 pytestmark = pytest.mark.reliability
 
 PROJECT = Path(__file__).resolve().parents[2]
-METHOD = "sift-nn"
-PAIRS = [
-    Pair("query/a.png", "reference/a.png", 1),
-    Pair("query/a.png", "reference/b.png", 0),
-    Pair("query/b.png", "reference/b.png", 1),
-    Pair("query/b.png", "reference/a.png", 0),
-]
-
-
-def _photo(name: str, size: tuple[int, int], warped: bool) -> np.ndarray:
-    import skimage.data
-
-    image = getattr(skimage.data, name)()
-    image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB) if image.ndim == 2 else image
-    image = cv2.resize(image, size, interpolation=cv2.INTER_AREA)
-    if warped:  # the query view: a small rotation and zoom
-        matrix = cv2.getRotationMatrix2D((size[0] / 2, size[1] / 2), 4.0, 1.05)
-        image = cv2.warpAffine(image, matrix, size, borderMode=cv2.BORDER_REFLECT)
-    return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
-
-
-def write_photos(root: Path, size: tuple[int, int] = (320, 240)) -> Path:
-    """``query/{a,b}.png`` (warped) and ``reference/{a,b}.png``."""
-    for folder, warped in (("query", True), ("reference", False)):
-        (root / folder).mkdir(parents=True, exist_ok=True)
-        for letter, photo in zip("ab", ("astronaut", "coffee")):
-            cv2.imwrite(str(root / folder / f"{letter}.png"), _photo(photo, size, warped))
-    return root
-
-
-def write_params(tmp_path: Path, **changes: object) -> Path:
-    params = {
-        "sequence": "s",
-        "image_root": str(tmp_path / "images"),
-        "pairs": str(tmp_path / "pairs.txt"),
-        "methods": [METHOD],
-        "profile": "paper",
-        "output_dir": str(tmp_path / "out"),
-        "cache_dir": str(tmp_path / "cache"),
-        "seed": 0,
-    }
-    params.update(changes)
-    path = tmp_path / "params.yaml"
-    path.write_text(yaml.safe_dump(params, sort_keys=False))
-    return path
 
 
 @pytest.fixture
@@ -79,19 +34,6 @@ def absent_images(tmp_path) -> Path:
     (tmp_path / "images").mkdir()
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     return tmp_path
-
-
-def cli_error(capsys, *argv: str) -> str:
-    """Run the CLI expecting a user error: exit 2 and one line on stderr, no traceback."""
-    capsys.readouterr()
-    assert cli.main(list(argv)) == 2
-    message = capsys.readouterr().err
-    assert "Traceback" not in message and len(message.strip().splitlines()) == 1, message
-    return message
-
-
-def assert_nothing_written(tmp_path: Path) -> None:
-    assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
 # ----------------------------------------------------------- params in range --
@@ -306,8 +248,7 @@ PATH_KINDS = [
 
 
 @pytest.mark.parametrize("make, expected", PATH_KINDS, ids=["broken-link", "link-loop", "folder", "fifo"])
-def test_an_image_path_is_named_as_what_it_is(tmp_path, make, expected):
-    root = write_photos(tmp_path / "images")
+def test_an_image_path_is_named_as_what_it_is(root, make, expected):
     make(root)
     sequence = Sequence("s", root, PAIRS, origin={"pairs_file": "pairs.txt"})
     with pytest.raises(MissingImagesError) as error:
@@ -322,8 +263,7 @@ def test_an_image_path_is_named_as_what_it_is(tmp_path, make, expected):
 
 
 @pytest.mark.parametrize("make, expected", PATH_KINDS[2:], ids=["folder", "fifo"])
-def test_a_run_naming_a_folder_or_fifo_stops_before_any_work(tmp_path, capsys, make, expected):
-    root = write_photos(tmp_path / "images")
+def test_a_run_naming_a_folder_or_fifo_stops_before_any_work(tmp_path, root, capsys, make, expected):
     make(root)
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     message = cli_error(capsys, "run", str(write_params(tmp_path)))
@@ -362,7 +302,7 @@ def error_lines(stderr: str) -> list[str]:
 @pytest.mark.slow
 def test_a_full_disk_is_one_sentence_naming_the_file_and_a_rerun_recovers(tmp_path):
     # 4 photos of 1024x768: a feature shard of about 1.2 MB, above the 1000 KB limit.
-    write_photos(tmp_path / "images", size=(1024, 768))
+    write_root(tmp_path / "images", size=(1024, 768))
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     params = str(write_params(tmp_path))
     full = command(["run", params, "--shard", "0/1"], tmp_path, limit_kb=1000)
@@ -379,7 +319,7 @@ def test_a_full_disk_is_one_sentence_naming_the_file_and_a_rerun_recovers(tmp_pa
 
 @pytest.mark.slow
 def test_a_full_disk_while_a_notebook_is_written_names_the_notebook(tmp_path):
-    write_photos(tmp_path / "images", size=(1024, 768))
+    write_root(tmp_path / "images", size=(1024, 768))
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     full = command(["run", str(write_params(tmp_path))], tmp_path, limit_kb=1000)
     assert full.returncode == 2, full.stderr[-3000:]
@@ -389,8 +329,7 @@ def test_a_full_disk_while_a_notebook_is_written_names_the_notebook(tmp_path):
 
 
 @pytest.mark.slow
-def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_path):
-    write_photos(tmp_path / "images")
+def test_ctrl_c_prints_one_line_saying_how_to_resume_and_a_rerun_finishes(tmp_path, root):
     write_pairs(tmp_path / "pairs.txt", PAIRS)
     params = str(write_params(tmp_path))
     environment = {**os.environ, "PYTHONPATH": str(PROJECT), "GVBENCH_THREADS": "1"}

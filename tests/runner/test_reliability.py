@@ -20,8 +20,8 @@ import numpy as np
 import pandas as pd
 import pytest
 import torch
+from helpers import truncated
 
-import gvbench_nb
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol.images import ImageReadError
@@ -42,7 +42,6 @@ from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
 pytestmark = pytest.mark.reliability
 
-PACKAGE_DIR = Path(gvbench_nb.__file__).resolve().parent
 METHOD = "sift-nn"
 PROFILE = "paper"
 FRAMES = list(range(0, 200, 10))  # 20 queries, 20 references -> 40 images
@@ -101,9 +100,7 @@ def sequence(small_root) -> Sequence:
 def baseline(single_thread, sequence, tmp_path_factory) -> dict[str, Path]:
     """One uninterrupted run from scratch: what every other run must reproduce."""
     base = tmp_path_factory.mktemp("baseline")
-    method_runs.run_method(
-        sequence, METHOD, PROFILE, base / "out", base / "cache", device="cpu", progress=False, jobs=1
-    )
+    run_here(sequence, base, jobs=1)
     return {"out": base / "out", "cache": base / "cache"}
 
 
@@ -218,11 +215,6 @@ def start_child(
     return child
 
 
-def finish(child: subprocess.Popen, timeout: float = 120) -> tuple[int, str, str]:
-    stdout, stderr = child.communicate(timeout=timeout)
-    return child.returncode, stdout, stderr
-
-
 def run_here(sequence: Sequence, work: Path, cache: Path | None = None, **options) -> pd.DataFrame:
     out, cache = work / "out", cache or work / "cache"
     return method_runs.run_method(sequence, METHOD, PROFILE, out, cache, device="cpu", progress=False, **options)
@@ -287,12 +279,6 @@ def stores(work: Path) -> tuple[ShardedStore, ShardedStore]:
 
 
 # -------------------------------------------------------- 1. bad input, clear error --
-def _truncated(source: Path, target: Path) -> Path:
-    data = source.read_bytes()
-    target.write_bytes(data[: len(data) // 2])
-    return target
-
-
 @pytest.mark.real_data
 @pytest.mark.parametrize("jobs", ["1", "2"])
 def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small_root, tmp_path, monkeypatch, jobs):
@@ -303,16 +289,16 @@ def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small
         Pair("night_right/Image000.jpg", "day_right/Image000.jpg", 1),
         Pair("night_right/Image010.jpg", "day_right/Image000.jpg", 0),
     ]
-    out, cache = tmp_path / "out", tmp_path / "cache"
-    method_runs.run_method(Sequence("s", root, good), METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    out = tmp_path / "out"
+    run_here(Sequence("s", root, good), tmp_path)
     finished = (method_outputs.method_dir(out, METHOD) / "pairs.csv").read_bytes()
 
     broken = root / "day_right" / "Image010.jpg"
-    _truncated(small_root / "day_right" / "Image010.jpg", broken)
+    truncated(small_root / "day_right" / "Image010.jpg", broken)
     bad_pair = Pair("night_right/Image020.jpg", "day_right/Image010.jpg", 0)
     bigger = Sequence("s", root, good + [Pair("night_right/Image020.jpg", "day_right/Image000.jpg", 0), bad_pair])
     with pytest.raises(ImageReadError) as error:
-        method_runs.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
+        run_here(bigger, tmp_path)
     message = str(error.value)
     assert str(broken) in message and "sequence 's'" in message
     assert "pair 3: night_right/Image020.jpg day_right/Image010.jpg" in message
@@ -321,7 +307,7 @@ def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small
     assert scoring.methods_with_results(out) == [METHOD] and run_json(out)["n_pairs"] == len(good)
     # What was extracted before the error is kept: after the fix only the repaired image is extracted.
     shutil.copy(small_root / "day_right" / "Image010.jpg", broken)
-    method_runs.run_method(bigger, METHOD, PROFILE, out, cache, device="cpu", progress=False)
+    run_here(bigger, tmp_path)
     assert run_json(out)["this_run"]["extraction"] == {"images": 5, "cached": 4, "extracted": 1}
 
 
@@ -364,8 +350,9 @@ def test_a_sequence_without_positives_or_negatives_is_an_error_not_nan(baseline,
 def test_a_killed_run_resumes_and_ends_identical(
     sequence, baseline, tmp_path, kill, committed_features, committed_matches, extracted_again, matched_again
 ):
-    returncode, stdout, stderr = finish(start_child(sequence, tmp_path, "killed", kill=kill))
-    assert returncode == -9, stderr[-2000:]  # SIGKILL, not a clean exit
+    child = start_child(sequence, tmp_path, "killed", kill=kill)
+    stdout, stderr = child.communicate(timeout=120)
+    assert child.returncode == -9, stderr[-2000:]  # SIGKILL, not a clean exit
     assert "finished" not in stdout
     features, matches = stores(tmp_path)
     assert (len(features), len(matches)) == (committed_features, committed_matches)
@@ -416,8 +403,8 @@ def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing
         time.sleep(0.01)
     go.touch()
     for child in children:
-        returncode, stdout, stderr = finish(child)
-        assert returncode == 0 and "finished" in stdout, stderr[-2000:]
+        stdout, stderr = child.communicate(timeout=120)
+        assert child.returncode == 0 and "finished" in stdout, stderr[-2000:]
     features, matches = stores(tmp_path)
     writers = {re.match(r"shard-(\d+)-", p.name).group(1) for p in features.shards()}
     assert len(writers) == 2, "both processes should have extracted at the same time"

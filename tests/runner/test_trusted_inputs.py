@@ -13,7 +13,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from test_fault_injection import write_root
+from helpers import assert_nothing_written
 from test_run_record import FLIPPED, PAIRS, in_process_notebooks, one_sentence, params_file, run_cli, snapshot
 
 from gvbench_nb import notebook, run_and_publish
@@ -29,32 +29,22 @@ def notebooks_here(monkeypatch):
     monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
 
 
-@pytest.fixture
-def images(tmp_path) -> Path:
-    return write_root(tmp_path / "images")
-
-
-def written(tmp_path: Path) -> list[str]:
-    """What a run made besides the test's own inputs."""
-    return sorted(p.name for p in tmp_path.iterdir() if p.name in ("out", "cache"))
-
-
 # ------------------------------------------------------- images by content --
 @pytest.mark.parametrize("how", ["copy", "symlink"])
 def test_two_images_of_one_content_are_a_self_pair_refused_with_file_and_line(
-    tmp_path, images, capsys, notebooks_here, how
+    tmp_path, root, capsys, notebooks_here, how
 ):
-    same = images / "reference" / "same.png"
+    same = root / "reference" / "same.png"
     if how == "copy":
-        shutil.copyfile(images / "query" / "a.png", same)
+        shutil.copyfile(root / "query" / "a.png", same)
     else:
-        same.symlink_to(images / "query" / "a.png")
+        same.symlink_to(root / "query" / "a.png")
     path = params_file(tmp_path, pairs=[*PAIRS, Pair("query/a.png", "reference/same.png", 1)])
     code, _, err = run_cli(capsys, "run", str(path))
     assert code == 2
     assert f"{tmp_path / 'params-pairs.txt'}:5: self-pair by content" in one_sentence(err)
     assert "query/a.png and reference/same.png hold the same bytes" in err
-    assert written(tmp_path) == []
+    assert_nothing_written(tmp_path)
 
 
 @pytest.mark.real_data
@@ -68,22 +58,23 @@ def test_two_queries_of_one_content_each_with_its_own_reference_are_scored(share
 
 
 # ---------------------------------------------------------- damaged images --
-def damaged_jpeg(images: Path) -> Path:
+def damaged_jpeg(root: Path) -> Path:
     """``reference/c.jpg``: a JPEG of a photo with 200 bytes of its entropy-coded data zeroed."""
-    data = bytearray(cv2.imencode(".jpg", cv2.imread(str(images / "reference" / "b.png")))[1].tobytes())
+    data = bytearray(cv2.imencode(".jpg", cv2.imread(str(root / "reference" / "b.png")))[1].tobytes())
     middle = len(data) // 2
     data[middle : middle + 200] = bytes(200)
-    path = images / "reference" / "c.jpg"
+    path = root / "reference" / "c.jpg"
     path.write_bytes(bytes(data))
     assert cv2.imdecode(np.frombuffer(bytes(data), np.uint8), cv2.IMREAD_COLOR) is not None  # decodes, warning
     return path
 
 
-def test_a_damaged_jpeg_is_named_and_refused_before_work_unless_allowed(tmp_path, images, capsys, notebooks_here):
-    jpeg = damaged_jpeg(images)
+def test_a_damaged_jpeg_is_named_and_refused_before_work_unless_allowed(tmp_path, root, capsys, notebooks_here):
+    jpeg = damaged_jpeg(root)
     pairs = [*PAIRS, Pair("query/b.png", "reference/c.jpg", 1)]
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, pairs=pairs)))
-    assert code == 2 and written(tmp_path) == []
+    assert code == 2
+    assert_nothing_written(tmp_path)
     assert f"first {jpeg} (pair 4: query/b.png reference/c.jpg)" in one_sentence(err)
     assert "Corrupt JPEG data" in err and "allow_damaged_images: true" in err  # libjpeg's words, from its stderr
     # Allowed explicitly: scored, and listed in the folder's record.
@@ -96,12 +87,13 @@ def test_a_damaged_jpeg_is_named_and_refused_before_work_unless_allowed(tmp_path
 
 
 def test_an_image_that_does_not_decode_is_refused_before_work_even_when_damage_is_allowed(
-    tmp_path, images, capsys, notebooks_here
+    tmp_path, root, capsys, notebooks_here
 ):
-    (images / "reference" / "b.png").write_bytes((images / "reference" / "b.png").read_bytes()[:2000])
+    (root / "reference" / "b.png").write_bytes((root / "reference" / "b.png").read_bytes()[:2000])
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path, allow_damaged_images=True)))
-    assert code == 2 and written(tmp_path) == []
-    assert f"cannot decode image {images / 'reference' / 'b.png'}" in one_sentence(err)
+    assert code == 2
+    assert_nothing_written(tmp_path)
+    assert f"cannot decode image {root / 'reference' / 'b.png'}" in one_sentence(err)
 
 
 # ------------------------------------------------------ keys given twice --
@@ -116,7 +108,7 @@ def test_an_image_that_does_not_decode_is_refused_before_work_even_when_damage_i
     ],
     ids=["flow", "flow-nested", "flow-two-lines", "block", "block-nested"],
 )
-def test_a_key_given_twice_in_any_yaml_style_is_refused_naming_file_and_line(tmp_path, images, text, key, line, first):
+def test_a_key_given_twice_in_any_yaml_style_is_refused_naming_file_and_line(tmp_path, root, text, key, line, first):
     path = params_file(tmp_path)
     body = path.read_text()
     path.write_text(body.split("\n", 1)[0] + "\n" + text + body.split("\n", 1)[1])
@@ -134,7 +126,7 @@ def test_a_key_given_twice_in_any_yaml_style_is_refused_naming_file_and_line(tmp
     ids=["verifier", "seed"],
 )
 def test_a_method_added_under_another_verifier_or_seed_is_refused_before_work(
-    tmp_path, images, capsys, notebooks_here, changes, said
+    tmp_path, root, capsys, notebooks_here, changes, said
 ):
     assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
     before = snapshot(tmp_path / "out")
@@ -172,7 +164,7 @@ def started(monkeypatch) -> list[str]:
 
 @pytest.mark.parametrize("edit", list(EDITS.values()), ids=list(EDITS))
 def test_every_reader_refuses_what_results_refuses_before_any_work_or_file(
-    tmp_path, images, capsys, notebooks_here, started, edit
+    tmp_path, root, capsys, notebooks_here, started, edit
 ):
     path = params_file(tmp_path, methods=["orb-nn", "sift-opencv-nn"])
     assert run_cli(capsys, "run", str(path))[0] == 0
@@ -236,7 +228,7 @@ def test_an_image_root_typed_on_the_command_line_is_never_rendered_into(tmp_path
     ],
 )
 def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
-    tmp_path, images, capsys, notebooks_here, monkeypatch, name, value
+    tmp_path, root, capsys, notebooks_here, monkeypatch, name, value
 ):
     if value == "file":
         value = str(tmp_path / "a-file")
@@ -244,14 +236,14 @@ def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(
     monkeypatch.setenv(name, value)
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)))
     assert code == 2 and name in one_sentence(err) and repr(value) in err
-    assert written(tmp_path) == []
+    assert_nothing_written(tmp_path)
 
 
 @pytest.mark.parametrize(
     "option",
     [["--shard", "5/2"], ["--shard", "x"], ["--dask", "--shards", "0"], ["--output-dir", ""], ["--image-root", " "]],
 )
-def test_a_bad_run_option_is_one_sentence_naming_it_before_any_folder(tmp_path, images, capsys, option):
+def test_a_bad_run_option_is_one_sentence_naming_it_before_any_folder(tmp_path, root, capsys, option):
     code, _, err = run_cli(capsys, "run", str(params_file(tmp_path)), *option)
     assert code == 2 and option[-2] in one_sentence(err)
-    assert written(tmp_path) == []
+    assert_nothing_written(tmp_path)

@@ -15,7 +15,7 @@
 
 # %% [markdown]
 # # Controlled condition study: when does verification break?
-# The synthetic route (`gvbench_nb/synthetic.py`) is rendered twice: a clear reference
+# The synthetic route (`gvbench_nb/data/synthetic/`) is rendered twice: a clear reference
 # drive and an offset query drive. The query drive is re-rendered with **one** condition
 # (illumination, season or weather) at each strength; poses, pairs and labels stay the
 # same, so every change in AP and MR is the condition's doing. The reference drive is

@@ -146,9 +146,16 @@ def test_score_histograms_of_four_methods_share_one_legend_in_a_grid():
     assert [t.get_text() for t in figure.legends[0].get_texts()] == ["true pairs", "false pairs", "this pair"]
 
 
+@pytest.fixture
+def widgets():
+    """ipywidgets, whose widgets are closed after the test: one left to the interpreter's exit prints a traceback."""
+    ipywidgets = pytest.importorskip("ipywidgets")
+    yield ipywidgets
+    ipywidgets.Widget.close_all()
+
+
 @pytest.mark.parametrize("pick", explore.PICKS)
-def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run, tmp_path, pick):
-    pytest.importorskip("ipywidgets")
+def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run, tmp_path, pick, widgets):
     out = tiny_run.parent / "out"
     tables = run_tables.load_pairs_tables(out)
     drawn: list[tuple[int, list[str]]] = []
@@ -182,8 +189,7 @@ def test_controls_redraw_every_view_and_the_index_box_follows_the_pick(tiny_run,
     assert controls.pick.value == "index" and drawn[-1][0] == 2
 
 
-def test_controls_say_what_they_do_and_leave_no_stale_view_under_a_message(tiny_run, tmp_path):
-    pytest.importorskip("ipywidgets")
+def test_controls_say_what_they_do_and_leave_no_stale_view_under_a_message(tiny_run, tmp_path, widgets):
     out = tiny_run.parent / "out"
     tables = run_tables.load_pairs_tables(out)
     status_while_drawing: list[str] = []

@@ -188,10 +188,8 @@ def vlad(
 ) -> tuple[np.ndarray, np.ndarray]:
     """VLAD rows (reference, query), the vocabulary fitted on the references."""
     centres = fit_vocabulary(reference_local, num_words, seed, **vocabulary)
-    encode = lambda local: np.array([vlad_encode(d, centres) for d in local.values()], np.float32).reshape(
-        len(local), centres.size
-    )
-    return encode(reference_local), encode(query_local)
+    encode = lambda descriptors: vlad_encode(descriptors, centres)
+    return _encoded_rows(encode, reference_local, centres.size), _encoded_rows(encode, query_local, centres.size)
 
 
 def bow(
@@ -216,8 +214,12 @@ def bow(
         words = np.bincount(assign_words(descriptors, centres), minlength=num_words)
         return _l2_rows(words / words.sum() * idf).astype(np.float32)
 
-    stack = lambda local: np.array([encode(d) for d in local.values()], np.float32).reshape(len(local), num_words)
-    return stack(reference_local), stack(query_local)
+    return _encoded_rows(encode, reference_local, num_words), _encoded_rows(encode, query_local, num_words)
+
+
+def _encoded_rows(encode: Callable[[np.ndarray], np.ndarray], local: LocalDescriptors, dim: int) -> np.ndarray:
+    """(N, dim) float32: one encoded row an image, in the mapping's order ((0, dim) for no images)."""
+    return np.array([encode(d) for d in local.values()], np.float32).reshape(len(local), dim)
 
 
 def netvlad(

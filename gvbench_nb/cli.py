@@ -331,10 +331,19 @@ def build_parser() -> argparse.ArgumentParser:
 
 # ------------------------------------------------ weights fetch --
 def command_weights_fetch(args: argparse.Namespace) -> int:
+    from gvbench_nb import methods
     from gvbench_nb.data import fetch, weights_fetch
+    from gvbench_nb.protocol import weights
 
     if args.sha256 and len(args.names) > 1:
         raise fetch.DataError("--sha256 is the hash of one file: give one NAME with it (or run one fetch a NAME)")
+    for name in args.names:  # a method's name: the checkpoints it needs, before anything is fetched
+        if name not in weights.CHECKPOINTS and name in methods.method_names():
+            needed = " ".join(methods.required_checkpoints(name))
+            what = (
+                f"fetch the ones it needs: python -m gvbench_nb weights fetch {needed}" if needed else "it needs none"
+            )
+            raise fetch.DataError(f"{name!r} is a method, not a checkpoint; {what}")
     for name in args.names:
         log.info(weights_fetch.fetch_checkpoint(name, args.source_dir, args.sha256))
     return 0
@@ -344,12 +353,13 @@ def add_weights_fetch_command(weights_parser: argparse.ArgumentParser) -> None:
     """``weights fetch NAME... [--from DIR] [--sha256 HEX]``."""
     parser = weights_parser.add_subparsers(dest="weights_command", metavar="SUBCOMMAND").add_parser(
         "fetch",
-        help="download checkpoints (or take them from a folder), SHA-256 checked, under the names the models load",
+        help="download checkpoints (or take them from a folder), checked, under the names the models load",
         description="Fetch each named checkpoint (names: `python -m gvbench_nb weights`) from its official URL, or "
         "from --from DIR holding the file under the name the model loads or the URL's name (e.g. "
         "superpoint_lightglue.pth), into the weights folder under the name the model loads, and print its "
-        "licence. No official source publishes a SHA-256 for these files: the file is checked against --sha256 "
-        "when given, else against the hash recorded at its first fetch (the first fetch records it).",
+        "licence. A file its official repository tracks in git is checked against the git blob id published "
+        "there; the others (release assets, downloads) against --sha256 when given, else against the SHA-256 "
+        "recorded at their first fetch (trust on first use: the first fetch records it and says so).",
     )
     parser.add_argument("names", nargs="+", metavar="NAME", help="checkpoint names, e.g. lightglue_superpoint")
     parser.add_argument("--from", dest="source_dir", metavar="DIR", help="a folder holding the downloaded files")

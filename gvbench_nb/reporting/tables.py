@@ -186,8 +186,9 @@ def add_command(commands: Any) -> None:
         description="Read the GV-Bench authors' per-pair .npy ($seq_$feature_$match.npy) or a table "
         "'query reference label score' (CSV or whitespace, header optional) and publish it as METHOD in "
         "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
-        "it like a run. Its run.json names the file and its SHA-256. A .npy pickling anything but plain "
-        "data is refused without running it.",
+        "it like a run. Its run.json names the file and its SHA-256. The format is read from the file's "
+        "content, not its name; a .npy pickling anything but plain data is refused without running it. Its pairs "
+        "are checked as a pair file's are, and it never replaces results computed in OUTPUT_DIR.",
     )
     parser.add_argument("file", help="the .npy or the table of scores")
     parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")

@@ -223,8 +223,8 @@ def _check_joins(
                 f"{path} under another --method (e.g. {method}-imported) or into another --output-dir"
             )
     kept = [m for m in published["methods"] if m != method]
-    sequences = {m: method_outputs.read_run_json(output_dir, m).get("sequence") for m in kept}
-    other_sequence = sorted({s for s in sequences.values() if s != sequence}, key=str)
+    held = {str(method_outputs.read_run_json(output_dir, m).get("sequence")) for m in kept}
+    other_sequence = sorted(held - {sequence})
     if other_sequence:
         raise ScoreFileError(
             f"{output_dir} holds sequence {other_sequence[0]!r}, not {sequence!r}, and an output folder holds one "

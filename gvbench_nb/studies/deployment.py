@@ -260,7 +260,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         description="For each method, the inlier threshold that gives 100% precision on the calibration "
         "folder's sequence (the one MR is read at) applied to each target folder: precision, recall and "
         "false loops accepted, as a matrix over sequences; then, per query, recall@1 after GV re-ranking "
-        "and the queries that would close a false loop. Reads only finished runs.",
+        "and the queries that would close a false loop. Reads only finished runs. Names on stderr each method "
+        "and target it could not transfer, and why, and then exits with status 3.",
     )
     parser.add_argument("calibration_dir", help="output folder of the sequence the thresholds are fixed on")
     parser.add_argument("target_dirs", nargs="+", metavar="target_dir", help="output folders to deploy on")

@@ -16,8 +16,9 @@ from sklearn.metrics import average_precision_score, precision_recall_curve
 from test_run_record import one_sentence, run_cli, snapshot
 
 from gvbench_nb.data import synthetic
+from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol.metrics import evaluate_scores
-from gvbench_nb.runner import record, scoring
+from gvbench_nb.runner import method_runs, record, scoring
 
 QUERIES = [f"night/{i:03d}.png" for i in (0, 0, 1, 1, 2, 2)]
 REFERENCES = [f"day/{i:03d}.png" for i in (0, 5, 1, 6, 2, 7)]
@@ -320,7 +321,7 @@ def test_an_import_never_replaces_computed_results_nor_joins_another_sequence(gp
 
 @pytest.mark.reliability
 @pytest.mark.real_data
-def test_an_export_names_its_run_and_a_rerun_of_the_method_removes_it(gp8_run, tmp_path, capsys):
+def test_an_export_names_its_run_and_a_rerun_of_the_method_removes_it(gp8_run, shared_data, tmp_path, capsys):
     out = tmp_path / "out"
     code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
     assert code == 0, err
@@ -329,6 +330,13 @@ def test_an_export_names_its_run_and_a_rerun_of_the_method_removes_it(gp8_run, t
     ap = results_row(capsys, out, "orb-nn")["ap"]
     assert f"orb-nn: {exported} (AP {ap:.4f})" in said
     assert np.load(exported, allow_pickle=True).item()["average_precision"] == pytest.approx(ap)
+    # orb-nn's results written again in place (a notebook run on its own) take the export with them ...
+    sequence = Sequence("gp8", shared_data / "gardens_point", [Pair(*pair) for pair in GP8])
+    method_runs.record_method_in_place(out, "orb-nn", sequence)
+    assert not exported.exists() and "orb-nn/" + exported.name not in record.read_record(out)["files"]
+    assert run_cli(capsys, "results", str(out), "--export", "npy")[0] == 0
+    assert exported.exists()
+    # ... and so does a rerun.
     assert run_cli(capsys, "run", str(gp8_run), "--profile", "paper")[0] == 0
     assert not exported.exists() and not list((out / "orb-nn").glob("*.npy"))
     assert not [name for name in record.read_record(out)["files"] if name.endswith(".npy")]

@@ -9,7 +9,7 @@ import posixpath
 import random
 import shlex
 from collections import Counter
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from collections.abc import Sequence as SequenceType
 from dataclasses import dataclass, field
 from pathlib import Path, PurePosixPath
@@ -43,6 +43,18 @@ MAX_NAME_BYTES = 255  # NAME_MAX: the longest file or folder name most file syst
 def shorten(text: str, limit: int = 80) -> str:
     """``text`` cut to ``limit`` characters with how long it was (for error messages)."""
     return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
+def name_problem(name: str) -> str | None:
+    """Why ``name`` (a sequence's or a method's: folders and files are named by it) is not a plain
+    file-name component, or None."""
+    if not name or not name.strip():
+        return "is empty"
+    if any(mark in name for mark in ("/", "\\", "\0")):
+        return "holds a path separator or a NUL byte"
+    if name.startswith("."):
+        return "starts with '.' (names a hidden, current or parent folder)"
+    return None
 
 
 def _check_length(path_text: str, where: str) -> None:
@@ -89,8 +101,10 @@ def _check_relative(path_text: str, where: str) -> None:
 def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
     """Parse pair-file lines (blank and ``#`` lines skipped), rejecting anything that is not
     exactly a valid pair; errors name the source and line and say what to do."""
-    pairs: list[Pair] = []
-    seen: dict[tuple[str, str], tuple[int, int]] = {}  # (query, reference) -> (line, label)
+    return check_pairs(_pair_fields(lines, source), source)
+
+
+def _pair_fields(lines: Iterable[str], source: str) -> Iterator[tuple[int, str, str, str]]:
     for line_number, raw in enumerate(lines, start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
@@ -107,7 +121,19 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
                 f"{where}: expected 3 fields 'query_path reference_path label', got {len(fields)}: "
                 f"{shorten(line)!r}{hint}"
             )
-        query, reference, label_text = fields
+        yield line_number, fields[0], fields[1], fields[2]
+
+
+def check_pairs(rows: Iterable[tuple[int, str, str, str]], source: str, unit: str = "line") -> list[Pair]:
+    """The one check of a pair list, whichever door it came through (a pair file, imported scores):
+    rows ``(number, query, reference, label text)``, each refused naming ``source`` and its ``unit``
+    (``file:line``, or ``file: pair N``) when a path is malformed or leaves the image root, its label
+    is not 0 or 1, it pairs an image with itself, or it repeats a pair (in either order) once paths
+    are normalised. Returns the pairs with normalised paths."""
+    pairs: list[Pair] = []
+    seen: dict[tuple[str, str], tuple[int, int]] = {}  # (query, reference) -> (number, label)
+    for number, query, reference, label_text in rows:
+        where = f"{source}:{number}" if unit == "line" else f"{source}: {unit} {number}"
         if label_text not in ("0", "1"):
             raise PairFileError(f"{where}: label must be 0 or 1, got {shorten(label_text)!r}")
         for path_text in (query, reference):
@@ -123,15 +149,29 @@ def parse_pairs(lines: Iterable[str], source: str = "<pairs>") -> list[Pair]:
             )
         for key, order in (((query, reference), ""), ((reference, query), ", in the other order")):
             if key in seen:
-                first_line, first_label = seen[key]
+                first, first_label = seen[key]
                 labels = f", with the opposite label: {first_label} there, {label} here" if first_label != label else ""
                 raise PairFileError(
-                    f"{where}: duplicate pair {query} {reference} (first on line {first_line}{order}{labels}); "
+                    f"{where}: duplicate pair {query} {reference} (first on {unit} {first}{order}{labels}); "
                     "remove one of them"
                 )
-        seen[(query, reference)] = (line_number, label)
+        seen[(query, reference)] = (number, label)
         pairs.append(Pair(query, reference, label))
     return pairs
+
+
+def read_text(path: Path, what: str) -> str:
+    """A text file of lines (a pair file, a score table), refused naming file:line unless UTF-8;
+    utf-8-sig drops the byte-order mark some Windows editors write."""
+    data = path.read_bytes()
+    try:
+        return data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line_number = data[: error.start].count(b"\n") + 1
+        raise PairFileError(
+            f"{path}:{line_number}: not UTF-8 text ({data[error.start : error.start + 4]!r}); "
+            f"is this {what}? Save it as UTF-8 text"
+        ) from None
 
 
 def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
@@ -144,18 +184,8 @@ def read_pairs(path: str | os.PathLike[str]) -> list[Pair]:
             + "; set the params' pairs to a file of "
             "'query_path reference_path label' lines (or a pairs_builder that makes it)"
         )
-    data = path.read_bytes()
-    try:
-        # utf-8-sig drops the byte-order mark some Windows editors write.
-        text = data.decode("utf-8-sig")
-    except UnicodeDecodeError as error:
-        line_number = data[: error.start].count(b"\n") + 1
-        raise PairFileError(
-            f"{path}:{line_number}: not UTF-8 text ({data[error.start : error.start + 4]!r}); "
-            "is this a pair file? Save it as UTF-8 text"
-        ) from None
     # splitlines() and strip() make CRLF (and lone CR) line endings read like LF.
-    pairs = parse_pairs(text.splitlines(), source=str(path))
+    pairs = parse_pairs(read_text(path, "a pair file").splitlines(), source=str(path))
     if not pairs:
         raise PairFileError(f"{path}: holds no pairs")
     return pairs

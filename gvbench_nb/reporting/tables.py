@@ -114,7 +114,8 @@ def command_results(args: argparse.Namespace) -> int:
             from gvbench_nb.runner import score_files
 
             for method in results["method"]:
-                log.info(f"{method}: {score_files.export_npy(folder, method)}")
+                path, ap = score_files.export_npy(folder, method)
+                log.info(f"{method}: {path} (AP {ap:.4f})")
         if args.all_methods:
             others = not_run_table(set(results["method"]))
             if len(others):
@@ -150,7 +151,7 @@ def not_run_table(ran: set[str]) -> Any:
 def command_import_scores(args: argparse.Namespace) -> int:
     from gvbench_nb.runner import score_files
 
-    row = score_files.import_scores(args.file, args.sequence, args.method, args.output_dir)
+    row = score_files.import_scores(args.file, args.sequence, args.method, args.output_dir, args.image_root)
     print(
         f"{args.method}: {row['n_pairs']} pairs ({row['n_positives']} true), AP {row['ap']:.4f}, "
         f"MR {row['max_recall']:.4f} -> {Path(args.output_dir) / args.method}"
@@ -185,13 +186,19 @@ def add_command(commands: Any) -> None:
         description="Read the GV-Bench authors' per-pair .npy ($seq_$feature_$match.npy) or a table "
         "'query reference label score' (CSV or whitespace, header optional) and publish it as METHOD in "
         "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
-        "it like a run. Its run.json names the file and its SHA-256. A .npy pickling anything but plain "
-        "data is refused without running it.",
+        "it like a run. Its run.json names the file and its SHA-256. The format is read from the file's "
+        "content, not its name; a .npy pickling anything but plain data is refused without running it. Its pairs "
+        "are checked as a pair file's are, and it never replaces results computed in OUTPUT_DIR.",
     )
     parser.add_argument("file", help="the .npy or the table of scores")
     parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")
     parser.add_argument("--method", required=True, help="the method's name (its folder), e.g. sp-sg-authors")
     parser.add_argument("--output-dir", required=True, help="the output folder to publish it in")
+    parser.add_argument(
+        "--image-root",
+        help="the folder the pairs' paths are relative to: each image must be there, and a pair of two images "
+        "with one content is refused (without it no image is read)",
+    )
     parser.set_defaults(handler=command_import_scores)
     results.add_argument(
         "--export",

@@ -18,6 +18,7 @@ from pydantic import BaseModel, ConfigDict, Field, InstanceOf, StringConstraints
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data import fetch
+from gvbench_nb.data.sequences import name_problem
 from gvbench_nb.io_utils import atomic_write_text, unknown_keys_hint
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import ImageReadError, max_pixels, path_problem
@@ -182,6 +183,11 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     raw.update(given)
     params = {**OPTIONAL_KEYS, **raw, "params_file": str(path), "overridden": sorted(given)}
     _validate(params, path)
+    if name_problem(params["sequence"]):
+        raise ParamsError(
+            f"{blame(params, 'sequence')}: sequence {params['sequence']!r} {name_problem(params['sequence'])}, and it "
+            "names the output's files; give a plain name such as gardens_point_night"
+        )
     try:
         params["methods"] = method_registry.expand_methods(params["methods"])
     except KeyError as error:

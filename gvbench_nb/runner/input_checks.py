@@ -3,11 +3,13 @@ builder options, the images (by content: a copy is one image, a damaged one is n
 
 from __future__ import annotations
 
+import functools
 import json
 import os
 import sys
 import tempfile
 import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -94,18 +96,27 @@ def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) 
     return {name: known[key] for name, key in keys.items() if known[key]}
 
 
-def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], allow_damaged: bool) -> dict[str, str]:
+def check_distinct_contents(sequence: Sequence, where: Callable[[int], str] | None = None) -> dict[str, str]:
     """Refuse a pair of two images with one content (a copy or a link: a self-pair, as one named
-    twice is) with file:line, and an image whose decoder fails, or warns unless ``allow_damaged``.
-    Returns the damaged images allowed (name -> what the decoder said), for the run's record."""
+    twice is), naming where the pair is (``where(index)``, else its pair file and line); returns the
+    images' content keys."""
     keys = content_keys(sequence)
     for index, pair in enumerate(sequence.pairs):
         query, reference = keys[pair.query], keys[pair.reference]
         if query == reference:
             raise PairFileError(
-                f"{_where(sequence, index)}: self-pair by content: {pair.query} and {pair.reference} hold the same "
-                "bytes (a copy of one image, or a link to it); a pair needs two different images, remove this line"
+                f"{(where or functools.partial(_where, sequence))(index)}: self-pair by content: {pair.query} and "
+                f"{pair.reference} hold the same bytes (a copy of one image, or a link to it); a pair needs two "
+                "different images, remove this line"
             )
+    return keys
+
+
+def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], allow_damaged: bool) -> dict[str, str]:
+    """Refuse a pair of two images with one content with file:line (``check_distinct_contents``), and an
+    image whose decoder fails, or warns unless ``allow_damaged``. Returns the damaged images allowed
+    (name -> what the decoder said), for the run's record."""
+    keys = check_distinct_contents(sequence)
     damaged = decoder_messages(sequence, keys, Path(cache_dir))
     if damaged and not allow_damaged:
         name, said = next(iter(damaged.items()))

@@ -240,6 +240,7 @@ def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) ->
                 entry["files"].pop(name, None)
         entry["published"] = [name for name in entry.get("published", []) if name not in derived]
         entry["files"].update({name: record.file_sha256(Path(output_dir) / name) for name in written})
+        record.drop_earlier_run_files(Path(output_dir), entry, method, written)
         entry["methods"][method] = {**binding, "files": written}
 
 

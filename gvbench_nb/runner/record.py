@@ -331,6 +331,15 @@ def method_files(files: Iterable[str], method: str) -> list[str]:
     ]
 
 
+def drop_earlier_run_files(folder: Path, record: dict[str, Any], method: str, current: Iterable[str]) -> None:
+    """Delete, and strike from ``record``, the files recorded in a method's folder that are not among its
+    ``current`` files: written in place from an earlier run of it (an export), they no longer are its results."""
+    current = set(current)
+    for name in [n for n in record["files"] if n.startswith(f"{method}/") and n not in current]:
+        (folder / name).unlink(missing_ok=True)
+        record["files"].pop(name)
+
+
 def publish(folder: Path, stage: Path, methods: dict[str, dict[str, Any]]) -> list[str]:
     """Move a finished stage into ``folder``; the record says ``publishing`` meanwhile, so a reader never
     takes a half-moved folder for results (``finish_publishing`` completes a killed move)."""
@@ -359,6 +368,8 @@ def _move_and_record(folder: Path, stage: Path) -> list[str]:
             record["files"].pop(name, None)
         record["files"].update({name: file_sha256(folder / name) for name in files if (folder / name).is_file()})
         record["files"] = {name: sha for name, sha in record["files"].items() if (folder / name).is_file()}
+        for method in methods:
+            drop_earlier_run_files(folder, record, method, files)
         record["published"] = files
         record["methods"] = {
             method: {**binding, "files": method_files(files, method)} for method, binding in methods.items()

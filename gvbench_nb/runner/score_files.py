@@ -18,6 +18,7 @@ import pandas as pd
 
 from gvbench_nb import GVBenchError, __version__
 from gvbench_nb import methods as method_registry
+from gvbench_nb.data.sequences import Pair, Sequence, check_pairs, name_problem, read_text
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, file_sha256
 from gvbench_nb.protocol.metrics import evaluate_scores, pr_curve
 from gvbench_nb.runner import method_outputs, record, scoring
@@ -97,29 +98,57 @@ def authors_table(values: dict[str, Any], where: str) -> tuple[pd.DataFrame, dic
         raise ScoreFileError(f"{where}: its per-pair entries differ in length ({lengths}); the file is damaged")
     counts = _inlier_counts(values["inliers"]) if "inliers" in values else None
     score = counts if counts is not None else np.asarray(values["prob"], dtype=np.float64).ravel()
-    table = pd.DataFrame({"query": list(map(str, values["qImages"])), "reference": list(map(str, values["rImages"]))})
-    table["label"] = _labels(np.asarray(values["gt"]).ravel(), where)
-    table["score"] = score
+    rows = zip(range(len(score)), map(str, values["qImages"]), map(str, values["rImages"]), values["gt"])
+    table = _checked_table([(i, q, r, _label_text(g)) for i, q, r, g in rows], score, where, "pair")
     table["num_inliers"] = counts if counts is not None else np.nan
     stated = {"ap": values.get("average_precision"), "max_recall": values.get("Max Recall")}
     return table, {k: float(v) for k, v in stated.items() if v is not None}
 
 
-def _labels(values: np.ndarray, where: str) -> np.ndarray:
+def _label_text(value: Any) -> str:
+    """A label as a pair file writes it: ints, bools and numeric text equal to 0 or 1 are "0" or "1"."""
     try:
-        numbers = values.astype(np.float64)  # ints, bools and numeric strings alike
+        number = float(value)
     except (TypeError, ValueError):
-        numbers = np.array([np.nan])
-    if not np.isin(numbers, (0, 1)).all():
-        raise ScoreFileError(f"{where}: labels must be 0 or 1 (found {sorted(set(map(str, values)))[:5]})")
-    return numbers.astype(np.int64)
+        return str(value)
+    return str(int(number)) if number in (0, 1) else str(value)
+
+
+def _checked_table(rows: list[tuple[int, str, str, str]], scores: np.ndarray, where: str, unit: str) -> pd.DataFrame:
+    """Imported pairs checked as a pair file's are (``sequences.check_pairs``: normalised paths, no
+    duplicate, self-pair or pair given both ways, labels 0 or 1), each score finite."""
+    pairs = check_pairs(rows, where, unit)
+    bad = np.flatnonzero(~np.isfinite(scores))
+    if len(bad):
+        number, query, reference, _ = rows[int(bad[0])]
+        at = f"{where}:{number}" if unit == "line" else f"{where}: {unit} {number}"
+        raise ScoreFileError(
+            f"{at}: score {scores[bad[0]]} of pair {query} {reference} is not a finite number ({len(bad)} such "
+            "scores in the file); give every pair a finite score"
+        )
+    table = pd.DataFrame(pairs, columns=["query", "reference", "label"])
+    table["score"] = scores
+    table["where"] = [f"{where}:{row[0]}" if unit == "line" else f"{where}: {unit} {row[0]}" for row in rows]
+    return table
+
+
+def check_images(table: pd.DataFrame, sequence: str, image_root: Path) -> None:
+    """The imported pairs' images are files under ``image_root``, and no pair is of two images with one
+    content (``input_checks.check_distinct_contents``, as for a run's pairs), each refusal naming the row."""
+    from gvbench_nb.runner import input_checks  # OpenCV: only an import given its images reads them
+
+    pairs = [Pair(*row) for row in zip(table["query"], table["reference"], table["label"])]
+    named = Sequence(sequence, image_root, pairs)
+    named.check_images()
+    input_checks.check_distinct_contents(named, lambda index: str(table["where"].iloc[index]))
 
 
 def read_table(path: Path) -> pd.DataFrame:
     """A table ``query reference label score``: CSV or whitespace, with or without that header;
     a path holding spaces is written in double quotes (as in GV-Bench's pair files)."""
-    rows: list[list[str]] = []
-    for number, raw in enumerate(path.read_text(encoding="utf-8").splitlines(), start=1):
+    rows: list[tuple[int, str, str, str]] = []
+    scores: list[float] = []
+    for number, raw in enumerate(read_text(path, "a table of scores").splitlines(), start=1):
         line = raw.strip()
         if not line or line.startswith("#"):
             continue
@@ -134,15 +163,19 @@ def read_table(path: Path) -> pd.DataFrame:
                 f"{path}:{number}: expected 4 fields 'query reference label score', got {len(fields)} in {line[:80]!r}; "
                 'write a path holding spaces in double quotes, "like this.jpg"'
             )
-        rows.append(fields)
-    table = pd.DataFrame(rows, columns=TABLE_COLUMNS)
-    table["score"] = pd.to_numeric(table["score"], errors="coerce")
-    if table["score"].isna().any():
-        bad = rows[int(np.flatnonzero(table["score"].isna())[0])]
-        raise ScoreFileError(f"{path}: score {bad[3]!r} of pair {bad[0]} {bad[1]} is not a number")
-    table["label"] = _labels(table["label"].to_numpy(), str(path))
+        try:
+            scores.append(float(fields[3]))
+        except ValueError:
+            raise ScoreFileError(
+                f"{path}:{number}: score {fields[3]!r} of pair {fields[0]} {fields[1]} is not a number"
+            ) from None
+        rows.append((number, fields[0], fields[1], _label_text(fields[2])))
+    table = _checked_table(rows, np.array(scores, dtype=np.float64), str(path), "line")
     table["num_inliers"] = np.nan
     return table
+
+
+NPY_MAGIC = b"\x93NUMPY"  # how every .npy begins: the format is read from the content, not the name
 
 
 def read_scores(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any], str]:
@@ -150,7 +183,9 @@ def read_scores(path: str | Path) -> tuple[pd.DataFrame, dict[str, Any], str]:
     path = Path(path)
     if not path.is_file():
         raise ScoreFileError(f"{path} does not exist; give the .npy or the table of scores to import")
-    if path.suffix == ".npy":
+    with open(path, "rb") as handle:
+        npy = handle.read(len(NPY_MAGIC)) == NPY_MAGIC
+    if npy:
         table, stated = authors_table(load_authors_npy(path), str(path))
         return table, stated, "gvbench-npy"
     return read_table(path), {}, "table"
@@ -165,42 +200,86 @@ def _pairs_csv(table: pd.DataFrame, method: str) -> pd.DataFrame:
     return out
 
 
-def import_scores(path: str | Path, sequence: str, method: str, output_dir: str | Path) -> dict[str, Any]:
-    """Publish a score file as ``method`` of ``output_dir`` (beside the folder's other methods
-    when they scored the same pairs and labels); returns its row of the results table."""
-    path, output_dir = Path(path).resolve(), Path(output_dir)
-    if not method or method.startswith(".") or "/" in method or method in record.OWN_NAMES:
+def check_name(name: str, option: str) -> str:
+    """``name`` when it is a plain file-name component (it names folders and files), else a one-sentence refusal."""
+    problem = name_problem(name) or ("is a file of the output folder's own" if name in record.OWN_NAMES else None)
+    if problem:
         raise ScoreFileError(
-            f"--method {method!r} cannot name a method folder; give a plain name such as sp-sg-authors"
+            f"{option} {name!r} {problem}, and it names the output's files; give a plain name such as sp-sg-authors"
         )
+    return name
+
+
+def _check_joins(
+    output_dir: Path, published: dict[str, Any], path: Path, sequence: str, method: str, digest: str
+) -> list[str]:
+    """The methods an import of ``method`` keeps beside it; refused when the folder holds computed results
+    of ``method`` (an import never replaces them), another sequence, or other pairs or labels."""
+    if method in published["methods"]:
+        run = method_outputs.read_run_json(output_dir, method)
+        if run.get("conf", {}).get("profile") != IMPORTED_PROFILE:
+            raise ScoreFileError(
+                f"{output_dir} holds results of {method} computed here, which an import does not replace; import "
+                f"{path} under another --method (e.g. {method}-imported) or into another --output-dir"
+            )
+    kept = [m for m in published["methods"] if m != method]
+    held = {str(method_outputs.read_run_json(output_dir, m).get("sequence")) for m in kept}
+    other_sequence = sorted(held - {sequence})
+    if other_sequence:
+        raise ScoreFileError(
+            f"{output_dir} holds sequence {other_sequence[0]!r}, not {sequence!r}, and an output folder holds one "
+            f"sequence; import {path} into another --output-dir, or give --sequence {other_sequence[0]} if it is that one"
+        )
+    other = [m for m in kept if published["methods"][m].get("pairs_digest") != digest]
+    if other:
+        raise ScoreFileError(
+            f"{output_dir} holds {', '.join(other)}, scored on other pairs or labels than {path}; import it into "
+            "another --output-dir"
+        )
+    return kept
+
+
+def import_scores(
+    path: str | Path, sequence: str, method: str, output_dir: str | Path, image_root: str | Path | None = None
+) -> dict[str, Any]:
+    """Publish a score file as ``method`` of ``output_dir`` (beside the folder's other methods
+    when they scored the same pairs and labels); returns its row of the results table. Given
+    ``image_root``, the pairs' images are checked there first (``check_images``)."""
+    path, output_dir = Path(path).resolve(), Path(output_dir)
+    check_name(sequence, "--sequence")
+    check_name(method, "--method")
     table, stated, kind = read_scores(path)
+    if image_root is not None:
+        check_images(table, sequence, Path(image_root).resolve())
     evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy(), where=str(path))  # AP and MR defined
+    digest = scoring.table_pairs_digest(table)
     binding = {
-        "pairs_digest": scoring.table_pairs_digest(table),
+        "pairs_digest": digest,
         "images_digest": None,  # no images were read: the binding is the pairs and labels alone
         "n_pairs": len(table),
         "pairs_file": None,
         "pairs_sha256": None,
     }
     record.check_owned(output_dir)
+    published = record.read_record(output_dir) or {"methods": {}, "files": {}}
+    _check_joins(output_dir, published, path, sequence, method, digest)  # before any file
     record.claim(output_dir)
     with record.FolderLock(output_dir):
         record.finish_publishing(output_dir)
         published = record.read_record(output_dir) or {"methods": {}, "files": {}}
-        kept = {m: {k: v for k, v in e.items() if k != "files"} for m, e in published["methods"].items() if m != method}
-        other = [m for m, entry in kept.items() if entry.get("pairs_digest") != binding["pairs_digest"]]
-        if other:
-            raise ScoreFileError(
-                f"{output_dir} holds {', '.join(other)}, scored on other pairs or labels than {path}; import it into "
-                "another --output-dir"
-            )
+        kept = {
+            m: {k: v for k, v in published["methods"][m].items() if k != "files"}
+            for m in _check_joins(output_dir, published, path, sequence, method, digest)
+        }
         stage = record.open_stage(output_dir)
         for name in published["files"]:  # the folder's other files stay: the stage is its whole next state
             if name != "results.csv" and name not in record.method_files([name], method):
                 (stage / name).parent.mkdir(parents=True, exist_ok=True)
                 shutil.copy2(output_dir / name, stage / name)
         folder = method_outputs.method_dir(stage, method)
-        atomic_write_json(folder / "run.json", _run_record(path, kind, stated, sequence, method, binding, stage))
+        run = _run_record(path, kind, stated, sequence, method, binding, stage)
+        run["imported"]["images_checked_under"] = None if image_root is None else str(Path(image_root).resolve())
+        atomic_write_json(folder / "run.json", run)
         atomic_write_csv(folder / "pairs.csv", _pairs_csv(table, method))
         results = scoring.evaluate(stage, [*kept, method])
         record.publish(output_dir, stage, {**kept, method: binding})
@@ -233,36 +312,48 @@ def _run_record(
     }
 
 
-def export_npy(output_dir: str | Path, method: str) -> Path:
-    """Write a method's pairs as the authors' ``<sequence>_<method>.npy`` in its folder: their keys,
-    with ``inliers`` one count a pair (as their multiprocess evaluation writes it) and no
-    ``all_matches`` (the match coordinates are not in pairs.csv)."""
+def export_npy(output_dir: str | Path, method: str) -> tuple[Path, float]:
+    """Write a method's pairs as the authors' ``<sequence>_<method>_<run id>.npy`` in its folder, and
+    return it with the AP it states: their keys, with ``inliers`` one count a pair (as their multiprocess
+    evaluation writes it) and no ``all_matches`` (the match coordinates are not in pairs.csv). Made under
+    the folder's lock, so the results and the run id it names are one run's (a rerun of the method
+    removes it: ``record.publish``)."""
     output_dir = Path(output_dir)
-    table = scoring.load_pairs_table(output_dir, method)
-    run = method_outputs.read_run_json(output_dir, method)
-    labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
-    prob = scores / scores.max() if scores.max() > 0 else scores
-    metrics = evaluate_scores(labels, prob, where=f"{output_dir / method / 'pairs.csv'}")
-    curve = pr_curve(labels, prob)
-    inliers = table["num_inliers"].to_numpy(dtype=np.float64)
-    values = {
-        "prob": prob,
-        "qImages": table["query"].astype(str).tolist(),
-        "rImages": table["reference"].astype(str).tolist(),
-        "gt": labels.tolist(),
-        "inliers": inliers.astype(np.int64) if np.isfinite(inliers).all() else scores,
-        "precision": curve["precision"],
-        "recall": curve["recall"],
-        "TH": curve["thresholds"],
-        "average_precision": metrics["ap"],
-        "Max Recall": metrics["max_recall"],
-    }
-    target = method_outputs.method_dir(output_dir, method) / f"{run['sequence']}_{method}.npy"
+    with record.FolderLock(output_dir):
+        table = scoring.load_pairs_table(output_dir, method)
+        run = method_outputs.read_run_json(output_dir, method)
+        # A notebook run on its own writes results in place, with no run id: the time it finished names it.
+        run_id = str(run.get("run_id") or "in-place-" + "".join(c for c in str(run.get("finished_at")) if c.isalnum()))
+        sequence = str(run.get("sequence"))
+        for name, what in ((sequence, "sequence"), (run_id, "run id")):
+            if name_problem(name):
+                raise ScoreFileError(
+                    f"{output_dir / method / 'run.json'}: its {what} {name!r} {name_problem(name)}, so it cannot name "
+                    f"the export; run {method} again with a plain sequence name"
+                )
+        labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
+        prob = scores / scores.max() if scores.max() > 0 else scores
+        metrics = evaluate_scores(labels, prob, where=f"{output_dir / method / 'pairs.csv'}")
+        curve = pr_curve(labels, prob)
+        inliers = table["num_inliers"].to_numpy(dtype=np.float64)
+        values = {
+            "prob": prob,
+            "qImages": table["query"].astype(str).tolist(),
+            "rImages": table["reference"].astype(str).tolist(),
+            "gt": labels.tolist(),
+            "inliers": inliers.astype(np.int64) if np.isfinite(inliers).all() else scores,
+            "precision": curve["precision"],
+            "recall": curve["recall"],
+            "TH": curve["thresholds"],
+            "average_precision": metrics["ap"],
+            "Max Recall": metrics["max_recall"],
+        }
 
-    def write(path: Path) -> None:
-        temporary = path.with_name(f".{path.name}.tmp")
-        with open(temporary, "wb") as handle:
-            np.save(handle, np.array(values, dtype=object), allow_pickle=True)
-        temporary.replace(path)
+        def write(path: Path) -> None:
+            temporary = path.with_name(f".{path.name}.tmp")
+            with open(temporary, "wb") as handle:
+                np.save(handle, np.array(values, dtype=object), allow_pickle=True)
+            temporary.replace(path)
 
-    return record.save_checked(target, write)
+        target = method_outputs.method_dir(output_dir, method) / f"{sequence}_{method}_{run_id}.npy"
+        return record.save_checked(target, write), float(metrics["ap"])

@@ -4,6 +4,7 @@ calibration sequence applied to other sequences (precision, recall, false loops)
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 from collections.abc import Iterable
 from pathlib import Path
@@ -15,6 +16,8 @@ import pandas as pd
 from gvbench_nb.evaluation import run_tables
 
 RETRIEVAL_BUILDER = "retrieval"  # the pairs builder whose pair files keep the retrieval order
+NOT_ALL_DONE = 3  # transfer's exit status when it printed what it could and names on stderr what it could not do
+log = logging.getLogger(__name__)
 
 
 def oracle_threshold(labels: np.ndarray, scores: np.ndarray) -> float:
@@ -100,6 +103,34 @@ def transfer_table(inputs: DeploymentInputs, calibrations: Iterable[str] | None 
     return pd.DataFrame(rows)
 
 
+def not_transferred(inputs: DeploymentInputs, calibrations: Iterable[str], table: pd.DataFrame) -> list[str]:
+    """What ``transfer_table`` could not do, one line each, and why: a method without results on a
+    calibration sequence (no threshold), a target without the method or holding it under another
+    profile, and each target left out altogether."""
+    lines = []
+    for calibration in calibrations:
+        for method in inputs.methods():
+            if method not in inputs.tables[calibration]:
+                lines.append(f"{method}: no threshold, calibration sequence {calibration} has no results of it")
+                continue
+            profile = inputs.profiles[(calibration, method)]
+            for target in inputs.sequences:
+                held = inputs.profiles.get((target, method))
+                if held != profile:
+                    why = (
+                        "has no results of it"
+                        if held is None
+                        else f"holds it under the {held} profile (a threshold goes only to a run of the same profile)"
+                    )
+                    lines.append(
+                        f"{method} ({profile} profile, calibrated on {calibration}): not transferred to {target}, "
+                        f"which {why}"
+                    )
+    done = set(table["target"]) if len(table) else set()
+    lines += [f"target {t} left out: no method could take a threshold there" for t in inputs.sequences if t not in done]
+    return lines
+
+
 def runs(table: pd.DataFrame) -> list[tuple[str, str]]:
     """The (method, profile) of a transfer table, in order: one matrix each."""
     return list(dict.fromkeys(zip(table["method"], table["profile"])))
@@ -160,9 +191,9 @@ LOOP_COLUMNS = ["method", "profile", "calibration", "target", "n_queries", "quer
 LOOP_COLUMNS += ["recall_at_1_retrieval", "true_loops_closed", "false_loops_closed"]
 
 
-def transfer_text(inputs: DeploymentInputs, calibrations: list[str]) -> str:
+def transfer_text(inputs: DeploymentInputs, calibrations: list[str], table: pd.DataFrame | None = None) -> str:
     """What ``transfer`` prints: a matrix a method, then the loop-closure table."""
-    table = transfer_table(inputs, calibrations)
+    table = transfer_table(inputs, calibrations) if table is None else table
     parts = [
         "Each method's threshold of 100% precision on the calibration sequence (the one MR is read at), "
         "applied to each target: precision / recall / false loops accepted ('-': nothing accepted).\n"
@@ -209,8 +240,16 @@ def command_transfer(args: argparse.Namespace) -> int:
     folders = [args.calibration_dir, *args.target_dirs]
     inputs = DeploymentInputs(folders)
     calibrations = inputs.sequences if args.every else inputs.sequences[:1]
-    print(transfer_text(inputs, calibrations))
-    return 0
+    table = transfer_table(inputs, calibrations)
+    missing = not_transferred(inputs, calibrations, table)
+    if not len(table):
+        raise run_tables.IncomparableRunsError(
+            f"nothing to transfer: {'; '.join(missing)}; give output folders holding runs of one method and profile"
+        )
+    print(transfer_text(inputs, calibrations, table))
+    for line in missing:
+        log.warning(f"not done: {line}")
+    return NOT_ALL_DONE if missing else 0
 
 
 def add_command(subparsers: argparse._SubParsersAction) -> None:
@@ -221,7 +260,8 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         description="For each method, the inlier threshold that gives 100% precision on the calibration "
         "folder's sequence (the one MR is read at) applied to each target folder: precision, recall and "
         "false loops accepted, as a matrix over sequences; then, per query, recall@1 after GV re-ranking "
-        "and the queries that would close a false loop. Reads only finished runs.",
+        "and the queries that would close a false loop. Reads only finished runs. Names on stderr each method "
+        "and target it could not transfer, and why, and then exits with status 3.",
     )
     parser.add_argument("calibration_dir", help="output folder of the sequence the thresholds are fixed on")
     parser.add_argument("target_dirs", nargs="+", metavar="target_dir", help="output folders to deploy on")

@@ -1,5 +1,6 @@
 """``import-scores`` and ``results --export npy``: the GV-Bench authors' .npy is built here as their
-``.asset/replicate.md`` documents it (inliers as point rows or counts), on a small ``sample`` render."""
+``.asset/replicate.md`` documents it (inliers as point rows or counts), on a small ``sample`` render;
+the rules imported pairs obey, on eight real Gardens Point pairs (``GP8``)."""
 
 from __future__ import annotations
 
@@ -16,8 +17,9 @@ from sklearn.metrics import average_precision_score, precision_recall_curve
 from test_run_record import one_sentence, run_cli, snapshot
 
 from gvbench_nb.data import synthetic
+from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol.metrics import evaluate_scores
-from gvbench_nb.runner import scoring
+from gvbench_nb.runner import method_runs, record, scoring
 
 QUERIES = [f"night/{i:03d}.png" for i in (0, 0, 1, 1, 2, 2)]
 REFERENCES = [f"day/{i:03d}.png" for i in (0, 5, 1, 6, 2, 7)]
@@ -48,7 +50,8 @@ def authors_npy(path: Path, inliers_as: str = "points", **changes) -> Path:
     if inliers_as == "absent":
         del values["inliers"]
     values.update(changes)
-    np.save(path, values, allow_pickle=True)
+    with open(path, "wb") as handle:  # np.save(name) would add .npy to a name not ending in it
+        np.save(handle, values, allow_pickle=True)
     return path
 
 
@@ -131,7 +134,7 @@ def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, 
     bad_label.write_text("q r 2 5\nq s 0 1\n")
     short = authors_npy(tmp_path / "short.npy", gt=LABELS[:4])
     for source, words in (
-        (bad_label, "labels must be 0 or 1"),
+        (bad_label, "bad.txt:1: label must be 0 or 1"),
         (short, "differ in length"),
         (tmp_path / "no.npy", "does not exist"),
     ):
@@ -160,8 +163,9 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
     assert run_cli(capsys, "run", str(params))[0] == 0
     code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
     assert code == 0, err
-    exported = out / "orb-nn" / "sample_orb-nn.npy"
-    assert f"orb-nn: {exported}" in said
+    run_id = json.loads((out / "orb-nn" / "run.json").read_text())["run_id"]
+    exported = out / "orb-nn" / f"sample_orb-nn_{run_id}.npy"
+    assert f"orb-nn: {exported} (AP " in said
     shared = np.load(exported, allow_pickle=True).item()  # as the authors' code reads it
     ran = scoring.load_pairs_table(out, "orb-nn")
     assert shared["qImages"] == ran["query"].tolist() and shared["gt"] == ran["label"].tolist()
@@ -185,3 +189,175 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
     code, _, err = import_scores(capsys, flipped, "other", out, "sample")
     assert code == 2 and "scored on other pairs or labels" in one_sentence(err)
     assert snapshot(out) == before
+
+
+# ------------------------------------------- imported pairs on real Gardens Point --
+# Eight real pairs: night_right frames against day_right ones (the same frame true, far ones false).
+GP8 = [
+    ("night_right/Image005.jpg", "day_right/Image005.jpg", 1),
+    ("night_right/Image005.jpg", "day_right/Image060.jpg", 0),
+    ("night_right/Image020.jpg", "day_right/Image021.jpg", 1),
+    ("night_right/Image020.jpg", "day_right/Image090.jpg", 0),
+    ("night_right/Image040.jpg", "day_right/Image040.jpg", 1),
+    ("night_right/Image040.jpg", "day_right/Image120.jpg", 0),
+    ("night_right/Image100.jpg", "day_right/Image101.jpg", 1),
+    ("night_right/Image100.jpg", "day_right/Image150.jpg", 0),
+]
+GP8_SCORES = [0.9, 0.95, 0.8, 0.1, 0.7, 0.2, 0.6, 0.3]  # one false pair above every true one
+
+
+def scores_csv(path: Path, rows) -> Path:
+    path.write_text("query,reference,label,score\n" + "".join(f"{q},{r},{lab},{s}\n" for q, r, lab, s in rows))
+    return path
+
+
+def gp8_params(tmp_path: Path, root: Path, **changes) -> Path:
+    pairs = tmp_path / "gp8.txt"
+    pairs.write_text("".join(f"{q} {r} {lab}\n" for q, r, lab in GP8))
+    params = {"sequence": "gp8", "image_root": str(root), "pairs": str(pairs), "methods": ["orb-nn"], "device": "cpu"}
+    params |= {"profile": "repository", "output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache")}
+    path = tmp_path / "gp8.yaml"
+    path.write_text(yaml.safe_dump(params | changes))
+    return path
+
+
+def rows_with(*changes: tuple[int, tuple]) -> list[tuple]:
+    rows = [(*pair, score) for pair, score in zip(GP8, GP8_SCORES)]
+    for index, row in changes:
+        rows[index] = row
+    return rows
+
+
+@pytest.mark.reliability
+@pytest.mark.real_data
+@pytest.mark.parametrize(
+    ("rows", "line", "words"),
+    [
+        # Pair 1 listed twice (a pair file's line 3), pair 2 missing: AP 1.0 instead of 0.95's ranking.
+        (rows_with((2, (*GP8[1], 0.95))), 4, "duplicate pair night_right/Image005.jpg day_right/Image060.jpg"),
+        (rows_with((2, ("night_right/./Image005.jpg", "day_right/Image005.jpg", 1, 0.8))), 4, "duplicate pair"),
+        (rows_with((2, ("night_right/Image020.jpg", "night_right/Image020.jpg", 1, 0.8))), 4, "self-pair"),
+        (rows_with((2, ("day_right/Image005.jpg", "night_right/Image005.jpg", 1, 0.8))), 4, "in the other order"),
+        (rows_with((5, ("night_right/Image040.jpg", "day_right/Image120.jpg", 2, 0.2))), 7, "label must be 0 or 1"),
+        (rows_with((5, ("/abs/Image040.jpg", "day_right/Image120.jpg", 0, 0.2))), 7, "absolute path"),
+        # Gardens Point's night_right frames 179 and 183 are byte-identical: a self-pair by content.
+        (rows_with((5, ("night_right/Image179.jpg", "night_right/Image183.jpg", 0, 0.2))), 7, "self-pair by content"),
+    ],
+    ids=[
+        "duplicate-and-missing",
+        "duplicate-spelled-with-dot",
+        "self-pair",
+        "reversed",
+        "label",
+        "absolute",
+        "content",
+    ],
+)
+def test_imported_scores_obey_every_rule_of_a_pair_file(shared_data, tmp_path, capsys, rows, line, words):
+    source = scores_csv(tmp_path / "scores.csv", rows)
+    out = tmp_path / "out"
+    argv = ["import-scores", str(source), "--sequence", "gp8", "--method", "ext", "--output-dir", str(out)]
+    if words == "self-pair by content":  # the one rule that reads the images
+        argv += ["--image-root", str(shared_data / "gardens_point")]
+    code, _, err = run_cli(capsys, *argv)
+    assert code == 2 and f"{source}:{line}: " in one_sentence(err) and words in err, err
+    assert not out.exists()
+
+
+@pytest.mark.reliability
+@pytest.mark.parametrize("bad", [float("inf"), -float("inf"), float("nan")])
+def test_a_score_that_is_not_finite_is_refused_naming_its_row(tmp_path, capsys, bad):
+    table = scores_csv(tmp_path / "scores.csv", rows_with((3, (*GP8[3], bad))))
+    counts = np.array(INLIERS, dtype=float)
+    counts[2] = bad
+    npy = authors_npy(tmp_path / "scores.npy", "counts", inliers=counts)
+    for source, where in ((table, f"{table}:5: "), (npy, f"{npy}: pair 2: ")):
+        code, _, err = import_scores(capsys, source, "ext", tmp_path / "out")
+        assert code == 2 and where in one_sentence(err), err
+    assert not (tmp_path / "out").exists()
+
+
+@pytest.mark.reliability
+def test_a_score_file_format_is_read_from_its_content_not_its_name(tmp_path, capsys):
+    shouted = authors_npy(tmp_path / "SCORES.NPY")
+    code, _, err = import_scores(capsys, shouted, "sp-sg", tmp_path / "out")
+    assert code == 0, err
+    assert scoring.load_pairs_table(tmp_path / "out", "sp-sg")["num_inliers"].tolist() == INLIERS
+    table = scores_csv(tmp_path / "table.npy", rows_with())  # a table, whatever its name says
+    code, _, err = import_scores(capsys, table, "from-table", tmp_path / "table")
+    assert code == 0, err
+    marker = tmp_path / "ran"
+    evil = authors_npy(tmp_path / "EVIL.Npy", gt=[RunsCode(marker)] * 6)
+    code, _, err = import_scores(capsys, evil, "x", tmp_path / "evil")
+    assert code == 2 and "refused without running it" in one_sentence(err)
+    assert not marker.exists() and not (tmp_path / "evil").exists()
+
+
+@pytest.fixture
+def gp8_run(shared_data, tmp_path, capsys, notebooks_here) -> Path:
+    """The params of gp8 with orb-nn run into tmp_path/out."""
+    params = gp8_params(tmp_path, shared_data / "gardens_point")
+    code, _, err = run_cli(capsys, "run", str(params))
+    assert code == 0, err
+    return params
+
+
+@pytest.mark.reliability
+@pytest.mark.real_data
+def test_an_import_never_replaces_computed_results_nor_joins_another_sequence(gp8_run, tmp_path, capsys):
+    out = tmp_path / "out"
+    source = scores_csv(tmp_path / "scores.csv", rows_with())
+    before = snapshot(out)
+    code, _, err = import_scores(capsys, source, "orb-nn", out, "gp8")
+    assert code == 2 and "results of orb-nn computed here" in one_sentence(err) and "--method" in err
+    code, _, err = import_scores(capsys, source, "ext2", out, "other_place")
+    assert code == 2 and "holds sequence 'gp8', not 'other_place'" in one_sentence(err)
+    assert snapshot(out) == before
+    # An imported method is the import's own: importing it again replaces it.
+    for score in (0.95, 0.5):
+        code, _, err = import_scores(capsys, scores_csv(source, rows_with((1, (*GP8[1], score)))), "ext", out, "gp8")
+        assert code == 0, err
+    assert results_row(capsys, out, "orb-nn")["profile"] == "repository"
+
+
+@pytest.mark.reliability
+@pytest.mark.real_data
+def test_an_export_names_its_run_and_a_rerun_of_the_method_removes_it(gp8_run, shared_data, tmp_path, capsys):
+    out = tmp_path / "out"
+    code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
+    assert code == 0, err
+    run_id = json.loads((out / "orb-nn" / "run.json").read_text())["run_id"]
+    exported = out / "orb-nn" / f"gp8_orb-nn_{run_id}.npy"
+    ap = results_row(capsys, out, "orb-nn")["ap"]
+    assert f"orb-nn: {exported} (AP {ap:.4f})" in said
+    assert np.load(exported, allow_pickle=True).item()["average_precision"] == pytest.approx(ap)
+    # orb-nn's results written again in place (a notebook run on its own) take the export with them ...
+    sequence = Sequence("gp8", shared_data / "gardens_point", [Pair(*pair) for pair in GP8])
+    method_runs.record_method_in_place(out, "orb-nn", sequence)
+    assert not exported.exists() and "orb-nn/" + exported.name not in record.read_record(out)["files"]
+    assert run_cli(capsys, "results", str(out), "--export", "npy")[0] == 0
+    assert exported.exists()
+    # ... and so does a rerun.
+    assert run_cli(capsys, "run", str(gp8_run), "--profile", "paper")[0] == 0
+    assert not exported.exists() and not list((out / "orb-nn").glob("*.npy"))
+    assert not [name for name in record.read_record(out)["files"] if name.endswith(".npy")]
+
+
+@pytest.mark.reliability
+@pytest.mark.real_data
+def test_a_name_that_is_not_a_plain_file_name_is_refused_before_any_folder(shared_data, tmp_path, capsys):
+    work = tmp_path / "a" / "b" / "c" / "d"
+    work.mkdir(parents=True)
+    keep = tmp_path / "keep_ext.npy"
+    keep.write_bytes(b"the user's own")
+    source = scores_csv(tmp_path / "scores.csv", rows_with())
+    out = work / "out"
+    params = gp8_params(work, shared_data / "gardens_point", sequence="../../../../keep")
+    code, _, err = run_cli(capsys, "run", str(params))
+    assert code == 2 and f"{params}: sequence '../../../../keep'" in one_sentence(err)
+    for option, name in (("--sequence", "../../../../keep"), ("--method", ".."), ("--method", "a/b")):
+        names = {"--sequence": "gp8", "--method": "ext"} | {option: name}
+        argv = ["import-scores", str(source), "--sequence", names["--sequence"], "--method", names["--method"]]
+        code, _, err = run_cli(capsys, *argv, "--output-dir", str(out))
+        assert code == 2 and f"{option} {name!r}" in one_sentence(err), err
+    assert not out.exists() and not (work / "cache").exists() and keep.read_bytes() == b"the user's own"

@@ -70,21 +70,28 @@ def test_query_outcomes_rerank_by_score_and_keep_file_order_on_ties():
     assert outcomes["best_passes"].tolist() == [True, True, False, False]
 
 
-def write_run(folder, sequence: str, labels, scores, builder: str = "frame_tolerance") -> None:
-    """A finished method's files as a run writes them, evaluated into a published results.csv."""
+def write_run(
+    folder, sequence: str, labels, scores, builder: str = "frame_tolerance", methods=("sift-nn",), profile="repository"
+) -> None:
+    """Finished methods' files as a run writes them, evaluated into a published results.csv."""
+    for method in methods:
+        write_method(folder, method, sequence, labels, scores, builder, profile)
+    scoring.evaluate(folder)
+
+
+def write_method(folder, method: str, sequence: str, labels, scores, builder: str, profile: str) -> None:
     queries = [f"q{i // 2}" for i in range(len(labels))]
     table = pairs_table(queries, labels, scores).assign(extract_seconds=0.1, match_seconds=0.1, verify_seconds=0.1)
-    method_dir = method_outputs.method_dir(folder, "sift-nn")
+    method_dir = method_outputs.method_dir(folder, method)
     method_dir.mkdir(parents=True)
     table.to_csv(method_dir / "pairs.csv", index=False)
     run = {
         "sequence": sequence,
-        "conf": {"paper_name": "SIFT+NN", "profile": "repository"},
+        "conf": {"paper_name": method, "profile": profile},
         "environment": {"device": "cpu"},
         "pairs": {"pairs_builder": builder},
     }
     (method_dir / "run.json").write_text(json.dumps(run))
-    scoring.evaluate(folder)
 
 
 def test_transfer_reads_finished_runs_and_prints_the_matrix(tmp_path, capsys):
@@ -129,3 +136,23 @@ def test_transfer_refuses_what_results_refuses(tmp_path, capsys):
     message = capsys.readouterr().err.strip().splitlines()
     assert len(message) == 4 and all(line.startswith("error: ") for line in message)
     assert message[0] == message[1] and message[2] == message[3]
+
+
+@pytest.mark.reliability
+def test_transfer_names_every_method_and_target_it_could_not_do_and_exits_3(tmp_path, capsys):
+    write_run(tmp_path / "day", "day", [1, 0, 1, 0], [9, 4, 6, 1], methods=("sift-nn", "orb-nn"))
+    write_run(tmp_path / "night", "night", [0, 1, 1, 0], [8, 7, 2, 3])  # no orb-nn
+    write_run(tmp_path / "dusk", "dusk", [0, 1, 1, 0], [8, 7, 2, 3], profile="paper")  # another profile
+    capsys.readouterr()
+    code = cli.main(["transfer", *(str(tmp_path / f) for f in ("day", "night", "dusk"))])
+    said = capsys.readouterr()
+    assert code == deployment.NOT_ALL_DONE == 3
+    assert "sift-nn (repository profile)" in said.out  # what could be done is printed
+    not_done = [line for line in said.err.splitlines() if line.startswith("not done: ")]
+    assert len(not_done) == 4, said.err
+    assert "orb-nn (repository profile, calibrated on day): not transferred to night, which has no results" in said.err
+    assert "not transferred to dusk, which holds it under the paper profile" in said.err
+    assert "not done: target dusk left out" in said.err
+    assert cli.main(["transfer", str(tmp_path / "night"), str(tmp_path / "night")]) != 0  # a sequence twice
+    assert cli.main(["transfer", str(tmp_path / "dusk"), str(tmp_path / "night")]) == 3
+    assert "not done: target night left out" in capsys.readouterr().err

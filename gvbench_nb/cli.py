@@ -48,6 +48,8 @@ examples:
 environment:
   GVBENCH_DATA     the data folder: what ${GVBENCH_DATA} stands for in params and where `data fetch`
                    puts datasets (default: a per-user cache folder, printed by `data list`)
+  GVBENCH_CACHE    the feature cache of a run whose params name no cache_dir (default: a per-user
+                   cache folder; `run` names it in its first line)
   GVBENCH_JOBS     images, then pairs, processed at once, as `run --jobs` sets it (default: every
                    core this process may use). Each image's and pair's timer is its job's own time;
                    `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is

@@ -166,3 +166,11 @@ def test_the_explorer_table_hides_pandas_row_numbers():
     html = explore_pairs.shown_table(view).to_html()
     assert "sift-nn" in html and "row_heading" not in html  # no 0, 1 before the methods
     assert 'display(explore.shown_table(views["table"]))' in (PROJECT / "notebooks" / "explore_pairs.py").read_text()
+
+
+def test_tests_never_use_the_per_user_cache():
+    import tempfile
+
+    from gvbench_nb.data import fetch
+
+    assert fetch.cache_dir().is_relative_to(Path(tempfile.gettempdir()).resolve())  # conftest's, for this session

@@ -10,9 +10,12 @@ import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
+
+if TYPE_CHECKING:
+    from gvbench_nb.data.sequences import Sequence
 
 log = logging.getLogger(__name__)
 
@@ -158,7 +161,7 @@ def command_run(args: argparse.Namespace) -> int:
     return 0
 
 
-def announce_run(params: dict[str, Any], sequence: Any) -> None:
+def announce_run(params: dict[str, Any], sequence: Sequence) -> None:
     """A run's first lines, before any work: what it runs, where to and with which feature cache,
     and, when its estimate exceeds ``run_estimate.LONG_RUN_SECONDS``, how long it will take."""
     from gvbench_nb.runner import image_features, run_estimate

@@ -13,7 +13,7 @@ from speed_bench import CACHED
 
 from gvbench_nb.data.sequences import read_pairs
 from gvbench_nb.io_utils import atomic_write_csv
-from gvbench_nb.runner import scoring
+from gvbench_nb.runner import run_estimate, scoring
 
 if TYPE_CHECKING:
     pass
@@ -108,14 +108,14 @@ def costs_from_runs(output_dir: Path) -> pd.DataFrame:
 def estimate_official_runtime(costs: pd.DataFrame, sizes: pd.DataFrame) -> pd.DataFrame:
     """Hours of each official sequence x costed (method, profile), both pipelines.
 
-    Ours: unique images x seconds per image + pairs x our seconds per pair. The per-pair
+    Ours: ``run_estimate.run_seconds``, the model a run's own estimate uses. The per-pair
     pipeline: pairs x its seconds per pair.
     """
     rows = []
     for _, cost in costs.iterrows():
         for _, size in sizes.iterrows():
-            cached_seconds = (
-                size["n_images"] * cost["extract_seconds_per_image"] + size["n_pairs"] * cost["cached_seconds_per_pair"]
+            cached_seconds = run_estimate.run_seconds(
+                size["n_images"], cost["extract_seconds_per_image"], size["n_pairs"], cost["cached_seconds_per_pair"]
             )
             reference_seconds = size["n_pairs"] * cost["per_pair_seconds_per_pair"]
             rows.append(

@@ -23,7 +23,20 @@ class _CurrentStreamHandler(logging.StreamHandler):
 
     def emit(self, record: logging.LogRecord) -> None:
         self.stream = sys.stderr if record.levelno >= logging.WARNING else sys.stdout
-        super().emit(record)
+        if not (terminal_bars_drawn() and self.stream.isatty()):
+            super().emit(record)
+            return
+        from tqdm import tqdm
+
+        with tqdm.external_write_mode(file=self.stream):  # the bar is cleared, the line written, the bar redrawn
+            super().emit(record)
+
+
+def terminal_bars_drawn() -> bool:
+    """Whether a progress bar may stand unfinished on a terminal's line (elsewhere ``io_utils.progress_bar``
+    ends each redraw's line); tqdm draws none before it is imported."""
+    tqdm = sys.modules.get("tqdm")
+    return any(not bar.disable for bar in list(getattr(getattr(tqdm, "tqdm", None), "_instances", ())))
 
 
 def set_log_level(level: int) -> None:

@@ -13,7 +13,7 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
-from gvbench_nb import GVBenchError, run_and_publish, set_log_level
+from gvbench_nb import GVBenchError, run_and_publish, set_log_level, terminal_bars_drawn
 from gvbench_nb.io_utils import SuggestingParser, whole_number_at_least
 from gvbench_nb.reporting import tables
 
@@ -48,6 +48,8 @@ examples:
 environment:
   GVBENCH_DATA     the data folder: what ${GVBENCH_DATA} stands for in params and where `data fetch`
                    puts datasets (default: a per-user cache folder, printed by `data list`)
+  GVBENCH_CACHE    the feature cache of a run whose params name no cache_dir (default: a per-user
+                   cache folder; `run` names it in its first line)
   GVBENCH_JOBS     images, then pairs, processed at once, as `run --jobs` sets it (default: every
                    core this process may use). Each image's and pair's timer is its job's own time;
                    `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is
@@ -168,7 +170,7 @@ def command_data(args: argparse.Namespace) -> int:
         root = Path(args.to).expanduser().resolve() if args.to else fetch.data_dir()
         log.warning(f"data folder: {root}")
         placed = fetch.fetch(args.names, to=root, mirror=args.mirror, progress=not args.quiet)
-        for name, count in placed.items():
+        for name, count in placed.items() if not args.quiet else ():
             dataset = fetch.get_dataset(name)
             log.info(
                 f"{name}: {len(dataset.files)} files verified in {root / dataset.folder} "
@@ -202,7 +204,7 @@ def configure_data_parser(parser: argparse.ArgumentParser) -> None:
         help="a local folder or base URL with the data folder's layout "
         "(e.g. a folder holding gardens_point/ and gvbench_gt/)",
     )
-    fetch_parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    fetch_parser.add_argument("--quiet", action="store_true", help="no progress bar and no status lines")
     sub.add_parser("list", help="known datasets: size, licence, citation, where to get them, whether present")
     check = sub.add_parser(
         "check",
@@ -405,7 +407,8 @@ def stop_on_interrupt(argv: SequenceType[str], module: str = "gvbench_nb") -> It
         try:
             sys.stdout.flush()
         finally:
-            print(resume_hint(argv, module), file=sys.stderr, flush=True)
+            ended = "\n" if terminal_bars_drawn() and sys.stderr.isatty() else ""  # a bar's line first
+            print(ended + resume_hint(argv, module), file=sys.stderr, flush=True)
             try:
                 import psutil
 

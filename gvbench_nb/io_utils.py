@@ -168,4 +168,23 @@ def progress_bar(iterable: Any = None, **options: Any) -> Any:
     stream = options.get("file") or sys.stderr
     if not getattr(stream, "isatty", lambda: False)():
         options.setdefault("mininterval", BATCH_INTERVAL_SECONDS)
+        options["file"] = _LinePerRedraw(stream)
     return tqdm(iterable, **options)
+
+
+class _LinePerRedraw:
+    """A file or pipe under a progress bar: each redraw is a whole line (no carriage returns), so the
+    status lines written between two redraws start lines of their own."""
+
+    def __init__(self, stream: Any):
+        self._stream, self._last = stream, ""
+
+    def write(self, text: str) -> int:
+        line = text.replace("\r", "").rstrip()
+        if line and line != self._last:  # closing redraws the last state once more
+            self._stream.write(line + "\n")
+            self._last = line
+        return len(text)
+
+    def __getattr__(self, name: str) -> Any:  # flush, encoding, ...: the stream's
+        return getattr(self._stream, name)

@@ -221,3 +221,12 @@ def open_verifier_bench(
     return alternative_verifiers.open_bench(
         results_dir, method, output_dir, cache_dir, overrides=overrides, **split_options
     )
+
+
+def quartiles_by_label(
+    table: pd.DataFrame, columns: SequenceType[str] = ("num_matches", "num_inliers")
+) -> pd.DataFrame:
+    """``describe()`` of a pair table's ``columns`` for false (0) and true (1) pairs, a row a
+    statistic: whole numbers as integers (a count of 1006, not 1006.000000), the others to one decimal."""
+    summary = table.groupby("label")[list(columns)].describe().transpose()
+    return summary.map(lambda v: int(v) if float(v).is_integer() else round(float(v), 1))

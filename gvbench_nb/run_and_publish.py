@@ -10,9 +10,12 @@ import logging
 import os
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
+
+if TYPE_CHECKING:
+    from gvbench_nb.data.sequences import Sequence
 
 log = logging.getLogger(__name__)
 
@@ -105,6 +108,7 @@ def command_run(args: argparse.Namespace) -> int:
     input_checks.check_writable_folder(params, "cache_dir")
     # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
     damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
+    announce_run(params, sequence)
     record.claim(output_dir)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         return distributed.run_from_cli(args, params)
@@ -128,11 +132,8 @@ def command_run(args: argparse.Namespace) -> int:
         stage = record.open_stage(output_dir)
         record.carry(output_dir, stage, kept)
         run_params, jobs = stage_notebooks(params, stage, args.jobs)
-        log.info(
-            f"{sequence.name}: {len(sequence.pairs)} pairs, {len(sequence.images)} images, "
-            f"methods {', '.join(params['methods'])}, profile {params['profile']} -> {output_dir}"
-            + (f" (kept from earlier runs: {', '.join(kept)})" if kept else "")
-        )
+        if kept:
+            log.info(f"kept from earlier runs: {', '.join(kept)}")
 
         def compute(method: str) -> None:
             method_runs.run_method_of_params(run_params, sequence, method, jobs=args.jobs)
@@ -156,8 +157,25 @@ def command_run(args: argparse.Namespace) -> int:
         raise
     finally:
         lock.release()
-    print_run_results(output_dir)
+    print_run_results(output_dir, params["methods"])
     return 0
+
+
+def announce_run(params: dict[str, Any], sequence: Sequence) -> None:
+    """A run's first lines, before any work: what it runs, where to and with which feature cache,
+    and, when its estimate exceeds ``run_estimate.LONG_RUN_SECONDS``, how long it will take."""
+    from gvbench_nb.runner import image_features, run_estimate
+
+    images, contents = len(sequence.images), len(image_features.content_keys(sequence))
+    log.info(
+        f"{sequence.name}: {len(sequence.pairs)} pairs, {images} images"
+        + (f", {contents} distinct contents" if contents != images else "")
+        + f", methods {', '.join(params['methods'])}, profile {params['profile']} -> {params['output_dir']} "
+        f"(feature cache {params['cache_dir']})"
+    )
+    note = run_estimate.long_run_note(params, sequence)
+    if note:
+        log.warning(note)
 
 
 def stage_notebooks(
@@ -183,13 +201,16 @@ def scored_binding(stage: Path, method: str, binding: dict[str, Any]) -> dict[st
     return json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
 
 
-def print_run_results(output_dir: Path) -> None:
-    """The folder's results table as ``run`` ends, with a note on timers taken from the cache."""
+def print_run_results(output_dir: Path, methods: list[str]) -> None:
+    """The folder's results table as ``run`` ends, ``methods`` first in their order (the ones kept
+    from earlier runs after them), with a note on timers taken from the cache."""
     import pandas as pd
 
-    results = pd.read_csv(output_dir / "results.csv")
+    results = pd.read_csv(output_dir / "results.csv").astype({"ap": float, "max_recall": float})
+    order = {method: rank for rank, method in enumerate(methods)}
+    results = results.sort_values("method", key=lambda m: m.map(order).fillna(len(order)), kind="stable")
     columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
-    print(results[columns].to_string(index=False))
+    print(results[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
     reused = results.loc[results["timers"] != "this run", "method"].tolist()
     if reused:
         log.info(

@@ -69,7 +69,7 @@ table.head()
 # quartiles.
 
 # %%
-table.groupby("label")[["num_matches", "num_inliers"]].describe().transpose()
+notebook.quartiles_by_label(table)
 
 # %% [markdown]
 # The inlier counts of true and false pairs as histograms. Where the two overlap no

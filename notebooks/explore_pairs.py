@@ -76,7 +76,7 @@ views = draw(chosen, list(tables))
 # `<figures>/explore_pair.csv`.
 
 # %%
-display(views["table"])
+display(explore.shown_table(views["table"]))
 
 # %% [markdown]
 # ## Matches and inliers, one row a method

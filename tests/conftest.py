@@ -45,7 +45,18 @@ LONGEST = (
 )
 
 
+# Runs whose params name no cache_dir use $GVBENCH_CACHE: a folder of this test session's (its
+# xdist workers inherit the controller's), never the user's cache; each test then gets its own
+# (``own_feature_cache``), kept beside its tmp_path/out as the tests read it.
+SESSION_CACHE = "GVBENCH_TESTS_SESSION_CACHE"
+made_session_cache: list[str] = []  # by this process, which removes it at the end
+
+
 def pytest_configure(config: pytest.Config) -> None:
+    if not os.environ.get(SESSION_CACHE):
+        os.environ[SESSION_CACHE] = tempfile.mkdtemp(prefix="gvbench-nb-tests-cache-")
+        made_session_cache.append(os.environ[SESSION_CACHE])
+    os.environ["GVBENCH_CACHE"] = os.environ[SESSION_CACHE]
     if os.environ.get("PYTEST_XDIST_WORKER"):
         # One torch/OpenCV thread a worker: two workers on two cores, each spinning two threads,
         # would wait on each other. Runs (and their notebook kernels) read GVBENCH_THREADS and GVBENCH_JOBS.
@@ -57,6 +68,20 @@ def pytest_configure(config: pytest.Config) -> None:
 
         torch.set_num_threads(1)
         cv2.setNumThreads(1)
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    import shutil
+
+    for folder in made_session_cache:
+        shutil.rmtree(folder, ignore_errors=True)
+
+
+@pytest.fixture(autouse=True)
+def own_feature_cache(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The default feature cache of a test is ``tmp_path/cache``."""
+    if "tmp_path" in request.fixturenames:
+        monkeypatch.setenv("GVBENCH_CACHE", str(request.getfixturevalue("tmp_path") / "cache"))
 
 
 def is_notebook(nodeid: str) -> bool:

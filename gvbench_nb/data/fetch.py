@@ -42,6 +42,13 @@ def data_dir() -> Path:
     return Path(value).expanduser().resolve() if value else pooch.os_cache(APP_NAME) / "data"
 
 
+def cache_dir() -> Path:
+    """The feature cache of a run whose params name none: ``$GVBENCH_CACHE``, else ``cache`` in the
+    per-user cache folder. It does not follow ``--output-dir``: every output folder shares it."""
+    value = os.environ.get("GVBENCH_CACHE")
+    return Path(value).expanduser().resolve() if value else pooch.os_cache(APP_NAME) / "cache"
+
+
 @dataclass(frozen=True)
 class DataFile:
     path: str  # relative to the dataset's folder (and so to a mirror's folder of the same name)

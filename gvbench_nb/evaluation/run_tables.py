@@ -13,6 +13,7 @@ from typing import Any
 import pandas as pd
 import yaml
 
+from gvbench_nb.data import fetch
 from gvbench_nb.evaluation import reference_values
 from gvbench_nb.runner import config, method_outputs, record, scoring
 
@@ -160,7 +161,7 @@ def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool
 
 
 def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """``cache_dir``, else the one the run recorded (params.resolved.yaml), else ``<output_dir>/../cache``."""
+    """``cache_dir``, else the one the run recorded (params.resolved.yaml), else the default one."""
     if cache_dir:
         return Path(cache_dir)
     recorded = Path(output_dir) / config.RESOLVED_PARAMS_NAME
@@ -168,7 +169,7 @@ def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.Pa
         params = yaml.safe_load(recorded.read_text(encoding="utf-8")) or {}
         if isinstance(params, dict) and params.get("cache_dir"):
             return Path(params["cache_dir"])
-    return Path(output_dir).parent / "cache"
+    return fetch.cache_dir()
 
 
 class IncomparableRunsError(method_outputs.ResultsError, ValueError):

@@ -61,7 +61,7 @@ class ParamsModel(BaseModel):
     device: Annotated[str, StringConstraints(pattern=DEVICE_PATTERN)] = _what(
         "'auto', 'cpu', 'cuda', 'cuda:N' or 'mps'", default="auto"
     )  # auto = cuda when available, else cpu
-    cache_dir: PathValue | None = _what("a folder path or null", default=None)  # None: <output_dir>/../cache
+    cache_dir: PathValue | None = _what("a folder path or null", default=None)  # None: fetch.cache_dir()
     verifier: dict[str, Any] = _what("a mapping of verifier conf keys to values", default={})  # methods.VERIFIER
     allow_damaged_images: bool = _what("true or false", default=False)  # score images whose decoder warns
 
@@ -218,7 +218,7 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
         value = Path(_expand(str(value), str(path), key)).expanduser()
         params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
     if params["cache_dir"] is None:
-        params["cache_dir"] = str(Path(params["output_dir"]).parent / "cache")
+        params["cache_dir"] = str(fetch.cache_dir())
     check_environment()
     return params
 
@@ -235,12 +235,12 @@ def check_environment() -> None:
         max_pixels()
     except (ValueError, ImageReadError) as error:
         raise SettingError(str(error)) from None
-    value = os.environ.get("GVBENCH_DATA") or ""
-    if "\0" in value or (value and Path(value).expanduser().is_file()):
-        raise SettingError(
-            f"the environment variable GVBENCH_DATA (the data folder) must name a folder, got {value!r}; "
-            "fix or unset it"
-        )
+    for name, what in (("GVBENCH_DATA", "the data folder"), ("GVBENCH_CACHE", "the feature cache")):
+        value = os.environ.get(name) or ""
+        if "\0" in value or (value and Path(value).expanduser().is_file()):
+            raise SettingError(
+                f"the environment variable {name} ({what}) must name a folder, got {value!r}; fix or unset it"
+            )
 
 
 RESOLVED_PARAMS_NAME = "params.resolved.yaml"

@@ -74,6 +74,11 @@ def image_key(image_root: Path, name: str) -> str:
     return content_key(Path(image_root) / name)
 
 
+def content_keys(sequence: Sequence) -> set[str]:
+    """The different contents of the sequence's images: byte-identical files are one, extracted once."""
+    return {image_key(sequence.image_root, name) for name in sequence.images}
+
+
 def first_pair_using(sequence: Sequence, name: str) -> str:
     """'pair N: query reference' of the first pair that uses image ``name`` (for errors)."""
     index, pair = next((i, p) for i, p in enumerate(sequence.pairs) if name in (p.query, p.reference))

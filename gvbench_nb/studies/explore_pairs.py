@@ -85,6 +85,11 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
     return view
 
 
+def shown_table(view: pd.DataFrame) -> Any:
+    """The pair's table as the notebook shows it: its rows are methods, so pandas' row numbers are hidden."""
+    return view.style.hide(axis="index")
+
+
 def batch_execution() -> bool:
     """Whether this kernel runs a notebook in batch (papermill, nbmake and nbconvert start
     it through nbclient, which passes an in-memory history file), not a live session."""
@@ -282,7 +287,7 @@ class ExploreControls:
             area = self.areas[name]
             area.clear_output(wait=True)
             with area:
-                display(self.drawn[name])
+                display(shown_table(self.drawn[name]) if name == "table" else self.drawn[name])
         # Last, naming every control: once it reads so, every view shows that choice.
         everything = "" if self.methods.value else " (none selected: all shown)"
         self._say(

@@ -225,6 +225,7 @@ def test_an_image_root_typed_on_the_command_line_is_never_rendered_into(tmp_path
         ("GVBENCH_THREADS", "-1"),
         ("GVBENCH_MAX_PIXELS", "abc"),
         ("GVBENCH_DATA", "file"),
+        ("GVBENCH_CACHE", "file"),
     ],
 )
 def test_a_bad_environment_variable_is_one_sentence_naming_it_before_any_folder(

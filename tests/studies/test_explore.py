@@ -272,7 +272,7 @@ def test_explore_refuses_a_folder_that_is_no_finished_run_in_one_sentence(tmp_pa
 def test_the_recorded_cache_is_found_without_cache_dir(tmp_path):
     out = tmp_path / "outputs" / "seq"
     out.mkdir(parents=True)
-    assert run_tables.resolve_cache_dir(out) == tmp_path / "outputs" / "cache"  # no record: the default
+    assert run_tables.resolve_cache_dir(out) == tmp_path / "cache"  # no record: the default ($GVBENCH_CACHE)
     (out / "params.resolved.yaml").write_text(f"sequence: seq\ncache_dir: {tmp_path / 'elsewhere'}\n")
     assert run_tables.resolve_cache_dir(out) == tmp_path / "elsewhere"
     assert run_tables.resolve_cache_dir(out, tmp_path / "given") == tmp_path / "given"

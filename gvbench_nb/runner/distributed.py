@@ -329,8 +329,9 @@ def check_workers(client: Any, params: dict[str, Any], sequence: Sequence) -> No
         if isinstance(view, BaseException):
             differences = [f"cannot run gvbench_nb's check of the workers ({type(view).__name__}: {view})"]
         else:
+            seen = {key: view.get(key, "missing") for key in here}  # a worker of another version may see less
             differences = [
-                _difference(key, view[key], here[key], image, folders, marks) for key in here if view[key] != here[key]
+                _difference(key, seen[key], here[key], image, folders, marks) for key in here if seen[key] != here[key]
             ]
         if differences:
             raise ShardError(

@@ -281,12 +281,13 @@ def run_sharded(
 
 
 def package_code() -> str:
-    """This process's gvbench_nb: its version and a digest of every file of the package."""
+    """This process's gvbench_nb: its version and a digest of the files it ships (code, recipes, tables:
+    a checkout and its wheel agree; an editor's backup or a cache file beside them does not count)."""
     import gvbench_nb
 
     root = Path(gvbench_nb.__file__).parent
     digest = hashlib.blake2b(digest_size=6)
-    for path in sorted(p for p in root.rglob("*") if p.is_file() and "__pycache__" not in p.parts):
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".csv", ".json", ".yaml") and p.is_file()):
         digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
     return f"{gvbench_nb.__version__} (code {digest.hexdigest()})"
 

@@ -104,6 +104,8 @@ def command_run(args: argparse.Namespace) -> int:
     record.check_owned(output_dir)
     sequence = sequence_build.prepare_sequence(params)
     sequence.check_images()
+    if getattr(args, "dask", False) and args.scheduler:  # its workers share the folders this run is to make
+        distributed.check_cluster(args.scheduler, params, sequence)
     input_checks.check_writable_folder(params, "output_dir")
     input_checks.check_writable_folder(params, "cache_dir")
     # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
@@ -111,7 +113,10 @@ def command_run(args: argparse.Namespace) -> int:
     announce_run(params, sequence)
     record.claim(output_dir)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
-        return distributed.run_from_cli(args, params)
+        distributed.run_from_cli(args, params)
+        if not getattr(args, "shard", None):  # a merge, or a Dask run, ends with the folder's table
+            print_run_results(output_dir)
+        return 0
     lock = record.FolderLock(output_dir)
     lock.acquire()  # one run writes a folder at a time: a second is refused here
     stage = None

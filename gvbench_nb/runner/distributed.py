@@ -6,7 +6,9 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import hashlib
 import os
+import tempfile
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -20,7 +22,7 @@ from gvbench_nb.runner import concurrency, image_features, method_runs, pair_mat
 
 
 class ShardError(GVBenchError, RuntimeError):
-    """A shard failed, or the merge found pairs that no shard has finished."""
+    """A shard failed, a Dask worker lacks what the shards need, or the merge found pairs no shard has finished."""
 
 
 # ------------------------------------------------------------------------ shards --
@@ -100,25 +102,53 @@ def merge_method(
     seed: int = 0,
     device: str = "auto",
     shards: list[dict[str, Any]] | None = None,
+    cached: dict[str, dict[str, int]] | None = None,
 ) -> pd.DataFrame:
-    """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores."""
+    """Phase 3: the full sequence's ``pairs.csv`` and ``run.json`` from the shared stores; ``cached``
+    (``cached_work`` before the shards ran) gives ``run.json`` the counts its timers are told from."""
     from gvbench_nb.protocol.features.base import resolve_device  # imports torch
 
-    store = pair_matching.match_store(output_dir, conf)
-    store.refresh()
-    missing = [pair for pair, key in pair_matching.pair_keys(sequence, seed).items() if key not in store]
-    store.close()
+    missing = missing_pairs(sequence, conf, output_dir, seed)
     if missing:
         first = sequence.pairs.index(missing[0])
         raise ShardError(
             f"cannot merge {conf['method']} on {sequence.name}: {len(missing)} of {len(sequence.pairs)} pairs have "
-            f"no result in {store.folder} (first: pair {first}, "
+            f"no result in {pair_matching.match_store(output_dir, conf).folder} (first: pair {first}, "
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
     environment = concurrency.environment_info(resolve_device(device))
-    sharding = {"sharded": True, "n_shards": len(shards or []), "shards": shards or []}
+    sharding = {"sharded": True, "n_shards": len(shards or []), "shards": shards or [], **(cached or {})}
     return method_runs.write_results(output_dir, sequence, conf, seed, environment, sharding, cache_dir)
+
+
+def missing_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Any]:
+    """The pairs of ``sequence`` that the method's match store holds no result for."""
+    store = pair_matching.match_store(output_dir, conf)
+    store.refresh()
+    missing = [pair for pair, key in pair_matching.pair_keys(sequence, seed).items() if key not in store]
+    store.close()
+    return missing
+
+
+def cached_work(
+    sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int
+) -> dict[str, dict[str, int]]:
+    """The images and pairs of a method that the caches hold before a run, counted as ``compute_method``
+    counts them; once the run's shards have done the rest, the counts of its whole work (``scoring.timers_source``)."""
+    images = cached_images = 0
+    if conf["extractor"]:
+        store = image_features.feature_store(cache_dir, conf["extractor"])
+        store.refresh()
+        keys = {image_features.image_key(sequence.image_root, name) for name in sequence.images}
+        images, cached_images = len(keys), sum(key in store for key in keys)
+        store.close()
+    pairs = len(sequence.pairs)
+    cached_pairs = pairs - len(missing_pairs(sequence, conf, output_dir, seed))
+    return {
+        "extraction": {"images": images, "cached": cached_images, "extracted": images - cached_images},
+        "matching": {"pairs": pairs, "cached": cached_pairs, "matched": pairs - cached_pairs},
+    }
 
 
 def kept_methods(params: dict[str, Any], sequence: Sequence) -> list[str]:
@@ -160,8 +190,12 @@ def run_shard(
     return done
 
 
-def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] | None = None) -> pd.DataFrame:
-    """Merge every method of a params file, then evaluate (``run --merge``)."""
+def merge_runs(
+    params: dict[str, Any],
+    shards: dict[str, list[dict[str, Any]]] | None = None,
+    cached: dict[str, dict[str, dict[str, int]]] | None = None,
+) -> pd.DataFrame:
+    """Merge every method of a params file, then evaluate (``run --merge``; ``cached`` by method: ``merge_method``)."""
     from gvbench_nb.runner.sequence_build import prepare_sequence
 
     sequence = prepare_sequence(params)
@@ -171,8 +205,9 @@ def merge_runs(params: dict[str, Any], shards: dict[str, list[dict[str, Any]]] |
         for method in params["methods"]:
             conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
             merge_method(
-                sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method)
-            )
+                sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method),
+                (cached or {}).get(method),
+            )  # fmt: skip
         return scoring.evaluate(output_dir, [*params["methods"], *kept])
 
 
@@ -219,6 +254,14 @@ def run_sharded(
         # Each core used by one task's threads: more makes torch spin-wait (2-5x slower).
         threads = max(1, (os.cpu_count() or 1) // (n_workers or os.cpu_count() or 1))
     with dask_client(scheduler, n_workers, processes) as client:
+        check_workers(client, params, sequence)
+        cached = {
+            method: cached_work(
+                sequence, method_registry.resolve_method(method, params["profile"], params.get("verifier")),
+                Path(params["cache_dir"]), Path(params["output_dir"]), params["seed"],
+            )
+            for method in params["methods"]
+        }  # fmt: skip
         matching = _submit_shards(client, params, sequence, n_shards, threads)
         bar = tqdm(total=sum(len(f) for f in matching.values()), desc="shards", unit="shard", disable=not progress)
         shards: dict[str, list[dict[str, Any]]] = {}
@@ -234,7 +277,78 @@ def run_sharded(
                     ) from error
                 bar.update()
         bar.close()
-        return merge_runs(params, shards)
+        return merge_runs(params, shards, cached)
+
+
+def package_code() -> str:
+    """This process's gvbench_nb: its version and a digest of the files it ships (code, recipes, tables:
+    a checkout and its wheel agree; an editor's backup or a cache file beside them does not count)."""
+    import gvbench_nb
+
+    root = Path(gvbench_nb.__file__).parent
+    digest = hashlib.blake2b(digest_size=6)
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".csv", ".json", ".yaml") and p.is_file()):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return f"{gvbench_nb.__version__} (code {digest.hexdigest()})"
+
+
+def shared_view(image: str, marks: dict[str, str]) -> dict[str, str]:
+    """What a Dask worker must see as the submitting process does: the package, the bytes of an image
+    of the sequence, and the files the submitting process placed in the shared folders (``marks``)."""
+    view = {"gvbench_nb": package_code()}
+    try:
+        view["image root"] = image_features.content_key(image)
+    except GVBenchError:
+        view["image root"] = "missing"
+    return view | {name: "present" if Path(mark).is_file() else "missing" for name, mark in marks.items()}
+
+
+def check_cluster(scheduler: str, params: dict[str, Any], sequence: Sequence) -> None:
+    """``check_workers`` on the cluster of ``scheduler`` (``run --dask --scheduler``, before any folder is made)."""
+    with dask_client(scheduler) as client:
+        check_workers(client, params, sequence)
+
+
+def check_workers(client: Any, params: dict[str, Any], sequence: Sequence) -> None:
+    """Refuse, in one sentence and before any work, a Dask cluster without workers, or a worker
+    that sees another package or other images or folders than this process (``shared_view``)."""
+    image = str(Path(sequence.image_root) / sequence.images[0])
+    folders = {"cache folder": Path(params["cache_dir"]), "output folder": Path(params["output_dir"])}
+    with contextlib.ExitStack() as placed:
+        marks = {}
+        for name, folder in folders.items():  # in the folder, or where it will be made
+            existing = next(p for p in (folder, *folder.parents) if p.is_dir())
+            marks[name] = placed.enter_context(tempfile.NamedTemporaryFile(dir=existing, prefix=".write-check-")).name
+        here = shared_view(image, marks)
+        views = client.run(shared_view, image, marks, on_error="return")
+    if not views:
+        address = client.scheduler.address
+        raise ShardError(
+            f"the Dask scheduler {address} has no workers: start them (dask worker {address}), then run again"
+        )
+    for worker, view in sorted(views.items()):
+        if isinstance(view, BaseException):
+            differences = [f"cannot run gvbench_nb's check of the workers ({type(view).__name__}: {view})"]
+        else:
+            seen = {key: view.get(key, "missing") for key in here}  # a worker of another version may see less
+            differences = [
+                _difference(key, seen[key], here[key], image, folders, marks) for key in here if seen[key] != here[key]
+            ]
+        if differences:
+            raise ShardError(
+                f"Dask worker {worker} {' and '.join(differences)}: every worker needs this package at the same "
+                "version and code, and the image root, cache folder and output folder at the same paths on a "
+                "shared filesystem (docs/speed.md)"
+            )
+
+
+def _difference(key: str, there: str, here: str, image: str, folders: dict[str, Path], marks: dict[str, str]) -> str:
+    if key == "gvbench_nb":
+        return f"runs gvbench_nb {there} where this process runs {here}"
+    if key == "image root":
+        return f"does not see the image {image}" if there == "missing" else f"reads other bytes in the image {image}"
+    written = Path(marks[key]).parent
+    return f"does not see the {key} {folders[key]} as this process does (a file written in {written} is missing there)"
 
 
 def _submit_shards(
@@ -315,11 +429,8 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
     dask_workers = args.dask_workers or os.cpu_count() or 1
     with record.FolderLock(params["output_dir"]):  # refused before any work while another run writes the folder
         if args.merge:
-            results = merge_runs(params)
+            merge_runs(params)
         else:
             n_shards = args.shards or 2 * dask_workers
-            results = run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
-    columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair"]
-    print(results[columns].to_string(index=False))
-    print(f"results table: {Path(params['output_dir']) / 'results.csv'}")
+            run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
     return 0

@@ -115,7 +115,7 @@ def command_run(args: argparse.Namespace) -> int:
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
         distributed.run_from_cli(args, params)
         if not getattr(args, "shard", None):  # a merge, or a Dask run, ends with the folder's table
-            print_run_results(output_dir)
+            print_run_results(output_dir, params["methods"])
         return 0
     lock = record.FolderLock(output_dir)
     lock.acquire()  # one run writes a folder at a time: a second is refused here

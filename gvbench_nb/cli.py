@@ -175,7 +175,7 @@ def command_data(args: argparse.Namespace) -> int:
                 f"({count} placed now, {len(dataset.files) - count} already there)"
             )
         return 0
-    image_root = str(Path(args.image_root).resolve()) if args.image_root else None
+    image_root = str(config.real_path(args.image_root)) if args.image_root else None
     try:
         params = config.load_params(args.params, image_root=image_root)
     except config.ParamsError as error:
@@ -364,8 +364,7 @@ def check_before_work(args: argparse.Namespace) -> None:
         from gvbench_nb.runner import config, distributed, input_checks
 
         try:  # the scale-out options, before the params and any folder
-            if args.shard:
-                distributed.parse_shard(args.shard)
+            distributed.check_scale_out_options(args)
         except ValueError as error:
             raise config.ParamsError(str(error)) from None
         for flag, value in (("--shards", args.shards), ("--dask-workers", args.dask_workers)):

@@ -67,7 +67,8 @@ def check_parameters(namespace: dict[str, Any]) -> None:
         value = namespace.get(name)
         if name not in namespace or _accepts(annotation, value):
             continue
-        members = typing.get_args(annotation) or (annotation,)
+        union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+        members = typing.get_args(annotation) if union else (annotation,)
         expected = " or ".join(_KINDS.get(typing.get_origin(m) or m, str(m)) for m in members)
         message = f"notebook parameter {name} must be {expected}, got {value!r}"
         wanted = next(
@@ -83,7 +84,7 @@ def check_parameters(namespace: dict[str, Any]) -> None:
 
 
 def as_list(value: PathLike | Iterable[PathLike] | None) -> list[str]:
-    """A papermill parameter that may be one path (``-p name path`` passes a string) or a list."""
+    """One path or a list of them, as code passes them (a notebook declaring a list refuses a string)."""
     if value is None:
         return []
     if isinstance(value, (str, os.PathLike)):

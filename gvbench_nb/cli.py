@@ -123,7 +123,7 @@ def command_build(args: argparse.Namespace) -> int:
             args.params,
             descriptor=args.descriptor,
             top_n=args.top_n,
-            pairs=str(Path(args.pairs).resolve()) if args.pairs else None,
+            pairs=str(config.real_path(args.pairs)) if args.pairs else None,
         )
         card = sequence_build.build_sequence(params)
     except (build_inputs.BuildError, config.ParamsError) as error:

@@ -125,7 +125,7 @@ def command_build(args: argparse.Namespace) -> int:
             args.params,
             descriptor=args.descriptor,
             top_n=args.top_n,
-            pairs=str(Path(args.pairs).resolve()) if args.pairs else None,
+            pairs=str(config.real_path(args.pairs)) if args.pairs else None,
         )
         card = sequence_build.build_sequence(params)
     except (build_inputs.BuildError, config.ParamsError) as error:
@@ -177,7 +177,7 @@ def command_data(args: argparse.Namespace) -> int:
                 f"({count} placed now, {len(dataset.files) - count} already there)"
             )
         return 0
-    image_root = str(Path(args.image_root).resolve()) if args.image_root else None
+    image_root = str(config.real_path(args.image_root)) if args.image_root else None
     try:
         params = config.load_params(args.params, image_root=image_root)
     except config.ParamsError as error:
@@ -376,8 +376,7 @@ def check_before_work(args: argparse.Namespace) -> None:
         from gvbench_nb.runner import config, distributed, input_checks
 
         try:  # the scale-out options, before the params and any folder
-            if args.shard:
-                distributed.parse_shard(args.shard)
+            distributed.check_scale_out_options(args)
         except ValueError as error:
             raise config.ParamsError(str(error)) from None
         for flag, value in (("--shards", args.shards), ("--dask-workers", args.dask_workers)):

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import os
 import shlex
+import types
+import typing
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
@@ -40,8 +42,49 @@ class AnalysisInputs(NamedTuple):
     figures: Path  # where the notebook writes its figures and tables (created)
 
 
+class ParameterError(GVBenchError, TypeError):
+    """A notebook parameter holds a value of another type than its parameters cell declares."""
+
+
+def _accepts(annotation: Any, value: Any) -> bool:
+    """Whether ``value`` is of the parameters cell's ``annotation`` (an int is a number too, a bool is not)."""
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return any(_accepts(member, value) for member in typing.get_args(annotation))
+    kind = typing.get_origin(annotation) or annotation
+    if kind in (int, float):
+        return isinstance(value, (int, float) if kind is float else int) and not isinstance(value, bool)
+    return isinstance(value, kind) if isinstance(kind, type) else True
+
+
+_KINDS = {list: "a list", dict: "a mapping", str: "text", int: "a whole number", float: "a number"}
+_KINDS.update({bool: "True or False", type(None): "None"})
+
+
+def check_parameters(namespace: dict[str, Any]) -> None:
+    """Refuse, in one sentence, a parameter of another type than its annotation in the notebook's
+    ``globals()``: papermill's ``-p`` passes text, so a list or a mapping is given with ``-y``."""
+    for name, annotation in namespace.get("__annotations__", {}).items():
+        value = namespace.get(name)
+        if name not in namespace or _accepts(annotation, value):
+            continue
+        union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+        members = typing.get_args(annotation) if union else (annotation,)
+        expected = " or ".join(_KINDS.get(typing.get_origin(m) or m, str(m)) for m in members)
+        message = f"notebook parameter {name} must be {expected}, got {value!r}"
+        wanted = next(
+            (kind for kind in (list, dict) if any((typing.get_origin(m) or m) is kind for m in members)), None
+        )
+        if isinstance(value, str) and wanted is not None:
+            brackets = "[]" if wanted is list else "{}"
+            text = value if value.strip()[:1] == brackets[0] else f"{brackets[0]}{value}{brackets[1]}"
+            message += (
+                f": papermill's -p passes text, give {expected} with -y, e.g. -y {shlex.quote(f'{name}: {text}')}"
+            )
+        raise ParameterError(message)
+
+
 def as_list(value: PathLike | Iterable[PathLike] | None) -> list[str]:
-    """A papermill parameter that may be one path (``-p name path`` passes a string) or a list."""
+    """One path or a list of them, as code passes them (a notebook declaring a list refuses a string)."""
     if value is None:
         return []
     if isinstance(value, (str, os.PathLike)):
@@ -80,26 +123,42 @@ def stale_results(output_dir: PathLike) -> bool:
 
 
 def params_keys(namespace: dict[str, Any]) -> dict[str, Any]:
-    """The params-file keys a notebook's parameters set (not None), from its ``globals()``."""
+    """The params-file keys a notebook's parameters set (not None), from its ``globals()``, whose
+    parameters are checked first (``check_parameters``)."""
+    check_parameters(namespace)
     keys = [*config.REQUIRED_KEYS, *config.OPTIONAL_KEYS]
     return {key: namespace[key] for key in keys if namespace.get(key) is not None}
 
 
+def shipped_params_file(sequence: str) -> Path | None:
+    """The repository's params file (``params/*.yaml``) of ``sequence``, if any."""
+    files = sorted(DEFAULT_PARAMS_FILE.parent.glob("*.yaml"))
+    return next((p for p in files if config.read_yaml_mapping(p).get("sequence") == sequence), None)
+
+
 def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
-    """``params_file`` with ``keys`` (not None) replacing its own; without it, the params/ file of
-    ``sequence`` (papermill's ``-f params/NAME.yaml`` passes its keys), else params/sample.yaml."""
+    """``params_file`` with ``keys`` (not None) replacing its own. Without it, keys naming a
+    repository params file's sequence and setting every key that file sets (``papermill -f
+    params/NAME.yaml``) read as that file; any other keys holding every required one (``-f ANY.yaml``)
+    are the params, relative paths read from the working folder; fewer keys replace those of their
+    sequence's repository file, else of params/sample.yaml."""
     given = {key: value for key, value in keys.items() if value is not None}
     if params_file is None and "sequence" in given:
-        folder = DEFAULT_PARAMS_FILE.parent
-        named = [
-            p for p in sorted(folder.glob("*.yaml")) if config.read_yaml_mapping(p).get("sequence") == given["sequence"]
-        ]
-        if not named:
+        shipped = shipped_params_file(given["sequence"])
+        whole = all(key in given for key in config.REQUIRED_KEYS)
+        if whole and (shipped is None or not set(config.read_yaml_mapping(shipped)) <= set(given)):
+            folder = Path.cwd()
+            print(f"params: the notebook's parameters (no params_file); relative paths are read from {folder}")
+            return config.resolve_params(given, "the notebook's parameters", folder)
+        if shipped is None:
+            missing = [key for key in config.REQUIRED_KEYS if key not in given]
             raise config.ParamsError(
-                f"no params file in {folder} is of sequence {given['sequence']!r}: pass the params file of these "
-                "parameters with them (-p params_file PATH); relative paths are read from its folder"
+                f"the notebook's parameters lack {', '.join(missing)}, and no params file in "
+                f"{DEFAULT_PARAMS_FILE.parent} is of sequence {given['sequence']!r}: give every key "
+                "(-f PARAMS.yaml), or the params file of these parameters (-p params_file PATH)"
             )
-        params_file = named[0]
+        params_file = shipped
+        print(f"params: {shipped} with the notebook's parameters; relative paths are read from {shipped.parent}")
     return config.load_params(params_file or DEFAULT_PARAMS_FILE, **given)
 
 

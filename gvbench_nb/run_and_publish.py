@@ -103,6 +103,7 @@ def command_run(args: argparse.Namespace) -> int:
     # Whose folder it is, before anything is written there.
     record.check_owned(output_dir)
     sequence = sequence_build.prepare_sequence(params)
+    input_checks.check_labels_defined(sequence, params)
     sequence.check_images()
     if getattr(args, "dask", False) and args.scheduler:  # its workers share the folders this run is to make
         distributed.check_cluster(args.scheduler, params, sequence)
@@ -155,9 +156,11 @@ def command_run(args: argparse.Namespace) -> int:
                 "finishes the move (run it again)"
             )
         elif stage is not None and stage.is_dir():
+            published = (record.read_record(output_dir) or {}).get("files")
+            holding = "still holds the previous run's results" if published else "holds no results (none were before)"
             log.warning(
-                f"the run did not finish: {output_dir} still holds the previous run's results; this run's partial "
-                f"work and executed notebooks are in {stage}"
+                f"the run did not finish: {output_dir} {holding}; this run's partial work and executed notebooks "
+                f"are in {stage}"
             )
         raise
     finally:
@@ -233,7 +236,7 @@ def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:
     def absolute(path: str | None, flag: str) -> str | None:
         if path is not None and not path.strip():  # "" would silently mean the params file's folder
             raise config.ParamsError(f"{flag} is empty; give a folder, or leave {flag} out to use the params file's")
-        return str(Path(path).resolve()) if path else None
+        return str(config.real_path(path)) if path else None
 
     return config.load_params(
         args.params,

@@ -26,6 +26,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 from IPython.display import Markdown, display
 
+from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
 from gvbench_nb.runner import sequence_build
 from gvbench_nb.studies import build_sequence as build_study
@@ -47,6 +48,7 @@ output_dir: Optional[str] = None  # figures go here; default: the params file's 
 # them.
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 params = sequence_build.load_build_params(params_file, descriptor=descriptor, top_n=top_n, output_dir=output_dir)
 figures = Path(params["output_dir"])
 card = sequence_build.build_sequence(params)

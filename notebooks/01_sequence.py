@@ -19,7 +19,7 @@
 
 # %%
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Union
 
 import matplotlib.pyplot as plt
 import pandas as pd
@@ -31,14 +31,15 @@ from gvbench_nb.evaluation import plots
 # %% tags=["parameters"]
 params_file: Optional[str] = None  # a params YAML; None: the repository's params/sample.yaml
 # Each key of a params file (`papermill -f PARAMS.yaml` passes them all), replacing params_file's;
-# None: params_file's. Relative paths are relative to params_file's folder, as in the file.
+# None: params_file's. Relative paths are relative to params_file's folder, as in the file; without
+# params_file, every key given (-f ANY.yaml): relative to the working folder (the notebook prints which).
 sequence: Optional[str] = None
 description: Optional[str] = None
 pairs_builder: Optional[str] = None
 builder_options: Optional[dict] = None
 image_root: Optional[str] = None
 pairs: Optional[str] = None
-methods: Optional[list] = None
+methods: Union[str, list, None] = None  # a list, or names separated by commas
 profile: Optional[str] = None  # 'paper' or 'repository'
 output_dir: Optional[str] = None
 cache_dir: Optional[str] = None

@@ -31,7 +31,8 @@ from gvbench_nb.runner import scoring
 # %% tags=["parameters"]
 params_file: Optional[str] = None  # a params YAML; None: the repository's params/sample.yaml
 # Each key of a params file (`papermill -f PARAMS.yaml` passes them all), replacing params_file's;
-# None: params_file's. Relative paths are relative to params_file's folder, as in the file.
+# None: params_file's. Relative paths are relative to params_file's folder, as in the file; without
+# params_file, every key given (-f ANY.yaml): relative to the working folder (the notebook prints which).
 sequence: Optional[str] = None
 description: Optional[str] = None
 pairs_builder: Optional[str] = None

@@ -60,6 +60,7 @@ output_dir: str = "../outputs/condition_sweep_nbmake"
 # pair counts (the same in every cell).
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 out = Path(output_dir)
 sweep = condition_sweep.run_sweep(
     out,

@@ -22,6 +22,8 @@
 # recall@1 after GV, and the queries that would close a false loop.
 
 # %%
+from typing import Optional
+
 import matplotlib.pyplot as plt
 from IPython.display import Markdown, display
 
@@ -31,17 +33,18 @@ from gvbench_nb.studies import deployment
 
 # %% tags=["parameters"]
 # sequence output folders holding results.csv (one a sequence); each calibrates every one
-output_dirs = ["../outputs/sample"]
+output_dirs: list = ["../outputs/sample"]
 # params files whose output folders must hold ensure_methods' results ([]: no check)
-params_files = ["../params/sample.yaml"]
-ensure_methods = ["sift-nn"]
+params_files: list = ["../params/sample.yaml"]
+ensure_methods: list = ["sift-nn"]
 # True: run ensure_methods where their pairs.csv is missing; False: an error naming
 # the command that makes them
-compute_missing = False
-output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
-calibrations = None  # sequences the thresholds are fixed on; None: every one
+compute_missing: bool = False
+output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+calibrations: Optional[list] = None  # sequences the thresholds are fixed on; None: every one
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 output_dirs, results, figures = notebook.load_results(
     output_dirs,
     output_dir,

@@ -59,6 +59,7 @@ max_train_pairs: int = 32
 n_resamples: int = 1000  # query-bootstrap resamples for the 95% CIs
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 bench = notebook.open_verifier_bench(
     results_dir,
     method,

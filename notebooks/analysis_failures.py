@@ -48,6 +48,7 @@ near_top_k: int = 20  # how many top false positives are checked for near misses
 cache_dir: Optional[str] = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 output_dirs, results, figures = notebook.load_results(
     output_dirs,
     output_dir,

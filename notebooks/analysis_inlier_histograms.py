@@ -38,6 +38,7 @@ compute_missing: bool = False
 output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 output_dirs, results, figures = notebook.load_results(
     output_dirs,
     output_dir,

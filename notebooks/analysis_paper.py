@@ -21,6 +21,8 @@
 # lists found in the data folder.
 
 # %%
+from typing import Optional
+
 import matplotlib.pyplot as plt
 from IPython.display import display
 
@@ -29,18 +31,19 @@ from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.studies import paper
 
 # %% tags=["parameters"]
-output_dirs = ["../outputs/sample"]  # sequence output folders holding results.csv
+output_dirs: list = ["../outputs/sample"]  # sequence output folders holding results.csv
 # params files whose output folders must hold ensure_methods' results ([]: no check)
-params_files = ["../params/sample.yaml"]
-ensure_methods = ["sift-nn"]
+params_files: list = ["../params/sample.yaml"]
+ensure_methods: list = ["sift-nn"]
 # True: run ensure_methods where their pairs.csv is missing; False: an error naming
 # the command that makes them
-compute_missing = False
-output_dir = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
+compute_missing: bool = False
+output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
 # the folder of the official GV-Bench lists (<name>.txt); None: gvbench_gt in the data folder
-lists_dir = None
+lists_dir: Optional[str] = None
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 output_dirs, results, figures = notebook.load_results(
     output_dirs,
     output_dir,

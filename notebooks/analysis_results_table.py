@@ -44,6 +44,7 @@ output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are w
 paper_table: Optional[str] = None
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 output_dirs, results, figures = notebook.load_results(
     output_dirs,
     output_dir,

@@ -43,6 +43,7 @@ n_resamples: int = 1000
 seed: int = 0
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 output_dirs, results, figures = notebook.load_results(
     output_dirs,
     output_dir,

@@ -60,6 +60,7 @@ n_resamples: int = 1000  # query-bootstrap resamples for the 95% CIs
 verifier_names: Optional[list] = None  # None: every verifier in alternative_verifiers.ALTERNATIVE_VERIFIERS
 
 # %%
+notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
 bench = notebook.open_verifier_bench(
     results_dir,
     method,

@@ -99,6 +99,28 @@ def check_pixel_bound(path: str | os.PathLike[str]) -> None:
         )
 
 
+# A run refuses images with a side under this many pixels before any work: some extractors fail
+# on them (OpenCV's ORB on a 1 x 1 image, DISK under the paper's profile on a 16 x 16 one).
+MIN_SIDE = 32
+
+
+def check_min_side(path: str | os.PathLike[str]) -> None:
+    """Refuse an image whose header says a side is under ``MIN_SIDE`` pixels (one Pillow cannot
+    open is left to the decoder)."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as image:  # lazy: the pixels are not read
+            width, height = image.size
+    except Exception:
+        return
+    if min(width, height) < MIN_SIDE:
+        raise ImageReadError(
+            f"image {path} is {width} x {height} pixels, too small to verify (the extractors need at least "
+            f"{MIN_SIDE} pixels a side); replace it, or remove the pairs that use it from the pair file"
+        )
+
+
 def read_image(path: str | os.PathLike[str], grayscale: bool = False, exif_orientation: bool = False) -> np.ndarray:
     """Read an image as uint8 RGB (H, W, 3) or gray (H, W); odd formats are converted, bad files
     raise ``ImageReadError``. ``exif_orientation``: turn it as hloc's ``cv2.imread`` does (the

@@ -16,6 +16,17 @@ class MetricsUndefinedError(GVBenchError, ValueError):
     """AP and MR are undefined: the pairs have no positives or no negatives."""
 
 
+def check_defined(labels: Any, where: str) -> None:
+    """Raise ``MetricsUndefinedError`` unless the 0/1 ``labels`` hold both a positive and a negative."""
+    n_positive, count = int(np.sum(labels)), len(labels)
+    if n_positive == 0 or n_positive == count:
+        kind = "positives" if n_positive == 0 else "negatives"
+        raise MetricsUndefinedError(
+            f"{where}: {count} pairs with no {kind}: AP and MR are undefined; "
+            "use pairs with both true and false loop closures (check the labels or --limit)"
+        )
+
+
 def _check(labels: np.ndarray, scores: np.ndarray, where: str) -> tuple[np.ndarray, np.ndarray]:
     labels = np.asarray(labels).astype(int).ravel()
     scores = np.asarray(scores, dtype=np.float64).ravel()
@@ -23,13 +34,7 @@ def _check(labels: np.ndarray, scores: np.ndarray, where: str) -> tuple[np.ndarr
         raise ValueError(f"{where}: {len(labels)} labels but {len(scores)} scores")
     if not np.isin(labels, (0, 1)).all():
         raise ValueError(f"{where}: labels must be 0 or 1")
-    n_positive = int(labels.sum())
-    if n_positive == 0 or n_positive == len(labels):
-        kind = "positives" if n_positive == 0 else "negatives"
-        raise MetricsUndefinedError(
-            f"{where}: {len(labels)} pairs with no {kind}: AP and MR are undefined. "
-            "Use pairs with both true and false loop closures (check the labels or --limit)."
-        )
+    check_defined(labels, where)
     if not np.isfinite(scores).all():
         raise ValueError(f"{where}: scores contain NaN or infinity")
     return labels, scores

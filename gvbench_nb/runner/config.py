@@ -37,6 +37,15 @@ DEVICE_PATTERN = r"^(auto|cpu|mps|cuda(:\d+)?)$"
 PAIR_BUILDER_NAMES = ("sample", "frame_tolerance", "retrieval")  # sequence_build.PAIR_BUILDERS makes each
 
 
+def real_path(path: str | os.PathLike[str]) -> Path:
+    """``path`` absolute with its links followed (``Path.resolve()``); a link loop stays as given, made
+    absolute, for ``path_problem`` to name (``resolve`` raises ``RuntimeError`` there)."""
+    try:
+        return Path(path).resolve()
+    except (RuntimeError, OSError):
+        return Path(os.path.abspath(path))
+
+
 def _what(text: str, **kwargs: Any) -> Any:
     """A field whose ``description`` is what a refusal says its value must be."""
     return Field(description=text, **kwargs)
@@ -72,7 +81,7 @@ OPTIONAL_KEYS: dict[str, Any] = {
 }
 
 
-def _validate(params: dict[str, Any], path: Path) -> None:
+def _validate(params: dict[str, Any], path: str) -> None:
     """Validate on ``ParamsModel``; its errors become the one sentence a user reads: unknown keys,
     else missing keys, else each wrong value with what it must be (an option's before the file's)."""
     try:
@@ -168,7 +177,7 @@ def blame(params: dict[str, Any], key: str) -> str:
 def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any]:
     """Read, validate and resolve a params file; ``overrides`` (not None) replace keys and are
     listed in ``params["overridden"]``, so a wrong one is blamed on its option."""
-    path = Path(path).resolve()
+    path = real_path(path)
     if path.is_dir():
         examples = sorted(p.name for p in path.glob("*.yaml"))[:3]
         raise ParamsError(
@@ -178,11 +187,17 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
     if not path.is_file():
         problem = path_problem(path) or "is not a regular file"
         raise ParamsError(f"params file {path} {problem}; give the path of a params YAML (e.g. params/sample.yaml)")
-    raw = read_yaml_mapping(path)
+    return resolve_params(read_yaml_mapping(path), str(path), path.parent, **overrides)
+
+
+def resolve_params(raw: dict[str, Any], source: str, folder: Path, **overrides: Any) -> dict[str, Any]:
+    """``load_params`` of a mapping: errors name ``source`` (its ``params_file``), relative paths are
+    read from ``folder``."""
+    raw = dict(raw)
     given = {k: v for k, v in overrides.items() if v is not None}
     raw.update(given)
-    params = {**OPTIONAL_KEYS, **raw, "params_file": str(path), "overridden": sorted(given)}
-    _validate(params, path)
+    params = {**OPTIONAL_KEYS, **raw, "params_file": source, "overridden": sorted(given)}
+    _validate(params, source)
     if name_problem(params["sequence"]):
         raise ParamsError(
             f"{blame(params, 'sequence')}: sequence {params['sequence']!r} {name_problem(params['sequence'])}, and it "
@@ -215,8 +230,8 @@ def load_params(path: str | os.PathLike[str], **overrides: Any) -> dict[str, Any
             continue
         if "\0" in str(value):
             raise ParamsError(f"{blame(params, key)}: {key} holds a NUL byte, which no path can; fix the path")
-        value = Path(_expand(str(value), str(path), key)).expanduser()
-        params[key] = str(value if value.is_absolute() else (path.parent / value).resolve())
+        value = Path(_expand(str(value), source, key)).expanduser()
+        params[key] = str(value if value.is_absolute() else real_path(folder / value))
     if params["cache_dir"] is None:
         params["cache_dir"] = str(fetch.cache_dir())
     check_environment()

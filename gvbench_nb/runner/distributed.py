@@ -413,11 +413,18 @@ def wants_scale_out(args: argparse.Namespace) -> bool:
     return bool(getattr(args, "shard", None) or getattr(args, "merge", False) or getattr(args, "dask", False))
 
 
-def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
-    """``run --shard I/N`` | ``run --merge`` | ``run --dask [--scheduler ADDR] [--shards N]``."""
+def check_scale_out_options(args: argparse.Namespace) -> None:
+    """One of --shard, --merge and --dask at most, a well-formed --shard; ``ValueError`` names the options."""
     chosen = [flag for flag, on in (("--shard", args.shard), ("--merge", args.merge), ("--dask", args.dask)) if on]
     if len(chosen) > 1:
         raise ValueError(f"choose one of --shard, --merge and --dask, not {' and '.join(chosen)}")
+    if args.shard:
+        parse_shard(args.shard)
+
+
+def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
+    """``run --shard I/N`` | ``run --merge`` | ``run --dask [--scheduler ADDR] [--shards N]``."""
+    check_scale_out_options(args)
     if args.shard:
         index, count = parse_shard(args.shard)
         run_shard(params, index, count)

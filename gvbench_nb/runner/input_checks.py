@@ -20,7 +20,8 @@ from gvbench_nb import methods as method_registry
 from gvbench_nb.data import build_inputs
 from gvbench_nb.data.sequences import PairFileError, Sequence, frame_tolerance_pairs, pair_line_numbers, read_pairs
 from gvbench_nb.io_utils import atomic_write_json, unknown_keys_hint
-from gvbench_nb.protocol.images import ImageReadError, path_problem
+from gvbench_nb.protocol import metrics
+from gvbench_nb.protocol.images import ImageReadError, check_min_side, path_problem
 from gvbench_nb.runner import config, image_features, method_outputs, record, sequence_build
 
 
@@ -40,7 +41,9 @@ _decoder_lock = threading.Lock()
 
 def decoder_message(path: str | os.PathLike[str]) -> str:
     """What the decoder says of an image ("" nothing): libjpeg/libpng warn on the process's stderr, caught
-    there during an eighth-size grey decode (every byte still entropy-decoded). Raises ``ImageReadError``."""
+    there during an eighth-size grey decode (every byte still entropy-decoded). Raises ``ImageReadError``,
+    also for an image with a side under ``MIN_SIDE`` pixels."""
+    check_min_side(path)
     data = np.fromfile(path, dtype=np.uint8)
     with _decoder_lock, tempfile.TemporaryFile() as said:
         sys.stderr.flush()
@@ -48,6 +51,8 @@ def decoder_message(path: str | os.PathLike[str]) -> str:
         os.dup2(said.fileno(), 2)
         try:
             image = cv2.imdecode(data, cv2.IMREAD_REDUCED_GRAYSCALE_8) if data.size else None
+        except cv2.error:  # OpenCV decodes it but cannot shrink it (a side under 8 pixels Pillow did not read)
+            image = None
         finally:
             os.dup2(saved, 2)
             os.close(saved)
@@ -245,6 +250,13 @@ def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
     return Sequence(params["sequence"], Path(params["image_root"]), pairs, origin={"pairs_file": params["pairs"]})
 
 
+def check_labels_defined(sequence: Sequence, params: dict[str, Any]) -> None:
+    """Refuse pairs (as ``limit`` cuts them) without a positive or a negative: AP and MR would be undefined."""
+    limited = f" (its first {params['limit']} pairs, the limit)" if params["limit"] else ""
+    where = f"{config.blame(params, 'pairs')}: the pair file {params['pairs']}{limited}"
+    metrics.check_defined([pair.label for pair in sequence.pairs], where)
+
+
 def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
     """Refuse, before any work, what a run cannot use: device, folders, weights, builder options and
     (``images``) the pair file and every image it names, each problem named as what it is."""
@@ -301,5 +313,6 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
         sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=origin).limited(
             params["limit"]
         )
+    check_labels_defined(sequence, params)  # what the pair file alone decides, before any image is read
     sequence.check_images()
     check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])

@@ -384,7 +384,7 @@ def check_image_root(params: dict[str, Any]) -> Path:
             f"in a params file of your own (its pairs_builder renders the route there)"
         )
     if params["pairs_builder"] != "sample" and not root.is_dir():  # the sample builder renders into the root
-        what = "is a file, not a folder" if root.exists() else "does not exist"
+        what = path_problem(root) or "is a file, not a folder"
         raise config.ParamsError(
             f"{source}: image_root {root} {what}"
             + (

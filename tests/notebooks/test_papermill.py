@@ -38,8 +38,10 @@ def test_a_params_files_keys_read_as_that_file_from_any_folder(monkeypatch, tmp_
     assert as_keys["pairs_builder"] == "frame_tolerance" and as_keys["limit"] == 4
     # No parameters: the repository's sample, wherever the notebook runs.
     assert notebook.load_params(None)["params_file"] == str(config.PROJECT_ROOT / "params" / "sample.yaml")
-    with pytest.raises(config.ParamsError, match="no params file in .* is of sequence 'mine'.*-p params_file"):
-        notebook.load_params(None, **{**keys, "sequence": "mine"})
+    # Every key, of a sequence no shipped file is: those keys, relative paths read from the working folder.
+    assert notebook.load_params(None, **{**keys, "sequence": "mine"})["pairs"] == str(
+        tmp_path.parent / "outputs" / "pairs" / "gardens_point.txt"
+    )
 
 
 def papermill_cli(cwd: Path, stage: str, output: Path, *arguments: str) -> subprocess.CompletedProcess:

@@ -4,14 +4,20 @@ with results.csv; an analysis notebook whose results are missing names the comma
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from helpers import check_stage_outputs
+from helpers import PAIRS, check_stage_outputs, write_params, write_root
 
+from gvbench_nb import notebook
+from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.reporting import execute
 from gvbench_nb.runner import config, sequence_build
 
@@ -106,3 +112,106 @@ def test_an_analysis_notebook_with_results_missing_names_the_command_and_runs_no
     assert failure.value.ename == "ResultsMissingError"
     assert f"python -m gvbench_nb run {params} --methods {METHOD}" in failure.value.evalue
     assert not (empty / METHOD).exists()
+
+
+# ------------------------------------------------ a notebook's parameters --
+@pytest.mark.reliability
+@pytest.mark.parametrize(
+    "value, expected",
+    [
+        (
+            '["../outputs/gardens_point"]',
+            """must be a list, got '["../outputs/gardens_point"]': papermill's -p passes text, \
+give a list with -y, e.g. -y 'output_dirs: ["../outputs/gardens_point"]'""",
+        ),
+        ("../outputs/gardens_point", "-y 'output_dirs: [../outputs/gardens_point]'"),
+        (3, "must be a list, got 3"),
+    ],
+)
+def test_a_notebook_parameter_of_the_wrong_type_is_one_sentence_naming_it_and_the_y_form(value, expected):
+    # typing.Optional, as the notebooks write it
+    declared = {"output_dirs": list, "limit": Optional[int], "methods": str | list | None, "k": float}  # noqa: UP045
+    namespace = {"__annotations__": declared, "output_dirs": ["a"], "limit": None, "methods": "sift-nn", "k": 3}
+    notebook.check_parameters(namespace)  # every value of its type (an int is a number)
+    with pytest.raises(notebook.ParameterError) as error:
+        notebook.check_parameters({**namespace, "output_dirs": value})
+    assert str(error.value).startswith("notebook parameter output_dirs must be a list, got")
+    assert expected in str(error.value) and "\n" not in str(error.value)
+
+
+@pytest.mark.reliability
+def test_an_analysis_notebook_given_a_list_as_text_names_the_parameter_and_the_y_form(tmp_path):
+    with pytest.raises(execute.NotebookFailedError) as failure:  # as `papermill ... -p output_dirs '[...]'`
+        execute.execute_notebook(
+            "analysis_inlier_histograms.ipynb",
+            tmp_path / "histograms.ipynb",
+            {"output_dirs": '["../outputs/gardens_point"]', "output_dir": str(tmp_path / "figures")},
+        )
+    assert failure.value.ename == "ParameterError"
+    assert "output_dirs must be a list" in failure.value.evalue
+    assert """-y 'output_dirs: ["../outputs/gardens_point"]'""" in failure.value.evalue
+    assert not (tmp_path / "figures").exists()
+
+
+def study(folder: Path, relative: bool) -> Path:
+    """A complete params file of sequence 'pmf' kept in ``folder`` (outside params/): orb-nn on four photographs."""
+    write_root(folder / "images")
+    write_pairs(folder / "pairs.txt", PAIRS)
+    if not relative:
+        return write_params(folder, sequence="pmf", methods=["orb-nn"])
+    names = ("pairs.txt", "images", "out", "cache")
+    return write_params(folder, sequence="pmf", methods=["orb-nn"], **dict(zip(config.PATH_KEYS, names)))
+
+
+@pytest.mark.reliability
+def test_every_params_key_given_without_a_params_file_are_the_params_relative_to_the_working_folder(
+    tmp_path, monkeypatch, capsys
+):
+    keys = config.read_yaml_mapping(study(tmp_path / "study", relative=True))
+    monkeypatch.chdir(tmp_path / "study")
+    params = notebook.load_params(None, **keys)
+    assert params["pairs"] == str(tmp_path / "study" / "pairs.txt")
+    assert params["output_dir"] == str(tmp_path / "study" / "out") and params["methods"] == ["orb-nn"]
+    said = capsys.readouterr().out
+    assert f"relative paths are read from {tmp_path / 'study'}" in said
+    with pytest.raises(config.ParamsError) as error:
+        notebook.load_params(None, **{k: v for k, v in keys.items() if k != "profile"})
+    assert str(error.value).startswith("the notebook's parameters lack profile, and no params file in")
+    assert "give every key (-f PARAMS.yaml), or the params file of these parameters (-p params_file PATH)" in str(
+        error.value
+    )
+
+
+def papermill_from(cwd: Path, stage: str, output: Path, *arguments: str) -> str:
+    """``papermill notebooks/STAGE.ipynb OUTPUT ARGUMENTS`` run in ``cwd``; what the notebook printed."""
+    done = subprocess.run(
+        [sys.executable, "-m", "papermill", str(config.PROJECT_ROOT / "notebooks" / f"{stage}.ipynb"), str(output)]
+        + list(arguments),
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", "GVBENCH_JOBS": "1"},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    cells = json.loads(output.read_text())["cells"]
+    return "".join("".join(o.get("text", "")) for c in cells for o in c.get("outputs", []) if o.get("name") == "stdout")
+
+
+@pytest.mark.slow
+@pytest.mark.reliability
+def test_a_stage_notebook_given_every_params_key_runs_on_them_from_any_folder(tmp_path):
+    absolute = study(tmp_path / "kept" / "anywhere", relative=False)
+    said = papermill_from(
+        config.PROJECT_ROOT, "02_verify", tmp_path / "a.ipynb", "-f", str(absolute), "-p", "method", "orb-nn"
+    )
+    assert f"relative paths are read from {config.PROJECT_ROOT}" in said
+    assert (tmp_path / "kept" / "anywhere" / "out" / "orb-nn" / "pairs.csv").is_file()
+    relative, elsewhere = study(tmp_path / "study", relative=True), tmp_path / "study"
+    for stage in ("01_sequence", "02_verify", "03_evaluate"):
+        said = papermill_from(
+            elsewhere, stage, tmp_path / f"{stage}.ipynb", "-f", str(relative), "-p", "method", "orb-nn"
+        )
+        assert f"relative paths are read from {elsewhere}" in said
+    row = check_stage_outputs(elsewhere / "out", "orb-nn", PAIRS)
+    assert row["sequence"] == "pmf"

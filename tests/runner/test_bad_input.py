@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import torch
-from helpers import truncated
+from helpers import PAIRS, assert_nothing_written, cli_error, truncated, write_params, write_root
 
 import gvbench_nb
 from gvbench_nb.data.sequences import Pair, PairFileError, format_pairs, parse_pairs, read_pairs, write_pairs
@@ -97,6 +97,40 @@ def test_uncommon_image_kinds_are_read_not_rejected(tmp_path):
     assert read_image(tmp_path / "gray.jpg", grayscale=True).shape == (16, 24)
     np.testing.assert_allclose(read_image(tmp_path / "gray.jpg").astype(int), 77, atol=1)
     assert read_image(tmp_path / "gray.jpg").shape == (16, 24, 3)
+
+
+@pytest.mark.parametrize("width, height", [(1, 1), (2, 1)], ids=["1x1", "2x1"])
+def test_an_image_too_small_to_shrink_is_one_sentence_before_any_folder(tmp_path, capsys, width, height):
+    """OpenCV decodes it, but its eighth-size check decode and the extractors cannot shrink it."""
+    tiny = write_root(tmp_path / "images") / "tiny.png"
+    cv2.imwrite(str(tiny), np.full((height, width, 3), 128, np.uint8))
+    write_pairs(tmp_path / "pairs.txt", [*PAIRS, Pair("tiny.png", "reference/a.png", 0)])
+    message = cli_error(capsys, "run", str(write_params(tmp_path)))
+    assert f"image {tiny} is {width} x {height} pixels, too small to verify" in message
+    assert "(pair 4: tiny.png reference/a.png)" in message
+    assert_nothing_written(tmp_path)
+
+
+@pytest.mark.parametrize(
+    "lines, limit, expected",
+    [
+        (["query/a.png reference/a.png 1"] * 2, None, "pairs.txt:2: duplicate pair query/a.png reference/a.png"),
+        (["query/a.png reference/a.png 1", "query/b.png reference/b.png 1"], None, "2 pairs with no negatives"),
+        (["query/a.png reference/b.png 0", "query/b.png reference/b.png 0"], None, "2 pairs with no positives"),
+        (["query/a.png reference/a.png 1", "query/a.png reference/b.png 0"], "1", "first 1 pairs, the limit)"),
+    ],
+    ids=["repeated-pair", "no-negative", "no-positive", "no-negative-within-the-limit"],
+)
+def test_what_the_pair_file_alone_decides_is_reported_before_any_image_is_decoded(
+    tmp_path, capsys, lines, limit, expected
+):
+    truncated(write_root(tmp_path / "images") / "reference" / "a.png", tmp_path / "images" / "reference" / "a.png")
+    (tmp_path / "pairs.txt").write_text("\n".join(lines) + "\n")
+    message = cli_error(capsys, "run", str(write_params(tmp_path)), *(["--limit", limit] if limit else []))
+    assert expected in message and "cannot decode" not in message  # not the broken image
+    if "duplicate" not in expected:
+        assert "AP and MR are undefined; use pairs with both true and false loop closures" in message
+    assert_nothing_written(tmp_path)
 
 
 @pytest.mark.parametrize(

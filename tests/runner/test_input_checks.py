@@ -100,6 +100,42 @@ def test_a_device_this_torch_or_machine_lacks_is_refused_before_any_work(absent_
     assert_nothing_written(absent_images)
 
 
+# ------------------------------------------- one sentence, before any folder --
+def test_shard_with_merge_is_one_sentence_before_any_folder(tmp_path, root, capsys):
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    message = cli_error(capsys, "run", str(write_params(tmp_path)), "--shard", "0/2", "--merge")
+    assert message.startswith("error: choose one of --shard, --merge and --dask, not --shard and --merge")
+    assert_nothing_written(tmp_path)
+
+
+@pytest.mark.parametrize("given", ["absolute", "relative", "option"])
+def test_an_image_root_that_is_a_link_loop_is_called_a_loop(tmp_path, root, capsys, monkeypatch, given):
+    (tmp_path / "loop").symlink_to(tmp_path / "loop2")
+    (tmp_path / "loop2").symlink_to(tmp_path / "loop")
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    monkeypatch.chdir(tmp_path)  # --image-root loop is read from here, image_root: loop from the params' folder
+    params = write_params(tmp_path, image_root={"absolute": str(tmp_path / "loop"), "relative": "loop"}.get(given))
+    message = cli_error(capsys, "run", str(params), *(["--image-root", "loop"] if given == "option" else []))
+    source = "--image-root" if given == "option" else str(params)
+    assert message.startswith(f"error: {source}: image_root {tmp_path / 'loop'} is a symbolic link loop")
+    assert_nothing_written(tmp_path)
+
+
+def test_a_run_failing_in_a_fresh_folder_claims_no_previous_results(tmp_path, root, capsys, monkeypatch):
+    from gvbench_nb import run_and_publish
+
+    def kernel_dies(name, output_path, parameters):
+        raise RuntimeError("the kernel died")
+
+    monkeypatch.setattr(run_and_publish, "execute_notebook", kernel_dies)
+    write_pairs(tmp_path / "pairs.txt", PAIRS)
+    with pytest.raises(RuntimeError, match="kernel died"):
+        cli.main(["run", str(write_params(tmp_path))])
+    said = capsys.readouterr().err
+    assert "previous" not in said
+    assert f"the run did not finish: {tmp_path / 'out'} holds no results (none were before); this run's" in said
+
+
 # ------------------------------------------------ method names, and how fast --
 def answer_in_a_fresh_interpreter(argv: list[str], cwd: Path) -> dict:
     """``cli.main(argv)`` in a new interpreter: its exit code, stderr and the heavy modules it imported."""
@@ -382,6 +418,8 @@ def test_frame_tolerance_options_are_checked_before_any_work(absent_images, caps
     )
     (absent_images / "images" / "night" / "Image001.png").symlink_to(absent_images / "gone.png")
     (absent_images / "images" / "day" / "Image001.png").write_bytes(b"")
+    for folder in ("night", "day"):  # a far frame: each query has a negative too, so AP and MR are defined
+        (absent_images / "images" / folder / "Image050.png").write_bytes(b"")
     message = run(query_folder="night", reference_folder="day")
     assert "first night/Image001.png, which is a broken symbolic link" in message
     assert_nothing_written(absent_images)

@@ -13,6 +13,7 @@ import cv2
 import numpy as np
 import torch
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
@@ -63,13 +64,17 @@ HAMMING_INSTRUCTION_SETS = ("portable", "popcount", "avx512")
 HAMMING_KERNEL = "gvbench_nb.protocol.matching.kernels.hamming"
 
 
+class KernelNotBuiltError(GVBenchError, RuntimeError):
+    """The checkout's compiled Hamming kernel is missing (set-up not run since it was cloned or changed)."""
+
+
 @functools.cache
 def hamming_kernel() -> ctypes.CDLL:
     """The Hamming kernel's shared library, loaded once; one sentence if it is not built."""
     spec = importlib.util.find_spec(HAMMING_KERNEL)
     if spec is None or spec.origin is None:
         folder = Path(__file__).parent / "kernels"
-        raise RuntimeError(
+        raise KernelNotBuiltError(
             f"the Hamming matcher's kernel is not built in {folder}: run `make setup` (or `pip install -e .`) "
             "in the repository, with gcc or clang installed"
         )
@@ -327,6 +332,8 @@ class NearestNeighbourMatcher(Matcher):
         check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
         registry.check_choice("metric", conf.get("metric", "l2"), ("l2", "hamming"))
         check_rule(conf.get("rule", "hloc"))
+        if conf.get("metric", "l2") == "hamming":
+            hamming_kernel()  # refused here, before any pair, when the checkout was not set up
         if conf.get("rule", "hloc") == "knn_ratio" and (conf.get("mutual") or not conf.get("ratio_threshold")):
             raise ValueError(
                 f"matcher conf {conf.get('name', '?')!r}: rule 'knn_ratio' is a one-way ratio test; "

@@ -389,19 +389,27 @@ def test_orb_nn_matches_real_gardens_point_pairs_as_the_references(shared_data, 
 
 
 @pytest.mark.reliability
-def test_a_missing_hamming_kernel_is_one_sentence_naming_the_setup(monkeypatch):
-    """A checkout whose kernel was never built (cloned, or changed, without `make setup`) is refused
-    when a Hamming matcher is built, before any pair, in one sentence naming what to run."""
+def test_a_missing_hamming_kernel_is_one_sentence_naming_the_setup(monkeypatch, capsys, root, tmp_path):
+    """A checkout whose kernel was never built (cloned, or changed, without `make setup`): a run of a
+    Hamming method is refused before any work, in one sentence naming what to run; the matcher
+    itself refuses too. L2 matching needs no kernel."""
+    from helpers import PAIRS, assert_nothing_written, cli_error, write_params
+
+    from gvbench_nb.data.sequences import write_pairs
+
     monkeypatch.setattr(nearest_neighbour, "HAMMING_KERNEL", "gvbench_nb.protocol.matching.kernels.absent")
     nearest_neighbour.hamming_kernel.cache_clear()
     try:
-        with pytest.raises(nearest_neighbour.KernelNotBuiltError) as raised:
+        write_pairs(tmp_path / "pairs.txt", PAIRS)
+        params = write_params(tmp_path, image_root=str(root), methods=["orb-nn"])
+        message = cli_error(capsys, "run", str(params))
+        with pytest.raises(nearest_neighbour.KernelNotBuiltError, match="make setup"):
             NearestNeighbourMatcher(REPOSITORY_ORB_MATCHER, torch.device("cpu"))
     finally:
         nearest_neighbour.hamming_kernel.cache_clear()
-    message = str(raised.value)
-    assert "\n" not in message and "make setup" in message and "kernels" in message
-    NearestNeighbourMatcher({"type": "nn", "mutual": True}, torch.device("cpu"))  # L2 needs no kernel
+    assert "Hamming matcher's kernel is not built" in message and "make setup" in message
+    assert_nothing_written(tmp_path)
+    NearestNeighbourMatcher({"type": "nn", "mutual": True}, torch.device("cpu"))
 
 
 def test_hamming_ties_go_to_the_lower_index():

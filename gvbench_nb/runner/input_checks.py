@@ -285,6 +285,10 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
     for method in params["methods"]:
         if method_registry.is_imm(method):
             method_registry.imm_peer().require(method)
+        elif method_registry.resolve_method(method, params["profile"])["matcher"].get("metric") == "hamming":
+            from gvbench_nb.protocol.matching.nearest_neighbour import hamming_kernel
+
+            hamming_kernel()  # the compiled kernel of Hamming matching, refused if the checkout was not set up
     if not images:
         return
     root = sequence_build.check_image_root(params)

@@ -1,16 +1,19 @@
-"""Nearest-neighbour matching (L2 and Hamming by popcount) against brute-force references of
-hloc's rules (first index on ties)."""
+"""Nearest-neighbour matching (L2, and Hamming by the compiled kernel) against brute-force
+references of hloc's rules and of the repository's OpenCV rule (first index on ties)."""
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
 import torch
 
+from gvbench_nb.protocol.matching import nearest_neighbour
 from gvbench_nb.protocol.matching.nearest_neighbour import (
+    HAMMING_INSTRUCTION_SETS,
     NearestNeighbourMatcher,
-    hamming_distances,
     hamming_nearest_neighbour_matches,
+    hamming_two_nearest,
     nearest_neighbour_matches,
 )
 
@@ -279,14 +282,134 @@ def test_hamming_matches_equal_brute_force(make, n_bytes, mutual, ratio, thresho
         assert len(np.unique(matches[:, 1])) == len(matches)  # one-to-one despite the duplicates
 
 
-@pytest.mark.parametrize("n_bytes, rows_per_block", [(32, 512), (32, 7), (5, 3), (1, 100)])
-def test_popcount_distances_equal_bit_comparison(n_bytes, rows_per_block):
-    rng = np.random.default_rng(n_bytes)
-    binary0 = rng.integers(0, 256, (41, n_bytes), dtype=np.uint8)
-    binary1 = rng.integers(0, 256, (23, n_bytes), dtype=np.uint8)
-    distance = hamming_distances(binary0, binary1, rows_per_block=rows_per_block)
-    assert distance.dtype == np.uint16
-    np.testing.assert_array_equal(distance, bit_distances(binary0, binary1))
+def two_nearest_by_sorting(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Each row's nearest column (the lowest index of its smallest distance: a stable sort),
+    smallest and second-smallest distance (+inf with one column)."""
+    order = np.argsort(distance, axis=1, kind="stable")
+    rows = np.arange(len(distance))
+    second = distance[rows, order[:, 1]] if distance.shape[1] > 1 else np.full(len(distance), np.inf)
+    return order[:, 0], distance[rows, order[:, 0]], second
+
+
+@pytest.mark.parametrize("widest", HAMMING_INSTRUCTION_SETS)
+@pytest.mark.parametrize("n_bytes, threads", [(32, 1), (32, 3), (8, 2), (5, 1), (1, 2), (61, 1)])
+def test_hamming_two_nearest_of_rows_and_columns_equal_sorted_bit_distances(widest, n_bytes, threads):
+    """The kernel's one pass gives each row's and each column's nearest index and two smallest
+    distances, ties to the lower index, on every instruction set this CPU runs (``widest`` caps
+    it), any descriptor length (padded to 64-bit words) and rows split over threads."""
+    rng = np.random.default_rng(n_bytes + threads)
+    binary0, binary1 = tie_heavy(rng, 256 * threads + 7, 300, n_bytes)
+    distance = bit_distances(binary0, binary1)
+    before = cv2.getNumThreads()
+    cv2.setNumThreads(threads)
+    try:
+        rows, columns = hamming_two_nearest(binary0, binary1, widest=widest)
+        rows_only, no_columns = hamming_two_nearest(binary0, binary1, columns=False, widest=widest)
+    finally:
+        cv2.setNumThreads(before)
+    assert no_columns is None and columns is not None
+    for got, expected in ((rows, two_nearest_by_sorting(distance)), (columns, two_nearest_by_sorting(distance.T))):
+        for array, reference in zip(got, expected):
+            np.testing.assert_array_equal(array, reference)
+    for array, reference in zip(rows_only, rows):
+        np.testing.assert_array_equal(array, reference)
+    assert (rows[1] == rows[2]).sum() > 20 and (columns[1] == columns[2]).sum() > 20  # ties are tested
+
+
+def opencv_knn_ratio(binary0: np.ndarray, binary1: np.ndarray, ratio: float = 0.75) -> tuple[np.ndarray, np.ndarray]:
+    """The repository's rule as its fork runs it (``handcrafted.py`` L43-49): OpenCV's
+    ``BFMatcher(NORM_HAMMING).knnMatch(k=2)``, kept when ``m.distance < ratio * n.distance``;
+    scores 1 - distance / bits."""
+    pairs = cv2.BFMatcher(cv2.NORM_HAMMING).knnMatch(binary0, binary1, k=2)
+    kept = [m for m, n in pairs if m.distance < ratio * n.distance]
+    matches = np.array([(m.queryIdx, m.trainIdx) for m in kept], np.int64).reshape(-1, 2)
+    return matches, np.array([1 - m.distance / (8 * binary0.shape[1]) for m in kept], np.float32)
+
+
+REPOSITORY_ORB_MATCHER = {"type": "nn", "metric": "hamming", "mutual": False, "ratio_threshold": 0.75}
+
+
+@pytest.mark.parametrize("make, n_bytes", [(tie_heavy, 32), (tie_heavy, 8), (near_copies, 32)])
+def test_the_repository_rule_on_hamming_equals_opencvs_knn_ratio(make, n_bytes):
+    rng = np.random.default_rng(7 + n_bytes)
+    binary0, binary1 = make(rng, 300, 260, n_bytes)
+    matcher = NearestNeighbourMatcher({**REPOSITORY_ORB_MATCHER, "rule": "knn_ratio"}, torch.device("cpu"))
+    matches, scores = matcher({"descriptors": binary0}, {"descriptors": binary1})
+    expected, expected_scores = opencv_knn_ratio(binary0, binary1)
+    assert len(expected) > 5
+    np.testing.assert_array_equal(matches, expected)
+    np.testing.assert_array_equal(scores, expected_scores)
+
+
+def byte_table_distances(binary0: np.ndarray, binary1: np.ndarray) -> np.ndarray:
+    """Hamming distances by a 256-entry table of byte popcounts, a block of rows at a time (real
+    images' 2048 x 2048 x 256 bits would not fit ``bit_distances``'s boolean cube)."""
+    table = np.array([bin(value).count("1") for value in range(256)], np.int64)
+    blocks = [table[block[:, None, :] ^ binary1[None, :, :]].sum(-1) for block in np.array_split(binary0, 32)]
+    return np.concatenate(blocks).astype(np.float64)
+
+
+@pytest.mark.real_data
+@pytest.mark.slow
+@pytest.mark.parametrize("profile", ["paper", "repository"])
+def test_orb_nn_matches_real_gardens_point_pairs_as_the_references(shared_data, profile):
+    """orb-nn's recipe matcher on ORB features of Gardens Point images, extracted by the package:
+    hloc's two-way ratio rule (``paper``) or OpenCV's knn ratio (``repository``), match for match."""
+    from gvbench_nb import methods
+    from gvbench_nb.protocol import images
+    from gvbench_nb.protocol.features import build_extractor
+    from gvbench_nb.protocol.matching import build_matcher
+
+    conf = methods.resolve_method("orb-nn", profile)
+    extractor = build_extractor(conf["extractor"], torch.device("cpu"))
+    root = shared_data / "gardens_point"
+
+    def descriptors(name: str) -> np.ndarray:
+        image, _ = images.load_for_extraction(root / name, conf["extractor"])
+        return np.asarray(extractor(image)["descriptors"])
+
+    # A night query (few matches) and a day frame near references 40 and 41 (many).
+    queries = [descriptors(name) for name in ("night_right/Image040.jpg", "day_right/Image042.jpg")]
+    references = [descriptors(f"day_right/Image{r:03d}.jpg") for r in (40, 41, 100)]
+    matcher = build_matcher(conf["matcher"], torch.device("cpu"))
+    n_matches = 0
+    for query in queries:
+        for reference in references:
+            matches, scores = matcher({"descriptors": query}, {"descriptors": reference})
+            if profile == "paper":
+                distance = byte_table_distances(query, reference)
+                expected = hloc_matches(distance, True, 0.8, None)
+                expected_scores = 1 - distance[expected[:, 0], expected[:, 1]] / 256
+            else:
+                expected, expected_scores = opencv_knn_ratio(query, reference)
+            np.testing.assert_array_equal(matches, expected)
+            np.testing.assert_allclose(scores, expected_scores, rtol=0, atol=1e-7)
+            n_matches += len(expected)
+    assert min(map(len, queries + references)) > 1000 and n_matches > 100
+
+
+@pytest.mark.reliability
+def test_a_missing_hamming_kernel_is_one_sentence_naming_the_setup(monkeypatch, capsys, root, tmp_path):
+    """A checkout whose kernel was never built (cloned, or changed, without `make setup`): a run of a
+    Hamming method is refused before any work, in one sentence naming what to run; the matcher
+    itself refuses too. L2 matching needs no kernel."""
+    from helpers import PAIRS, assert_nothing_written, cli_error, write_params
+
+    from gvbench_nb.data.sequences import write_pairs
+
+    monkeypatch.setattr(nearest_neighbour, "HAMMING_KERNEL", "gvbench_nb.protocol.matching.kernels.absent")
+    nearest_neighbour.hamming_kernel.cache_clear()
+    try:
+        write_pairs(tmp_path / "pairs.txt", PAIRS)
+        params = write_params(tmp_path, image_root=str(root), methods=["orb-nn"])
+        message = cli_error(capsys, "run", str(params))
+        with pytest.raises(nearest_neighbour.KernelNotBuiltError, match="make setup"):
+            NearestNeighbourMatcher(REPOSITORY_ORB_MATCHER, torch.device("cpu"))
+    finally:
+        nearest_neighbour.hamming_kernel.cache_clear()
+    assert "Hamming matcher's kernel is not built" in message and "make setup" in message
+    assert_nothing_written(tmp_path)
+    NearestNeighbourMatcher({"type": "nn", "mutual": True}, torch.device("cpu"))
 
 
 def test_hamming_ties_go_to_the_lower_index():

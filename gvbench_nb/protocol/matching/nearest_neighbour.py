@@ -2,13 +2,18 @@
 
 from __future__ import annotations
 
+import ctypes
+import functools
+import importlib.util
 from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 import torch
 
+from gvbench_nb import GVBenchError
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.matching.base import Matcher, Matches, empty_matches
 
@@ -53,43 +58,96 @@ def check_ratio_test_on(ratio_test_on: str) -> None:
     registry.check_choice("ratio_test_on", ratio_test_on, RATIO_TEST_ON)
 
 
-def hamming_distances(descriptors0: np.ndarray, descriptors1: np.ndarray, rows_per_block: int = 64) -> np.ndarray:
-    """(N0, N1) uint16 Hamming distances of uint8 (N, B) binary descriptors: popcount of the XOR of
-    64-bit words, in cache-sized row blocks spread over OpenCV's thread count, as the L2 product
-    uses (numpy releases the GIL)."""
-    n_bytes = descriptors0.shape[1]
-    padded = -n_bytes % 8
+# The compiled kernel (kernels/hamming.c, built by `make setup` or `pip install -e .`): its
+# instruction sets, widest last; the tests cap the choice to run each path.
+HAMMING_INSTRUCTION_SETS = ("portable", "popcount", "avx512")
+HAMMING_KERNEL = "gvbench_nb.protocol.matching.kernels.hamming"
 
-    def words(descriptors: np.ndarray) -> np.ndarray:
-        descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
-        if padded:
-            descriptors = np.pad(descriptors, ((0, 0), (0, padded)))
-        return descriptors.view(np.uint64)
 
-    words0, words1 = words(descriptors0), words(descriptors1)
-    distance = np.empty((len(words0), len(words1)), np.uint16)
-    columns = [np.ascontiguousarray(words1[:, word]) for word in range(words1.shape[1])]
+class KernelNotBuiltError(GVBenchError, RuntimeError):
+    """The checkout's compiled Hamming kernel is missing (set-up not run since it was cloned or changed)."""
 
-    def fill(rows: range) -> None:
-        xor = np.empty((rows_per_block, len(words1)), np.uint64)
-        count = np.empty((rows_per_block, len(words1)), np.uint8)
-        for start in rows:
-            block = distance[start : start + rows_per_block]
-            n = len(block)
-            block[:] = 0
-            for word, column in enumerate(columns):
-                np.bitwise_xor(words0[start : start + n, word, None], column[None, :], out=xor[:n])
-                np.bitwise_count(xor[:n], out=count[:n])
-                block += count[:n]
 
-    starts = range(0, len(words0), rows_per_block)
-    threads = max(1, min(cv2.getNumThreads(), len(starts)))
+@functools.cache
+def hamming_kernel() -> ctypes.CDLL:
+    """The Hamming kernel's shared library, loaded once; one sentence if it is not built."""
+    spec = importlib.util.find_spec(HAMMING_KERNEL)
+    if spec is None or spec.origin is None:
+        folder = Path(__file__).parent / "kernels"
+        raise KernelNotBuiltError(
+            f"the Hamming matcher's kernel is not built in {folder}: run `make setup` (or `pip install -e .`) "
+            "in the repository, with gcc or clang installed"
+        )
+    library = ctypes.CDLL(spec.origin)
+    pointer, count = ctypes.c_void_p, ctypes.c_int64
+    library.hamming_two_nearest.argtypes = [pointer, pointer, count, count, count, *[pointer] * 7, ctypes.c_int]
+    library.hamming_two_nearest.restype = None
+    library.hamming_instruction_set.argtypes = [ctypes.c_int]
+    library.hamming_instruction_set.restype = ctypes.c_int
+    return library
+
+
+TwoNearest = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def hamming_two_nearest(
+    descriptors0: np.ndarray, descriptors1: np.ndarray, columns: bool = True, widest: str = "avx512"
+) -> tuple[TwoNearest, TwoNearest | None]:
+    """Each row's and (with ``columns``) each column's nearest index, smallest and second-smallest
+    Hamming distance of non-empty uint8 (N, B) binary descriptors, as ``_two_nearest`` gives them on
+    the distance matrix and its transpose (ties to the lower index; float64 distances, +inf second
+    with one candidate). The kernel computes each distance once; rows are spread over OpenCV's
+    thread count (ctypes releases the GIL), each thread's columns merged in row order."""
+    library = hamming_kernel()
+    instruction_set = library.hamming_instruction_set(HAMMING_INSTRUCTION_SETS.index(widest))
+    words0, words1 = _words(descriptors0), _words(descriptors1)
+    n0, n1, n_words = len(words0), len(words1), words0.shape[1]
+    row = np.empty((3, n0), np.int32)
+    threads = max(1, min(cv2.getNumThreads(), n0 // 256))
+    bounds = np.linspace(0, n0, threads + 1).astype(int)
+    column = np.empty((threads, 3, n1 if columns else 0), np.int32)
+
+    def run(part: int) -> None:
+        start = bounds[part]
+        outputs: list[int | None] = [row[k, start:].ctypes.data for k in range(3)]
+        outputs += [column[part, k].ctypes.data if columns else None for k in range(3)]
+        scratch = np.empty(n1, np.int32)
+        rows, n_rows = words0[start:].ctypes.data, bounds[part + 1] - start
+        library.hamming_two_nearest(
+            rows, words1.ctypes.data, n_rows, n1, n_words, scratch.ctypes.data, *outputs, instruction_set
+        )
+
     if threads == 1:
-        fill(starts)
+        run(0)
     else:
         with ThreadPoolExecutor(max_workers=threads) as pool:
-            list(pool.map(fill, [starts[i::threads] for i in range(threads)]))
-    return distance
+            list(pool.map(run, range(threads)))
+    row_result = _as_two_nearest(row, n1)
+    if not columns:
+        return row_result, None
+    nearest, first, second = column[0]
+    for part in range(1, threads):
+        # The two smallest of two disjoint sets: the smaller first, then the larger first or the
+        # winner's second; a later part wins strictly only, so ties keep the lower row.
+        part_nearest, part_first, part_second = column[part]
+        second = np.minimum(np.minimum(second, part_second), np.maximum(first, part_first))
+        nearest = np.where(part_first < first, part_nearest + bounds[part], nearest)
+        first = np.minimum(first, part_first)
+    return row_result, _as_two_nearest(np.stack([nearest, first, second]), n0)
+
+
+def _words(descriptors: np.ndarray) -> np.ndarray:
+    """uint8 (N, B) descriptors as (N, ceil(B / 8)) contiguous uint64 words, zero-padded."""
+    descriptors = np.ascontiguousarray(descriptors, dtype=np.uint8)
+    padded = -descriptors.shape[1] % 8
+    if padded:
+        descriptors = np.pad(descriptors, ((0, 0), (0, padded)))
+    return descriptors.view(np.uint64)
+
+
+def _as_two_nearest(result: np.ndarray, n_candidates: int) -> TwoNearest:
+    second = result[2].astype(np.float64) if n_candidates > 1 else np.full(result.shape[1], np.inf)
+    return result[0].astype(np.int64), result[1].astype(np.float64), second
 
 
 def _two_nearest(distance: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -131,13 +189,10 @@ def hamming_nearest_neighbour_matches(
         return empty_matches()
     if min(len(descriptors0), len(descriptors1)) == 1:
         ratio_threshold = None
-    distance = hamming_distances(descriptors0, descriptors1)
-    nearest1, first, second = _two_nearest(distance)
+    (nearest1, first, second), columns = hamming_two_nearest(descriptors0, descriptors1, columns=mutual)
     keep = _passes(first, second, ratio_threshold, distance_threshold)
-    if mutual:
-        # The columns' pass on a contiguous transposed copy: numpy reduces a transposed view, and
-        # copies one, element by element, slower than the popcount itself; OpenCV's transpose is not.
-        nearest0, first_back, second_back = _two_nearest(cv2.transpose(distance))
+    if columns is not None:
+        nearest0, first_back, second_back = columns
         column_ratio = ratio_threshold if ratio_test_on == "rows_and_columns" else None
         back = np.where(_passes(first_back, second_back, column_ratio, distance_threshold), nearest0, -1)
         keep &= back[nearest1] == np.arange(len(descriptors0))
@@ -277,6 +332,8 @@ class NearestNeighbourMatcher(Matcher):
         check_ratio_test_on(conf.get("ratio_test_on", "rows_and_columns"))
         registry.check_choice("metric", conf.get("metric", "l2"), ("l2", "hamming"))
         check_rule(conf.get("rule", "hloc"))
+        if conf.get("metric", "l2") == "hamming":
+            hamming_kernel()  # refused here, before any pair, when the checkout was not set up
         if conf.get("rule", "hloc") == "knn_ratio" and (conf.get("mutual") or not conf.get("ratio_threshold")):
             raise ValueError(
                 f"matcher conf {conf.get('name', '?')!r}: rule 'knn_ratio' is a one-way ratio test; "
@@ -294,7 +351,7 @@ class NearestNeighbourMatcher(Matcher):
             return empty_matches()
         hamming = self.conf.get("metric", "l2") == "hamming"
         if hamming:
-            nearest, first, second = _two_nearest(hamming_distances(descriptors0, descriptors1))
+            (nearest, first, second), _ = hamming_two_nearest(descriptors0, descriptors1, columns=False)
         else:
             nearest, first, second = two_nearest_l2_as_opencv(descriptors0, descriptors1)
         rows = np.flatnonzero(first < self.conf["ratio_threshold"] * second)

@@ -189,8 +189,11 @@ def print_run_results(output_dir: Path) -> None:
 
     results = pd.read_csv(output_dir / "results.csv")
     columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
-    print(results[columns].to_string(index=False))
-    reused = results.loc[results["timers"] != "this run", "method"].tolist()
+    imported = results["timers"] == "imported"
+    shown = results[columns].astype({"seconds_per_pair": object})
+    shown.loc[imported, "seconds_per_pair"] = "imported"  # scores computed elsewhere: no seconds
+    print(shown.to_string(index=False))
+    reused = results.loc[~imported & (results["timers"] != "this run"), "method"].tolist()
     if reused:
         log.info(
             f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "

@@ -197,48 +197,35 @@ def _line_style(source: str, profile: str) -> dict:
 
 def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
     """MR in % of every (method, profile) across sequences (Fig. 1), each line labelled with its source and
-    profile; bars with fewer than three sequences."""
+    profile: a radar over the sequences every line has (a line never cuts across a missing vertex; the
+    others are named under it), bars of every value when fewer than three are left."""
     sequences = list(dict.fromkeys(joined["sequence"]))
     methods = list(dict.fromkeys(joined["method"]))
     colours = plots.method_colours(methods)
     title = title or "max recall at 100% precision (%)"
-    if len(sequences) < 3:
+    lines = joined.pivot_table(
+        index=["method", "profile", "source"], columns="sequence", values="max_recall", aggfunc="first"
+    )
+    shared = [s for s in sequences if s in lines and lines[s].notna().all()]
+    if len(shared) < 3:
         return _max_recall_bars(joined, sequences, methods, colours, title)
-    angles = np.linspace(0, 2 * np.pi, len(sequences), endpoint=False)
+    angles = np.linspace(0, 2 * np.pi, len(shared), endpoint=False)
     figure, axis = plt.subplots(figsize=(6.5, 6.5), subplot_kw={"projection": "polar"})
     for (method, profile, source), group in joined.groupby(["method", "profile", "source"], sort=False):
-        values = 100 * group.set_index("sequence")["max_recall"].reindex(sequences).to_numpy(dtype=float)
-        if np.isnan(values).all():
-            continue
-        label = line_label(method, profile, source)
-        for run in radar_runs(values):
-            axis.plot(
-                np.unwrap(angles[run]), values[run], color=colours[method], marker="o", markersize=3, label=label,
-                **_line_style(source, profile),
-            )  # fmt: skip
-            label = "_" + label  # one legend entry a line, however many pieces it is drawn in
-    axis.set_xticks(angles, sequences)
+        values = 100 * group.set_index("sequence")["max_recall"].reindex(shared).to_numpy(dtype=float)
+        axis.plot(
+            np.r_[angles, angles[:1] + 2 * np.pi], np.r_[values, values[:1]], color=colours[method], marker="o",
+            markersize=3, label=line_label(method, profile, source), **_line_style(source, profile),
+        )  # fmt: skip
+    axis.set_xticks(angles, shared)
     axis.set_ylim(0, max(5.0, 110 * float(np.nanmax(joined["max_recall"]))))
     axis.set_title(title, pad=20)
     axis.legend(loc="upper left", bbox_to_anchor=(1.05, 1.0), fontsize=8)
+    left_out = [s for s in sequences if s not in shared]
+    if left_out:
+        note = f"not drawn, as not every line has it (the tables have it): {', '.join(left_out)}"
+        figure.text(0.02, 0.02, note, fontsize=8)
     return figure
-
-
-def radar_runs(values: np.ndarray) -> list[list[int]]:
-    """The vertices a radar line joins, as runs of neighbouring vertices that have a value (the last
-    vertex neighbours the first): a vertex without one is a gap, never bridged by a straight line."""
-    present = [i for i, value in enumerate(values) if not np.isnan(value)]
-    if len(present) == len(values):
-        return [[*present, present[0]]]  # the whole ring, closed
-    runs: list[list[int]] = []
-    for i in present:
-        if runs and runs[-1][-1] == i - 1:
-            runs[-1].append(i)
-        else:
-            runs.append([i])
-    if len(runs) > 1 and runs[0][0] == 0 and runs[-1][-1] == len(values) - 1:
-        runs[0] = runs.pop() + runs[0]  # across the ring's start
-    return runs
 
 
 def _max_recall_bars(

@@ -148,7 +148,8 @@ def paper_reference_table(
     if methods is not None:
         paper = paper[paper["method"].isin(list(methods))]
     wide = _by_sequence(paper.assign(source=source), "paper_name", list(run_tables.METRICS))
-    return wide.loc[list(dict.fromkeys(paper["paper_name"]))]
+    # Its rows are the publication's own method names.
+    return wide.loc[list(dict.fromkeys(paper["paper_name"]))].rename_axis(run_tables.HEADERS["paper_name"])
 
 
 def metric_columns(wide: pd.DataFrame) -> list[tuple]:
@@ -168,9 +169,9 @@ def style_results_table(wide: pd.DataFrame) -> Any:
         styles[column] = [base + ("font-weight: bold;" if b else "") for b in best[column]]
     shown = wide.rename(columns=run_tables.METRIC_HEADERS, level="metric")
     in_percent = [shown.columns[wide.columns.get_loc(c)] for c in metrics]
-    return shown.style.format(_percent, subset=in_percent).apply(
-        lambda _: styles.set_axis(shown.columns, axis=1), axis=None
-    )
+    # A run missing a sequence has no pairs there: "-", as its AP and MR.
+    styler = shown.style.format(na_rep="-").format(_percent, subset=in_percent)
+    return styler.apply(lambda _: styles.set_axis(shown.columns, axis=1), axis=None)
 
 
 def _percent(value: float) -> str:

@@ -46,6 +46,10 @@ def test_an_imported_method_is_labelled_imported_in_every_table_and_figure():
     intervals = pd.DataFrame({"method": ["my-tool"], "metric": ["ap"], "estimate": [0.5]})
     shown = run_tables.readable_table(intervals, ["estimate"], run_tables.run_labels(results))
     assert shown.iloc[0].tolist() == ["my-tool (imported)", "AP", 50.0]
+    # A run missing a sequence: '-' in each of its cells there, its pairs too.
+    two = pd.concat([results, results_rows({"day": False}).iloc[:1]], ignore_index=True)
+    html = results_table.style_results_table(results_table.results_table(results_table.join_paper_table(two, None)))
+    assert ">nan<" not in html.to_html()
     joined = results_table.join_paper_table(results.assign(sequence="night"), pd.DataFrame())
     legend = results_table.max_recall_radar(joined).axes[0].get_yticklabels()
     assert "my-tool (imported)" in [t.get_text() for t in legend]
@@ -76,6 +80,18 @@ def test_an_imported_method_is_said_absent_in_one_line_where_its_data_are():
     )["s/pair"]
     assert seconds.tolist() == ["0.030", "imported"]
     assert scoring.timers_source({"imported": {"file": "x"}, "this_run": {}}) == "imported"
+
+
+def test_run_prints_imported_for_an_imported_methods_seconds(tmp_path, capsys):
+    from gvbench_nb import run_and_publish
+
+    results = results_rows({"night": False}).assign(n_positives=90, timers=["this run", "imported"])
+    results.to_csv(tmp_path / "results.csv", index=False)
+    run_and_publish.print_run_results(tmp_path)
+    printed = capsys.readouterr()
+    row = next(line for line in printed.out.splitlines() if line.strip().startswith("my-tool"))
+    assert row.split()[-2:] == ["imported", "imported"] and "nan" not in row
+    assert "from the cache" not in printed.out + printed.err
 
 
 def test_headers_are_words_and_ap_and_mr_are_in_percent():

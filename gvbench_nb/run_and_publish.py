@@ -190,8 +190,10 @@ def print_run_results(output_dir: Path) -> None:
     results = pd.read_csv(output_dir / "results.csv")
     columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
     imported = results["timers"] == "imported"
-    shown = results[columns].astype({"seconds_per_pair": object})
-    shown.loc[imported, "seconds_per_pair"] = "imported"  # scores computed elsewhere: no seconds
+    shown = results[columns]
+    if imported.any():  # scores computed elsewhere: no seconds; the others as pandas prints them
+        seconds = ["imported" if i else f"{s:.6f}" for i, s in zip(imported, results["seconds_per_pair"])]
+        shown = shown.assign(seconds_per_pair=seconds)
     print(shown.to_string(index=False))
     reused = results.loc[~imported & (results["timers"] != "this run"), "method"].tolist()
     if reused:

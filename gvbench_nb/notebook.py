@@ -229,9 +229,17 @@ def load_results(
     return AnalysisInputs(folders, results, figures)
 
 
-def table(frame: pd.DataFrame, precision: int = 3) -> Any:
-    """A table as a notebook's page shows it: without pandas' row numbers, numbers rounded."""
-    return frame.style.hide(axis="index").format(precision=precision, na_rep="-")
+def table(
+    frame: pd.DataFrame, precision: int = 3, percent: SequenceType[str] = (), labels: dict[str, str] | None = None
+) -> Any:
+    """A table as a notebook's page shows it: without pandas' row numbers, headers in words, AP, MR
+    and the ``percent`` columns in % (one decimal), other numbers rounded, methods by ``labels``."""
+    from gvbench_nb.evaluation import run_tables
+
+    shown = run_tables.readable_table(frame, percent, labels)
+    in_percent = [c for c in shown.columns if str(c).endswith("(%)")]
+    style = shown.style.hide(axis="index").format(precision=precision, na_rep="-")
+    return style.format(precision=1, subset=in_percent, na_rep="-")
 
 
 def sequence_of(results: pd.DataFrame, output_dir: PathLike) -> str:

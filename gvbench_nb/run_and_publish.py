@@ -218,8 +218,12 @@ def print_run_results(output_dir: Path, methods: list[str]) -> None:
     order = {method: rank for rank, method in enumerate(methods)}
     results = results.sort_values("method", key=lambda m: m.map(order).fillna(len(order)), kind="stable")
     columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
-    print(results[columns].to_string(index=False, float_format=lambda v: f"{v:.3f}"))
-    reused = results.loc[results["timers"] != "this run", "method"].tolist()
+    imported = results["timers"] == "imported"
+    shown = results[columns].astype({"seconds_per_pair": object})
+    # Scores computed elsewhere have no seconds; the others to 3 decimals, as AP and MR.
+    shown["seconds_per_pair"] = ["imported" if i else f"{s:.3f}" for i, s in zip(imported, results["seconds_per_pair"])]
+    print(shown.to_string(index=False, float_format=lambda v: f"{v:.3f}"))
+    reused = results.loc[~imported & (results["timers"] != "this run"), "method"].tolist()
     if reused:
         log.info(
             f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "

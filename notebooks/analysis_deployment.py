@@ -28,7 +28,7 @@ import matplotlib.pyplot as plt
 from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import plots
+from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.studies import deployment
 
 # %% tags=["parameters"]
@@ -64,7 +64,7 @@ inputs = deployment.DeploymentInputs(output_dirs)
 transfer = deployment.transfer_table(inputs, calibrations)
 transfer.to_csv(figures / "transfer.csv", index=False)
 for method, profile in deployment.runs(transfer):
-    display(Markdown(f"**{method}** ({profile} profile)"), deployment.transfer_matrix(transfer, method, profile))
+    display(Markdown(f"**{plots.run_label(method, profile)}**"), deployment.transfer_matrix(transfer, method, profile))
 
 # %%
 figure = deployment.transfer_figure(transfer)
@@ -73,13 +73,13 @@ plt.show()
 
 # %% [markdown]
 # The loop-closure level: each query keeps its best-scoring candidate (ties keep the pair
-# file's order). `recall_at_1_gv`: the share of queries with a true candidate whose best
-# is true; `recall_at_1_retrieval`: the same for the first candidate, where the pair file
-# keeps the retrieval order (a `retrieval`-built sequence; empty otherwise, as for
-# rule-built sequences); `true_loops_closed` / `false_loops_closed`: queries whose best
-# candidate passes the threshold fixed on `calibration`. Also written to `loop_closures.csv`.
+# file's order). Recall@1 after GV: the share of queries with a true candidate whose best
+# is true, in %; recall@1 of retrieval: the same for the first candidate, where the pair
+# file keeps the retrieval order (a `retrieval`-built sequence; empty otherwise, as for
+# rule-built sequences); true / false loops closed: queries whose best candidate passes
+# the threshold fixed on the calibration sequence. Also written to `loop_closures.csv`.
 
 # %%
 loops = deployment.loop_closure_table(transfer, inputs)
 loops.to_csv(figures / "loop_closures.csv", index=False)
-loops.style.format(precision=3, na_rep="-").hide(axis="index")
+notebook.table(loops, percent=deployment.LOOP_SHARES, labels=run_tables.run_labels(results))

@@ -31,7 +31,7 @@ import matplotlib.pyplot as plt
 import pandas as pd
 
 from gvbench_nb import notebook
-from gvbench_nb.evaluation import plots
+from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.studies import alternative_verifiers, doppelgangers, results_table, verifier_inputs
 
 # %% tags=["parameters"]
@@ -127,9 +127,9 @@ shown = comparison.copy()
 for metric in ("ap", "max_recall"):
     shown[metric] = (100 * shown[metric]).round(1)
 notebook.table(
-    shown.pivot_table(
-        index=["source", "verifier"], columns="sequence", values=["ap", "max_recall"], sort=False
-    ).reset_index()
+    shown.pivot_table(index=["source", "verifier"], columns="sequence", values=["ap", "max_recall"], sort=False)
+    .rename(columns=run_tables.METRIC_HEADERS, level=0)
+    .reset_index()
 )
 
 # %% [markdown]

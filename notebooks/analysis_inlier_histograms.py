@@ -52,16 +52,19 @@ output_dirs, results, figures = notebook.load_results(
 tables = [(notebook.sequence_of(results, folder), run_tables.load_pairs_tables(folder)) for folder in output_dirs]
 
 # %% [markdown]
-# One row a run: true and false pairs, the share of each with zero inliers, the top
-# false pair's score (raw and normalised), and the share of true pairs above it
-# (`true_above_top_false`, which is MR) or not (`true_in_overlap`).
+# One row a run: true and false pairs, the share of each with zero inliers (%), the top
+# false pair's score (raw and normalised), and the share of true pairs above it (which
+# is MR) or not, in %. Scores imported from elsewhere count too: the score ranks them.
 
 # %%
+shares = ["true_zero_inliers", "false_zero_inliers", "true_above_top_false", "true_in_overlap"]
 notebook.table(
     pd.concat(
         [inlier_histograms.inlier_overlap_table(runs).assign(sequence=sequence) for sequence, runs in tables],
         ignore_index=True,
-    )
+    ),
+    percent=shares,
+    labels=run_tables.run_labels(results),
 )
 
 # %% [markdown]
@@ -71,8 +74,12 @@ notebook.table(
 
 # %%
 for sequence, runs in tables:
-    figure = inlier_histograms.normalised_inlier_histograms(
-        runs, title=f"{sequence}: normalised inliers, true vs false"
-    )
-    plots.save(figure, figures / f"normalised_inliers_{sequence}.png")
-    plt.show()
+    counted, absent = inlier_histograms.with_inlier_counts(runs)
+    for line in absent:
+        print(line)
+    if counted:
+        figure = inlier_histograms.normalised_inlier_histograms(
+            counted, title=f"{sequence}: normalised inliers, true vs false"
+        )
+        plots.save(figure, figures / f"normalised_inliers_{sequence}.png")
+        plt.show()

@@ -24,7 +24,7 @@
 from typing import Optional
 
 import matplotlib.pyplot as plt
-from IPython.display import display
+from IPython.display import Markdown, display
 
 from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots, run_tables
@@ -65,14 +65,21 @@ summary.to_csv(figures / "table_ii.csv", index=False)
 display(paper.summary_text(summary).style.hide(axis="index"))
 
 # %% [markdown]
-# **Table III**, ours: AP and MR (%) of every (method, profile) on each sequence, and
-# their average over the sequences (blank for a row missing one). In each column the 1st
-# is bold, the 2nd underlined, the 3rd italic. Also written to `table_iii.csv`.
+# **Table III**, ours: AP and MR (%) of every (method, profile) on each recorded
+# sequence, and with two or more their average (blank for a row missing one). In each
+# column the 1st is bold, the 2nd underlined, the 3rd italic. Routes the package rendered
+# (synthetic) get a table of their own, never averaged. Also written to `table_iii.csv`
+# (and `table_iii_synthetic.csv`).
 
 # %%
-table = paper.table_iii(results)
-table.to_csv(figures / "table_iii.csv")
-paper.style_table_iii(table)
+real, synthetic = paper.real_and_synthetic(results)
+for rows, name, what in ((real, "table_iii", "recorded"), (synthetic, "table_iii_synthetic", "synthetic")):
+    if rows.empty:
+        print(f"no {what} sequence among the runs")
+        continue
+    table = paper.table_iii(rows, average=rows is real)
+    table.to_csv(figures / f"{name}.csv")
+    display(Markdown(f"**{what.capitalize()} sequences**"), paper.style_table_iii(table))
 
 # %% [markdown]
 # **Fig. 1**, the published max recall alone: the paper's table (the hloc chain), and

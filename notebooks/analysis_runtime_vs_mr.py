@@ -53,16 +53,20 @@ output_dirs, results, figures = notebook.load_results(
 )
 
 # %% [markdown]
-# One row a run: seconds per pair by stage and in total, FPS, and its MR and AP. The
-# stage columns add up to `seconds_per_pair`.
+# One row a run: seconds per pair by stage and in total, FPS, and its MR and AP (%). The
+# stage columns add up to the seconds a pair. A method whose scores were imported has no
+# seconds measured here and is named once, not drawn.
 
 # %%
 runtime = runtime_vs_mr.runtime_table(results)
+for line in runtime_vs_mr.unmeasured_lines(results):
+    print(line)
 display(notebook.table(runtime))
 
 # %% [markdown]
-# Each sequence's runs described for the captions below: device, profile and the image
-# size each method extracted at.
+# Each sequence's runs described for the captions below: device, profile and the size of
+# each traversal's images (read from each image folder's first image), then what each
+# method resized them to.
 
 # %%
 captions = {}

@@ -61,8 +61,9 @@ for sequence, boot in boots:
     print(f"{sequence}: {boot.n_queries} queries, {boot.n_pairs} pairs, {n_resamples} resamples")
 
 # %% [markdown]
-# AP and MR of every method with its 95% interval (`low`, `high`) over the resamples
-# (`n_valid`: those that drew a true pair), also written to `bootstrap_intervals.csv`.
+# AP and MR (%) of every method with its 95% interval (low, high) over the resamples (and
+# how many resamples drew a true pair), also written to
+# `bootstrap_intervals.csv` (as fractions).
 # Two methods whose intervals overlap widely are not told apart by these queries.
 
 # %%
@@ -71,7 +72,8 @@ intervals = pd.concat(
     ignore_index=True,
 )
 intervals.to_csv(figures / "bootstrap_intervals.csv", index=False)
-display(notebook.table(intervals))
+labels = run_tables.run_labels(results)
+display(notebook.table(intervals, percent=["estimate", "low", "high"], labels=labels))
 
 # %% [markdown]
 # The same intervals drawn, one row a method: the dot is the estimate on all queries,
@@ -82,6 +84,7 @@ for sequence, _ in boots:
     figure = uncertainty.bootstrap_intervals(
         intervals[intervals["sequence"] == sequence],
         title=f"{sequence}: 95% bootstrap intervals",
+        labels=labels,
     )
     plots.save(figure, figures / f"bootstrap_intervals_{sequence}.png")
     plt.show()
@@ -89,7 +92,7 @@ for sequence, _ in boots:
 # %% [markdown]
 # For each metric, row method against column method: '>' ranked above (strictly better in
 # at least 95% of resamples), '<' below, '~' a tie; then the shares of resamples behind
-# each mark (`first_beats_second`, `tied`, `second_beats_first`).
+# each mark (first beats second, tied, second beats first), beside both values in %.
 
 # %%
 for sequence, boot in boots:
@@ -98,7 +101,7 @@ for sequence, boot in boots:
         continue
     for metric in ("max_recall", "ap"):
         display(
-            Markdown(f"**{sequence}, {metric}**: row vs column"),
-            boot.ranking_matrix(metric),
-            notebook.table(boot.paired_shares(metric)),
+            Markdown(f"**{sequence}, {run_tables.METRIC_HEADERS[metric]}**: row vs column"),
+            boot.ranking_matrix(metric).rename(index=labels, columns=labels),
+            notebook.table(boot.paired_shares(metric), percent=["first_value", "second_value"], labels=labels),
         )

@@ -12,8 +12,9 @@ import pandas as pd
 from matplotlib.colors import to_rgba
 
 from gvbench_nb.protocol.images import read_image
-from gvbench_nb.protocol.metrics import max_recall_at_full_precision, pr_curve
+from gvbench_nb.protocol.metrics import average_precision, max_recall_at_full_precision, pr_curve
 from gvbench_nb.runner import record
+from gvbench_nb.runner.score_files import IMPORTED_PROFILE
 
 
 def save(figure: plt.Figure, path: str | Path) -> Path:
@@ -23,12 +24,14 @@ def save(figure: plt.Figure, path: str | Path) -> Path:
     return record.save_checked(path, lambda target: figure.savefig(target, dpi=120, bbox_inches="tight"))
 
 
-def _pr_curve(axis: plt.Axes, table: pd.DataFrame, where: str, label: tuple[str, str], **style: Any) -> Any:
-    """One PR curve with its MR dotted at precision 1, labelled ``label[0]`` + MR in % + ``label[1]``."""
+def _pr_curve(axis: plt.Axes, table: pd.DataFrame, where: str, **style: Any) -> Any:
+    """One PR curve with its MR dotted at precision 1, labelled ``where``: AP and MR in %."""
     labels, scores = table["label"].to_numpy(), table["score"].to_numpy()
     curve = pr_curve(labels, scores, where=where)
     max_recall = max_recall_at_full_precision(labels, scores, where=where)
-    (line,) = axis.plot(curve["recall"], curve["precision"], label=f"{label[0]}{max_recall:.1%}{label[1]}", **style)
+    ap = average_precision(labels, scores, where=where)
+    label = f"{where}: AP {100 * ap:.1f}%, MR {100 * max_recall:.1f}%"
+    (line,) = axis.plot(curve["recall"], curve["precision"], label=label, **style)
     axis.plot([max_recall], [1.0], marker="o", color=line.get_color(), markersize=7)
     return line
 
@@ -43,7 +46,7 @@ def pr_curves(tables: dict[str, pd.DataFrame], title: str = "") -> plt.Figure:
     """PR curve per method with its MR (recall at precision 1.0) marked."""
     figure, axis = plt.subplots(figsize=(6.5, 5))
     for method, table in tables.items():
-        _pr_curve(axis, table, method, (f"{method} (MR ", ")"))
+        _pr_curve(axis, table, method)
     _pr_axes(axis, title)
     return figure
 
@@ -57,9 +60,8 @@ def pr_curves_by_profile(tables: dict[tuple[str, str], pd.DataFrame], title: str
     figure, axis = plt.subplots(figsize=(7, 5.5))
     colours: dict[str, Any] = {}
     for (method, profile), table in tables.items():
-        where = f"{method} ({profile} profile)"
         style = {"color": colours.get(method), "linestyle": PROFILE_LINE_STYLES.get(profile, ":")}
-        line = _pr_curve(axis, table, where, (f"{where}: MR ", ""), **style)
+        line = _pr_curve(axis, table, run_label(method, profile), **style)
         colours.setdefault(method, line.get_color())
     _pr_axes(axis, title)
     return figure
@@ -198,8 +200,10 @@ def score_histograms(tables: dict[str, pd.DataFrame], view: pd.DataFrame, column
 
 
 def run_label(method: str, profile: str, sequence: str | None = None) -> str:
-    """'method [profile]' (and the sequence when given): how a run is named in figures."""
-    return f"{method} [{profile}]" + (f" ({sequence})" if sequence else "")
+    """How a run is named in every table and figure: 'sift-nn (repository profile)', scores
+    imported from elsewhere 'my-tool (imported)'; ', on night' when the sequence is given."""
+    kind = "imported" if profile == IMPORTED_PROFILE else f"{profile} profile"
+    return f"{method} ({kind})" + (f", on {sequence}" if sequence else "")
 
 
 def method_colours(methods: SequenceType[str]) -> dict[str, tuple]:

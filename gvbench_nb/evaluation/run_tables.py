@@ -14,8 +14,10 @@ import pandas as pd
 import yaml
 
 from gvbench_nb.data import fetch
+from gvbench_nb.data.synthetic.route_files import GENERATOR_FILE
 from gvbench_nb.evaluation import reference_values
 from gvbench_nb.runner import config, method_outputs, record, scoring
+from gvbench_nb.runner.score_files import IMPORTED_PROFILE
 
 METRICS = ("ap", "max_recall")
 
@@ -33,6 +35,65 @@ RUN_KEY = ["sequence", "profile", "method"]  # what identifies a run in every ta
 
 
 TIME_COLUMNS = ("extract_seconds_per_pair", "match_seconds_per_pair", "verify_seconds_per_pair")
+
+
+# AP and MR are shown in % everywhere (as the paper's tables), under these names.
+METRIC_HEADERS = {"ap": "AP (%)", "max_recall": "MR (%)"}
+
+
+# Table headers in words; a column not named here has its underscores read as spaces.
+HEADERS = {
+    **{f"{m}_{end}": f"{name} {end}" for m, name in (("ap", "AP"), ("max_recall", "MR")) for end in ("low", "high")},
+    "ap": "AP",
+    "max_recall": "MR",
+    "paper_name": "paper's name",
+    "n_pairs": "pairs",
+    "n_positives": "true pairs",
+    "n_true": "true pairs",
+    "n_false": "false pairs",
+    "n_valid": "resamples with a true pair",
+    "n_queries": "queries",
+    "fps": "FPS",
+    "seconds_per_pair": "seconds a pair",
+    "extract_seconds_per_pair": "extraction (s a pair)",
+    "match_seconds_per_pair": "matching (s a pair)",
+    "verify_seconds_per_pair": "verification (s a pair)",
+    "true_zero_inliers": "true pairs with 0 inliers",
+    "false_zero_inliers": "false pairs with 0 inliers",
+    "top_false_score": "top false score",
+    "top_false_normalised": "top false score / largest",
+    "true_above_top_false": "true pairs above the top false (MR)",
+    "true_in_overlap": "true pairs at or below the top false",
+    "recall_at_1_gv": "recall@1 after GV",
+    "recall_at_1_retrieval": "recall@1 of retrieval",
+    "top_k": "top k",
+    "pair_index": "pair",
+}
+
+
+def run_labels(results: pd.DataFrame) -> dict[str, str]:
+    """Each method of ``results`` as tables name it: an imported one 'my-tool (imported)'."""
+    from gvbench_nb.evaluation import plots
+
+    return {m: plots.run_label(m, p) for m, p in zip(results["method"], results["profile"]) if p == IMPORTED_PROFILE}
+
+
+def readable_table(
+    frame: pd.DataFrame, percent: Iterable[str] = (), labels: dict[str, str] | None = None
+) -> pd.DataFrame:
+    """``frame`` as a page shows it: AP and MR columns (and ``percent``, other shares) times 100 and
+    marked (%), every header in words, a metric named in a cell as in a header ('AP'), the methods
+    in ``labels`` by their label there (``run_labels``)."""
+    metric_columns = {f"{metric}{end}" for metric in METRICS for end in ("", "_low", "_high")}
+    shares = [c for c in frame.columns if c in metric_columns or c in set(percent)]
+    shown = frame.assign(**{c: 100 * frame[c] for c in shares})
+    for column in ("method", "first", "second"):
+        if labels and column in shown:
+            shown[column] = shown[column].replace(labels)
+    if "metric" in shown and shown["metric"].isin(METRICS).all():
+        shown["metric"] = shown["metric"].map({"ap": "AP", "max_recall": "MR"})
+    words = {c: HEADERS.get(c, str(c).replace("_", " ")) + (" (%)" if c in shares else "") for c in frame.columns}
+    return shown.rename(columns=words)
 
 
 # ------------------------------------------------------------ finding results --
@@ -53,8 +114,9 @@ def find_output_dirs(
 
 
 def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
-    """``results.csv`` of several output folders, one table, plus an ``output_dir`` column and
-    ``limit``: the run's ``--limit`` (first N pairs of the pair file; None: every pair)."""
+    """``results.csv`` of several output folders, one table, plus an ``output_dir`` column,
+    ``limit``: the run's ``--limit`` (first N pairs of the pair file; None: every pair), and
+    ``synthetic``: whether the folder's images are a route the package rendered."""
     frames = []
     for folder in output_dirs:
         path = Path(folder) / "results.csv"
@@ -67,8 +129,12 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
             frame = pd.read_csv(path)
             # Only what a run published, unedited, from inputs unchanged since, on one set of pairs.
             scoring.readable_methods(folder, list(frame["method"]), tables=["results.csv"])
-            limits = [(load_run(folder, m).get("pairs") or {}).get("limit") for m in frame["method"]]
-            return frame.assign(output_dir=str(Path(folder)), limit=pd.Series(limits, dtype=object))
+            runs = [load_run(folder, m) for m in frame["method"]]
+            limits = [(run.get("pairs") or {}).get("limit") for run in runs]
+            # An imported method read no images (image_root ''): the folder's other runs tell.
+            rendered = any((Path(r["image_root"]) / GENERATOR_FILE).is_file() for r in runs if r.get("image_root"))
+            limit = pd.Series(limits, dtype=object)
+            return frame.assign(output_dir=str(Path(folder)), limit=limit, synthetic=rendered)
 
         frames.append(record.read_whole(folder, read))  # one publication, also while a run publishes
     if not frames:

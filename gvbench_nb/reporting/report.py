@@ -144,12 +144,12 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
 
         styles = {"-": "solid", "--": "dashed", ":": "dotted"}
         profiles = ", ".join(
-            f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines the {p} profile"
+            f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines {plots.run_label('', p).strip(' ()')}"
             for p in dict.fromkeys(results["profile"])
         )
         parts.append(
             "<h2>Precision-recall curves per sequence</h2><p>Every method the runs hold, each in its own colour; "
-            f"{profiles}; the dot is the max recall at 100% precision.</p>"
+            f"{profiles}; the legend gives AP and MR in %, the dot is the max recall at 100% precision.</p>"
         )
         parts.extend(f"<img src='{_relative(path, report_dir)}'>" for path in curves.values())
     parts.extend(paper_sections(report_dir, output_dirs))
@@ -173,6 +173,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         if intervals.is_file():
             parts.append("<h3>95% bootstrap intervals (queries resampled)</h3>")
             parts.append(_intervals_html(intervals, folder))
+        parts.extend(f"<p>{html.escape(line)}</p>" for line in absent_figures(folder))
         parts.extend(f"<img src='{_relative(f, report_dir)}'>" for f in shown)
     parts.append("</body></html>")
     return "\n".join(parts)
@@ -230,12 +231,29 @@ def pr_curve_figures(report_dir: Path, output_dirs: list[Path]) -> dict[str, Pat
 def _intervals_html(path: Path, output_dir: Path) -> str:
     import pandas as pd
 
+    from gvbench_nb.evaluation import run_tables
+
     table = pd.read_csv(path)
     # The intervals are keyed by method; a folder holds one profile a method, which results.csv names.
-    profiles = pd.read_csv(output_dir / "results.csv").drop_duplicates("method").set_index("method")["profile"]
+    results = pd.read_csv(output_dir / "results.csv")
+    profiles = results.drop_duplicates("method").set_index("method")["profile"]
     table["profile"] = table["method"].map(profiles).fillna("")
-    cells = table.assign(**{c: table[c].map(lambda v: f"{100 * v:.1f}") for c in ("estimate", "low", "high")})
-    return cells[["method", "profile", "metric", "estimate", "low", "high", "n_valid"]].to_html(index=False)
+    columns = ["method", "profile", "metric", "estimate", "low", "high", "n_valid"]
+    shown = run_tables.readable_table(table[columns], ["estimate", "low", "high"], run_tables.run_labels(results))
+    return shown.to_html(index=False, float_format=lambda v: f"{v:.1f}")
+
+
+def absent_figures(output_dir: Path) -> list[str]:
+    """One line for each figure of the summary a run is left out of, and why: imported scores
+    have no seconds, and those imported from a table of scores no inlier counts."""
+    import pandas as pd
+
+    from gvbench_nb.runner import scoring
+    from gvbench_nb.studies import inlier_histograms, runtime_vs_mr
+
+    results = pd.read_csv(output_dir / "results.csv")
+    tables = {m: scoring.load_pairs_table(output_dir, m) for m in results["method"]}
+    return runtime_vs_mr.unmeasured_lines(results) + inlier_histograms.with_inlier_counts(tables)[1]
 
 
 def _sequence_name(output_dir: Path) -> str:
@@ -332,9 +350,21 @@ def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
         "(Nordland's list 1,407 queries / 28,124 pairs, its text 1,415 / 28,300; UAcampus's list 640 x 15 = "
         "9,600, its text 647 x top-10). '-': not stated.</p>",
         summary.to_html(index=False, classes="table-ii"),
-        "<h3 id='table-iii'>Table III: AP and MR (%), ours, with their average over the sequences</h3>",
-        paper.style_table_iii(paper.table_iii(run_tables.load_results(output_dirs))).to_html(),
     ]
+    real, synthetic = paper.real_and_synthetic(run_tables.load_results(output_dirs))
+    parts.append(
+        "<h3 id='table-iii'>Table III: AP and MR (%), ours, on the recorded sequences, with their average "
+        "where there are two or more</h3>"
+    )
+    parts.append(
+        paper.style_table_iii(paper.table_iii(real)).to_html() if len(real) else "<p>No recorded sequence ran.</p>"
+    )
+    if len(synthetic):
+        parts.append(
+            "<h3 id='table-iii-synthetic'>The same on the synthetic routes the package rendered "
+            "(a check of the code, never averaged with the recorded sequences)</h3>"
+        )
+        parts.append(paper.style_table_iii(paper.table_iii(synthetic, average=False)).to_html())
     for caption, name in PAPER_FIGURES.items():
         if (report_dir / name).is_file():
             parts.append(f"<h3>{html.escape(caption)}</h3><img src='{name}'>")
@@ -348,7 +378,12 @@ def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
             "false loop at the threshold fixed on <i>calibration</i> (retrieval recall@1 only where the pair "
             "file keeps the retrieval order).</p>"
         )
-        parts.append(pd.read_csv(loops).to_html(index=False, float_format=lambda v: f"{v:.3f}", na_rep="-"))
+        from gvbench_nb.studies import deployment
+
+        loop_table = pd.read_csv(loops)
+        labels = run_tables.run_labels(loop_table)
+        shown = run_tables.readable_table(loop_table, deployment.LOOP_SHARES, labels)
+        parts.append(shown.to_html(index=False, float_format=lambda v: f"{v:.1f}", na_rep="-"))
     return parts
 
 

@@ -30,7 +30,8 @@ def markdown_table(frame: Any) -> str:
 
 def compact_table(results: Any) -> Any:
     """The results in the columns a terminal of 100 fits: method, profile, pairs, AP and MR with
-    their 95 % intervals, seconds a pair (marked ``*`` where the timers are not all this run's)."""
+    their 95 % intervals, seconds a pair (marked ``*`` where the timers are not all this run's;
+    'imported' for scores computed elsewhere, which have none)."""
     import pandas as pd
 
     def with_interval(metric: str) -> list[str]:
@@ -38,7 +39,8 @@ def compact_table(results: Any) -> Any:
         return [f"{value:.3f} [{low:.3f}, {high:.3f}]" for value, low, high in columns]
 
     seconds = [
-        f"{s:.3f}" + ("" if t == "this run" else "*") for s, t in zip(results["seconds_per_pair"], results["timers"])
+        "imported" if t == "imported" else f"{s:.3f}" + ("" if t == "this run" else "*")
+        for s, t in zip(results["seconds_per_pair"], results["timers"])
     ]
     return pd.DataFrame(
         {
@@ -95,7 +97,7 @@ def command_results(args: argparse.Namespace) -> int:
             f"\n{'*_low, *_high' if args.markdown or args.wide else 'CI'}: 95 % bootstrap interval over "
             f"{results['interval_unit'].iloc[0]} resamples (`compare` ranks the methods pairwise)"
         )
-        reused = results.loc[results["timers"] != "this run", ["method", "timers"]]
+        reused = results.loc[~results["timers"].isin(["this run", "imported"]), ["method", "timers"]]
         if len(reused) and not (args.markdown or args.wide):
             log.info(
                 "*: seconds from the cache, the runs' that computed them: "

@@ -75,7 +75,10 @@ def methods_with_results(output_dir: Path) -> list[str]:
 def timers_source(run: dict[str, Any]) -> str:
     """Whose timers a method's seconds are: ``this run`` (it computed every image and pair, or
     another method of the same run extracted the images it shares), ``cached`` (every one came
-    from the cache: the seconds are those of the runs that computed them) or ``partly cached``."""
+    from the cache: the seconds are those of the runs that computed them), ``partly cached``, or
+    ``imported`` (scores computed elsewhere: no seconds)."""
+    if "imported" in run:
+        return "imported"
     this_run = run.get("this_run", {})
     extraction, matching = this_run.get("extraction", {}), this_run.get("matching", {})
     earlier = extraction.get("cached_by_this_run", 0)

@@ -287,8 +287,8 @@ def verifier_table(results: pd.DataFrame) -> pd.DataFrame:
     return pd.DataFrame(
         {
             "verifier": results["verifier"],
-            "AP % [95% CI]": [cell(r, "ap") for _, r in results.iterrows()],
-            "MR % [95% CI]": [cell(r, "max_recall") for _, r in results.iterrows()],
+            "AP (%) [95% CI]": [cell(r, "ap") for _, r in results.iterrows()],
+            "MR (%) [95% CI]": [cell(r, "max_recall") for _, r in results.iterrows()],
             "status": results["status"],
             "weights": results["weights"].fillna(""),
         }

@@ -189,6 +189,7 @@ def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.D
 
 LOOP_COLUMNS = ["method", "profile", "calibration", "target", "n_queries", "queries_with_true", "recall_at_1_gv"]
 LOOP_COLUMNS += ["recall_at_1_retrieval", "true_loops_closed", "false_loops_closed"]
+LOOP_SHARES = ["recall_at_1_gv", "recall_at_1_retrieval"]  # shown in %, as AP and MR
 
 
 def transfer_text(inputs: DeploymentInputs, calibrations: list[str], table: pd.DataFrame | None = None) -> str:
@@ -216,22 +217,34 @@ def transfer_figure(table: pd.DataFrame) -> Any:
     annotated with its false loops; the diagonal is MR."""
     import matplotlib.pyplot as plt
 
+    from gvbench_nb.evaluation import plots
+
     panels = runs(table)
-    figure, axes = plt.subplots(1, len(panels), figsize=(6.5 * len(panels) + 1, 4.2), squeeze=False)
-    figure.subplots_adjust(wspace=0.9)
-    for axis, (method, profile) in zip(axes[0], panels):
-        rows = table[(table["method"] == method) & (table["profile"] == profile)]
-        recall = rows.pivot(index="calibration", columns="target", values="recall")
-        false_loops = rows.pivot(index="calibration", columns="target", values="false_loops")
-        image = axis.imshow(recall.to_numpy(dtype=float), vmin=0, vmax=1, cmap="viridis")
-        for (i, j), value in np.ndenumerate(recall.to_numpy(dtype=float)):
-            text = f"R {value:.2f}\n{int(false_loops.iat[i, j])} false"
-            axis.text(j, i, text, ha="center", va="center", fontsize=8, color="white" if value < 0.6 else "black")
-        axis.set_xticks(range(recall.shape[1]), recall.columns, rotation=30, ha="right", fontsize=8)
-        axis.set_yticks(range(recall.shape[0]), recall.index, fontsize=8)
-        axis.set(title=f"{method} ({profile} profile)", xlabel="deployed on (target)")
-    axes[0][0].set_ylabel("threshold fixed on (calibration)")
-    figure.colorbar(image, ax=axes[0].tolist(), shrink=0.8, label="recall at the transferred threshold")
+    # A panel's side grows with its sequences and the panels wrap three a row, so a cell's text
+    # keeps its size on the page whether the matrix is 1x1 or 6x6.
+    size = table["calibration"].nunique()
+    side, columns = max(3.2, 1.0 * size + 1.6), min(3, len(panels))
+    rows = -(-len(panels) // columns)
+    figure, axes = plt.subplots(
+        rows, columns, figsize=(side * columns + 1.5, side * rows + 0.8), squeeze=False, layout="constrained"
+    )
+    for number, (axis, (method, profile)) in enumerate(zip(axes.flat, panels)):
+        cells = table[(table["method"] == method) & (table["profile"] == profile)]
+        recall = cells.pivot(index="calibration", columns="target", values="recall")
+        false_loops = cells.pivot(index="calibration", columns="target", values="false_loops")
+        image = axis.imshow(100 * recall.to_numpy(dtype=float), vmin=0, vmax=100, cmap="viridis")
+        for (i, j), value in np.ndenumerate(100 * recall.to_numpy(dtype=float)):
+            text = f"R {value:.1f}%\n{int(false_loops.iat[i, j])} false"
+            axis.text(j, i, text, ha="center", va="center", fontsize=9, color="white" if value < 60 else "black")
+        axis.set_xticks(range(recall.shape[1]), recall.columns, rotation=30, ha="right", fontsize=9)
+        axis.set_yticks(range(recall.shape[0]), recall.index, fontsize=9)
+        axis.set(
+            xlabel="deployed on (target)", ylabel="threshold fixed on (calibration)" if number % columns == 0 else ""
+        )
+        axis.set_title(plots.run_label(method, profile), fontsize=10)
+    for axis in axes.flat[len(panels) :]:
+        axis.set_visible(False)
+    figure.colorbar(image, ax=axes.ravel().tolist(), shrink=0.8, label="recall at the transferred threshold (%)")
     figure.suptitle("Threshold transfer: recall and false loops accepted (diagonal: MR)", fontsize=10)
     return figure
 

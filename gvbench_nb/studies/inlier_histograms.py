@@ -37,6 +37,18 @@ def inlier_overlap_summary(table: pd.DataFrame) -> dict[str, float]:
     }
 
 
+def with_inlier_counts(tables: dict[str, pd.DataFrame]) -> tuple[dict[str, pd.DataFrame], list[str]]:
+    """The tables holding inlier counts, and one line naming each that holds none (scores imported
+    from a table of scores alone): nothing to draw there."""
+    counted = {m: t for m, t in tables.items() if t["num_inliers"].notna().any()}
+    lines = [
+        f"{plots.run_label(m, str(t['profile'].iloc[0]))}: its scores come without inlier counts; no panel"
+        for m, t in tables.items()
+        if m not in counted
+    ]
+    return counted, lines
+
+
 def inlier_overlap_table(tables: dict[str, pd.DataFrame]) -> pd.DataFrame:
     return pd.DataFrame([{"method": m, **inlier_overlap_summary(t)} for m, t in tables.items()])
 

@@ -92,15 +92,24 @@ def summary_text(summary: pd.DataFrame) -> pd.DataFrame:
     return text.astype(object).fillna("-").replace("", "-")
 
 
-def table_iii(results: pd.DataFrame) -> pd.DataFrame:
-    """Our AP and MR, one row a (method, profile), a column a (sequence, metric), then the
-    Average over the sequences of each metric (NaN for a row missing a sequence)."""
+def table_iii(results: pd.DataFrame, average: bool = True) -> pd.DataFrame:
+    """Our AP and MR, one row a (method, profile), a column a (sequence, metric), then, with
+    ``average`` and two sequences or more, the Average over them of each metric (NaN for a row
+    missing a sequence)."""
     joined = results_table.join_paper_table(results, pd.DataFrame(), None)
     wide = results_table.results_table(joined).droplevel("source", axis=1)
     wide = wide.loc[:, wide.columns.get_level_values("metric").isin(run_tables.METRICS)]  # not the pairs column
-    for metric in run_tables.METRICS:
-        wide[(AVERAGE, metric)] = wide.xs(metric, axis=1, level="metric").mean(axis=1, skipna=False)
+    if average and results["sequence"].nunique() >= 2:
+        for metric in run_tables.METRICS:
+            wide[(AVERAGE, metric)] = wide.xs(metric, axis=1, level="metric").mean(axis=1, skipna=False)
     return wide
+
+
+def real_and_synthetic(results: pd.DataFrame) -> tuple[pd.DataFrame, pd.DataFrame]:
+    """The runs on recorded sequences, and those on routes the package rendered: the two are never
+    averaged together (a rendered route measures the code, not a method's place in the paper)."""
+    synthetic = results["synthetic"].astype(bool) if "synthetic" in results else pd.Series(False, index=results.index)
+    return results[~synthetic], results[synthetic]
 
 
 def places(table: pd.DataFrame, top: int = 3) -> pd.DataFrame:
@@ -113,9 +122,10 @@ def style_table_iii(wide: pd.DataFrame) -> Any:
     """Table III in %: 1st bold, 2nd underlined, 3rd italic in each column (the paper's marking)."""
     marks = places(wide)
     styles = marks.map(lambda place: PLACE_STYLES.get(place, ""))
+    shown = wide.rename(columns=run_tables.METRIC_HEADERS, level="metric")
     return (
-        wide.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}")
-        .apply(lambda _: styles, axis=None)
+        shown.style.format(lambda v: "-" if pd.isna(v) else f"{100 * v:.1f}")
+        .apply(lambda _: styles.set_axis(shown.columns, axis=1), axis=None)
         .set_caption("1st bold, 2nd underlined, 3rd italic, in each column")
     )
 
@@ -141,10 +151,11 @@ def method_across_sequences(results: pd.DataFrame) -> plt.Figure:
     for axis, metric in zip(axes, ("max_recall", "ap")):
         for i, sequence in enumerate(sequences):
             data = results[results["sequence"] == sequence].set_index(["method", "profile"])[metric]
-            values = [data.get(row, np.nan) for row in rows]
+            values = [100 * data.get(row, np.nan) for row in rows]
             axis.bar(np.arange(len(rows)) + i * width, values, width, color=colours[sequence], label=sequence)
-        axis.set_xticks(np.arange(len(rows)) + 0.4 - width / 2, [f"{m}\n({p} profile)" for m, p in rows], fontsize=8)
-        axis.set(ylabel={"max_recall": "MR", "ap": "AP"}[metric], ylim=(0, 1.05))
+        labels = [plots.run_label(m, p).replace(" (", "\n(", 1) for m, p in rows]
+        axis.set_xticks(np.arange(len(rows)) + 0.4 - width / 2, labels, fontsize=8)
+        axis.set(ylabel=run_tables.METRIC_HEADERS[metric], ylim=(0, 105))
     axes[0].legend(title="sequence", fontsize=8, loc="upper left", bbox_to_anchor=(1.0, 1.0))
     figure.suptitle("Each method across sequences (ours; the paper's Fig. 8 grouping)")
     figure.tight_layout()

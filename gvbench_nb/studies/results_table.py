@@ -16,6 +16,7 @@ import pandas as pd
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.evaluation import plots, reference_values, run_tables
+from gvbench_nb.runner.score_files import IMPORTED_PROFILE
 
 
 def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame:
@@ -33,13 +34,18 @@ def load_paper_table(path: str | os.PathLike[str] | None = None) -> pd.DataFrame
 
 def load_repository_table() -> pd.DataFrame:
     """The GV-Bench repository's published AP/MR (fractions), its matcher names as ``paper_name``
-    and ours as ``method`` where they are the same method (``reference_values.REPOSITORY_METHODS``)."""
-    return reference_values.repository_table().rename(columns={"reference_name": "paper_name"})
+    and ours as ``method`` where they are the same method (``reference_values.REPOSITORY_METHODS``);
+    its sequences in the paper's order, so the two published tables and radars line up."""
+    table = reference_values.repository_table().rename(columns={"reference_name": "paper_name"})
+    order = {name: i for i, name in enumerate(dict.fromkeys(reference_values.paper_table()["sequence"]))}
+    place = table["sequence"].map(order).fillna(len(order))
+    return table.iloc[np.argsort(place.to_numpy(), kind="stable")].reset_index(drop=True)
 
 
-def source_label(source: str, profile: str | None = None) -> str:
-    """How a row's values are named in tables and figures: ours always with the profile."""
-    return f"{run_tables.OURS_LABEL} ({profile} profile)" if source == run_tables.OURS_LABEL else source
+def line_label(method: str, profile: str, source: str) -> str:
+    """How a row's values are named in figures: ours as every run is ('sift-nn (repository profile)',
+    'my-tool (imported)'), a published value by its source ('SIFT+NN (paper)')."""
+    return plots.run_label(method, profile) if source == run_tables.OURS_LABEL else f"{method} ({source})"
 
 
 def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
@@ -69,7 +75,9 @@ def join_paper_table(
     if "n_pairs" in results:
         limits = results["limit"] if "limit" in results else [None] * len(results)
         ours["pairs"] = [pairs_text(n, limit) for n, limit in zip(results["n_pairs"], limits)]
-    ours["paper_name"] = ours["method"].map(method_registry.paper_name)
+    # As the run recorded it (an imported method's ends in '(imported)'), else the registry's.
+    recorded = results["paper_name"] if "paper_name" in results else pd.Series(np.nan, index=results.index)
+    ours["paper_name"] = recorded.fillna(ours["method"].map(method_registry.paper_name))
     ours["source"] = run_tables.OURS_LABEL
     ran = set(zip(ours["method"], ours["sequence"], ours["profile"]))
     frames = [ours]
@@ -85,14 +93,14 @@ def join_paper_table(
     columns = ["method", "paper_name", "profile", "sequence", "source", *run_tables.METRICS]
     columns += ["pairs"] if "pairs" in ours else []
     joined = pd.concat([f.reindex(columns=columns) for f in frames], ignore_index=True)
-    joined["label"] = [source_label(src, prof) for src, prof in zip(joined["source"], joined["profile"])]
+    joined["label"] = [line_label(*row) for row in zip(joined["method"], joined["profile"], joined["source"])]
     return joined
 
 
 def pairs_text(n_pairs: int, limit: int | None) -> str:
     """How many pairs a run scored, and whether ``--limit`` cut the pair file: '240 (all)', '24 (--limit)'."""
     cut = limit is not None and not pd.isna(limit)
-    return f"{int(n_pairs)} ({'--limit' if cut else 'all'})"
+    return "-" if pd.isna(n_pairs) else f"{int(n_pairs)} ({'--limit' if cut else 'all'})"
 
 
 def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.METRICS) -> pd.DataFrame:
@@ -102,10 +110,17 @@ def results_table(joined: pd.DataFrame, metrics: SequenceType[str] = run_tables.
     wide = _by_sequence(joined, ["method", "profile"], values)
     row_order = [r for r in dict.fromkeys(zip(joined["method"], joined["profile"])) if r in wide.index]
     wide = wide.loc[row_order]
-    wide.index = pd.MultiIndex.from_tuples(
-        [(f"{m} ({method_registry.paper_name(m)})", p) for m, p in wide.index], names=["method", "profile"]
-    )
+    wide.index = pd.MultiIndex.from_tuples([(row_label(m, p), p) for m, p in wide.index], names=["method", "profile"])
     return wide
+
+
+def row_label(method: str, profile: str) -> str:
+    """A table row's method: with the paper's name where it has another ('sift-nn (SIFT+NN)'),
+    an imported method as every view names it ('my-tool (imported)')."""
+    if profile == IMPORTED_PROFILE:
+        return plots.run_label(method, profile)
+    name = method_registry.paper_name(method)
+    return method if name == method else f"{method} ({name})"
 
 
 def _by_sequence(table: pd.DataFrame, index: str | list[str], values: list[str]) -> pd.DataFrame:
@@ -133,7 +148,8 @@ def paper_reference_table(
     if methods is not None:
         paper = paper[paper["method"].isin(list(methods))]
     wide = _by_sequence(paper.assign(source=source), "paper_name", list(run_tables.METRICS))
-    return wide.loc[list(dict.fromkeys(paper["paper_name"]))]
+    # Its rows are the publication's own method names.
+    return wide.loc[list(dict.fromkeys(paper["paper_name"]))].rename_axis(run_tables.HEADERS["paper_name"])
 
 
 def metric_columns(wide: pd.DataFrame) -> list[tuple]:
@@ -142,20 +158,20 @@ def metric_columns(wide: pd.DataFrame) -> list[tuple]:
 
 
 def style_results_table(wide: pd.DataFrame) -> Any:
-    """The wide table as a pandas Styler: values in %, each column's best in bold,
-    the published columns (paper, GV-Bench repository) in grey italics."""
+    """The wide table as a pandas Styler: values in % under 'AP (%)' and 'MR (%)', each column's
+    best in bold, the published columns (paper, GV-Bench repository) in grey italics."""
     metrics = metric_columns(wide)
     best = run_tables.best_per_column(wide[metrics]).reindex(columns=wide.columns, fill_value=False)
-
-    def css(_: pd.DataFrame) -> pd.DataFrame:
-        styles = pd.DataFrame("", index=wide.index, columns=wide.columns)
-        for column in wide.columns:
-            paper = column[-1] in (run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL)
-            base = "color: #666; font-style: italic;" if paper else ""
-            styles[column] = [base + ("font-weight: bold;" if b else "") for b in best[column]]
-        return styles
-
-    return wide.style.format(_percent, subset=metrics).apply(css, axis=None)
+    styles = pd.DataFrame("", index=wide.index, columns=wide.columns)
+    for column in wide.columns:
+        paper = column[-1] in (run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL)
+        base = "color: #666; font-style: italic;" if paper else ""
+        styles[column] = [base + ("font-weight: bold;" if b else "") for b in best[column]]
+    shown = wide.rename(columns=run_tables.METRIC_HEADERS, level="metric")
+    in_percent = [shown.columns[wide.columns.get_loc(c)] for c in metrics]
+    # A run missing a sequence has no pairs there: "-", as its AP and MR.
+    styler = shown.style.format(na_rep="-").format(_percent, subset=in_percent)
+    return styler.apply(lambda _: styles.set_axis(shown.columns, axis=1), axis=None)
 
 
 def _percent(value: float) -> str:
@@ -182,33 +198,34 @@ def _line_style(source: str, profile: str) -> dict:
 
 def max_recall_radar(joined: pd.DataFrame, title: str = "") -> plt.Figure:
     """MR in % of every (method, profile) across sequences (Fig. 1), each line labelled with its source and
-    profile; bars with fewer than three sequences."""
+    profile: a radar over the sequences every line has (a line never cuts across a missing vertex; the
+    others are named under it), bars of every value when fewer than three are left."""
     sequences = list(dict.fromkeys(joined["sequence"]))
     methods = list(dict.fromkeys(joined["method"]))
     colours = plots.method_colours(methods)
     title = title or "max recall at 100% precision (%)"
-    if len(sequences) < 3:
+    lines = joined.pivot_table(
+        index=["method", "profile", "source"], columns="sequence", values="max_recall", aggfunc="first"
+    )
+    shared = [s for s in sequences if s in lines and lines[s].notna().all()]
+    if len(shared) < 3:
         return _max_recall_bars(joined, sequences, methods, colours, title)
-    angles = np.linspace(0, 2 * np.pi, len(sequences), endpoint=False)
+    angles = np.linspace(0, 2 * np.pi, len(shared), endpoint=False)
     figure, axis = plt.subplots(figsize=(6.5, 6.5), subplot_kw={"projection": "polar"})
     for (method, profile, source), group in joined.groupby(["method", "profile", "source"], sort=False):
-        values = 100 * group.set_index("sequence")["max_recall"].reindex(sequences).to_numpy(dtype=float)
-        if np.isnan(values).all():
-            continue
-        closed = np.r_[values, values[:1]]
+        values = 100 * group.set_index("sequence")["max_recall"].reindex(shared).to_numpy(dtype=float)
         axis.plot(
-            np.r_[angles, angles[:1]],
-            closed,
-            color=colours[method],
-            marker="o",
-            markersize=3,
-            label=f"{method} ({source_label(source, profile)})",
-            **_line_style(source, profile),
-        )
-    axis.set_xticks(angles, sequences)
+            np.r_[angles, angles[:1] + 2 * np.pi], np.r_[values, values[:1]], color=colours[method], marker="o",
+            markersize=3, label=line_label(method, profile, source), **_line_style(source, profile),
+        )  # fmt: skip
+    axis.set_xticks(angles, shared)
     axis.set_ylim(0, max(5.0, 110 * float(np.nanmax(joined["max_recall"]))))
     axis.set_title(title, pad=20)
     axis.legend(loc="upper left", bbox_to_anchor=(1.05, 1.0), fontsize=8)
+    left_out = [s for s in sequences if s not in shared]
+    if left_out:
+        note = f"not drawn, as not every line has it (the tables have it): {', '.join(left_out)}"
+        figure.text(0.02, 0.02, note, fontsize=8)
     return figure
 
 
@@ -238,7 +255,7 @@ def _max_recall_bars(
                 linewidth=0.4,
             )
             axis.text(percent, row, f" {percent:.1f}%", va="center", fontsize=7)
-        axis.set_yticks(range(len(rows)), [f"{m} ({source_label(src, p)})" for m, p, src in rows], fontsize=7)
+        axis.set_yticks(range(len(rows)), [line_label(*row) for row in rows], fontsize=7)
         axis.invert_yaxis()
         axis.set(title=sequence, xlabel="max recall at 100% precision (%)", xlim=(0, 115))
     published = (joined["source"] != run_tables.OURS_LABEL).any()

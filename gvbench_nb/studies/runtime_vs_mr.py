@@ -10,7 +10,7 @@ from typing import Any
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
-from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter, PercentFormatter
+from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
 from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.runner import image_features, scoring
@@ -28,24 +28,42 @@ def runtime_table(results: pd.DataFrame) -> pd.DataFrame:
     return table
 
 
-def image_size_of_run(
+def unmeasured_lines(results: pd.DataFrame) -> list[str]:
+    """One line for each run without seconds (scores imported from elsewhere): left out below."""
+    absent = results[results["seconds_per_pair"].isna()]
+    return [
+        f"{plots.run_label(m, p, s)}: no seconds were measured here (scores imported); not in the runtime views"
+        for m, p, s in zip(absent["method"], absent["profile"], absent["sequence"])
+    ]
+
+
+def traversal_sizes(
     output_dir: str | os.PathLike[str], method: str, run: dict[str, Any], cache_dir: Path
-) -> tuple[int, int] | None:
-    """Original (width, height) of the run's first query image: from the feature cache,
-    else (dense matchers, or no cache here) the image file's header; None when neither is there."""
-    first_query = scoring.load_pairs_table(Path(output_dir), method)["query"].iloc[0]
+) -> dict[str, tuple[int, int] | None]:
+    """Original (width, height) of each traversal (an image folder of the queries or references; a
+    query folder first), read from its first image; None where that image cannot be read."""
+    pairs = scoring.load_pairs_table(Path(output_dir), method)
+    firsts: dict[str, str] = {}
+    for name in [*pairs["query"], *pairs["reference"]]:
+        firsts.setdefault(name.rsplit("/", 1)[0] if "/" in name else ".", name)
+    return {folder: image_size(name, run, cache_dir) for folder, name in firsts.items()}
+
+
+def image_size(name: str, run: dict[str, Any], cache_dir: Path) -> tuple[int, int] | None:
+    """Original (width, height) of one image of a run: from the feature cache, else (dense
+    matchers, or no cache here) the image file's header; None when neither is there."""
     extractor = run["conf"].get("extractor")
     if extractor:
         store = image_features.feature_store(cache_dir, extractor)
         try:
-            key: str | None = image_features.image_key(Path(run["image_root"]), first_query)
+            key: str | None = image_features.image_key(Path(run["image_root"]), name)
         except OSError:  # the image is gone: no key to look up
             key = None
         if key is not None and store.folder.is_dir() and key in store:
             size = store.read(key)["image_size"]
             store.close()
             return int(size[0]), int(size[1])
-    path = Path(run["image_root"]) / first_query
+    path = Path(run["image_root"]) / name
     if path.is_file():
         from PIL import Image
 
@@ -71,12 +89,12 @@ def run_description(
         if resizing is None:  # imported scores: no image was read here
             continue
         resize = resizing.get("resize_max")
-        size = image_size_of_run(output_dir, method, run, run_tables.resolve_cache_dir(output_dir, cache_dir))
-        native = f"{size[0]}x{size[1]}" if size else "?"
+        sizes_of = traversal_sizes(output_dir, method, run, run_tables.resolve_cache_dir(output_dir, cache_dir))
+        native = ", ".join(f"{folder} {f'{s[0]}x{s[1]}' if s else '?'}" for folder, s in sizes_of.items())
         longest = f"{'=' if resizing.get('resize_force') else '<='}{resize}" if resize else "native"
         fixed = resizing.get("resize_to")
         resized = f"resized to {fixed[0]}x{fixed[1]}" if fixed else f"longest side {longest}"
-        sizes.add(f"{resizing['name']}: {native}, {resized}")
+        sizes.add(f"{resizing['name']}: {native}; {resized}")
     return (
         f"device {' / '.join(sorted(devices))}; profile {' / '.join(sorted(profiles))}; "
         f"images {'; '.join(sorted(sizes))}"
@@ -124,7 +142,7 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     for row in runtime.itertuples():
         axis.scatter(
             row.fps,
-            row.max_recall,
+            100 * row.max_recall,
             color=colours[row.method],
             marker=markers[row.sequence],
             s=60,
@@ -134,7 +152,7 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
         sequence = row.sequence if runtime["sequence"].nunique() > 1 else None
         axis.annotate(
             plots.run_label(row.method, row.profile, sequence),
-            (row.fps, row.max_recall),
+            (row.fps, 100 * row.max_recall),
             textcoords="offset points",
             xytext=(5, 4),
             fontsize=8,
@@ -149,11 +167,10 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     axis.xaxis.set_major_locator(LogLocator(subs=(1.0, 2.0, 5.0)))
     axis.xaxis.set_major_formatter(FuncFormatter(lambda value, _: f"{value:g}"))
     axis.xaxis.set_minor_formatter(NullFormatter())
-    axis.yaxis.set_major_formatter(PercentFormatter(xmax=1))
     axis.set(
         xlabel="FPS (pairs a second, 1 / seconds per pair; log scale)",
-        ylabel="max recall at 100% precision (%)",
-        ylim=(-0.02, max(0.1, float(runtime["max_recall"].max()) * 1.2)),
+        ylabel=f"max recall at 100% precision, {run_tables.METRIC_HEADERS['max_recall']}",
+        ylim=(-2, max(10.0, 120 * float(runtime["max_recall"].max()))),
     )
     axis.grid(alpha=0.3, which="both")
     axis.set_title("speed vs max recall", fontsize=11)

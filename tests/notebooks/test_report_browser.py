@@ -1,5 +1,8 @@
-"""The HTML report of a small sample run in headless Chromium: every image loads, every link resolves,
-the tables name their runs' profiles, the notebook pages show no code, and no page logs an error."""
+"""The HTML report of a small sample run, with a method imported from a table of scores, in headless
+Chromium: every image loads, every link resolves, the tables name their runs' profiles, the notebook
+pages show no code, no page logs an error; and the pages read as one paper: no warning text, no
+`nan` cell, the imported method labelled '(imported)' wherever it is named, AP and MR in % under
+worded headers, no synthetic route in an Average, the published tables in one sequence order."""
 
 from __future__ import annotations
 
@@ -8,6 +11,7 @@ import shutil
 from pathlib import Path
 from urllib.parse import unquote, urldefrag, urljoin, urlparse
 
+import pandas as pd
 import pytest
 import yaml
 
@@ -18,6 +22,7 @@ PROJECT_ROOT = Path(__file__).resolve().parents[2]
 METHODS = "sift-nn,orb-nn"
 PROFILE = "repository"
 LIMIT = "24"  # pairs of the second sequence: enough for every analysis notebook, seconds to run
+IMPORTED = "my-tool"  # scores imported from a table (no inlier counts, no seconds) into the sample's folder
 
 
 def pinned(package: str) -> str:
@@ -68,9 +73,14 @@ def report_index(chromium, tmp_path_factory) -> Path:
         base = ["run", str(path), "--methods", METHODS, *limit]
         assert cli.main([*base, "--shard", "0/1"]) == 0
         assert cli.main([*base, "--merge"]) == 0
+    # A method imported beside them from a table of scores alone (sift-nn's scores).
+    sample = root / "outputs" / "sample"
+    scores = root / "scores.csv"
+    pd.read_csv(sample / "sift-nn" / "pairs.csv")[["query", "reference", "label", "score"]].to_csv(scores, index=False)
+    imported = ["import-scores", str(scores), "--sequence", "sample", "--method", IMPORTED]
+    assert cli.main([*imported, "--output-dir", str(sample)]) == 0
     # The verifiers compared on the sample's sift-nn matches (the verifier pages' input), and a
     # tiny condition sweep beside the runs (the sweep page's).
-    sample = root / "outputs" / "sample"
     verifiers = {"params_file": None, "results_dir": str(sample), "method": "sift-nn"}
     target = sample / report.VERIFIERS_FOLDER
     execute.execute_notebook(
@@ -84,8 +94,10 @@ def report_index(chromium, tmp_path_factory) -> Path:
     return root / "report" / "index.html"
 
 
-# Lines a page must not hold: notebook bookkeeping printed into the report, and numbers unrounded.
-STRAY = re.compile(r"\d+ results of \d+ sequence|paper's table: \d+ rows|\d\.\d{5,}")
+# Lines a page must not hold: notebook bookkeeping printed into the report, numbers unrounded, and
+# warnings or tracebacks a cell printed.
+STRAY = re.compile(r"\d+ results of \d+ sequence|paper's table: \d+ rows|\d\.\d{5,}|Warning\b|Traceback")
+SYNTHETIC = {"sample", "sample_retrieval"}  # both sequences are the rendered route's
 MAX_PAGE_BYTES = 2_000_000
 
 
@@ -121,7 +133,35 @@ def check_page(browser, url: str) -> tuple[object, list[str]]:
     assert errors == [], f"{url}: console errors"
     text = page.evaluate("document.body.innerText")
     assert not STRAY.search(text), f"{url}: stray line {STRAY.search(text).group(0)!r}"
+    check_reads_as_one_paper(page, url, text)
     return page, targets
+
+
+def check_reads_as_one_paper(page, url: str, text: str) -> None:
+    """No `nan` cell; the imported method labelled '(imported)' wherever named; headers in words, AP
+    and MR in %; no synthetic sequence in an Average; the published tables in one sequence order."""
+    cells = page.evaluate("[...document.querySelectorAll('td, th')].map(c => c.innerText.trim().toLowerCase())")
+    assert not {"nan", "none"} & set(cells), f"{url}: a nan cell"
+    if IMPORTED in text:
+        assert f"{IMPORTED} (imported)" in text, f"{url}: {IMPORTED} named without '(imported)'"
+    assert f"{IMPORTED} ({IMPORTED}" not in text and "imported profile" not in text, url
+    assert "profile profile" not in text and f"[{PROFILE}]" not in text, f"{url}: a profile written another way"
+    headers = page.evaluate("""[...document.querySelectorAll('table')].map(t =>
+        [...t.querySelectorAll('thead th')].map(c => c.innerText.trim()))""")
+    for header in headers:
+        raw = [h for h in header if ("_" in h and h not in SYNTHETIC) or h.lower() in ("ap", "max_recall", "mr")]
+        assert raw == [], f"{url}: raw column names in a header {header}"
+        assert all("(%)" in h for h in header if re.search(r"\b(AP|MR)\b", h)), f"{url}: AP or MR not in % {header}"
+        if "Average" in header:
+            assert not SYNTHETIC & set(header), f"{url}: a synthetic sequence averaged {header}"
+    # A header names its sequences once a metric: each run of them in the paper's order.
+    published = [list(dict.fromkeys(h for h in header if h in PAPER_SEQUENCES)) for header in headers]
+    orders = [order for order in published if len(order) > 1]
+    assert all(order == [s for s in PAPER_SEQUENCES if s in order] for order in orders), f"{url}: {orders}"
+
+
+# The paper's sequence order, which every published table and radar follows.
+PAPER_SEQUENCES = ["day", "night", "season", "weather", "nordland", "uacampus"]
 
 
 @pytest.mark.slow
@@ -149,11 +189,12 @@ def check_report(browser, index: Path) -> None:
     tables = page.evaluate("""[...document.querySelectorAll('table:not(.table-ii)')].map(t => ({
         headers: [...t.querySelectorAll('thead th')].map(c => c.innerText.trim()),
         rows: [...t.querySelectorAll('tbody tr')].map(r => [...r.cells].map(c => c.innerText.trim()))}))""")
-    # the results table, Table III, the loop closures and each sequence's bootstrap intervals
+    # the results table, Table III of the synthetic routes, the loop closures and each sequence's
+    # bootstrap intervals
     assert len(tables) == 5
     for table in tables:
         assert "profile" in table["headers"], table["headers"]
-        assert table["rows"] and all(PROFILE in row for row in table["rows"]), table["rows"]
+        assert table["rows"] and all(PROFILE in row or "imported" in row for row in table["rows"]), table["rows"]
     # Each row of the results table says how many pairs it has, and whether --limit cut them.
     rows = tables[0]["rows"]
     assert "pairs" in tables[0]["headers"] and all(f"{LIMIT} (--limit)" in row or "240 (all)" in row for row in rows)
@@ -180,16 +221,20 @@ def check_report(browser, index: Path) -> None:
 
 
 def check_paper_tables(page) -> None:
-    """Table II shows the counted and the paper's text values, each labelled; Table III has its
-    Average column and marks the 1st (bold), 2nd (underlined) and 3rd (italic) of a column."""
+    """Table II shows the counted and the paper's text values, each labelled; Table III holds no
+    recorded sequence here, the synthetic routes' table no Average, and marks the 1st (bold), 2nd
+    (underlined) and 3rd (italic) of a column."""
     summary = page.evaluate("""[...document.querySelectorAll('table.table-ii tbody tr')]
         .map(r => [...r.cells].map(c => c.innerText.trim()))""")
     sources = {row[1] for row in summary}
     assert {"counted from the run", "paper (text)"} <= sources, sources
     assert ["nordland", "paper (text)", "-", "seasonal", "-", "1,415", "-", "28,300", "-"] in summary
-    heading = page.locator("#table-iii")
-    table = heading.locator("xpath=following-sibling::table[1]")
-    assert "Average" in table.locator("thead").inner_text()
+    assert page.locator("#table-iii").locator("xpath=following-sibling::*[1]").inner_text() == (
+        "No recorded sequence ran."
+    )
+    table = page.locator("#table-iii-synthetic").locator("xpath=following-sibling::table[1]")
+    header = table.locator("thead").inner_text()
+    assert "Average" not in header and "sample" in header and "sample_retrieval" in header
     styles = table.evaluate("""t => [...t.querySelectorAll('tbody td')].map(c => {
         const s = getComputedStyle(c); return [c.innerText.trim(), s.fontWeight, s.textDecorationLine, s.fontStyle]})""")
     # Two methods on each column: a 1st (bold) and a 2nd (underlined) where they differ.

@@ -48,9 +48,9 @@ def test_pr_curves_name_every_method_and_profile_and_keep_a_methods_colour():
     figure = plots.pr_curves_by_profile(tables, title="toy")
     texts = [t.get_text() for t in figure.axes[0].get_legend().get_texts()]
     assert texts == [
-        "sift-nn (repository profile): MR 100.0%",
-        "sift-nn (paper profile): MR 50.0%",
-        "orb-nn (repository profile): MR 0.0%",
+        "sift-nn (repository profile): AP 100.0%, MR 100.0%",
+        "sift-nn (paper profile): AP 83.3%, MR 50.0%",
+        "orb-nn (repository profile): AP 58.3%, MR 0.0%",
     ]
     lines = [line for line in figure.axes[0].get_lines() if line.get_label() in texts]
     assert lines[0].get_color() == lines[1].get_color() != lines[2].get_color()

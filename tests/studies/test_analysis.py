@@ -345,10 +345,12 @@ def test_results_table_keeps_one_row_a_method_and_profile():
     assert np.isnan(wide.loc[("sift-nn (SIFT+NN)", "repository"), ("night", "ap", "paper")])
     assert np.isnan(wide.loc[("disk-lg (DISK+LG)", "repository"), ("night", "ap", "paper")])
     assert set(joined["label"]) == {
-        "ours (paper profile)",
-        "ours (repository profile)",
-        "paper",
-        run_tables.REPOSITORY_LABEL,
+        "sift-nn (paper profile)",
+        "sift-nn (repository profile)",
+        "disk-lg (repository profile)",
+        "sift-nn (paper)",
+        f"sift-nn ({run_tables.REPOSITORY_LABEL})",
+        f"disk-lg ({run_tables.REPOSITORY_LABEL})",
     }
 
 
@@ -377,12 +379,12 @@ def test_radar_and_bars_label_every_line_with_its_profile():
         results, results_table.load_paper_table(), results_table.load_repository_table()
     )
     labels = results_table.max_recall_radar(joined).axes[0].get_legend_handles_labels()[1]
-    assert "sift-nn (ours (paper profile))" in labels and "sift-nn (ours (repository profile))" in labels
+    assert "sift-nn (paper profile)" in labels and "sift-nn (repository profile)" in labels
     assert "sift-nn (paper)" in labels and f"sift-nn ({run_tables.REPOSITORY_LABEL})" in labels
     assert not any(label.endswith("(ours)") for label in labels)
     bars = results_table.max_recall_radar(joined[joined.sequence == "night"])
     ticks = [t.get_text() for t in bars.axes[0].get_yticklabels()]
-    assert ticks[:2] == ["sift-nn (ours (paper profile))", "sift-nn (ours (repository profile))"]
+    assert ticks[:2] == ["sift-nn (paper profile)", "sift-nn (repository profile)"]
     # In %, as the tables are, and the title names only what is drawn.
     assert bars.axes[0].patches[0].get_width() == pytest.approx(8.0) and "(%)" in bars.axes[0].get_xlabel()
     assert "hatched: published" in bars.texts[0].get_text()
@@ -400,12 +402,12 @@ def test_runtime_figures_and_histograms_name_the_profile():
     runtime = runtime_vs_mr.runtime_table(two_profile_results())
     stacked = runtime_vs_mr.seconds_per_pair_stacked(runtime)
     assert [t.get_text() for t in stacked.axes[0].get_yticklabels()] == [
-        "sift-nn [paper]",
-        "sift-nn [repository]",
-        "disk-lg [repository]",
+        "sift-nn (paper profile)",
+        "sift-nn (repository profile)",
+        "disk-lg (repository profile)",
     ]
     scatter = runtime_vs_mr.fps_vs_max_recall(runtime)
-    assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn [paper]", "sift-nn [repository]"}
+    assert {t.get_text() for t in scatter.axes[0].texts} >= {"sift-nn (paper profile)", "sift-nn (repository profile)"}
     # The log axis reads: at least three labelled ticks inside it, whatever the speeds.
     for seconds in ([0.05, 0.06, 0.08], [0.01, 1.0, 30.0]):
         figure = runtime_vs_mr.fps_vs_max_recall(runtime.assign(fps=[1 / s for s in seconds]))
@@ -415,16 +417,11 @@ def test_runtime_figures_and_histograms_name_the_profile():
         shown = [t.get_text() for t in axis.get_xticklabels() if low <= t.get_position()[0] <= high]
         assert len([t for t in shown if t]) >= 3, shown
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
-    tables = {
-        "sift-nn (paper)": table.assign(profile="paper"),
-        "sift-nn (repository)": table.assign(profile="repository"),
-    }
+    tables = {"sift-nn": table.assign(profile="paper"), "orb-nn": table.assign(profile="repository")}
     figure = inlier_histograms.normalised_inlier_histograms(tables)
-    assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper) [paper]", "sift-nn (repository) [repository]"]
+    assert [a.get_title() for a in figure.axes[:2]] == ["sift-nn (paper profile)", "orb-nn (repository profile)"]
     with pytest.raises(ValueError, match="mixes profiles"):
-        inlier_histograms.normalised_inlier_histograms(
-            {"sift-nn": pd.concat([tables["sift-nn (paper)"], tables["sift-nn (repository)"]])}
-        )
+        inlier_histograms.normalised_inlier_histograms({"sift-nn": pd.concat(tables.values())})
 
 
 def test_reference_tables_ship_with_the_package_and_map_names():

@@ -81,6 +81,9 @@ def _pose_rows(name: str, traversal: poses.Traversal, K: np.ndarray, image_names
     return rows
 
 
+GENERATOR_FILE = "generator.json"  # beside a rendered route's images: what tells a synthetic sequence
+
+
 def generate_sample(
     out_dir: str | Path,
     seed: int = 0,
@@ -103,7 +106,7 @@ def generate_sample(
         **DRIVE,
         **THRESHOLDS,
     }
-    params_path = out_dir / "generator.json"
+    params_path = out_dir / GENERATOR_FILE
     width = _name_width(n_frames)
     frames = [out_dir / t / f"{i:0{width}d}.png" for t in ("day", "night") for i in range(n_frames)]
     if params_path.exists() and all(p.exists() for p in [out_dir / "poses.csv", out_dir / "pairs.txt", *frames]):

@@ -194,13 +194,15 @@ LOOP_SHARES = ["recall_at_1_gv", "recall_at_1_retrieval"]  # shown in %, as AP a
 
 def transfer_text(inputs: DeploymentInputs, calibrations: list[str], table: pd.DataFrame | None = None) -> str:
     """What ``transfer`` prints: a matrix a method, then the loop-closure table."""
+    from gvbench_nb.evaluation.plots import run_label
+
     table = transfer_table(inputs, calibrations) if table is None else table
     parts = [
         "Each method's threshold of 100% precision on the calibration sequence (the one MR is read at), "
         "applied to each target: precision / recall / false loops accepted ('-': nothing accepted).\n"
     ]
     for method, profile in runs(table):
-        parts.append(f"{method} ({profile} profile)\n{transfer_matrix(table, method, profile).to_string()}\n")
+        parts.append(f"{run_label(method, profile)}\n{transfer_matrix(table, method, profile).to_string()}\n")
     loops = loop_closure_table(table, inputs)
     parts.append(
         "Loop closures: each query keeps its best-scoring candidate. recall_at_1_gv: its share of the queries "

@@ -112,7 +112,7 @@ def check_views(page, index: int) -> None:
     area, cell = page.locator(".gvbench-view-table").bounding_box(), page.locator(".jp-Notebook").bounding_box()
     assert area and cell and area["x"] + area["width"] <= cell["x"] + cell["width"], (area, cell)
     cells = table.locator("tbody tr").evaluate_all("rows => rows.map(r => [...r.cells].map(c => c.innerText.trim()))")
-    assert [row[1] for row in cells] == METHODS and {row[2] for row in cells} == {str(index)}, cells
+    assert [row[0] for row in cells] == METHODS and {row[1] for row in cells} == {str(index)}, cells
     for view in ("matches", "scores"):
         images = page.locator(f".gvbench-view-{view} img")
         assert images.count() == 1, view

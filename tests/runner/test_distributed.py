@@ -198,9 +198,11 @@ def run_argv(params: Path, output: Path, *more: str) -> list[str]:
     return [sys.executable, "-m", "gvbench_nb", "run", str(params), *methods_option, "--output-dir", str(output), *more]
 
 
-def package_environment(**more: str) -> dict[str, str]:
-    """This environment importing the package under test, one thread a job (the machine's cores are shared)."""
-    return {**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", **more}
+def package_environment(cache: Path | None = None, **more: str) -> dict[str, str]:
+    """This environment importing the package under test, one thread a job (the machine's cores are
+    shared), with a feature cache of the run's own (``cache``) so its timers are its own work."""
+    own = {"GVBENCH_CACHE": str(cache)} if cache else {}
+    return {**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", **own, **more}
 
 
 def run_to_the_end(argv: list[str], timeout: float = 600, **options) -> subprocess.CompletedProcess:
@@ -250,7 +252,9 @@ def plain_run(tmp_path_factory) -> tuple[Path, Path, dict[str, dict[str, str]]]:
     sample = {"sequence": "sample", "pairs_builder": "sample", "builder_options": {}, "image_root": "data"}
     sample |= {"pairs": "data/pairs.txt", "methods": list(CLI_METHODS), "profile": PROFILE, "seed": 0}
     params.write_text(yaml.safe_dump(sample | {"output_dir": "plain/out"}))
-    done = run_to_the_end(run_argv(params, folder / "plain" / "out"), cwd=folder, env=package_environment())
+    done = run_to_the_end(
+        run_argv(params, folder / "plain" / "out"), cwd=folder, env=package_environment(folder / "plain" / "cache")
+    )
     assert done.returncode == 0, done.stderr[-3000:]
     return params, folder / "plain" / "out", printed_table(done.stdout)
 
@@ -339,7 +343,7 @@ def test_a_run_on_a_dask_cluster_started_from_its_command_line_equals_the_plain_
     output = tmp_path / "dask" / "out"
     with dask_cluster(tmp_path / "cluster", [config.PROJECT_ROOT] * 2) as (address, _):
         argv = run_argv(params, output, "--dask", "--scheduler", address, "--shards", "4")
-        done = run_to_the_end(argv, cwd=params.parent, env=package_environment())
+        done = run_to_the_end(argv, cwd=params.parent, env=package_environment(output.parent / "cache"))
     assert done.returncode == 0, done.stderr[-3000:]
     assert printed_table(done.stdout) == plain_table  # timers included: "this run" on both sides
     assert {row["timers"] for row in plain_table.values()} == {"this run"}
@@ -360,7 +364,9 @@ def test_a_dask_worker_killed_mid_run_leaves_the_table_identical(plain_run, tmp_
         open(tmp_path / "run.err", "w+") as err,
     ):
         argv[argv.index("ADDRESS")] = address
-        run = subprocess.Popen(argv, cwd=params.parent, env=package_environment(), stdout=out, stderr=err)
+        run = subprocess.Popen(
+            argv, cwd=params.parent, env=package_environment(output.parent / "cache"), stdout=out, stderr=err
+        )
         try:
             with Client(address, timeout=60) as client:
                 busy = busy_worker(client, run)
@@ -403,7 +409,7 @@ def test_a_dask_worker_of_another_version_is_refused_in_one_sentence_before_any_
     with dask_cluster(tmp_path / "cluster", [config.PROJECT_ROOT, other]) as (address, workers):
         other_worker = workers[1][0]
         argv = run_argv(params, output, "--dask", "--scheduler", address)
-        done = run_to_the_end(argv, cwd=params.parent, env=package_environment())
+        done = run_to_the_end(argv, cwd=params.parent, env=package_environment(output.parent / "cache"))
     assert done.returncode == 2
     assert re.fullmatch(
         rf"error: Dask worker {re.escape(other_worker)} runs gvbench_nb 0\.0\.0\+other \(code [0-9a-f]{{12}}\) where "
@@ -432,7 +438,9 @@ def test_the_slurm_job_array_of_the_docs_gives_the_unsharded_table(plain_run, tm
     output = tmp_path / "slurm" / "out"
     run = " ".join(run_argv(params, output)[4:])  # what follows `python -m gvbench_nb run`
     path = os.pathsep.join([str(sbatch.parent), str(Path(sys.executable).parent), os.environ["PATH"]])
-    environment = package_environment(PATH=path, RUN=run, SBATCH_HERE_JOBS=str(tmp_path / "jobs"))
+    environment = package_environment(
+        output.parent / "cache", PATH=path, RUN=run, SBATCH_HERE_JOBS=str(tmp_path / "jobs")
+    )
     done = run_to_the_end(["bash", "-e", "-c", submission], cwd=tmp_path, env=environment)
     assert done.returncode == 0, done.stderr[-3000:]
     shards = sorted(tmp_path.glob("slurm-1_*.out"))

@@ -162,3 +162,15 @@ def test_gardens_point_pair_1779_collapses_and_results_names_it_for_sift_nn(shar
         f"inliers fall on 62 distinct query and 12 distinct reference keypoints: a collapsed fit ({collapsed_inliers.RULE}; "
         "docs/protocol.md, Collapsed inliers)"
     ]
+
+
+def test_the_distinct_keypoint_table_scores_a_collapsed_false_pair_by_its_fewer_side(tmp_path, capsys):
+    import distinct_keypoints
+
+    write_run(tmp_path / "toy", "sift-nn", made_up_table(reference_keypoints=6))
+    assert distinct_keypoints.main([str(tmp_path / "toy"), "--resamples", "100"]) == 0
+    row = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("| sift-nn"))
+    # The protocol's score: three true pairs above the false pair's 50 inliers. Counted by distinct
+    # keypoints that pair scores 6, below every true pair.
+    cells = [cell.strip() for cell in row.strip("|").split("|")]
+    assert cells[3].startswith("0.300 [") and cells[4] == cells[5] == "1.000 [1.000, 1.000]" and cells[6] == "1 / 0"

@@ -56,7 +56,7 @@ def collapse_warning(method: str, table: pd.DataFrame) -> str | None:
     """One line when ``method``'s MR is set by collapsed pairs only (every false pair at the top score
     collapses), or when its table cannot tell; None otherwise, and for scores with no matches counted."""
     top = mr_setting_pairs(table)
-    if not len(top) or top["num_matches"].isna().all():
+    if not len(top) or top.reindex(columns=["num_matches"])["num_matches"].isna().all():
         return None  # imported scores: no matches here to count keypoints of
     first = top.iloc[0]
     tied = f" and {len(top) - 1} more false pairs tied with it" if len(top) > 1 else ""

@@ -33,12 +33,12 @@ def collapsed(table: pd.DataFrame) -> pd.Series:
 
 
 def inlier_keypoints_words(row: Any) -> str:
-    """' on Q query and R reference keypoints' of a table's row (itertuples), with ' (collapsed)' where
-    ``collapsed`` says so; '' where the counts were not measured."""
+    """' on Q query and R reference keypoints' of a table's row (itertuples), with ', collapsed,' where
+    ``collapsed`` says so; '' where the counts were not measured. Said right after the inliers."""
     query, reference = (getattr(row, name, np.nan) for name in INLIER_KEYPOINT_COUNTS)
     if pd.isna(query) or pd.isna(reference):
         return ""
-    marked = " (collapsed)" if getattr(row, "collapsed", False) else ""
+    marked = ", collapsed," if getattr(row, "collapsed", False) else ""
     return f" on {query:.0f} query and {reference:.0f} reference keypoints{marked}"
 
 

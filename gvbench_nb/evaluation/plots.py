@@ -164,8 +164,8 @@ def pair_matches(
         drawn = lines[method]
         draw_matches(*images, drawn["points0"], drawn["points1"], drawn["inlier_mask"], axis=axis)
         axis.set_title(
-            f"{method}: score {row.score} ({row.num_inliers} inliers of {row.num_matches} matches"
-            f"{collapsed_inliers.inlier_keypoints_words(row)}), "
+            f"{method}: score {row.score} ({row.num_inliers} inliers{collapsed_inliers.inlier_keypoints_words(row)} "
+            f"of {row.num_matches} matches), "
             f"rank {row.rank} of {row.n_pairs}",
             fontsize=9,
         )

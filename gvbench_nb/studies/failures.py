@@ -136,8 +136,8 @@ def failure_pairs(
             offsets.append(f"{row.distance_m:.1f} m, {row.heading_deg:.0f} deg")
         kind = "false positive" if row.label == 0 else "false negative"
         axis.set_title(
-            f"{kind} #{row.rank}: {row.query} | {row.reference}  score {row.score:g} inliers "
-            f"of {row.num_matches} matches{collapsed_inliers.inlier_keypoints_words(row)}; "
+            f"{kind} #{row.rank}: {row.query} | {row.reference}  score {row.score:g} inliers"
+            f"{collapsed_inliers.inlier_keypoints_words(row)} of {row.num_matches} matches; "
             f"ground-truth offset {', '.join(o for o in offsets if o)}",
             fontsize=8,
         )

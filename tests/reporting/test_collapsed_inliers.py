@@ -174,3 +174,16 @@ def test_the_distinct_keypoint_table_scores_a_collapsed_false_pair_by_its_fewer_
     # keypoints that pair scores 6, below every true pair.
     cells = [cell.strip() for cell in row.strip("|").split("|")]
     assert cells[3].startswith("0.300 [") and cells[4] == cells[5] == "1.000 [1.000, 1.000]" and cells[6] == "1 / 0"
+
+
+@pytest.mark.reliability
+def test_the_failures_page_and_the_explorer_show_the_counts_and_whether_a_pair_collapsed():
+    from gvbench_nb.studies import explore_pairs, failures
+
+    tables = {"sift-nn": made_up_table(reference_keypoints=6)}
+    top = failures.failures_table(tables, k=1).iloc[0]
+    assert (top["pair_index"], top["num_inliers"], *top[COUNTS], top["collapsed"]) == (1, 50, 50, 6, True)
+    view = explore_pairs.pair_across_methods(tables, 1).iloc[0]
+    assert (*view[COUNTS], view["collapsed"]) == (50, 6, True)
+    words = collapsed_inliers.inlier_keypoints_words(next(failures.failures_table(tables, k=1).itertuples()))
+    assert words == " on 50 query and 6 reference keypoints, collapsed,"

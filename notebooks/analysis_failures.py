@@ -78,7 +78,7 @@ near_misses.to_csv(figures / "near_miss_false_positives.csv", index=False)
 # %% [markdown]
 # Each sequence's failures, `k` a method and kind, ranked: the pair, its label and
 # score, its matches and its ground-truth offset. A false positive with a small offset
-# is a near miss of the labels rather than of the verifier.
+# is a near miss of the labels rather than of the verifier. `collapsed`: its inliers fall on fewer distinct query or reference keypoints than half their number (docs/protocol.md, Collapsed inliers).
 
 # %%
 for _, sequence, _, failed in runs:

@@ -11,6 +11,7 @@ import numpy as np
 import pandas as pd
 from matplotlib.colors import to_rgba
 
+from gvbench_nb.evaluation import collapsed_inliers
 from gvbench_nb.protocol.images import read_image
 from gvbench_nb.protocol.metrics import average_precision, max_recall_at_full_precision, pr_curve
 from gvbench_nb.runner import record
@@ -165,7 +166,8 @@ def pair_matches(
         drawn = lines[method]
         draw_matches(*images, drawn["points0"], drawn["points1"], drawn["inlier_mask"], axis=axis)
         axis.set_title(
-            f"{method}: score {row.score} ({row.num_inliers} inliers of {row.num_matches} matches), "
+            f"{method}: score {row.score} ({row.num_inliers} inliers{collapsed_inliers.inlier_keypoints_words(row)} "
+            f"of {row.num_matches} matches), "
             f"rank {row.rank} of {row.n_pairs}",
             fontsize=9,
         )

@@ -39,7 +39,7 @@ def resample_count(text: str) -> int:
 
 
 def command_compare(args: argparse.Namespace) -> int:
-    from gvbench_nb.evaluation import bootstrap, run_tables
+    from gvbench_nb.evaluation import bootstrap, collapsed_inliers, run_tables
     from gvbench_nb.reporting.tables import markdown_table
     from gvbench_nb.runner import method_outputs, record, scoring
 
@@ -78,6 +78,8 @@ def command_compare(args: argparse.Namespace) -> int:
             "else tie\n"
         )
         print(show(boot.paired_shares(metric)))
+    for line in collapsed_inliers.collapse_warnings(tables):
+        log.warning(f"\nwarning: {line}")
     return 0
 
 

@@ -71,22 +71,23 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
 
 
 def command_results(args: argparse.Namespace) -> int:
-    from gvbench_nb.evaluation import bootstrap
+    from gvbench_nb.evaluation import bootstrap, collapsed_inliers
     from gvbench_nb.runner import method_outputs, record, scoring
 
     for folder in map(Path, args.output_dirs):
 
-        def read(folder: Path = folder) -> tuple[Any, dict[str, str], list[dict[str, Any]]]:
+        def read(folder: Path = folder) -> tuple[Any, dict[str, str], list[dict[str, Any]], list[str]]:
             results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
             pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
             results = results.join(bootstrap.interval_columns(pair_tables), on="method")
             runs = [
                 json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]
             ]
-            return results, method_outputs.unfinished_methods(folder), runs
+            warnings = collapsed_inliers.collapse_warnings(pair_tables)
+            return results, method_outputs.unfinished_methods(folder), runs, warnings
 
         # One publication's tables, whole, also while a run publishes into the folder.
-        results, unfinished, runs = record.read_whole(folder, read)
+        results, unfinished, runs, collapse_warnings = record.read_whole(folder, read)
         print(results_header(folder, results, runs))
         if args.markdown:
             print(markdown_table(results[WIDE_COLUMNS]))
@@ -112,6 +113,8 @@ def command_results(args: argparse.Namespace) -> int:
             )
         for method, why in unfinished.items():
             log.warning(f"not finished: {method}: {why}")
+        for line in collapse_warnings:
+            log.warning(f"warning: {line}")
         if args.export == "npy":
             from gvbench_nb.runner import score_files
 

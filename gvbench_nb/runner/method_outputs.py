@@ -10,6 +10,9 @@ from typing import Any
 
 from gvbench_nb import GVBenchError
 
+# Distinct keypoints among a pair's inliers: far fewer than num_inliers where a fit collapsed onto a
+# few keypoints (docs/protocol.md, "Collapsed inliers").
+INLIER_KEYPOINT_COUNTS = ("num_inlier_keypoints_query", "num_inlier_keypoints_reference")
 PAIRS_COLUMNS = [
     "pair_index",
     "query",
@@ -22,6 +25,7 @@ PAIRS_COLUMNS = [
     "num_matches",
     "num_matches_filtered",
     "num_inliers",
+    *INLIER_KEYPOINT_COUNTS,
     "score",
     "extract_seconds",
     "match_seconds",

@@ -36,7 +36,7 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
     keys = pair_matching.pair_keys(sequence, seed)
     rows = []
     for index, pair in enumerate(sequence.pairs):
-        entry = matches.read(keys[pair], fields=())  # the counts and timers only
+        entry = pair_matching.stored_counts(matches, keys[pair])  # the counts and timers only
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
             pair_matching.check_merged_over(entry, sequence, keys, matches.folder)
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
@@ -58,6 +58,7 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
                 "num_matches": int(entry["attr:num_matches"]),
                 "num_matches_filtered": int(entry["attr:num_matches_filtered"]),
                 "num_inliers": int(entry["attr:num_inliers"]),
+                **{name: int(entry[f"attr:{name}"]) for name in method_outputs.INLIER_KEYPOINT_COUNTS},
                 "score": int(entry["attr:num_inliers"]),
                 "extract_seconds": extract_seconds,
                 "match_seconds": float(entry["attr:match_seconds"]),
@@ -93,7 +94,9 @@ def finished_table(
     done = isinstance(run, dict) and all(run.get(key) == value for key, value in identity.items())
     if not done or not (folder / "pairs.csv").is_file():
         return None
-    return pd.read_csv(folder / "pairs.csv", keep_default_na=False)
+    table = pd.read_csv(folder / "pairs.csv", keep_default_na=False)
+    # A table missing a column the package writes (its inlier keypoint counts) is made again from the stores.
+    return table if set(method_outputs.PAIRS_COLUMNS) <= set(table.columns) else None
 
 
 def compute_method(

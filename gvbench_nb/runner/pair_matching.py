@@ -233,11 +233,35 @@ def _verify_pair(
     return {**verified, "verify_seconds": time.perf_counter() - start}
 
 
+def inlier_keypoint_counts(arrays: dict[str, np.ndarray], inlier_mask: np.ndarray) -> dict[str, int]:
+    """Distinct query and reference keypoints among a pair's inliers: by keypoint index (``matches``), or
+    by coordinates (``points0``, ``points1``) for a dense matcher, whose points have no index."""
+    mask = np.asarray(inlier_mask, dtype=bool)
+    if "matches" in arrays:
+        matched = np.asarray(arrays["matches"]).reshape(-1, 2)
+        sides = matched[mask, :1], matched[mask, 1:]
+    else:
+        sides = np.asarray(arrays["points0"])[mask], np.asarray(arrays["points1"])[mask]
+    return {name: len(np.unique(side, axis=0)) for name, side in zip(method_outputs.INLIER_KEYPOINT_COUNTS, sides)}
+
+
+def stored_counts(matches: ShardedStore, key: str) -> dict[str, Any]:
+    """One pair's counts and timers as ``attr:NAME``; an entry stored without its inlier keypoint counts
+    has them counted from its stored matches and inlier mask."""
+    entry: dict[str, Any] = matches.read(key, fields=())
+    if any(f"attr:{name}" not in entry for name in method_outputs.INLIER_KEYPOINT_COUNTS):
+        stored = matches.read(key, fields=("matches", "points0", "points1", "inlier_mask"))
+        counted = inlier_keypoint_counts(stored, stored["inlier_mask"])
+        entry.update({f"attr:{name}": count for name, count in counted.items()})
+    return entry
+
+
 def _store_verified(
     writer: Any, key: str, arrays: dict[str, np.ndarray], verified: dict[str, Any], match_seconds: float, **extra: Any
 ) -> None:
     """Commit one verified pair: its matches (``arrays``) and inlier mask, its counts and timings."""
     counts = {name: verified[name] for name in ("num_matches", "num_matches_filtered", "num_inliers")}
+    counts.update(inlier_keypoint_counts(arrays, verified["inlier_mask"]))
     timings = {"match_seconds": match_seconds, "verify_seconds": verified["verify_seconds"]}
     writer.put(key, {**arrays, "inlier_mask": verified["inlier_mask"]}, {**counts, **timings, **extra})
 

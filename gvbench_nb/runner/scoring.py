@@ -62,7 +62,10 @@ def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     # (the seconds and counts of imported scores, which no run here measured).
     names = {"query", "reference", "method", "profile"}
     measured = {column: [""] for column in method_outputs.PAIRS_COLUMNS if column not in names}
-    return pd.read_csv(path, keep_default_na=False, na_values=measured)
+    table = pd.read_csv(path, keep_default_na=False, na_values=measured)
+    # A table written without the inlier keypoint counts reads them as not measured.
+    missing = [column for column in method_outputs.INLIER_KEYPOINT_COUNTS if column not in table]
+    return table.assign(**dict.fromkeys(missing, float("nan"))) if missing else table
 
 
 def methods_with_results(output_dir: Path) -> list[str]:

@@ -12,12 +12,13 @@ from typing import Any
 
 import pandas as pd
 
-from gvbench_nb.evaluation import run_tables
+from gvbench_nb.evaluation import collapsed_inliers, run_tables
 from gvbench_nb.runner import scoring
 from gvbench_nb.studies import failures, verifier_inputs
 
 PICKS = ("index", "false_positive", "false_negative")
-VIEW_COLUMNS = ["method", "pair_index", "query", "reference", "label", "num_matches", "num_inliers", "score"]
+VIEW_COLUMNS = ["method", "pair_index", "query", "reference", "label", "num_matches", "num_inliers"]
+VIEW_COLUMNS += [*collapsed_inliers.INLIER_KEYPOINT_COUNTS, "collapsed", "score"]
 VIEW_COLUMNS += ["rank", "n_pairs", "max_false_score", "above_all_false"]
 
 
@@ -61,8 +62,9 @@ def choose_pair(
 
 
 def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.DataFrame:
-    """One row a method for pair ``pair_index``: counts, score, its rank among the method's scores,
-    the highest false score and whether the pair beats it (counts toward MR)."""
+    """One row a method for pair ``pair_index``: counts (with the distinct keypoints among the inliers and
+    whether they collapse, ``collapsed_inliers.RULE``), score, its rank among the method's scores, the
+    highest false score and whether the pair beats it (counts toward MR)."""
     rows = []
     for method, table in tables.items():
         if not 0 <= pair_index < len(table):
@@ -72,7 +74,10 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
         row = table.iloc[pair_index]
         false_scores = table.loc[table["label"] == 0, "score"]
         max_false = float(false_scores.max()) if len(false_scores) else float("-inf")
-        counts = (int(row["label"]), int(row["num_matches"]), int(row["num_inliers"]), row["score"])
+        keypoints = [row.get(name, float("nan")) for name in collapsed_inliers.INLIER_KEYPOINT_COUNTS]
+        collapsed = bool(collapsed_inliers.collapsed(table.iloc[[pair_index]]).iloc[0])
+        counts = (int(row["label"]), int(row["num_matches"]), int(row["num_inliers"]), *keypoints, collapsed)
+        counts += (row["score"],)
         rank = int(score_ranks(table).iloc[pair_index])
         values = (method, int(row["pair_index"]), row["query"], row["reference"], *counts, rank, len(table))
         rows.append(dict(zip(VIEW_COLUMNS, (*values, max_false, bool(row["score"] > max_false)))))

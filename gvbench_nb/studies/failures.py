@@ -11,7 +11,7 @@ import numpy as np
 import pandas as pd
 
 from gvbench_nb.data.sequences import frame_index
-from gvbench_nb.evaluation import plots
+from gvbench_nb.evaluation import collapsed_inliers, plots
 from gvbench_nb.protocol.images import read_image
 from gvbench_nb.studies import verifier_inputs
 
@@ -72,7 +72,8 @@ def top_false_negatives(table: pd.DataFrame, k: int = 5) -> pd.DataFrame:
 def failures_table(
     tables: dict[str, pd.DataFrame], k: int = 5, image_root: str | os.PathLike[str] | None = None
 ) -> pd.DataFrame:
-    """Top false positives and false negatives of every method with their offsets."""
+    """Top false positives and false negatives of every method with their offsets, and the distinct
+    keypoints among their inliers (``collapsed``: ``collapsed_inliers.RULE``)."""
     frames = []
     for method, table in tables.items():
         for kind, rows in (
@@ -80,10 +81,13 @@ def failures_table(
             ("false_negative", top_false_negatives(table, k)),
         ):
             rows = rows.assign(method=method, kind=kind, rank=np.arange(1, len(rows) + 1))
+            rows = rows.assign(collapsed=collapsed_inliers.collapsed(rows))
             frames.append(rows.join(ground_truth_offsets(rows, image_root)))
     columns = ["method", "kind", "rank", "pair_index", "query", "reference", "label", "score", "num_matches"]
+    columns += ["num_inliers", *collapsed_inliers.INLIER_KEYPOINT_COUNTS, "collapsed"]
     frame = pd.concat(frames, ignore_index=True)
-    return frame[columns + [c for c in ("frame_offset", "distance_m", "heading_deg") if c in frame]]
+    # reindex: a table without the inlier keypoint counts shows them as not measured
+    return frame.reindex(columns=columns + [c for c in ("frame_offset", "distance_m", "heading_deg") if c in frame])
 
 
 def near_miss_false_positives(
@@ -132,8 +136,9 @@ def failure_pairs(
             offsets.append(f"{row.distance_m:.1f} m, {row.heading_deg:.0f} deg")
         kind = "false positive" if row.label == 0 else "false negative"
         axis.set_title(
-            f"{kind} #{row.rank}: {row.query} | {row.reference}  score {row.score:g} inliers "
-            f"of {row.num_matches} matches; ground-truth offset {', '.join(o for o in offsets if o)}",
+            f"{kind} #{row.rank}: {row.query} | {row.reference}  score {row.score:g} inliers"
+            f"{collapsed_inliers.inlier_keypoints_words(row)} of {row.num_matches} matches; "
+            f"ground-truth offset {', '.join(o for o in offsets if o)}",
             fontsize=8,
         )
     if title:

@@ -172,9 +172,16 @@ def test_two_runs_started_together_on_one_folder_never_print_each_others_numbers
     deadline = time.monotonic() + 120
     while record.running(tmp_path / "out") is None and first.poll() is None and time.monotonic() < deadline:
         time.sleep(0.05)
-    second = subprocess.run(
-        [sys.executable, "-m", "gvbench_nb", "run", str(b)], capture_output=True, text=True, env=env, timeout=300
-    )
+    assert record.running(tmp_path / "out") is not None, "run A never held the folder"
+    # A stays paused, holding the folder, while B runs: on a loaded machine B's checks could
+    # otherwise outlast A's whole run.
+    first.send_signal(signal.SIGSTOP)
+    try:
+        second = subprocess.run(
+            [sys.executable, "-m", "gvbench_nb", "run", str(b)], capture_output=True, text=True, env=env, timeout=300
+        )
+    finally:
+        first.send_signal(signal.SIGCONT)
     out, err = first.communicate(timeout=600)
     assert first.returncode == 0, err.decode()[-2000:]
     assert second.returncode == 2 and "another run is writing" in second.stderr

@@ -50,6 +50,7 @@ def main(argv: list[str] | None = None) -> int:
     command += ["--profile", args.profile] if args.profile else []
     command += ["--limit", str(args.limit)] if args.limit else []
     env = {**os.environ, "GVBENCH_JOBS": "1", "GVBENCH_THREADS": "1", "OMP_NUM_THREADS": "1"}
+    env["GVBENCH_CACHE"] = str(out / "run" / "cache")  # emptied above: every image extracted by this run
     start = time.perf_counter()
     with open(out / "run.log", "w") as log:
         code = subprocess.call(command, stdout=log, stderr=subprocess.STDOUT, cwd=REPO, env=env)

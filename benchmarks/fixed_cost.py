@@ -45,7 +45,7 @@ def notebook_times(path: Path) -> dict[str, Any]:
 
 def one_run(params: str, methods: str, limit: int, keep: Path | None) -> dict[str, Any]:
     folder = Path(tempfile.mkdtemp(prefix="fixed_cost_", dir=keep))
-    out = folder / "out"  # the cache is out/../cache: fresh too
+    out = folder / "out"  # and its cache folder/cache (GVBENCH_CACHE below): fresh too
     command = [
         sys.executable,
         "-m",
@@ -59,7 +59,7 @@ def one_run(params: str, methods: str, limit: int, keep: Path | None) -> dict[st
         "--output-dir",
         str(out),
     ]
-    environment = {**os.environ, "PYTHONPATH": str(PROJECT)}
+    environment = {**os.environ, "PYTHONPATH": str(PROJECT), "GVBENCH_CACHE": str(folder / "cache")}
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     started = time.time()
     done = subprocess.run(command, cwd=PROJECT, env=environment, capture_output=True, text=True)

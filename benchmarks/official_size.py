@@ -82,14 +82,19 @@ def disk_mib(*folders: Path) -> float:
     return round(sum(p.stat().st_size for p in files) / 2**20, 1)
 
 
-def run_once(command: list[str], log: Path, stop_at: tuple[Path, int] | None = None) -> tuple[int, float, int, int]:
+def run_once(
+    command: list[str], log: Path, cache: Path, stop_at: tuple[Path, int] | None = None
+) -> tuple[int, float, int, int]:
     """Exit code, wall seconds, peak resident MiB of the process tree and of its largest process; with ``stop_at`` (a match
     store folder, a pair count) SIGKILL its process group once the store holds that many pairs."""
     from gvbench_nb.runner.store import ShardedStore
 
     start, peak, largest = time.perf_counter(), 0, 0
     with open(log, "a") as handle:
-        process = subprocess.Popen(command, stdout=handle, stderr=subprocess.STDOUT, cwd=REPO, start_new_session=True)
+        env = {**os.environ, "GVBENCH_CACHE": str(cache)}  # a cache of the run's own, empty at its start
+        process = subprocess.Popen(
+            command, stdout=handle, stderr=subprocess.STDOUT, cwd=REPO, env=env, start_new_session=True
+        )
     root = psutil.Process(process.pid)
     while process.poll() is None:
         try:
@@ -111,7 +116,7 @@ def measure(params: Path, method: str, folder: Path, stop_at: int | None = None)
     command = [sys.executable, "-m", "gvbench_nb", "run", str(params), "--methods", method]
     command += ["--output-dir", str(folder / "output")]
     code, wall, peak, largest = run_once(
-        command, folder / "run.log", (folder / "output" / method, stop_at) if stop_at else None
+        command, folder / "run.log", folder / "cache", (folder / "output" / method, stop_at) if stop_at else None
     )
     if stop_at is None and code != 0:
         raise SystemExit(f"error: the run of {method} exited with {code}; its log is {folder / 'run.log'}")

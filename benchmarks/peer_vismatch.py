@@ -131,6 +131,7 @@ def orchestrate(args: argparse.Namespace) -> int:
                     "--output-dir",
                     str(folder / "output"),
                 ]
+                env["GVBENCH_CACHE"] = str(folder / "cache")
                 command += ["--limit", str(args.limit)] if args.limit else []
                 command += ["--profile", args.profile] if args.profile else []
             else:

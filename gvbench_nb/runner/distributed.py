@@ -140,7 +140,7 @@ def cached_work(
     if conf["extractor"]:
         store = image_features.feature_store(cache_dir, conf["extractor"])
         store.refresh()
-        keys = {image_features.image_key(sequence.image_root, name) for name in sequence.images}
+        keys = image_features.content_keys(sequence)
         images, cached_images = len(keys), sum(key in store for key in keys)
         store.close()
     pairs = len(sequence.pairs)

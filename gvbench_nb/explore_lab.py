@@ -15,7 +15,7 @@ from typing import Any
 
 from gvbench_nb.io_utils import add_described_command
 from gvbench_nb.reporting.execute import NOTEBOOKS_DIR
-from gvbench_nb.runner import config, method_outputs, scoring
+from gvbench_nb.runner import config, method_outputs, runs, scoring
 
 log = logging.getLogger(__name__)
 
@@ -49,8 +49,7 @@ def check_run_folder(output_dir: Path) -> list[str]:
             f"{output_dir} is not a folder; give the output folder of a finished run "
             "(e.g. outputs/sample after make demo, or python -m gvbench_nb run params/sample.yaml)"
         )
-    record = output_dir / config.RESOLVED_PARAMS_NAME
-    if not record.is_file():
+    if runs.resolved_params(output_dir) is None:
         raise method_outputs.ResultsError(
             f"{output_dir} has no {config.RESOLVED_PARAMS_NAME}, so it is not the output folder of a run; "
             "give the folder a run wrote (python -m gvbench_nb run PARAMS prints it)"
@@ -63,7 +62,7 @@ def working_notebook(output_dir: Path, source: Path = SOURCE_NOTEBOOK) -> dict[s
     holds, outputs cleared and its jupytext pairing dropped (a copy has no twin to keep in step)."""
     notebook = json.loads(source.read_text(encoding="utf-8"))
     values = {
-        "params_file": str((output_dir / config.RESOLVED_PARAMS_NAME).resolve()),
+        "params_file": str(Path(str(runs.resolved_params(output_dir))).resolve()),
         "output_dir": str(output_dir.resolve()),
         "methods": None,
     }

@@ -17,7 +17,7 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.runner import config, method_outputs, record, scoring, sequence_build
+from gvbench_nb.runner import config, method_outputs, runs, scoring, sequence_build
 
 if TYPE_CHECKING:
     from gvbench_nb.studies.alternative_verifiers import VerifierBench
@@ -167,7 +167,7 @@ def load_sequence(params_file: PathLike | None, **overrides: Any) -> tuple[dict[
     params build it (``sequence_build.prepare_sequence``)."""
     params = load_params(params_file, **overrides)
     sequence = sequence_build.prepare_sequence(params)
-    record.claim(params["output_dir"])  # the notebook writes its figures and tables there
+    runs.check_owned(params["output_dir"])  # the notebook writes its figures and tables there
     return params, sequence
 
 
@@ -194,7 +194,7 @@ def require_results(
             for method in missing:
                 method_runs.run_method_of_params(params, sequence, method)
         if evaluate:
-            scoring.evaluate(output_dir)
+            scoring.refresh_view(output_dir)
         return output_dir
     if missing:
         raise ResultsMissingError(

@@ -66,42 +66,14 @@ def execute_run_notebooks(
                 future.cancel()
 
 
-# What a run publishes besides each method's files (``run_files``); anything else a stage holds
-# is checked against the folder's record when it is published.
-RUN_FILES = (
-    *("params.resolved.yaml", "01_sequence.ipynb", "sequence_positives_per_query.png", "sequence_examples.png"),
-    *("03_evaluate.ipynb", "results.csv", "pr_curves.png"),
-)
-
-
-def run_files(methods: list[str]) -> list[str]:
-    """The files a run of ``methods`` publishes in its output folder."""
-    from gvbench_nb.runner import method_outputs
-
-    per_method = [
-        name for m in methods for name in (f"02_verify_{m}.ipynb", f"inliers_{m}.png", *method_outputs.result_files(m))
-    ]
-    return [*RUN_FILES, *per_method]
-
-
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import (
-        config,
-        distributed,
-        input_checks,
-        method_outputs,
-        method_runs,
-        record,
-        scoring,
-        sequence_build,
-    )
+    from gvbench_nb.runner import config, distributed, input_checks, method_runs, runs, scoring, sequence_build
 
     params = run_params_of_args(args)
     # Weights, vismatch, the device, the folders and every image were checked before any work
     # (``check_before_work``): nothing half-runs.
     output_dir = Path(params["output_dir"])
-    # Whose folder it is, before anything is written there.
-    record.check_owned(output_dir)
+    runs.check_owned(output_dir)  # whose folder it is, before anything is written there
     sequence = sequence_build.prepare_sequence(params)
     input_checks.check_labels_defined(sequence, params)
     sequence.check_images()
@@ -112,59 +84,29 @@ def command_run(args: argparse.Namespace) -> int:
     # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
     damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
     announce_run(params, sequence)
-    record.claim(output_dir)
-    if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks; a plain run then renders them
+    if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks
         distributed.run_from_cli(args, params)
         if not getattr(args, "shard", None):  # a merge, or a Dask run, ends with the folder's table
             print_run_results(output_dir, params["methods"])
         return 0
-    lock = record.FolderLock(output_dir)
-    lock.acquire()  # one run writes a folder at a time: a second is refused here
-    stage = None
+    # The run is built aside and added to the folder whole; earlier runs are never touched.
+    building = runs.start(output_dir, "run")
     try:
-        record.finish_publishing(output_dir)
-        binding = scoring.sequence_binding(sequence)
-        kept, bindings = record.kept_methods(output_dir, params["methods"], binding)
-        record.check_no_foreign_files(output_dir, run_files([*params["methods"], *kept]))
-        for method, previous in method_outputs.replaced_profiles(
-            output_dir, params["methods"], params["profile"]
-        ).items():
-            log.warning(
-                f"note: {method_outputs.method_dir(output_dir, method)} holds {previous}-profile results; this "
-                f"{params['profile']}-profile run replaces them (give another --output-dir to keep both)"
-            )
-        # The run writes its results into a stage of its own and publishes them whole when it
-        # succeeds; the methods it does not run are carried over, so the folder's table lists them all.
-        stage = record.open_stage(output_dir)
-        record.carry(output_dir, stage, kept)
-        run_params, jobs = stage_notebooks(params, stage, args.jobs)
-        if kept:
-            log.info(f"kept from earlier runs: {', '.join(kept)}")
+        run_params, jobs = stage_notebooks(params, building, args.jobs)
 
         def compute(method: str) -> None:
             method_runs.run_method_of_params(run_params, sequence, method, jobs=args.jobs)
 
-        execute_run_notebooks(jobs, stage, compute)
-        config.write_resolved_params(params, stage)  # as published: the output folder's own paths
-        for method in params["methods"]:
-            bindings[method] = scored_binding(stage, method, binding) | ({"damaged_images": damaged} if damaged else {})
-        record.publish(output_dir, stage, bindings)
+        execute_run_notebooks(jobs, building, compute)
+        config.write_resolved_params(params, building)  # as given: the output folder's own paths
+        runs.finish(building, **({"damaged_images": damaged} if damaged else {}))
     except Exception:
-        if (record.read_record(output_dir) or {}).get("state") == "publishing":
-            log.warning(
-                f"the run stopped while publishing into {output_dir}: its readers refuse the folder until a run "
-                "finishes the move (run it again)"
-            )
-        elif stage is not None and stage.is_dir():
-            published = (record.read_record(output_dir) or {}).get("files")
-            holding = "still holds the previous run's results" if published else "holds no results (none were before)"
-            log.warning(
-                f"the run did not finish: {output_dir} {holding}; this run's partial work and executed notebooks "
-                f"are in {stage}"
-            )
+        log.warning(
+            f"the run did not finish: {output_dir} shows what it showed before; this run's partial work and executed "
+            f"notebooks are in {building}"
+        )
         raise
-    finally:
-        lock.release()
+    scoring.refresh_view(output_dir)  # the folder's table, derived from its runs
     print_run_results(output_dir, params["methods"])
     return 0
 
@@ -229,6 +171,10 @@ def print_run_results(output_dir: Path, methods: list[str]) -> None:
             f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "
             "that computed them (timers column), not this run's"
         )
+    from gvbench_nb.runner import scoring
+
+    for line in scoring.left_out(output_dir):
+        log.warning(f"not in this table: {line}")
     log.info(f"results table: {output_dir / 'results.csv'}")
 
 

@@ -14,15 +14,15 @@ from matplotlib.colors import to_rgba
 from gvbench_nb.evaluation import collapsed_inliers
 from gvbench_nb.protocol.images import read_image
 from gvbench_nb.protocol.metrics import average_precision, max_recall_at_full_precision, pr_curve
-from gvbench_nb.runner import record
 from gvbench_nb.runner.score_files import IMPORTED_PROFILE
 
 
 def save(figure: plt.Figure, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    # Never over a file of an output folder that the package did not write; recorded as its own after.
-    return record.save_checked(path, lambda target: figure.savefig(target, dpi=120, bbox_inches="tight"))
+    temporary = path.with_name(f".{path.stem}.tmp{path.suffix}")  # a reader never sees half a figure
+    figure.savefig(temporary, dpi=120, bbox_inches="tight")
+    return temporary.replace(path)
 
 
 def _pr_curve(axis: plt.Axes, table: pd.DataFrame, where: str, **style: Any) -> Any:

@@ -16,7 +16,7 @@ import yaml
 from gvbench_nb.data import fetch
 from gvbench_nb.data.synthetic.route_files import GENERATOR_FILE
 from gvbench_nb.evaluation import reference_values
-from gvbench_nb.runner import config, method_outputs, record, scoring
+from gvbench_nb.runner import config, method_outputs, scoring
 from gvbench_nb.runner.score_files import IMPORTED_PROFILE
 
 METRICS = ("ap", "max_recall")
@@ -119,24 +119,14 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
     ``synthetic``: whether the folder's images are a route the package rendered."""
     frames = []
     for folder in output_dirs:
-        path = Path(folder) / "results.csv"
-        if not path.is_file():
-            raise FileNotFoundError(
-                f"{path} is missing: evaluate that output folder first (python -m gvbench_nb run PARAMS)"
-            )
-
-        def read(path: Path = path, folder: str | os.PathLike[str] = folder) -> pd.DataFrame:
-            frame = pd.read_csv(path)
-            # Only what a run published, unedited, from inputs unchanged since, on one set of pairs.
-            scoring.readable_methods(folder, list(frame["method"]), tables=["results.csv"])
-            runs = [load_run(folder, m) for m in frame["method"]]
-            limits = [(run.get("pairs") or {}).get("limit") for run in runs]
-            # An imported method read no images (image_root ''): the folder's other runs tell.
-            rendered = any((Path(r["image_root"]) / GENERATOR_FILE).is_file() for r in runs if r.get("image_root"))
-            limit = pd.Series(limits, dtype=object)
-            return frame.assign(output_dir=str(Path(folder)), limit=limit, synthetic=rendered)
-
-        frames.append(record.read_whole(folder, read))  # one publication, also while a run publishes
+        # Derived from the runs the folder shows, from inputs unchanged since, on one set of pairs.
+        frame = scoring.evaluate(Path(folder), scoring.readable_methods(folder), write=False)
+        runs = [load_run(folder, m) for m in frame["method"]]
+        limits = [(run.get("pairs") or {}).get("limit") for run in runs]
+        # An imported method read no images (image_root ''): the folder's other runs tell.
+        rendered = any((Path(r["image_root"]) / GENERATOR_FILE).is_file() for r in runs if r.get("image_root"))
+        limit = pd.Series(limits, dtype=object)
+        frames.append(frame.assign(output_dir=str(Path(folder)), limit=limit, synthetic=rendered))
     if not frames:
         raise ValueError("no output folders given: pass at least one folder holding results.csv")
     results = pd.concat(frames, ignore_index=True)
@@ -156,7 +146,6 @@ def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[st
     """Which of ``output_dirs`` holds each method's finished results; a method in two is refused."""
     found: dict[str, Path] = {}
     for folder in map(Path, output_dirs):
-        method_outputs.check_results_finished(folder)
         ran = scoring.methods_with_results(folder)
         if not ran:
             what = "does not exist" if not folder.exists() else "holds no method results (<method>/pairs.csv)"
@@ -182,11 +171,8 @@ def load_pairs_tables(
         return _several_folders_tables(list(output_dirs), methods)
     folder = Path(output_dirs)
 
-    def read() -> dict[str, pd.DataFrame]:
-        names = scoring.readable_methods(folder, list(methods) if methods else None)
-        return {method: scoring.load_pairs_table(folder, method) for method in names}
-
-    return record.read_whole(folder, read)  # also while a run publishes
+    names = scoring.readable_methods(folder, list(methods) if methods else None)
+    return {method: scoring.load_pairs_table(folder, method) for method in names}
 
 
 def _several_folders_tables(
@@ -227,11 +213,13 @@ def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool
 
 
 def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """``cache_dir``, else the one the run recorded (params.resolved.yaml), else the default one."""
+    """``cache_dir``, else the one the runs recorded (params.resolved.yaml), else the default one."""
+    from gvbench_nb.runner import runs
+
     if cache_dir:
         return Path(cache_dir)
-    recorded = Path(output_dir) / config.RESOLVED_PARAMS_NAME
-    if recorded.is_file():
+    recorded = runs.resolved_params(output_dir)
+    if recorded is not None:
         params = yaml.safe_load(recorded.read_text(encoding="utf-8")) or {}
         if isinstance(params, dict) and params.get("cache_dir"):
             return Path(params["cache_dir"])

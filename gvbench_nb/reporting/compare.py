@@ -6,7 +6,6 @@ import argparse
 import json
 import logging
 from pathlib import Path
-from typing import Any
 
 from gvbench_nb.io_utils import add_described_command, whole_number_at_least
 
@@ -41,18 +40,15 @@ def resample_count(text: str) -> int:
 def command_compare(args: argparse.Namespace) -> int:
     from gvbench_nb.evaluation import bootstrap, collapsed_inliers, run_tables
     from gvbench_nb.reporting.tables import markdown_table
-    from gvbench_nb.runner import method_outputs, record, scoring
+    from gvbench_nb.runner import method_outputs, scoring
 
     folders = [Path(f) for f in args.output_dirs]
     where = ", ".join(map(str, folders))
     methods = [m.strip() for m in args.methods.split(",") if m.strip()] if args.methods else None
 
-    def read() -> dict[str, Any]:
-        for folder in folders:
-            scoring.readable_methods(folder)  # what `results` refuses, compare refuses
-        return run_tables.load_pairs_tables(folders, methods)
-
-    tables = record.read_whole(folders, read)  # one publication of each folder, also while runs publish
+    for folder in folders:
+        scoring.readable_methods(folder)  # what `results` refuses, compare refuses
+    tables = run_tables.load_pairs_tables(folders, methods)
     if len(tables) < 2:
         raise run_tables.IncomparableRunsError(
             f"{where} holds results of one method only ({', '.join(tables)}); "

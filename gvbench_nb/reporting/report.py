@@ -326,10 +326,12 @@ def _run_params_file(folder: Path) -> Path | None:
     """A folder's ``params.resolved.yaml``, else the params file its first run.json names (sharded runs)."""
     import json
 
-    resolved = folder / config.RESOLVED_PARAMS_NAME
-    if resolved.is_file():
+    from gvbench_nb.runner import method_outputs, runs, scoring
+
+    resolved = runs.resolved_params(folder)
+    if resolved is not None:
         return resolved
-    for run in sorted(folder.glob("*/run.json")):
+    for run in [method_outputs.method_dir(folder, m) / "run.json" for m in scoring.methods_with_results(folder)]:
         named = (json.loads(run.read_text(encoding="utf-8")).get("pairs") or {}).get("params_file")
         return Path(named) if named and Path(named).is_file() else None
     return None

@@ -72,23 +72,17 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
 
 def command_results(args: argparse.Namespace) -> int:
     from gvbench_nb.evaluation import bootstrap, collapsed_inliers
-    from gvbench_nb.runner import method_outputs, record, scoring
+    from gvbench_nb.runner import method_outputs, runs, scoring
 
     for folder in map(Path, args.output_dirs):
-
-        def read(folder: Path = folder) -> tuple[Any, dict[str, str], list[dict[str, Any]], list[str]]:
-            results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
-            pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
-            results = results.join(bootstrap.interval_columns(pair_tables), on="method")
-            runs = [
-                json.loads((method_outputs.method_dir(folder, m) / "run.json").read_text()) for m in results["method"]
-            ]
-            warnings = collapsed_inliers.collapse_warnings(pair_tables)
-            return results, method_outputs.unfinished_methods(folder), runs, warnings
-
-        # One publication's tables, whole, also while a run publishes into the folder.
-        results, unfinished, runs, collapse_warnings = record.read_whole(folder, read)
-        print(results_header(folder, results, runs))
+        if args.run:  # an earlier run, by its id
+            folder = runs.find_run(folder, args.run)
+        results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
+        pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
+        results = results.join(bootstrap.interval_columns(pair_tables), on="method")
+        records = [method_outputs.read_run_json(folder, m) for m in results["method"]]
+        collapse_warnings = collapsed_inliers.collapse_warnings(pair_tables)
+        print(results_header(folder, results, records))
         if args.markdown:
             print(markdown_table(results[WIDE_COLUMNS]))
         else:
@@ -105,14 +99,8 @@ def command_results(args: argparse.Namespace) -> int:
                 + ", ".join(f"{m} ({t})" for m, t in zip(reused["method"], reused["timers"]))
             )
         print()
-        holder = record.running(folder)
-        if holder:
-            log.warning(
-                f"note: a run (pid {holder.get('pid')}, started {holder.get('started_at')}) is writing {folder} now; "
-                "the rows above are the results published before it\n"
-            )
-        for method, why in unfinished.items():
-            log.warning(f"not finished: {method}: {why}")
+        for line in scoring.left_out(folder):
+            log.warning(f"not in this table: {line}")
         for line in collapse_warnings:
             log.warning(f"warning: {line}")
         if args.export == "npy":
@@ -159,10 +147,28 @@ def command_import_scores(args: argparse.Namespace) -> int:
     row = score_files.import_scores(args.file, args.sequence, args.method, args.output_dir, args.image_root)
     print(
         f"{args.method}: {row['n_pairs']} pairs ({row['n_positives']} true), AP {row['ap']:.4f}, "
-        f"MR {row['max_recall']:.4f} -> {Path(args.output_dir) / args.method}"
+        f"MR {row['max_recall']:.4f} -> run {row['run']} of {args.output_dir}"
     )
+    earlier = row["earlier"]
+    if earlier is not None:
+        print(
+            f"{args.output_dir} now shows run {row['run']} (imported) for {args.method}; its earlier run "
+            f"{earlier.run.name} is kept: python -m gvbench_nb results {args.output_dir} --run {earlier.run.name}"
+        )
     for key, value in row["stated"].items():
         print(f"  the file states {key} {value:.4f} (recomputed here from its pairs: {row[key]:.4f})")
+    return 0
+
+
+def command_upgrade(args: argparse.Namespace) -> int:
+    from gvbench_nb.runner import runs, scoring
+
+    run = runs.upgrade(args.output_dir)
+    scoring.refresh_view(Path(args.output_dir))
+    methods = json.loads((run / runs.MANIFEST).read_text(encoding="utf-8"))["methods"]
+    print(
+        f"{args.output_dir}: {', '.join(methods) or 'no results'} taken in as run {run.name}; its other files are as they were"
+    )
     return 0
 
 
@@ -184,6 +190,9 @@ def add_command(commands: Any) -> None:
         action="store_true",
         help="also list every registered method without results, with the weight files it needs",
     )
+    results.add_argument(
+        "--run", metavar="ID", help="the table of one earlier run of the folder (its id under runs/, or its beginning)"
+    )
     results.set_defaults(handler=command_results)
     parser = commands.add_parser(
         "import-scores",
@@ -195,6 +204,14 @@ def add_command(commands: Any) -> None:
         "content, not its name; a .npy pickling anything but plain data is refused without running it. Its pairs "
         "are checked as a pair file's are, and it never replaces results computed in OUTPUT_DIR.",
     )
+    upgrade = commands.add_parser(
+        "upgrade",
+        help="take the results of a folder written by an earlier gvbench-nb in as a run",
+        description="Copy each method's pairs.csv and run.json of a folder in the earlier layout (gvbench-run.json "
+        "at its top) into one new run under runs/; nothing is deleted or changed.",
+    )
+    upgrade.add_argument("output_dir", help="the folder, e.g. outputs/gardens_point")
+    upgrade.set_defaults(handler=command_upgrade)
     parser.add_argument("file", help="the .npy or the table of scores")
     parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")
     parser.add_argument("--method", required=True, help="the method's name (its folder), e.g. sp-sg-authors")

@@ -18,7 +18,7 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, record, scoring
+from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, runs, scoring
 
 
 class ShardError(GVBenchError, RuntimeError):
@@ -151,11 +151,6 @@ def cached_work(
     }
 
 
-def kept_methods(params: dict[str, Any], sequence: Sequence) -> list[str]:
-    """The folder's other methods; ``RecordError`` when any scored other inputs than this run's."""
-    return record.kept_methods(Path(params["output_dir"]), params["methods"], scoring.sequence_binding(sequence))[0]
-
-
 def _require_weights(params: dict[str, Any]) -> None:
     for method in params["methods"]:
         method_registry.require(method, params["profile"])
@@ -165,12 +160,13 @@ def _require_weights(params: dict[str, Any]) -> None:
 def run_shard(
     params: dict[str, Any], index: int, count: int, threads: int | None = None, progress: bool = True
 ) -> list[dict[str, Any]]:
-    """Shard ``index`` of ``count`` of every method of a params file, here (``run --shard i/n``)."""
+    """Shard ``index`` of ``count`` of every method of a params file, here (``run --shard i/n``): its work
+    goes into the shared stores, and the folder gets a run saying what it did (``--merge`` makes the table)."""
     from gvbench_nb.runner.sequence_build import prepare_sequence
 
     _require_weights(params)
     sequence = prepare_sequence(params)
-    kept_methods(params, sequence)
+    building = runs.start(params["output_dir"], "shard")
     done = []
     for method in params["methods"]:
         conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
@@ -187,6 +183,7 @@ def run_shard(
                 f"{result['extraction']['extracted']} images extracted)"
             )
         done.append({"method": method, **result})
+    runs.finish(building, shard=f"{index}/{count}", work=done)
     return done
 
 
@@ -194,21 +191,22 @@ def merge_runs(
     params: dict[str, Any],
     shards: dict[str, list[dict[str, Any]]] | None = None,
     cached: dict[str, dict[str, dict[str, int]]] | None = None,
+    door: str = "merge",
 ) -> pd.DataFrame:
-    """Merge every method of a params file, then evaluate (``run --merge``; ``cached`` by method: ``merge_method``)."""
+    """Merge every method of a params file into a new run, then the folder's table (``run --merge``;
+    ``cached`` by method: ``merge_method``)."""
     from gvbench_nb.runner.sequence_build import prepare_sequence
 
     sequence = prepare_sequence(params)
     output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
-    with record.FolderLock(output_dir):  # one writer of the folder's results at a time, as for `run`
-        kept = kept_methods(params, sequence)
+    with runs.new_run(output_dir, door) as building:
         for method in params["methods"]:
             conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
             merge_method(
-                sequence, conf, cache_dir, output_dir, params["seed"], params["device"], (shards or {}).get(method),
+                sequence, conf, cache_dir, building, params["seed"], params["device"], (shards or {}).get(method),
                 (cached or {}).get(method),
             )  # fmt: skip
-        return scoring.evaluate(output_dir, [*params["methods"], *kept])
+    return scoring.refresh_view(output_dir)
 
 
 # -------------------------------------------------------------------------- Dask --
@@ -249,7 +247,6 @@ def run_sharded(
         raise ValueError(f"n_shards must be at least 1, got {n_shards}")
     _require_weights(params)
     sequence = prepare_sequence(params)
-    kept_methods(params, sequence)
     if threads is None and scheduler is None:
         # Each core used by one task's threads: more makes torch spin-wait (2-5x slower).
         threads = max(1, (os.cpu_count() or 1) // (n_workers or os.cpu_count() or 1))
@@ -277,7 +274,7 @@ def run_sharded(
                     ) from error
                 bar.update()
         bar.close()
-        return merge_runs(params, shards, cached)
+        return merge_runs(params, shards, cached, door="dask")
 
 
 def package_code() -> str:
@@ -434,10 +431,9 @@ def run_from_cli(args: argparse.Namespace, params: dict[str, Any]) -> int:
         )
         return 0
     dask_workers = args.dask_workers or os.cpu_count() or 1
-    with record.FolderLock(params["output_dir"]):  # refused before any work while another run writes the folder
-        if args.merge:
-            merge_runs(params)
-        else:
-            n_shards = args.shards or 2 * dask_workers
-            run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
+    if args.merge:
+        merge_runs(params)
+    else:
+        n_shards = args.shards or 2 * dask_workers
+        run_sharded(params, n_shards, args.scheduler, n_workers=None if args.scheduler else dask_workers)
     return 0

@@ -22,7 +22,7 @@ from gvbench_nb.data.sequences import PairFileError, Sequence, frame_tolerance_p
 from gvbench_nb.io_utils import atomic_write_json, unknown_keys_hint
 from gvbench_nb.protocol import metrics
 from gvbench_nb.protocol.images import ImageReadError, check_min_side, path_problem
-from gvbench_nb.runner import config, image_features, method_outputs, record, sequence_build
+from gvbench_nb.runner import config, image_features, sequence_build
 
 
 def _where(sequence: Sequence, index: int) -> str:
@@ -134,44 +134,6 @@ def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], 
     return damaged
 
 
-def _recipe_differences(run: dict[str, Any], params: dict[str, Any]) -> list[str]:
-    """How a kept method's recorded verifier and seed differ from what this run would give it."""
-    conf = run["conf"]
-    wanted = method_registry.resolve_method(conf["method"], conf["profile"], params["verifier"])["verifier"]
-    wanted, found = json.loads(json.dumps(wanted)), conf.get("verifier") or {}
-    differences = [
-        f"verifier {key} {found.get(key)!r} there, {wanted.get(key)!r} here"
-        for key in sorted(set(found) | set(wanted))
-        if found.get(key) != wanted.get(key)
-    ]
-    if run.get("seed") != params["seed"]:
-        differences.append(f"seed {run.get('seed')!r} there, {params['seed']!r} here")
-    return differences
-
-
-def check_same_recipes(params: dict[str, Any]) -> None:
-    """Refuse a run into a folder that keeps methods run under another verifier or seed than this
-    run would give them: one table's rows share their recipe's verifier and seed."""
-    output_dir = Path(params["output_dir"])
-    differing = {}
-    for method in (record.read_record(output_dir) or {}).get("methods", {}):
-        if method in params["methods"]:
-            continue
-        try:
-            differences = _recipe_differences(method_outputs.read_run_json(output_dir, method), params)
-        except (OSError, ValueError, KeyError, TypeError):
-            continue  # no run record to compare: the results readers refuse such a folder
-        if differences:
-            differing[method] = ", ".join(differences)
-    if differing:
-        described = "; ".join(f"{method}: {what}" for method, what in differing.items())
-        raise record.RecordError(
-            f"{output_dir} holds results made under another recipe than this run's ({described}), and one table "
-            f"does not mix recipes; run them again with this run (--methods "
-            f"{','.join([*params['methods'], *differing])}) or give another --output-dir"
-        )
-
-
 def check_writable_folder(params: dict[str, Any], key: str) -> Path:
     """Make ``params[key]`` (a folder) if needed and write a file in it."""
     check_folder_can_be_made(params, key)
@@ -270,7 +232,6 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
         )
     check_folder_can_be_made(params, "output_dir")
     check_folder_can_be_made(params, "cache_dir")
-    check_same_recipes(params)
     missing = [
         c
         for m in params["methods"]

@@ -4,7 +4,6 @@ check that its results are whole."""
 from __future__ import annotations
 
 import json
-from collections.abc import Iterable
 from pathlib import Path
 from typing import Any
 
@@ -34,7 +33,10 @@ PAIRS_COLUMNS = [
 
 
 def method_dir(output_dir: Path, method: str) -> Path:
-    return Path(output_dir) / method
+    """Where a method's results are read or written: its folder in a run, its current run's in an output folder."""
+    from gvbench_nb.runner import runs
+
+    return runs.method_folder(output_dir, method)
 
 
 def read_run_json(output_dir: Path, method: str) -> dict[str, Any]:
@@ -51,40 +53,3 @@ def result_files(method: str) -> list[str]:
 
 class ResultsError(GVBenchError, FileNotFoundError):
     """An output folder holds no results, or a method's results are unfinished or partial."""
-
-
-def replaced_profiles(output_dir: Path, methods: Iterable[str], profile: str) -> dict[str, str]:
-    """Methods whose finished results in ``output_dir`` are of another profile than ``profile``
-    (method -> that profile): a run of theirs there replaces those results."""
-    replaced = {}
-    for method in methods:
-        try:
-            previous = read_run_json(output_dir, method)["conf"]["profile"]
-        except (OSError, ValueError, KeyError, TypeError):
-            continue
-        if previous != profile:
-            replaced[method] = previous
-    return replaced
-
-
-def unfinished_methods(output_dir: Path) -> dict[str, str]:
-    """Method folders under ``output_dir`` holding one of ``pairs.csv`` and ``run.json`` without
-    the other: method -> which is missing."""
-    problems = {}
-    for folder in sorted(p for p in Path(output_dir).iterdir() if p.is_dir()) if Path(output_dir).is_dir() else []:
-        present = [name for name in FINISHED_OUTPUTS if (folder / name).is_file()]
-        if len(present) == 1:
-            missing = next(name for name in FINISHED_OUTPUTS if name not in present)
-            problems[folder.name] = f"{folder / missing} is missing beside {present[0]}"
-    return problems
-
-
-def check_results_finished(output_dir: Path) -> None:
-    """Raise ``ResultsError`` naming each unfinished or partial method folder and what to do."""
-    problems = unfinished_methods(output_dir)
-    if problems:
-        lines = "; ".join(f"{method}: {why}" for method, why in problems.items())
-        raise ResultsError(
-            f"{output_dir} holds unfinished results ({lines}); run those methods again "
-            f"(python -m gvbench_nb run PARAMS --methods {','.join(problems)}) or delete their folders"
-        )

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
 import json
 import time
 from collections import Counter
@@ -15,7 +14,7 @@ from gvbench_nb import __version__
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
-from gvbench_nb.runner import concurrency, image_features, method_outputs, pair_matching, record, scoring
+from gvbench_nb.runner import concurrency, config, image_features, method_outputs, pair_matching, runs, scoring
 
 
 def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> pd.DataFrame:
@@ -127,7 +126,7 @@ def compute_method(
             resolved_device,
             progress,
             jobs=jobs,
-            run_id=record.stage_run_id(output_dir),
+            run_id=runs.run_id(output_dir),
         )
         if conf["extractor"]
         else {"images": 0, "cached": 0, "extracted": 0}
@@ -159,29 +158,32 @@ def run_method(
     device: str = "auto",
     seed: int = 0,
     verifier: dict[str, Any] | None = None,
+    params: dict[str, Any] | None = None,
     **options: Any,
 ) -> pd.DataFrame:
     """Run one method on a sequence end to end (``pairs.csv``, ``run.json``); a finished result of the
     same inputs is returned as it is, and cached work is reused, so an interrupted run resumes."""
     conf = method_registry.resolve_method(method, profile, verifier)
     method_registry.require(method, profile)
-    folder = method_outputs.method_dir(output_dir, method)
-    done = finished_table(folder, sequence, conf, seed, device)
-    if done is not None:  # e.g. a run's 02_verify notebook, after the run computed the method
-        return done
-    # Outside a run's stage (a notebook on its own) results are written in place, into a folder
-    # that is the package's, one writer at a time; the stores are filled first, by any number.
-    in_place = not record.is_stage(output_dir)
-    written = method_outputs.result_files(method)
-    if in_place:  # its stores go into the folder too: only into one that is the package's
-        record.claim(output_dir)
-        record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
-    work = compute_method(sequence, conf, output_dir, cache_dir, device, seed, **options)
-    return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
+    if runs.is_run(output_dir):  # a run's stage notebook: the run computed the method already
+        done = finished_table(method_outputs.method_dir(output_dir, method), sequence, conf, seed, device)
+        if done is not None:
+            return done
+        work = compute_method(sequence, conf, output_dir, cache_dir, device, seed, **options)
+        return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
+    # Anywhere else (a notebook on its own) the method is a run of its own, added to the folder.
+    building = runs.start(output_dir, "notebook")
+    if params is not None:  # the params it ran with, as a run of ``run`` keeps them
+        config.write_resolved_params(params, building)
+    work = compute_method(sequence, conf, building, cache_dir, device, seed, **options)
+    table = write_results(building, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
+    runs.finish(building)
+    scoring.refresh_view(output_dir)  # the folder's table, derived from its runs
+    return table
 
 
 def write_results(
-    output_dir: Path,
+    run: Path,
     sequence: Sequence,
     conf: dict[str, Any],
     seed: int,
@@ -190,61 +192,26 @@ def write_results(
     cache_dir: Path,
     device: str = "auto",
 ) -> pd.DataFrame:
-    """The one way a method's results are written (a run, a notebook, a merge): table from the stores,
-    ``run.json``, ``pairs.csv``; in place only under the folder's lock, never over a foreign file."""
-    folder = method_outputs.method_dir(output_dir, conf["method"])
-    in_place = not record.is_stage(output_dir)
-    written = method_outputs.result_files(conf["method"])
-    lock = record.FolderLock(output_dir) if in_place else None
-    if lock is not None:
-        lock.acquire(wait_seconds=600)
-    try:
-        if in_place:
-            record.check_no_foreign_files(output_dir, written)
-        with record.pending(output_dir, written) if in_place else contextlib.nullcontext():
-            table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
-            atomic_write_json(
-                folder / "run.json",
-                {
-                    **result_identity(sequence, conf, seed, device),
-                    "n_pairs": len(sequence.pairs),
-                    "pairs": sequence.origin,
-                    "package_version": __version__,
-                    "run_id": record.stage_run_id(output_dir),
-                    "environment": environment,
-                    "this_run": this_run,
-                    "finished_at": record.now(),
-                },
-            )
-            atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished run
-            if in_place:
-                record_method_in_place(output_dir, conf["method"], sequence)
-    finally:
-        if lock is not None:
-            lock.release()
+    """The one way a method's results are written (a run, a notebook, a merge), into a run being
+    built: its table from the stores, ``run.json``, then ``pairs.csv``."""
+    folder = Path(run) / conf["method"]
+    table = pairs_table(sequence, conf, cache_dir, run, seed)
+    atomic_write_json(
+        folder / "run.json",
+        {
+            **result_identity(sequence, conf, seed, device),
+            "n_pairs": len(sequence.pairs),
+            "pairs": sequence.origin,
+            "package_version": __version__,
+            "run_id": runs.run_id(run),
+            "cache_dir": str(cache_dir),
+            "environment": environment,
+            "this_run": this_run,
+            "finished_at": runs.now(),
+        },
+    )
+    atomic_write_csv(folder / "pairs.csv", table)  # last: its presence marks a finished method
     return table
-
-
-def record_method_in_place(output_dir: Path, method: str, sequence: Sequence) -> None:
-    """Enter a method's finished outputs, written in place, in the folder's record. What the last
-    ``run`` derived from the results (tables, figures, notebooks) no longer shows them: the folder's
-    table is removed (``results`` rebuilds it), and all of it when the method's inputs changed."""
-    binding = scoring.sequence_binding(sequence)
-    with record.editing(output_dir) as entry:
-        written = method_outputs.result_files(method)
-        previous = entry["methods"].get(method, {})
-        same_inputs = not previous or all(
-            previous.get(key) == binding[key] for key in ("pairs_digest", "images_digest")
-        )
-        derived = ["results.csv"] if same_inputs else ["results.csv", *entry.get("published", [])]
-        for name in derived:
-            if name.rsplit("/", 1)[-1] not in method_outputs.FINISHED_OUTPUTS:  # the methods' results stay
-                (Path(output_dir) / name).unlink(missing_ok=True)
-                entry["files"].pop(name, None)
-        entry["published"] = [name for name in entry.get("published", []) if name not in derived]
-        entry["files"].update({name: record.file_sha256(Path(output_dir) / name) for name in written})
-        record.drop_earlier_run_files(Path(output_dir), entry, method, written)
-        entry["methods"][method] = {**binding, "files": written}
 
 
 def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str, **options: Any) -> pd.DataFrame:
@@ -259,5 +226,6 @@ def run_method_of_params(params: dict[str, Any], sequence: Sequence, method: str
         params["device"],
         params["seed"],
         verifier=params.get("verifier") or None,
+        params=params,
         **options,
     )

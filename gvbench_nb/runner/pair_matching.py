@@ -19,7 +19,7 @@ from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.images import ImageReadError, load_for_extraction, to_original_pixels
 from gvbench_nb.protocol.ransac import verify_matches
-from gvbench_nb.runner import concurrency, image_features, method_outputs, record
+from gvbench_nb.runner import concurrency, image_features, method_outputs, runs
 from gvbench_nb.runner.store import ShardedStore
 
 if TYPE_CHECKING:
@@ -118,17 +118,16 @@ def pair_seed(seed: int, query: str, reference: str) -> int:
 
 
 def stores_folder(output_dir: Path) -> Path:
-    """The output folder, also for a stage: stores are content-keyed caches every run shares."""
+    """The output folder, also for a run: stores are content-keyed caches every run shares."""
     output_dir = Path(output_dir)
-    return output_dir.parent if record.is_stage(output_dir) else output_dir
+    return output_dir.parent.parent if runs.is_run(output_dir) else output_dir
 
 
 def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """Per-pair matches and inlier masks of one method conf (a changed conf starts afresh)."""
     matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
     return ShardedStore(
-        method_outputs.method_dir(stores_folder(output_dir), conf["method"])
-        / f"matches-{method_registry.conf_hash(matching_conf)}"
+        stores_folder(output_dir) / conf["method"] / f"matches-{method_registry.conf_hash(matching_conf)}"
     )
 
 
@@ -284,7 +283,7 @@ def pair_list_hash(keys: dict[Any, str]) -> str:
 
 def raw_dense_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """A dense matcher's raw matches a pair (original pixels), before merging."""
-    folder = method_outputs.method_dir(stores_folder(output_dir), conf["method"])
+    folder = stores_folder(output_dir) / conf["method"]
     return ShardedStore(folder / f"raw-{method_registry.conf_hash(conf['matcher'])}")
 
 

@@ -1,15 +1,15 @@
 """Per-pair scores computed elsewhere, in and out: the GV-Bench authors' ``.npy`` (a pickled dict,
 their ``.asset/replicate.md``; read by an unpickler that builds only numpy arrays and plain data) and
-a ``query reference label score`` table, published as one method like a run (``record.publish``)."""
+a ``query reference label score`` table, added to an output folder as a run of one method."""
 
 from __future__ import annotations
 
 import csv
 import importlib
 import io
+import json
 import pickle
 import shlex
-import shutil
 from pathlib import Path
 from typing import Any
 
@@ -21,7 +21,7 @@ from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Pair, Sequence, check_pairs, name_problem, read_text
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, file_sha256
 from gvbench_nb.protocol.metrics import evaluate_scores, pr_curve
-from gvbench_nb.runner import method_outputs, record, scoring
+from gvbench_nb.runner import method_outputs, runs, scoring
 
 TABLE_COLUMNS = ["query", "reference", "label", "score"]
 IMPORTED_PROFILE = "imported"  # the profile column of an imported method: we did not run its chain
@@ -202,7 +202,7 @@ def _pairs_csv(table: pd.DataFrame, method: str) -> pd.DataFrame:
 
 def check_name(name: str, option: str) -> str:
     """``name`` when it is a plain file-name component (it names folders and files), else a one-sentence refusal."""
-    problem = name_problem(name) or ("is a file of the output folder's own" if name in record.OWN_NAMES else None)
+    problem = name_problem(name) or ("is the output folder's own" if name == runs.RUNS else None)
     if problem:
         raise ScoreFileError(
             f"{option} {name!r} {problem}, and it names the output's files; give a plain name such as sp-sg-authors"
@@ -210,41 +210,30 @@ def check_name(name: str, option: str) -> str:
     return name
 
 
-def _check_joins(
-    output_dir: Path, published: dict[str, Any], path: Path, sequence: str, method: str, digest: str
-) -> list[str]:
-    """The methods an import of ``method`` keeps beside it; refused when the folder holds computed results
-    of ``method`` (an import never replaces them), another sequence, or other pairs or labels."""
-    if method in published["methods"]:
-        run = method_outputs.read_run_json(output_dir, method)
-        if run.get("conf", {}).get("profile") != IMPORTED_PROFILE:
-            raise ScoreFileError(
-                f"{output_dir} holds results of {method} computed here, which an import does not replace; import "
-                f"{path} under another --method (e.g. {method}-imported) or into another --output-dir"
-            )
-    kept = [m for m in published["methods"] if m != method]
-    held = {str(method_outputs.read_run_json(output_dir, m).get("sequence")) for m in kept}
-    other_sequence = sorted(held - {sequence})
+def _check_joins(output_dir: Path, path: Path, sequence: str, digest: str) -> None:
+    """Refuse an import into a folder that shows another sequence, or other pairs or labels."""
+    shown = runs.current(output_dir).entries.values() if output_dir.is_dir() else []
+    other_sequence = sorted({str(e.record.get("sequence")) for e in shown} - {sequence})
     if other_sequence:
         raise ScoreFileError(
             f"{output_dir} holds sequence {other_sequence[0]!r}, not {sequence!r}, and an output folder holds one "
             f"sequence; import {path} into another --output-dir, or give --sequence {other_sequence[0]} if it is that one"
         )
-    other = [m for m in kept if published["methods"][m].get("pairs_digest") != digest]
+    other = [e.method for e in shown if (e.record.get("binding") or {}).get("pairs_digest") != digest]
     if other:
         raise ScoreFileError(
             f"{output_dir} holds {', '.join(other)}, scored on other pairs or labels than {path}; import it into "
             "another --output-dir"
         )
-    return kept
 
 
 def import_scores(
     path: str | Path, sequence: str, method: str, output_dir: str | Path, image_root: str | Path | None = None
 ) -> dict[str, Any]:
-    """Publish a score file as ``method`` of ``output_dir`` (beside the folder's other methods
-    when they scored the same pairs and labels); returns its row of the results table. Given
-    ``image_root``, the pairs' images are checked there first (``check_images``)."""
+    """Add a score file to ``output_dir`` as a run of ``method`` (beside the folder's other methods
+    when they scored the same pairs and labels); returns its row of the results table and, under
+    ``earlier``, the run of that name it now stands before (None when none). Given ``image_root``,
+    the pairs' images are checked there first (``check_images``)."""
     path, output_dir = Path(path).resolve(), Path(output_dir)
     check_name(sequence, "--sequence")
     check_name(method, "--method")
@@ -260,34 +249,21 @@ def import_scores(
         "pairs_file": None,
         "pairs_sha256": None,
     }
-    record.check_owned(output_dir)
-    published = record.read_record(output_dir) or {"methods": {}, "files": {}}
-    _check_joins(output_dir, published, path, sequence, method, digest)  # before any file
-    record.claim(output_dir)
-    with record.FolderLock(output_dir):
-        record.finish_publishing(output_dir)
-        published = record.read_record(output_dir) or {"methods": {}, "files": {}}
-        kept = {
-            m: {k: v for k, v in published["methods"][m].items() if k != "files"}
-            for m in _check_joins(output_dir, published, path, sequence, method, digest)
-        }
-        stage = record.open_stage(output_dir)
-        for name in published["files"]:  # the folder's other files stay: the stage is its whole next state
-            if name != "results.csv" and name not in record.method_files([name], method):
-                (stage / name).parent.mkdir(parents=True, exist_ok=True)
-                shutil.copy2(output_dir / name, stage / name)
-        folder = method_outputs.method_dir(stage, method)
-        run = _run_record(path, kind, stated, sequence, method, binding, stage)
+    runs.check_owned(output_dir)
+    _check_joins(output_dir, path, sequence, digest)  # before any file
+    earlier = runs.current(output_dir).entries.get(method) if output_dir.is_dir() else None
+    with runs.new_run(output_dir, "import") as building:
+        run = _run_record(path, kind, stated, sequence, method, binding, building)
         run["imported"]["images_checked_under"] = None if image_root is None else str(Path(image_root).resolve())
-        atomic_write_json(folder / "run.json", run)
-        atomic_write_csv(folder / "pairs.csv", _pairs_csv(table, method))
-        results = scoring.evaluate(stage, [*kept, method])
-        record.publish(output_dir, stage, {**kept, method: binding})
-    return results.set_index("method").loc[method].to_dict() | {"stated": stated}
+        atomic_write_json(building / method / "run.json", run)
+        atomic_write_csv(building / method / "pairs.csv", _pairs_csv(table, method))
+    results = scoring.refresh_view(output_dir)
+    row = results.set_index("method").loc[method].to_dict()
+    return row | {"stated": stated, "run": runs.method_folder(output_dir, method).parent.name, "earlier": earlier}
 
 
 def _run_record(
-    path: Path, kind: str, stated: dict[str, Any], sequence: str, method: str, binding: dict[str, Any], stage: Path
+    path: Path, kind: str, stated: dict[str, Any], sequence: str, method: str, binding: dict[str, Any], run: Path
 ) -> dict[str, Any]:
     known = method in method_registry.method_names()
     return {
@@ -297,6 +273,7 @@ def _run_record(
         "pairs": {"pairs_file": None, "pairs_sha256": None, "imported_from": str(path)},
         "binding": binding,
         "conf": {
+            "method": method,
             "paper_name": f"{method_registry.paper_name(method) if known else method} (imported)",
             "profile": IMPORTED_PROFILE,
             "extractor": None,
@@ -304,56 +281,51 @@ def _run_record(
         },
         "seed": None,
         "package_version": __version__,
-        "run_id": record.stage_run_id(stage),
+        "run_id": runs.run_id(run),
         "environment": {"device": "imported"},
         "this_run": {},
         "imported": {"file": str(path), "sha256": file_sha256(path), "format": kind, "stated": stated},
-        "finished_at": record.now(),
+        "finished_at": runs.now(),
     }
 
 
 def export_npy(output_dir: str | Path, method: str) -> tuple[Path, float]:
-    """Write a method's pairs as the authors' ``<sequence>_<method>_<run id>.npy`` in its folder, and
-    return it with the AP it states: their keys, with ``inliers`` one count a pair (as their multiprocess
-    evaluation writes it) and no ``all_matches`` (the match coordinates are not in pairs.csv). Made under
-    the folder's lock, so the results and the run id it names are one run's (a rerun of the method
-    removes it: ``record.publish``)."""
+    """Write the method's current run as the authors' ``<sequence>_<method>_<run id>.npy`` in the output
+    folder's ``exports/``, and return it with the AP it states: their keys, with ``inliers`` one count a
+    pair (as their multiprocess evaluation writes it) and no ``all_matches`` (the match coordinates are
+    not in pairs.csv). A run never changes, so the export stays the run's it names."""
     output_dir = Path(output_dir)
-    with record.FolderLock(output_dir):
-        table = scoring.load_pairs_table(output_dir, method)
-        run = method_outputs.read_run_json(output_dir, method)
-        # A notebook run on its own writes results in place, with no run id: the time it finished names it.
-        run_id = str(run.get("run_id") or "in-place-" + "".join(c for c in str(run.get("finished_at")) if c.isalnum()))
-        sequence = str(run.get("sequence"))
-        for name, what in ((sequence, "sequence"), (run_id, "run id")):
-            if name_problem(name):
-                raise ScoreFileError(
-                    f"{output_dir / method / 'run.json'}: its {what} {name!r} {name_problem(name)}, so it cannot name "
-                    f"the export; run {method} again with a plain sequence name"
-                )
-        labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
-        prob = scores / scores.max() if scores.max() > 0 else scores
-        metrics = evaluate_scores(labels, prob, where=f"{output_dir / method / 'pairs.csv'}")
-        curve = pr_curve(labels, prob)
-        inliers = table["num_inliers"].to_numpy(dtype=np.float64)
-        values = {
-            "prob": prob,
-            "qImages": table["query"].astype(str).tolist(),
-            "rImages": table["reference"].astype(str).tolist(),
-            "gt": labels.tolist(),
-            "inliers": inliers.astype(np.int64) if np.isfinite(inliers).all() else scores,
-            "precision": curve["precision"],
-            "recall": curve["recall"],
-            "TH": curve["thresholds"],
-            "average_precision": metrics["ap"],
-            "Max Recall": metrics["max_recall"],
-        }
-
-        def write(path: Path) -> None:
-            temporary = path.with_name(f".{path.name}.tmp")
-            with open(temporary, "wb") as handle:
-                np.save(handle, np.array(values, dtype=object), allow_pickle=True)
-            temporary.replace(path)
-
-        target = method_outputs.method_dir(output_dir, method) / f"{sequence}_{method}_{run_id}.npy"
-        return record.save_checked(target, write), float(metrics["ap"])
+    folder = method_outputs.method_dir(output_dir, method)
+    table = scoring.load_pairs_table(folder.parent, method)
+    run = json.loads((folder / "run.json").read_text(encoding="utf-8"))
+    run_id, sequence = str(runs.run_id(folder.parent)), str(run.get("sequence"))
+    problem = name_problem(sequence)
+    if problem:
+        raise ScoreFileError(
+            f"{folder / 'run.json'}: its sequence {sequence!r} {problem}, so it cannot name the export; run {method} "
+            "again with a plain sequence name"
+        )
+    labels, scores = table["label"].to_numpy(dtype=np.int64), table["score"].to_numpy(dtype=np.float64)
+    prob = scores / scores.max() if scores.max() > 0 else scores
+    metrics = evaluate_scores(labels, prob, where=f"{folder / 'pairs.csv'}")
+    curve = pr_curve(labels, prob)
+    inliers = table["num_inliers"].to_numpy(dtype=np.float64)
+    values = {
+        "prob": prob,
+        "qImages": table["query"].astype(str).tolist(),
+        "rImages": table["reference"].astype(str).tolist(),
+        "gt": labels.tolist(),
+        "inliers": inliers.astype(np.int64) if np.isfinite(inliers).all() else scores,
+        "precision": curve["precision"],
+        "recall": curve["recall"],
+        "TH": curve["thresholds"],
+        "average_precision": metrics["ap"],
+        "Max Recall": metrics["max_recall"],
+    }
+    target = output_dir / "exports" / f"{sequence}_{method}_{run_id}.npy"
+    target.parent.mkdir(exist_ok=True)
+    temporary = target.with_name(f".{target.name}.tmp")
+    with open(temporary, "wb") as handle:
+        np.save(handle, np.array(values, dtype=object), allow_pickle=True)
+    temporary.replace(target)
+    return target, float(metrics["ap"])

@@ -15,10 +15,10 @@ import pandas as pd
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.io_utils import atomic_write_csv
+from gvbench_nb.io_utils import atomic_write_csv, file_sha256
 from gvbench_nb.protocol.images import ImageReadError
 from gvbench_nb.protocol.metrics import evaluate_scores
-from gvbench_nb.runner import image_features, method_outputs, record
+from gvbench_nb.runner import image_features, method_outputs, runs
 
 
 def pairs_digest(rows: Iterable[tuple[str, str, int]]) -> str:
@@ -54,8 +54,6 @@ def sequence_binding(sequence: Sequence) -> dict[str, Any]:
 
 def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
     path = method_outputs.method_dir(output_dir, method) / "pairs.csv"
-    if (record.read_record(output_dir) or {}).get("state") == "publishing":
-        record.check_published(output_dir)  # half of two runs: refused, naming how to finish
     if not path.is_file():
         raise method_outputs.ResultsError(f"no results for method {method!r}: {path} is missing; run the method first")
     # Names stay strings whatever they read ("NA", "null"); an empty measurement is missing
@@ -69,8 +67,12 @@ def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
 
 
 def methods_with_results(output_dir: Path) -> list[str]:
-    """Methods that have a finished ``pairs.csv``, in registry order, then any others."""
-    found = {p.parent.name for p in Path(output_dir).glob("*/pairs.csv")}
+    """The methods a run holds, or an output folder shows (``runs.current``), in registry order, then any others."""
+    found = (
+        {p.parent.name for p in Path(output_dir).glob("*/pairs.csv")}
+        if runs.is_run(output_dir)
+        else set(runs.current(output_dir).entries)
+    )
     ordered = [m for m in method_registry.method_names() if m in found]
     return ordered + sorted(found - set(ordered))
 
@@ -131,11 +133,19 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
         )
     results = pd.DataFrame(rows)
     check_one_binding(output_dir, results)
-    if write:
-        if not record.is_stage(output_dir):
-            record.claim(output_dir)
-        record.save_checked(output_dir / "results.csv", lambda path: atomic_write_csv(path, results))
+    if write:  # a view of the runs: made again whenever asked
+        atomic_write_csv(output_dir / "results.csv", results)
     return results
+
+
+def refresh_view(output_dir: Path) -> pd.DataFrame:
+    """Write the folder's ``results.csv`` from the runs it shows; made again while another run landed
+    meanwhile, so the file written last is of every run then finished."""
+    while True:
+        before = [folder.name for folder, _ in runs.finished_runs(output_dir)]
+        results = evaluate(output_dir)
+        if [folder.name for folder, _ in runs.finished_runs(output_dir)] == before:
+            return results
 
 
 def check_one_binding(output_dir: Path, results: pd.DataFrame) -> None:
@@ -157,7 +167,7 @@ def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
         run = method_outputs.read_run_json(output_dir, method)
         pairs = run.get("pairs") or {}
         pairs_file = pairs.get("pairs_file")
-        if pairs_file and Path(pairs_file).is_file() and record.file_sha256(pairs_file) != pairs.get("pairs_sha256"):
+        if pairs_file and Path(pairs_file).is_file() and file_sha256(pairs_file) != pairs.get("pairs_sha256"):
             changed[method] = f"the pair file {pairs_file} changed"
             continue
         recorded = (run.get("binding") or {}).get("images_digest")
@@ -174,37 +184,32 @@ def changed_inputs(output_dir: Path, methods: Iterable[str]) -> dict[str, str]:
     return changed
 
 
-def readable_methods(
-    output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None, tables: Iterable[str] = ()
-) -> list[str]:
-    """The check every reader of results runs first: a published record, ``methods`` finished, their
-    files (their SHA-256 the record's; ``tables``: more such files, e.g. ``results.csv``) and inputs
-    unchanged, all on the same pairs and labels; the methods."""
+def left_out(output_dir: str | os.PathLike[str]) -> list[str]:
+    """The runs an output folder's view leaves out, a line each saying why and how to show it."""
+    return [] if runs.is_run(output_dir) else list(runs.current(output_dir).left_out.values())
+
+
+def readable_methods(output_dir: str | os.PathLike[str], methods: SequenceType[str] | None = None) -> list[str]:
+    """The check every reader of results runs first: ``methods`` (default: all) shown by the folder
+    (or held by the run), their inputs unchanged, all on the same pairs and labels; the methods."""
     folder = Path(output_dir)
     if not folder.is_dir():
         evaluate(folder, write=False)  # says the folder does not exist
-    record.check_published(folder)
-    unfinished = method_outputs.unfinished_methods(folder)
-    if methods:
-        if any(m in unfinished for m in methods):
-            method_outputs.check_results_finished(folder)
-        absent = [m for m in methods if m not in methods_with_results(folder)]
-        if absent:
-            load_pairs_table(folder, absent[0])  # names the missing pairs.csv
-    else:
-        methods = [m for m in methods_with_results(folder) if m not in unfinished]
+    runs.check_owned(folder)
+    shown = methods_with_results(folder)
+    if not methods:
+        methods = shown
         if not methods:
-            method_outputs.check_results_finished(folder)  # names the unfinished methods, if any
             evaluate(folder, write=False)  # says the folder holds no results
+    absent = [m for m in methods if m not in shown]
+    if absent:
+        why = {line.split(":", 1)[0]: line for line in left_out(folder)}
+        if absent[0] in why:
+            raise method_outputs.ResultsError(
+                f"{folder} does not show {absent[0]} beside its other methods: {why[absent[0]]}"
+            )
+        load_pairs_table(folder, absent[0])  # names the missing pairs.csv
     methods = list(methods)
-    names = [name for m in methods for name in method_outputs.result_files(m)] + list(tables)
-    edited = record.changed_files(folder, names)
-    if edited:
-        raise record.RecordError(
-            f"{folder}: {', '.join(edited)} changed since gvbench-nb wrote them, so their scores are not a "
-            f"run's; run those methods again (python -m gvbench_nb run PARAMS --output-dir {folder}) after "
-            "moving the edited files away"
-        )
     changed = changed_inputs(folder, methods)
     if changed:
         described = "; ".join(f"{method}: {why}" for method, why in changed.items())

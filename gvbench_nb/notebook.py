@@ -144,6 +144,7 @@ def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
     sequence's repository file, else of params/sample.yaml."""
     given = {key: value for key, value in keys.items() if value is not None}
     if params_file is None and "sequence" in given:
+        config.check_value("sequence", given["sequence"], "the notebook's parameters")
         shipped = shipped_params_file(given["sequence"])
         whole = all(key in given for key in config.REQUIRED_KEYS)
         if whole and (shipped is None or not set(config.read_yaml_mapping(shipped)) <= set(given)):

@@ -50,10 +50,14 @@ def name_problem(name: str) -> str | None:
     file-name component, or None."""
     if not name or not name.strip():
         return "is empty"
-    if any(mark in name for mark in ("/", "\\", "\0")):
-        return "holds a path separator or a NUL byte"
+    if any(mark in name for mark in ("/", "\\")):
+        return "holds a path separator"
+    if any(ord(char) < 32 or ord(char) == 127 for char in name):
+        return "holds a control character (a NUL byte, a tab, a newline, ...)"
     if name.startswith("."):
         return "starts with '.' (names a hidden, current or parent folder)"
+    if len(name.encode()) > MAX_NAME_BYTES:
+        return f"is longer than {MAX_NAME_BYTES} bytes, which file systems do not allow in a name"
     return None
 
 

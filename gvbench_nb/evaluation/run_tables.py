@@ -14,6 +14,7 @@ import pandas as pd
 import yaml
 
 from gvbench_nb.data import fetch
+from gvbench_nb.data.sequences import name_problem
 from gvbench_nb.data.synthetic.route_files import GENERATOR_FILE
 from gvbench_nb.evaluation import reference_values
 from gvbench_nb.runner import config, method_outputs, scoring
@@ -121,6 +122,12 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
     for folder in output_dirs:
         # Derived from the runs the folder shows, from inputs unchanged since, on one set of pairs.
         frame = scoring.evaluate(Path(folder), scoring.readable_methods(folder), write=False)
+        for sequence in map(str, frame["sequence"].unique()):  # figures and pages are named by it
+            if name_problem(sequence):
+                raise method_outputs.ResultsError(
+                    f"{folder}: its sequence {sequence!r} {name_problem(sequence)}, so it cannot name figures; "
+                    "run its methods again with a plain sequence name"
+                )
         runs = [load_run(folder, m) for m in frame["method"]]
         limits = [(run.get("pairs") or {}).get("limit") for run in runs]
         # An imported method read no images (image_root ''): the folder's other runs tell.

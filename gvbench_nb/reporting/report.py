@@ -449,11 +449,13 @@ def run_folders(args: argparse.Namespace) -> list[Path]:
 
 def command_report(args: argparse.Namespace) -> int:
     output_dirs = run_folders(args)
+    from gvbench_nb.evaluation import run_tables
     from gvbench_nb.runner import scoring
 
     report_dir = Path(args.output_dir)
     for folder in output_dirs:
         scoring.readable_methods(folder)  # what `results` refuses, the report refuses, before any file
+    run_tables.load_results(output_dirs)  # and what the analysis notebooks refuse
     log.info(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]

@@ -13,12 +13,13 @@ from pathlib import Path
 from typing import Annotated, Any
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, InstanceOf, StringConstraints, ValidationError
+from pydantic import AfterValidator, BaseModel, ConfigDict, Field, InstanceOf, StringConstraints, ValidationError
+from pydantic_core import ErrorDetails
 
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data import fetch
-from gvbench_nb.data.sequences import name_problem
+from gvbench_nb.data.sequences import name_problem, shorten
 from gvbench_nb.io_utils import atomic_write_text, unknown_keys_hint
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import ImageReadError, max_pixels, path_problem
@@ -51,12 +52,22 @@ def _what(text: str, **kwargs: Any) -> Any:
     return Field(description=text, **kwargs)
 
 
+def plain_name(name: str) -> str:
+    """``name`` when ``name_problem`` finds none, else a ``ValueError`` saying what it is."""
+    problem = name_problem(name)
+    if problem:
+        raise ValueError(problem)
+    return name
+
+
 class ParamsModel(BaseModel):
     """A params file's keys: the required ones first, then the optional ones with their defaults."""
 
     model_config = ConfigDict(extra="forbid", strict=True)
 
-    sequence: Annotated[str, StringConstraints(pattern=r"\S")] = _what("a non-empty name")
+    sequence: Annotated[str, AfterValidator(plain_name)] = _what(
+        "a plain name such as gardens_point_night (it names the output's files)"
+    )
     pairs: PathValue = _what("a path")
     image_root: PathValue | None = _what("a folder path")
     methods: str | list[str] = _what("a list of method names or a comma-separated string")
@@ -99,12 +110,29 @@ def _validate(params: dict[str, Any], path: str) -> None:
     wrong: dict[str, dict[str, str]] = {}
     for e in errors:
         key = str(e["loc"][0])
-        what = ParamsModel.model_fields[key].description
-        if e["type"] == "greater_than_equal":
-            what = f"{what} of at least {e['ctx']['ge']}"
-        wrong.setdefault(blame(params, key), {}).setdefault(key, f"{key} must be {what}, got {params[key]!r}")
+        wrong.setdefault(blame(params, key), {}).setdefault(key, _wrong_value(e, params[key]))
     source = sorted(wrong, key=lambda where: not where.startswith("--"))[0]
     raise ParamsError(f"{source}: " + "; ".join(wrong[source].values()))
+
+
+def _wrong_value(error: ErrorDetails, value: Any) -> str:
+    """A refused value in words: what its key must be, or what the field's own check (``plain_name``) found."""
+    key = str(error["loc"][0])
+    what = ParamsModel.model_fields[key].description
+    if error["type"] == "value_error":
+        return f"{key} {shorten(repr(value))} {error['ctx']['error']}; give {what}"
+    if error["type"] == "greater_than_equal":
+        what = f"{what} of at least {error['ctx']['ge']}"
+    return f"{key} must be {what}, got {value!r}"
+
+
+def check_value(key: str, value: Any, source: str) -> None:
+    """One params key's value refused alone, in ``load_params``' words (a notebook's ``sequence`` is
+    checked before it picks the params file of that sequence)."""
+    try:
+        ParamsModel.__pydantic_validator__.validate_assignment(ParamsModel.model_construct(), key, value)
+    except ValidationError as error:
+        raise ParamsError(f"{source}: {_wrong_value(error.errors()[0], value)}") from None
 
 
 def _expand(value: str, source: str, key: str) -> str:
@@ -198,11 +226,6 @@ def resolve_params(raw: dict[str, Any], source: str, folder: Path, **overrides: 
     raw.update(given)
     params = {**OPTIONAL_KEYS, **raw, "params_file": source, "overridden": sorted(given)}
     _validate(params, source)
-    if name_problem(params["sequence"]):
-        raise ParamsError(
-            f"{blame(params, 'sequence')}: sequence {params['sequence']!r} {name_problem(params['sequence'])}, and it "
-            "names the output's files; give a plain name such as gardens_point_night"
-        )
     try:
         params["methods"] = method_registry.expand_methods(params["methods"])
     except KeyError as error:

@@ -384,7 +384,8 @@ def check_before_work(args: argparse.Namespace) -> None:
                 raise config.ParamsError(f"{flag} must be a whole number of at least 1, got {value}")
         params = run_and_publish.run_params_of_args(args)
         method_registry.check_known_to_kernels(params["methods"])
-        input_checks.check_run_inputs(params, images=not getattr(args, "merge", False))
+        # Handed to the command: its params parsed once, its images checked once.
+        args.checked = (params, input_checks.check_run_inputs(params, images=not getattr(args, "merge", False)))
 
 
 def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:

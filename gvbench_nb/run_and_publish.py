@@ -69,20 +69,20 @@ def execute_run_notebooks(
 def command_run(args: argparse.Namespace) -> int:
     from gvbench_nb.runner import config, distributed, input_checks, method_runs, runs, scoring, sequence_build
 
-    params = run_params_of_args(args)
-    # Weights, vismatch, the device, the folders and every image were checked before any work
-    # (``check_before_work``): nothing half-runs.
+    # Weights, vismatch, the device, the folders and, for a pair file, every image were checked before
+    # any work (``check_before_work``, which hands on the params and what it found): nothing half-runs.
+    params, damaged = getattr(args, "checked", None) or (run_params_of_args(args), None)
     output_dir = Path(params["output_dir"])
     runs.check_owned(output_dir)  # whose folder it is, before anything is written there
     sequence = sequence_build.prepare_sequence(params)
-    input_checks.check_labels_defined(sequence, params)
-    sequence.check_images()
+    if damaged is None:  # a builder's pairs, checked once built (kept in the cache)
+        input_checks.check_labels_defined(sequence, params)
+        sequence.check_images()
+        damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
     if getattr(args, "dask", False) and args.scheduler:  # its workers share the folders this run is to make
         distributed.check_cluster(args.scheduler, params, sequence)
     input_checks.check_writable_folder(params, "output_dir")
     input_checks.check_writable_folder(params, "cache_dir")
-    # Checked before work for a pair file (``check_before_work``); once built for a builder's. Kept in the cache.
-    damaged = input_checks.check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
     announce_run(params, sequence)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks
         distributed.run_from_cli(args, params)

@@ -219,9 +219,11 @@ def check_labels_defined(sequence: Sequence, params: dict[str, Any]) -> None:
     metrics.check_defined([pair.label for pair in sequence.pairs], where)
 
 
-def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
+def check_run_inputs(params: dict[str, Any], images: bool = True) -> dict[str, str] | None:
     """Refuse, before any work, what a run cannot use: device, folders, weights, builder options and
-    (``images``) the pair file and every image it names, each problem named as what it is."""
+    (``images``) the pair file and every image it names, each problem named as what it is. Returns the
+    damaged images allowed (``check_image_contents``) when it checked every image, else None (a
+    builder's pairs are checked once built)."""
     from gvbench_nb.protocol import weights
 
     problem = device_problem(params["device"])
@@ -251,7 +253,7 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
 
             hamming_kernel()  # the compiled kernel of Hamming matching, refused if the checkout was not set up
     if not images:
-        return
+        return None
     root = sequence_build.check_image_root(params)
     builder = params["pairs_builder"]
     options = params["builder_options"]
@@ -270,7 +272,7 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
     if builder == "frame_tolerance":
         sequence = _check_frame_tolerance_options(params).limited(params["limit"])
     elif builder is not None:
-        return  # the builder makes the pair file and images: ``run`` checks them once built
+        return None  # the builder makes the pair file and images: ``run`` checks them once built
     else:
         if path_problem(params["pairs"]) is not None:
             raise sequence_build.missing_pairs_error(params)
@@ -280,4 +282,4 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> None:
         )
     check_labels_defined(sequence, params)  # what the pair file alone decides, before any image is read
     sequence.check_images()
-    check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])
+    return check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])

@@ -6,6 +6,7 @@ from collections.abc import Sequence as SequenceType
 from pathlib import Path
 from typing import Any
 
+import cv2
 import matplotlib.pyplot as plt
 import numpy as np
 import pandas as pd
@@ -90,7 +91,12 @@ def example_pairs(image_root: Path, pairs: pd.DataFrame, n: int = 4, title: str 
     figure, axes = plt.subplots(len(rows), 2, figsize=(8, 2.6 * len(rows)), squeeze=False)
     for axis_row, (_, row) in zip(axes, rows.iterrows()):
         for axis, name in zip(axis_row, (row["query"], row["reference"])):
-            axis.imshow(read_image(Path(image_root) / name))
+            image = read_image(Path(image_root) / name)
+            # Shrunk to about the pixels the panel has (4 in at 120 dpi): drawing full-size photos is slow.
+            scale = min(1.0, 480 / image.shape[1])
+            if scale < 1.0:
+                image = cv2.resize(image, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)
+            axis.imshow(image)
             axis.set_title(name, fontsize=8)
             axis.axis("off")
         axis_row[0].text(

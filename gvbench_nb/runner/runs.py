@@ -133,11 +133,23 @@ def new_run(output_dir: str | os.PathLike[str], door: str) -> Iterator[Path]:
     finish(building)
 
 
-def _manifest(folder: Path) -> dict[str, Any] | None:
+_read: dict[tuple[str, int, int], Any] = {}  # a file's JSON by path, mtime and size: views read each run once
+
+
+def _json(path: Path) -> Any:
+    """A run's JSON file, read once a process unless it changed (a finished run does not); None when unreadable."""
     try:
-        manifest = json.loads((folder / MANIFEST).read_text(encoding="utf-8"))
+        stat = path.stat()
+        key = (str(path), stat.st_mtime_ns, stat.st_size)
+        if key not in _read:
+            _read[key] = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return None
+    return _read[key]
+
+
+def _manifest(folder: Path) -> dict[str, Any] | None:
+    manifest = _json(folder / MANIFEST)
     return manifest if isinstance(manifest, dict) and "finished_ns" in manifest else None
 
 
@@ -170,11 +182,9 @@ def entries(output_dir: str | os.PathLike[str]) -> list[Entry]:
         if manifest.get("door") == "shard":
             continue
         for method in manifest.get("methods", []):
-            try:
-                record = json.loads((folder / method / "run.json").read_text(encoding="utf-8"))
-            except (OSError, ValueError):
-                continue
-            found.append(Entry(folder, method, record))
+            record = _json(folder / method / "run.json")
+            if isinstance(record, dict):
+                found.append(Entry(folder, method, record))
     return found
 
 

@@ -157,16 +157,15 @@ def test_two_runs_started_together_on_one_folder_both_land_whole(tmp_path, root)
         )  # fmt: skip
         for name, pairs in (("a", PAIRS), ("b", FLIPPED))
     }
-    polls = 0
+    polls = []  # the AP a reader of the folder found, as `results` reads it, while the runs ran
     while any(p.poll() is None for p in started.values()):
-        if (out / "runs").is_dir():
-            check_runs_whole(out)
-            polls += 1
+        if check_runs_whole(out) if (out / "runs").is_dir() else False:
+            polls.append(scoring.evaluate(out, scoring.readable_methods(out), write=False)["ap"].item())
         time.sleep(0.2)
     said = {name: p.communicate() for name, p in started.items()}
     assert all(p.returncode == 0 for p in started.values()), said
-    ids = check_runs_whole(out)
-    assert len(ids) == 2 and polls > 0
+    ids, aps = check_runs_whole(out), []
+    assert len(ids) == 2
     for run_id in ids:
         params = yaml.safe_load((out / "runs" / run_id / "params.resolved.yaml").read_text())
         name = Path(params["pairs"]).stem.removesuffix("-pairs")
@@ -175,6 +174,8 @@ def test_two_runs_started_together_on_one_folder_both_land_whole(tmp_path, root)
         run_table = pd.read_csv(out / "runs" / run_id / "results.csv")
         alone = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy())["ap"]
         assert run_table["ap"].item() == pytest.approx(alone, abs=1e-6)  # the run's own table is its own
+        aps.append(alone)
+    assert all(min(abs(ap - a) for a in aps) < 1e-6 for ap in polls), (polls, aps)  # each poll one run's
 
 
 # ------------------------------------------------------ failed or killed runs --

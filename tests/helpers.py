@@ -12,9 +12,9 @@ import pytest
 import yaml
 
 from gvbench_nb import cli
-from gvbench_nb.data.sequences import Pair
+from gvbench_nb.data.sequences import Pair, write_pairs
 from gvbench_nb.protocol import metrics
-from gvbench_nb.runner import method_outputs
+from gvbench_nb.runner import config, method_outputs, method_runs, scoring, sequence_build
 
 # Two queries, each with its own view (true) and the other one (false).
 PAIRS = [
@@ -22,6 +22,16 @@ PAIRS = [
     Pair("query/a.png", "reference/b.png", 0),
     Pair("query/b.png", "reference/b.png", 1),
     Pair("query/b.png", "reference/a.png", 0),
+]
+FLIPPED = [Pair(p.query, p.reference, 1 - p.label) for p in PAIRS]
+# Eight pairs of four photographs (``write_root`` of four): each query with its own view and the next one's.
+PAIRS8 = [
+    pair
+    for this, other in zip("abcd", "bcda")
+    for pair in (
+        Pair(f"query/{this}.png", f"reference/{this}.png", 1),
+        Pair(f"query/{this}.png", f"reference/{other}.png", 0),
+    )
 ]
 
 
@@ -38,13 +48,113 @@ def photo(name: str, warped: bool, size: tuple[int, int] = (320, 240)) -> np.nda
     return cv2.cvtColor(image, cv2.COLOR_RGB2BGR)
 
 
-def write_root(root: Path, photos: tuple[str, str] = ("astronaut", "coffee"), size=(320, 240)) -> Path:
-    """``query/a.png``, ``query/b.png`` (warped) and ``reference/a.png``, ``reference/b.png``."""
+def write_root(root: Path, photos: tuple[str, ...] = ("astronaut", "coffee"), size=(320, 240)) -> Path:
+    """``query/a.png``, ``query/b.png`` (warped) and ``reference/a.png``, ``reference/b.png`` (one letter a photo)."""
     for folder, warped in (("query", True), ("reference", False)):
         (root / folder).mkdir(parents=True, exist_ok=True)
-        for letter, name in zip("ab", photos):
+        for letter, name in zip("abcdefgh", photos):
             cv2.imwrite(str(root / folder / f"{letter}.png"), photo(name, warped, size))
     return root
+
+
+def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
+    """What the stage notebooks of a ``run`` compute, here, in place of papermill's
+    ``execute_notebook``: 02_verify runs its method, 03_evaluate evaluates."""
+    params = config.load_params(parameters["params_file"])
+    if name == "02_verify.ipynb":
+        sequence = sequence_build.prepare_sequence(params)
+        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
+    elif name == "03_evaluate.ipynb":
+        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
+    output_path.write_text(json.dumps({"executed": name}))
+
+
+def params_file(tmp_path: Path, name: str = "params.yaml", pairs: list[Pair] = PAIRS, **changes) -> Path:
+    """``tmp_path/name``: orb-nn (repository) on ``tmp_path/images`` and ``pairs``, into ``tmp_path/out``."""
+    pairs_path = tmp_path / f"{Path(name).stem}-pairs.txt"
+    write_pairs(pairs_path, pairs)
+    params = {"sequence": "photos", "image_root": str(tmp_path / "images"), "pairs": str(pairs_path)}
+    params |= {"methods": ["orb-nn"], "profile": "repository", "device": "cpu"}
+    params |= {"output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache"), **changes}
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    """``cli.main(argv)``: its exit code and what it printed (stdout, stderr)."""
+    capsys.readouterr()
+    code = cli.main(list(argv))
+    said = capsys.readouterr()
+    return code, said.out, said.err
+
+
+def one_sentence(err: str) -> str:
+    """``err``, checked to be one line and no traceback."""
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder``: relative path -> bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def runs_files(output_dir: Path) -> dict[str, str]:
+    """The SHA-256 of every file of the folder's finished runs (``runs/<id>/...``; runs being built left out)."""
+    import hashlib
+
+    root = output_dir / "runs"
+    return {
+        path.relative_to(root).as_posix(): hashlib.sha256(path.read_bytes()).hexdigest()
+        for path in sorted(root.rglob("*") if root.is_dir() else [])
+        if path.is_file() and not path.relative_to(root).parts[0].startswith(".")
+    }
+
+
+def run_ids(output_dir: Path) -> list[str]:
+    """The folder's finished runs' ids, oldest first (read from the files, not through the package)."""
+    manifests = [json.loads(path.read_text()) for path in (output_dir / "runs").glob("[!.]*/manifest.json")]
+    return [m["run_id"] for m in sorted(manifests, key=lambda m: (m["finished_ns"], m["run_id"]))]
+
+
+def check_runs_whole(output_dir: Path) -> list[str]:
+    """Every finished run under ``runs/`` is whole: its manifest, and each method's ``pairs.csv`` (one row a
+    pair of its ``run.json``) and ``run.json`` readable; returns the runs' ids, oldest first."""
+    ids = run_ids(output_dir)
+    for run_id in ids:
+        run = output_dir / "runs" / run_id
+        manifest = json.loads((run / "manifest.json").read_text())
+        assert manifest["run_id"] == run_id and manifest["door"] in run_id
+        for method in manifest["methods"]:
+            record = json.loads((run / method / "run.json").read_text())
+            assert len(pd.read_csv(run / method / "pairs.csv")) == record["n_pairs"], (run_id, method)
+    return ids
+
+
+def added_one_run(out: Path, before: dict[str, str], door: str) -> str:
+    """The one run a door added since ``before`` (``runs_files``), every earlier file unchanged."""
+    after = runs_files(out)
+    assert {name: after.get(name) for name in before} == before, "an earlier run changed"
+    new = sorted({name.split("/")[0] for name in after} - {name.split("/")[0] for name in before})
+    assert len(new) == 1 and f"-{door}-" in new[0], new
+    return new[0]
+
+
+def shown(out: Path) -> dict[str, tuple[str, int]]:
+    """method -> (profile, n_pairs) of the folder's ``results.csv``."""
+    table = pd.read_csv(out / "results.csv")
+    return {m: (p, n) for m, p, n in zip(table["method"], table["profile"], table["n_pairs"])}
+
+
+def not_in_table(err: str) -> list[str]:
+    return [line for line in err.splitlines() if line.startswith("not in this table: ")]
+
+
+def verify_on_its_own(path: Path, method: str = "orb-nn", **overrides) -> None:
+    """What ``02_verify`` does when papermill, JupyterLab or nbmake runs it on its own."""
+    params = config.load_params(path, **overrides)
+    method_runs.run_method_of_params(params, sequence_build.prepare_sequence(params), method, progress=False)
 
 
 def write_params(tmp_path: Path, **changes: object) -> Path:

@@ -72,6 +72,11 @@ def run_id(folder: str | os.PathLike[str]) -> str | None:
     return name.removeprefix(BUILDING) if is_run(folder) else None
 
 
+def output_folder(folder: str | os.PathLike[str]) -> Path:
+    """The output folder of a run's folder; an output folder itself."""
+    return Path(folder).parent.parent if is_run(folder) else Path(folder)
+
+
 def check_owned(output_dir: str | os.PathLike[str]) -> None:
     """Refuse, in one sentence, a folder that is neither missing, empty nor the package's."""
     folder = Path(output_dir)
@@ -99,6 +104,11 @@ def _new_id(door: str) -> str:
 def start(output_dir: str | os.PathLike[str], door: str) -> Path:
     """A new run's folder, built aside (``runs/.building-<id>``) until ``finish`` makes it visible."""
     check_owned(output_dir)
+    if is_run(output_dir):  # a finished run never changes
+        raise RunsError(
+            f"{output_dir} is a run of the output folder {output_folder(output_dir)}, and a run never changes; "
+            "give that output folder as output_dir"
+        )
     folder = Path(output_dir) / RUNS / f"{BUILDING}{_new_id(door)}"
     folder.mkdir(parents=True)
     atomic_write_json(folder / MANIFEST, {"package": PACKAGE, "door": door, "started_at": now()})

@@ -215,7 +215,7 @@ def readable_methods(output_dir: str | os.PathLike[str], methods: SequenceType[s
         described = "; ".join(f"{method}: {why}" for method, why in changed.items())
         raise method_outputs.ResultsError(
             f"{folder}: results computed from inputs that have changed since ({described}); run those methods "
-            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {folder})"
+            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {runs.output_folder(folder)})"
         )
     digests = [table_pairs_digest(load_pairs_table(folder, m))[:12] for m in methods]
     check_one_binding(folder, pd.DataFrame({"method": methods, "pairs_digest": digests}))

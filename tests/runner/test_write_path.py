@@ -1,71 +1,93 @@
-"""The doors besides ``run`` (shards, merges, the explorer's figures) write results as ``run`` does
-or are refused before work; same photographs and in-process notebooks as test_run_record.py."""
+"""The doors besides ``run`` (a stage notebook on its own, shards, merges, the explorer's figures) each add a
+run of their own and change no earlier one, or are refused before work; same photographs and in-process
+notebooks as test_run_record.py."""
 
 from __future__ import annotations
 
 import os
-import threading
-import time
+import subprocess
+import sys
 from pathlib import Path
 
 import matplotlib.pyplot as plt
 import pandas as pd
 import pytest
 import test_run_record
-from test_run_record import FLIPPED, PAIRS, hold_lock, one_sentence, params_file, run_cli, snapshot
+from helpers import (
+    FLIPPED,
+    PAIRS,
+    PAIRS8,
+    added_one_run,
+    check_runs_whole,
+    not_in_table,
+    one_sentence,
+    params_file,
+    run_cli,
+    run_ids,
+    runs_files,
+    shown,
+    snapshot,
+    verify_on_its_own,
+    write_root,
+)
 
 from gvbench_nb import run_and_publish
 from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import config, method_runs, record, scoring, sequence_build
+from gvbench_nb.runner import config, method_outputs
 
 pytestmark = pytest.mark.reliability
-root, notebooks_here = test_run_record.root, test_run_record.notebooks_here  # the fixtures
+notebooks_here = test_run_record.notebooks_here  # the fixture
 
 
-def published(folder: Path) -> dict[str, bytes]:
-    """The folder's results as a reader sees them: the unit files and derived tables."""
-    return {k: v for k, v in snapshot(folder).items() if k.endswith((".csv", "run.json", ".png"))}
+def test_a_shard_and_a_merge_add_runs_and_change_no_earlier_run(tmp_path, root, capsys, notebooks_here):
+    from gvbench_nb.runner import runs
+
+    out, path = tmp_path / "out", params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    first, table = run_ids(out)[0], (out / "results.csv").read_bytes()
+    before = runs_files(out)
+    assert run_cli(capsys, "run", str(path), "--shard", "0/2")[0] == 0
+    shard = added_one_run(out, before, "shard")
+    # A shard's run holds its manifest only (which shard, what it computed), which no view shows.
+    assert sorted(p.name for p in (out / "runs" / shard).iterdir()) == ["manifest.json"]
+    assert (out / "results.csv").read_bytes() == table and runs.current(out).entries["orb-nn"].run.name == first
+    # Another run writing the folder meanwhile (its run being built) is in no one's way.
+    other = runs.start(out, "run")
+    (other / "orb-nn").mkdir()
+    (other / "orb-nn" / "pairs.csv").write_text("half of a table")
+    for door, argv in (("shard", ["--shard", "1/2"]), ("merge", ["--merge"])):
+        before = runs_files(out)
+        assert run_cli(capsys, "run", str(path), *argv)[0] == 0
+        added_one_run(out, before, door)
+    merged = run_ids(out)[-1]
+    assert runs.current(out).entries["orb-nn"].run.name == merged and shown(out) == {"orb-nn": ("repository", 4)}
+    assert (other / "orb-nn" / "pairs.csv").read_text() == "half of a table"
+    assert check_runs_whole(out) == run_ids(out)
+    first_table = pd.read_csv(out / "runs" / first / "orb-nn" / "pairs.csv")
+    merged_table = pd.read_csv(out / "runs" / merged / "orb-nn" / "pairs.csv")
+    assert merged_table["score"].tolist() == first_table["score"].tolist()  # the same work, shared by the stores
 
 
-def test_a_shard_or_merge_on_other_labels_into_a_folder_of_other_methods_is_refused(
-    tmp_path, root, capsys, notebooks_here
-):
+def test_a_merge_on_other_labels_shows_its_run_and_names_what_it_left_out(tmp_path, root, capsys, notebooks_here):
+    out = tmp_path / "out"
     assert run_cli(capsys, "run", str(params_file(tmp_path)))[0] == 0
-    before = published(tmp_path / "out")
+    first = run_ids(out)[0]
     flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, methods=["sift-opencv-nn"])
-    for option in (["--shard", "0/1"], ["--merge"]):
-        code, _, err = run_cli(capsys, "run", str(flipped), *option)
-        assert code == 2 and "holds results of orb-nn computed on other pairs, labels or images" in one_sentence(err)
-        assert published(tmp_path / "out") == before
-    assert not (tmp_path / "out" / "sift-opencv-nn" / "pairs.csv").exists()
-    # On the folder's own pairs and labels, a merge's results.csv lists every method of the folder.
+    assert run_cli(capsys, "run", str(flipped), "--shard", "0/1")[0] == 0
+    before = runs_files(out)
+    code, text, err = run_cli(capsys, "run", str(flipped), "--merge")
+    merged = added_one_run(out, before, "merge")
+    assert code == 0 and shown(out) == {"sift-opencv-nn": ("repository", 4)} and "sift-opencv-nn" in text
+    line = f"orb-nn: its latest run {first} scored 4 other pairs or labels (results {out} --run {first})"
+    assert not_in_table(err) == [f"not in this table: {line}"]
+    assert method_outputs.method_dir(out, "sift-opencv-nn") == out / "runs" / merged / "sift-opencv-nn"
+    # On the folder's first pairs and labels, a merge's results.csv lists every method of the folder on them.
     sift = params_file(tmp_path, "sift.yaml", PAIRS, methods=["sift-opencv-nn"])
     assert run_cli(capsys, "run", str(sift), "--shard", "0/1")[0] == 0
-    assert run_cli(capsys, "run", str(sift), "--merge")[0] == 0
-    assert sorted(pd.read_csv(tmp_path / "out" / "results.csv")["method"]) == ["orb-nn", "sift-opencv-nn"]
-
-
-def test_a_merge_while_a_run_holds_the_folder_is_refused_and_a_shard_never_changes_a_result(
-    tmp_path, root, capsys, notebooks_here
-):
-    path = params_file(tmp_path)
-    assert run_cli(capsys, "run", str(path))[0] == 0
-    before = published(tmp_path / "out")
-    holder = hold_lock(tmp_path / "out")
-    try:
-        # A shard fills only the caches (keyed by content), which any number of writers share.
-        assert run_cli(capsys, "run", str(path), "--shard", "0/1")[0] == 0
-        code, _, err = run_cli(capsys, "run", str(path), "--merge")
-        assert code == 2 and f"another run is writing {tmp_path / 'out'} (pid {holder.pid}" in one_sentence(err)
-        assert published(tmp_path / "out") == before
-    finally:
-        holder.kill()
-        holder.wait()
-    assert run_cli(capsys, "run", str(path), "--shard", "0/2")[0] == 0  # not held: the same
-    assert published(tmp_path / "out") == before
-    code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))
-    assert code == 0 and "orb-nn" in out
+    code, _, err = run_cli(capsys, "run", str(sift), "--merge")
+    assert code == 0 and shown(out) == {"orb-nn": ("repository", 4), "sift-opencv-nn": ("repository", 4)}
+    assert not_in_table(err) == []
 
 
 def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, notebooks_here):
@@ -77,79 +99,56 @@ def test_a_rerun_keeps_the_figures_the_explorer_saved(tmp_path, root, capsys, no
     content = saved.read_bytes()
     assert run_cli(capsys, "run", str(path))[0] == 0
     assert saved.read_bytes() == content
-    # Saved again, it replaces its own earlier file (the package wrote it).
-    figure = plt.figure()
+    figure = plt.figure()  # saved again, it replaces its own earlier file
     plots.save(figure, saved)
     plt.close(figure)
-    assert "explore/explore_pair_0.png" in record.read_record(tmp_path / "out")["files"]
-
-
-def verify_on_its_own(path: Path, method: str = "orb-nn", **overrides) -> None:
-    """What ``02_verify`` does when papermill, JupyterLab or nbmake runs it on its own."""
-    params = config.load_params(path, **overrides)
-    method_runs.run_method_of_params(params, sequence_build.prepare_sequence(params), method, progress=False)
+    assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0
 
 
 def test_a_notebook_run_on_its_own_that_fails_keeps_the_finished_results(tmp_path, root, capsys, notebooks_here):
-    path = params_file(tmp_path)
+    out, path = tmp_path / "out", params_file(tmp_path)
     assert run_cli(capsys, "run", str(path))[0] == 0
-    before = published(tmp_path / "out")
-    run_record = (tmp_path / "out" / record.RECORD_NAME).read_bytes()
+    before, image = snapshot(out), (root / "query" / "b.png").read_bytes()
     (root / "query" / "b.png").unlink()
     with pytest.raises(Exception, match="b.png"):
-        verify_on_its_own(path)
-    assert published(tmp_path / "out") == before
-    assert (tmp_path / "out" / record.RECORD_NAME).read_bytes() == run_record
-    assert not list((tmp_path / "out").rglob(".unfinished.json"))
+        verify_on_its_own(path, "sift-opencv-nn")
+    (root / "query" / "b.png").write_bytes(image)
+    after = snapshot(out)
+    assert {k: v for k, v in after.items() if not k.startswith("runs/.building-")} == before  # it added nothing
+    code, text, _ = run_cli(capsys, "results", str(out), "--run", run_ids(out)[0])
+    assert code == 0 and "orb-nn" in text and "sift-opencv-nn" not in text and len(run_ids(out)) == 1
 
 
-def test_a_notebook_run_on_its_own_on_fewer_pairs_leaves_no_figure_of_the_earlier_run(
-    tmp_path, root, capsys, notebooks_here
-):
-    path = params_file(tmp_path)
+def test_a_limit_notebook_adds_a_run_and_removes_nothing(tmp_path, capsys, notebooks_here):
+    """``papermill notebooks/02_verify.ipynb x.ipynb -p params_file p.yaml -p method orb-nn -p limit 4`` in
+    a finished folder of two methods on eight pairs."""
+    write_root(tmp_path / "images", ("astronaut", "coffee", "chelsea", "rocket"))
+    out, path = tmp_path / "out", params_file(tmp_path, "p.yaml", PAIRS8, methods=["orb-nn", "sift-opencv-nn"])
     assert run_cli(capsys, "run", str(path))[0] == 0
-    out = tmp_path / "out"
-    # On the folder's own inputs, a new method's results join the folder; the run's notebooks still show it.
-    verify_on_its_own(path, "sift-opencv-nn")
-    assert (out / "02_verify_orb-nn.ipynb").is_file() and not (out / "results.csv").exists()
-    code, text, _ = run_cli(capsys, "results", str(out))
-    assert code == 0 and "orb-nn" in text and "sift-opencv-nn" in text
-    # On fewer pairs, what the run derived from the four-pair results is gone, and nothing else.
     figure = plt.figure()
-    explored = plots.save(figure, out / "explore" / "explore_pair_0.png")
+    plots.save(figure, out / "explore" / "explore_pair_0.png")  # a figure the explorer saved
     plt.close(figure)
-    verify_on_its_own(path, limit=2)
-    assert len(pd.read_csv(out / "orb-nn" / "pairs.csv")) == 2
-    left = sorted(p.relative_to(out).as_posix() for p in out.rglob("*") if p.is_file() and "matches-" not in str(p))
-    assert not [name for name in left if name.endswith((".ipynb", ".yaml")) or name == "results.csv"], left
-    assert explored.is_file() and (out / "sift-opencv-nn" / "pairs.csv").is_file()
-    # The folder now mixes two pair lists: its readers refuse it, naming the methods.
-    code, _, err = run_cli(capsys, "results", str(out))
-    assert code == 2 and "orb-nn" in one_sentence(err) and "sift-opencv-nn" in err
-
-
-def test_a_publication_that_cannot_finish_says_so_and_no_reader_shows_the_mix(
-    tmp_path, root, capsys, notebooks_here, monkeypatch
-):
-    both = {"methods": ["orb-nn", "sift-opencv-nn"]}
-    assert run_cli(capsys, "run", str(params_file(tmp_path, **both)))[0] == 0
-    flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, **both)
-    replace = os.replace
-
-    def immutable_run_json(source, target):  # as `chattr +i` on one published file would
-        if ".run-" in str(source) and ".run-" not in str(target) and str(target).endswith("orb-nn/run.json"):
-            raise PermissionError(1, "Operation not permitted", str(target))
-        replace(source, target)
-
-    monkeypatch.setattr(os, "replace", immutable_run_json)
-    code, _, err = run_cli(capsys, "run", str(flipped))
-    assert code == 2 and "stopped while publishing" in err and "previous run's results" not in err
-    for command in (["results"], ["compare"]):  # the move still cannot finish
-        code, out, err = run_cli(capsys, *command, str(tmp_path / "out"))
-        assert code == 2 and out == "" and "a run stopped while publishing" in one_sentence(err)
-    monkeypatch.setattr(os, "replace", replace)
-    assert run_cli(capsys, "results", str(tmp_path / "out"))[0] == 0  # now the reader finishes it
-    assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
+    before = snapshot(out)
+    assert "explore/explore_pair_0.png" in before and any(n.endswith("02_verify_orb-nn.ipynb") for n in before)
+    env = {**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT)}
+    notebook = ["notebooks/02_verify.ipynb", str(tmp_path / "x.ipynb"), "-p", "params_file", str(path)]
+    said = subprocess.run(
+        [sys.executable, "-m", "papermill", *notebook, "-p", "method", "orb-nn", "-p", "limit", "4"],
+        cwd=config.PROJECT_ROOT, env=env, capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert said.returncode == 0, said.stderr[-3000:]
+    after = snapshot(out)
+    assert {name: after.get(name) for name in before if name != "results.csv"} == {
+        name: data for name, data in before.items() if name != "results.csv"
+    }  # every earlier run, notebook and figure, byte for byte
+    finished, added = check_runs_whole(out)
+    assert "-notebook-" in added and len(pd.read_csv(out / "runs" / added / "orb-nn" / "pairs.csv")) == 4
+    code, text, err = run_cli(capsys, "results", str(out))
+    assert code == 0 and shown(out) == {"orb-nn": ("repository", 4)} and "sift-opencv-nn" not in text
+    assert not_in_table(err) == [
+        f"not in this table: sift-opencv-nn: its latest run {finished} scored 8 other pairs or labels "
+        f"(results {out} --run {finished})"
+    ]
 
 
 def test_a_method_registered_from_code_is_refused_by_run_before_any_folder(tmp_path, root, capsys, monkeypatch):
@@ -164,54 +163,9 @@ def test_a_method_registered_from_code_is_refused_by_run_before_any_folder(tmp_p
     assert not (tmp_path / "out").exists() and not (tmp_path / "cache").exists()
 
 
-def test_a_reader_polling_while_a_run_publishes_sees_each_run_whole(tmp_path, root, capsys, monkeypatch):
-    both = {"methods": ["orb-nn", "sift-opencv-nn"]}
-    assert run_cli(capsys, "run", str(params_file(tmp_path, **both)))[0] == 0
-    out = tmp_path / "out"
-
-    def read() -> dict[str, list[float]]:
-        return {m: scoring.load_pairs_table(out, m)["score"].tolist() for m in scoring.readable_methods(out)}
-
-    first = read()
-    second = {m: [score + 1 for score in scores] for m, scores in first.items()}
-    # The next publication, as a run makes it: its stage holds every method, each file moved
-    # in place 0.1 s after the last, so readers land mid-move.
-    published = record.read_record(out)
-    stage = record.open_stage(out)
-    for name in published["published"]:
-        (stage / name).parent.mkdir(parents=True, exist_ok=True)
-        (stage / name).write_bytes((out / name).read_bytes())
-    for method in first:
-        table = pd.read_csv(stage / method / "pairs.csv")
-        table["score"] += 1
-        table.to_csv(stage / method / "pairs.csv", index=False)
-    bindings = {m: {k: v for k, v in b.items() if k != "files"} for m, b in published["methods"].items()}
-    replace = os.replace
-
-    def slow_replace(source, target):
-        if threading.current_thread().name == "publisher":
-            time.sleep(0.1)
-        replace(source, target)
-
-    monkeypatch.setattr(os, "replace", slow_replace)
-
-    def publish() -> None:
-        with record.FolderLock(out):
-            record.publish(out, stage, bindings)
-
-    publisher = threading.Thread(target=publish, name="publisher")
-    polls = [record.read_whole(out, read)]
-    publisher.start()
-    while publisher.is_alive():
-        polls.append(record.read_whole(out, read))  # raises on a refusal
-    publisher.join()
-    polls.append(record.read_whole(out, read))
-    assert polls[0] == first and polls[-1] == second
-    assert all(poll in (first, second) for poll in polls), "a poll showed half of two runs"
-    assert len(polls) > 3
-
-
-def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(tmp_path, root, capsys, monkeypatch):
+def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(
+    tmp_path, root, capsys, monkeypatch, notebooks_here
+):
     path = params_file(tmp_path)
 
     def edit_labels_then_run(name: str, output_path: Path, parameters: dict) -> None:
@@ -221,8 +175,9 @@ def test_labels_edited_while_a_run_computes_are_the_ones_its_record_binds(tmp_pa
 
     monkeypatch.setattr(run_and_publish, "execute_notebook", edit_labels_then_run)
     assert run_cli(capsys, "run", str(path))[0] == 0
-    assert pd.read_csv(tmp_path / "out" / "orb-nn" / "pairs.csv")["label"].tolist() == [p.label for p in FLIPPED]
-    # The record binds the labels the results scored: a run of another method on the same file joins them.
+    table = pd.read_csv(method_outputs.method_dir(tmp_path / "out", "orb-nn") / "pairs.csv")
+    assert table["label"].tolist() == [p.label for p in FLIPPED]
+    # The run binds the labels its results scored: a run of another method on the same file joins them.
     monkeypatch.setattr(run_and_publish, "execute_notebook", test_run_record.in_process_notebooks)
     assert run_cli(capsys, "run", str(path), "--methods", "sift-opencv-nn")[0] == 0
     code, out, _ = run_cli(capsys, "results", str(tmp_path / "out"))

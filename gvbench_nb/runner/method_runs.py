@@ -18,9 +18,10 @@ from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
 from gvbench_nb.runner import concurrency, image_features, method_outputs, pair_matching, record, scoring
 
 
-def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> pd.DataFrame:
+def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, seed: int) -> pd.DataFrame:
     """The per-pair table of a finished run, built only from the stores."""
-    matches = pair_matching.match_store(output_dir, conf)
+    keys = pair_matching.pair_keys(sequence, seed)
+    matches = pair_matching.match_store(cache_dir, conf, keys)
     matches.refresh()
     dense = method_registry.is_dense(conf)
     uses = Counter(name for pair in sequence.pairs for name in (pair.query, pair.reference))
@@ -33,12 +34,10 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
             entry = features.read(key, fields=("keypoints",))  # not descriptors
             image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
         features.close()
-    keys = pair_matching.pair_keys(sequence, seed)
     rows = []
     for index, pair in enumerate(sequence.pairs):
         entry = pair_matching.stored_counts(matches, keys[pair])  # the counts and timers only
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
-            pair_matching.check_merged_over(entry, sequence, keys, matches.folder)
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
             extract_seconds = 0.0
         else:
@@ -102,13 +101,13 @@ def finished_table(
 def compute_method(
     sequence: Sequence,
     conf: dict[str, Any],
-    output_dir: Path,
     cache_dir: Path,
     device: str = "auto",
     seed: int = 0,
     progress: bool = True,
     threads: int | None = None,
     jobs: int | None = None,
+    run_id: str | None = None,
 ) -> dict[str, Any]:
     """Extract and match what the caches lack (the work of ``run_method`` and of a shard, nothing
     written); ``run.json``'s ``environment`` and ``this_run``."""
@@ -127,15 +126,13 @@ def compute_method(
             resolved_device,
             progress,
             jobs=jobs,
-            run_id=record.stage_run_id(output_dir),
+            run_id=run_id,
         )
         if conf["extractor"]
         else {"images": 0, "cached": 0, "extracted": 0}
     )
     extracted = time.perf_counter()
-    matching = pair_matching.match_and_verify(
-        sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, jobs=jobs
-    )
+    matching = pair_matching.match_and_verify(sequence, conf, cache_dir, resolved_device, seed, progress, jobs=jobs)
     finished = time.perf_counter()
     return {
         "environment": concurrency.environment_info(resolved_device),
@@ -173,10 +170,10 @@ def run_method(
     # that is the package's, one writer at a time; the stores are filled first, by any number.
     in_place = not record.is_stage(output_dir)
     written = method_outputs.result_files(method)
-    if in_place:  # its stores go into the folder too: only into one that is the package's
+    if in_place:  # its results go into the folder: only into one that is the package's
         record.claim(output_dir)
         record.check_no_foreign_files(output_dir, written)  # never replace a file the package did not write
-    work = compute_method(sequence, conf, output_dir, cache_dir, device, seed, **options)
+    work = compute_method(sequence, conf, cache_dir, device, seed, run_id=record.stage_run_id(output_dir), **options)
     return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
 
 
@@ -202,7 +199,7 @@ def write_results(
         if in_place:
             record.check_no_foreign_files(output_dir, written)
         with record.pending(output_dir, written) if in_place else contextlib.nullcontext():
-            table = pairs_table(sequence, conf, cache_dir, output_dir, seed)
+            table = pairs_table(sequence, conf, cache_dir, seed)
             atomic_write_json(
                 folder / "run.json",
                 {
@@ -211,6 +208,7 @@ def write_results(
                     "pairs": sequence.origin,
                     "package_version": __version__,
                     "run_id": record.stage_run_id(output_dir),
+                    "cache_dir": str(cache_dir),  # where its matches are (``pair_matching.match_store``)
                     "environment": environment,
                     "this_run": this_run,
                     "finished_at": record.now(),

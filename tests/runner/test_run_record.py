@@ -84,9 +84,9 @@ def snapshot(folder: Path) -> dict[str, bytes]:
 
 
 def published_files(folder: Path) -> dict[str, bytes]:
-    """``snapshot`` without a run's working state: stages, locks and match stores."""
+    """``snapshot`` without a run's working state: stages and locks."""
     skipped = (record.STAGE_PREFIX, ".gvbench")
-    return {k: v for k, v in snapshot(folder).items() if not k.startswith(skipped) and "/matches-" not in k}
+    return {k: v for k, v in snapshot(folder).items() if not k.startswith(skipped)}
 
 
 # ---------------------------------------------------------------- ownership --

@@ -85,8 +85,8 @@ def disk_mib(*folders: Path) -> float:
 def run_once(
     command: list[str], log: Path, cache: Path, stop_at: tuple[Path, int] | None = None
 ) -> tuple[int, float, int, int]:
-    """Exit code, wall seconds, peak resident MiB of the process tree and of its largest process; with ``stop_at`` (a match
-    store folder, a pair count) SIGKILL its process group once the store holds that many pairs."""
+    """Exit code, wall seconds, peak resident MiB of the process tree and of its largest process; with ``stop_at`` (the
+    folder of the run's match stores, a pair count) SIGKILL its process group once a store holds that many pairs."""
     from gvbench_nb.runner.store import ShardedStore
 
     start, peak, largest = time.perf_counter(), 0, 0
@@ -103,7 +103,7 @@ def run_once(
             peak, largest = max(peak, sum(rss)), max(largest, *rss)
         except psutil.Error:
             pass  # a process ended between the listing and the read
-        if stop_at and any(len(ShardedStore(store)) >= stop_at[1] for store in stop_at[0].glob("matches-*")):
+        if stop_at and any(len(ShardedStore(store)) >= stop_at[1] for store in stop_at[0].glob("*")):
             os.killpg(process.pid, signal.SIGKILL)
             process.wait()
             break
@@ -116,7 +116,7 @@ def measure(params: Path, method: str, folder: Path, stop_at: int | None = None)
     command = [sys.executable, "-m", "gvbench_nb", "run", str(params), "--methods", method]
     command += ["--output-dir", str(folder / "output")]
     code, wall, peak, largest = run_once(
-        command, folder / "run.log", folder / "cache", (folder / "output" / method, stop_at) if stop_at else None
+        command, folder / "run.log", folder / "cache", (folder / "cache" / "matches", stop_at) if stop_at else None
     )
     if stop_at is None and code != 0:
         raise SystemExit(f"error: the run of {method} exited with {code}; its log is {folder / 'run.log'}")
@@ -130,7 +130,7 @@ def measure(params: Path, method: str, folder: Path, stop_at: int | None = None)
         "peak_rss_mib": peak,
         "largest_process_peak_rss_mib": largest,
         "cache_mib": disk_mib(folder / "cache"),
-        "store_mib": disk_mib(*(folder / "output" / method).glob("matches-*")),
+        "store_mib": disk_mib(*(folder / "cache" / "matches").glob(f"{method}-*")),
         "load_average": round(os.getloadavg()[0], 2),
     }
 

@@ -125,14 +125,14 @@ def run_cached_pipeline(
     ahead of verification), so ``match_verify_wall`` is their stage's wall time; ``other``
     is the rest (writing stores, building the table).
     """
-    cache_dir, output_dir = Path(work_dir) / "cache", Path(work_dir) / "out"
+    cache_dir = Path(work_dir) / "cache"
     start = time.perf_counter()
     if not method_registry.is_dense(conf):
         image_features.extract_features(sequence, conf["extractor"], cache_dir, device, progress=False, jobs=workers)
     extracted = time.perf_counter()
-    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device, seed, progress=False, jobs=workers)
+    pair_matching.match_and_verify(sequence, conf, cache_dir, device, seed, progress=False, jobs=workers)
     matched = time.perf_counter()
-    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed)
+    table = method_runs.pairs_table(sequence, conf, cache_dir, seed)
     wall = time.perf_counter() - start
     match, verify = float(table["match_seconds"].sum()), float(table["verify_seconds"].sum())
     seconds = {
@@ -448,7 +448,7 @@ def scaling_table(
             if conf["extractor"]
             else dict.fromkeys(largest.images, 0.0)
         )
-        full = method_runs.pairs_table(largest, conf, Path(work_dir) / "cache", Path(work_dir) / "out", seed)
+        full = method_runs.pairs_table(largest, conf, Path(work_dir) / "cache", seed)
     environment = environment_row(resolved)
     rows = []
     for limit in limits:

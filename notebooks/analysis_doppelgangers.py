@@ -37,14 +37,14 @@ from gvbench_nb.studies import alternative_verifiers, doppelgangers, results_tab
 # %% tags=["parameters"]
 # with compute_missing, runs `method` when results_dir lacks its pairs.csv (None: never)
 params_file: Optional[str] = "../params/sample.yaml"
-# the run folder holding <method>/pairs.csv and its match store
+# the run folder holding <method>/pairs.csv and run.json (which names the cache folder of its matches)
 results_dir: str = "../outputs/sample"
 method: str = "sift-nn"  # whose cached matches every verifier re-scores
 profile: Optional[str] = None  # profile of that run when params_file must make it; None: the params'
 # True: run `method` with params_file when its pairs.csv is missing; False: an error
 # naming the command that makes it
 compute_missing: bool = False
-cache_dir: Optional[str] = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
+cache_dir: Optional[str] = None  # feature and match cache; None: the one the run recorded (run.json)
 output_dir: str = "../outputs/sample/verifiers"  # verifiers.csv, weights, figures
 # Place-disjoint split (frame ranges with a gap); tolerance = the largest frame offset
 # of a true pair.

@@ -45,7 +45,7 @@ k: int = 3  # pairs drawn a method and kind
 near_low: int = 3  # false positives this many frames from the query or more ...
 near_high: int = 5  # ... up to this many are 'just outside' the ground-truth threshold
 near_top_k: int = 20  # how many top false positives are checked for near misses
-cache_dir: Optional[str] = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
+cache_dir: Optional[str] = None  # feature and match cache; None: the one the run recorded (run.json)
 
 # %%
 notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y

@@ -44,7 +44,7 @@ pick_rank = 1  # 1: the top one, 2: the next, ...
 # True: run the methods whose pairs.csv is missing; False: an error naming the command that makes them
 compute_missing = False
 output_dir = None  # the runs' folder; default: the params file's output_dir
-cache_dir = None  # feature cache; None: the one the run recorded (params.resolved.yaml)
+cache_dir = None  # feature and match cache; None: the one the run recorded (run.json)
 figures_dir = None  # where the table and figures are written; default: <output_dir>/explore
 controls = "auto"  # 'auto' (widgets in a live kernel with ipywidgets), 'widgets' or 'none'
 

@@ -219,12 +219,20 @@ def best_per_column(table: pd.DataFrame, higher_is_better: bool | dict[str, bool
     return marks
 
 
-def resolve_cache_dir(output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None) -> Path:
-    """``cache_dir``, else the one the runs recorded (params.resolved.yaml), else the default one."""
+def resolve_cache_dir(
+    output_dir: str | os.PathLike[str], cache_dir: str | os.PathLike[str] | None = None, method: str | None = None
+) -> Path:
+    """``cache_dir``, else the one ``method``'s run recorded (its run.json), else the one the runs'
+    params recorded (params.resolved.yaml), else the default one."""
     from gvbench_nb.runner import runs
 
     if cache_dir:
         return Path(cache_dir)
+    if method is not None:
+        try:
+            return Path(load_run(output_dir, method)["cache_dir"])
+        except (OSError, ValueError, KeyError, TypeError):
+            pass
     recorded = runs.resolved_params(output_dir)
     if recorded is not None:
         params = yaml.safe_load(recorded.read_text(encoding="utf-8")) or {}

@@ -72,7 +72,6 @@ def match_shard(
     sequence: Sequence,
     conf: dict[str, Any],
     cache_dir: str,
-    output_dir: str,
     index: int,
     count: int,
     device: str = "auto",
@@ -87,9 +86,7 @@ def match_shard(
             "so its pairs cannot be matched in shards; run it with one matching shard"
         )
     shard = pair_shard(sequence, index, count)
-    work = method_runs.compute_method(
-        shard, conf, Path(output_dir), Path(cache_dir), device, seed, progress=False, threads=threads
-    )
+    work = method_runs.compute_method(shard, conf, Path(cache_dir), device, seed, progress=False, threads=threads)
     return {"shard": f"{index}/{count}", **work["this_run"]}
 
 
@@ -108,12 +105,13 @@ def merge_method(
     (``cached_work`` before the shards ran) gives ``run.json`` the counts its timers are told from."""
     from gvbench_nb.protocol.features.base import resolve_device  # imports torch
 
-    missing = missing_pairs(sequence, conf, output_dir, seed)
+    missing = missing_pairs(sequence, conf, cache_dir, seed)
     if missing:
         first = sequence.pairs.index(missing[0])
+        store = pair_matching.match_store(cache_dir, conf, pair_matching.pair_keys(sequence, seed))
         raise ShardError(
             f"cannot merge {conf['method']} on {sequence.name}: {len(missing)} of {len(sequence.pairs)} pairs have "
-            f"no result in {pair_matching.match_store(output_dir, conf).folder} (first: pair {first}, "
+            f"no result in {store.folder} (first: pair {first}, "
             f"{missing[0].query} {missing[0].reference}). Run the shards that are missing (or all of them again: "
             "finished pairs are skipped), then merge."
         )
@@ -122,18 +120,17 @@ def merge_method(
     return method_runs.write_results(output_dir, sequence, conf, seed, environment, sharding, cache_dir)
 
 
-def missing_pairs(sequence: Sequence, conf: dict[str, Any], output_dir: Path, seed: int) -> list[Any]:
+def missing_pairs(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, seed: int) -> list[Any]:
     """The pairs of ``sequence`` that the method's match store holds no result for."""
-    store = pair_matching.match_store(output_dir, conf)
+    keys = pair_matching.pair_keys(sequence, seed)
+    store = pair_matching.match_store(cache_dir, conf, keys)
     store.refresh()
-    missing = [pair for pair, key in pair_matching.pair_keys(sequence, seed).items() if key not in store]
+    missing = [pair for pair, key in keys.items() if key not in store]
     store.close()
     return missing
 
 
-def cached_work(
-    sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int
-) -> dict[str, dict[str, int]]:
+def cached_work(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, seed: int) -> dict[str, dict[str, int]]:
     """The images and pairs of a method that the caches hold before a run, counted as ``compute_method``
     counts them; once the run's shards have done the rest, the counts of its whole work (``scoring.timers_source``)."""
     images = cached_images = 0
@@ -144,7 +141,7 @@ def cached_work(
         images, cached_images = len(keys), sum(key in store for key in keys)
         store.close()
     pairs = len(sequence.pairs)
-    cached_pairs = pairs - len(missing_pairs(sequence, conf, output_dir, seed))
+    cached_pairs = pairs - len(missing_pairs(sequence, conf, cache_dir, seed))
     return {
         "extraction": {"images": images, "cached": cached_images, "extracted": images - cached_images},
         "matching": {"pairs": pairs, "cached": cached_pairs, "matched": pairs - cached_pairs},
@@ -173,8 +170,7 @@ def run_shard(
         if conf["extractor"]:
             extract_shard(sequence, conf["extractor"], params["cache_dir"], index, count, params["device"], threads)
         result = match_shard(
-            sequence, conf, params["cache_dir"], params["output_dir"], index, count, params["device"], params["seed"],
-            threads,
+            sequence, conf, params["cache_dir"], index, count, params["device"], params["seed"], threads,
         )  # fmt: skip
         if progress:
             print(
@@ -255,7 +251,7 @@ def run_sharded(
         cached = {
             method: cached_work(
                 sequence, method_registry.resolve_method(method, params["profile"], params.get("verifier")),
-                Path(params["cache_dir"]), Path(params["output_dir"]), params["seed"],
+                Path(params["cache_dir"]), params["seed"],
             )
             for method in params["methods"]
         }  # fmt: skip
@@ -354,7 +350,7 @@ def _submit_shards(
     """Submit extraction shards (once per extractor) and matching shards after them, by method."""
     extraction: dict[str, list[Any]] = {}
     matching: dict[str, list[Any]] = {}
-    output_dir, cache_dir, device = params["output_dir"], params["cache_dir"], params["device"]
+    cache_dir, device = params["cache_dir"], params["device"]
     for method in params["methods"]:
         conf = method_registry.resolve_method(method, params["profile"], params.get("verifier"))
         after: list[Any] = []
@@ -373,7 +369,7 @@ def _submit_shards(
             after = extraction[key]
         matching[method] = [
             client.submit(
-                match_shard, sequence, conf, cache_dir, output_dir, i, n_shards, device, params["seed"], threads,
+                match_shard, sequence, conf, cache_dir, i, n_shards, device, params["seed"], threads,
                 after, pure=False, key=f"match-{sequence.name}-{method}-{i}of{n_shards}",
             )
             for i in range(n_shards)

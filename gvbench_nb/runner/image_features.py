@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import stat
 import threading
 import time
 from collections.abc import Callable, Iterable
@@ -11,11 +13,10 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
-from cachetools import cached
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.io_utils import progress_bar
+from gvbench_nb.io_utils import atomic_write_json, progress_bar
 from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,
@@ -41,22 +42,35 @@ def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedSto
 _extracted_by_run: dict[str, set[tuple[str, str]]] = {}
 
 
+CONTENT_KEYS_FILE = "content-keys.json"  # in the cache folder: absolute path -> [size, mtime_ns, inode, key]
+
+# This process's content keys by absolute path, each with the size, mtime and inode it was hashed at:
+# a file is hashed again only when one of them changes.
+_known_keys: dict[str, tuple[int, int, int, str]] = {}
+_known_lock = threading.Lock()
+
+
 def content_key(path: str | os.PathLike[str]) -> str:
     """``blake2b-<hex>`` of a file's bytes: the cache key of what the file holds, not where it is."""
-    path = Path(path)
+    absolute = os.path.abspath(path)
     try:
-        stat = path.stat()
+        status = os.stat(absolute)
     except OSError:
-        stat = None
-    if stat is None or not path.is_file():
-        what = "is a folder, not an image file" if path.is_dir() else "not found"
+        status = None
+    if status is None or not stat.S_ISREG(status.st_mode):
+        what = "is a folder, not an image file" if Path(path).is_dir() else "not found"
         raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
-    # Hashed again only when its resolved path, size, mtime, inode or device change: a run hashes each image once.
-    return _content_digest(path, str(path.resolve()), stat.st_size, stat.st_mtime_ns, stat.st_ino, stat.st_dev)
+    seen = (status.st_size, status.st_mtime_ns, status.st_ino)
+    known = _known_keys.get(absolute)
+    if known is not None and known[:3] == seen:
+        return known[3]
+    key = _hash_file(Path(path))
+    with _known_lock:
+        _known_keys[absolute] = (*seen, key)
+    return key
 
 
-@cached(cache={}, key=lambda path, *memo: memo, lock=threading.Lock())
-def _content_digest(path: Path, *memo: object) -> str:
+def _hash_file(path: Path) -> str:
     digest = hashlib.blake2b(digest_size=20)
     try:
         with open(path, "rb") as stream:
@@ -71,12 +85,68 @@ def image_key(image_root: Path, name: str) -> str:
     """Feature-cache key of image ``name``: its content, so a replaced image or another
     root is extracted again while identical files (any sequence, any path) share an entry.
     The extractor conf is the store's folder name (``feature_store``)."""
-    return content_key(Path(image_root) / name)
+    return content_key(os.path.join(image_root, name))
 
 
-def content_keys(sequence: Sequence) -> set[str]:
+def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, str]]:
+    try:
+        saved = json.loads((cache_dir / CONTENT_KEYS_FILE).read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(saved, dict):
+        return {}
+    return {p: (e[0], e[1], e[2], e[3]) for p, e in saved.items() if isinstance(e, list) and len(e) == 4}
+
+
+def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, str]]:
+    """Take the content keys other processes saved in ``cache_dir`` (``CONTENT_KEYS_FILE``), each used
+    while its file's size, mtime and inode are still those it was hashed at; returns what was saved."""
+    saved = _saved_keys(Path(cache_dir))
+    with _known_lock:
+        for path, entry in saved.items():
+            _known_keys.setdefault(path, entry)
+    return saved
+
+
+def image_keys(
+    sequence: Sequence, cache_dir: str | os.PathLike[str] | None = None, images: Iterable[str] | None = None
+) -> dict[str, str]:
+    """Image name -> content key of the sequence's images (or ``images``); a missing or unreadable one is
+    named with its first pair. With ``cache_dir``, the keys other processes hashed there are reused
+    (while their file's size, mtime and inode hold) and this call's are added (``CONTENT_KEYS_FILE``)."""
+    saved = reuse_saved_keys(cache_dir) if cache_dir is not None else {}
+    keys = {}
+    for name in sequence.images if images is None else images:
+        try:
+            keys[name] = image_key(sequence.image_root, name)
+        except ImageReadError as error:
+            raise ImageReadError(
+                f"{error} (image {name!r} of sequence {sequence.name!r}, {first_pair_using(sequence, name)})"
+            ) from None
+    if cache_dir is not None:
+        paths = [os.path.abspath(os.path.join(sequence.image_root, name)) for name in keys]
+        if any(saved.get(path) != _known_keys[path] for path in paths):
+            _save_keys(Path(cache_dir), {path: _known_keys[path] for path in paths})
+    return keys
+
+
+def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, str]]) -> None:
+    """Merge ``entries`` into the cache folder's content-keys file: one writer at a time (a file lock),
+    the file replaced whole; a folder that is not there or cannot be written keeps none (a memo only)."""
+    from filelock import FileLock, Timeout
+
+    if not cache_dir.is_dir():
+        return
+    try:
+        with FileLock(str(cache_dir / f"{CONTENT_KEYS_FILE}.lock"), timeout=60):
+            atomic_write_json(cache_dir / CONTENT_KEYS_FILE, {**_saved_keys(cache_dir), **entries})
+    except (OSError, Timeout):
+        pass
+
+
+def content_keys(sequence: Sequence, cache_dir: str | os.PathLike[str] | None = None) -> set[str]:
     """The different contents of the sequence's images: byte-identical files are one, extracted once."""
-    return {image_key(sequence.image_root, name) for name in sequence.images}
+    return set(image_keys(sequence, cache_dir).values())
 
 
 def first_pair_using(sequence: Sequence, name: str) -> str:
@@ -117,13 +187,8 @@ def extract_features(
     store = feature_store(cache_dir, extractor_conf)
     store.refresh()
     wanted: dict[str, str] = {}
-    for name in sequence.images if images is None else images:
-        try:
-            wanted.setdefault(image_key(sequence.image_root, name), name)
-        except ImageReadError as error:
-            raise ImageReadError(
-                f"{error} (image {name!r} of sequence {sequence.name!r}, {first_pair_using(sequence, name)})"
-            ) from None
+    for name, key in image_keys(sequence, cache_dir, images).items():
+        wanted.setdefault(key, name)
     todo = [key for key in wanted if key not in store]
     ours = _extracted_by_run.setdefault(run_id, set()) if run_id else set()
     earlier = len(ours & {(str(store.folder), key) for key in wanted}) if ours else 0

@@ -67,17 +67,6 @@ def decoder_message(path: str | os.PathLike[str]) -> str:
     return message
 
 
-def content_keys(sequence: Sequence) -> dict[str, str]:
-    """Image name -> content key (``image_features.content_key``: hashed once a process)."""
-    keys = {}
-    for name in sequence.images:
-        try:
-            keys[name] = image_features.image_key(sequence.image_root, name)
-        except ImageReadError as error:
-            raise ImageReadError(f"{error} ({image_features.first_pair_using(sequence, name)})") from None
-    return keys
-
-
 DECODER_CHECKS = "decoder-checks.json"  # in the cache folder: content key -> what its decoder said ("" nothing)
 
 
@@ -101,11 +90,13 @@ def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) 
     return {name: known[key] for name, key in keys.items() if known[key]}
 
 
-def check_distinct_contents(sequence: Sequence, where: Callable[[int], str] | None = None) -> dict[str, str]:
+def check_distinct_contents(
+    sequence: Sequence, where: Callable[[int], str] | None = None, cache_dir: str | os.PathLike[str] | None = None
+) -> dict[str, str]:
     """Refuse a pair of two images with one content (a copy or a link: a self-pair, as one named
     twice is), naming where the pair is (``where(index)``, else its pair file and line); returns the
-    images' content keys."""
-    keys = content_keys(sequence)
+    images' content keys (``image_features.image_keys``, kept in ``cache_dir``)."""
+    keys = image_features.image_keys(sequence, cache_dir)
     for index, pair in enumerate(sequence.pairs):
         query, reference = keys[pair.query], keys[pair.reference]
         if query == reference:
@@ -121,7 +112,7 @@ def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], 
     """Refuse a pair of two images with one content with file:line (``check_distinct_contents``), and an
     image whose decoder fails, or warns unless ``allow_damaged``. Returns the damaged images allowed
     (name -> what the decoder said), for the run's record."""
-    keys = check_distinct_contents(sequence)
+    keys = check_distinct_contents(sequence, cache_dir=cache_dir)
     damaged = decoder_messages(sequence, keys, Path(cache_dir))
     if damaged and not allow_damaged:
         name, said = next(iter(damaged.items()))

@@ -17,9 +17,10 @@ from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
 from gvbench_nb.runner import concurrency, config, image_features, method_outputs, pair_matching, runs, scoring
 
 
-def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int) -> pd.DataFrame:
+def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, seed: int) -> pd.DataFrame:
     """The per-pair table of a finished run, built only from the stores."""
-    matches = pair_matching.match_store(output_dir, conf)
+    keys = pair_matching.pair_keys(sequence, seed)
+    matches = pair_matching.match_store(cache_dir, conf, keys)
     matches.refresh()
     dense = method_registry.is_dense(conf)
     uses = Counter(name for pair in sequence.pairs for name in (pair.query, pair.reference))
@@ -32,12 +33,10 @@ def pairs_table(sequence: Sequence, conf: dict[str, Any], cache_dir: Path, outpu
             entry = features.read(key, fields=("keypoints",))  # not descriptors
             image_info[name] = (len(entry["keypoints"]), float(entry["attr:seconds"]))
         features.close()
-    keys = pair_matching.pair_keys(sequence, seed)
     rows = []
     for index, pair in enumerate(sequence.pairs):
         entry = pair_matching.stored_counts(matches, keys[pair])  # the counts and timers only
         if dense:  # a dense matcher's keypoints are its matches; its whole cost is matching
-            pair_matching.check_merged_over(entry, sequence, keys, matches.folder)
             keypoints_query = keypoints_reference = int(entry["attr:num_matches"])
             extract_seconds = 0.0
         else:
@@ -101,13 +100,13 @@ def finished_table(
 def compute_method(
     sequence: Sequence,
     conf: dict[str, Any],
-    output_dir: Path,
     cache_dir: Path,
     device: str = "auto",
     seed: int = 0,
     progress: bool = True,
     threads: int | None = None,
     jobs: int | None = None,
+    run_id: str | None = None,
 ) -> dict[str, Any]:
     """Extract and match what the caches lack (the work of ``run_method`` and of a shard, nothing
     written); ``run.json``'s ``environment`` and ``this_run``."""
@@ -126,15 +125,13 @@ def compute_method(
             resolved_device,
             progress,
             jobs=jobs,
-            run_id=runs.run_id(output_dir),
+            run_id=run_id,
         )
         if conf["extractor"]
         else {"images": 0, "cached": 0, "extracted": 0}
     )
     extracted = time.perf_counter()
-    matching = pair_matching.match_and_verify(
-        sequence, conf, cache_dir, output_dir, resolved_device, seed, progress, jobs=jobs
-    )
+    matching = pair_matching.match_and_verify(sequence, conf, cache_dir, resolved_device, seed, progress, jobs=jobs)
     finished = time.perf_counter()
     return {
         "environment": concurrency.environment_info(resolved_device),
@@ -169,13 +166,13 @@ def run_method(
         done = finished_table(method_outputs.method_dir(output_dir, method), sequence, conf, seed, device)
         if done is not None:
             return done
-        work = compute_method(sequence, conf, output_dir, cache_dir, device, seed, **options)
+        work = compute_method(sequence, conf, cache_dir, device, seed, run_id=runs.run_id(output_dir), **options)
         return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
     # Anywhere else (a notebook on its own) the method is a run of its own, added to the folder.
     building = runs.start(output_dir, "notebook")
     if params is not None:  # the params it ran with, as a run of ``run`` keeps them
         config.write_resolved_params(params, building)
-    work = compute_method(sequence, conf, building, cache_dir, device, seed, **options)
+    work = compute_method(sequence, conf, cache_dir, device, seed, run_id=runs.run_id(building), **options)
     table = write_results(building, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
     runs.finish(building)
     scoring.refresh_view(output_dir)  # the folder's table, derived from its runs
@@ -195,7 +192,7 @@ def write_results(
     """The one way a method's results are written (a run, a notebook, a merge), into a run being
     built: its table from the stores, ``run.json``, then ``pairs.csv``."""
     folder = Path(run) / conf["method"]
-    table = pairs_table(sequence, conf, cache_dir, run, seed)
+    table = pairs_table(sequence, conf, cache_dir, seed)
     atomic_write_json(
         folder / "run.json",
         {
@@ -204,7 +201,7 @@ def write_results(
             "pairs": sequence.origin,
             "package_version": __version__,
             "run_id": runs.run_id(run),
-            "cache_dir": str(cache_dir),
+            "cache_dir": str(cache_dir),  # where its matches are (``pair_matching.match_store``)
             "environment": environment,
             "this_run": this_run,
             "finished_at": runs.now(),

@@ -19,13 +19,17 @@ from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.images import ImageReadError, load_for_extraction, to_original_pixels
 from gvbench_nb.protocol.ransac import verify_matches
-from gvbench_nb.runner import concurrency, image_features, method_outputs, runs
+from gvbench_nb.runner import concurrency, image_features
 from gvbench_nb.runner.store import ShardedStore
 
 if TYPE_CHECKING:
     import torch
 
     from gvbench_nb.protocol.matching.base import PreparedMatcher
+
+# The match store's counts of distinct keypoints among a pair's inliers (docs/protocol.md, "Collapsed
+# inliers"); a per-pair table's columns carry the same names (``method_outputs``, which imports no stage).
+INLIER_KEYPOINT_COUNTS = ("num_inlier_keypoints_query", "num_inlier_keypoints_reference")
 
 
 def _bounded_lru(max_bytes: int, size_of: Callable[[Any], int]) -> LRUCache:
@@ -96,20 +100,32 @@ class FeatureCache:
 def pair_key(image_root: Path, query: str, reference: str, seed: int) -> str:
     """Match-store key of a pair: names, both images' content keys (a changed image matches again), seed."""
     keys = image_features.image_key(image_root, query), image_features.image_key(image_root, reference)
-    return "\t".join([query, reference, *keys, f"seed={seed}"])
+    return _joined_key(query, reference, *keys, seed)
+
+
+def _joined_key(query: str, reference: str, query_key: str, reference_key: str, seed: int) -> str:
+    return "\t".join([query, reference, query_key, reference_key, f"seed={seed}"])
+
+
+# (image root, pairs, seed) -> the images' content keys and the pairs' keys made of them, for the last few
+# pair lists: a run asks for them at each stage, and they are made again only when an image's content changed.
+_made_pair_keys: LRUCache = LRUCache(maxsize=4)
+_made_pair_keys_lock = threading.Lock()  # Dask's threaded workers share the process
 
 
 def pair_keys(sequence: Sequence, seed: int) -> dict[Any, str]:
-    """``pair_key`` of every pair; a missing or unreadable image is named with its pair."""
-    keys = {}
-    for index, pair in enumerate(sequence.pairs):
-        try:
-            keys[pair] = pair_key(sequence.image_root, pair.query, pair.reference, seed)
-        except ImageReadError as error:
-            raise ImageReadError(
-                f"{error} (pair {index}: {pair.query} {pair.reference} of sequence {sequence.name!r})"
-            ) from None
-    return keys
+    """``pair_key`` of every pair; a missing or unreadable image is named with its first pair."""
+    contents = image_features.image_keys(sequence)
+    memo = (str(sequence.image_root), tuple(sequence.pairs), seed)
+    with _made_pair_keys_lock:
+        made = _made_pair_keys.get(memo)
+        if made is None or made[0] != contents:
+            keys = {
+                pair: _joined_key(pair.query, pair.reference, contents[pair.query], contents[pair.reference], seed)
+                for pair in sequence.pairs
+            }
+            made = _made_pair_keys[memo] = (contents, keys)
+    return dict(made[1])
 
 
 def pair_seed(seed: int, query: str, reference: str) -> int:
@@ -117,25 +133,24 @@ def pair_seed(seed: int, query: str, reference: str) -> int:
     return zlib.crc32(f"{seed}\t{query}\t{reference}".encode()) & 0x7FFFFFFF
 
 
-def stores_folder(output_dir: Path) -> Path:
-    """The output folder, also for a run: stores are content-keyed caches every run shares."""
-    output_dir = Path(output_dir)
-    return output_dir.parent.parent if runs.is_run(output_dir) else output_dir
-
-
-def match_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
-    """Per-pair matches and inlier masks of one method conf (a changed conf starts afresh)."""
+def match_store(cache_dir: Path, conf: dict[str, Any], keys: dict[Any, str] | None = None) -> ShardedStore:
+    """Per-pair matches and inlier masks of one method conf, in the cache folder:
+    ``<cache_dir>/matches/<method>-<conf hash>`` (a changed conf starts afresh; the pair keys hold the
+    images' contents and the seed, so every output folder shares it). A dense conf merging keypoints
+    across pairs (``dense_merge_options``) has a store for each pair list (``keys``, ``pair_keys``)."""
     matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
-    return ShardedStore(
-        stores_folder(output_dir) / conf["method"] / f"matches-{method_registry.conf_hash(matching_conf)}"
-    )
+    name = f"{conf['method']}-{method_registry.conf_hash(matching_conf)}"
+    if dense_merge_options(conf["matcher"]) is not None:
+        if keys is None:
+            raise ValueError(f"the match store of {conf['method']!r} is chosen by its pair list: pass its pair keys")
+        name += f"-over-{pair_list_hash(keys)}"
+    return ShardedStore(Path(cache_dir) / "matches" / name)
 
 
 def match_and_verify(
     sequence: Sequence,
     conf: dict[str, Any],
     cache_dir: Path,
-    output_dir: Path,
     device: torch.device | str = "auto",
     seed: int = 0,
     progress: bool = True,
@@ -143,9 +158,9 @@ def match_and_verify(
     jobs: int | None = None,
 ) -> dict[str, int]:
     """Match and verify every pair not yet in the match store, ``jobs`` at a time (dense: one)."""
-    matches = match_store(output_dir, conf)
-    matches.refresh()
     keys = pair_keys(sequence, seed)
+    matches = match_store(cache_dir, conf, keys)
+    matches.refresh()
     todo = [p for p in sequence.pairs if keys[p] not in matches]
     counts = {"pairs": len(sequence.pairs), "cached": len(sequence.pairs) - len(todo), "matched": 0}
     if not todo:
@@ -155,7 +170,7 @@ def match_and_verify(
 
     matcher = build_matcher(conf["matcher"], resolve_device(device))
     if method_registry.is_dense(conf):
-        _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every, output_dir)
+        _match_dense_pairs(sequence, todo, keys, conf, matcher, matches, seed, progress, flush_every, cache_dir)
         counts["matched"] = len(todo)
         return counts
     features = image_features.feature_store(cache_dir, conf["extractor"])
@@ -241,14 +256,14 @@ def inlier_keypoint_counts(arrays: dict[str, np.ndarray], inlier_mask: np.ndarra
         sides = matched[mask, :1], matched[mask, 1:]
     else:
         sides = np.asarray(arrays["points0"])[mask], np.asarray(arrays["points1"])[mask]
-    return {name: len(np.unique(side, axis=0)) for name, side in zip(method_outputs.INLIER_KEYPOINT_COUNTS, sides)}
+    return {name: len(np.unique(side, axis=0)) for name, side in zip(INLIER_KEYPOINT_COUNTS, sides)}
 
 
 def stored_counts(matches: ShardedStore, key: str) -> dict[str, Any]:
     """One pair's counts and timers as ``attr:NAME``; an entry stored without its inlier keypoint counts
     has them counted from its stored matches and inlier mask."""
     entry: dict[str, Any] = matches.read(key, fields=())
-    if any(f"attr:{name}" not in entry for name in method_outputs.INLIER_KEYPOINT_COUNTS):
+    if any(f"attr:{name}" not in entry for name in INLIER_KEYPOINT_COUNTS):
         stored = matches.read(key, fields=("matches", "points0", "points1", "inlier_mask"))
         counted = inlier_keypoint_counts(stored, stored["inlier_mask"])
         entry.update({f"attr:{name}": count for name, count in counted.items()})
@@ -281,20 +296,12 @@ def pair_list_hash(keys: dict[Any, str]) -> str:
     return hashlib.sha1("\n".join(keys.values()).encode()).hexdigest()[:10]
 
 
-def raw_dense_store(output_dir: Path, conf: dict[str, Any]) -> ShardedStore:
-    """A dense matcher's raw matches a pair (original pixels), before merging."""
-    folder = stores_folder(output_dir) / conf["method"]
-    return ShardedStore(folder / f"raw-{method_registry.conf_hash(conf['matcher'])}")
-
-
-def check_merged_over(entry: dict[str, Any], sequence: Sequence, keys: dict[Any, str], where: Path) -> None:
-    """Merged dense results hold for the pair list they were merged over only."""
-    merged_over = entry.get("attr:merged_over")
-    if merged_over is not None and str(merged_over) != pair_list_hash(keys):
-        raise ValueError(
-            f"the dense matches in {where} were merged over another pair list than sequence "
-            f"{sequence.name!r} has now ({len(sequence.pairs)} pairs); delete that folder or use another output_dir"
-        )
+def raw_dense_store(cache_dir: Path, conf: dict[str, Any]) -> ShardedStore:
+    """A dense matcher's raw matches a pair (original pixels), before merging, in the cache folder:
+    ``<cache_dir>/raw-matches/<method>-<matcher conf hash>``."""
+    return ShardedStore(
+        Path(cache_dir) / "raw-matches" / f"{conf['method']}-{method_registry.conf_hash(conf['matcher'])}"
+    )
 
 
 def _dense_raw_matches(
@@ -336,13 +343,13 @@ def _match_dense_pairs(
     seed: int,
     progress: bool,
     flush_every: int,
-    output_dir: Path,
+    cache_dir: Path,
 ) -> None:
     """Dense matchers (LoFTR, ``imm:``): merged as hloc's ``match_dense`` when the conf says so, else
     each pair's raw matches are verified as they come."""
     merge = dense_merge_options(conf["matcher"])
     if merge is not None:
-        raw = raw_dense_store(output_dir, conf)
+        raw = raw_dense_store(cache_dir, conf)
         _merge_and_verify_dense(sequence, todo, keys, conf, matcher, matches, raw, merge, seed, progress, flush_every)
         return
     with matches.writer(flush_every) as writer:
@@ -372,8 +379,6 @@ def _merge_and_verify_dense(
     across all pairs, then verify each pair on its merged matches."""
     from gvbench_nb.protocol.matching.loftr import merge_dense_matches
 
-    for key in matches.keys():
-        check_merged_over(matches.read(key, fields=()), sequence, keys, matches.folder)
     raw.refresh()
     with raw.writer(flush_every) as writer:
         missing = [p for p in sequence.pairs if keys[p] not in raw]

@@ -44,7 +44,7 @@ def _missing_and_mean(store: ShardedStore, keys: set[str], timers: tuple[str, ..
 
 
 def method_seconds(
-    sequence: Sequence, conf: dict[str, Any], cache_dir: Path, output_dir: Path, seed: int, counted: set[str]
+    sequence: Sequence, conf: dict[str, Any], cache_dir: Path, seed: int, counted: set[str]
 ) -> float | None:
     """Seconds ``conf`` will take on what the caches lack; None without a cost to go by. ``counted``:
     feature folders an earlier method of the run extracts, whose images this one finds cached."""
@@ -52,13 +52,14 @@ def method_seconds(
     images = 0
     if not method_registry.is_dense(conf):
         store = image_features.feature_store(cache_dir, conf["extractor"])
-        missing, cached_per_image = _missing_and_mean(store, image_features.content_keys(sequence), ("seconds",))
+        contents = image_features.content_keys(sequence, cache_dir)
+        missing, cached_per_image = _missing_and_mean(store, contents, ("seconds",))
         images = 0 if str(store.folder) in counted else missing
         per_image = cached_per_image or per_image
         counted.add(str(store.folder))
-    keys = set(pair_matching.pair_keys(sequence, seed).values())
+    keys = pair_matching.pair_keys(sequence, seed)
     pairs, cached_per_pair = _missing_and_mean(
-        pair_matching.match_store(output_dir, conf), keys, ("match_seconds", "verify_seconds")
+        pair_matching.match_store(cache_dir, conf, keys), set(keys.values()), ("match_seconds", "verify_seconds")
     )
     per_pair = cached_per_pair or per_pair
     if (images and per_image is None) or (pairs and per_pair is None):
@@ -72,8 +73,7 @@ def long_run_note(params: dict[str, Any], sequence: Sequence) -> str | None:
     estimates = {}
     for method in params["methods"]:
         conf = method_registry.resolve_method(method, params["profile"], params.get("verifier") or None)
-        output_dir, cache_dir = Path(params["output_dir"]), Path(params["cache_dir"])
-        estimates[method] = method_seconds(sequence, conf, cache_dir, output_dir, params["seed"], counted)
+        estimates[method] = method_seconds(sequence, conf, Path(params["cache_dir"]), params["seed"], counted)
     total = sum(seconds for seconds in estimates.values() if seconds is not None)
     if total <= LONG_RUN_SECONDS:
         return None

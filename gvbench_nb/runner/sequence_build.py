@@ -410,6 +410,9 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
     if path_problem(params["pairs"]) is not None:
         raise missing_pairs_error(params)
     sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
+    from gvbench_nb.runner import image_features
+
+    image_features.reuse_saved_keys(params["cache_dir"])  # a notebook's kernel hashes no image its run hashed
     return sequence.limited(params["limit"])
 
 

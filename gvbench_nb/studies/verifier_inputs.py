@@ -13,7 +13,7 @@ import cv2
 import numpy as np
 import pandas as pd
 
-from gvbench_nb.data.sequences import frame_index
+from gvbench_nb.data.sequences import Pair, Sequence, frame_index
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.ransac import filter_and_fit
@@ -100,8 +100,9 @@ class PairMatches:
 
 
 class CachedMatches:
-    """Read access to one finished run's matches (``<output_dir>/<method>``), never re-matching: sparse
-    methods index the feature cache's keypoints, dense ones store their points."""
+    """Read access to one finished run's matches (``<output_dir>/<method>``'s, in the cache folder its
+    run.json names unless ``cache_dir`` is given), never re-matching: sparse methods index the feature
+    cache's keypoints, dense ones store their points."""
 
     def __init__(
         self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
@@ -114,16 +115,21 @@ class CachedMatches:
         self.sequence = self.run["sequence"]
         self.image_root = Path(self.run["image_root"])
         self.pairs = scoring.load_pairs_table(self.output_dir, method)
-        self.matches = pair_matching.match_store(self.output_dir, self.conf)
-        self.features = (
-            image_features.feature_store(
-                run_tables.resolve_cache_dir(self.output_dir, cache_dir), self.conf["extractor"]
-            )
-            if self.conf["extractor"]
-            else None
-        )
+        cache = run_tables.resolve_cache_dir(self.output_dir, cache_dir, method)
+        self.matches = pair_matching.match_store(cache, self.conf, self._pair_list_keys())
+        self.features = image_features.feature_store(cache, self.conf["extractor"]) if self.conf["extractor"] else None
         self._read_features = lru_cache(maxsize=512)(self._features_of)
         self._read_image = lru_cache(maxsize=48)(self._image_of)
+
+    def _pair_list_keys(self) -> dict[Any, str] | None:
+        """The pair keys of the run's pair list, for a dense method whose store is chosen by it; else None."""
+        if pair_matching.dense_merge_options(self.conf["matcher"]) is None:
+            return None
+        pairs = [
+            Pair(q, r, int(label))
+            for q, r, label in zip(self.pairs["query"], self.pairs["reference"], self.pairs["label"])
+        ]
+        return pair_matching.pair_keys(Sequence(self.sequence, self.image_root, pairs), self.seed)
 
     @property
     def label(self) -> str:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import cv2
 import numpy as np
+import pandas as pd
 import pytest
 import torch
 
@@ -181,6 +182,7 @@ class _FakeDense:
         return points, points + np.float32(0.3), rng.uniform(0.55, 1.0, 80).astype(np.float32)
 
 
+@pytest.mark.reliability
 def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkeypatch):
     root = tmp_path / "images"
     root.mkdir()
@@ -191,23 +193,31 @@ def test_the_dense_pipeline_merges_across_all_pairs_and_resumes(tmp_path, monkey
     sequence = Sequence(name="dense", image_root=root, pairs=pairs)
     conf = methods.resolve_method("loftr", "paper")
     monkeypatch.setattr(matchers, "build_matcher", lambda matcher_conf, device: _FakeDense())
-    out = tmp_path / "out"
-    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", out, "cpu", progress=False)
-    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", out, seed=0)
+    cache = tmp_path / "cache"
+    pair_matching.match_and_verify(sequence, conf, cache, "cpu", progress=False)
+    table = method_runs.pairs_table(sequence, conf, cache, seed=0)
 
-    raw = pair_matching.raw_dense_store(out, conf)
+    raw = pair_matching.raw_dense_store(cache, conf)
     entries = [raw.read(pair_matching.pair_key(root, p.query, p.reference, 0)) for p in pairs]
     keypoints, merged = merge_dense_matches(
         [(p.query, p.reference) for p in pairs], [(e["points0"], e["points1"], e["scores"]) for e in entries]
     )
     assert table["num_matches"].tolist() == [len(m) for m, _ in merged]
-    stored = pair_matching.match_store(out, conf).read(pair_matching.pair_key(root, "q.png", "b.png", 0))
+    keys = pair_matching.pair_keys(sequence, 0)
+    stored = pair_matching.match_store(cache, conf, keys).read(pair_matching.pair_key(root, "q.png", "b.png", 0))
     np.testing.assert_array_equal(stored["points0"], keypoints["q.png"][merged[1][0][:, 0]])
 
-    # The merged results hold for this pair list only: another one is refused by name.
+    # Merged results hold for their pair list only: another list (any output folder's) is merged over
+    # itself, from the raw matches kept, in a store of its own; the first list's results stay.
     shorter = Sequence(name="dense", image_root=root, pairs=pairs[:1])
-    with pytest.raises(ValueError, match="merged over another pair list"):
-        method_runs.pairs_table(shorter, conf, tmp_path / "cache", out, seed=0)
+    counts = pair_matching.match_and_verify(shorter, conf, cache, "cpu", progress=False)
+    assert counts["cached"] == 0 and counts["matched"] == 1
+    alone = method_runs.pairs_table(shorter, conf, cache, seed=0)
+    _, merged_alone = merge_dense_matches(
+        [("q.png", "a.png")], [(e["points0"], e["points1"], e["scores"]) for e in entries[:1]]
+    )
+    assert alone["num_matches"].tolist() == [len(merged_alone[0][0])]
+    pd.testing.assert_frame_equal(method_runs.pairs_table(sequence, conf, cache, seed=0), table)
 
 
 def test_loftr_conf_merges_as_hloc_conf_loftr():

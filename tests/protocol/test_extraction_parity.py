@@ -213,8 +213,8 @@ def test_matching_reads_the_float16_cache(tmp_path):
         image_features.image_key(root, "a.png")
     )
     assert stored["keypoints"].dtype == np.float16 and stored["descriptors"].dtype == np.float16
-    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", "cpu", progress=False)
-    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", "cpu", progress=False)
+    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", seed=0)
     assert table["num_matches"][0] == len(stored["keypoints"])  # identical images match every keypoint
 
 

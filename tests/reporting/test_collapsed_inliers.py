@@ -120,7 +120,7 @@ def test_entries_and_tables_stored_without_the_counts_are_counted_again_never_se
     assert method_runs.finished_table(folder, sequence, conf, 0, "cpu") is None
     shutil.copy(tmp_path / "pairs.csv", folder / "pairs.csv")
     # Match entries stored without the counts have them counted from their matches and inlier mask.
-    store = pair_matching.match_store(out, conf)
+    store = pair_matching.match_store(cache, conf)
     entries = {key: store.read(key) for key in store.keys()}
     store.close()
     shutil.rmtree(store.folder)

@@ -316,7 +316,7 @@ def test_bytes_overwritten_inside_a_feature_shard_raise_store_corrupt_naming_it(
 
 def test_an_attribute_changed_inside_a_match_shard_is_detected(root, tmp_path):
     run(root, tmp_path / "work")
-    store = pair_matching.match_store(tmp_path / "work" / "out", methods.resolve_method(METHOD))
+    store = pair_matching.match_store(tmp_path / "work" / "cache", methods.resolve_method(METHOD))
     shard = store.shards()[0]
     with h5py.File(shard, "r+") as handle:  # a tool "fixing" an inlier count in place
         table = json.loads(bytes(handle[store_module._ENTRIES][()]))

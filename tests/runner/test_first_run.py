@@ -86,7 +86,7 @@ def test_the_params_files_default_methods_are_estimated_within_minutes(shared_da
         seconds = 0.0
         for method in params["methods"]:
             conf = run_estimate.method_registry.resolve_method(method, params["profile"])
-            estimate = run_estimate.method_seconds(sequence, conf, tmp_path / "cache", tmp_path / name, 0, counted)
+            estimate = run_estimate.method_seconds(sequence, conf, tmp_path / "cache", 0, counted)
             assert estimate is not None, f"{name}: no measured cost for {method}"
             seconds += estimate
         assert seconds <= run_estimate.LONG_RUN_SECONDS, f"{name}: {seconds:.0f} s"

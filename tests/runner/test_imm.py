@@ -207,26 +207,26 @@ def test_pipeline_runs_an_imm_matcher_cached_per_pair(fake_vismatch, tmp_path):
     sequence = fake_sequence(tmp_path)
     conf = methods.resolve_method("imm:fake-nn", "paper")
     conf["verifier"].update(FORK_VERIFIER)
-    counts = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    counts = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", progress=False)
     assert counts == {"pairs": 2, "cached": 0, "matched": 2}
     # vismatch's own loader made the 512x288 RGB image the matcher saw: float C x H x W in [0, 1].
     shape, dtype, low, high = FakeMatcher.seen[0]
     assert shape == (3, 288, 512) and str(dtype) == "torch.float32" and 0.0 <= low < high <= 1.0
-    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
+    table = method_runs.pairs_table(sequence, conf, tmp_path / "cache", seed=0)
     assert table["num_matches"].tolist() == [60, 60]
     assert (table["num_inliers"] < 60).all()
     # Stored points are in original pixels: x scaled by 960 / 512, with pixel centres kept.
-    store = pair_matching.match_store(tmp_path / "out", conf)
+    store = pair_matching.match_store(tmp_path / "cache", conf)
     entry = store.read(pair_matching.pair_key(sequence.image_root, "q.png", "r.png", 0))
     assert entry["inlier_mask"][:50].all()  # every planted match
     rng = np.random.default_rng(0)
     expected = rng.uniform([0, 0], [500, 280], size=(60, 2)).astype(np.float32)
     np.testing.assert_allclose(entry["points0"], (expected + 0.5) * [960 / 512, 540 / 288] - 0.5, rtol=1e-5)
     # A rerun resumes (nothing matched); a changed matcher conf recomputes.
-    again = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    again = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", progress=False)
     assert again == {"pairs": 2, "cached": 2, "matched": 0}
     conf["matcher"]["max_num_keypoints"] = 1024
-    changed = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
+    changed = pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", progress=False)
     assert changed == {"pairs": 2, "cached": 0, "matched": 2}
 
 
@@ -278,8 +278,8 @@ def test_imm_sift_nn_inliers_equal_vismatch_num_inliers_under_the_fork_settings(
     sequence = gardens_point_pairs(shared_data)
     conf = methods.resolve_method("imm:sift-nn", "paper")
     conf["verifier"].update(FORK_VERIFIER)
-    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
-    ours = method_runs.pairs_table(sequence, conf, tmp_path / "cache", tmp_path / "out", seed=0)
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", progress=False)
+    ours = method_runs.pairs_table(sequence, conf, tmp_path / "cache", seed=0)
 
     theirs = get_matcher("sift-nn", device="cpu", max_num_keypoints=2048)
     theirs.compute_ransac = fork_ransac

@@ -38,8 +38,8 @@ def test_imm_methods_give_vismatchs_own_matches_pair_by_pair(shared_data, tmp_pa
     root = Path(params["image_root"])
     sequence = Sequence("gardens_point", root, sequence_build.frame_tolerance_sequence_pairs(params)[:10])
     conf = methods.resolve_method(f"imm:{name}", "repository")
-    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", tmp_path / "out", progress=False)
-    store = pair_matching.match_store(tmp_path / "out", conf)
+    pair_matching.match_and_verify(sequence, conf, tmp_path / "cache", progress=False)
+    store = pair_matching.match_store(tmp_path / "cache", conf)
 
     theirs = get_matcher(name, device="cpu", max_num_keypoints=2048)
     width, height = conf["matcher"]["resize_to"]

@@ -64,7 +64,7 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
     verifier |= {"min_matches": 10**6, "min_match_score": 0.5}  # RANSAC skipped
     conf = {"method": "fake-nn", "profile": "test", "extractor": {"type": "colmap_sift", "name": "fake"}}
     conf |= {"matcher": {"type": "nn", "metric": "l2", "mutual": True, "ratio_threshold": 0.8}, "verifier": verifier}
-    cache_dir, output_dir = tmp_path / f"cache{references_per_query}", tmp_path / f"out{references_per_query}"
+    cache_dir = tmp_path / f"cache{references_per_query}"
     rng = np.random.default_rng(0)
     base = rng.normal(size=(200, 32))
     # Feature entries are keyed by image content: every image exists and differs.
@@ -84,8 +84,8 @@ def _peak_of_match_and_verify(tmp_path: Path, references_per_query: int) -> int:
                 {"seconds": 0.01},
             )
     tracemalloc.start()
-    pair_matching.match_and_verify(sequence, conf, cache_dir, output_dir, device="cpu", progress=False, jobs=1)
-    table = method_runs.pairs_table(sequence, conf, cache_dir, output_dir, seed=0)
+    pair_matching.match_and_verify(sequence, conf, cache_dir, device="cpu", progress=False, jobs=1)
+    table = method_runs.pairs_table(sequence, conf, cache_dir, seed=0)
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     assert len(table) == len(sequence.pairs) and table["num_matches"].min() > 150

@@ -267,7 +267,7 @@ def assert_store_matches(store: ShardedStore, reference: ShardedStore) -> None:
 def stores(work: Path) -> tuple[ShardedStore, ShardedStore]:
     conf = methods.resolve_method(METHOD, PROFILE)
     return image_features.feature_store(work / "cache", conf["extractor"]), pair_matching.match_store(
-        work / "out", conf
+        work / "cache", conf
     )
 
 

@@ -38,9 +38,7 @@ ensure_methods: list = ["sift-nn"]
 # the command that makes them
 compute_missing: bool = False
 output_dir: str = "../outputs/sample/analysis"  # figures (PNG) and tables are written here
-cache_dir: Optional[str] = (
-    None  # feature cache (for image sizes); None: the one the run recorded (params.resolved.yaml)
-)
+cache_dir: Optional[str] = None  # feature cache (for image sizes); None: the one the run recorded (run.json)
 
 # %%
 notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y

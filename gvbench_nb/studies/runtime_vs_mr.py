@@ -89,7 +89,7 @@ def run_description(
         if resizing is None:  # imported scores: no image was read here
             continue
         resize = resizing.get("resize_max")
-        sizes_of = traversal_sizes(output_dir, method, run, run_tables.resolve_cache_dir(output_dir, cache_dir))
+        sizes_of = traversal_sizes(output_dir, method, run, run_tables.resolve_cache_dir(output_dir, cache_dir, method))
         native = ", ".join(f"{folder} {f'{s[0]}x{s[1]}' if s else '?'}" for folder, s in sizes_of.items())
         longest = f"{'=' if resizing.get('resize_force') else '<='}{resize}" if resize else "native"
         fixed = resizing.get("resize_to")

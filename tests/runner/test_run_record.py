@@ -443,10 +443,10 @@ def test_a_rerun_served_from_the_cache_says_its_timers_are_the_earlier_runs(tmp_
     code, out, _ = run_cli(capsys, "run", str(path))
     assert code == 0 and pd.read_csv(tmp_path / "out" / "results.csv")["timers"].tolist() == ["cached"]
     assert "orb-nn: images or pairs came from the cache, so their seconds are those of the runs" in out
-    # Another folder shares the feature cache only: its matching is its own.
+    # Another folder shares the cache folder, its match stores included: nothing is computed again.
     other = params_file(tmp_path, "demo.yaml", output_dir=str(tmp_path / "demo"))
     assert run_cli(capsys, "run", str(other))[0] == 0
-    assert pd.read_csv(tmp_path / "demo" / "results.csv")["timers"].tolist() == ["partly cached"]
+    assert pd.read_csv(tmp_path / "demo" / "results.csv")["timers"].tolist() == ["cached"]
 
 
 def test_two_runs_of_one_process_within_a_second_have_their_own_run_ids(tmp_path, monkeypatch):

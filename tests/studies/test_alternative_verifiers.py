@@ -3,6 +3,7 @@ re-scoring from cached matches."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import numpy as np
@@ -177,6 +178,21 @@ def cached_run(shared_data: Path, tmp_path_factory) -> Path:
     sequence = Sequence("gp_verifiers", shared_data / "gardens_point", pairs)
     method_runs.run_method(sequence, "sift-nn", "paper", root / "out", root / "cache", progress=False)
     return root
+
+
+@pytest.mark.slow
+@pytest.mark.real_data
+@pytest.mark.reliability
+def test_cached_matches_are_read_from_the_cache_folder_the_run_names(cached_run):
+    # The run's cache folder is neither the default one nor a params file's: only its run.json names it.
+    run = json.loads((cached_run / "out" / "sift-nn" / "run.json").read_text())
+    assert run["cache_dir"] == str(cached_run / "cache")
+    cached = verifier_inputs.CachedMatches(cached_run / "out", "sift-nn")
+    assert cached.matches.folder.parent == cached_run / "cache" / "matches"
+    best = cached.pairs.loc[cached.pairs["num_inliers"].idxmax()]
+    pair = cached.pair(best["query"], best["reference"])
+    assert int(pair.inlier_mask.sum()) == int(best["num_inliers"]) > 0
+    cached.close()
 
 
 @pytest.mark.slow

@@ -387,7 +387,8 @@ def test_an_import_under_a_computed_methods_name_adds_a_run_and_says_which_the_f
     assert imported_ap != computed.loc["orb-nn", "ap"]  # what follows tells the two runs apart
     before = hashes(out / runs.RUNS)
 
-    code, said, err = import_scores(capsys, source, "orb-nn", out, str(table_sequence(out)))
+    sequence = method_outputs.read_run_json(out, "orb-nn")["sequence"]
+    code, said, err = import_scores(capsys, source, "orb-nn", out, sequence)
     assert code == 0, err
     after = hashes(out / runs.RUNS)
     assert {name: after.get(name) for name in before} == before  # no byte of the computed run changed
@@ -402,10 +403,6 @@ def test_an_import_under_a_computed_methods_name_adds_a_run_and_says_which_the_f
     assert code == 0, err
     row = next(line.split() for line in shown.splitlines() if line.split()[:1] == ["orb-nn"])
     assert f"{computed.loc['orb-nn', 'ap']:.3f}" in row and f"{imported_ap:.3f}" not in row, shown
-
-
-def table_sequence(out: Path) -> str:
-    return method_outputs.read_run_json(out, "orb-nn")["sequence"]
 
 
 def exported_ap(path: Path) -> float:

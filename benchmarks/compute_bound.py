@@ -58,7 +58,9 @@ def main(argv: list[str] | None = None) -> int:
     if code != 0:
         print(f"error: the one-core run exited with {code}; its output is in {out / 'run.log'}", file=sys.stderr)
         return 1
-    table = pd.read_csv(out / "run" / "output" / args.method / "pairs.csv")
+    from gvbench_nb.runner import method_outputs
+
+    table = pd.read_csv(method_outputs.method_dir(out / "run" / "output", args.method) / "pairs.csv")
     sums = {name: float(table[name].sum()) for name in TIMERS}  # extract_seconds shares each image over its pairs
     work = sum(sums.values())
     row = {

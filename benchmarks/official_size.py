@@ -40,6 +40,7 @@ import speed_estimate as estimate
 
 from gvbench_nb.data import fetch
 from gvbench_nb.data.sequences import Pair, frame_index, write_pairs
+from gvbench_nb.runner import method_outputs
 
 REPO = Path(__file__).resolve().parent.parent
 QUERY_FOLDERS, REFERENCE_FOLDER = ("night_right", "day_left"), "day_right"
@@ -120,7 +121,7 @@ def measure(params: Path, method: str, folder: Path, stop_at: int | None = None)
     )
     if stop_at is None and code != 0:
         raise SystemExit(f"error: the run of {method} exited with {code}; its log is {folder / 'run.log'}")
-    n_pairs = len(pd.read_csv(folder / "output" / method / "pairs.csv")) if code == 0 else 0
+    n_pairs = len(pd.read_csv(method_outputs.method_dir(folder / "output", method) / "pairs.csv")) if code == 0 else 0
     return {
         "exit_code": code,
         "method": method,
@@ -176,8 +177,10 @@ def main(argv: list[str] | None = None) -> int:
         folder.mkdir(parents=True)
         killed = measure(params[n], method, folder, stop_at=round(args.kill_at * n))
         resumed = measure(params[n], method, folder)
-        tables = (f"{method}/pairs.csv", "results.csv")
-        equal = all(same_without_timers(done / table, folder / "output" / table) for table in tables)
+        tables = [
+            (method_outputs.method_dir(f, method) / "pairs.csv", f / "results.csv") for f in (done, folder / "output")
+        ]
+        equal = all(same_without_timers(a, b) for a, b in zip(*tables))
         print(
             f"kill -9 after {killed['wall_seconds']} s (exit {killed['exit_code']}, {args.kill_at:g} of {n} pairs "
             f"in the store), resumed in "

@@ -84,7 +84,7 @@ def score_pairs(labels: list[int], scores: list[float]) -> dict[str, float]:
 
 
 def orchestrate(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config, sequence_build
+    from gvbench_nb.runner import config, method_outputs, sequence_build
 
     ours_python, peer_python = Path(args.ours_python), Path(args.peer_python)
     for what, path, hint in (("ours", ours_python, "make setup"), ("peer", peer_python, "make setup-imm")):
@@ -163,7 +163,7 @@ def orchestrate(args: argparse.Namespace) -> int:
             if side == "ours":
                 import pandas as pd
 
-                table = pd.read_csv(folder / "output" / args.method / "pairs.csv")
+                table = pd.read_csv(method_outputs.method_dir(folder / "output", args.method) / "pairs.csv")
                 labels, scores = table["label"].tolist(), table["score"].tolist()
             else:
                 with open(folder / "scores.csv") as handle:

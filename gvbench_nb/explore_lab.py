@@ -49,12 +49,13 @@ def check_run_folder(output_dir: Path) -> list[str]:
             f"{output_dir} is not a folder; give the output folder of a finished run "
             "(e.g. outputs/sample after make demo, or python -m gvbench_nb run params/sample.yaml)"
         )
+    methods = scoring.readable_methods(output_dir)  # what `results` refuses, explore refuses, in its words
     if runs.resolved_params(output_dir) is None:
         raise method_outputs.ResultsError(
             f"{output_dir} has no {config.RESOLVED_PARAMS_NAME}, so it is not the output folder of a run; "
             "give the folder a run wrote (python -m gvbench_nb run PARAMS prints it)"
         )
-    return scoring.readable_methods(output_dir)  # what `results` refuses, explore refuses
+    return methods
 
 
 def working_notebook(output_dir: Path, source: Path = SOURCE_NOTEBOOK) -> dict[str, Any]:

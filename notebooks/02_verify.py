@@ -15,7 +15,8 @@
 
 # %% [markdown]
 # # 02 - Verify: one method on one sequence
-# Extract (cached), match, fit F with RANSAC; writes `<output_dir>/<method>/pairs.csv`.
+# Extract (cached), match, fit F with RANSAC; writes `<method>/pairs.csv` in the run (on its own: a run
+# of its own, `<output_dir>/runs/<id>/<method>/pairs.csv`).
 
 # %%
 from pathlib import Path

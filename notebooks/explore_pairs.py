@@ -18,7 +18,7 @@
 # Pick a sequence (its params file), a pair (by index, or a method's top false positive or
 # false negative) and the methods to compare; see each method's matches and RANSAC inliers on
 # that pair, its score (`num_inliers`, and the distinct keypoints among the inliers) and the rank of that score among the method's scores.
-# Everything is read from what the runs wrote: `<output_dir>/<method>/pairs.csv`, the match
+# Everything is read from what the runs wrote: each method's `pairs.csv` in the run the folder shows, the match
 # stores and the feature cache; nothing is matched again (unless `compute_missing` runs a
 # method that has no results yet). In JupyterLab, controls at the end re-draw every view for
 # another pick, pair or methods; in a batch run (papermill, nbmake) set the parameters below.

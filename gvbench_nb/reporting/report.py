@@ -284,11 +284,13 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
 
     import yaml
 
+    from gvbench_nb.runner import method_outputs
+
     jobs: list[tuple[str, Path, dict[str, Any], str]] = []
     for folder in output_dirs:
         target, sequence = report_dir / folder.name, _sequence_name(folder)
-        verifiers = folder / VERIFIERS_FOLDER
-        if (verifiers / "verifiers.csv").is_file() and (folder / VERIFIER_METHOD / "pairs.csv").is_file():
+        verifiers, verified = folder / VERIFIERS_FOLDER, method_outputs.method_dir(folder, VERIFIER_METHOD)
+        if (verifiers / "verifiers.csv").is_file() and (verified / "pairs.csv").is_file():
             # Into the study's own folder: its trained weights and predictions are reused, not redone.
             parameters: dict[str, Any] = {"params_file": None, "results_dir": str(folder), "method": VERIFIER_METHOD}
             for name in ("analysis_verifiers.ipynb", "analysis_doppelgangers.ipynb"):

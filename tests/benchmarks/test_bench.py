@@ -9,6 +9,7 @@ import speed as speed_cli
 import speed_bench as bench
 import speed_estimate as estimate
 import torch
+from written_runs import add_run
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence
@@ -126,7 +127,6 @@ def test_estimate_scales_measured_costs_by_images_and_pairs():
 
 
 def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path):
-    import json
 
     # Two queries x two references; each image extracted once in 0.4 s, its time shared by its 2 pairs.
     table = pd.DataFrame(
@@ -141,15 +141,8 @@ def test_estimate_from_runs_costs_every_method_from_its_per_pair_timers(tmp_path
         }
     )
     for method in ("xfeat-nn", "sift-nn"):
-        (tmp_path / method).mkdir()
-        table.to_csv(tmp_path / method / "pairs.csv", index=False)
-        (tmp_path / method / "run.json").write_text(
-            json.dumps({"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"})
-        )
-    from gvbench_nb.runner import record
-
-    record.claim(tmp_path)  # as a run publishes it: the estimate reads only what `results` reads
-    record.register(tmp_path.glob("*/*.*"))
+        run = {"environment": {"device_name": "cpu-x"}, "finished_at": "2026-11-22T00:00:00+00:00"}
+        add_run(tmp_path, method, table, run)
     costs = estimate.costs_from_runs(tmp_path).set_index("method")
     assert list(costs.index) == ["sift-nn", "xfeat-nn"]  # registry order
     assert costs.loc["sift-nn", "extract_seconds_per_image"] == pytest.approx(4 * 0.4 / 4)

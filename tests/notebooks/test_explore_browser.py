@@ -15,7 +15,7 @@ import pytest
 from test_report_browser import chromium  # noqa: F401  (the fixture: Chromium's path and playwright)
 
 from gvbench_nb import explore_lab
-from gvbench_nb.runner import config, method_runs, sequence_build
+from gvbench_nb.runner import config, method_outputs, method_runs, sequence_build
 from gvbench_nb.studies import explore_pairs as explore
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
@@ -32,15 +32,11 @@ def run_folder(chromium, tmp_path_factory) -> Path:  # noqa: F811
         f"image_root: {root / 'data'}\npairs: {root / 'data' / 'pairs.txt'}\nmethods: {METHODS}\n"
         f"profile: repository\noutput_dir: {root / 'outputs' / 'tiny'}\nseed: 0\n"
     )
-    loaded = config.load_params(root / "tiny.yaml")
+    loaded = config.load_params(root / "tiny.yaml") | {"device": "cpu"}
     sequence = sequence_build.prepare_sequence(loaded)
-    out = Path(loaded["output_dir"])
-    for method in METHODS:
-        method_runs.run_method(
-            sequence, method, "repository", out, Path(loaded["cache_dir"]), device="cpu", progress=False
-        )
-    config.write_resolved_params(loaded, out)
-    return out
+    for method in METHODS:  # as a notebook on its own runs it: a run of its own, with the params it ran on
+        method_runs.run_method_of_params(loaded, sequence, method, progress=False)
+    return Path(loaded["output_dir"])
 
 
 @pytest.fixture
@@ -130,7 +126,7 @@ def test_explore_in_jupyterlab_redraws_every_view_and_leaves_the_sources_clean(
 
     path, sync_playwright = chromium
     before, before_bytes = sources_status(), sources_bytes()
-    tables = {m: pd.read_csv(run_folder / m / "pairs.csv") for m in METHODS}
+    tables = {m: pd.read_csv(method_outputs.method_dir(run_folder, m) / "pairs.csv") for m in METHODS}
     with sync_playwright() as driver:
         browser = driver.chromium.launch(executable_path=path, headless=True)
         try:

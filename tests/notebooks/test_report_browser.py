@@ -16,6 +16,7 @@ import pytest
 import yaml
 
 from gvbench_nb.reporting import execute, report
+from gvbench_nb.runner import method_outputs
 from gvbench_nb.studies import condition_sweep
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
@@ -76,7 +77,8 @@ def report_index(chromium, tmp_path_factory) -> Path:
     # A method imported beside them from a table of scores alone (sift-nn's scores).
     sample = root / "outputs" / "sample"
     scores = root / "scores.csv"
-    pd.read_csv(sample / "sift-nn" / "pairs.csv")[["query", "reference", "label", "score"]].to_csv(scores, index=False)
+    table = pd.read_csv(method_outputs.method_dir(sample, "sift-nn") / "pairs.csv")
+    table[["query", "reference", "label", "score"]].to_csv(scores, index=False)
     imported = ["import-scores", str(scores), "--sequence", "sample", "--method", IMPORTED]
     assert cli.main([*imported, "--output-dir", str(sample)]) == 0
     # The verifiers compared on the sample's sift-nn matches (the verifier pages' input), and a

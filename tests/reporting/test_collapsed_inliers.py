@@ -3,17 +3,17 @@ one line `results` and `compare` print when collapsed pairs set a method's MR (d
 
 from __future__ import annotations
 
-import json
 import shutil
 
 import numpy as np
 import pandas as pd
 import pytest
+from written_runs import add_run
 
 from gvbench_nb import cli, methods
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.evaluation import collapsed_inliers
-from gvbench_nb.runner import config, method_outputs, method_runs, pair_matching, record, sequence_build
+from gvbench_nb.runner import config, method_outputs, method_runs, pair_matching, sequence_build
 from gvbench_nb.runner.store import ShardedStore
 
 COUNTS = list(method_outputs.INLIER_KEYPOINT_COUNTS)
@@ -38,14 +38,8 @@ def made_up_table(reference_keypoints: int) -> pd.DataFrame:
 
 
 def write_run(output_dir, method: str, table: pd.DataFrame) -> None:
-    folder = method_outputs.method_dir(output_dir, method)
-    folder.mkdir(parents=True)
-    table.to_csv(folder / "pairs.csv", index=False)
-    run = {"sequence": "toy", "conf": {"method": method, "paper_name": method, "profile": "repository"}}
     env = {"device": "cpu", "device_name": "cpu", "cpu_count": 1, "torch": "-", "kornia": "-", "opencv": "-"}
-    (folder / "run.json").write_text(json.dumps(run | {"environment": env, "finished_at": "2026-12-06"}))
-    record.claim(output_dir)  # as a run publishes it
-    record.register([folder / "pairs.csv", folder / "run.json"])
+    add_run(output_dir, method, table, {"environment": env, "finished_at": "2026-12-06"})
 
 
 @pytest.mark.reliability

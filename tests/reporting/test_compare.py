@@ -3,14 +3,12 @@ one-sentence refusals of methods that cannot be compared."""
 
 from __future__ import annotations
 
-import json
-
 import numpy as np
 import pandas as pd
 import pytest
+from written_runs import add_run
 
 from gvbench_nb import cli
-from gvbench_nb.runner import method_outputs, record
 
 
 def noisy_table(seed: int = 0, n_queries: int = 50, per_query: int = 4) -> pd.DataFrame:
@@ -25,13 +23,7 @@ def noisy_table(seed: int = 0, n_queries: int = 50, per_query: int = 4) -> pd.Da
 
 
 def write_run(output_dir, method: str, table: pd.DataFrame, profile: str = "repository") -> None:
-    folder = method_outputs.method_dir(output_dir, method)
-    folder.mkdir(parents=True)
-    table.to_csv(folder / "pairs.csv", index=False)
-    conf = {"method": method, "paper_name": method.upper(), "profile": profile}
-    (folder / "run.json").write_text(json.dumps({"sequence": "toy", "conf": conf, "environment": {"device": "cpu"}}))
-    record.claim(output_dir)  # as a run publishes it: compare reads only what results reads
-    record.register([folder / "pairs.csv", folder / "run.json"])
+    add_run(output_dir, method, table, {"conf": {"paper_name": method.upper(), "profile": profile}})
 
 
 @pytest.fixture

@@ -5,21 +5,26 @@ from __future__ import annotations
 import json
 
 import pandas as pd
+from written_runs import add_run
 
 from gvbench_nb.reporting import report
 
 
 def test_study_pages_where_their_inputs_exist(tmp_path):
     outputs = tmp_path / "outputs"
+    table = pd.DataFrame({"pair_index": [0, 1], "query": ["q", "q"], "reference": ["r0", "r1"], "label": [1, 0]})
+    built = {"params.resolved.yaml": "pairs_builder: retrieval\nbuilder_options: {descriptor: bow}\n"}
     for name in ("compared", "plain", "built"):
-        (outputs / name / "sift-nn").mkdir(parents=True)
-        (outputs / name / "sift-nn" / "pairs.csv").write_text("query,reference,label,score\n")
+        add_run(
+            outputs / name,
+            "sift-nn",
+            table.assign(score=[2, 1]),
+            {"sequence": name},
+            files=built if name == "built" else None,
+        )
         pd.DataFrame({"sequence": [name], "method": ["sift-nn"]}).to_csv(outputs / name / "results.csv", index=False)
     (outputs / "compared" / "verifiers").mkdir()
     (outputs / "compared" / "verifiers" / "verifiers.csv").write_text("verifier\n")
-    (outputs / "built" / "params.resolved.yaml").write_text(
-        "pairs_builder: retrieval\nbuilder_options: {descriptor: bow}\n"
-    )
     sweep = outputs / "sweep_a"
     (sweep / "images").mkdir(parents=True)
     (sweep / "images" / "route.json").write_text(json.dumps({"n_frames": 8, "image_size": [160, 120], "seed": 3}))

@@ -11,21 +11,64 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import test_run_record
 import yaml
 from sklearn.metrics import average_precision_score, precision_recall_curve
-from test_run_record import one_sentence, run_cli, snapshot
 
+from gvbench_nb import cli, run_and_publish
 from gvbench_nb.data import synthetic
-from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol.metrics import evaluate_scores
-from gvbench_nb.runner import method_runs, record, scoring
+from gvbench_nb.runner import config, method_outputs, method_runs, runs, scoring, sequence_build
 
 QUERIES = [f"night/{i:03d}.png" for i in (0, 0, 1, 1, 2, 2)]
 REFERENCES = [f"day/{i:03d}.png" for i in (0, 5, 1, 6, 2, 7)]
 LABELS = [1, 0, 1, 0, 1, 0]
 INLIERS = [40, 12, 9, 15, 30, 3]  # a false pair above a true one: MR below 1
-notebooks_here = test_run_record.notebooks_here  # the fixture
+
+
+def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
+    """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
+    params = config.load_params(parameters["params_file"])
+    if name == "02_verify.ipynb":
+        sequence = sequence_build.prepare_sequence(params)
+        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
+    elif name == "03_evaluate.ipynb":
+        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
+    output_path.write_text(json.dumps({"executed": name}))
+
+
+@pytest.fixture
+def notebooks_here(monkeypatch):
+    monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    capsys.readouterr()
+    code = cli.main(list(argv))
+    said = capsys.readouterr()
+    return code, said.out, said.err
+
+
+def one_sentence(err: str) -> str:
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def snapshot(folder: Path) -> dict[str, bytes]:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+def hashes(folder: Path) -> dict[str, str]:
+    """The SHA-256 of every file under ``folder``."""
+    return {name: hashlib.sha256(data).hexdigest() for name, data in snapshot(folder).items()}
+
+
+def run_ids(folder: Path) -> list[str]:
+    return [run.name for run, _ in runs.finished_runs(folder)]
+
+
+def shown_run(folder: Path, method: str) -> str:
+    """The id of the run the folder shows for ``method``."""
+    return method_outputs.method_dir(folder, method).parent.name
 
 
 def authors_npy(path: Path, inliers_as: str = "points", **changes) -> Path:
@@ -79,7 +122,7 @@ def test_the_authors_npy_imports_with_their_ap_and_mr(tmp_path, capsys, inliers_
     assert (row["ap"], row["max_recall"], row["n_pairs"]) == (expected["ap"], expected["max_recall"], 6)
     assert row["profile"] == "imported" and row["paper_name"] == "SP+SG (imported)"
     assert f"the file states ap {expected['ap']:.4f}" in said
-    run = json.loads((out / "sp-sg" / "run.json").read_text())
+    run = method_outputs.read_run_json(out, "sp-sg")
     assert run["imported"]["sha256"] == hashlib.sha256(source.read_bytes()).hexdigest()
     assert run["imported"]["file"] == str(source) and run["sequence"] == "night"
     table = scoring.load_pairs_table(out, "sp-sg")
@@ -143,12 +186,12 @@ def test_bad_score_files_are_refused_in_one_sentence_before_any_write(tmp_path, 
     assert not out.exists()
 
 
-def sample_params(tmp_path: Path) -> Path:
+def sample_params(tmp_path: Path, **changes) -> Path:
     root = tmp_path / "sample"
     synthetic.generate_sample(root, n_frames=8, image_size=(320, 240))
     params = {"sequence": "sample", "image_root": str(root), "pairs": str(root / "pairs.txt"), "methods": ["orb-nn"]}
     params |= {"profile": "repository", "output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache")}
-    params["device"] = "cpu"
+    params |= {"device": "cpu", **changes}
     path = tmp_path / "sample.yaml"
     path.write_text(yaml.safe_dump(params))
     return path
@@ -163,8 +206,7 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
     assert run_cli(capsys, "run", str(params))[0] == 0
     code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
     assert code == 0, err
-    run_id = json.loads((out / "orb-nn" / "run.json").read_text())["run_id"]
-    exported = out / "orb-nn" / f"sample_orb-nn_{run_id}.npy"
+    exported = out / "exports" / f"sample_orb-nn_{shown_run(out, 'orb-nn')}.npy"
     assert f"orb-nn: {exported} (AP " in said
     shared = np.load(exported, allow_pickle=True).item()  # as the authors' code reads it
     ran = scoring.load_pairs_table(out, "orb-nn")
@@ -179,7 +221,7 @@ def test_a_sample_run_exported_as_the_authors_npy_and_imported_back_gives_the_sa
         back, original = results_row(capsys, folder, "orb-nn-back"), results_row(capsys, out, "orb-nn")
         assert (back["ap"], back["max_recall"]) == (original["ap"], original["max_recall"])
         assert 0 < original["max_recall"] < 1
-    assert (out / "params.resolved.yaml").is_file()  # the run's other files stay beside the import
+    assert runs.resolved_params(out) is not None  # the computed run's other files stay beside the import
 
     # A later run of the folder keeps the imported method, and a folder of other labels refuses it.
     assert run_cli(capsys, "run", str(params))[0] == 0
@@ -304,43 +346,101 @@ def gp8_run(shared_data, tmp_path, capsys, notebooks_here) -> Path:
 
 @pytest.mark.reliability
 @pytest.mark.real_data
-def test_an_import_never_replaces_computed_results_nor_joins_another_sequence(gp8_run, tmp_path, capsys):
+def test_an_import_never_joins_another_sequence(gp8_run, tmp_path, capsys):
     out = tmp_path / "out"
     source = scores_csv(tmp_path / "scores.csv", rows_with())
     before = snapshot(out)
-    code, _, err = import_scores(capsys, source, "orb-nn", out, "gp8")
-    assert code == 2 and "results of orb-nn computed here" in one_sentence(err) and "--method" in err
-    code, _, err = import_scores(capsys, source, "ext2", out, "other_place")
+    code, _, err = import_scores(capsys, source, "ext", out, "other_place")
     assert code == 2 and "holds sequence 'gp8', not 'other_place'" in one_sentence(err)
+    flipped = scores_csv(tmp_path / "flipped.csv", rows_with((1, (*GP8[1][:2], 1, GP8_SCORES[1]))))
+    code, _, err = import_scores(capsys, flipped, "ext", out, "gp8")
+    assert code == 2 and "scored on other pairs or labels" in one_sentence(err)
     assert snapshot(out) == before
-    # An imported method is the import's own: importing it again replaces it.
-    for score in (0.95, 0.5):
-        code, _, err = import_scores(capsys, scores_csv(source, rows_with((1, (*GP8[1], score)))), "ext", out, "gp8")
-        assert code == 0, err
-    assert results_row(capsys, out, "orb-nn")["profile"] == "repository"
+
+
+@pytest.fixture
+def computed_run(tmp_path, capsys, request) -> Path:
+    """orb-nn computed into tmp_path/out: on eight real Gardens Point pairs when $GVBENCH_DATA names
+    the data folder, else on eight pairs of the sample render."""
+    request.getfixturevalue("notebooks_here")
+    if os.environ.get("GVBENCH_DATA"):
+        params = gp8_params(tmp_path, request.getfixturevalue("shared_data") / "gardens_point")
+    else:
+        params = sample_params(tmp_path, limit=8)
+    code, _, err = run_cli(capsys, "run", str(params))
+    assert code == 0, err
+    return tmp_path / "out"
+
+
+@pytest.mark.reliability
+def test_an_import_under_a_computed_methods_name_adds_a_run_and_says_which_the_folder_shows(
+    computed_run, tmp_path, capsys
+):
+    out = computed_run
+    computed_id, computed = shown_run(out, "orb-nn"), scoring.evaluate(out, write=False).set_index("method")
+    table = scoring.load_pairs_table(out, "orb-nn")
+    first_false = int(np.flatnonzero(table["label"].to_numpy() == 0)[0])
+    scores = table["label"].to_numpy(dtype=float) + 0.01 * np.arange(len(table))
+    scores[first_false] = 2.0  # one false pair above every true one
+    source = scores_csv(tmp_path / "scores.csv", zip(table["query"], table["reference"], table["label"], scores))
+    imported_ap = evaluate_scores(table["label"].to_numpy(), scores)["ap"]
+    assert imported_ap != computed.loc["orb-nn", "ap"]  # what follows tells the two runs apart
+    before = hashes(out / runs.RUNS)
+
+    sequence = method_outputs.read_run_json(out, "orb-nn")["sequence"]
+    code, said, err = import_scores(capsys, source, "orb-nn", out, sequence)
+    assert code == 0, err
+    after = hashes(out / runs.RUNS)
+    assert {name: after.get(name) for name in before} == before  # no byte of the computed run changed
+    (imported_id,) = set(run_ids(out)) - {computed_id}
+    assert shown_run(out, "orb-nn") == imported_id
+    command = f"python -m gvbench_nb results {out} --run {computed_id}"
+    lines = [line for line in said.splitlines() if "now shows" in line]
+    assert len(lines) == 1 and imported_id in lines[0] and lines[0].endswith(command), said
+    assert scoring.evaluate(out, write=False).set_index("method").loc["orb-nn", "ap"] == pytest.approx(imported_ap)
+
+    code, shown, err = run_cli(capsys, "results", str(out), "--run", computed_id)
+    assert code == 0, err
+    row = next(line.split() for line in shown.splitlines() if line.split()[:1] == ["orb-nn"])
+    assert f"{computed.loc['orb-nn', 'ap']:.3f}" in row and f"{imported_ap:.3f}" not in row, shown
+
+
+def exported_ap(path: Path) -> float:
+    return float(np.load(path, allow_pickle=True).item()["average_precision"])
+
+
+def run_ap(capsys, out: Path, run_id: str) -> float:
+    """The AP ``results OUT --run ID`` shows for orb-nn (read from the run it names)."""
+    code, _, err = run_cli(capsys, "results", str(out), "--run", run_id)
+    assert code == 0, err
+    return float(scoring.evaluate(runs.find_run(out, run_id), write=False).set_index("method").loc["orb-nn", "ap"])
 
 
 @pytest.mark.reliability
 @pytest.mark.real_data
-def test_an_export_names_its_run_and_a_rerun_of_the_method_removes_it(gp8_run, shared_data, tmp_path, capsys):
+def test_an_export_names_its_run_and_states_that_runs_ap(gp8_run, tmp_path, capsys):
     out = tmp_path / "out"
     code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
     assert code == 0, err
-    run_id = json.loads((out / "orb-nn" / "run.json").read_text())["run_id"]
-    exported = out / "orb-nn" / f"gp8_orb-nn_{run_id}.npy"
-    ap = results_row(capsys, out, "orb-nn")["ap"]
-    assert f"orb-nn: {exported} (AP {ap:.4f})" in said
-    assert np.load(exported, allow_pickle=True).item()["average_precision"] == pytest.approx(ap)
-    # orb-nn's results written again in place (a notebook run on its own) take the export with them ...
-    sequence = Sequence("gp8", shared_data / "gardens_point", [Pair(*pair) for pair in GP8])
-    method_runs.record_method_in_place(out, "orb-nn", sequence)
-    assert not exported.exists() and "orb-nn/" + exported.name not in record.read_record(out)["files"]
-    assert run_cli(capsys, "results", str(out), "--export", "npy")[0] == 0
-    assert exported.exists()
-    # ... and so does a rerun.
+    first_id = shown_run(out, "orb-nn")
+    first = out / "exports" / f"gp8_orb-nn_{first_id}.npy"
+    first_ap = run_ap(capsys, out, first_id)
+    assert f"orb-nn: {first} (AP {first_ap:.4f})" in said and exported_ap(first) == pytest.approx(first_ap)
+    first_bytes = first.read_bytes()
+
+    # A rerun under another profile: the earlier export still names its run and states that run's AP ...
     assert run_cli(capsys, "run", str(gp8_run), "--profile", "paper")[0] == 0
-    assert not exported.exists() and not list((out / "orb-nn").glob("*.npy"))
-    assert not [name for name in record.read_record(out)["files"] if name.endswith(".npy")]
+    second_id = shown_run(out, "orb-nn")
+    assert second_id != first_id and first.read_bytes() == first_bytes
+    assert exported_ap(first) == pytest.approx(run_ap(capsys, out, first_id))
+    # ... and a second export names the new run and states its AP.
+    code, said, err = run_cli(capsys, "results", str(out), "--export", "npy")
+    assert code == 0, err
+    second = out / "exports" / f"gp8_orb-nn_{second_id}.npy"
+    second_ap = run_ap(capsys, out, second_id)
+    assert f"orb-nn: {second} (AP {second_ap:.4f})" in said and exported_ap(second) == pytest.approx(second_ap)
+    assert sorted(p.name for p in tmp_path.rglob("*.npy")) == sorted([first.name, second.name])
+    assert sorted((out / "exports").iterdir()) == sorted([first, second])
 
 
 @pytest.mark.reliability

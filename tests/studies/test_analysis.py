@@ -3,13 +3,13 @@ offsets, normalised inliers and the query bootstrap (agreement, coverage, determ
 
 from __future__ import annotations
 
-import json
 import re
 
 import numpy as np
 import pandas as pd
 import pytest
 from sklearn.metrics import average_precision_score
+from written_runs import add_run
 
 from gvbench_nb import notebook
 from gvbench_nb.evaluation import bootstrap, run_tables
@@ -212,18 +212,8 @@ def test_bootstrap_scores_all_resamples_in_one_vectorised_pass(monkeypatch):
 def write_fake_run(output_dir, method="sift-nn", sequence="toy", profile="repository"):
     table = pairs_frame(["q0", "q0", "q1", "q1"], ["r0", "r1", "r2", "r3"], [1, 0, 1, 0], [30, 5, 3, 8])
     table = table.assign(extract_seconds=0.1, match_seconds=0.2, verify_seconds=0.05)
-    folder = method_outputs.method_dir(output_dir, method)
-    folder.mkdir(parents=True)
-    table.to_csv(folder / "pairs.csv", index=False)
-    (folder / "run.json").write_text(
-        json.dumps(
-            {
-                "sequence": sequence,
-                "conf": {"paper_name": "SIFT+NN", "profile": profile},
-                "environment": {"device": "cpu"},
-            }
-        )
-    )
+    run = {"sequence": sequence, "conf": {"paper_name": "SIFT+NN", "profile": profile}}
+    add_run(output_dir, method, table, run, view=True)
 
 
 def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):

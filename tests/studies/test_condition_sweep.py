@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -12,7 +11,7 @@ import pandas as pd
 import pytest
 
 from gvbench_nb.data import synthetic
-from gvbench_nb.runner import method_runs
+from gvbench_nb.runner import method_outputs, method_runs
 from gvbench_nb.studies import condition_sweep as cs
 
 TINY = {"n_frames": 6, "image_size": (240, 180), "seed": 0}  # 6 queries x 6 pairs: seconds
@@ -58,8 +57,8 @@ def test_full_strength_degrades_illumination_and_weather(sweep: pd.DataFrame) ->
 
 def test_reference_drive_is_extracted_once(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     extracted = {}
-    for run in (sweep_dir / "runs" / "paper").glob("*/sift-nn/run.json"):
-        extracted[run.parent.parent.name] = json.loads(run.read_text())["this_run"]["extraction"]
+    for cell in (sweep_dir / "runs" / "paper").iterdir():
+        extracted[cell.name] = method_outputs.read_run_json(cell, "sift-nn")["this_run"]["extraction"]
     n = TINY["n_frames"]
     assert extracted["clear"]["extracted"] == 2 * n  # the first run pays for the reference
     for name, counts in extracted.items():
@@ -89,7 +88,7 @@ def test_a_new_strength_runs_only_its_cell(sweep: pd.DataFrame, sweep_dir: Path)
         sweep_dir, ["sift-nn"], conditions=("weather",), strengths=(0.0, 0.5, 1.0), threads=1, progress=False, **TINY
     )
     assert sorted(table["strength"]) == [0.0, 0.5, 1.0]
-    run = json.loads((sweep_dir / "runs" / "paper" / "weather_0.50" / "sift-nn" / "run.json").read_text())
+    run = method_outputs.read_run_json(sweep_dir / "runs" / "paper" / "weather_0.50", "sift-nn")
     n = TINY["n_frames"]
     assert run["this_run"]["extraction"] == {"images": 2 * n, "cached": n, "extracted": n}
     after = cs.read_sweep(sweep_dir)

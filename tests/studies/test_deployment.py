@@ -4,14 +4,16 @@ out below by hand, and the reader's refusals (those of ``results``)."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pandas as pd
 import pytest
+from written_runs import add_run
 
 from gvbench_nb import cli
 from gvbench_nb.protocol import metrics
-from gvbench_nb.runner import method_outputs, record, scoring
+from gvbench_nb.runner import method_outputs, runs, scoring
 from gvbench_nb.studies import deployment
 
 # Calibration: the false scores are 7, 3, 2; the scores above 7 are 10 and 12, so the threshold is
@@ -82,16 +84,12 @@ def write_run(
 def write_method(folder, method: str, sequence: str, labels, scores, builder: str, profile: str) -> None:
     queries = [f"q{i // 2}" for i in range(len(labels))]
     table = pairs_table(queries, labels, scores).assign(extract_seconds=0.1, match_seconds=0.1, verify_seconds=0.1)
-    method_dir = method_outputs.method_dir(folder, method)
-    method_dir.mkdir(parents=True)
-    table.to_csv(method_dir / "pairs.csv", index=False)
     run = {
         "sequence": sequence,
         "conf": {"paper_name": method, "profile": profile},
-        "environment": {"device": "cpu"},
         "pairs": {"pairs_builder": builder},
     }
-    (method_dir / "run.json").write_text(json.dumps(run))
+    add_run(folder, method, table, run)
 
 
 def test_transfer_reads_finished_runs_and_prints_the_matrix(tmp_path, capsys):
@@ -126,8 +124,9 @@ def test_transfer_refuses_what_results_refuses(tmp_path, capsys):
     run_json.write_text(json.dumps(run))
     with pytest.raises(method_outputs.ResultsError, match="the pair file"):
         deployment.DeploymentInputs([tmp_path / "day", tmp_path / "night"])
-    (tmp_path / "day" / record.RECORD_NAME).unlink()  # and a folder no run published
-    with pytest.raises(record.RecordError, match="no run wrote it|holds no"):
+    shutil.rmtree(tmp_path / "day" / runs.RUNS)  # and a folder of the earlier layout
+    (tmp_path / "day" / runs.OLD_RECORD).write_text("{}")
+    with pytest.raises(runs.RunsError, match="python -m gvbench_nb upgrade"):
         deployment.DeploymentInputs([tmp_path / "day"])
     capsys.readouterr()
     for folder in ("night", "day"):

@@ -11,10 +11,11 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
+from written_runs import add_run
 
 from gvbench_nb import cli, explore_lab
 from gvbench_nb.evaluation import plots, run_tables
-from gvbench_nb.runner import config, method_runs, sequence_build
+from gvbench_nb.runner import config, method_outputs, method_runs, runs, sequence_build
 from gvbench_nb.studies import explore_pairs as explore
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
@@ -43,20 +44,10 @@ def tiny_run(tmp_path_factory) -> Path:
     }
     path = folder / "tiny.yaml"
     path.write_text(yaml.safe_dump(params))
-    loaded = config.load_params(path)
+    loaded = config.load_params(path) | {"device": "cpu"}
     sequence = sequence_build.prepare_sequence(loaded)
-    for method in METHODS:
-        method_runs.run_method(
-            sequence,
-            method,
-            "repository",
-            Path(loaded["output_dir"]),
-            Path(loaded["cache_dir"]),
-            device="cpu",
-            progress=False,
-            threads=1,
-        )
-    config.write_resolved_params(loaded, loaded["output_dir"])  # the record `run` writes
+    for method in METHODS:  # as a notebook on its own runs it: a run of its own, with the params it ran on
+        method_runs.run_method_of_params(loaded, sequence, method, progress=False, threads=1)
     return path
 
 
@@ -105,7 +96,7 @@ def test_explore_notebook_shows_the_scores_and_ranks_of_pairs_csv(tiny_run, tmp_
     )
     shown = pd.read_csv(figures / "explore_pair.csv")
     out = tiny_run.parent / "out"
-    tables = {m: pd.read_csv(out / m / "pairs.csv") for m in METHODS}
+    tables = {m: pd.read_csv(method_outputs.method_dir(out, m) / "pairs.csv") for m in METHODS}
     false = tables["orb-nn"][tables["orb-nn"]["label"] == 0]
     top = false.sort_values(["score", "pair_index"], ascending=[False, True], kind="mergesort").iloc[0]
     index = int(top["pair_index"])
@@ -230,7 +221,7 @@ def test_explore_writes_a_working_copy_pointed_at_the_run_showing_every_method_a
     parameters = next(c for c in notebook["cells"] if "parameters" in c["metadata"].get("tags", []))
     namespace: dict = {}
     exec("".join(parameters["source"]), namespace)
-    assert namespace["params_file"] == str(out / "params.resolved.yaml") and namespace["output_dir"] == str(out)
+    assert namespace["params_file"] == str(runs.resolved_params(out)) and namespace["output_dir"] == str(out)
     assert namespace["methods"] is None and "jupytext" not in notebook["metadata"]
     assert explore.default_methods(tiny_run) == METHODS  # None: every method the run holds
     copy.write_text(copy.read_text().replace("Explore one pair", "My notes"))
@@ -272,8 +263,10 @@ def test_explore_refuses_a_folder_that_is_no_finished_run_in_one_sentence(tmp_pa
 def test_the_recorded_cache_is_found_without_cache_dir(tmp_path):
     out = tmp_path / "outputs" / "seq"
     out.mkdir(parents=True)
-    assert run_tables.resolve_cache_dir(out) == tmp_path / "cache"  # no record: the default ($GVBENCH_CACHE)
-    (out / "params.resolved.yaml").write_text(f"sequence: seq\ncache_dir: {tmp_path / 'elsewhere'}\n")
+    assert run_tables.resolve_cache_dir(out) == tmp_path / "cache"  # no run: the default ($GVBENCH_CACHE)
+    table = pd.DataFrame({"pair_index": [0, 1], "query": ["q", "q"], "reference": ["r0", "r1"], "label": [1, 0]})
+    params = f"sequence: seq\ncache_dir: {tmp_path / 'elsewhere'}\n"
+    add_run(out, "sift-nn", table.assign(score=[2, 1]), files={"params.resolved.yaml": params})
     assert run_tables.resolve_cache_dir(out) == tmp_path / "elsewhere"
     assert run_tables.resolve_cache_dir(out, tmp_path / "given") == tmp_path / "given"
 

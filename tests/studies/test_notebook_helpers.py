@@ -82,7 +82,7 @@ def test_a_results_table_behind_its_pairs_is_refused_not_rewritten(toy):
 
 def test_no_params_files_reads_finished_runs_only(toy):
     params, output_dir = toy
-    with pytest.raises(FileNotFoundError, match="results.csv is missing"):
+    with pytest.raises(FileNotFoundError, match="does not exist; give the output_dir of a finished run"):
         notebook.load_results([output_dir], output_dir / "analysis", [], ["sift-nn"])
     write_fake_run(output_dir)
     scoring.evaluate(output_dir)

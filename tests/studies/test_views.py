@@ -12,6 +12,7 @@ import numpy as np
 import pandas as pd
 import pytest
 from PIL import Image
+from written_runs import add_run
 
 from gvbench_nb.evaluation import plots, run_tables
 from gvbench_nb.reporting import tables
@@ -128,20 +129,20 @@ def test_an_average_spans_two_or_more_recorded_sequences_never_a_synthetic_route
     assert paper.AVERAGE not in paper.table_iii(synthetic, average=False).columns.get_level_values("sequence")
 
 
-def test_load_results_marks_a_folder_of_a_rendered_route_synthetic(tmp_path, monkeypatch):
+def test_load_results_marks_a_folder_of_a_rendered_route_synthetic(tmp_path):
+    table = pd.DataFrame(
+        {"pair_index": range(4), "query": ["q0", "q0", "q1", "q1"], "reference": ["r0", "r1", "r2", "r3"]}
+    ).assign(label=[1, 0, 1, 0], score=[9, 2, 7, 3], extract_seconds=0.1, match_seconds=0.1, verify_seconds=0.1)
     for name, rendered in (("route", True), ("recorded", False)):
         images = tmp_path / f"{name}_images"
         images.mkdir()
         if rendered:
             (images / "generator.json").write_text("{}")
-        folder = tmp_path / name
-        (folder / "sift-nn").mkdir(parents=True)
-        (folder / "sift-nn" / "run.json").write_text(json.dumps({"image_root": str(images), "pairs": {}}))
-        (folder / "my-tool").mkdir()
-        (folder / "my-tool" / "run.json").write_text(json.dumps({"image_root": "", "pairs": {}}))
-        results_rows({name: False}).drop(columns="synthetic").to_csv(folder / "results.csv", index=False)
-    monkeypatch.setattr(scoring, "readable_methods", lambda *args, **kwargs: [])  # hand-made: no run record
+        add_run(tmp_path / name, "sift-nn", table, {"sequence": name, "image_root": str(images), "pairs": {}})
+        imported = {"image_root": "", "pairs": {}, "imported": {"file": "scores.csv"}}  # read no images
+        add_run(tmp_path / name, "my-tool", table, imported | {"sequence": name, "conf": {"profile": "imported"}})
     loaded = run_tables.load_results([tmp_path / "route", tmp_path / "recorded"])
+    assert set(loaded["method"]) == {"sift-nn", "my-tool"}
     assert loaded.groupby("sequence")["synthetic"].all().to_dict() == {"recorded": False, "route": True}
 
 

@@ -290,7 +290,7 @@ def _run_record(
 
 
 def export_npy(output_dir: str | Path, method: str) -> tuple[Path, float]:
-    """Write the method's current run as the authors' ``<sequence>_<method>_<run id>.npy`` in the output
+    """Write the method's run (the one the folder shows, or the run given) as the authors' ``<sequence>_<method>_<run id>.npy`` in the output
     folder's ``exports/``, and return it with the AP it states: their keys, with ``inliers`` one count a
     pair (as their multiprocess evaluation writes it) and no ``all_matches`` (the match coordinates are
     not in pairs.csv). A run never changes, so the export stays the run's it names."""
@@ -322,7 +322,7 @@ def export_npy(output_dir: str | Path, method: str) -> tuple[Path, float]:
         "average_precision": metrics["ap"],
         "Max Recall": metrics["max_recall"],
     }
-    target = output_dir / "exports" / f"{sequence}_{method}_{run_id}.npy"
+    target = runs.output_folder(output_dir) / "exports" / f"{sequence}_{method}_{run_id}.npy"
     target.parent.mkdir(exist_ok=True)
     temporary = target.with_name(f".{target.name}.tmp")
     with open(temporary, "wb") as handle:

@@ -290,10 +290,11 @@ def _run_record(
 
 
 def export_npy(output_dir: str | Path, method: str) -> tuple[Path, float]:
-    """Write the method's run (the one the folder shows, or the run given) as the authors' ``<sequence>_<method>_<run id>.npy`` in the output
-    folder's ``exports/``, and return it with the AP it states: their keys, with ``inliers`` one count a
-    pair (as their multiprocess evaluation writes it) and no ``all_matches`` (the match coordinates are
-    not in pairs.csv). A run never changes, so the export stays the run's it names."""
+    """Write the method's run (the one the folder shows, or the run given) as the authors'
+    ``<sequence>_<method>_<run id>.npy`` in the output folder's ``exports/``, and return it with the AP it
+    states: their keys, with ``inliers`` one count a pair (as their multiprocess evaluation writes it) and
+    no ``all_matches`` (the match coordinates are not in pairs.csv). A run never changes, so the export
+    stays the run's it names."""
     output_dir = Path(output_dir)
     folder = method_outputs.method_dir(output_dir, method)
     table = scoring.load_pairs_table(folder.parent, method)

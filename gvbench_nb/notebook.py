@@ -168,7 +168,7 @@ def load_sequence(params_file: PathLike | None, **overrides: Any) -> tuple[dict[
     params build it (``sequence_build.prepare_sequence``)."""
     params = load_params(params_file, **overrides)
     sequence = sequence_build.prepare_sequence(params)
-    runs.check_owned(params["output_dir"])  # the notebook writes its figures and tables there
+    runs.claim(params["output_dir"])  # the notebook writes its figures and tables there
     return params, sequence
 
 

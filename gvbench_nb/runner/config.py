@@ -289,9 +289,11 @@ def write_resolved_params(params: dict[str, Any], folder: str | os.PathLike[str]
     YAML the notebooks load (``<output_dir>/params.resolved.yaml``)."""
     keys = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     values = {key: params[key] for key in keys if key in params}
+    source = params.get("params_file")  # params given in code (``run_method_of_params``) have no file
     header = (
-        f"# The params this run used: {params['params_file']} with the command line's overrides.\n"
-        "# Written by `python -m gvbench_nb run`; every notebook of the run loads this file.\n"
-    )
+        f"# The params this run used: {source} with the command line's overrides.\n"
+        if source
+        else "# The params this run used, given in code.\n"
+    ) + "# Written by `python -m gvbench_nb run`; every notebook of the run loads this file.\n"
     text = header + yaml.safe_dump(values, sort_keys=False, allow_unicode=True)
     return atomic_write_text(Path(folder) / RESOLVED_PARAMS_NAME, text)

@@ -248,6 +248,7 @@ def run_sharded(
         threads = max(1, (os.cpu_count() or 1) // (n_workers or os.cpu_count() or 1))
     with dask_client(scheduler, n_workers, processes) as client:
         check_workers(client, params, sequence)
+        runs.claim(params["output_dir"])  # the workers write match stores there before the run is added
         cached = {
             method: cached_work(
                 sequence, method_registry.resolve_method(method, params["profile"], params.get("verifier")),

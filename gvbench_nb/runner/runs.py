@@ -96,6 +96,14 @@ def check_owned(output_dir: str | os.PathLike[str]) -> None:
         )
 
 
+def claim(output_dir: str | os.PathLike[str]) -> None:
+    """Make ``output_dir`` the package's (its ``runs/``) before a writer that adds no run yet writes
+    there (a notebook's figures, a Dask run's match stores), so that the next door takes it."""
+    check_owned(output_dir)
+    if not is_run(output_dir):
+        (Path(output_dir) / RUNS).mkdir(parents=True, exist_ok=True)
+
+
 def _new_id(door: str) -> str:
     stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
     return f"{stamp}-{door}-{secrets.token_hex(3)}"

@@ -12,7 +12,7 @@ import papermill
 import pytest
 
 from gvbench_nb import notebook
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, method_outputs, runs
 
 STAGES = ("01_sequence", "02_verify", "03_evaluate")
 NOTEBOOKS = config.PROJECT_ROOT / "notebooks"
@@ -69,10 +69,12 @@ def test_papermill_runs_the_stage_notebooks_as_they_are_from_the_repository_and_
     options = ["-p", "method", "orb-nn", "-p", "limit", "4", "-p", "output_dir", str(out)]
     elsewhere = [*options, "-p", "cache_dir", str(cache)]
     papermill_cli(cwd, "02_verify", tmp_path / "p.ipynb", "-p", "params_file", params, *elsewhere)
-    written = (out / "orb-nn" / "pairs.csv").read_bytes()
+    written = (method_outputs.method_dir(out, "orb-nn") / "pairs.csv").read_bytes()
     assert written.count(b"\n") == 1 + 4
     papermill_cli(cwd, "02_verify", tmp_path / "f.ipynb", "-f", params, *elsewhere)
-    assert (out / "orb-nn" / "pairs.csv").read_bytes() == written  # the same params: the result found done
+    # The same params: a run of its own, its table made from the same stores.
+    assert len(runs.finished_runs(out)) == 2
+    assert (method_outputs.method_dir(out, "orb-nn") / "pairs.csv").read_bytes() == written
     papermill_cli(cwd, "01_sequence", tmp_path / "none.ipynb")  # no parameters: the sample
     sample_out = Path(config.load_params(config.PROJECT_ROOT / "params" / "sample.yaml")["output_dir"])
     assert (sample_out / "sequence_examples.png").is_file()

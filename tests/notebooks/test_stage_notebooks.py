@@ -19,7 +19,7 @@ from helpers import PAIRS, check_stage_outputs, write_params, write_root
 from gvbench_nb import notebook
 from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.reporting import execute
-from gvbench_nb.runner import config, sequence_build
+from gvbench_nb.runner import config, method_outputs, sequence_build
 
 LIMIT = 24  # pairs of the sample; its first 24 hold true and false ones
 METHOD = "sift-nn"
@@ -42,14 +42,19 @@ def sample_params(tmp_path_factory) -> Path:
     return path
 
 
+def executed_notebooks(stage_run: Path) -> Path:
+    """Where ``stage_run`` keeps the executed notebooks: beside the output folder, which is the package's."""
+    return stage_run.parent / "executed"
+
+
 @pytest.fixture(scope="module")
 def stage_run(sample_params) -> Path:
     """01_sequence, 02_verify and 03_evaluate executed on LIMIT sample pairs; the output folder."""
-    out = sample_params.parent / "out"
+    out, executed = sample_params.parent / "out", sample_params.parent / "executed"
     common = {"params_file": str(sample_params), "limit": LIMIT}
-    execute.execute_notebook("01_sequence.ipynb", out / "01_sequence.ipynb", common)
-    execute.execute_notebook("02_verify.ipynb", out / "02_verify.ipynb", {**common, "method": METHOD})
-    execute.execute_notebook("03_evaluate.ipynb", out / "03_evaluate.ipynb", {"params_file": str(sample_params)})
+    execute.execute_notebook("01_sequence.ipynb", executed / "01_sequence.ipynb", common)
+    execute.execute_notebook("02_verify.ipynb", executed / "02_verify.ipynb", {**common, "method": METHOD})
+    execute.execute_notebook("03_evaluate.ipynb", executed / "03_evaluate.ipynb", {"params_file": str(sample_params)})
     return out
 
 
@@ -60,7 +65,7 @@ def test_stage_notebooks_write_one_row_a_pair_and_the_metrics_those_rows_give(sa
     row = check_stage_outputs(stage_run, METHOD, sequence.pairs)
     assert row["sequence"] == "sample" and row["profile"] == "repository"
     for name in ("01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"):
-        assert errors_in(stage_run / name) == [], name
+        assert errors_in(executed_notebooks(stage_run) / name) == [], name
     figures = ("sequence_positives_per_query.png", "sequence_examples.png", f"inliers_{METHOD}.png", "pr_curves.png")
     for figure in figures:
         assert (stage_run / figure).read_bytes()[:8] == b"\x89PNG\r\n\x1a\n", figure
@@ -208,7 +213,7 @@ def test_a_stage_notebook_given_every_params_key_runs_on_them_from_any_folder(tm
         config.PROJECT_ROOT, "02_verify", tmp_path / "a.ipynb", "-f", str(absolute), "-p", "method", "orb-nn"
     )
     assert f"relative paths are read from {config.PROJECT_ROOT}" in said
-    assert (tmp_path / "kept" / "anywhere" / "out" / "orb-nn" / "pairs.csv").is_file()
+    assert (method_outputs.method_dir(tmp_path / "kept" / "anywhere" / "out", "orb-nn") / "pairs.csv").is_file()
     relative, elsewhere = study(tmp_path / "study", relative=True), tmp_path / "study"
     for stage in ("01_sequence", "02_verify", "03_evaluate"):
         said = papermill_from(

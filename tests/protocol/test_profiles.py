@@ -3,7 +3,6 @@ its verification in resized coordinates."""
 
 from __future__ import annotations
 
-import json
 import math
 
 import cv2
@@ -309,31 +308,28 @@ def test_repository_sift_float32_product_equals_opencv_where_roots_tie():
     assert repository_matches("sift-nn", query, close) == opencv_knn_ratio(query, close, cv2.NORM_L2) == [(0, 2)]
 
 
-def test_a_run_of_another_profile_says_it_replaces_the_folders_results(tmp_path):
-    from gvbench_nb.runner import method_outputs
-
-    for method, profile in (("sift-nn", "repository"), ("orb-nn", "paper")):
-        (tmp_path / method).mkdir()
-        (tmp_path / method / "run.json").write_text(json.dumps({"conf": {"profile": profile}}))
-    (tmp_path / "xfeat-nn").mkdir()
-    (tmp_path / "xfeat-nn" / "run.json").write_text("{not json")  # unreadable: nothing to replace
-    assert method_outputs.replaced_profiles(tmp_path, ["sift-nn", "orb-nn", "xfeat-nn", "disk-nn"], "paper") == {
-        "sift-nn": "repository"
-    }
-
-
 @pytest.mark.shared_outputs  # renders params/sample.yaml's images into outputs/sample
 @pytest.mark.slow
 @pytest.mark.reliability
-def test_cli_notes_a_profile_replaced_in_one_output_folder(tmp_path, capsys):
+def test_cli_names_the_method_a_run_of_another_profile_leaves_out_of_the_table(tmp_path, capsys):
     from gvbench_nb import cli
+    from gvbench_nb.runner import runs
 
-    common = ["run", "params/sample.yaml", "--methods", "orb-nn", "--limit", "4", "--output-dir", str(tmp_path)]
-    assert cli.main(common) == 0
-    assert "note:" not in capsys.readouterr().err
-    assert cli.main([*common, "--profile", "paper"]) == 0
-    err = capsys.readouterr().err
-    assert f"note: {tmp_path / 'orb-nn'} holds repository-profile results; this paper-profile run replaces them" in err
+    out = tmp_path / "out"
+    common = ["run", "params/sample.yaml", "--limit", "4", "--output-dir", str(out)]
+    assert cli.main([*common, "--methods", "orb-nn,sift-nn"]) == 0
+    assert "not in this table" not in capsys.readouterr().err
+    assert cli.main([*common, "--methods", "orb-nn", "--profile", "paper"]) == 0
+    said = capsys.readouterr()
+    (first, _), (second, _) = runs.finished_runs(out)
+    assert [line.split()[:2] for line in said.out.splitlines() if line.startswith(("orb-nn", "sift-nn"))] == [
+        ["orb-nn", "paper"]
+    ]
+    assert (
+        f"not in this table: sift-nn: its latest run {first.name} ran under another recipe ({{'profile': 'repository'"
+        in said.err
+    )
+    assert f"(results {out} --run {first.name})" in said.err
 
 
 def pil_bilinear(channel: np.ndarray, size: tuple[int, int]) -> np.ndarray:

@@ -12,7 +12,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, runs
 
 METHODS = ("orb-nn", "sift-nn")
 LIMIT = 6
@@ -92,6 +92,7 @@ def test_a_run_of_two_methods_computes_each_method_and_pair_once_in_one_process(
         assert counts[("compute_method", method)] == 1 and counts[("pairs_table", method)] == 1
         verified = {what: n for (name, what), n in counts.items() if name == "_verify_pair" and what.startswith(method)}
         assert len(verified) == LIMIT and set(verified.values()) == {1}, verified
-    # The notebooks ran, reading what the run computed.
-    assert all((tmp_path / "out" / f"02_verify_{m}.ipynb").is_file() for m in METHODS)
+    # The notebooks ran in the run, reading what it computed.
+    ((run, _),) = runs.finished_runs(tmp_path / "out")
+    assert all((run / f"02_verify_{m}.ipynb").is_file() for m in METHODS)
     assert sorted(pd.read_csv(tmp_path / "out" / "results.csv")["method"]) == sorted(METHODS)

@@ -21,7 +21,16 @@ import yaml
 
 from gvbench_nb import __version__, methods
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
-from gvbench_nb.runner import concurrency, config, distributed, image_features, method_runs, scoring, sequence_build
+from gvbench_nb.runner import (
+    concurrency,
+    config,
+    distributed,
+    image_features,
+    method_outputs,
+    method_runs,
+    scoring,
+    sequence_build,
+)
 
 METHOD, PROFILE = "sift-nn", "repository"
 
@@ -70,7 +79,7 @@ def test_shards_run_by_hand_then_merged_equal_the_unsharded_run(shared_data, uns
     assert len(merged) == 12 and merged["num_inliers"].max() > 0
     pd.testing.assert_frame_equal(without_timings(merged), without_timings(unsharded))
     assert results["n_pairs"].tolist() == [12]
-    run = pd.read_json(Path(params["output_dir"]) / METHOD / "run.json", typ="series")
+    run = pd.read_json(method_outputs.method_dir(Path(params["output_dir"]), METHOD) / "run.json", typ="series")
     assert run["n_pairs"] == 12 and run["this_run"]["sharded"]
 
 
@@ -84,7 +93,7 @@ def test_dask_local_cluster_run_equals_the_unsharded_run(shared_data, unsharded,
     assert results.set_index("method").loc[METHOD, "ap"] == pytest.approx(
         scoring.evaluate(Path(params["output_dir"]), [METHOD], write=False)["ap"].iat[0]
     )
-    run = pd.read_json(Path(params["output_dir"]) / METHOD / "run.json", typ="series")
+    run = pd.read_json(method_outputs.method_dir(Path(params["output_dir"]), METHOD) / "run.json", typ="series")
     assert [s["shard"] for s in run["this_run"]["shards"]] == ["0/3", "1/3", "2/3"]
     # Every image was extracted exactly once across the extraction shards.
     store = image_features.feature_store(
@@ -99,7 +108,7 @@ def test_merge_with_a_missing_shard_names_the_missing_pairs(shared_data, tmp_pat
     distributed.run_shard(params, 0, 3, threads=1, progress=False)
     with pytest.raises(distributed.ShardError, match=r"8 of 12 pairs have no result.*first: pair 1, "):
         distributed.merge_runs(params)
-    assert not (Path(params["output_dir"]) / METHOD / "pairs.csv").exists()
+    assert scoring.methods_with_results(Path(params["output_dir"])) == []
 
 
 @pytest.mark.reliability

@@ -13,7 +13,7 @@ from gvbench_nb import methods
 from gvbench_nb.data import synthetic
 from gvbench_nb.data.sequences import Sequence, read_pairs
 from gvbench_nb.protocol import registry
-from gvbench_nb.runner import method_runs, scoring
+from gvbench_nb.runner import method_outputs, method_runs, scoring
 
 HERE = Path(__file__).resolve().parent
 
@@ -60,7 +60,7 @@ def test_a_matcher_from_one_file_runs_end_to_end(example_method: str, tiny_sampl
     results = scoring.evaluate(out, [example_method, "sift-mutual"])
     assert list(results["method"]) == [example_method, "sift-mutual"]
     assert results["ap"].nunique() == 1
-    assert (out / example_method / "pairs.csv").is_file()
+    assert (method_outputs.method_dir(out, example_method) / "pairs.csv").is_file()
 
 
 def test_the_conf_records_the_example_type(example_method: str) -> None:
@@ -113,13 +113,13 @@ def test_a_stronger_verifier_reaches_the_results_by_conf(tiny_sample: Sequence, 
         "verifier": {"method": "USAC_MAGSAC"},
     }
     table = method_runs.run_method_of_params(params, tiny_sample, "orb-nn", progress=False)
-    run = json.loads((out / "orb-nn" / "run.json").read_text())
+    run = json.loads((method_outputs.method_dir(out, "orb-nn") / "run.json").read_text())
     assert run["conf"]["verifier"]["method"] == "USAC_MAGSAC"
     default = method_runs.run_method(
         tiny_sample, "orb-nn", "repository", tmp_path / "default", cache, device="cpu", progress=False
     )
     assert (table["num_matches"] == default["num_matches"]).all()  # same matches, another fit
-    default_run = json.loads((tmp_path / "default" / "orb-nn" / "run.json").read_text())
+    default_run = json.loads((method_outputs.method_dir(tmp_path / "default", "orb-nn") / "run.json").read_text())
     assert default_run["conf"]["verifier"]["method"] == "FM_RANSAC"
 
 

@@ -21,7 +21,16 @@ from helpers import PAIRS, check_stage_outputs, cli_error, photo, write_params, 
 from gvbench_nb import cli, methods, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError
-from gvbench_nb.runner import config, image_features, method_runs, pair_matching, scoring, sequence_build
+from gvbench_nb.runner import (
+    config,
+    image_features,
+    method_outputs,
+    method_runs,
+    pair_matching,
+    runs,
+    scoring,
+    sequence_build,
+)
 from gvbench_nb.runner import store as store_module
 from gvbench_nb.runner.store import ShardedStore, StoreCorruptError
 
@@ -39,8 +48,13 @@ def run(root: Path, work: Path, pairs: list[Pair] = PAIRS, seed: int = 0) -> pd.
     )
 
 
+def method_dir(output_dir: Path) -> Path:
+    """The folder of METHOD's results the output folder shows (its current run's)."""
+    return method_outputs.method_dir(output_dir, METHOD)
+
+
 def this_run(work: Path) -> dict:
-    return json.loads((work / "out" / METHOD / "run.json").read_text())["this_run"]
+    return json.loads((method_dir(work / "out") / "run.json").read_text())["this_run"]
 
 
 # ------------------------------------------------------- 1, 2: content-keyed caches --
@@ -134,7 +148,7 @@ def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root
     params = config.load_params(write_params(tmp_path, image_root=str(root)))
     sequence = sequence_build.prepare_sequence(params)
     method_runs.run_method_of_params({**params, "device": "cpu"}, sequence, METHOD, progress=False, threads=1)
-    recorded = json.loads((Path(params["output_dir"]) / METHOD / "run.json").read_text())
+    recorded = json.loads((method_dir(Path(params["output_dir"])) / "run.json").read_text())
     assert recorded["pairs"]["pairs_sha256"] == hashlib.sha256(pairs_file.read_bytes()).hexdigest()
     assert recorded["pairs"]["pairs_file"] == str(pairs_file)
     assert recorded["pairs"]["builder_options"] == {} and recorded["pairs"]["pairs_builder"] is None
@@ -169,10 +183,10 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
     assert sorted(by_notebook) == ["01_sequence.ipynb", "02_verify.ipynb", "03_evaluate.ipynb"]
     assert by_notebook["02_verify.ipynb"]["result_written"] and by_notebook["03_evaluate.ipynb"]["result_written"]
     assert all(s == {**s, "image_root": str(root), "limit": 3, "profile": "repository"} for s in seen)
-    # The notebooks write into the run's stage inside the output folder; the published params name the folder.
-    stages = {Path(s["output_dir"]) for s in seen}
-    assert len(stages) == 1 and next(iter(stages)).parent == out and next(iter(stages)).name.startswith(".run-")
-    published = yaml.safe_load((out / config.RESOLVED_PARAMS_NAME).read_text())
+    # The notebooks write into the run being built inside the output folder; the run's params name the folder.
+    building = {Path(s["output_dir"]) for s in seen}
+    assert building == {out / runs.RUNS / f"{runs.BUILDING}{runs.run_id(next(iter(building)))}"}
+    published = yaml.safe_load(runs.resolved_params(out).read_text())
     assert published["image_root"] == str(root) and published["output_dir"] == str(out)
 
 
@@ -196,7 +210,7 @@ def test_image_root_given_on_the_command_line_reaches_the_real_notebooks(root, t
     results = pd.read_csv(tmp_path / "out" / "results.csv")
     assert list(results["method"]) == [METHOD]
     check_stage_outputs(tmp_path / "out", METHOD, PAIRS)  # one row a pair, metrics recomputed from them
-    assert json.loads((tmp_path / "out" / METHOD / "run.json").read_text())["image_root"] == str(root)
+    assert json.loads((method_dir(tmp_path / "out") / "run.json").read_text())["image_root"] == str(root)
 
 
 def test_the_stage_notebooks_load_the_params_file_they_are_given():
@@ -262,7 +276,7 @@ def test_a_run_that_fails_leaves_the_previous_results_whole_and_says_where_its_w
     out = tmp_path / "work" / "out"
     run_first = run(root, tmp_path / "work")  # an earlier finished run in the same folder
     scoring.evaluate(out)
-    before = {p: p.read_bytes() for p in (out / METHOD / "pairs.csv", out / METHOD / "run.json", out / "results.csv")}
+    before = {p: p.read_bytes() for p in [*(out / runs.RUNS).rglob("*"), out / "results.csv"] if p.is_file()}
     assert len(run_first) == 4
 
     def kernel_dies(name, output_path, parameters):
@@ -273,18 +287,11 @@ def test_a_run_that_fails_leaves_the_previous_results_whole_and_says_where_its_w
     with pytest.raises(RuntimeError, match="kernel died"):
         cli.main(["run", str(params_path), "--output-dir", str(out)])
     said = capsys.readouterr().err
-    assert f"{out} still holds the previous run's results" in said
-    stages = [p for p in out.iterdir() if p.name.startswith(".run-")]
-    assert len(stages) == 1 and str(stages[0]) in said
-    assert {p: p.read_bytes() for p in before} == before
+    assert f"{out} shows what it showed before" in said
+    aside = list((out / runs.RUNS).glob(f"{runs.BUILDING}*"))
+    assert len(aside) == 1 and str(aside[0]) in said
+    assert {p: p.read_bytes() for p in before} == before and len(runs.finished_runs(out)) == 1
     assert cli.main(["results", str(out)]) == 0
-
-
-def test_results_refuses_a_method_folder_with_pairs_but_no_run_record(root, tmp_path, capsys):
-    run(root, tmp_path / "work")
-    (tmp_path / "work" / "out" / METHOD / "run.json").unlink()
-    assert cli.main(["results", str(tmp_path / "work" / "out")]) == 2
-    assert "run.json is missing beside pairs.csv" in capsys.readouterr().err
 
 
 # ------------------------------------------------------------- 6: verified stores --
@@ -396,7 +403,7 @@ def test_a_user_error_is_one_sentence(tmp_path, capsys, valid, case):
     elif case == "no results":
         nowhere.mkdir()
         argv = ["results", str(nowhere)]
-        expected = [f"{nowhere} holds no gvbench-run.json, so no gvbench-nb run wrote it"]
+        expected = [f"{nowhere} holds no method results"]
     else:
         argv += ["--image-root", str(nowhere)]
         expected = [f"image_root {nowhere} does not exist", "--image-root"]

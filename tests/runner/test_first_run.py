@@ -13,15 +13,46 @@ from pathlib import Path
 import cv2
 import pandas as pd
 import pytest
-from test_run_record import in_process_notebooks, params_file, run_cli
+import yaml
+from helpers import PAIRS
 
-from gvbench_nb import notebook, run_and_publish
-from gvbench_nb.data.sequences import Pair, Sequence
+from gvbench_nb import cli, notebook, run_and_publish
+from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.io_utils import progress_bar
-from gvbench_nb.runner import config, image_features, record
+from gvbench_nb.runner import config, image_features, method_outputs, method_runs, runs, scoring, sequence_build
 
 pytestmark = pytest.mark.reliability
 PROJECT = Path(__file__).resolve().parents[2]
+
+
+def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
+    """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
+    params = config.load_params(parameters["params_file"])
+    if name == "02_verify.ipynb":
+        sequence = sequence_build.prepare_sequence(params)
+        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
+    elif name == "03_evaluate.ipynb":
+        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
+    output_path.write_text(json.dumps({"executed": name}))
+
+
+def params_file(tmp_path: Path, name: str = "params.yaml", pairs: list[Pair] = PAIRS, **changes) -> Path:
+    """orb-nn (repository profile, cpu) on ``tmp_path/images`` and ``pairs``, ``changes`` applied."""
+    pairs_path = tmp_path / f"{Path(name).stem}-pairs.txt"
+    write_pairs(pairs_path, pairs)
+    params = {"sequence": "photos", "image_root": str(tmp_path / "images"), "pairs": str(pairs_path)}
+    params |= {"methods": ["orb-nn"], "profile": "repository", "device": "cpu"}
+    params |= {"output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache"), **changes}
+    path = tmp_path / name
+    path.write_text(yaml.safe_dump(params))
+    return path
+
+
+def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
+    capsys.readouterr()
+    code = cli.main(list(argv))
+    said = capsys.readouterr()
+    return code, said.out, said.err
 
 
 @pytest.fixture
@@ -30,7 +61,7 @@ def notebooks_here(monkeypatch):
 
 
 def extracted(output_dir: Path, method: str = "orb-nn") -> int:
-    run = json.loads((output_dir / method / "run.json").read_text())
+    run = json.loads((method_outputs.method_dir(output_dir, method) / "run.json").read_text())
     return run["this_run"]["extraction"]["extracted"]
 
 
@@ -64,7 +95,7 @@ def test_a_run_estimated_over_ten_minutes_says_so_with_its_estimate_before_any_w
         cv2.imwrite(str(root / "query" / f"{frame}.png"), photo)
     pairs = [Pair(f"query/{frame}.png", f"reference/{r}.png", int(r == "a")) for frame in range(40) for r in "ab"]
     path = params_file(tmp_path, pairs=pairs, methods=["disk-nn", "disk-lg"])
-    monkeypatch.setattr(record, "claim", lambda folder: pytest.fail("the note comes before the folder is claimed"))
+    monkeypatch.setattr(runs, "start", lambda *args: pytest.fail("the note comes before the run's folder is made"))
     with pytest.raises(pytest.fail.Exception):
         run_cli(capsys, "run", str(path))
     said = capsys.readouterr()

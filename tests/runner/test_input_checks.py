@@ -21,7 +21,7 @@ from gvbench_nb import cli
 from gvbench_nb.data import build_inputs
 from gvbench_nb.data.sequences import MissingImagesError, PairFileError, Sequence, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError, read_image
-from gvbench_nb.runner import config, image_features, input_checks, sequence_build
+from gvbench_nb.runner import config, image_features, input_checks, scoring, sequence_build
 
 pytestmark = pytest.mark.reliability
 
@@ -133,7 +133,8 @@ def test_a_run_failing_in_a_fresh_folder_claims_no_previous_results(tmp_path, ro
         cli.main(["run", str(write_params(tmp_path))])
     said = capsys.readouterr().err
     assert "previous" not in said
-    assert f"the run did not finish: {tmp_path / 'out'} holds no results (none were before); this run's" in said
+    assert f"the run did not finish: {tmp_path / 'out'} shows what it showed before; this run's" in said
+    assert scoring.methods_with_results(tmp_path / "out") == [] and not (tmp_path / "out" / "results.csv").exists()
 
 
 # ------------------------------------------------ method names, and how fast --

@@ -14,7 +14,16 @@ from helpers import check_stage_outputs
 
 from gvbench_nb import methods
 from gvbench_nb.data.sequences import Pair, Sequence, read_pairs
-from gvbench_nb.runner import concurrency, config, image_features, method_runs, scoring, sequence_build
+from gvbench_nb.runner import (
+    concurrency,
+    config,
+    image_features,
+    method_outputs,
+    method_runs,
+    runs,
+    scoring,
+    sequence_build,
+)
 from gvbench_nb.runner.store import ShardedStore
 
 PAIRS_COLUMNS = {"query", "reference", "label", "num_matches", "num_inliers", "score", "extract_seconds"}
@@ -36,15 +45,15 @@ def gardens_point(shared_data: Path, queries=(40, 120), far=60) -> Sequence:
 def test_second_run_extracts_and_matches_nothing(shared_data, tmp_path):
     sequence = gardens_point(shared_data)
     first = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
-    run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
+    run = pd.read_json(method_outputs.method_dir(tmp_path / "out", "sift-nn") / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 8, "cached": 0, "extracted": 8}
     # Extraction time is amortised over the pairs of each image.
     store = image_features.feature_store(tmp_path / "cache", methods.resolve_method("sift-nn")["extractor"])
     total = sum(float(store.read(k)["attr:seconds"]) for k in store.keys())
     assert first["extract_seconds"].sum() == pytest.approx(total, rel=1e-6)
-    (tmp_path / "out" / "sift-nn" / "run.json").unlink()  # else the finished result is found done
+    # A second run into the folder adds a run of its own, made from the caches.
     second = method_runs.run_method(sequence, "sift-nn", "paper", tmp_path / "out", tmp_path / "cache", progress=False)
-    run = pd.read_json(tmp_path / "out" / "sift-nn" / "run.json", typ="series")
+    run = pd.read_json(method_outputs.method_dir(tmp_path / "out", "sift-nn") / "run.json", typ="series")
     assert run["this_run"]["extraction"] == {"images": 8, "cached": 8, "extracted": 0}
     assert run["this_run"]["matching"] == {"pairs": 6, "cached": 6, "matched": 0}
     pd.testing.assert_frame_equal(first, second)
@@ -98,14 +107,16 @@ def test_cli_run_writes_the_results_contract(shared_data, tmp_path):
     assert f"results table: {output / 'results.csv'}" in completed.stdout
     results = pd.read_csv(output / "results.csv")
     assert set(results.columns) >= RESULTS_COLUMNS
-    pairs = pd.read_csv(output / "sift-nn" / "pairs.csv")
+    pairs = pd.read_csv(method_outputs.method_dir(output, "sift-nn") / "pairs.csv")
     assert set(pairs.columns) >= PAIRS_COLUMNS
     sequence = sequence_build.prepare_sequence(config.load_params(params, limit=24))
     assert len(sequence.pairs) == 24
     check_stage_outputs(output, "sift-nn", sequence.pairs)  # one row a pair, metrics recomputed from them
     notebooks = ["01_sequence.ipynb", "02_verify_sift-nn.ipynb", "03_evaluate.ipynb"]
     figures = ["pr_curves.png", "sequence_examples.png", "inliers_sift-nn.png"]
-    assert [name for name in notebooks + figures if not (output / name).is_file()] == []
+    (run, manifest), *earlier = runs.finished_runs(output)
+    assert earlier == [] and manifest["door"] == "run" and manifest["methods"] == ["sift-nn"]
+    assert [name for name in notebooks + figures if not (run / name).is_file()] == []
 
 
 def tiny_sequence(root: Path) -> Sequence:
@@ -116,9 +127,10 @@ def tiny_sequence(root: Path) -> Sequence:
 
 
 def test_run_method_finds_its_finished_result_done_without_torch_and_redoes_another(tmp_path):
-    """What ``run`` does: the method computed in one process, then its notebook's run_method finds it done."""
+    """What ``run`` does: the method computed in one process into the run being built, then its
+    notebook's run_method (given that run as its output folder) finds it done."""
     sequence = tiny_sequence(tmp_path / "data")
-    out, cache = tmp_path / "out", tmp_path / "cache"
+    out, cache = runs.start(tmp_path / "out", "run"), tmp_path / "cache"
     first = method_runs.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
     written = {name: (out / "sift-nn" / name).read_bytes() for name in ("pairs.csv", "run.json")}
     code = (

@@ -33,7 +33,7 @@ from gvbench_nb.runner import (
     method_outputs,
     method_runs,
     pair_matching,
-    record,
+    runs,
     scoring,
     sequence_build,
 )
@@ -306,11 +306,12 @@ def test_a_run_hitting_a_bad_image_names_it_and_keeps_the_finished_results(small
 
 def _evaluate_with_labels(baseline_out: Path, tmp_path: Path, label: int) -> Path:
     out = tmp_path / f"only_{label}"
-    folder = method_outputs.method_dir(out, METHOD)
-    folder.mkdir(parents=True)
+    building = runs.start(out, "run")
+    (building / METHOD).mkdir()
     table = scoring.load_pairs_table(baseline_out, METHOD)
-    table[table["label"] == label].to_csv(folder / "pairs.csv", index=False)
-    shutil.copy(method_outputs.method_dir(baseline_out, METHOD) / "run.json", folder / "run.json")
+    table[table["label"] == label].to_csv(building / METHOD / "pairs.csv", index=False)
+    shutil.copy(method_outputs.method_dir(baseline_out, METHOD) / "run.json", building / METHOD / "run.json")
+    runs.finish(building)
     return out
 
 
@@ -407,7 +408,7 @@ def test_two_processes_writing_the_same_cache_and_output_at_once_corrupt_nothing
     assert_store_matches(matches, reference_matches)
     assert_same_pairs(tmp_path / "out", baseline["out"])
     leftovers = [p.name for p in (tmp_path / "out").rglob(".*")] + [p.name for p in (tmp_path / "cache").rglob(".*")]
-    assert [name for name in leftovers if name not in record.OWN_NAMES] == []  # the folder's record and locks stay
+    assert leftovers == []  # no run left aside, no temporary file
 
 
 # ------------------------------------------------------------- 4. determinism --

@@ -13,46 +13,15 @@ from pathlib import Path
 import cv2
 import pandas as pd
 import pytest
-import yaml
-from helpers import PAIRS
+from helpers import in_process_notebooks, params_file, run_cli
 
 from gvbench_nb import cli, notebook, run_and_publish
-from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
+from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.io_utils import progress_bar
-from gvbench_nb.runner import config, image_features, method_outputs, method_runs, runs, scoring, sequence_build
+from gvbench_nb.runner import config, image_features, method_outputs, runs, sequence_build
 
 pytestmark = pytest.mark.reliability
 PROJECT = Path(__file__).resolve().parents[2]
-
-
-def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
-    """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
-    params = config.load_params(parameters["params_file"])
-    if name == "02_verify.ipynb":
-        sequence = sequence_build.prepare_sequence(params)
-        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
-    elif name == "03_evaluate.ipynb":
-        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
-    output_path.write_text(json.dumps({"executed": name}))
-
-
-def params_file(tmp_path: Path, name: str = "params.yaml", pairs: list[Pair] = PAIRS, **changes) -> Path:
-    """orb-nn (repository profile, cpu) on ``tmp_path/images`` and ``pairs``, ``changes`` applied."""
-    pairs_path = tmp_path / f"{Path(name).stem}-pairs.txt"
-    write_pairs(pairs_path, pairs)
-    params = {"sequence": "photos", "image_root": str(tmp_path / "images"), "pairs": str(pairs_path)}
-    params |= {"methods": ["orb-nn"], "profile": "repository", "device": "cpu"}
-    params |= {"output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache"), **changes}
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(params))
-    return path
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    capsys.readouterr()
-    code = cli.main(list(argv))
-    said = capsys.readouterr()
-    return code, said.out, said.err
 
 
 @pytest.fixture
@@ -108,7 +77,7 @@ def test_a_run_estimated_over_ten_minutes_says_so_with_its_estimate_before_any_w
 
 
 def test_the_params_files_default_methods_are_estimated_within_minutes(shared_data, tmp_path):
-    from gvbench_nb.runner import run_estimate, sequence_build
+    from gvbench_nb.runner import run_estimate
 
     for name in ("gardens_point", "gardens_point_viewpoint", "gardens_point_night_viewpoint", "sample"):
         params = config.load_params(PROJECT / "params" / f"{name}.yaml", output_dir=str(tmp_path / name))
@@ -162,7 +131,6 @@ def test_status_lines_and_progress_bars_each_start_their_own_line():
 
 
 def test_data_fetch_quiet_prints_nothing_when_every_file_is_there(tmp_path, capsys, monkeypatch):
-    from gvbench_nb import cli
     from gvbench_nb.data import fetch
 
     monkeypatch.setattr(fetch, "fetch", lambda names, **options: dict.fromkeys(names, 0))

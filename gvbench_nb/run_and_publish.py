@@ -67,7 +67,16 @@ def execute_run_notebooks(
 
 
 def command_run(args: argparse.Namespace) -> int:
-    from gvbench_nb.runner import config, distributed, input_checks, method_runs, runs, scoring, sequence_build
+    from gvbench_nb.runner import (
+        config,
+        distributed,
+        image_features,
+        input_checks,
+        method_runs,
+        runs,
+        scoring,
+        sequence_build,
+    )  # fmt: skip
 
     # Weights, vismatch, the device, the folders and, for a pair file, every image were checked before
     # any work (``check_before_work``, which hands on the params and what it found): nothing half-runs.
@@ -83,6 +92,9 @@ def command_run(args: argparse.Namespace) -> int:
         distributed.check_cluster(args.scheduler, params, sequence)
     input_checks.check_writable_folder(params, "output_dir")
     input_checks.check_writable_folder(params, "cache_dir")
+    # What the decoder said in the checks before work, kept in the cache now that it exists.
+    keys = image_features.image_keys(sequence, params["cache_dir"])
+    input_checks.decoder_messages(sequence, keys, Path(params["cache_dir"]))
     announce_run(params, sequence)
     if distributed.wants_scale_out(args):  # shards and Dask skip the notebooks
         distributed.run_from_cli(args, params)

@@ -68,6 +68,7 @@ def decoder_message(path: str | os.PathLike[str]) -> str:
 
 
 DECODER_CHECKS = "decoder-checks.json"  # in the cache folder: content key -> what its decoder said ("" nothing)
+_decoded: dict[str, str] = {}  # this process's answers: kept once the cache folder exists (checks run before it does)
 
 
 def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) -> dict[str, str]:
@@ -78,14 +79,17 @@ def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) 
         known = json.loads(path.read_text(encoding="utf-8"))
     except (OSError, ValueError):
         known = {}
-    known = known if isinstance(known, dict) else {}
+    saved = known if isinstance(known, dict) else {}
+    known = {**_decoded, **saved}
     unknown = {key: name for name, key in keys.items() if not isinstance(known.get(key), str)}
+    unsaved = any(key not in saved for key in keys.values())
     for key, name in unknown.items():
         try:
             known[key] = decoder_message(Path(sequence.image_root) / name)
         except ImageReadError as error:
             raise ImageReadError(f"{error} ({image_features.first_pair_using(sequence, name)})") from None
-    if unknown and path.parent.is_dir():
+    _decoded.update({key: known[key] for key in keys.values()})
+    if unsaved and path.parent.is_dir():
         atomic_write_json(path, known)  # two runs at once: the later file wins, the other's images are decoded again
     return {name: known[key] for name, key in keys.items() if known[key]}
 
@@ -120,7 +124,7 @@ def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], 
             f"{len(damaged)} of {len(keys)} images of sequence {sequence.name!r} are damaged, first "
             f"{Path(sequence.image_root) / name} ({image_features.first_pair_using(sequence, name)}): its decoder "
             f"said {said!r}; replace it, remove the pairs that use it, or set allow_damaged_images: true in the "
-            "params to score them as decoded (each is then listed in the output folder's gvbench-run.json)"
+            "params to score them as decoded (each is then listed in the run's manifest.json)"
         )
     return damaged
 

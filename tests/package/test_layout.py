@@ -55,11 +55,11 @@ def test_the_layer_contract_finds_an_import_back_up(tmp_path: Path) -> None:
 
 def test_the_stage_contract_finds_a_stage_that_knows_an_output_folder(tmp_path: Path) -> None:
     package = empty_package(tmp_path)
-    (package / "runner" / "pair_matching.py").write_text("def store():\n    from gvbench_nb.runner import record\n")
+    (package / "runner" / "pair_matching.py").write_text("def store():\n    from gvbench_nb.runner import runs\n")
     result = lint_imports(tmp_path)
     assert result.returncode != 0
     assert "the stages know no output folder BROKEN" in result.stdout
-    assert "gvbench_nb.runner.pair_matching -> gvbench_nb.runner.record" in result.stdout
+    assert "gvbench_nb.runner.pair_matching -> gvbench_nb.runner.runs" in result.stdout
 
 
 def test_each_stage_is_a_folder_of_the_package() -> None:

@@ -378,7 +378,7 @@ def test_a_damaged_shard_is_reported_by_name_not_read(tmp_path):
         writer.put("a", {"x": np.arange(3)})
     damaged = tmp_path / "s" / f"shard-1-damaged{store_module.SHARD_SUFFIX}"
     damaged.write_bytes(b"\x89HDF\r\n\x1a\n" + b"\x00" * 40)
-    with pytest.raises(StoreCorruptError, match=re.escape(f"cannot read shard {damaged}")) as error:
+    with pytest.raises(StoreCorruptError, match=re.escape(f"shard {damaged} of the store")) as error:
         ShardedStore(tmp_path / "s").refresh()
     assert "Delete that file" in str(error.value)
 

@@ -115,7 +115,7 @@ def check_distinct_contents(
 def check_image_contents(sequence: Sequence, cache_dir: str | os.PathLike[str], allow_damaged: bool) -> dict[str, str]:
     """Refuse a pair of two images with one content with file:line (``check_distinct_contents``), and an
     image whose decoder fails, or warns unless ``allow_damaged``. Returns the damaged images allowed
-    (name -> what the decoder said), for the run's record."""
+    (name -> what the decoder said), for the run's manifest."""
     keys = check_distinct_contents(sequence, cache_dir=cache_dir)
     damaged = decoder_messages(sequence, keys, Path(cache_dir))
     if damaged and not allow_damaged:

@@ -1,5 +1,5 @@
-"""A method's folder in an output folder: its name, the columns of its per-pair table, and the
-check that its results are whole."""
+"""A method's results: where they are read (its current run's folder), the columns of its per-pair
+table, and the error when there are none."""
 
 from __future__ import annotations
 
@@ -43,13 +43,5 @@ def read_run_json(output_dir: Path, method: str) -> dict[str, Any]:
     return json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
 
 
-FINISHED_OUTPUTS = ("pairs.csv", "run.json")
-
-
-def result_files(method: str) -> list[str]:
-    """A method's finished outputs as the folder's record names them (relative to the folder)."""
-    return [f"{method}/{name}" for name in FINISHED_OUTPUTS]
-
-
 class ResultsError(GVBenchError, FileNotFoundError):
-    """An output folder holds no results, or a method's results are unfinished or partial."""
+    """An output folder holds no results of a method, or none at all."""

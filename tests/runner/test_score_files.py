@@ -5,19 +5,19 @@ the rules imported pairs obey, on eight real Gardens Point pairs (``GP8``)."""
 from __future__ import annotations
 
 import hashlib
-import json
 import os
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
+from helpers import in_process_notebooks, one_sentence, run_cli, snapshot
 from sklearn.metrics import average_precision_score, precision_recall_curve
 
-from gvbench_nb import cli, run_and_publish
+from gvbench_nb import run_and_publish
 from gvbench_nb.data import synthetic
 from gvbench_nb.protocol.metrics import evaluate_scores
-from gvbench_nb.runner import config, method_outputs, method_runs, runs, scoring, sequence_build
+from gvbench_nb.runner import method_outputs, runs, scoring
 
 QUERIES = [f"night/{i:03d}.png" for i in (0, 0, 1, 1, 2, 2)]
 REFERENCES = [f"day/{i:03d}.png" for i in (0, 5, 1, 6, 2, 7)]
@@ -25,36 +25,9 @@ LABELS = [1, 0, 1, 0, 1, 0]
 INLIERS = [40, 12, 9, 15, 30, 3]  # a false pair above a true one: MR below 1
 
 
-def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
-    """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
-    params = config.load_params(parameters["params_file"])
-    if name == "02_verify.ipynb":
-        sequence = sequence_build.prepare_sequence(params)
-        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
-    elif name == "03_evaluate.ipynb":
-        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
-    output_path.write_text(json.dumps({"executed": name}))
-
-
 @pytest.fixture
 def notebooks_here(monkeypatch):
     monkeypatch.setattr(run_and_publish, "execute_notebook", in_process_notebooks)
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    capsys.readouterr()
-    code = cli.main(list(argv))
-    said = capsys.readouterr()
-    return code, said.out, said.err
-
-
-def one_sentence(err: str) -> str:
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    return err
-
-
-def snapshot(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 def hashes(folder: Path) -> dict[str, str]:

@@ -13,53 +13,23 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from helpers import PAIRS, assert_nothing_written
+from helpers import (
+    FLIPPED,
+    PAIRS,
+    assert_nothing_written,
+    in_process_notebooks,
+    one_sentence,
+    params_file,
+    run_cli,
+    snapshot,
+)
 
-from gvbench_nb import cli, notebook, run_and_publish
+from gvbench_nb import notebook, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, write_pairs
 from gvbench_nb.reporting import report
-from gvbench_nb.runner import config, input_checks, method_outputs, method_runs, runs, scoring, sequence_build
+from gvbench_nb.runner import config, input_checks, method_outputs, runs, sequence_build
 
 pytestmark = pytest.mark.reliability
-FLIPPED = [Pair(p.query, p.reference, 1 - p.label) for p in PAIRS]
-
-
-def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
-    """What the stage notebooks compute, here: 02_verify runs its method, 03_evaluate evaluates."""
-    params = config.load_params(parameters["params_file"])
-    if name == "02_verify.ipynb":
-        sequence = sequence_build.prepare_sequence(params)
-        method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)
-    elif name == "03_evaluate.ipynb":
-        scoring.evaluate(Path(params["output_dir"]), parameters.get("methods"))
-    output_path.write_text(json.dumps({"executed": name}))
-
-
-def params_file(tmp_path: Path, name: str = "params.yaml", pairs: list[Pair] = PAIRS, **changes) -> Path:
-    pairs_path = tmp_path / f"{Path(name).stem}-pairs.txt"
-    write_pairs(pairs_path, pairs)
-    params = {"sequence": "photos", "image_root": str(tmp_path / "images"), "pairs": str(pairs_path)}
-    params |= {"methods": ["orb-nn"], "profile": "repository", "device": "cpu"}
-    params |= {"output_dir": str(tmp_path / "out"), "cache_dir": str(tmp_path / "cache"), **changes}
-    path = tmp_path / name
-    path.write_text(yaml.safe_dump(params))
-    return path
-
-
-def run_cli(capsys, *argv: str) -> tuple[int, str, str]:
-    capsys.readouterr()
-    code = cli.main(list(argv))
-    said = capsys.readouterr()
-    return code, said.out, said.err
-
-
-def one_sentence(err: str) -> str:
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    return err
-
-
-def snapshot(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
 @pytest.fixture

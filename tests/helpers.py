@@ -3,6 +3,9 @@
 from __future__ import annotations
 
 import json
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import cv2
@@ -265,3 +268,24 @@ def two_view_scene(n_inliers=150, n_outliers=60, seed=0):
     p0 = p0 + rng.normal(0, 0.3, p0.shape)
     p1 = p1 + rng.normal(0, 0.3, p1.shape)
     return with_outlier_matches(rng, p0, p1, n_outliers)
+
+
+def papermill_process(cwd: Path, notebook: str | Path, output: Path, *arguments: str) -> subprocess.CompletedProcess:
+    """``papermill NOTEBOOK OUTPUT ARGUMENTS`` run in ``cwd`` (one job, one thread), checked to succeed."""
+    done = subprocess.run(
+        [sys.executable, "-m", "papermill", str(notebook), str(output), *map(str, arguments)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        cwd=cwd,
+        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", "GVBENCH_JOBS": "1"},
+    )
+    assert done.returncode == 0, done.stderr[-3000:]
+    return done
+
+
+def papermill_from(cwd: Path, stage: str, output: Path, *arguments: str) -> str:
+    """``papermill notebooks/STAGE.ipynb OUTPUT ARGUMENTS`` run in ``cwd``; what the notebook printed."""
+    papermill_process(cwd, config.PROJECT_ROOT / "notebooks" / f"{stage}.ipynb", output, *arguments)
+    cells = json.loads(output.read_text())["cells"]
+    return "".join("".join(o.get("text", "")) for c in cells for o in c.get("outputs", []) if o.get("name") == "stdout")

@@ -4,7 +4,6 @@ root or any other folder; its relative paths are read from the working folder, w
 
 from __future__ import annotations
 
-import json
 import os
 import subprocess
 import sys
@@ -12,7 +11,7 @@ from pathlib import Path
 
 import pytest
 import yaml
-from helpers import PAIRS, write_root
+from helpers import PAIRS, papermill_from, write_root
 
 from gvbench_nb.data.sequences import write_pairs
 from gvbench_nb.runner import config
@@ -31,22 +30,6 @@ def complete_params(folder: Path, relative_to: Path | None = None) -> Path:
     path = folder / "p.yaml"
     path.write_text(yaml.safe_dump(keys, sort_keys=False))
     return path
-
-
-def papermill(cwd: Path, output: Path, params: Path) -> str:
-    """``papermill notebooks/02_verify.ipynb OUTPUT -f PARAMS -p method orb-nn`` in ``cwd``; what it printed."""
-    done = subprocess.run(
-        [sys.executable, "-m", "papermill", str(config.PROJECT_ROOT / "notebooks" / "02_verify.ipynb"), str(output)]
-        + ["-f", str(params), "-p", "method", "orb-nn"],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=cwd,
-        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", "GVBENCH_JOBS": "1"},
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    cells = json.loads(output.read_text())["cells"]
-    return "".join("".join(o.get("text", "")) for c in cells for o in c.get("outputs", []) if o.get("name") == "stdout")
 
 
 def results_row(output_dir: Path, method: str) -> dict[str, str]:
@@ -69,7 +52,16 @@ def results_row(output_dir: Path, method: str) -> dict[str, str]:
 @pytest.mark.reliability
 def test_a_complete_params_file_kept_elsewhere_runs_02_verify_from_the_repository_root(tmp_path):
     study = tmp_path / "my" / "study"
-    said = papermill(config.PROJECT_ROOT, tmp_path / "02_verify.ipynb", complete_params(study))
+    said = papermill_from(
+        config.PROJECT_ROOT,
+        "02_verify",
+        tmp_path / "02_verify.ipynb",
+        "-f",
+        complete_params(study),
+        "-p",
+        "method",
+        "orb-nn",
+    )
     assert f"the notebook's parameters (no params_file); relative paths are read from {config.PROJECT_ROOT}" in said
     row = results_row(study / "out", "orb-nn")
     assert row["n_pairs"] == "4" and row["profile"] == "paper"
@@ -81,7 +73,7 @@ def test_a_complete_params_file_with_relative_paths_runs_02_verify_from_another_
     elsewhere.mkdir()
     params = complete_params(tmp_path / "my" / "study", relative_to=elsewhere)
     assert yaml.safe_load(params.read_text())["output_dir"] == "../my/study/out"
-    said = papermill(elsewhere, tmp_path / "02_verify.ipynb", params)
+    said = papermill_from(elsewhere, "02_verify", tmp_path / "02_verify.ipynb", "-f", params, "-p", "method", "orb-nn")
     assert f"the notebook's parameters (no params_file); relative paths are read from {elsewhere}" in said
     row = results_row(tmp_path / "my" / "study" / "out", "orb-nn")
     assert row["n_pairs"] == "4" and row["profile"] == "paper"

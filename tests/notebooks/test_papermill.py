@@ -5,11 +5,11 @@ from __future__ import annotations
 
 import os
 import subprocess
-import sys
 from pathlib import Path
 
 import papermill
 import pytest
+from helpers import papermill_process
 
 from gvbench_nb import notebook
 from gvbench_nb.runner import config, method_outputs, runs
@@ -45,16 +45,7 @@ def test_a_params_files_keys_read_as_that_file_from_any_folder(monkeypatch, tmp_
 
 
 def papermill_cli(cwd: Path, stage: str, output: Path, *arguments: str) -> subprocess.CompletedProcess:
-    notebook_path = os.path.relpath(NOTEBOOKS / f"{stage}.ipynb", cwd)
-    done = subprocess.run(
-        [sys.executable, "-m", "papermill", notebook_path, str(output), *arguments],
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=cwd,
-        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", "GVBENCH_JOBS": "1"},
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
+    done = papermill_process(cwd, os.path.relpath(NOTEBOOKS / f"{stage}.ipynb", cwd), output, *arguments)
     assert "unknown parameter" not in done.stderr
     return done
 

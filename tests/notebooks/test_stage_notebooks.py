@@ -4,9 +4,6 @@ with results.csv; an analysis notebook whose results are missing names the comma
 from __future__ import annotations
 
 import json
-import os
-import subprocess
-import sys
 from pathlib import Path
 from typing import Optional
 
@@ -14,7 +11,7 @@ import numpy as np
 import pandas as pd
 import pytest
 import yaml
-from helpers import PAIRS, check_stage_outputs, write_params, write_root
+from helpers import PAIRS, check_stage_outputs, papermill_from, write_params, write_root
 
 from gvbench_nb import notebook
 from gvbench_nb.data.sequences import write_pairs
@@ -187,22 +184,6 @@ def test_every_params_key_given_without_a_params_file_are_the_params_relative_to
     assert "give every key (-f PARAMS.yaml), or the params file of these parameters (-p params_file PATH)" in str(
         error.value
     )
-
-
-def papermill_from(cwd: Path, stage: str, output: Path, *arguments: str) -> str:
-    """``papermill notebooks/STAGE.ipynb OUTPUT ARGUMENTS`` run in ``cwd``; what the notebook printed."""
-    done = subprocess.run(
-        [sys.executable, "-m", "papermill", str(config.PROJECT_ROOT / "notebooks" / f"{stage}.ipynb"), str(output)]
-        + list(arguments),
-        capture_output=True,
-        text=True,
-        timeout=600,
-        cwd=cwd,
-        env={**os.environ, "PYTHONPATH": str(config.PROJECT_ROOT), "GVBENCH_THREADS": "1", "GVBENCH_JOBS": "1"},
-    )
-    assert done.returncode == 0, done.stderr[-3000:]
-    cells = json.loads(output.read_text())["cells"]
-    return "".join("".join(o.get("text", "")) for c in cells for o in c.get("outputs", []) if o.get("name") == "stdout")
 
 
 @pytest.mark.slow

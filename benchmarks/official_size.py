@@ -80,7 +80,9 @@ def write_sequence(out: Path, root: Path, n_pairs: int, frames: int | None) -> P
 
 def disk_mib(*folders: Path) -> float:
     files = (p for folder in folders for p in folder.rglob("*") if p.is_file())
-    return round(sum(p.stat().st_size for p in files) / 2**20, 1)
+    return round(
+        sum(p.stat().st_size for p in files) / 2**20, 2
+    )  # two decimals: a few dozen pairs store some kilobytes
 
 
 def run_once(

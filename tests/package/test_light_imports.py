@@ -15,6 +15,8 @@ from typing import Any
 import pandas as pd
 import pytest
 
+from gvbench_nb.runner import method_outputs
+
 PROJECT = Path(__file__).resolve().parents[2]
 HEAVY = ("torch", "kornia", "sklearn", "seaborn", "matplotlib")
 
@@ -164,10 +166,10 @@ def test_a_run_imports_torch_once_and_its_notebooks_find_every_result_done(tmp_p
 
     out = tmp_path / "out"
     for method in methods:
-        run = json.loads((out / method / "run.json").read_text())
+        run = json.loads((method_outputs.method_dir(out, method) / "run.json").read_text())
         # run.json records the work this run did, in the command; the notebook found it done.
         assert run["this_run"]["extraction"] == {"images": 7, "cached": 0, "extracted": 7}
         assert run["this_run"]["matching"] == {"pairs": 6, "cached": 0, "matched": 6}
         assert run["environment"]["torch"]
-        assert (out / f"02_verify_{method}.ipynb").is_file()
+        assert (method_outputs.method_dir(out, method).parent / f"02_verify_{method}.ipynb").is_file()
     assert list(pd.read_csv(out / "results.csv")["method"]) == methods

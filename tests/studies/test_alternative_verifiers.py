@@ -13,7 +13,7 @@ from helpers import two_view_scene, with_outlier_matches
 
 from gvbench_nb.data.sequences import Pair, Sequence, frame_index, frame_tolerance_pairs
 from gvbench_nb.protocol.ransac import ESTIMATORS
-from gvbench_nb.runner import method_runs
+from gvbench_nb.runner import method_outputs, method_runs
 from gvbench_nb.studies import alternative_verifiers, verifier_inputs
 
 
@@ -185,7 +185,7 @@ def cached_run(shared_data: Path, tmp_path_factory) -> Path:
 @pytest.mark.reliability
 def test_cached_matches_are_read_from_the_cache_folder_the_run_names(cached_run):
     # The run's cache folder is neither the default one nor a params file's: only its run.json names it.
-    run = json.loads((cached_run / "out" / "sift-nn" / "run.json").read_text())
+    run = json.loads((method_outputs.method_dir(cached_run / "out", "sift-nn") / "run.json").read_text())
     assert run["cache_dir"] == str(cached_run / "cache")
     cached = verifier_inputs.CachedMatches(cached_run / "out", "sift-nn")
     assert cached.matches.folder.parent == cached_run / "cache" / "matches"

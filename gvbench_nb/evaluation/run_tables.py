@@ -155,7 +155,9 @@ def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[st
     for folder in map(Path, output_dirs):
         ran = scoring.methods_with_results(folder)
         if not ran:
-            what = "does not exist" if not folder.exists() else "holds no method results (no run of a method under runs/)"
+            what = (
+                "does not exist" if not folder.exists() else "holds no method results (no run of a method under runs/)"
+            )
             raise method_outputs.ResultsError(
                 f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
             )

@@ -90,7 +90,9 @@ def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) 
             raise ImageReadError(f"{error} ({image_features.first_pair_using(sequence, name)})") from None
     _decoded.update({key: known[key] for key in keys.values()})
     if unsaved and path.parent.is_dir():
-        atomic_write_json(path, {**saved, **{key: known[key] for key in keys.values()}})  # two runs at once: the later file wins, the other's images are decoded again
+        atomic_write_json(
+            path, {**saved, **{key: known[key] for key in keys.values()}}
+        )  # two runs at once: the later file wins, the other's images are decoded again
     return {name: known[key] for name, key in keys.items() if known[key]}
 
 

@@ -100,7 +100,9 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
     output_dir = Path(output_dir)
     methods = methods or methods_with_results(output_dir)
     if not methods:
-        what = "does not exist" if not output_dir.exists() else "holds no method results (no run of a method under runs/)"
+        what = (
+            "does not exist" if not output_dir.exists() else "holds no method results (no run of a method under runs/)"
+        )
         raise method_outputs.ResultsError(
             f"{output_dir} {what}; give the output_dir of a finished run, or run a method first "
             "(python -m gvbench_nb run PARAMS)"

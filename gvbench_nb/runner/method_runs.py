@@ -169,12 +169,11 @@ def run_method(
         work = compute_method(sequence, conf, cache_dir, device, seed, run_id=runs.run_id(output_dir), **options)
         return write_results(output_dir, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
     # Anywhere else (a notebook on its own) the method is a run of its own, added to the folder.
-    building = runs.start(output_dir, "notebook")
-    if params is not None:  # the params it ran with, as a run of ``run`` keeps them
-        config.write_resolved_params(params, building)
-    work = compute_method(sequence, conf, cache_dir, device, seed, run_id=runs.run_id(building), **options)
-    table = write_results(building, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
-    runs.finish(building)
+    with runs.new_run(output_dir, "notebook") as building:
+        if params is not None:  # the params it ran with, as a run of ``run`` keeps them
+            config.write_resolved_params(params, building)
+        work = compute_method(sequence, conf, cache_dir, device, seed, run_id=runs.run_id(building), **options)
+        table = write_results(building, sequence, conf, seed, work["environment"], work["this_run"], cache_dir, device)
     scoring.refresh_view(output_dir)  # the folder's table, derived from its runs
     return table
 

@@ -117,7 +117,11 @@ def start(output_dir: str | os.PathLike[str], door: str) -> Path:
             f"{output_dir} is a run of the output folder {output_folder(output_dir)}, and a run never changes; "
             "give that output folder as output_dir"
         )
-    folder = Path(output_dir) / RUNS / f"{BUILDING}{_new_id(door)}"
+    return _building(Path(output_dir), door)
+
+
+def _building(output_dir: Path, door: str) -> Path:
+    folder = output_dir / RUNS / f"{BUILDING}{_new_id(door)}"
     folder.mkdir(parents=True)
     atomic_write_json(folder / MANIFEST, {"package": PACKAGE, "door": door, "started_at": now()})
     return folder
@@ -235,15 +239,13 @@ def current(output_dir: str | os.PathLike[str]) -> View:
     found = entries(output_dir)
     if not found:
         return View({}, {})
-    pairs = _inputs(found[-1].record)[0]
-    computed = [e for e in found if _inputs(e.record)[0] == pairs and recipe(e.record) is not None]
-    images = _inputs(computed[-1].record)[1] if computed else None
-    wanted = recipe(computed[-1].record) if computed else None
-    latest = {entry.method: entry for entry in found}  # a method's latest run
+    described = [(entry, *_inputs(entry.record), recipe(entry.record)) for entry in found]
+    pairs = described[-1][1]
+    computed = [d for d in described if d[1] == pairs and d[3] is not None]
+    images, wanted = (computed[-1][2], computed[-1][3]) if computed else (None, None)
+    latest = {d[0].method: d for d in described}  # a method's latest run
     shown, left_out = {}, {}
-    for method, entry in latest.items():
-        entry_pairs, entry_images = _inputs(entry.record)
-        entry_recipe = recipe(entry.record)
+    for method, (entry, entry_pairs, entry_images, entry_recipe) in latest.items():
         if entry_pairs != pairs:
             why = f"scored {entry.record.get('n_pairs')} other pairs or labels"
         elif entry_recipe is not None and (entry_images, entry_recipe) != (images, wanted):
@@ -279,9 +281,7 @@ def upgrade(output_dir: str | os.PathLike[str]) -> Path:
         raise RunsError(
             f"{folder} holds no results of an earlier layout ({OLD_RECORD} without {RUNS}/); nothing to upgrade"
         )
-    building = folder / RUNS / f"{BUILDING}{_new_id('upgrade')}"
-    building.mkdir(parents=True)
-    atomic_write_json(building / MANIFEST, {"package": PACKAGE, "door": "upgrade", "started_at": now()})
+    building = _building(folder, "upgrade")  # not ``start``: it refuses a folder of the earlier layout
     for method in methods:
         (building / method).mkdir()
         for name in ("run.json", "pairs.csv"):
@@ -291,7 +291,8 @@ def upgrade(output_dir: str | os.PathLike[str]) -> Path:
 
 def resolved_params(output_dir: str | os.PathLike[str]) -> Path | None:
     """The params file (``params.resolved.yaml``) of the latest run the folder shows (or of this run), else None."""
-    name = "params.resolved.yaml"
+    from gvbench_nb.runner.config import RESOLVED_PARAMS_NAME as name
+
     if is_run(output_dir):
         return Path(output_dir) / name if (Path(output_dir) / name).is_file() else None
     shown = sorted(

@@ -42,11 +42,20 @@ def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedSto
 _extracted_by_run: dict[str, set[tuple[str, str]]] = {}
 
 
-CONTENT_KEYS_FILE = "content-keys.json"  # in the cache folder: absolute path -> [size, mtime_ns, inode, key]
+# In the cache folder: absolute path -> [size, mtime_ns, inode, ctime_ns, key].
+CONTENT_KEYS_FILE = "content-keys.json"
 
-# This process's content keys by absolute path, each with the size, mtime and inode it was hashed at:
-# a file is hashed again only when one of them changes.
-_known_keys: dict[str, tuple[int, int, int, str]] = {}
+# This process's content keys by absolute path, each with the file's status it was hashed at
+# (``file_status``): a file is hashed again when any of them changes.
+_known_keys: dict[str, tuple[int, int, int, int, str]] = {}
+
+
+def file_status(status: os.stat_result) -> tuple[int, int, int, int]:
+    """Size, mtime, inode and ctime: a rewrite in place that restores size and mtime still changes the
+    ctime, which no user can set, so a memo keyed by these never serves the bytes of before."""
+    return (status.st_size, status.st_mtime_ns, status.st_ino, status.st_ctime_ns)
+
+
 _known_lock = threading.Lock()
 
 
@@ -60,10 +69,10 @@ def content_key(path: str | os.PathLike[str]) -> str:
     if status is None or not stat.S_ISREG(status.st_mode):
         what = "is a folder, not an image file" if Path(path).is_dir() else "not found"
         raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
-    seen = (status.st_size, status.st_mtime_ns, status.st_ino)
+    seen = file_status(status)
     known = _known_keys.get(absolute)
-    if known is not None and known[:3] == seen:
-        return known[3]
+    if known is not None and known[:4] == seen:
+        return known[4]
     key = _hash_file(Path(path))
     with _known_lock:
         _known_keys[absolute] = (*seen, key)
@@ -88,19 +97,19 @@ def image_key(image_root: Path, name: str) -> str:
     return content_key(os.path.join(image_root, name))
 
 
-def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, str]]:
+def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, int, str]]:
     try:
         saved = json.loads((cache_dir / CONTENT_KEYS_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
     if not isinstance(saved, dict):
         return {}
-    return {p: (e[0], e[1], e[2], e[3]) for p, e in saved.items() if isinstance(e, list) and len(e) == 4}
+    return {p: (e[0], e[1], e[2], e[3], e[4]) for p, e in saved.items() if isinstance(e, list) and len(e) == 5}
 
 
-def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, str]]:
+def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, int, str]]:
     """Take the content keys other processes saved in ``cache_dir`` (``CONTENT_KEYS_FILE``), each used
-    while its file's size, mtime and inode are still those it was hashed at; returns what was saved."""
+    while its file's status is still the one it was hashed at (``file_status``); returns what was saved."""
     saved = _saved_keys(Path(cache_dir))
     with _known_lock:
         for path, entry in saved.items():
@@ -113,7 +122,7 @@ def image_keys(
 ) -> dict[str, str]:
     """Image name -> content key of the sequence's images (or ``images``); a missing or unreadable one is
     named with its first pair. With ``cache_dir``, the keys other processes hashed there are reused
-    (while their file's size, mtime and inode hold) and this call's are added (``CONTENT_KEYS_FILE``)."""
+    (while their file's status holds) and this call's are added (``CONTENT_KEYS_FILE``)."""
     saved = reuse_saved_keys(cache_dir) if cache_dir is not None else {}
     keys = {}
     for name in sequence.images if images is None else images:
@@ -130,7 +139,7 @@ def image_keys(
     return keys
 
 
-def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, str]]) -> None:
+def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, int, str]]) -> None:
     """Merge ``entries`` into the cache folder's content-keys file: one writer at a time (a file lock),
     the file replaced whole; a folder that is not there or cannot be written keeps none (a memo only)."""
     from filelock import FileLock, Timeout

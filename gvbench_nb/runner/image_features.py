@@ -17,6 +17,7 @@ import numpy as np
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_json, progress_bar
+from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,
@@ -30,11 +31,22 @@ if TYPE_CHECKING:
 
 
 # ---------------------------------------------------------------- feature cache --
+def checkpoints_of(*confs: dict[str, Any] | None) -> list[str]:
+    """The checkpoints the stage confs load (an extractor, a matcher), each once."""
+    return list(dict.fromkeys(name for conf in confs if conf for name in conf.get("checkpoints", ())))
+
+
+def weights_conf_hash(conf: dict[str, Any], checkpoints: list[str]) -> str:
+    """A stage's cache identity: its conf's hash, with the git blob ids of the weights it loads, so other
+    bytes at a checkpoint's path never reuse what these computed (no weights: the conf's own hash)."""
+    held = {file: entry["blob"] for file, entry in weights.held_weights(checkpoints).items()}
+    return method_registry.conf_hash({**conf, "weights": held} if held else conf)
+
+
 def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedStore:
-    """The cache folder of one extractor conf: ``<cache_dir>/features/<name>-<hash>``."""
-    return ShardedStore(
-        Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}"
-    )
+    """The cache folder of one extractor conf and its weights: ``<cache_dir>/features/<name>-<hash>``."""
+    identity = weights_conf_hash(extractor_conf, checkpoints_of(extractor_conf))
+    return ShardedStore(Path(cache_dir) / "features" / f"{extractor_conf['name']}-{identity}")
 
 
 # run id -> (store folder, key) of every image that run extracted in this process: a later method

@@ -101,8 +101,9 @@ class PairMatches:
 
 class CachedMatches:
     """Read access to one finished run's matches (``<output_dir>/<method>``'s, in the cache folder its
-    run.json names unless ``cache_dir`` is given), never re-matching: sparse methods index the feature
-    cache's keypoints, dense ones store their points."""
+    run.json names unless ``cache_dir`` is given): sparse methods index the feature cache's keypoints,
+    dense ones store their points. A pair the cache lacks (deleted, or another machine's) is matched
+    again from its images with the run's conf and seed, in one line saying so."""
 
     def __init__(
         self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
@@ -115,21 +116,44 @@ class CachedMatches:
         self.sequence = self.run["sequence"]
         self.image_root = Path(self.run["image_root"])
         self.pairs = scoring.load_pairs_table(self.output_dir, method)
-        cache = run_tables.resolve_cache_dir(self.output_dir, cache_dir, method)
-        self.matches = pair_matching.match_store(cache, self.conf, self._pair_list_keys())
-        self.features = image_features.feature_store(cache, self.conf["extractor"]) if self.conf["extractor"] else None
+        self.cache = run_tables.resolve_cache_dir(self.output_dir, cache_dir, method)
+        self.matches = pair_matching.match_store(self.cache, self.conf, self._pair_list_keys())
+        extractor = self.conf["extractor"]
+        self.features = image_features.feature_store(self.cache, extractor) if extractor else None
         self._read_features = lru_cache(maxsize=512)(self._features_of)
         self._read_image = lru_cache(maxsize=48)(self._image_of)
+
+    def _run_sequence(self) -> Sequence:
+        pairs = [
+            Pair(q, r, int(lb)) for q, r, lb in zip(self.pairs["query"], self.pairs["reference"], self.pairs["label"])
+        ]
+        return Sequence(self.sequence, self.image_root, pairs)
 
     def _pair_list_keys(self) -> dict[Any, str] | None:
         """The pair keys of the run's pair list, for a dense method whose store is chosen by it; else None."""
         if pair_matching.dense_merge_options(self.conf["matcher"]) is None:
             return None
-        pairs = [
-            Pair(q, r, int(label))
-            for q, r, label in zip(self.pairs["query"], self.pairs["reference"], self.pairs["label"])
-        ]
-        return pair_matching.pair_keys(Sequence(self.sequence, self.image_root, pairs), self.seed)
+        return pair_matching.pair_keys(self._run_sequence(), self.seed)
+
+    def _match_again(self, query: str, reference: str) -> None:
+        """Match and verify one pair again from its images into the cache (a dense method that merges
+        keypoints across pairs: the run's every pair), as the run did: its conf, seed and device."""
+        sequence = self._run_sequence()
+        this = [p for p in sequence.pairs if (p.query, p.reference) == (query, reference)]
+        if not this:
+            raise KeyError(f"{query} {reference} is not a pair of {self.output_dir / self.method}")
+        if self._pair_list_keys() is None:
+            sequence = Sequence(self.sequence, self.image_root, this[:1])
+        print(
+            f"{self.label}: pair {query} {reference} is not in the cache {self.cache}; matching "
+            f"{len(sequence.pairs)} pair(s) again from the images (the run's numbers are its own)"
+        )
+        device = self.run.get("device_request", "auto")
+        if self.features is not None:
+            image_features.extract_features(sequence, self.conf["extractor"], self.cache, device, progress=False)
+            self.features.refresh()
+        pair_matching.match_and_verify(sequence, self.conf, self.cache, device, self.seed, progress=False)
+        self.matches.refresh()
 
     @property
     def label(self) -> str:
@@ -165,10 +189,7 @@ class CachedMatches:
     def pair(self, query: str, reference: str) -> PairMatches:
         key = pair_matching.pair_key(self.image_root, query, reference, self.seed)
         if key not in self.matches:
-            raise KeyError(
-                f"pair {query} {reference} is not in the match store {self.matches.folder}; "
-                f"rerun {self.method!r} on these pairs"
-            )
+            self._match_again(query, reference)
         entry = self.matches.read(key)
         scores = np.asarray(entry["match_scores"], dtype=np.float64).reshape(-1)
         inlier_mask = np.asarray(entry["inlier_mask"], dtype=bool).reshape(-1)

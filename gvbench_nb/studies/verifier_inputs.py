@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -135,18 +135,25 @@ class CachedMatches:
             return None
         return pair_matching.pair_keys(self._run_sequence(), self.seed)
 
-    def _match_again(self, query: str, reference: str) -> None:
-        """Match and verify one pair again from its images into the cache (a dense method that merges
-        keypoints across pairs: the run's every pair), as the run did: its conf, seed and device."""
+    def match_missing(self, names: Iterable[tuple[str, str]]) -> None:
+        """Match and verify again from their images, as the run did (its conf, seed and device), the pairs
+        of ``names`` (query, reference) the cache lacks, into the cache, saying so in one line (a dense
+        method that merges keypoints across pairs: the run's every pair)."""
+        wanted = set(names)
         sequence = self._run_sequence()
-        this = [p for p in sequence.pairs if (p.query, p.reference) == (query, reference)]
-        if not this:
-            raise KeyError(f"{query} {reference} is not a pair of {self.output_dir / self.method}")
+        missing = [
+            p
+            for p in sequence.pairs
+            if (p.query, p.reference) in wanted
+            and pair_matching.pair_key(self.image_root, p.query, p.reference, self.seed) not in self.matches
+        ]
+        if not missing:
+            return
         if self._pair_list_keys() is None:
-            sequence = Sequence(self.sequence, self.image_root, this[:1])
+            sequence = Sequence(self.sequence, self.image_root, missing)
         print(
-            f"{self.label}: pair {query} {reference} is not in the cache {self.cache}; matching "
-            f"{len(sequence.pairs)} pair(s) again from the images (the run's numbers are its own)"
+            f"{self.label}: the cache {self.cache} lacks {len(missing)} pair(s) of this run, first "
+            f"{missing[0].query} {missing[0].reference}; matching {len(sequence.pairs)} pair(s) again from the images"
         )
         device = self.run.get("device_request", "auto")
         if self.features is not None:
@@ -189,7 +196,9 @@ class CachedMatches:
     def pair(self, query: str, reference: str) -> PairMatches:
         key = pair_matching.pair_key(self.image_root, query, reference, self.seed)
         if key not in self.matches:
-            self._match_again(query, reference)
+            self.match_missing([(query, reference)])
+        if key not in self.matches:
+            raise KeyError(f"{query} {reference} is not a pair of the run {self.output_dir / self.method}")
         entry = self.matches.read(key)
         scores = np.asarray(entry["match_scores"], dtype=np.float64).reshape(-1)
         inlier_mask = np.asarray(entry["inlier_mask"], dtype=bool).reshape(-1)
@@ -284,6 +293,7 @@ def gv_feature_table(
     """``gv_features`` of every pair (query, reference order kept), fitting once a pair with its run seed."""
     rows = []
     desc = f"{MODEL_SHORT_NAMES[conf['model']]}-{ESTIMATOR_SHORT_NAMES[conf['estimator']]}"
+    cached.match_missing(zip(pairs["query"], pairs["reference"]))
     for query, reference in _pair_names(pairs, desc, progress):
         pair = cached.pair(query, reference)
         mask, num_fitted = fit_inliers(pair, conf, cached.pair_seed(query, reference))
@@ -318,6 +328,7 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
     from gvbench_nb.verification.doppelgangers import build_input
 
     inputs = []
+    cached.match_missing(zip(pairs["query"], pairs["reference"]))
     for query, reference in _pair_names(pairs, f"doppelgangers inputs {size}px", progress):
         pair = cached.pair(query, reference)
         inputs.append(

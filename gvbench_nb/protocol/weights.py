@@ -258,11 +258,8 @@ def held_weights(names: list[str]) -> dict[str, dict[str, Any]]:
     for name in dict.fromkeys(names):
         path, published = checkpoint_path(name), get(name).git_blob
         blob = git_blob_id(path) if path.is_file() else None
-        held[get(name).file] = {
-            "path": str(path),
-            "blob": blob,
-            "published": None if published is None else blob == published[0],
-        }
+        mine = None if published is None else blob == published[0]
+        held[get(name).file] = {"path": str(path), "blob": blob, "published": mine}
     return held
 
 

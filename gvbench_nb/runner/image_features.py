@@ -57,16 +57,10 @@ _extracted_by_run: dict[str, set[tuple[str, str]]] = {}
 # In the cache folder: absolute path -> [size, mtime_ns, inode, ctime_ns, key].
 CONTENT_KEYS_FILE = "content-keys.json"
 
-# This process's content keys by absolute path, each with the file's status it was hashed at
-# (``file_status``): a file is hashed again when any of them changes.
+# This process's content keys by absolute path, each with the size, mtime, inode and ctime it was hashed
+# at: a file is hashed again when one of them changes (a rewrite in place that restores size and mtime
+# still moves the ctime, which no user can set).
 _known_keys: dict[str, tuple[int, int, int, int, str]] = {}
-
-
-def file_status(status: os.stat_result) -> tuple[int, int, int, int]:
-    """Size, mtime, inode and ctime: a rewrite in place that restores size and mtime still changes the
-    ctime, which no user can set, so a memo keyed by these never serves the bytes of before."""
-    return (status.st_size, status.st_mtime_ns, status.st_ino, status.st_ctime_ns)
-
 
 _known_lock = threading.Lock()
 
@@ -81,7 +75,7 @@ def content_key(path: str | os.PathLike[str]) -> str:
     if status is None or not stat.S_ISREG(status.st_mode):
         what = "is a folder, not an image file" if Path(path).is_dir() else "not found"
         raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
-    seen = file_status(status)
+    seen = (status.st_size, status.st_mtime_ns, status.st_ino, status.st_ctime_ns)
     known = _known_keys.get(absolute)
     if known is not None and known[:4] == seen:
         return known[4]
@@ -121,7 +115,7 @@ def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, int, str]]:
 
 def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, int, str]]:
     """Take the content keys other processes saved in ``cache_dir`` (``CONTENT_KEYS_FILE``), each used
-    while its file's status is still the one it was hashed at (``file_status``); returns what was saved."""
+    while its file's size, mtime, inode and ctime are still those it was hashed at; returns what was saved."""
     saved = _saved_keys(Path(cache_dir))
     with _known_lock:
         for path, entry in saved.items():
@@ -134,7 +128,7 @@ def image_keys(
 ) -> dict[str, str]:
     """Image name -> content key of the sequence's images (or ``images``); a missing or unreadable one is
     named with its first pair. With ``cache_dir``, the keys other processes hashed there are reused
-    (while their file's status holds) and this call's are added (``CONTENT_KEYS_FILE``)."""
+    (while their file's size, mtime, inode and ctime hold) and this call's are added (``CONTENT_KEYS_FILE``)."""
     saved = reuse_saved_keys(cache_dir) if cache_dir is not None else {}
     keys = {}
     for name in sequence.images if images is None else images:

@@ -155,8 +155,10 @@ def test_pages_and_exports_of_a_run_work_with_its_cache_deleted(tmp_path, root, 
     for name in before:  # the page draws what the run computed
         np.testing.assert_array_equal(before[name], after[name])
     shutil.rmtree(cache)
-    rows = failures.failures_table({METHOD: table}, k=1, image_root=root)
+    rows = failures.failures_table({METHOD: table}, k=2, image_root=root)
     failures.failure_pairs(rows, out, METHOD, root)
+    said = capsys.readouterr().out  # one line for the page
+    assert said.count("\n") == 1 and f"lacks {len(rows)} pair(s) of this run" in said
     shutil.rmtree(cache)
     views = explore_pairs.pair_views(out, {METHOD: table}, 2, tmp_path / "figures")
     assert views["table"]["pair_index"].tolist() == [2]

@@ -230,8 +230,8 @@ def missing_message(name: str) -> str:
     return "\n".join(lines)
 
 
-# (path, size, mtime_ns) of checkpoints that loaded with weights_only=True in this process.
-_checked_checkpoints: set[tuple[str, int, int]] = set()
+# Git blob ids of the checkpoints that loaded with weights_only=True in this process.
+_checked_checkpoints: set[str] = set()
 
 # (path, size, mtime_ns, inode, ctime_ns) -> git blob id: a checkpoint is hashed once a process, and
 # again only when its file changed (a rewrite in place changes the ctime, which no user can set).
@@ -287,11 +287,9 @@ def require(*names: str) -> list[Path]:
         raise MissingWeightsError("\n".join(missing_message(n) for n in missing))
     paths = [checkpoint_path(n) for n in names]
     for path in paths:
-        stat = path.stat()
-        memo = (str(path), stat.st_size, stat.st_mtime_ns)
-        if memo not in _checked_checkpoints:
+        if (blob := git_blob_id(path)) not in _checked_checkpoints:
             load_checkpoint(path)
-            _checked_checkpoints.add(memo)
+            _checked_checkpoints.add(blob)
     return paths
 
 

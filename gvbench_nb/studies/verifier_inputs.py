@@ -17,7 +17,7 @@ from gvbench_nb.data.sequences import Pair, Sequence, frame_index
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.ransac import filter_and_fit
-from gvbench_nb.runner import image_features, pair_matching, scoring
+from gvbench_nb.runner import image_features, input_checks, pair_matching, scoring
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
 
 # ------------------------------------------------------------------ registry --
@@ -155,7 +155,8 @@ class CachedMatches:
             f"{self.label}: the cache {self.cache} lacks {len(missing)} pair(s) of this run, first "
             f"{missing[0].query} {missing[0].reference}; matching {len(sequence.pairs)} pair(s) again from the images"
         )
-        device = self.run.get("device_request", "auto")
+        device = str(self.run.get("device_request", "auto"))  # the run's, where this machine has it
+        device = device if input_checks.device_problem(device) is None else "auto"
         if self.features is not None:
             image_features.extract_features(sequence, self.conf["extractor"], self.cache, device, progress=False)
             self.features.refresh()

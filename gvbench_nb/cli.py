@@ -270,6 +270,11 @@ def add_run_command(commands: Any) -> None:
     )
     run.add_argument("--output-dir", help="override the params' output_dir")
     run.add_argument("--image-root", help="override the params' image_root (the folder pair paths are relative to)")
+    run.add_argument(
+        "--allow-other-weights",
+        action="store_true",
+        help="run on checkpoints whose bytes differ from their published id (run.json records them as such)",
+    )
     run.set_defaults(handler=run_and_publish.command_run)
     distributed.add_run_arguments(run)  # --jobs; --shard I/N, --merge, --dask, --scheduler, --shards, --dask-workers
 
@@ -385,7 +390,8 @@ def check_before_work(args: argparse.Namespace) -> None:
         params = run_and_publish.run_params_of_args(args)
         method_registry.check_known_to_kernels(params["methods"])
         # Handed to the command: its params parsed once, its images checked once.
-        args.checked = (params, input_checks.check_run_inputs(params, images=not getattr(args, "merge", False)))
+        images, other_weights = not getattr(args, "merge", False), getattr(args, "allow_other_weights", False)
+        args.checked = (params, input_checks.check_run_inputs(params, images, other_weights))
 
 
 def resume_hint(argv: SequenceType[str], module: str = "gvbench_nb") -> str:

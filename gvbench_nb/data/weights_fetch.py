@@ -4,7 +4,6 @@ assets, downloads) against ``--sha256``, else the SHA-256 recorded at their firs
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import shutil
@@ -19,14 +18,9 @@ import requests
 from gvbench_nb.data import fetch
 from gvbench_nb.io_utils import atomic_write_json, file_sha256
 from gvbench_nb.protocol import weights
+from gvbench_nb.protocol.weights import git_blob_id
 
 RECORDED_NAME = "gvbench-weights-sha256.json"  # file name -> SHA-256 of its first fetch
-
-
-def git_blob_id(path: Path) -> str:
-    """The id git gives the file (``git hash-object``): SHA-1 of ``blob <size>\\0`` and the bytes."""
-    data = path.read_bytes()  # checkpoints tracked in git are a few MB
-    return hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
 
 
 def recorded_hashes() -> dict[str, str]:

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import importlib.util
 import os
 import shutil
@@ -29,6 +30,10 @@ class WeightsLayoutError(GVBenchError, ValueError):
 
 class CheckpointReadError(WeightsLayoutError):
     """A file is not a loadable checkpoint: truncated, not PyTorch, or pickled code."""
+
+
+class OtherWeightsError(GVBenchError, ValueError):
+    """A checkpoint's bytes differ from the id its official repository publishes for it."""
 
 
 @dataclass(frozen=True)
@@ -225,8 +230,53 @@ def missing_message(name: str) -> str:
     return "\n".join(lines)
 
 
-# (path, size, mtime_ns) of checkpoints that loaded with weights_only=True in this process.
-_checked_checkpoints: set[tuple[str, int, int]] = set()
+# Git blob ids of the checkpoints that loaded with weights_only=True in this process.
+_checked_checkpoints: set[str] = set()
+
+# (path, size, mtime_ns, inode, ctime_ns) -> git blob id: a checkpoint is hashed once a process, and
+# again only when its file changed (a rewrite in place changes the ctime, which no user can set).
+_blob_ids: dict[tuple[str, int, int, int, int], str] = {}
+
+
+def git_blob_id(path: str | os.PathLike[str]) -> str:
+    """The id git gives the file (``git hash-object``): SHA-1 of ``blob <size>\\0`` and the bytes."""
+    status = os.stat(path)
+    memo = (os.path.abspath(path), status.st_size, status.st_mtime_ns, status.st_ino, status.st_ctime_ns)
+    if memo not in _blob_ids:
+        digest = hashlib.sha1(b"blob %d\0" % status.st_size)
+        with open(path, "rb") as stream:
+            for block in iter(lambda: stream.read(1 << 20), b""):
+                digest.update(block)
+        _blob_ids[memo] = digest.hexdigest()
+    return _blob_ids[memo]
+
+
+def held_weights(names: list[str]) -> dict[str, dict[str, Any]]:
+    """File name -> path, git blob id and whether it is the published one (None: nothing is published)
+    of each named checkpoint; a file not there is ``"blob": None``. What a run records of its weights."""
+    held = {}
+    for name in dict.fromkeys(names):
+        path, published = checkpoint_path(name), get(name).git_blob
+        blob = git_blob_id(path) if path.is_file() else None
+        mine = None if published is None else blob == published[0]
+        held[get(name).file] = {"path": str(path), "blob": blob, "published": mine}
+    return held
+
+
+def other_weights_message(names: list[str]) -> str:
+    """One sentence naming the checkpoints whose bytes differ from their published id, "" when none does."""
+    other = [n for n in dict.fromkeys(names) if held_weights([n])[get(n).file]["published"] is False]
+    if not other:
+        return ""
+    ckpt, path = get(other[0]), checkpoint_path(other[0])
+    assert ckpt.git_blob is not None, "only a published id can differ"
+    more = f" (and {len(other) - 1} more: {', '.join(other[1:])})" if len(other) > 1 else ""
+    return (
+        f"{path} is not the published {ckpt.name} checkpoint: git blob id {git_blob_id(path)}, not "
+        f"{ckpt.git_blob[0]} (published in {ckpt.git_blob[1]}){more}; fetch the published file with "
+        f"python -m gvbench_nb weights fetch {' '.join(other)}, or pass --allow-other-weights to run on "
+        "these bytes (the run records them as not published)"
+    )
 
 
 def require(*names: str) -> list[Path]:
@@ -237,11 +287,9 @@ def require(*names: str) -> list[Path]:
         raise MissingWeightsError("\n".join(missing_message(n) for n in missing))
     paths = [checkpoint_path(n) for n in names]
     for path in paths:
-        stat = path.stat()
-        memo = (str(path), stat.st_size, stat.st_mtime_ns)
-        if memo not in _checked_checkpoints:
+        if (blob := git_blob_id(path)) not in _checked_checkpoints:
             load_checkpoint(path)
-            _checked_checkpoints.add(memo)
+            _checked_checkpoints.add(blob)
     return paths
 
 

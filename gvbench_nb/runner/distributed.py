@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import hashlib
 import os
 import tempfile
 from collections.abc import Iterator
@@ -15,7 +14,7 @@ from typing import Any
 
 import pandas as pd
 
-from gvbench_nb import GVBenchError
+from gvbench_nb import GVBenchError, __version__
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.runner import concurrency, image_features, method_runs, pair_matching, runs, scoring
@@ -275,15 +274,8 @@ def run_sharded(
 
 
 def package_code() -> str:
-    """This process's gvbench_nb: its version and a digest of the files it ships (code, recipes, tables:
-    a checkout and its wheel agree; an editor's backup or a cache file beside them does not count)."""
-    import gvbench_nb
-
-    root = Path(gvbench_nb.__file__).parent
-    digest = hashlib.blake2b(digest_size=6)
-    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".csv", ".json", ".yaml") and p.is_file()):
-        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
-    return f"{gvbench_nb.__version__} (code {digest.hexdigest()})"
+    """This process's gvbench_nb: its version and the digest of the files it ships (``method_runs.code_digest``)."""
+    return f"{__version__} (code {method_runs.code_digest()})"
 
 
 def shared_view(image: str, marks: dict[str, str]) -> dict[str, str]:

@@ -17,6 +17,7 @@ import numpy as np
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_json, progress_bar
+from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import (
     ImageReadError,
     load_for_extraction,
@@ -30,11 +31,22 @@ if TYPE_CHECKING:
 
 
 # ---------------------------------------------------------------- feature cache --
+def checkpoints_of(*confs: dict[str, Any] | None) -> list[str]:
+    """The checkpoints the stage confs load (an extractor, a matcher), each once."""
+    return list(dict.fromkeys(name for conf in confs if conf for name in conf.get("checkpoints", ())))
+
+
+def weights_conf_hash(conf: dict[str, Any], checkpoints: list[str]) -> str:
+    """A stage's cache identity: its conf's hash, with the git blob ids of the weights it loads, so other
+    bytes at a checkpoint's path never reuse what these computed (no weights: the conf's own hash)."""
+    held = {file: entry["blob"] for file, entry in weights.held_weights(checkpoints).items()}
+    return method_registry.conf_hash({**conf, "weights": held} if held else conf)
+
+
 def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedStore:
-    """The cache folder of one extractor conf: ``<cache_dir>/features/<name>-<hash>``."""
-    return ShardedStore(
-        Path(cache_dir) / "features" / f"{extractor_conf['name']}-{method_registry.conf_hash(extractor_conf)}"
-    )
+    """The cache folder of one extractor conf and its weights: ``<cache_dir>/features/<name>-<hash>``."""
+    identity = weights_conf_hash(extractor_conf, checkpoints_of(extractor_conf))
+    return ShardedStore(Path(cache_dir) / "features" / f"{extractor_conf['name']}-{identity}")
 
 
 # run id -> (store folder, key) of every image that run extracted in this process: a later method
@@ -42,11 +54,14 @@ def feature_store(cache_dir: Path, extractor_conf: dict[str, Any]) -> ShardedSto
 _extracted_by_run: dict[str, set[tuple[str, str]]] = {}
 
 
-CONTENT_KEYS_FILE = "content-keys.json"  # in the cache folder: absolute path -> [size, mtime_ns, inode, key]
+# In the cache folder: absolute path -> [size, mtime_ns, inode, ctime_ns, key].
+CONTENT_KEYS_FILE = "content-keys.json"
 
-# This process's content keys by absolute path, each with the size, mtime and inode it was hashed at:
-# a file is hashed again only when one of them changes.
-_known_keys: dict[str, tuple[int, int, int, str]] = {}
+# This process's content keys by absolute path, each with the size, mtime, inode and ctime it was hashed
+# at: a file is hashed again when one of them changes (a rewrite in place that restores size and mtime
+# still moves the ctime, which no user can set).
+_known_keys: dict[str, tuple[int, int, int, int, str]] = {}
+
 _known_lock = threading.Lock()
 
 
@@ -60,10 +75,10 @@ def content_key(path: str | os.PathLike[str]) -> str:
     if status is None or not stat.S_ISREG(status.st_mode):
         what = "is a folder, not an image file" if Path(path).is_dir() else "not found"
         raise ImageReadError(f"image {what}: {path}; check image_root and the pair file's paths")
-    seen = (status.st_size, status.st_mtime_ns, status.st_ino)
+    seen = (status.st_size, status.st_mtime_ns, status.st_ino, status.st_ctime_ns)
     known = _known_keys.get(absolute)
-    if known is not None and known[:3] == seen:
-        return known[3]
+    if known is not None and known[:4] == seen:
+        return known[4]
     key = _hash_file(Path(path))
     with _known_lock:
         _known_keys[absolute] = (*seen, key)
@@ -88,19 +103,19 @@ def image_key(image_root: Path, name: str) -> str:
     return content_key(os.path.join(image_root, name))
 
 
-def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, str]]:
+def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, int, str]]:
     try:
         saved = json.loads((cache_dir / CONTENT_KEYS_FILE).read_text(encoding="utf-8"))
     except (OSError, ValueError):
         return {}
     if not isinstance(saved, dict):
         return {}
-    return {p: (e[0], e[1], e[2], e[3]) for p, e in saved.items() if isinstance(e, list) and len(e) == 4}
+    return {p: (e[0], e[1], e[2], e[3], e[4]) for p, e in saved.items() if isinstance(e, list) and len(e) == 5}
 
 
-def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, str]]:
+def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, int, str]]:
     """Take the content keys other processes saved in ``cache_dir`` (``CONTENT_KEYS_FILE``), each used
-    while its file's size, mtime and inode are still those it was hashed at; returns what was saved."""
+    while its file's size, mtime, inode and ctime are still those it was hashed at; returns what was saved."""
     saved = _saved_keys(Path(cache_dir))
     with _known_lock:
         for path, entry in saved.items():
@@ -113,7 +128,7 @@ def image_keys(
 ) -> dict[str, str]:
     """Image name -> content key of the sequence's images (or ``images``); a missing or unreadable one is
     named with its first pair. With ``cache_dir``, the keys other processes hashed there are reused
-    (while their file's size, mtime and inode hold) and this call's are added (``CONTENT_KEYS_FILE``)."""
+    (while their file's size, mtime, inode and ctime hold) and this call's are added (``CONTENT_KEYS_FILE``)."""
     saved = reuse_saved_keys(cache_dir) if cache_dir is not None else {}
     keys = {}
     for name in sequence.images if images is None else images:
@@ -130,7 +145,7 @@ def image_keys(
     return keys
 
 
-def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, str]]) -> None:
+def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, int, str]]) -> None:
     """Merge ``entries`` into the cache folder's content-keys file: one writer at a time (a file lock),
     the file replaced whole; a folder that is not there or cannot be written keeps none (a memo only)."""
     from filelock import FileLock, Timeout

@@ -216,11 +216,13 @@ def check_labels_defined(sequence: Sequence, params: dict[str, Any]) -> None:
     metrics.check_defined([pair.label for pair in sequence.pairs], where)
 
 
-def check_run_inputs(params: dict[str, Any], images: bool = True) -> dict[str, str] | None:
-    """Refuse, before any work, what a run cannot use: device, folders, weights, builder options and
-    (``images``) the pair file and every image it names, each problem named as what it is. Returns the
-    damaged images allowed (``check_image_contents``) when it checked every image, else None (a
-    builder's pairs are checked once built)."""
+def check_run_inputs(
+    params: dict[str, Any], images: bool = True, allow_other_weights: bool = False
+) -> dict[str, str] | None:
+    """Refuse, before any work, what a run cannot use: device, folders, weights (missing, or other than
+    published unless ``allow_other_weights``), builder options and (``images``) the pair file and every
+    image it names, each problem named as what it is. Returns the damaged images allowed
+    (``check_image_contents``) when it checked every image, else None (a builder's pairs are checked once built)."""
     from gvbench_nb.protocol import weights
 
     problem = device_problem(params["device"])
@@ -231,17 +233,16 @@ def check_run_inputs(params: dict[str, Any], images: bool = True) -> dict[str, s
         )
     check_folder_can_be_made(params, "output_dir")
     check_folder_can_be_made(params, "cache_dir")
-    missing = [
-        c
-        for m in params["methods"]
-        for c in method_registry.required_checkpoints(m, params["profile"])
-        if not weights.is_present(c)
-    ]
+    needed = [c for m in params["methods"] for c in method_registry.required_checkpoints(m, params["profile"])]
+    missing = [c for c in needed if not weights.is_present(c)]
     if missing:
         raise weights.MissingWeightsError(
             "cannot run: weights missing (or drop the methods that need them, e.g. --methods all-available)\n"
             + "\n".join(weights.missing_message(c) for c in dict.fromkeys(missing))
         )
+    other = "" if allow_other_weights else weights.other_weights_message(needed)
+    if other:
+        raise weights.OtherWeightsError(other)
     for method in params["methods"]:
         if method_registry.is_imm(method):
             method_registry.imm_peer().require(method)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+import hashlib
 import json
 import time
 from collections import Counter
@@ -14,6 +16,7 @@ from gvbench_nb import __version__
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json
+from gvbench_nb.protocol import weights
 from gvbench_nb.runner import concurrency, config, image_features, method_outputs, pair_matching, runs, scoring
 
 
@@ -178,6 +181,19 @@ def run_method(
     return table
 
 
+@functools.cache
+def code_digest() -> str:
+    """BLAKE2b of the files this process's gvbench_nb ships (code, recipes, tables: a checkout and its wheel
+    agree; an editor's backup or a cache file beside them does not count)."""
+    import gvbench_nb
+
+    root = Path(gvbench_nb.__file__).parent
+    digest = hashlib.blake2b(digest_size=6)
+    for path in sorted(p for p in root.rglob("*") if p.suffix in (".py", ".csv", ".json", ".yaml") and p.is_file()):
+        digest.update(path.relative_to(root).as_posix().encode() + b"\0" + path.read_bytes())
+    return digest.hexdigest()
+
+
 def write_results(
     run: Path,
     sequence: Sequence,
@@ -199,6 +215,9 @@ def write_results(
             "n_pairs": len(sequence.pairs),
             "pairs": sequence.origin,
             "package_version": __version__,
+            "code_digest": code_digest(),
+            # Every checkpoint the method loaded: path, git blob id, whether it is the published one.
+            "weights": weights.held_weights(image_features.checkpoints_of(conf["extractor"], conf["matcher"])),
             "run_id": runs.run_id(run),
             "cache_dir": str(cache_dir),  # where its matches are (``pair_matching.match_store``)
             "environment": environment,

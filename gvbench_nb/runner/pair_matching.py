@@ -135,11 +135,12 @@ def pair_seed(seed: int, query: str, reference: str) -> int:
 
 def match_store(cache_dir: Path, conf: dict[str, Any], keys: dict[Any, str] | None = None) -> ShardedStore:
     """Per-pair matches and inlier masks of one method conf, in the cache folder:
-    ``<cache_dir>/matches/<method>-<conf hash>`` (a changed conf starts afresh; the pair keys hold the
+    ``<cache_dir>/matches/<method>-<conf and weights hash>`` (a changed conf or weights start afresh; the pair keys hold the
     images' contents and the seed, so every output folder shares it). A dense conf merging keypoints
     across pairs (``dense_merge_options``) has a store for each pair list (``keys``, ``pair_keys``)."""
     matching_conf = {k: conf[k] for k in ("extractor", "matcher", "verifier")}
-    name = f"{conf['method']}-{method_registry.conf_hash(matching_conf)}"
+    checkpoints = image_features.checkpoints_of(conf["extractor"], conf["matcher"])
+    name = f"{conf['method']}-{image_features.weights_conf_hash(matching_conf, checkpoints)}"
     if dense_merge_options(conf["matcher"]) is not None:
         if keys is None:
             raise ValueError(f"the match store of {conf['method']!r} is chosen by its pair list: pass its pair keys")
@@ -299,9 +300,8 @@ def pair_list_hash(keys: dict[Any, str]) -> str:
 def raw_dense_store(cache_dir: Path, conf: dict[str, Any]) -> ShardedStore:
     """A dense matcher's raw matches a pair (original pixels), before merging, in the cache folder:
     ``<cache_dir>/raw-matches/<method>-<matcher conf hash>``."""
-    return ShardedStore(
-        Path(cache_dir) / "raw-matches" / f"{conf['method']}-{method_registry.conf_hash(conf['matcher'])}"
-    )
+    identity = image_features.weights_conf_hash(conf["matcher"], image_features.checkpoints_of(conf["matcher"]))
+    return ShardedStore(Path(cache_dir) / "raw-matches" / f"{conf['method']}-{identity}")
 
 
 def _dense_raw_matches(

@@ -126,11 +126,13 @@ def failure_pairs(
 ) -> plt.Figure:
     """Each pair of ``rows`` (a failures table) drawn with inlier matches green, outliers red."""
     figure, axes = plt.subplots(len(rows), 1, figsize=(10, 3.4 * max(len(rows), 1)), squeeze=False)
+    cached = verifier_inputs.CachedMatches(output_dir, method, cache_dir)
+    cached.match_missing(zip(rows["query"], rows["reference"]))  # what the cache lacks, in one line
     for axis, row in zip(axes[:, 0], rows.itertuples()):
-        lines = verifier_inputs.match_lines(output_dir, method, row.query, row.reference, cache_dir)
+        pair = cached.pair(row.query, row.reference)
         image0 = read_image(Path(image_root) / row.query)
         image1 = read_image(Path(image_root) / row.reference)
-        plots.draw_matches(image0, image1, lines["points0"], lines["points1"], lines["inlier_mask"], axis=axis)
+        plots.draw_matches(image0, image1, pair.points0, pair.points1, pair.inlier_mask, axis=axis)
         offsets = [f"{row.frame_offset:.0f} frames" if not pd.isna(getattr(row, "frame_offset", np.nan)) else ""]
         if hasattr(row, "distance_m"):
             offsets.append(f"{row.distance_m:.1f} m, {row.heading_deg:.0f} deg")
@@ -141,6 +143,7 @@ def failure_pairs(
             f"ground-truth offset {', '.join(o for o in offsets if o)}",
             fontsize=8,
         )
+    cached.close()
     if title:
         figure.suptitle(title)
     figure.tight_layout()

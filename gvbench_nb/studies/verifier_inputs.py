@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
@@ -17,7 +17,7 @@ from gvbench_nb.data.sequences import Pair, Sequence, frame_index
 from gvbench_nb.evaluation import run_tables
 from gvbench_nb.io_utils import progress_bar
 from gvbench_nb.protocol.ransac import filter_and_fit
-from gvbench_nb.runner import image_features, pair_matching, scoring
+from gvbench_nb.runner import image_features, input_checks, pair_matching, scoring
 from gvbench_nb.verification.sue import sue as spatial_uncertainty
 
 # ------------------------------------------------------------------ registry --
@@ -101,8 +101,9 @@ class PairMatches:
 
 class CachedMatches:
     """Read access to one finished run's matches (``<output_dir>/<method>``'s, in the cache folder its
-    run.json names unless ``cache_dir`` is given), never re-matching: sparse methods index the feature
-    cache's keypoints, dense ones store their points."""
+    run.json names unless ``cache_dir`` is given): sparse methods index the feature cache's keypoints,
+    dense ones store their points. A pair the cache lacks (deleted, or another machine's) is matched
+    again from its images with the run's conf and seed, in one line saying so."""
 
     def __init__(
         self, output_dir: str | os.PathLike[str], method: str, cache_dir: str | os.PathLike[str] | None = None
@@ -115,21 +116,52 @@ class CachedMatches:
         self.sequence = self.run["sequence"]
         self.image_root = Path(self.run["image_root"])
         self.pairs = scoring.load_pairs_table(self.output_dir, method)
-        cache = run_tables.resolve_cache_dir(self.output_dir, cache_dir, method)
-        self.matches = pair_matching.match_store(cache, self.conf, self._pair_list_keys())
-        self.features = image_features.feature_store(cache, self.conf["extractor"]) if self.conf["extractor"] else None
+        self.cache = run_tables.resolve_cache_dir(self.output_dir, cache_dir, method)
+        self.matches = pair_matching.match_store(self.cache, self.conf, self._pair_list_keys())
+        extractor = self.conf["extractor"]
+        self.features = image_features.feature_store(self.cache, extractor) if extractor else None
         self._read_features = lru_cache(maxsize=512)(self._features_of)
         self._read_image = lru_cache(maxsize=48)(self._image_of)
+
+    def _run_sequence(self) -> Sequence:
+        pairs = [
+            Pair(q, r, int(lb)) for q, r, lb in zip(self.pairs["query"], self.pairs["reference"], self.pairs["label"])
+        ]
+        return Sequence(self.sequence, self.image_root, pairs)
 
     def _pair_list_keys(self) -> dict[Any, str] | None:
         """The pair keys of the run's pair list, for a dense method whose store is chosen by it; else None."""
         if pair_matching.dense_merge_options(self.conf["matcher"]) is None:
             return None
-        pairs = [
-            Pair(q, r, int(label))
-            for q, r, label in zip(self.pairs["query"], self.pairs["reference"], self.pairs["label"])
+        return pair_matching.pair_keys(self._run_sequence(), self.seed)
+
+    def match_missing(self, names: Iterable[tuple[str, str]]) -> None:
+        """Match and verify again from their images, as the run did (its conf, seed and device), the pairs
+        of ``names`` (query, reference) the cache lacks, into the cache, saying so in one line (a dense
+        method that merges keypoints across pairs: the run's every pair)."""
+        wanted = set(names)
+        sequence = self._run_sequence()
+        missing = [
+            p
+            for p in sequence.pairs
+            if (p.query, p.reference) in wanted
+            and pair_matching.pair_key(self.image_root, p.query, p.reference, self.seed) not in self.matches
         ]
-        return pair_matching.pair_keys(Sequence(self.sequence, self.image_root, pairs), self.seed)
+        if not missing:
+            return
+        if self._pair_list_keys() is None:
+            sequence = Sequence(self.sequence, self.image_root, missing)
+        print(
+            f"{self.label}: the cache {self.cache} lacks {len(missing)} pair(s) of this run, first "
+            f"{missing[0].query} {missing[0].reference}; matching {len(sequence.pairs)} pair(s) again from the images"
+        )
+        device = str(self.run.get("device_request", "auto"))  # the run's, where this machine has it
+        device = device if input_checks.device_problem(device) is None else "auto"
+        if self.features is not None:
+            image_features.extract_features(sequence, self.conf["extractor"], self.cache, device, progress=False)
+            self.features.refresh()
+        pair_matching.match_and_verify(sequence, self.conf, self.cache, device, self.seed, progress=False)
+        self.matches.refresh()
 
     @property
     def label(self) -> str:
@@ -165,10 +197,9 @@ class CachedMatches:
     def pair(self, query: str, reference: str) -> PairMatches:
         key = pair_matching.pair_key(self.image_root, query, reference, self.seed)
         if key not in self.matches:
-            raise KeyError(
-                f"pair {query} {reference} is not in the match store {self.matches.folder}; "
-                f"rerun {self.method!r} on these pairs"
-            )
+            self.match_missing([(query, reference)])
+        if key not in self.matches:
+            raise KeyError(f"{query} {reference} is not a pair of the run {self.output_dir / self.method}")
         entry = self.matches.read(key)
         scores = np.asarray(entry["match_scores"], dtype=np.float64).reshape(-1)
         inlier_mask = np.asarray(entry["inlier_mask"], dtype=bool).reshape(-1)
@@ -263,6 +294,7 @@ def gv_feature_table(
     """``gv_features`` of every pair (query, reference order kept), fitting once a pair with its run seed."""
     rows = []
     desc = f"{MODEL_SHORT_NAMES[conf['model']]}-{ESTIMATOR_SHORT_NAMES[conf['estimator']]}"
+    cached.match_missing(zip(pairs["query"], pairs["reference"]))
     for query, reference in _pair_names(pairs, desc, progress):
         pair = cached.pair(query, reference)
         mask, num_fitted = fit_inliers(pair, conf, cached.pair_seed(query, reference))
@@ -297,6 +329,7 @@ def doppelgangers_inputs(cached: CachedMatches, pairs: pd.DataFrame, size: int, 
     from gvbench_nb.verification.doppelgangers import build_input
 
     inputs = []
+    cached.match_missing(zip(pairs["query"], pairs["reference"]))
     for query, reference in _pair_names(pairs, f"doppelgangers inputs {size}px", progress):
         pair = cached.pair(query, reference)
         inputs.append(

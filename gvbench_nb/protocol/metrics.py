@@ -8,8 +8,9 @@ import numpy as np
 
 from gvbench_nb import GVBenchError
 
-# scikit-learn is imported by the functions that use it: importing it takes longer than
-# a small run's evaluation, and the modules that import this one do not all evaluate.
+# The PR curve and AP follow scikit-learn's ``precision_recall_curve`` and
+# ``average_precision_score`` step for step (tests/protocol/test_metrics.py holds them equal on ties
+# and random scores); numpy alone, since importing scikit-learn costs a run more than evaluating.
 
 
 class MetricsUndefinedError(GVBenchError, ValueError):
@@ -40,28 +41,31 @@ def _check(labels: np.ndarray, scores: np.ndarray, where: str) -> tuple[np.ndarr
     return labels, scores
 
 
-def average_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
-    from sklearn.metrics import average_precision_score
+def _curve(labels: np.ndarray, scores: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Precision and recall at each distinct score, highest first, then (1, 0), as scikit-learn's curve."""
+    order = np.argsort(scores, kind="mergesort")[::-1]
+    scores, labels = scores[order], labels[order]
+    last = np.r_[np.flatnonzero(np.diff(scores)), len(scores) - 1]  # the last pair of each distinct score
+    true_positives = np.cumsum(labels)[last].astype(np.float64)
+    precision = true_positives / (last + 1)
+    recall = true_positives / true_positives[-1]
+    return np.r_[precision[::-1], 1.0], np.r_[recall[::-1], 0.0], scores[last][::-1]
 
-    labels, scores = _check(labels, scores, where)
-    return float(average_precision_score(labels, scores))
+
+def average_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
+    precision, recall, _ = _curve(*_check(labels, scores, where))
+    return float(-np.sum(np.diff(recall) * precision[:-1]))
 
 
 def max_recall_at_full_precision(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> float:
     """Largest recall among PR-curve points with precision exactly 1.0; a false pair tied with
     the best true pair lowers precision there, so MR can be 0."""
-    from sklearn.metrics import precision_recall_curve
-
-    labels, scores = _check(labels, scores, where)
-    precision, recall, _ = precision_recall_curve(labels, scores)
+    precision, recall, _ = _curve(*_check(labels, scores, where))
     return float(recall[precision == 1.0].max())
 
 
 def pr_curve(labels: np.ndarray, scores: np.ndarray, where: str = "metrics") -> dict[str, np.ndarray]:
-    from sklearn.metrics import precision_recall_curve
-
-    labels, scores = _check(labels, scores, where)
-    precision, recall, thresholds = precision_recall_curve(labels, scores)
+    precision, recall, thresholds = _curve(*_check(labels, scores, where))
     return {"precision": precision, "recall": recall, "thresholds": thresholds}
 
 

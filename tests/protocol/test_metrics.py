@@ -73,3 +73,23 @@ def test_metrics_equal_the_released_evaluation_without_its_division():
     with np.errstate(invalid="ignore"), pytest.raises(ValueError):
         released_evaluation(labels, zeros)
     assert evaluate_scores(labels, zeros)["ap"] == pytest.approx(labels.mean())
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_numpy_curve_and_ap_equal_scikit_learns_exactly(seed):
+    """The package computes the curve with numpy; scikit-learn's, run here, is the reference."""
+    from sklearn.metrics import precision_recall_curve
+
+    rng = np.random.default_rng(seed)
+    n = int(rng.integers(2, 300))
+    labels = rng.integers(0, 2, n)
+    labels[:2] = (0, 1)
+    ties = seed % 2 == 0  # integer inlier counts tie often; normalised floats rarely
+    scores = rng.integers(0, 1 + int(rng.integers(1, 40)), n) if ties else rng.random(n)
+    precision, recall, thresholds = precision_recall_curve(labels, scores)
+    ours = pr_curve(labels, scores)
+    np.testing.assert_array_equal(ours["precision"], precision)
+    np.testing.assert_array_equal(ours["recall"], recall)
+    np.testing.assert_array_equal(ours["thresholds"], thresholds)
+    assert average_precision(labels, scores) == average_precision_score(labels, scores)
+    assert max_recall_at_full_precision(labels, scores) == float(recall[precision == 1.0].max())

@@ -15,6 +15,8 @@ from typing import TYPE_CHECKING, Any
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
 
 if TYPE_CHECKING:
+    import pandas as pd
+
     from gvbench_nb.data.sequences import Sequence
 
 log = logging.getLogger(__name__)
@@ -111,16 +113,44 @@ def command_run(args: argparse.Namespace) -> int:
 
         execute_run_notebooks(jobs, building, compute)
         config.write_resolved_params(params, building)  # as given: the output folder's own paths
-        runs.finish(building, **({"damaged_images": damaged} if damaged else {}))
+        run = runs.finish(building, **({"damaged_images": damaged} if damaged else {}))
     except Exception:
         log.warning(
             f"the run did not finish: {output_dir} shows what it showed before; this run's partial work and executed "
             f"notebooks are in {building}"
         )
         raise
-    scoring.refresh_view(output_dir)  # the folder's table, derived from its runs
-    print_run_results(output_dir, params["methods"])
+    try:
+        print_run_results(run, params["methods"])  # its own table, whatever landed beside it meanwhile
+        scoring.refresh_view(output_dir)  # the folder's table for people, derived from its runs
+        print(folder_line(output_dir, run) or "", end="")
+        for line in scoring.left_out(output_dir):
+            log.warning(f"not in this table: {line}")
+        if leftovers := runs.leftovers(output_dir):
+            log.warning(leftovers)
+    except Exception as error:
+        reason = f"{error.filename or 'a file'}: {error.strerror}" if isinstance(error, OSError) else str(error)
+        raise runs.RunsError(
+            f"run {run.name} landed in {output_dir}; writing the folder's results.csv failed ({reason}); "
+            f"`python -m gvbench_nb results {output_dir}` makes it again"
+        ) from error
     return 0
+
+
+def folder_line(output_dir: Path, run: Path) -> str | None:
+    """The line saying which runs the folder's table shows, when they are not only ``run``."""
+    from gvbench_nb.runner import runs
+
+    shown = runs.current(output_dir).entries.items()
+    others: dict[str, list[str]] = {}
+    for label, entry in shown:
+        if entry.run != run:
+            others.setdefault(entry.run.name, []).append(label)
+    if not others:
+        return None
+    what = "also" if any(entry.run == run for _, entry in shown) else "not this run but"
+    listed = "; ".join(f"{', '.join(labels)} of run {name}" for name, labels in others.items())
+    return f"{output_dir} shows {what} {listed} (python -m gvbench_nb results {output_dir})\n"
 
 
 def announce_run(params: dict[str, Any], sequence: Sequence) -> None:
@@ -163,14 +193,21 @@ def scored_binding(stage: Path, method: str, binding: dict[str, Any]) -> dict[st
     return json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
 
 
-def print_run_results(output_dir: Path, methods: list[str]) -> None:
-    """The folder's results table as ``run`` ends, ``methods`` first in their order (the ones kept
-    from earlier runs after them), with a note on timers taken from the cache."""
-    import pandas as pd
+def print_run_results(folder: Path, methods: list[str]) -> None:
+    """The results table of a run (or of the rows an output folder shows) as ``run`` ends, ``methods``
+    first in their order, with a note on timers taken from the cache."""
+    from gvbench_nb.runner import runs, scoring
 
-    results = pd.read_csv(output_dir / "results.csv").astype({"ap": float, "max_recall": float})
+    print_results(scoring.evaluate(folder, write=False), methods)
+    for line in scoring.left_out(folder):
+        log.warning(f"not in this table: {line}")
+    log.info(f"results table: {runs.output_folder(folder) / 'results.csv'}")
+
+
+def print_results(results: pd.DataFrame, methods: list[str]) -> None:
     order = {method: rank for rank, method in enumerate(methods)}
-    results = results.sort_values("method", key=lambda m: m.map(order).fillna(len(order)), kind="stable")
+    rank = lambda rows: rows.str.split(" (", regex=False).str[0].map(order).fillna(len(order))
+    results = results.sort_values("method", key=rank, kind="stable")
     columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
     imported = results["timers"] == "imported"
     shown = results[columns].astype({"seconds_per_pair": object})
@@ -183,11 +220,6 @@ def print_run_results(output_dir: Path, methods: list[str]) -> None:
             f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "
             "that computed them (timers column), not this run's"
         )
-    from gvbench_nb.runner import scoring
-
-    for line in scoring.left_out(output_dir):
-        log.warning(f"not in this table: {line}")
-    log.info(f"results table: {output_dir / 'results.csv'}")
 
 
 def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:

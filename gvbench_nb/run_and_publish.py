@@ -5,7 +5,6 @@ with papermill, then publish the stage whole into the output folder and print th
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 from collections.abc import Callable
@@ -185,12 +184,6 @@ def stage_notebooks(
     ]
     notebooks.append(("03_evaluate.ipynb", "03_evaluate.ipynb", {**common, "methods": None}))
     return run_params, notebooks
-
-
-def scored_binding(stage: Path, method: str, binding: dict[str, Any]) -> dict[str, Any]:
-    """What the method's results were scored on, as its run read the inputs."""
-    scored = stage / method / "run.json"
-    return json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
 
 
 def print_run_results(folder: Path, methods: list[str]) -> None:

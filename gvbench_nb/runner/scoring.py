@@ -41,14 +41,12 @@ def images_digest(image_root: Path, names: Iterable[str]) -> str:
 
 
 def sequence_binding(sequence: Sequence) -> dict[str, Any]:
-    """What a method's results are bound to: the pairs and labels scored, the images' contents,
-    and the pair file they came from (as it was then)."""
+    """What a method's results are bound to: the pairs and labels scored and the images' contents (the
+    pair file they came from, and its SHA-256, are named once, in run.json's ``pairs``)."""
     return {
         "pairs_digest": pairs_digest((p.query, p.reference, p.label) for p in sequence.pairs),
         "images_digest": images_digest(sequence.image_root, sequence.images),
         "n_pairs": len(sequence.pairs),
-        "pairs_file": sequence.origin.get("pairs_file"),
-        "pairs_sha256": sequence.origin.get("pairs_sha256"),
     }
 
 
@@ -134,7 +132,7 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
         )
     results = pd.DataFrame(rows)
     check_one_binding(output_dir, results)
-    if write and not runs.is_run(output_dir) or output_dir.name.startswith(runs.BUILDING):  # a sealed run stays
+    if write and (not runs.is_run(output_dir) or output_dir.name.startswith(runs.BUILDING)):  # a sealed run stays
         atomic_write_csv(output_dir / "results.csv", results)
     return results
 

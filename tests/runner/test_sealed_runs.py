@@ -9,7 +9,6 @@ import contextlib
 import errno
 import json
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -283,25 +282,41 @@ def test_make_clean_removes_what_the_package_writes_and_not_the_dead_cache_folde
     assert "outputs/cache" not in recipe and "-m gvbench_nb clean" in recipe and "outputs/data" in recipe
 
 
-def hashing_cost(tmp_path) -> tuple[float, float]:
-    """Seconds to check a 2,000-pair run's pairs.csv the first time and once hashed (for docs, not asserted)."""
-    table = toy_table([i % 2 for i in range(2000)], [float(i) for i in range(2000)])
-    run = add_run(tmp_path / "big", "orb-nn", table).parent
+def hashing_cost(folder) -> tuple[int, float, float]:
+    """A 2,000-pair run's pairs.csv (every column, Gardens Point's names): its size, and the seconds to check
+    the run the first time and once its files are hashed (for docs/reliability.md, never asserted)."""
+    import numpy as np
+
+    from gvbench_nb.runner import method_outputs
+
+    n, rng = 2000, np.random.default_rng(0)
+    table = pd.DataFrame({column: rng.random(n) for column in method_outputs.PAIRS_COLUMNS})
+    table["query"], table["reference"] = (
+        [f"{side}/Image{i:03d}.jpg" for i in range(n)] for side in ("night_right", "day_left")
+    )
+    run = add_run(folder, "orb-nn", table.assign(label=rng.integers(0, 2, n), method="orb-nn")).parent
     runs._digests.clear()
     started = time.perf_counter()
     runs.sealed(run)
     cold = time.perf_counter() - started
     started = time.perf_counter()
     runs.sealed(run)
-    return cold, time.perf_counter() - started
+    return (run / "orb-nn" / "pairs.csv").stat().st_size, cold, time.perf_counter() - started
 
 
-if __name__ == "__main__":  # python tests/runner/test_sealed_runs.py: the cost of the check
+def test_run_json_names_the_pair_file_and_its_hash_once(tmp_path, root, capsys, notebooks_here):
+    path = params_file(tmp_path)
+    assert run_cli(capsys, "run", str(path))[0] == 0
+    text = (runs.method_folder(tmp_path / "out", "orb-nn") / "run.json").read_text()
+    record, pairs_file = json.loads(text), str(tmp_path / "params-pairs.txt")
+    assert text.count(pairs_file) == 1 and text.count(record["pairs"]["pairs_sha256"]) == 1
+    assert set(record["binding"]) == {"pairs_digest", "images_digest", "n_pairs"}
+
+
+if __name__ == "__main__":  # python tests/runner/test_sealed_runs.py (with tests/ on PYTHONPATH): the check's cost
     import tempfile
     from pathlib import Path
 
     with tempfile.TemporaryDirectory() as folder:
-        cold, warm = hashing_cost(Path(folder))
-        size = next(Path(folder).rglob("pairs.csv")).stat().st_size
-        print(f"2,000-pair pairs.csv ({size / 1e3:.0f} kB): checked in {cold * 1e3:.2f} ms, again {warm * 1e3:.2f} ms")
-    shutil.rmtree(folder, ignore_errors=True)
+        size, cold, warm = hashing_cost(Path(folder))
+    print(f"2,000-pair pairs.csv ({size / 1e3:.0f} kB): checked in {cold * 1e3:.2f} ms, again {warm * 1e3:.2f} ms")

@@ -152,9 +152,8 @@ def _building(output_dir: Path, door: str) -> Path:
     return folder
 
 
-_digests: dict[
-    tuple[int, ...], str
-] = {}  # BLAKE2b by device, inode, size, mtime and ctime: a file hashed once a process
+# BLAKE2b by device, inode, size, mtime and ctime: a file hashed once a process
+_digests: dict[tuple[int, ...], str] = {}
 
 
 def _files(run: Path) -> dict[str, dict[str, Any]]:
@@ -167,10 +166,13 @@ def _files(run: Path) -> dict[str, dict[str, Any]]:
         stat = path.stat()  # a rewrite in place changes ctime, which no tool sets back
         key = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
         if key not in _digests:
-            with path.open("rb") as stream:
-                _digests[key] = hashlib.file_digest(stream, "blake2b").hexdigest()
+            _digests[key] = _blake2b(path)
         found[name] = {"size": stat.st_size, "blake2b": _digests[key]}
     return found
+
+
+def _blake2b(path: Path) -> str:
+    return hashlib.blake2b(path.read_bytes()).hexdigest()  # a run's files are small: tables, notebooks
 
 
 def _seal(manifest: dict[str, Any]) -> str:
@@ -476,16 +478,10 @@ def upgrade(output_dir: str | os.PathLike[str]) -> str:
 
 
 def _unsealed(run: Path) -> bool:
-    try:
+    with contextlib.suppress(OSError, ValueError, TypeError):
         manifest = json.loads((run / MANIFEST).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return False
-    return (
-        not run.name.startswith(".")
-        and isinstance(manifest, dict)
-        and "finished_ns" in manifest
-        and "seal" not in manifest
-    )
+        return not run.name.startswith(".") and "finished_ns" in manifest and "seal" not in manifest
+    return False
 
 
 def resolved_params(output_dir: str | os.PathLike[str]) -> Path | None:

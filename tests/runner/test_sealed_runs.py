@@ -119,16 +119,10 @@ def test_a_damaged_run_is_refused_naming_run_and_file_and_never_lets_an_earlier_
 
 
 def test_each_file_of_a_run_is_hashed_once_a_process(two_runs, monkeypatch):
-    import hashlib
-
     out, _, _ = two_runs
-    hashed, file_digest = [], hashlib.file_digest
+    hashed, blake2b = [], runs._blake2b
     monkeypatch.setattr(runs, "_digests", {})
-    monkeypatch.setattr(
-        runs.hashlib,
-        "file_digest",
-        lambda stream, name: hashed.append(stream.name) or file_digest(stream, name),
-    )
+    monkeypatch.setattr(runs, "_blake2b", lambda path: hashed.append(path) or blake2b(path))
     runs.current(out)
     files = len(hashed)
     assert files == len(list((out / "runs").rglob("*.*"))) - 2  # every file but the two manifests

@@ -119,8 +119,10 @@ def command_run(args: argparse.Namespace) -> int:
             f"notebooks are in {building}"
         )
         raise
+    doing = "printing its table"
     try:
         print_run_results(run, params["methods"])  # its own table, whatever landed beside it meanwhile
+        doing = "writing the folder's results.csv"
         scoring.refresh_view(output_dir)  # the folder's table for people, derived from its runs
         print(folder_line(output_dir, run) or "", end="")
         for line in scoring.left_out(output_dir):
@@ -130,7 +132,7 @@ def command_run(args: argparse.Namespace) -> int:
     except Exception as error:
         reason = f"{error.filename or 'a file'}: {error.strerror}" if isinstance(error, OSError) else str(error)
         raise runs.RunsError(
-            f"run {run.name} landed in {output_dir}; writing the folder's results.csv failed ({reason}); "
+            f"run {run.name} landed in {output_dir}; {doing} failed ({reason}); "
             f"`python -m gvbench_nb results {output_dir}` makes it again"
         ) from error
     return 0

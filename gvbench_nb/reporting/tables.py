@@ -72,7 +72,6 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
 
 def command_results(args: argparse.Namespace) -> int:
     from gvbench_nb.evaluation import bootstrap, collapsed_inliers
-    from gvbench_nb.io_utils import atomic_write_csv
     from gvbench_nb.runner import method_outputs, runs, scoring
 
     for folder in map(Path, args.output_dirs):
@@ -81,7 +80,7 @@ def command_results(args: argparse.Namespace) -> int:
         results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
         if args.run is None:  # the folder's table for people, made again (a folder not ours to write keeps its own)
             with contextlib.suppress(OSError):
-                atomic_write_csv(folder / "results.csv", results)
+                scoring.refresh_view(folder)
         pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
         results = results.join(bootstrap.interval_columns(pair_tables), on="method")
         records = [method_outputs.read_run_json(folder, m) for m in results["method"]]

@@ -320,10 +320,9 @@ def _inputs(record: dict[str, Any]) -> tuple[Any, Any]:
 def _labelled(rows: list[Entry]) -> dict[str, Entry]:
     """Each row under its label: its method, and, where the method has several rows, what tells their
     recipes apart (``orb-nn (paper profile)``, ``orb-nn (seed 1)``, ``orb-nn (threshold_px 8)``)."""
-    labelled = {}
-    for entry in rows:
-        others = [other.recipe or {} for other in rows if other.method == entry.method]
-        mine = entry.recipe or {}
+    labelled, recipes = {}, [entry.recipe or {} for entry in rows]
+    for entry, mine in zip(rows, recipes):
+        others = [theirs for other, theirs in zip(rows, recipes) if other.method == entry.method]
         words = {
             "profile": f"{mine.get('profile')} profile",
             "seed": f"seed {mine.get('seed')}",

@@ -234,7 +234,7 @@ def sealed(run: Path) -> dict[str, Any]:
             f"run {run.name} of {output_dir} was written before runs were sealed; seal the folder's runs as they "
             f"are with `python -m gvbench_nb upgrade {output_dir}`, or remove that run"
         )
-    if not isinstance(manifest, dict) or manifest.get("seal") != _seal(manifest) or manifest["run_id"] != run.name:
+    if not isinstance(manifest, dict) or manifest.get("seal") != _seal(manifest) or manifest.get("run_id") != run.name:
         raise refused(MANIFEST, "does not match its seal (edited or damaged)")
     listed, found = manifest["files"], _files(run)
     for name in sorted(set(listed) | set(found)):

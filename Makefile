@@ -103,5 +103,9 @@ lint: setup
 notebooks: setup
 	$(VENV)/bin/jupytext --sync notebooks/*.ipynb
 
+# What the package writes in the clone: the demo's folders and rendered sample, the default report, and
+# every other output folder's unfinished runs whose process has ended (its finished runs stay; the
+# feature cache is shared: README, "The feature cache").
 clean:
-	rm -rf outputs/sample outputs/cache outputs/data
+	rm -rf outputs/sample outputs/sample_retrieval outputs/data outputs/report
+	for folder in outputs/*/runs; do [ ! -x $(PY) ] || $(PY) -m gvbench_nb clean "$${folder%/runs}"; done

@@ -5,7 +5,6 @@ with papermill, then publish the stage whole into the output folder and print th
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 import os
 from collections.abc import Callable
@@ -15,6 +14,8 @@ from typing import TYPE_CHECKING, Any
 from gvbench_nb.reporting.execute import execute_notebook, kernels_ahead  # light: papermill is imported when used
 
 if TYPE_CHECKING:
+    import pandas as pd
+
     from gvbench_nb.data.sequences import Sequence
 
 log = logging.getLogger(__name__)
@@ -111,16 +112,46 @@ def command_run(args: argparse.Namespace) -> int:
 
         execute_run_notebooks(jobs, building, compute)
         config.write_resolved_params(params, building)  # as given: the output folder's own paths
-        runs.finish(building, **({"damaged_images": damaged} if damaged else {}))
+        run = runs.finish(building, **({"damaged_images": damaged} if damaged else {}))
     except Exception:
         log.warning(
             f"the run did not finish: {output_dir} shows what it showed before; this run's partial work and executed "
             f"notebooks are in {building}"
         )
         raise
-    scoring.refresh_view(output_dir)  # the folder's table, derived from its runs
-    print_run_results(output_dir, params["methods"])
+    doing = "printing its table"
+    try:
+        print_run_results(run, params["methods"])  # its own table, whatever landed beside it meanwhile
+        doing = "writing the folder's results.csv"
+        scoring.refresh_view(output_dir)  # the folder's table for people, derived from its runs
+        print(folder_line(output_dir, run) or "", end="")
+        for line in scoring.left_out(output_dir):
+            log.warning(f"not in this table: {line}")
+        if leftovers := runs.leftovers(output_dir):
+            log.warning(leftovers)
+    except Exception as error:
+        reason = f"{error.filename or 'a file'}: {error.strerror}" if isinstance(error, OSError) else str(error)
+        raise runs.RunsError(
+            f"run {run.name} landed in {output_dir}; {doing} failed ({reason}); "
+            f"`python -m gvbench_nb results {output_dir}` makes it again"
+        ) from error
     return 0
+
+
+def folder_line(output_dir: Path, run: Path) -> str | None:
+    """The line saying which runs the folder's table shows, when they are not only ``run``."""
+    from gvbench_nb.runner import runs
+
+    shown = runs.current(output_dir).entries.items()
+    others: dict[str, list[str]] = {}
+    for label, entry in shown:
+        if entry.run != run:
+            others.setdefault(entry.run.name, []).append(label)
+    if not others:
+        return None
+    what = "also" if any(entry.run == run for _, entry in shown) else "not this run but"
+    listed = "; ".join(f"{', '.join(labels)} of run {name}" for name, labels in others.items())
+    return f"{output_dir} shows {what} {listed} (python -m gvbench_nb results {output_dir})\n"
 
 
 def announce_run(params: dict[str, Any], sequence: Sequence) -> None:
@@ -157,20 +188,21 @@ def stage_notebooks(
     return run_params, notebooks
 
 
-def scored_binding(stage: Path, method: str, binding: dict[str, Any]) -> dict[str, Any]:
-    """What the method's results were scored on, as its run read the inputs."""
-    scored = stage / method / "run.json"
-    return json.loads(scored.read_text(encoding="utf-8"))["binding"] if scored.is_file() else binding
+def print_run_results(folder: Path, methods: list[str]) -> None:
+    """The results table of a run (or of the rows an output folder shows) as ``run`` ends, ``methods``
+    first in their order, with a note on timers taken from the cache."""
+    from gvbench_nb.runner import runs, scoring
+
+    print_results(scoring.evaluate(folder, write=False), methods)
+    for line in scoring.left_out(folder):
+        log.warning(f"not in this table: {line}")
+    log.info(f"results table: {runs.output_folder(folder) / 'results.csv'}")
 
 
-def print_run_results(output_dir: Path, methods: list[str]) -> None:
-    """The folder's results table as ``run`` ends, ``methods`` first in their order (the ones kept
-    from earlier runs after them), with a note on timers taken from the cache."""
-    import pandas as pd
-
-    results = pd.read_csv(output_dir / "results.csv").astype({"ap": float, "max_recall": float})
+def print_results(results: pd.DataFrame, methods: list[str]) -> None:
     order = {method: rank for rank, method in enumerate(methods)}
-    results = results.sort_values("method", key=lambda m: m.map(order).fillna(len(order)), kind="stable")
+    rank = lambda rows: rows.str.split(" (", regex=False).str[0].map(order).fillna(len(order))
+    results = results.sort_values("method", key=rank, kind="stable")
     columns = ["method", "profile", "n_pairs", "n_positives", "ap", "max_recall", "seconds_per_pair", "timers"]
     imported = results["timers"] == "imported"
     shown = results[columns].astype({"seconds_per_pair": object})
@@ -183,11 +215,6 @@ def print_run_results(output_dir: Path, methods: list[str]) -> None:
             f"note: {', '.join(reused)}: images or pairs came from the cache, so their seconds are those of the runs "
             "that computed them (timers column), not this run's"
         )
-    from gvbench_nb.runner import scoring
-
-    for line in scoring.left_out(output_dir):
-        log.warning(f"not in this table: {line}")
-    log.info(f"results table: {output_dir / 'results.csv'}")
 
 
 def run_params_of_args(args: argparse.Namespace) -> dict[str, Any]:

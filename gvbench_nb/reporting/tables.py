@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import argparse
-import json
+import contextlib
 import logging
 from pathlib import Path
 from typing import Any
@@ -75,9 +75,12 @@ def command_results(args: argparse.Namespace) -> int:
     from gvbench_nb.runner import method_outputs, runs, scoring
 
     for folder in map(Path, args.output_dirs):
-        if args.run:  # an earlier run, by its id
+        if args.run is not None:  # an earlier run, by its whole id
             folder = runs.find_run(folder, args.run)
         results = scoring.evaluate(folder, scoring.readable_methods(folder), write=False)
+        if args.run is None:  # the folder's table for people, made again (a folder not ours to write keeps its own)
+            with contextlib.suppress(OSError):
+                scoring.refresh_view(folder)
         pair_tables = {m: scoring.load_pairs_table(folder, m) for m in results["method"]}
         results = results.join(bootstrap.interval_columns(pair_tables), on="method")
         records = [method_outputs.read_run_json(folder, m) for m in results["method"]]
@@ -103,12 +106,15 @@ def command_results(args: argparse.Namespace) -> int:
             log.warning(f"not in this table: {line}")
         for line in collapse_warnings:
             log.warning(f"warning: {line}")
+        if leftovers := runs.leftovers(runs.output_folder(folder)):
+            log.warning(leftovers)
         if args.export == "npy":
             from gvbench_nb.runner import score_files
 
-            for method in results["method"]:
-                path, ap = score_files.export_npy(folder, method)
-                log.info(f"{method}: {path} (AP {ap:.4f})")
+            for row in results["method"]:
+                method = runs.method_folder(folder, row)  # a row's run: the method's folder there
+                path, ap = score_files.export_npy(method.parent, method.name)
+                log.info(f"{row}: {path} (AP {ap:.4f})")
         if args.all_methods:
             others = not_run_table(set(results["method"]))
             if len(others):
@@ -163,12 +169,18 @@ def command_import_scores(args: argparse.Namespace) -> int:
 def command_upgrade(args: argparse.Namespace) -> int:
     from gvbench_nb.runner import runs, scoring
 
-    run = runs.upgrade(args.output_dir)
+    print(runs.upgrade(args.output_dir))
     scoring.refresh_view(Path(args.output_dir))
-    methods = json.loads((run / runs.MANIFEST).read_text(encoding="utf-8"))["methods"]
-    print(
-        f"{args.output_dir}: {', '.join(methods) or 'no results'} taken in as run {run.name}; its other files are as they were"
-    )
+    return 0
+
+
+def command_clean(args: argparse.Namespace) -> int:
+    from gvbench_nb.runner import runs
+
+    removed, kept = runs.clean(args.output_dir, args.superseded)
+    print(f"{args.output_dir}: removed {len(removed)} (" + (", ".join(removed) or "nothing to remove") + ")")
+    if kept:
+        log.info(f"kept {len(kept)} unfinished runs whose process is still running: {', '.join(kept)}")
     return 0
 
 
@@ -191,7 +203,7 @@ def add_command(commands: Any) -> None:
         help="also list every registered method without results, with the weight files it needs",
     )
     results.add_argument(
-        "--run", metavar="ID", help="the table of one earlier run of the folder (its id under runs/, or its beginning)"
+        "--run", metavar="ID", help="the table of one earlier run of the folder (its whole id, a folder under runs/)"
     )
     results.set_defaults(handler=command_results)
     parser = commands.add_parser(
@@ -212,6 +224,18 @@ def add_command(commands: Any) -> None:
     )
     upgrade.add_argument("output_dir", help="the folder, e.g. outputs/gardens_point")
     upgrade.set_defaults(handler=command_upgrade)
+    clean = commands.add_parser(
+        "clean",
+        help="remove an output folder's unfinished runs whose process has ended (runs/.building-*)",
+        description="Remove the runs/.building-* folders that failed, killed or interrupted runs left, once the "
+        "process that started each has ended (a build started on another machine: once nothing in it changed for a "
+        "day); a finished run is removed only with --superseded.",
+    )
+    clean.add_argument("output_dir", help="the output folder, e.g. outputs/gardens_point")
+    clean.add_argument(
+        "--superseded", action="store_true", help="also remove the finished runs the folder's table no longer shows"
+    )
+    clean.set_defaults(handler=command_clean)
     parser.add_argument("file", help="the .npy or the table of scores")
     parser.add_argument("--sequence", required=True, help="the sequence's name in tables and plots, e.g. night")
     parser.add_argument("--method", required=True, help="the method's name (its folder), e.g. sp-sg-authors")

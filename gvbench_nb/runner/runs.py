@@ -1,22 +1,30 @@
 """An output folder's runs. Every door that produces results (``run``, a stage notebook, a shard, a
 merge, an import) adds ``runs/<id>/``: built aside in ``runs/.building-<id>`` and made visible by one
-rename, never changed or deleted afterwards, so two writers never share a file. What users read at
-the folder's top (``results.csv``) is derived from the runs by one rule (``current``) and can always
-be made again; an earlier run is read by its id (``results OUT --run ID``).
+rename, never changed or deleted afterwards, so two writers never share a file. ``finish`` seals a
+run: its manifest lists every file with its size and BLAKE2b, and carries the hash of its own content;
+every read of a run goes through that list (``sealed``), so an edited, missing or extra file, or a
+damaged manifest, is refused naming the run and the file, never read nor passed over. What users read
+at the folder's top (``results.csv``) is written for people from the runs by one rule (``current``) and
+never read back; an earlier run is read by its id (``results OUT --run ID``).
 
-The rule: the folder's current pairs and labels are those of its latest run; its current images and
-recipe (profile, seed, verifier overrides) those of the latest computed run on those pairs. A
-method's current run is its latest run, shown when it is of those inputs (an imported run read no
-images and follows no recipe: its pairs and labels bind it); every other method is left out, named.
+The rule: the folder's current pairs and labels are those of its latest run; its current images those
+of the latest computed run on those pairs. Each method shows, under each recipe it ran (profile, seed,
+verifier overrides), its latest run under that recipe, when it is of those inputs; an imported run
+(which read no images and follows no recipe: its pairs and labels bind it) replaces the method's
+earlier runs. A method shown under several recipes has a row each, labelled by what tells them apart
+(``orb-nn (paper profile)``); every other run is left out, named.
 """
 
 from __future__ import annotations
 
 import contextlib
 import datetime as _dt
+import hashlib
 import json
 import os
+import platform
 import secrets
+import shutil
 import sys
 import time
 from collections.abc import Iterator
@@ -29,7 +37,7 @@ from gvbench_nb.io_utils import atomic_write_json, fsync_folder
 
 RUNS = "runs"
 BUILDING = ".building-"
-MANIFEST = "manifest.json"  # in a run: its id, door, methods and when it was made visible
+MANIFEST = "manifest.json"  # in a run: its id, door, methods, when it was made visible and its files' hashes
 OLD_RECORD = "gvbench-run.json"  # what folders written before runs held at their top
 PACKAGE = "gvbench-nb"
 
@@ -44,17 +52,28 @@ class Entry(NamedTuple):
     run: Path  # the run's folder
     method: str
     record: dict[str, Any]  # the method's run.json
+    label: str = ""  # its row in a view: the method, or the method and what tells its recipes apart
 
     @property
     def folder(self) -> Path:
         return self.run / self.method
 
+    @property
+    def recipe(self) -> dict[str, Any] | None:
+        return recipe(self.record)
+
 
 class View(NamedTuple):
-    """What a folder shows: each method's current run, and the runs left out with why."""
+    """What a folder shows: a row (``Entry.label``) for each method under each recipe it ran on the
+    current inputs, and the runs left out (row label -> why, and how to show it)."""
 
     entries: dict[str, Entry]
-    left_out: dict[str, str]  # method -> why its latest run is not shown (and how to show it)
+    left_out: dict[str, str]
+
+    def of(self, method: str) -> list[Entry]:
+        """The rows of ``method``, its latest run last."""
+        rows = [entry for entry in self.entries.values() if entry.method == method]
+        return sorted(rows, key=lambda entry: _finished_ns(entry.run))
 
 
 def now() -> str:
@@ -78,9 +97,13 @@ def output_folder(folder: str | os.PathLike[str]) -> Path:
 
 
 def check_owned(output_dir: str | os.PathLike[str]) -> None:
-    """Refuse, in one sentence, a folder that is neither missing, empty nor the package's."""
+    """Refuse, in one sentence, a folder that is neither missing, empty nor the package's, or that
+    holds a run that is not whole (named before anything reads or adds to the folder)."""
     folder = Path(output_dir)
-    if not folder.is_dir() or is_run(folder) or (folder / RUNS).is_dir():
+    if not folder.is_dir() or is_run(folder):
+        return
+    if (folder / RUNS).is_dir():
+        finished_runs(folder)
         return
     if (folder / OLD_RECORD).is_file():
         raise RunsError(
@@ -123,12 +146,43 @@ def start(output_dir: str | os.PathLike[str], door: str) -> Path:
 def _building(output_dir: Path, door: str) -> Path:
     folder = output_dir / RUNS / f"{BUILDING}{_new_id(door)}"
     folder.mkdir(parents=True)
-    atomic_write_json(folder / MANIFEST, {"package": PACKAGE, "door": door, "started_at": now()})
+    # Who builds it: ``clean`` removes a build only once that process has ended.
+    builder = {"pid": os.getpid(), "host": platform.node()}
+    atomic_write_json(folder / MANIFEST, {"package": PACKAGE, "door": door, "started_at": now(), **builder})
     return folder
 
 
+# BLAKE2b by device, inode, size, mtime and ctime: a file hashed once a process
+_digests: dict[tuple[int, ...], str] = {}
+
+
+def _files(run: Path) -> dict[str, dict[str, Any]]:
+    """Every file of a run but its manifest: relative path -> size and BLAKE2b."""
+    found = {}
+    for path in sorted(run.rglob("*")):
+        name = path.relative_to(run).as_posix()
+        if name == MANIFEST or path.is_dir():
+            continue
+        stat = path.stat()  # a rewrite in place changes ctime, which no tool sets back
+        key = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
+        if key not in _digests:
+            _digests[key] = _blake2b(path)
+        found[name] = {"size": stat.st_size, "blake2b": _digests[key]}
+    return found
+
+
+def _blake2b(path: Path) -> str:
+    return hashlib.blake2b(path.read_bytes()).hexdigest()  # a run's files are small: tables, notebooks
+
+
+def _seal(manifest: dict[str, Any]) -> str:
+    """The hash of a manifest's content (its file list included), kept in it: an edit or a cut shows."""
+    content = json.dumps({k: v for k, v in manifest.items() if k != "seal"}, sort_keys=True, default=str)
+    return hashlib.blake2b(content.encode()).hexdigest()
+
+
 def finish(building: Path, **details: Any) -> Path:
-    """Make a built run visible by one rename; its manifest names its methods and when."""
+    """Seal a built run (its manifest lists every file with its hash) and make it visible by one rename."""
     manifest = json.loads((building / MANIFEST).read_text(encoding="utf-8"))
     final = building.with_name(building.name.removeprefix(BUILDING))
     manifest.update(
@@ -140,7 +194,8 @@ def finish(building: Path, **details: Any) -> Path:
         finished_ns=time.time_ns(),
         **details,
     )
-    atomic_write_json(building / MANIFEST, manifest)
+    manifest = json.loads(json.dumps(manifest, default=str)) | {"files": _files(building)}
+    atomic_write_json(building / MANIFEST, manifest | {"seal": _seal(manifest)})
     fsync_folder(building)
     os.rename(building, final)
     fsync_folder(final.parent)
@@ -155,46 +210,72 @@ def new_run(output_dir: str | os.PathLike[str], door: str) -> Iterator[Path]:
     finish(building)
 
 
-_read: dict[tuple[str, int, int], Any] = {}  # a file's JSON by path, mtime and size: views read each run once
+def sealed(run: Path) -> dict[str, Any]:
+    """A finished run's manifest, once every file of the run matched it (size and hash); otherwise
+    ``RunsError`` naming the run, the file and what to do. Nothing of a run is read before this."""
+    output_dir = run.parent.parent
 
+    def refused(name: str, what: str) -> RunsError:
+        return RunsError(
+            f"run {run.name} of {output_dir}: its {name} {what}, so the run cannot be trusted; remove the folder "
+            f"{run} (or restore it whole from a backup)"
+        )
 
-def _json(path: Path) -> Any:
-    """A run's JSON file, read once a process unless it changed (a finished run does not); None when unreadable."""
+    if not run.is_dir():
+        raise RunsError(f"{run} is not a run of {output_dir} (a run is a folder); move it out of {run.parent}")
     try:
-        stat = path.stat()
-        key = (str(path), stat.st_mtime_ns, stat.st_size)
-        if key not in _read:
-            _read[key] = json.loads(path.read_text(encoding="utf-8"))
+        manifest = json.loads((run / MANIFEST).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise refused(MANIFEST, "is missing") from None
     except (OSError, ValueError):
-        return None
-    return _read[key]
+        raise refused(MANIFEST, "is damaged (not whole JSON)") from None
+    if isinstance(manifest, dict) and "finished_ns" in manifest and "seal" not in manifest:
+        raise RunsError(
+            f"run {run.name} of {output_dir} was written before runs were sealed; seal the folder's runs as they "
+            f"are with `python -m gvbench_nb upgrade {output_dir}`, or remove that run"
+        )
+    if not isinstance(manifest, dict) or manifest.get("seal") != _seal(manifest) or manifest.get("run_id") != run.name:
+        raise refused(MANIFEST, "does not match its seal (edited or damaged)")
+    listed, found = manifest["files"], _files(run)
+    for name in sorted(set(listed) | set(found)):
+        what = "is missing" if name not in found else "was added after the run finished" if name not in listed else ""
+        if what or found[name] != listed[name]:
+            raise refused(name, what or "changed after the run finished")
+    _finished[run] = manifest["finished_ns"]
+    return manifest
 
 
-def _manifest(folder: Path) -> dict[str, Any] | None:
-    manifest = _json(folder / MANIFEST)
-    return manifest if isinstance(manifest, dict) and "finished_ns" in manifest else None
+_finished: dict[Path, int] = {}  # a sealed run's finish time, as its manifest says
+_records: dict[str, Any] = {}  # a run.json by its hash: a view parses each once a process
 
 
 def finished_runs(output_dir: str | os.PathLike[str]) -> list[tuple[Path, dict[str, Any]]]:
-    """The folder's finished runs with their manifests, oldest first."""
+    """The folder's finished runs with their manifests, oldest first, each checked whole (``sealed``)."""
     root = Path(output_dir) / RUNS
-    found = []
-    for folder in root.iterdir() if root.is_dir() else []:
-        manifest = None if folder.name.startswith(".") else _manifest(folder)
-        if manifest is not None:
-            found.append((folder, manifest))
+    found = [(run, sealed(run)) for run in (root.iterdir() if root.is_dir() else []) if not run.name.startswith(".")]
     return sorted(found, key=lambda item: (item[1]["finished_ns"], item[0].name))
 
 
+def _finished_ns(run: Path) -> int:
+    return _finished.get(run) or sealed(run)["finished_ns"]
+
+
 def find_run(output_dir: str | os.PathLike[str], wanted: str) -> Path:
-    """The finished run ``wanted`` (an id, or its unique beginning) of ``output_dir``."""
+    """The finished run of ``output_dir`` whose id is ``wanted`` (the whole id), checked whole."""
+    root = Path(output_dir) / RUNS
+    if wanted and Path(wanted).name == wanted and not wanted.startswith(".") and (root / wanted).is_dir():
+        sealed(root / wanted)  # the others need not be whole to read this one
+        return root / wanted
     runs = [folder for folder, _ in finished_runs(output_dir)]
-    matching = [folder for folder in runs if folder.name == wanted] or [f for f in runs if f.name.startswith(wanted)]
-    if len(matching) != 1:
-        known = ", ".join(f.name for f in runs[-5:]) or "none"
-        what = "matches several runs" if matching else "is not a run"
-        raise RunsError(f"{wanted!r} {what} of {output_dir} (latest: {known}); give one of its runs' ids")
-    return matching[0]
+    beginning = [f.name for f in runs if wanted.strip() and f.name.startswith(wanted)]
+    known = ", ".join(f.name for f in runs[-5:]) or "none"
+    if not wanted.strip():
+        raise RunsError(f"--run is empty (an unset variable?); give the whole id of one run of {output_dir}: {known}")
+    if beginning:
+        raise RunsError(
+            f"{wanted!r} is not a run of {output_dir} but the beginning of {', '.join(beginning)}; give a whole id"
+        )
+    raise RunsError(f"{wanted!r} is not a run of {output_dir} (latest: {known}); give one of its runs' ids")
 
 
 def entries(output_dir: str | os.PathLike[str]) -> list[Entry]:
@@ -204,9 +285,11 @@ def entries(output_dir: str | os.PathLike[str]) -> list[Entry]:
         if manifest.get("door") == "shard":
             continue
         for method in manifest.get("methods", []):
-            record = _json(folder / method / "run.json")
-            if isinstance(record, dict):
-                found.append(Entry(folder, method, record))
+            digest = manifest["files"].get(f"{method}/run.json", {}).get("blake2b")
+            if digest is not None and digest not in _records:
+                _records[digest] = json.loads((folder / method / "run.json").read_text(encoding="utf-8"))
+            if isinstance(_records.get(digest), dict):
+                found.append(Entry(folder, method, _records[digest], method))
     return found
 
 
@@ -234,59 +317,170 @@ def _inputs(record: dict[str, Any]) -> tuple[Any, Any]:
     return binding.get("pairs_digest"), binding.get("images_digest")
 
 
+def _labelled(rows: list[Entry]) -> dict[str, Entry]:
+    """Each row under its label: its method, and, where the method has several rows, what tells their
+    recipes apart (``orb-nn (paper profile)``, ``orb-nn (seed 1)``, ``orb-nn (threshold_px 8)``)."""
+    labelled, recipes = {}, [entry.recipe or {} for entry in rows]
+    for entry, mine in zip(rows, recipes):
+        others = [theirs for other, theirs in zip(rows, recipes) if other.method == entry.method]
+        words = {
+            "profile": f"{mine.get('profile')} profile",
+            "seed": f"seed {mine.get('seed')}",
+            "verifier": ", ".join(f"{k} {v}" for k, v in (mine.get("verifier") or {}).items()) or "default verifier",
+        }
+        parts = [text for key, text in words.items() if len({json.dumps(o.get(key)) for o in others}) > 1]
+        label = f"{entry.method} ({'; '.join(parts)})" if parts else entry.method
+        labelled[label] = entry._replace(label=label)
+    return labelled
+
+
 def current(output_dir: str | os.PathLike[str]) -> View:
-    """Each method's current run by the module's rule, and the methods left out with why."""
+    """The folder's rows by the module's rule (keyed by label), and the runs left out with why."""
     found = entries(output_dir)
     if not found:
         return View({}, {})
-    described = [(entry, *_inputs(entry.record), recipe(entry.record)) for entry in found]
+    described = [(entry, *_inputs(entry.record), entry.recipe) for entry in found]
     pairs = described[-1][1]
     computed = [d for d in described if d[1] == pairs and d[3] is not None]
-    images, wanted = (computed[-1][2], computed[-1][3]) if computed else (None, None)
-    latest = {d[0].method: d for d in described}  # a method's latest run
-    shown, left_out = {}, {}
-    for method, (entry, entry_pairs, entry_images, entry_recipe) in latest.items():
+    images = computed[-1][2] if computed else None
+    latest: dict[tuple[str, str], tuple[Entry, Any, Any, Any]] = {}  # (method, recipe) -> its latest run
+    for d in described:
+        method = d[0].method
+        if d[3] is None or (method, "null") in latest:  # an import replaces the method's runs, and is replaced
+            latest = {key: value for key, value in latest.items() if key[0] != method}
+        latest[(method, json.dumps(d[3], sort_keys=True))] = d
+    shown, left = [], []
+    for entry, entry_pairs, entry_images, entry_recipe in latest.values():
         if entry_pairs != pairs:
-            why = f"scored {entry.record.get('n_pairs')} other pairs or labels"
-        elif entry_recipe is not None and (entry_images, entry_recipe) != (images, wanted):
-            why = "read other images" if entry_images != images else f"ran under another recipe ({entry_recipe})"
+            left.append((entry, f"scored {entry.record.get('n_pairs')} other pairs or labels"))
+        elif entry_recipe is not None and entry_images != images:
+            left.append((entry, "read other images"))
         else:
-            shown[method] = entry
-            continue
-        left_out[method] = (
-            f"{method}: its latest run {entry.run.name} {why} (results {output_dir} --run {entry.run.name})"
-        )
+            shown.append(entry)
+    named = {(e.run, e.method): label for label, e in _labelled([d[0] for d in latest.values()]).items()}
+    left_out = {}
+    for entry, why in left:
+        label, run = named[entry.run, entry.method], entry.run.name
+        left_out[label] = f"{label}: its latest run {run} {why} (results {output_dir} --run {run})"
     order = {name: rank for rank, name in enumerate(method_registry.method_names())}
-    ordered = dict(sorted(shown.items(), key=lambda item: (order.get(item[0], len(order)), item[0])))
-    return View(ordered, left_out)
+    ordered = sorted(_labelled(shown).items(), key=lambda item: (order.get(item[1].method, len(order)), item[0]))
+    return View(dict(ordered), left_out)
 
 
 def method_folder(output_dir: str | os.PathLike[str], method: str) -> Path:
-    """Where a method's results are read: in a run, its own folder; in an output folder, its
-    current run's (``output_dir/method``, which does not exist, when it has none)."""
+    """Where a method's results are read: in a run, its own folder (a finished run checked whole); in an
+    output folder, its row's run (``method`` a row label, or a method: its latest row), else
+    ``output_dir/method``, which does not exist."""
     folder = Path(output_dir)
     if is_run(folder):
+        if not folder.name.startswith("."):
+            sealed(folder)
         return folder / method
-    entry = current(folder).entries.get(method)
+    view = current(folder)
+    entry = view.entries.get(method) or next(reversed(view.of(method)), None)
     return entry.folder if entry is not None else folder / method
 
 
-def upgrade(output_dir: str | os.PathLike[str]) -> Path:
-    """Take the results of a folder written before runs in as one run (copies; nothing deleted)."""
-    import shutil
+def unfinished(output_dir: str | os.PathLike[str]) -> list[Path]:
+    """The folder's runs being built, or left by a build that failed or was killed."""
+    root = Path(output_dir) / RUNS
+    return sorted(root.glob(f"{BUILDING}*")) if root.is_dir() else []
 
+
+ABANDONED_AFTER = 24 * 3600  # seconds unchanged after which a build of another machine is taken as abandoned
+
+
+def abandoned(building: Path) -> bool:
+    """Whether no process builds it any more: the one that started it (its manifest says which) has ended,
+    or, started on another machine or by an earlier version, nothing in it changed for a day."""
+    import psutil
+
+    try:
+        builder = json.loads((building / MANIFEST).read_text(encoding="utf-8"))
+        started = _dt.datetime.fromisoformat(builder["started_at"]).timestamp()
+        if builder.get("host") == platform.node():
+            return psutil.Process(builder["pid"]).create_time() > started + 1  # its pid taken by another process
+    except psutil.NoSuchProcess:
+        return True
+    except (OSError, ValueError, KeyError, TypeError, psutil.Error):
+        pass
+    changed = max((p.stat().st_mtime for p in [building, *building.rglob("*")]), default=0)
+    return time.time() - changed > ABANDONED_AFTER
+
+
+def _size(folder: Path) -> int:
+    return sum(p.stat().st_size for p in folder.rglob("*") if p.is_file())
+
+
+def leftovers(output_dir: str | os.PathLike[str]) -> str | None:
+    """One line on the folder's unfinished builds (how many, how big, how many abandoned), else None."""
+    builds = unfinished(output_dir)
+    if not builds:
+        return None
+    size, gone = sum(map(_size, builds)), sum(map(abandoned, builds))
+    return (
+        f"{output_dir} holds {len(builds)} unfinished run{'s' if len(builds) > 1 else ''} ({RUNS}/{BUILDING}*, "
+        f"{size / 1e6:.1f} MB), {gone} abandoned: `python -m gvbench_nb clean {output_dir}` removes those"
+    )
+
+
+def clean(output_dir: str | os.PathLike[str], superseded: bool = False) -> tuple[list[str], list[str]]:
+    """Remove the folder's abandoned builds and, ``superseded``, the finished runs its view does not show;
+    returns what was removed and the builds kept (still being built)."""
+    builds = unfinished(output_dir)
+    removed, kept = [b for b in builds if abandoned(b)], [b.name for b in builds if not abandoned(b)]
+    if superseded:
+        shown = {entry.run for entry in current(output_dir).entries.values()}
+        for run, _ in finished_runs(output_dir):
+            if run not in shown:  # out of every reader's sight by one rename, then deleted
+                removed.append(run.rename(run.with_name(f"{BUILDING}removed-{run.name}")))
+    for folder in removed:
+        shutil.rmtree(folder)
+    return [folder.name.removeprefix(f"{BUILDING}removed-") for folder in removed], kept
+
+
+def upgrade(output_dir: str | os.PathLike[str]) -> str:
+    """Take the results of a folder written before runs in as one run (copies; nothing deleted), or seal
+    the runs written before runs were sealed, as they are; what was done, in a sentence."""
     folder = Path(output_dir)
-    methods = sorted(p.parent.name for p in folder.glob("*/pairs.csv") if (p.parent / "run.json").is_file())
-    if not (folder / OLD_RECORD).is_file() or (folder / RUNS).is_dir():
+    root = folder / RUNS
+    unsealed = [run for run in (root.iterdir() if root.is_dir() else []) if _unsealed(run)]
+    for run in unsealed:
+        manifest = json.loads((run / MANIFEST).read_text(encoding="utf-8")) | {"files": _files(run)}
+        atomic_write_json(run / MANIFEST, manifest | {"seal": _seal(manifest)})
+    if unsealed:
+        return f"{folder}: sealed {len(unsealed)} runs written before runs were sealed, as they are now"
+    if not (folder / OLD_RECORD).is_file() or root.is_dir():
         raise RunsError(
-            f"{folder} holds no results of an earlier layout ({OLD_RECORD} without {RUNS}/); nothing to upgrade"
+            f"{folder} holds no results of an earlier layout ({OLD_RECORD} without {RUNS}/, or runs not sealed); "
+            "nothing to upgrade"
         )
+    try:
+        record = json.loads((folder / OLD_RECORD).read_text(encoding="utf-8"))
+    except ValueError:
+        record = {}
+    # A publication killed half way: its files are in its stage or already moved; the earlier version finished it.
+    moving = record.get("next") if record.get("state") == "publishing" else None
+    stage = folder / str(record.get("stage"))
+    methods = sorted(moving["methods"]) if moving else sorted(p.parent.name for p in folder.glob("*/run.json"))
     building = _building(folder, "upgrade")  # not ``start``: it refuses a folder of the earlier layout
     for method in methods:
         (building / method).mkdir()
         for name in ("run.json", "pairs.csv"):
-            shutil.copy2(folder / method / name, building / method / name)
-    return finish(building, upgraded_from=str(folder / OLD_RECORD))
+            source = stage / method / name if moving and (stage / method / name).is_file() else folder / method / name
+            shutil.copy2(source, building / method / name)
+    run = finish(
+        building, upgraded_from=str(folder / OLD_RECORD), **({"finished_publication": stage.name} if moving else {})
+    )
+    finished = f", finishing the publication {stage.name} that was stopped half way" if moving else ""
+    return f"{folder}: {', '.join(methods) or 'no results'} taken in as run {run.name}{finished}; its other files are as they were"
+
+
+def _unsealed(run: Path) -> bool:
+    with contextlib.suppress(OSError, ValueError, TypeError):
+        manifest = json.loads((run / MANIFEST).read_text(encoding="utf-8"))
+        return not run.name.startswith(".") and "finished_ns" in manifest and "seal" not in manifest
+    return False
 
 
 def resolved_params(output_dir: str | os.PathLike[str]) -> Path | None:
@@ -295,8 +489,5 @@ def resolved_params(output_dir: str | os.PathLike[str]) -> Path | None:
 
     if is_run(output_dir):
         return Path(output_dir) / name if (Path(output_dir) / name).is_file() else None
-    shown = sorted(
-        {e.run for e in current(output_dir).entries.values()},
-        key=lambda run: (_manifest(run) or {}).get("finished_ns", 0),
-    )
+    shown = sorted({e.run for e in current(output_dir).entries.values()}, key=_finished_ns)
     return next((run / name for run in reversed(shown) if (run / name).is_file()), None)

@@ -41,14 +41,12 @@ def images_digest(image_root: Path, names: Iterable[str]) -> str:
 
 
 def sequence_binding(sequence: Sequence) -> dict[str, Any]:
-    """What a method's results are bound to: the pairs and labels scored, the images' contents,
-    and the pair file they came from (as it was then)."""
+    """What a method's results are bound to: the pairs and labels scored and the images' contents (the
+    pair file they came from, and its SHA-256, are named once, in run.json's ``pairs``)."""
     return {
         "pairs_digest": pairs_digest((p.query, p.reference, p.label) for p in sequence.pairs),
         "images_digest": images_digest(sequence.image_root, sequence.images),
         "n_pairs": len(sequence.pairs),
-        "pairs_file": sequence.origin.get("pairs_file"),
-        "pairs_sha256": sequence.origin.get("pairs_sha256"),
     }
 
 
@@ -67,12 +65,11 @@ def load_pairs_table(output_dir: Path, method: str) -> pd.DataFrame:
 
 
 def methods_with_results(output_dir: Path) -> list[str]:
-    """The methods a run holds, or an output folder shows (``runs.current``), in registry order, then any others."""
-    found = (
-        {p.parent.name for p in Path(output_dir).glob("*/pairs.csv")}
-        if runs.is_run(output_dir)
-        else set(runs.current(output_dir).entries)
-    )
+    """The methods a run holds, in registry order, then any others; or the rows an output folder shows
+    (``runs.current``: a method, or a method under one of its recipes, such as ``orb-nn (paper profile)``)."""
+    if not runs.is_run(output_dir):
+        return list(runs.current(output_dir).entries)
+    found = {p.parent.name for p in Path(output_dir).glob("*/pairs.csv")}
     ordered = [m for m in method_registry.method_names() if m in found]
     return ordered + sorted(found - set(ordered))
 
@@ -135,7 +132,7 @@ def evaluate(output_dir: Path, methods: list[str] | None = None, write: bool = T
         )
     results = pd.DataFrame(rows)
     check_one_binding(output_dir, results)
-    if write:  # a view of the runs: made again whenever asked
+    if write and (not runs.is_run(output_dir) or output_dir.name.startswith(runs.BUILDING)):  # a sealed run stays
         atomic_write_csv(output_dir / "results.csv", results)
     return results
 
@@ -205,7 +202,7 @@ def readable_methods(output_dir: str | os.PathLike[str], methods: SequenceType[s
             evaluate(folder, write=False)  # says the folder holds no results
     absent = [m for m in methods if m not in shown]
     if absent:
-        why = {line.split(":", 1)[0]: line for line in left_out(folder)}
+        why = {} if runs.is_run(folder) else runs.current(folder).left_out
         if absent[0] in why:
             raise method_outputs.ResultsError(
                 f"{folder} does not show {absent[0]} beside its other methods: {why[absent[0]]}"
@@ -217,7 +214,7 @@ def readable_methods(output_dir: str | os.PathLike[str], methods: SequenceType[s
         described = "; ".join(f"{method}: {why}" for method, why in changed.items())
         raise method_outputs.ResultsError(
             f"{folder}: results computed from inputs that have changed since ({described}); run those methods "
-            f"again (python -m gvbench_nb run PARAMS --methods {','.join(changed)} --output-dir {runs.output_folder(folder)})"
+            f"again (python -m gvbench_nb run PARAMS --methods {','.join(m.split(' (')[0] for m in changed)} --output-dir {runs.output_folder(folder)})"
         )
     digests = [table_pairs_digest(load_pairs_table(folder, m))[:12] for m in methods]
     check_one_binding(folder, pd.DataFrame({"method": methods, "pairs_digest": digests}))

@@ -109,10 +109,9 @@ def test_entries_and_tables_stored_without_the_counts_are_counted_again_never_se
     conf = methods.resolve_method("sift-nn", "repository")
     folder = method_outputs.method_dir(out, "sift-nn")
     assert method_runs.finished_table(folder, sequence, conf, 0, "cpu") is not None
-    shutil.copy(folder / "pairs.csv", tmp_path / "pairs.csv")
-    pd.read_csv(tmp_path / "pairs.csv").drop(columns=COUNTS).to_csv(folder / "pairs.csv", index=False)
-    assert method_runs.finished_table(folder, sequence, conf, 0, "cpu") is None
-    shutil.copy(tmp_path / "pairs.csv", folder / "pairs.csv")
+    copy = shutil.copytree(folder, tmp_path / "copy" / "sift-nn")  # a finished run is never edited: its copy is
+    pd.read_csv(copy / "pairs.csv").drop(columns=COUNTS).to_csv(copy / "pairs.csv", index=False)
+    assert method_runs.finished_table(copy, sequence, conf, 0, "cpu") is None
     # Match entries stored without the counts have them counted from their matches and inlier mask.
     store = pair_matching.match_store(cache, conf)
     entries = {key: store.read(key) for key in store.keys()}
@@ -122,8 +121,9 @@ def test_entries_and_tables_stored_without_the_counts_are_counted_again_never_se
         for key, entry in entries.items():
             attrs = {k[5:]: v for k, v in entry.items() if k.startswith("attr:") and k[5:] not in COUNTS}
             writer.put(key, {k: v for k, v in entry.items() if not k.startswith("attr:")}, attrs)
-    (folder / "run.json").unlink()  # else the finished result is found done
-    again = method_runs.run_method(sequence, "sift-nn", "repository", out, cache, device="cpu", progress=False)
+    again = method_runs.run_method(
+        sequence, "sift-nn", "repository", tmp_path / "again", cache, device="cpu", progress=False
+    )
     pd.testing.assert_frame_equal(again.drop(columns=["extract_seconds"]), table.drop(columns=["extract_seconds"]))
 
 

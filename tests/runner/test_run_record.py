@@ -332,26 +332,23 @@ def test_the_folder_shows_each_methods_latest_run_on_the_current_inputs_and_name
     out, path = tmp_path / "out", params_file(tmp_path, methods=["orb-nn", "sift-opencv-nn"])
     assert run_cli(capsys, "run", str(path))[0] == 0
     assert helpers.shown(out) == {"orb-nn": ("repository", 4), "sift-opencv-nn": ("repository", 4)}
-    # Another recipe for one method: the folder shows it; the other method's run is left out, named.
+    # Another recipe for one method: the folder shows both, a row each, and still the other method.
     code, text, err = run_cli(capsys, "run", str(path), "--methods", "orb-nn", "--profile", "paper")
     first = run_ids(out)[0]
-    line = (
-        f"not in this table: sift-opencv-nn: its latest run {first} ran under another recipe "
-        f"({{'profile': 'repository', 'seed': 0, 'verifier': {{}}}}) (results {out} --run {first})"
-    )
-    assert code == 0 and helpers.shown(out) == {"orb-nn": ("paper", 4)} and helpers.not_in_table(err) == [line]
-    assert "sift-opencv-nn" not in text
+    rows = {"orb-nn (paper profile)": ("paper", 4), "orb-nn (repository profile)": ("repository", 4)}
+    assert code == 0 and helpers.shown(out) == {**rows, "sift-opencv-nn": ("repository", 4)}
+    assert helpers.not_in_table(err) == [] and f"sift-opencv-nn of run {first}" in text
     code, text, err = run_cli(capsys, "results", str(out))
-    assert code == 0 and "sift-opencv-nn" not in text and helpers.not_in_table(err) == [line]
-    code, text, _ = run_cli(capsys, "results", str(out), "--run", first)  # the command the line names
-    assert code == 0 and "sift-opencv-nn" in text
+    assert code == 0 and all(row in text for row in [*rows, "sift-opencv-nn"]) and helpers.not_in_table(err) == []
     # Other labels: the latest run's pairs are the folder's; the paper run is left out for its pairs.
     flipped = params_file(tmp_path, "flipped.yaml", FLIPPED, methods=["sift-opencv-nn"])
     code, _, err = run_cli(capsys, "run", str(flipped))
     paper = run_ids(out)[1]
     assert code == 0 and helpers.shown(out) == {"sift-opencv-nn": ("repository", 4)}
     assert helpers.not_in_table(err) == [
-        f"not in this table: orb-nn: its latest run {paper} scored 4 other pairs or labels (results {out} --run {paper})"
+        f"not in this table: orb-nn ({profile} profile): its latest run {run} scored 4 other pairs or labels "
+        f"(results {out} --run {run})"
+        for profile, run in (("repository", first), ("paper", paper))
     ]
     assert pd.read_csv(method_outputs.method_dir(out, "sift-opencv-nn") / "pairs.csv")["label"].tolist() == [
         p.label for p in FLIPPED
@@ -368,10 +365,9 @@ def test_results_of_an_earlier_run_by_its_id(tmp_path, root, capsys, notebooks_h
         table = pd.read_csv(out / "runs" / run_id / "orb-nn" / "pairs.csv")
         aps[run_id] = evaluate_scores(table["label"].to_numpy(), table["score"].to_numpy())["ap"]
     assert aps[first] != pytest.approx(aps[second])  # the labels flipped
-    for wanted in (first, first[: len(first) - 3]):  # its id, or its unique beginning
-        code, text, _ = run_cli(capsys, "results", str(out), "--run", wanted)
-        row = next(line.split() for line in text.splitlines() if line.startswith("orb-nn"))
-        assert code == 0 and float(row[3]) == pytest.approx(aps[first], abs=1e-3), text
+    code, text, _ = run_cli(capsys, "results", str(out), "--run", first)
+    row = next(line.split() for line in text.splitlines() if line.startswith("orb-nn"))
+    assert code == 0 and float(row[3]) == pytest.approx(aps[first], abs=1e-3), text
     code, text, _ = run_cli(capsys, "results", str(out))
     row = next(line.split() for line in text.splitlines() if line.startswith("orb-nn"))
     assert code == 0 and float(row[3]) == pytest.approx(aps[second], abs=1e-3)

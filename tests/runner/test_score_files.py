@@ -411,7 +411,10 @@ def test_an_export_names_its_run_and_states_that_runs_ap(gp8_run, tmp_path, caps
     assert code == 0, err
     second = out / "exports" / f"gp8_orb-nn_{second_id}.npy"
     second_ap = run_ap(capsys, out, second_id)
-    assert f"orb-nn: {second} (AP {second_ap:.4f})" in said and exported_ap(second) == pytest.approx(second_ap)
+    # The folder shows orb-nn under both profiles, a row each: each row's export names its run.
+    assert f"orb-nn (paper profile): {second} (AP {second_ap:.4f})" in said
+    assert f"orb-nn (repository profile): {first} (AP {first_ap:.4f})" in said
+    assert exported_ap(second) == pytest.approx(second_ap) and first.read_bytes() == first_bytes
     assert sorted(p.name for p in tmp_path.rglob("*.npy")) == sorted([first.name, second.name])
     assert sorted((out / "exports").iterdir()) == sorted([first, second])
 

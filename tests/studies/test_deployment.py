@@ -3,7 +3,6 @@ out below by hand, and the reader's refusals (those of ``results``)."""
 
 from __future__ import annotations
 
-import json
 import shutil
 
 import numpy as np
@@ -114,14 +113,15 @@ def test_transfer_reads_finished_runs_and_prints_the_matrix(tmp_path, capsys):
 
 def test_transfer_refuses_what_results_refuses(tmp_path, capsys):
     write_run(tmp_path / "day", "day", [1, 0, 1, 0], [9, 4, 6, 1])
-    write_run(tmp_path / "night", "night", [0, 1, 1, 0], [8, 7, 2, 3])
     # night's pair file changed since its run: its scores are no longer of its pairs.
     pair_file = tmp_path / "night.txt"
     pair_file.write_text("q0 r0 1\n")
-    run_json = method_outputs.method_dir(tmp_path / "night", "sift-nn") / "run.json"
-    run = json.loads(run_json.read_text())
-    run["pairs"].update(pairs_file=str(pair_file), pairs_sha256="0" * 64)
-    run_json.write_text(json.dumps(run))
+    table = pairs_table(["q0", "q0", "q1", "q1"], [0, 1, 1, 0], [8, 7, 2, 3])
+    pairs = {"pairs_builder": "frame_tolerance", "pairs_file": str(pair_file), "pairs_sha256": "0" * 64}
+    run = {"sequence": "night", "conf": {"paper_name": "sift-nn", "profile": "repository"}, "pairs": pairs}
+    add_run(
+        tmp_path / "night", "sift-nn", table.assign(extract_seconds=0.1, match_seconds=0.1, verify_seconds=0.1), run
+    )
     with pytest.raises(method_outputs.ResultsError, match="the pair file"):
         deployment.DeploymentInputs([tmp_path / "day", tmp_path / "night"])
     shutil.rmtree(tmp_path / "day" / runs.RUNS)  # and a folder of the earlier layout

@@ -87,8 +87,7 @@ def test_run_prints_imported_for_an_imported_methods_seconds(tmp_path, capsys):
     from gvbench_nb import run_and_publish
 
     results = results_rows({"night": False}).assign(n_positives=90, timers=["this run", "imported"])
-    results.to_csv(tmp_path / "results.csv", index=False)
-    run_and_publish.print_run_results(tmp_path, ["sift-nn", "my-tool"])
+    run_and_publish.print_results(results, ["sift-nn", "my-tool"])
     printed = capsys.readouterr()
     row = next(line for line in printed.out.splitlines() if line.strip().startswith("my-tool"))
     assert row.split()[-2:] == ["imported", "imported"] and "nan" not in row

@@ -5,6 +5,7 @@ bounded whole numbers and did-you-mean hints of options and params, and progress
 from __future__ import annotations
 
 import argparse
+import contextlib
 import difflib
 import errno
 import hashlib
@@ -47,16 +48,12 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
 
 def fsync_folder(folder: Path) -> None:
     """Make a rename in ``folder`` durable (a power cut could otherwise undo it)."""
-    try:
+    with contextlib.suppress(OSError):  # some platforms cannot open folders; the rename is still atomic there
         descriptor = os.open(folder, os.O_RDONLY)
-    except OSError:  # some platforms cannot open folders; the rename is still atomic there
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
 
 
 def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
@@ -72,8 +69,7 @@ def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
         os.replace(temporary, path)
         fsync_folder(path.parent)
     except BaseException as error:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
+        Path(temporary).unlink(missing_ok=True)
         if isinstance(error, OSError) and error.errno in WRITE_FAILURES:
             raise WriteFailedError(
                 error.errno,

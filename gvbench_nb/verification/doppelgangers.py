@@ -16,13 +16,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from gvbench_nb.protocol.weights import (
-    MissingWeightsError,
-    load_checkpoint,
-    load_state_dict_strict,
-    missing_message,
-    require,
-)
+from gvbench_nb.protocol import weights
 
 log = logging.getLogger(__name__)
 
@@ -102,14 +96,14 @@ def load_doppelgangers(
     """The classifier with the official weights, in eval mode; the file is the trainer's dict whose
     ``dec`` entry is a ``DataParallel`` state dict (``module.`` prefix). Missing -> ``MissingWeightsError``."""
     if path is None:
-        path = require(CHECKPOINT_NAME)[0]
+        path = weights.require(CHECKPOINT_NAME)[0]
     elif not os.path.isfile(path):
-        raise MissingWeightsError(f"{path} does not exist.\n" + missing_message(CHECKPOINT_NAME))
-    checkpoint = load_checkpoint(path)
+        raise weights.MissingWeightsError(f"{path} does not exist.\n" + weights.missing_message(CHECKPOINT_NAME))
+    checkpoint = weights.load_checkpoint(path)
     state = checkpoint["dec"] if isinstance(checkpoint, Mapping) and "dec" in checkpoint else checkpoint
     state = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
     model = DoppelgangersClassifier()
-    load_state_dict_strict(model, state, str(path))
+    weights.load_state_dict_strict(model, state, str(path))
     return model.eval().to(device)
 
 

@@ -99,8 +99,7 @@ def is_whole_number(value: Any) -> bool:
 
 
 def whole_number_at_least(text: str, minimum: int, what: str) -> int:
-    """``text`` as a whole number of at least ``minimum``; otherwise argparse's error, saying the
-    value ``must be {what}``."""
+    """``text`` as a whole number of at least ``minimum``, else argparse's error: ``must be {what}``."""
     try:
         value = int(text)
     except ValueError:
@@ -147,8 +146,7 @@ BATCH_INTERVAL_SECONDS = 30.0
 
 
 def interactive_kernel() -> bool:
-    """True in a kernel that a Jupyter server started for a notebook (it sets JPY_SESSION_NAME);
-    false in a terminal and in papermill's or nbmake's kernels."""
+    """A kernel a Jupyter server started (it sets JPY_SESSION_NAME); not a terminal, papermill's or nbmake's."""
     return "ipykernel" in sys.modules and "JPY_SESSION_NAME" in os.environ
 
 

@@ -119,8 +119,7 @@ VERIFIER_RANGES: dict[str, tuple[Any, str]] = {
 
 
 def check_verifier_overrides(overrides: dict[str, Any]) -> None:
-    """Overrides of the run's verifier name its keys; the model and estimator are known ones;
-    numeric values are in range (``VERIFIER_RANGES``)."""
+    """Overrides of the run's verifier: known keys and choices, numbers in range (``VERIFIER_RANGES``)."""
     unknown = [key for key in overrides if key not in verifier_keys()]
     if unknown:
         raise ValueError(

@@ -5,6 +5,7 @@ bounded whole numbers and did-you-mean hints of options and params, and progress
 from __future__ import annotations
 
 import argparse
+import contextlib
 import difflib
 import errno
 import hashlib
@@ -47,16 +48,12 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
 
 def fsync_folder(folder: Path) -> None:
     """Make a rename in ``folder`` durable (a power cut could otherwise undo it)."""
-    try:
+    with contextlib.suppress(OSError):  # some platforms cannot open folders; the rename is still atomic there
         descriptor = os.open(folder, os.O_RDONLY)
-    except OSError:  # some platforms cannot open folders; the rename is still atomic there
-        return
-    try:
-        os.fsync(descriptor)
-    except OSError:
-        pass
-    finally:
-        os.close(descriptor)
+        try:
+            os.fsync(descriptor)
+        finally:
+            os.close(descriptor)
 
 
 def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
@@ -72,8 +69,7 @@ def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
         os.replace(temporary, path)
         fsync_folder(path.parent)
     except BaseException as error:
-        if os.path.exists(temporary):
-            os.unlink(temporary)
+        Path(temporary).unlink(missing_ok=True)
         if isinstance(error, OSError) and error.errno in WRITE_FAILURES:
             raise WriteFailedError(
                 error.errno,
@@ -103,8 +99,7 @@ def is_whole_number(value: Any) -> bool:
 
 
 def whole_number_at_least(text: str, minimum: int, what: str) -> int:
-    """``text`` as a whole number of at least ``minimum``; otherwise argparse's error, saying the
-    value ``must be {what}``."""
+    """``text`` as a whole number of at least ``minimum``, else argparse's error: ``must be {what}``."""
     try:
         value = int(text)
     except ValueError:
@@ -151,8 +146,7 @@ BATCH_INTERVAL_SECONDS = 30.0
 
 
 def interactive_kernel() -> bool:
-    """True in a kernel that a Jupyter server started for a notebook (it sets JPY_SESSION_NAME);
-    false in a terminal and in papermill's or nbmake's kernels."""
+    """A kernel a Jupyter server started (it sets JPY_SESSION_NAME); not a terminal, papermill's or nbmake's."""
     return "ipykernel" in sys.modules and "JPY_SESSION_NAME" in os.environ
 
 

@@ -119,8 +119,7 @@ VERIFIER_RANGES: dict[str, tuple[Any, str]] = {
 
 
 def check_verifier_overrides(overrides: dict[str, Any]) -> None:
-    """Overrides of the run's verifier name its keys; the model and estimator are known ones;
-    numeric values are in range (``VERIFIER_RANGES``)."""
+    """Overrides of the run's verifier: known keys and choices, numbers in range (``VERIFIER_RANGES``)."""
     unknown = [key for key in overrides if key not in verifier_keys()]
     if unknown:
         raise ValueError(
@@ -188,8 +187,7 @@ def is_dense(conf: dict[str, Any]) -> bool:
 
 
 def paper_name(name: str) -> str:
-    """The name a method goes by in tables: its paper name, ``vismatch <name>``
-    for ``imm:`` methods, else the name itself."""
+    """The name a method goes by in tables: its paper name, ``vismatch <name>`` for ``imm:`` methods, else itself."""
     if is_imm(name):
         return imm_peer().paper_name(name)
     return RECIPES["paper"].get(name, {}).get("paper_name", name)
@@ -231,10 +229,6 @@ def require(name: str, profile: str = "paper") -> None:
         imm_peer().require(name)
 
 
-def available_methods() -> list[str]:
-    return [row["method"] for row in method_table() if row["available"]]
-
-
 def expand_methods(names: list[str] | str) -> list[str]:
     """Method names from a list or a comma string; ``all`` and ``all-available`` expand."""
     if isinstance(names, str):
@@ -244,7 +238,7 @@ def expand_methods(names: list[str] | str) -> list[str]:
         if name == "all":
             expanded.extend(method_names())
         elif name == "all-available":
-            expanded.extend(available_methods())
+            expanded.extend(row["method"] for row in method_table() if row["available"])
         elif name in method_names():
             expanded.append(name)
         elif is_imm(name):

@@ -272,12 +272,5 @@ def prepare_inputs(params: Mapping[str, Any], options: RetrievalOptions | None =
     query = load_traversal(image_root, options.query_folder, metadata, options.metadata)
     experiences = {f: load_traversal(image_root, f, metadata, options.metadata) for f in options.reference_folders}
     rows = retrieval.choose_queries(len(query.names), options.num_queries, params.get("seed", 0))
-    return BuildInputs(
-        dict(params),
-        options,
-        image_root,
-        query.rows(rows),
-        len(query.names),
-        experiences,
-        resolve_label_params(options, image_root),
-    )
+    rule_params = resolve_label_params(options, image_root)
+    return BuildInputs(dict(params), options, image_root, query.rows(rows), len(query.names), experiences, rule_params)

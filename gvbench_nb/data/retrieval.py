@@ -241,17 +241,10 @@ GLOBAL_DESCRIPTORS: dict[str, Callable[..., tuple[np.ndarray, np.ndarray]]] = {
 IMAGE_DESCRIPTORS = ("netvlad",)  # read {name: image path}; the others aggregate {name: local descriptors}
 
 
-def compute_global_descriptors(
-    method: str, reference_inputs: Mapping[str, Any], query_inputs: Mapping[str, Any], **params: Any
-) -> tuple[np.ndarray, np.ndarray]:
-    return registry.lookup("global descriptor", method, GLOBAL_DESCRIPTORS)(reference_inputs, query_inputs, **params)
-
-
 def retrieve_top_n(
     query_descriptors: np.ndarray, reference_descriptors: np.ndarray, n: int, chunk: int = 1024
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Top-min(n, R) reference rows and similarities per query by dot product, best first;
-    equal similarities rank by lower reference index."""
+    """Top-min(n, R) reference rows and similarities per query by dot product, best first (ties: lower row)."""
     query = np.asarray(query_descriptors, dtype=np.float32)
     reference = np.asarray(reference_descriptors, dtype=np.float32)
     if query.ndim != 2 or reference.ndim != 2 or query.shape[1] != reference.shape[1]:

@@ -46,8 +46,7 @@ def shorten(text: str, limit: int = 80) -> str:
 
 
 def name_problem(name: str) -> str | None:
-    """Why ``name`` (a sequence's or a method's: folders and files are named by it) is not a plain
-    file-name component, or None."""
+    """Why ``name`` (a sequence's or a method's: files and folders bear it) is not a plain file name, or None."""
     if not name or not name.strip():
         return "is empty"
     if any(mark in name for mark in ("/", "\\")):
@@ -129,11 +128,9 @@ def _pair_fields(lines: Iterable[str], source: str) -> Iterator[tuple[int, str, 
 
 
 def check_pairs(rows: Iterable[tuple[int, str, str, str]], source: str, unit: str = "line") -> list[Pair]:
-    """The one check of a pair list, whichever door it came through (a pair file, imported scores):
-    rows ``(number, query, reference, label text)``, each refused naming ``source`` and its ``unit``
-    (``file:line``, or ``file: pair N``) when a path is malformed or leaves the image root, its label
-    is not 0 or 1, it pairs an image with itself, or it repeats a pair (in either order) once paths
-    are normalised. Returns the pairs with normalised paths."""
+    """The one check of a pair list, whichever door it came through (a pair file, imported scores): rows
+    ``(number, query, reference, label text)``, a bad one refused naming ``source`` and ``unit`` (``file:line``,
+    ``file: pair N``); returns the pairs with normalised paths, so a repeat in other spellings is caught."""
     pairs: list[Pair] = []
     seen: dict[tuple[str, str], tuple[int, int]] = {}  # (query, reference) -> (number, label)
     for number, query, reference, label_text in rows:

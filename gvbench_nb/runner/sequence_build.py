@@ -112,14 +112,9 @@ def candidate_frame(
 
 def card_paths(pairs_path: str | Path) -> dict[str, Path]:
     """Files written beside a pair file ``<stem>.txt``."""
-    pairs_path = Path(pairs_path)
-    stem = pairs_path.with_suffix("")
-    return {
-        "pairs": pairs_path,
-        "card_json": Path(f"{stem}.card.json"),
-        "card_markdown": Path(f"{stem}.card.md"),
-        "candidates": Path(f"{stem}.candidates.csv"),
-    }
+    stem = Path(pairs_path).with_suffix("")
+    beside = {"card_json": "card.json", "card_markdown": "card.md", "candidates": "candidates.csv"}
+    return {"pairs": Path(pairs_path)} | {key: Path(f"{stem}.{suffix}") for key, suffix in beside.items()}
 
 
 def make_card(
@@ -135,19 +130,18 @@ def make_card(
     from gvbench_nb.methods import conf_hash
 
     options = inputs.options
-    feature_conf = (
-        local_feature_conf(options, inputs.params["profile"])
-        if options.descriptor not in retrieval.IMAGE_DESCRIPTORS
-        else None
-    )
-    counts = summarize(Sequence(inputs.params.get("sequence", "build"), inputs.image_root, pairs))
-    per_experience = {
-        e: {
-            "n_pairs": int((frame["experience"] == e).sum()),
-            "n_positives": int(frame.loc[frame["experience"] == e, "label"].sum()),
+    local_features = None
+    if options.descriptor not in retrieval.IMAGE_DESCRIPTORS:
+        feature_conf = local_feature_conf(options, inputs.params["profile"])
+        local_features = {
+            "extractor": feature_conf["name"],
+            "profile": options.feature_profile or inputs.params["profile"],
+            "conf_hash": conf_hash(feature_conf),
+            "shared_with_method": build_inputs.LOCAL_FEATURE_METHODS[options.local_features],
         }
-        for e in inputs.experiences
-    }
+    counts = summarize(Sequence(inputs.params.get("sequence", "build"), inputs.image_root, pairs))
+    by_experience = frame.groupby("experience")["label"].agg(n_pairs="size", n_positives="sum")
+    per_experience = by_experience.reindex(list(inputs.experiences), fill_value=0).to_dict("index")
     return {
         "sequence": inputs.params.get("sequence"),
         "builder": BUILDER_NAME,
@@ -161,14 +155,7 @@ def make_card(
         "seed": inputs.params.get("seed", 0),
         "descriptor": options.descriptor,
         "descriptor_options": inputs.descriptor_options(options.descriptor),
-        "local_features": None
-        if feature_conf is None
-        else {
-            "extractor": feature_conf["name"],
-            "profile": options.feature_profile or inputs.params["profile"],
-            "conf_hash": conf_hash(feature_conf),
-            "shared_with_method": build_inputs.LOCAL_FEATURE_METHODS[options.local_features],
-        },
+        "local_features": local_features,
         "top_n": options.top_n,
         "label_rule": options.label_rule,
         "label_params": inputs.rule_params,

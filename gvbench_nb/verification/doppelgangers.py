@@ -16,13 +16,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from gvbench_nb.protocol.weights import (
-    MissingWeightsError,
-    load_checkpoint,
-    load_state_dict_strict,
-    missing_message,
-    require,
-)
+from gvbench_nb.protocol import weights
 
 log = logging.getLogger(__name__)
 
@@ -35,40 +29,14 @@ F_RANSAC_CONFIDENCE = 0.99
 AFFINE_RANSAC_THRESHOLD = 20.0
 
 
-def _conv3x3(cin: int, cout: int, stride: int = 1) -> nn.Conv2d:
-    return nn.Conv2d(cin, cout, kernel_size=3, stride=stride, padding=1, bias=False)
-
-
-class BasicBlock(nn.Module):
-    """ResNet basic block as in LoFTR's backbone; attribute order is the checkpoint's tensor order,
-    shortcut 1x1 conv + BN when stride != 1."""
-
-    def __init__(self, cin: int, cout: int, stride: int = 1) -> None:
-        super().__init__()
-        self.conv1 = _conv3x3(cin, cout, stride)
-        self.conv2 = _conv3x3(cout, cout)
-        self.bn1 = nn.BatchNorm2d(cout)
-        self.bn2 = nn.BatchNorm2d(cout)
-        self.relu = nn.ReLU(inplace=True)
-        self.downsample: nn.Module | None = None
-        if stride != 1 or cin != cout:
-            self.downsample = nn.Sequential(
-                nn.Conv2d(cin, cout, kernel_size=1, stride=stride, bias=False), nn.BatchNorm2d(cout)
-            )
-
-    def forward(self, x: torch.Tensor) -> torch.Tensor:
-        y = self.relu(self.bn1(self.conv1(x)))
-        y = self.bn2(self.conv2(y))
-        if self.downsample is not None:
-            x = self.downsample(x)
-        return self.relu(x + y)
-
-
 class DoppelgangersClassifier(nn.Module):
     """conv 7x7/2 (10 -> 128), three stages of two BasicBlocks (128/256/512), average pool, linear
     512 -> 2; total stride 16, logits[:, 1] is "same place"."""
 
     def __init__(self) -> None:
+        # LoFTR's ResNet basic block: its attribute order is the checkpoint's tensor order.
+        from kornia.feature.loftr.backbone.resnet_fpn import BasicBlock
+
         super().__init__()
         self.conv1 = nn.Conv2d(INPUT_CHANNELS, 128, kernel_size=7, stride=2, padding=3, bias=False)
         self.bn1 = nn.BatchNorm2d(128)
@@ -102,14 +70,14 @@ def load_doppelgangers(
     """The classifier with the official weights, in eval mode; the file is the trainer's dict whose
     ``dec`` entry is a ``DataParallel`` state dict (``module.`` prefix). Missing -> ``MissingWeightsError``."""
     if path is None:
-        path = require(CHECKPOINT_NAME)[0]
+        path = weights.require(CHECKPOINT_NAME)[0]
     elif not os.path.isfile(path):
-        raise MissingWeightsError(f"{path} does not exist.\n" + missing_message(CHECKPOINT_NAME))
-    checkpoint = load_checkpoint(path)
+        raise weights.MissingWeightsError(f"{path} does not exist.\n" + weights.missing_message(CHECKPOINT_NAME))
+    checkpoint = weights.load_checkpoint(path)
     state = checkpoint["dec"] if isinstance(checkpoint, Mapping) and "dec" in checkpoint else checkpoint
     state = {(k[len("module.") :] if k.startswith("module.") else k): v for k, v in state.items()}
     model = DoppelgangersClassifier()
-    load_state_dict_strict(model, state, str(path))
+    weights.load_state_dict_strict(model, state, str(path))
     return model.eval().to(device)
 
 

@@ -1,20 +1,18 @@
 """SUE: spatial uncertainty of a retrieval (Zaffar et al., CVPR 2024), training-free (MODELS.md
 section 7): confidence = -(softmax(-slope * d)-weighted variance of the top-K positions, averaged
-over the axes); frame indices (Q, K) serve as 1-D positions. Weights use d - min d (no underflow)."""
+over the axes); frame indices (Q, K) serve as 1-D positions."""
 
 from __future__ import annotations
 
 import numpy as np
+from scipy.special import softmax
 
 SLOPE = 350.0  # the paper's value
 
 
 def sue_weights(distances: np.ndarray, slope: float = SLOPE) -> np.ndarray:
     """(Q, K) descriptor distances -> (Q, K) weights exp(-slope d), each row summing to 1."""
-    d = np.asarray(distances, dtype=np.float64)
-    logits = -slope * (d - d.min(axis=1, keepdims=True))  # shift: stable, same after normalising
-    w = np.exp(logits)
-    return w / w.sum(axis=1, keepdims=True)
+    return softmax(-slope * np.asarray(distances, dtype=np.float64), axis=1)  # shifted by the row's max: no underflow
 
 
 def sue(distances: np.ndarray, positions: np.ndarray, slope: float = SLOPE) -> np.ndarray:

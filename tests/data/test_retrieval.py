@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from gvbench_nb.data import retrieval as rt
+from gvbench_nb.data.build_inputs import BuildError, parse_options
 
 
 def labels(rule: str, params: dict | None, query: dict, reference: dict, pairs: list) -> np.ndarray:
@@ -108,8 +109,8 @@ def synthetic_local(seed: int, num_images: int = 12, dim: int = 16, binary: bool
 def test_encodings_deterministic_and_normalised(method: str, num_words: int, binary: bool) -> None:
     reference = synthetic_local(0, binary=binary)
     query = {k: v[::2] for k, v in synthetic_local(1, binary=binary).items()} | {"empty": reference["img00"][:0]}
-    a = rt.compute_global_descriptors(method, reference, query, num_words=num_words, seed=7)
-    b = rt.compute_global_descriptors(method, dict(reversed(reference.items())), query, num_words=num_words, seed=7)
+    a = rt.GLOBAL_DESCRIPTORS[method](reference, query, num_words=num_words, seed=7)
+    b = rt.GLOBAL_DESCRIPTORS[method](dict(reversed(reference.items())), query, num_words=num_words, seed=7)
     np.testing.assert_array_equal(a[1], b[1])  # same seed: identical, whatever the dict order
     norms = np.linalg.norm(np.vstack(a), axis=1)
     np.testing.assert_allclose(norms[:-1], 1.0, rtol=1e-5)
@@ -129,5 +130,5 @@ def test_vlad_intra_normalised_blocks_and_binary_words() -> None:
 
 
 def test_unknown_global_descriptor() -> None:
-    with pytest.raises(KeyError, match="Known: netvlad, vlad, bow"):
-        rt.compute_global_descriptors("cosplace", {}, {})
+    with pytest.raises(BuildError, match="Known: netvlad, vlad, bow"):
+        parse_options({"query_folder": "night", "reference_folders": "day", "descriptor": "cosplace"})

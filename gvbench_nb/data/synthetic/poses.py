@@ -1,5 +1,5 @@
 """Camera poses (OpenCV camera frame; camera-to-world rotation R and centre t) and the labels they
-give: the pose rule, look-alike negatives, the pair selection, a pair's fundamental matrix."""
+give: the pose rule, look-alike negatives and the pair selection."""
 
 from __future__ import annotations
 
@@ -173,15 +173,3 @@ def _pick(rng: np.random.Generator, candidates: Sequence[int], n: int) -> list[i
         return []
     idx = rng.choice(len(candidates), size=min(n, len(candidates)), replace=False)
     return [int(candidates[i]) for i in sorted(idx)]
-
-
-def fundamental_from_poses(
-    K0: np.ndarray, R0: np.ndarray, t0: np.ndarray, K1: np.ndarray, R1: np.ndarray, t1: np.ndarray
-) -> np.ndarray:
-    """F with ``x1^T F x0 = 0`` (OpenCV's findFundamentalMat(p0, p1)) from camera-to-world poses."""
-    R0, R1 = np.asarray(R0, dtype=np.float64), np.asarray(R1, dtype=np.float64)
-    t0, t1 = np.asarray(t0, dtype=np.float64).ravel(), np.asarray(t1, dtype=np.float64).ravel()
-    x, y, z = R1.T @ (t0 - t1)  # camera 0's centre in camera 1
-    essential = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]]) @ (R1.T @ R0)
-    F = np.linalg.inv(K1).T @ essential @ np.linalg.inv(K0)
-    return F / np.linalg.norm(F)

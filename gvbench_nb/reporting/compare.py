@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
@@ -56,7 +55,7 @@ def command_compare(args: argparse.Namespace) -> int:
         )
     boot = bootstrap.bootstrap(tables, args.resamples, args.seed)
     found = run_tables.method_folders(folders)
-    runs = {m: json.loads((method_outputs.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
+    runs = {m: method_outputs.read_run_json(found[m], m) for m in tables}
     table = bootstrap.intervals_of(boot)
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])
     sequences = ", ".join(dict.fromkeys(run["sequence"] for run in runs.values()))

@@ -3,7 +3,7 @@ table, and the error when there are none."""
 
 from __future__ import annotations
 
-import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +39,23 @@ def method_dir(output_dir: Path, method: str) -> Path:
     return runs.method_folder(output_dir, method)
 
 
-def read_run_json(output_dir: Path, method: str) -> dict[str, Any]:
-    return json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+def read_run_json(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
+    """A method's record (its ``run.json``) as ``runs`` reads it: in a finished run, that run's entry; in
+    a run being built, its file; in an output folder, the current run's entry."""
+    from gvbench_nb.runner import runs
+
+    folder = Path(output_dir)
+    if not runs.is_run(folder):
+        entry = runs.current(folder).entries.get(method)
+    elif folder.name.startswith(runs.BUILDING):
+        entry = runs.Entry(folder, method, runs._json(folder / method / "run.json"))
+    else:
+        entry = next((e for e in runs.entries(runs.output_folder(folder)) if e[:2] == (folder, method)), None)
+    if entry is None or not isinstance(entry.record, dict):
+        raise ResultsError(
+            f"{method_dir(folder, method) / 'run.json'} is missing: run {method!r} on that sequence first"
+        )
+    return entry.record
 
 
 class ResultsError(GVBenchError, FileNotFoundError):

@@ -149,12 +149,7 @@ def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[st
     for folder in map(Path, output_dirs):
         ran = scoring.methods_with_results(folder)
         if not ran:
-            what = (
-                "does not exist" if not folder.exists() else "holds no method results (no run of a method under runs/)"
-            )
-            raise method_outputs.ResultsError(
-                f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
-            )
+            scoring.evaluate(folder, write=False)  # says the folder does not exist or holds no results
         for method in ran:
             if method in found:
                 raise IncomparableRunsError(

@@ -104,8 +104,6 @@ def _relative(path: Path, start: Path) -> str:
 
 def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[ExecutedNotebook]) -> str:
     """The index page: the combined results table, what it leaves out or warns of, key figures, links (all relative)."""
-    import jinja2
-
     from gvbench_nb.evaluation import collapsed_inliers, plots, run_tables
     from gvbench_nb.runner import scoring
     from gvbench_nb.studies import results_table
@@ -136,19 +134,9 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines {plots.run_label('', p).strip(' ()')}"
         for p in dict.fromkeys(results["profile"])
     )
-    notebooks = [
-        {
-            "label": f"{item.sequence or 'all sequences'}: {item.notebook.stem}",
-            "href": _relative(item.html, report_dir) if item.html else None,
-            "error": item.error,
-        }
-        for item in executed
-    ]
     radar = report_dir / "max_recall_radar.png"
-    templates = jinja2.Environment(
-        loader=jinja2.FileSystemLoader(TEMPLATES), autoescape=True, trim_blocks=True, lstrip_blocks=True
-    )
-    return templates.get_template("index.html.j2").render(
+    return _render(
+        "index.html.j2",
         generated=_dt.datetime.now().isoformat(timespec="seconds"),
         folders=folders,
         table=results_table.style_results_table(wide).to_html(),
@@ -157,7 +145,8 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
         curves=[_relative(path, report_dir) for path in pr_curve_figures(report_dir, results).values()],
         line_styles=line_styles,
         paper=paper_sections(report_dir, output_dirs, results),
-        notebooks=notebooks,
+        notebooks=executed,
+        relative=lambda path: _relative(path, report_dir),
     )
 
 
@@ -165,27 +154,21 @@ def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
     """The results table's header text: its rows, and only the kinds of columns it has."""
     from gvbench_nb.evaluation import run_tables
 
-    sources = set(wide.columns.get_level_values("source"))
-    notes = [f"One row a (method, profile); <b>{run_tables.OURS_LABEL}</b> columns are our runs, in that profile."]
-    if "pairs" in set(wide.columns.get_level_values("metric")):
-        notes.append(
-            "<b>pairs</b>: the pairs a run scored, all of its pair file or the first N (<code>--limit</code>)."
-        )
-    if run_tables.PAPER_LABEL in sources:
-        notes.append(
-            f"Columns labelled <b>{run_tables.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
-            "values, beside our paper-profile runs, where the paper has that method and sequence."
-        )
-    if run_tables.REPOSITORY_LABEL in sources:
-        notes.append(
-            f"<b>{run_tables.REPOSITORY_LABEL}</b> columns (grey italics) are that repository's published values, "
-            "beside our repository-profile runs, where it has that method and sequence."
-        )
-    if not paper_found:
-        notes.append("The paper's table was not found: no published values are shown.")
-    elif not sources & {run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL}:
-        notes.append("No published values exist for these methods, sequences and profiles.")
-    return " ".join(notes)
+    sources, metrics = (set(wide.columns.get_level_values(level)) for level in ("source", "metric"))
+    return _render(
+        "table_note.html.j2", labels=run_tables, sources=sources, pairs="pairs" in metrics, paper_found=paper_found
+    )
+
+
+def _render(template: str, **context: Any) -> str:
+    import jinja2
+
+    loader = jinja2.FileSystemLoader(TEMPLATES)
+    return (
+        jinja2.Environment(loader=loader, autoescape=True, trim_blocks=True, lstrip_blocks=True)
+        .get_template(template)
+        .render(**context)
+    )
 
 
 def pr_curve_figures(report_dir: Path, results: pd.DataFrame) -> dict[str, Path]:

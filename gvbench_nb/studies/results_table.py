@@ -62,7 +62,7 @@ def join_paper_table(
     if "profile" not in results:
         raise ValueError(
             "the results have no profile column: evaluate the runs again "
-            "(python -m gvbench_nb run PARAMS) so results.csv records each run's profile"
+            "(python -m gvbench_nb run PARAMS) so each run records its profile"
         )
     twice = duplicated_runs(results)
     if not twice.empty:

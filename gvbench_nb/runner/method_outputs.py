@@ -40,22 +40,26 @@ def method_dir(output_dir: Path, method: str) -> Path:
 
 
 def read_run_json(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
-    """A method's record (its ``run.json``) as ``runs`` reads it: in a finished run, that run's entry; in
-    a run being built, its file; in an output folder, the current run's entry."""
+    """A method's record (its ``run.json``) as ``runs`` reads it: in an output folder, its current run's
+    entry; in a finished run, that run's entry; in a run being built (or a shard's), its file."""
     from gvbench_nb.runner import runs
 
     folder = Path(output_dir)
     if not runs.is_run(folder):
         entry = runs.current(folder).entries.get(method)
-    elif folder.name.startswith(runs.BUILDING):
-        entry = runs.Entry(folder, method, runs._json(folder / method / "run.json"))
+        record = entry.record if entry is not None else None
     else:
-        entry = next((e for e in runs.entries(runs.output_folder(folder)) if e[:2] == (folder, method)), None)
-    if entry is None or not isinstance(entry.record, dict):
+        found = [
+            e.record
+            for e in runs.entries(runs.output_folder(folder))
+            if (e.run.name, e.method) == (folder.name, method)
+        ]
+        record = found[0] if found else runs._json(folder / method / "run.json")
+    if not isinstance(record, dict):
         raise ResultsError(
             f"{method_dir(folder, method) / 'run.json'} is missing: run {method!r} on that sequence first"
         )
-    return entry.record
+    return record
 
 
 class ResultsError(GVBenchError, FileNotFoundError):

@@ -244,16 +244,9 @@ def _max_recall_bars(
             if value.empty:
                 continue
             percent = 100 * float(value.iloc[0])
-            axis.barh(
-                row,
-                percent,
-                height=0.8,
-                color=colours[method],
-                hatch=None if source == run_tables.OURS_LABEL else "//",
-                alpha=SOURCE_STYLE[source]["alpha"],
-                edgecolor="black",
-                linewidth=0.4,
-            )
+            style = {"color": colours[method], "alpha": SOURCE_STYLE[source]["alpha"], "edgecolor": "black"}
+            hatch = None if source == run_tables.OURS_LABEL else "//"
+            axis.barh(row, percent, height=0.8, hatch=hatch, linewidth=0.4, **style)
             axis.text(percent, row, f" {percent:.1f}%", va="center", fontsize=7)
         axis.set_yticks(range(len(rows)), [line_label(*row) for row in rows], fontsize=7)
         axis.invert_yaxis()

@@ -105,7 +105,7 @@ def find_output_dirs(
         folders = [root / name for name in sequences]
         absent = [str(f) for f in folders if not scoring.methods_with_results(f)]
         if absent:
-            raise FileNotFoundError(
+            raise method_outputs.ResultsError(
                 f"no finished run in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)"
             )
         return folders

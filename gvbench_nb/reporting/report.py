@@ -374,11 +374,9 @@ def run_folders(args: argparse.Namespace) -> list[Path]:
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
     if not sequences and scoring.methods_with_results(root):
         return [root]
-    try:
-        folders = run_tables.find_output_dirs(root, sequences)
-    except FileNotFoundError as error:
-        raise ResultsError(str(error)) from None
-    folders = [d for d in folders if d.resolve() != Path(args.output_dir).resolve()]
+    folders = [
+        d for d in run_tables.find_output_dirs(root, sequences) if d.resolve() != Path(args.output_dir).resolve()
+    ]
     if not folders:
         raise ResultsError(f"no output folder showing a finished run in or under {root} ({example})")
     return folders

@@ -82,11 +82,6 @@ def cell_name(condition: str, strength: float) -> str:
     return "clear" if float(strength) == 0.0 else f"{condition}_{strength_text(strength)}"
 
 
-def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
-    width, height = image_size  # anything but two numbers fails here, as make_route's unpacking would
-    return width, height
-
-
 def prepare_route(
     out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
 ) -> SweepRoute:
@@ -114,7 +109,8 @@ def prepare_route(
             )
     if n_frames < 6:
         raise SweepError(f"n_frames={n_frames}: a route needs at least 6 frames to have true and false pairs")
-    route = synthetic.make_route(seed, n_frames, _width_height(image_size))
+    width, height = image_size  # anything but two numbers fails here, as make_route's unpacking would
+    route = synthetic.make_route(seed, n_frames, (width, height))
     atomic_write_json(params_path, params)
     _render_folder(image_root / REFERENCE_FOLDER, route.render_reference, route.name_width)
 

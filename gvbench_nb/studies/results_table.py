@@ -48,11 +48,6 @@ def line_label(method: str, profile: str, source: str) -> str:
     return plots.run_label(method, profile) if source == run_tables.OURS_LABEL else f"{method} ({source})"
 
 
-def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
-    """Rows of ``results`` sharing (sequence, profile, method) with another row."""
-    return results[results.duplicated(run_tables.RUN_KEY, keep=False)]
-
-
 def join_paper_table(
     results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
 ) -> pd.DataFrame:
@@ -64,7 +59,7 @@ def join_paper_table(
             "the results have no profile column: evaluate the runs again "
             "(python -m gvbench_nb run PARAMS) so each run records its profile"
         )
-    twice = duplicated_runs(results)
+    twice = results[results.duplicated(run_tables.RUN_KEY, keep=False)]
     if not twice.empty:
         where = twice.get("output_dir", pd.Series(["?"] * len(twice), index=twice.index))
         runs = "; ".join(f"{r.sequence}/{r.profile}/{r.method} in {w}" for r, w in zip(twice.itertuples(), where))

@@ -119,7 +119,8 @@ class CachedMatches:
         self.matches = pair_matching.match_store(cache, self.conf, self._pair_list_keys())
         self.features = image_features.feature_store(cache, self.conf["extractor"]) if self.conf["extractor"] else None
         self._read_features = lru_cache(maxsize=512)(self._features_of)
-        self._read_image = lru_cache(maxsize=48)(self._image_of)
+        # An image (BGR, as ``cv2.imread``) is read once for the pairs that share it.
+        self.image = lru_cache(maxsize=48)(self._image_of)
 
     def _pair_list_keys(self) -> dict[Any, str] | None:
         """The pair keys of the run's pair list, for a dense method whose store is chosen by it; else None."""
@@ -157,10 +158,6 @@ class CachedMatches:
         if image is None:
             raise FileNotFoundError(f"cannot read image {path} (run {self.output_dir / self.method})")
         return image
-
-    def image(self, name: str) -> np.ndarray:
-        """The BGR image (as ``cv2.imread``), cached for the pairs that share it."""
-        return self._read_image(name)
 
     def pair(self, query: str, reference: str) -> PairMatches:
         key = pair_matching.pair_key(self.image_root, query, reference, self.seed)

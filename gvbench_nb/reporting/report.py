@@ -40,12 +40,14 @@ KEY_FIGURES = (
 
 HELP = "run the analysis notebooks over finished sequences and write an HTML report"
 DESCRIPTION = """\
-Reads the output folders named (each showing finished runs; without any, every such folder under
---outputs-root, or the ones named by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
-histograms, failures, bootstrap uncertainty; the results table once across all sequences),
-converts them to HTML and writes <output-dir>/index.html: the combined results table (ours
-beside the paper's published values, labelled 'paper'), the key figures and links to every
-notebook. Reads only written results: nothing is re-extracted or re-matched.
+Reads the output folders named (each showing finished runs; without any, every such folder
+under --outputs-root, or the ones named by --sequences) from their runs, executes the analysis
+notebooks on them with papermill (runtime vs MR, inlier histograms, failures, bootstrap
+uncertainty; the results table once across all sequences), converts them to HTML and writes
+<output-dir>/index.html: the combined results table (ours beside the paper's published values,
+labelled 'paper'), the methods a folder leaves out and the collapsed-inlier warnings `results`
+gives, the key figures and links to every notebook. Reads only written results: nothing is
+re-extracted or re-matched.
 """
 EPILOG = """\
 examples:

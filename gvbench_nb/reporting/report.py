@@ -108,7 +108,7 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
     """The index page: the combined results table, what it leaves out or warns of, key figures, links (all relative)."""
     from gvbench_nb.evaluation import collapsed_inliers, plots, run_tables
     from gvbench_nb.runner import scoring
-    from gvbench_nb.studies import results_table
+    from gvbench_nb.studies import inlier_histograms, results_table, runtime_vs_mr
 
     results = run_tables.load_results(output_dirs)  # the runs' own numbers, never a results.csv
     paper, repository = results_table.load_paper_table(), results_table.load_repository_table()
@@ -127,7 +127,9 @@ def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[Execu
                 "left_out": scoring.left_out(folder),
                 "warnings": collapsed_inliers.collapse_warnings(tables),
                 "intervals": _intervals_html(intervals, rows) if intervals.is_file() else "",
-                "absent": absent_figures(rows, tables),
+                # The figures a run is left out of, and why: imported scores have no seconds, and
+                # those imported from a table of scores no inlier counts.
+                "absent": runtime_vs_mr.unmeasured_lines(rows) + inlier_histograms.with_inlier_counts(tables)[1],
                 "figures": [_relative(f, report_dir) for f in figures if f.is_file()],
             }
         )
@@ -204,15 +206,6 @@ def _intervals_html(path: Path, results: pd.DataFrame) -> str:
     columns = ["method", "profile", "metric", "estimate", "low", "high", "n_valid"]
     shown = run_tables.readable_table(table[columns], ["estimate", "low", "high"], run_tables.run_labels(results))
     return shown.to_html(index=False, float_format=lambda v: f"{v:.1f}")
-
-
-def absent_figures(results: pd.DataFrame, tables: dict[str, pd.DataFrame]) -> list[str]:
-    """One line for each figure of the summary a run of one folder (its ``results`` and pair ``tables``)
-    is left out of, and why: imported scores have no seconds, and those imported from a table of
-    scores no inlier counts."""
-    from gvbench_nb.studies import inlier_histograms, runtime_vs_mr
-
-    return runtime_vs_mr.unmeasured_lines(results) + inlier_histograms.with_inlier_counts(tables)[1]
 
 
 def _sequence_name(output_dir: Path) -> str:

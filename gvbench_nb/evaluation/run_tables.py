@@ -103,13 +103,20 @@ def find_output_dirs(
     root = Path(root)
     if sequences:
         folders = [root / name for name in sequences]
-        absent = [str(f) for f in folders if not scoring.methods_with_results(f)]
+        absent = [str(f) for f in folders if not shows_results(f)]
         if absent:
             raise method_outputs.ResultsError(
                 f"no finished run in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)"
             )
         return folders
-    return sorted(p.parent for p in root.glob(f"*/{runs.RUNS}") if scoring.methods_with_results(p.parent))
+    candidates = {p.parent for name in (runs.RUNS, runs.OLD_RECORD) for p in root.glob(f"*/{name}")}
+    return sorted(filter(shows_results, candidates))
+
+
+def shows_results(folder: Path) -> bool:
+    """Whether an output folder shows finished runs, or holds results of the earlier layout (which
+    its readers refuse in one sentence naming ``upgrade``)."""
+    return (folder / runs.OLD_RECORD).is_file() or bool(scoring.methods_with_results(folder))
 
 
 def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:

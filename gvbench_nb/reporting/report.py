@@ -354,12 +354,11 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
 def run_folders(args: argparse.Namespace) -> list[Path]:
     """The OUTPUT_DIRs, else ``--outputs-root`` when it shows runs, else the output folders under it that do."""
     from gvbench_nb.evaluation import run_tables
-    from gvbench_nb.runner import scoring
     from gvbench_nb.runner.method_outputs import ResultsError
 
     example = "python -m gvbench_nb run params/sample.yaml writes one, outputs/sample"
     if args.output_dirs:
-        absent = [d for d in args.output_dirs if not scoring.methods_with_results(Path(d))]
+        absent = [d for d in args.output_dirs if not run_tables.shows_results(Path(d))]
         if absent:
             raise ResultsError(
                 f"{', '.join(absent)} shows no finished run: give the output folder of a run ({example})"
@@ -367,7 +366,7 @@ def run_folders(args: argparse.Namespace) -> list[Path]:
         return [Path(d) for d in args.output_dirs]
     root = Path(args.outputs_root)
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
-    if not sequences and scoring.methods_with_results(root):
+    if not sequences and run_tables.shows_results(root):
         return [root]
     folders = [
         d for d in run_tables.find_output_dirs(root, sequences) if d.resolve() != Path(args.output_dir).resolve()

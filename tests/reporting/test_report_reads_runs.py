@@ -99,7 +99,14 @@ def test_report_results_and_compare_show_the_runs_whatever_results_csv_holds(tmp
 def test_the_index_names_the_methods_its_view_leaves_out_and_the_collapsed_inlier_line(tmp_path, capsys):
     folder = tmp_path / "toy"
     # orb-nn's latest run scored other labels: the folder shows the later runs' pairs without it.
-    write_run(folder, "orb-nn", toy_table([5, 6, 4, 3, 7, 2, 1, 8]), "repository", binding={"pairs_digest": "other"})
+    write_run(
+        folder,
+        "orb-nn",
+        toy_table([5, 6, 4, 3, 7, 2, 1, 8]),
+        "repository",
+        n_pairs=8,
+        binding={"pairs_digest": "other"},
+    )
     write_run(folder, "sift-nn", toy_table([9, 1, 8, 2, 7, 3, 6, 4], collapsed=True), "repository")
     write_run(folder, "xfeat-nn", toy_table([9, 1, 8, 2, 7, 3, 6, 4]), "repository")
     scoring.refresh_view(folder)

@@ -566,7 +566,7 @@ def profile_pipeline(
 
 def print_render_time(bench_dir: Path, n_frames: int, repeats: int, workers: int | None) -> pd.DataFrame:
     """Time the condition sweep's renderer and write ``render.csv`` (one row a setting)."""
-    from gvbench_nb.studies.condition_sweep import time_render
+    from render_time import time_render
 
     table = time_render(n_frames=n_frames, repeats=repeats, workers=workers)
     merge_csv(Path(bench_dir) / "render.csv", table, ["setting", "n_frames", "image_size", "workers"])

@@ -1,14 +1,12 @@
-"""Reading written runs (results.csv, pairs.csv, run.json, match stores, feature cache), never recomputing.
+"""Reading written runs (their tables and records, match stores, feature cache), never recomputing.
 ``ap`` and ``max_recall`` are fractions everywhere; rows are keyed by (sequence, profile, method)."""
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Iterable
 from collections.abc import Sequence as SequenceType
 from pathlib import Path
-from typing import Any
 
 import pandas as pd
 import yaml
@@ -17,7 +15,7 @@ from gvbench_nb.data import fetch
 from gvbench_nb.data.sequences import name_problem
 from gvbench_nb.data.synthetic.route_files import GENERATOR_FILE
 from gvbench_nb.evaluation import reference_values
-from gvbench_nb.runner import config, method_outputs, scoring
+from gvbench_nb.runner import config, method_outputs, runs, scoring
 from gvbench_nb.runner.score_files import IMPORTED_PROFILE
 
 METRICS = ("ap", "max_recall")
@@ -101,21 +99,28 @@ def readable_table(
 def find_output_dirs(
     root: str | os.PathLike[str] = config.PROJECT_ROOT / "outputs", sequences: SequenceType[str] | None = None
 ) -> list[Path]:
-    """Output folders under ``root`` holding a ``results.csv`` (sorted), or exactly those of ``sequences``."""
+    """Output folders under ``root`` showing finished runs (sorted), or exactly those of ``sequences``."""
     root = Path(root)
     if sequences:
         folders = [root / name for name in sequences]
-        absent = [str(f) for f in folders if not (f / "results.csv").is_file()]
+        absent = [str(f) for f in folders if not shows_results(f)]
         if absent:
-            raise FileNotFoundError(
-                f"no results.csv in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)"
+            raise method_outputs.ResultsError(
+                f"no finished run in {', '.join(absent)}; run them first (python -m gvbench_nb run params/NAME.yaml)"
             )
         return folders
-    return sorted(p.parent for p in root.glob("*/results.csv"))
+    candidates = {p.parent for name in (runs.RUNS, runs.OLD_RECORD) for p in root.glob(f"*/{name}")}
+    return sorted(filter(shows_results, candidates))
+
+
+def shows_results(folder: Path) -> bool:
+    """Whether an output folder shows finished runs, or holds results of the earlier layout (which
+    its readers refuse in one sentence naming ``upgrade``)."""
+    return (folder / runs.OLD_RECORD).is_file() or bool(scoring.methods_with_results(folder))
 
 
 def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
-    """``results.csv`` of several output folders, one table, plus an ``output_dir`` column,
+    """The results of several output folders, derived from their runs, one table, plus an ``output_dir`` column,
     ``limit``: the run's ``--limit`` (first N pairs of the pair file; None: every pair), and
     ``synthetic``: whether the folder's images are a route the package rendered."""
     frames = []
@@ -128,25 +133,21 @@ def load_results(output_dirs: Iterable[str | os.PathLike[str]]) -> pd.DataFrame:
                     f"{folder}: its sequence {sequence!r} {name_problem(sequence)}, so it cannot name figures; "
                     "run its methods again with a plain sequence name"
                 )
-        runs = [load_run(folder, m) for m in frame["method"]]
-        limits = [(run.get("pairs") or {}).get("limit") for run in runs]
+        records = [load_run(folder, m) for m in frame["method"]]
+        limits = [(run.get("pairs") or {}).get("limit") for run in records]
         # An imported method read no images (image_root ''): the folder's other runs tell.
-        rendered = any((Path(r["image_root"]) / GENERATOR_FILE).is_file() for r in runs if r.get("image_root"))
+        rendered = any((Path(r["image_root"]) / GENERATOR_FILE).is_file() for r in records if r.get("image_root"))
         limit = pd.Series(limits, dtype=object)
         frames.append(frame.assign(output_dir=str(Path(folder)), limit=limit, synthetic=rendered))
     if not frames:
-        raise ValueError("no output folders given: pass at least one folder holding results.csv")
+        raise ValueError("no output folders given: pass at least one output folder of finished runs")
     results = pd.concat(frames, ignore_index=True)
     if "fps" not in results:
         results["fps"] = 1.0 / results["seconds_per_pair"]
     return results
 
 
-def load_run(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
-    path = method_outputs.method_dir(Path(output_dir), method) / "run.json"
-    if not path.is_file():
-        raise FileNotFoundError(f"{path} is missing: run {method!r} on that sequence first")
-    return json.loads(path.read_text())
+load_run = method_outputs.read_run_json  # a method's record, read by ``runs``
 
 
 def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[str, Path]:
@@ -155,12 +156,7 @@ def method_folders(output_dirs: SequenceType[str | os.PathLike[str]]) -> dict[st
     for folder in map(Path, output_dirs):
         ran = scoring.methods_with_results(folder)
         if not ran:
-            what = (
-                "does not exist" if not folder.exists() else "holds no method results (no run of a method under runs/)"
-            )
-            raise method_outputs.ResultsError(
-                f"{folder} {what}; give the output folder of a finished run (python -m gvbench_nb run PARAMS)"
-            )
+            scoring.evaluate(folder, write=False)  # says the folder does not exist or holds no results
         for method in ran:
             if method in found:
                 raise IncomparableRunsError(
@@ -226,8 +222,6 @@ def resolve_cache_dir(
 ) -> Path:
     """``cache_dir``, else the one ``method``'s run recorded (its run.json), else the one the runs'
     params recorded (params.resolved.yaml), else the default one."""
-    from gvbench_nb.runner import runs
-
     if cache_dir:
         return Path(cache_dir)
     if method is not None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import logging
 from pathlib import Path
 
@@ -15,13 +14,14 @@ log = logging.getLogger(__name__)
 
 HELP = "AP and MR with bootstrap intervals over queries, and which method rankings a paired bootstrap supports"
 DESCRIPTION = """\
-Reads the finished <method>/pairs.csv of one output folder, or of several folders run on the same
-pairs (nothing is recomputed), draws the
-queries with replacement (every pair of a drawn query counts; the same draws for every method)
-and prints each method's AP and MR with 95 % percentile intervals, then for every pair of
-methods the share of those resamples in which the first (the higher on all pairs) beats the
-second, is tied with it or loses. A pair is ranked when one side wins in at least 95 % of the
-resamples; otherwise it is a tie. Methods scored on different pairs or labels are refused.
+Reads each method's per-pair scores from the run its output folder shows for it
+(runs/<id>/<method>/pairs.csv), of one folder or of several run on the same pairs (nothing is
+recomputed), draws the queries with replacement (every pair of a drawn query counts; the same
+draws for every method) and prints each method's AP and MR with 95 % percentile intervals, then
+for every pair of methods the share of those resamples in which the first (the higher on all
+pairs) beats the second, is tied with it or loses. A pair is ranked when one side wins in at
+least 95 % of the resamples; otherwise it is a tie. Methods scored on different pairs or labels
+are refused.
 """
 EPILOG = """\
 examples:
@@ -56,7 +56,7 @@ def command_compare(args: argparse.Namespace) -> int:
         )
     boot = bootstrap.bootstrap(tables, args.resamples, args.seed)
     found = run_tables.method_folders(folders)
-    runs = {m: json.loads((method_outputs.method_dir(found[m], m) / "run.json").read_text()) for m in tables}
+    runs = {m: method_outputs.read_run_json(found[m], m) for m in tables}
     table = bootstrap.intervals_of(boot)
     table.insert(1, "profile", [runs[m]["conf"]["profile"] for m in table["method"]])
     sequences = ", ".join(dict.fromkeys(run["sequence"] for run in runs.values()))

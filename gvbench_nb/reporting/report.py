@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import argparse
 import datetime as _dt
-import html
 import logging
 import os
 from dataclasses import dataclass
@@ -41,12 +40,14 @@ KEY_FIGURES = (
 
 HELP = "run the analysis notebooks over finished sequences and write an HTML report"
 DESCRIPTION = """\
-Reads the run folders named (each with a results.csv; without any, every such folder under
---outputs-root, or the ones named by --sequences), executes the analysis notebooks on it with papermill (runtime vs MR, inlier
-histograms, failures, bootstrap uncertainty; the results table once across all sequences),
-converts them to HTML and writes <output-dir>/index.html: the combined results table (ours
-beside the paper's published values, labelled 'paper'), the key figures and links to every
-notebook. Reads only written results: nothing is re-extracted or re-matched.
+Reads the output folders named (each showing finished runs; without any, every such folder
+under --outputs-root, or the ones named by --sequences) from their runs, executes the analysis
+notebooks on them with papermill (runtime vs MR, inlier histograms, failures, bootstrap
+uncertainty; the results table once across all sequences), converts them to HTML and writes
+<output-dir>/index.html: the combined results table (ours beside the paper's published values,
+labelled 'paper'), the methods a folder leaves out and the collapsed-inlier warnings `results`
+gives, the key figures and links to every notebook. Reads only written results: nothing is
+re-extracted or re-matched.
 """
 EPILOG = """\
 examples:
@@ -82,16 +83,7 @@ def execute_and_convert(
     return ExecutedNotebook(sequence, target, html_path, error)
 
 
-# nbconvert's lab template, less require.js and MathJax, with a link back to the report's index: both come from a CDN, so offline the page
-# logs load errors, and the analysis notebooks have no widgets or LaTeX that need them.
-OFFLINE_TEMPLATE = """{%- extends 'lab/index.html.j2' -%}
-{%- block html_head_js -%}{%- endblock html_head_js -%}
-{%- block html_head_js_mathjax -%}{%- endblock html_head_js_mathjax -%}
-{%- block body_header -%}{{ super() }}
-{%- if resources.index_href %}<p class="jp-RenderedHTMLCommon report-index"><a href="{{ resources.index_href }}">
-the report's index</a></p>{% endif -%}
-{%- endblock body_header -%}
-"""
+TEMPLATES = Path(__file__).parent / "templates"
 
 
 def _offline_exporter() -> HTMLExporter:
@@ -100,7 +92,7 @@ def _offline_exporter() -> HTMLExporter:
 
     # Code cells hidden: the pages show what the notebooks found (a failing cell's traceback stays).
     return HTMLExporter(
-        extra_loaders=[jinja2.DictLoader({"offline.html.j2": OFFLINE_TEMPLATE})],
+        extra_loaders=[jinja2.FileSystemLoader(TEMPLATES)],
         template_file="offline.html.j2",
         exclude_input=True,
         exclude_input_prompt=True,
@@ -113,113 +105,87 @@ def _relative(path: Path, start: Path) -> str:
 
 
 def summary_page(report_dir: Path, output_dirs: list[Path], executed: list[ExecutedNotebook]) -> str:
-    """The index page: combined results table, key figures, links (all relative)."""
-    from gvbench_nb.evaluation import run_tables
-    from gvbench_nb.studies import results_table
+    """The index page: the combined results table, what it leaves out or warns of, key figures, links (all relative)."""
+    from gvbench_nb.evaluation import collapsed_inliers, plots, run_tables
+    from gvbench_nb.runner import scoring
+    from gvbench_nb.studies import inlier_histograms, results_table, runtime_vs_mr
 
-    results = run_tables.load_results(output_dirs)
-    paper = results_table.load_paper_table()
-    repository = results_table.load_repository_table()
+    results = run_tables.load_results(output_dirs)  # the runs' own numbers, never a results.csv
+    paper, repository = results_table.load_paper_table(), results_table.load_repository_table()
     wide = results_table.results_table(results_table.join_paper_table(results, paper, repository))
-    table_html = results_table.style_results_table(wide).to_html()
-    paper_note = table_note(wide, paper_found=len(paper) > 0)
-    parts = [
-        "<!DOCTYPE html><html><head><meta charset='utf-8'><title>gvbench-nb report</title>",
-        "<style>body{font-family:sans-serif;max-width:1200px;margin:2em auto;padding:0 1em}"
-        "table{border-collapse:collapse;font-size:13px}td,th{border:1px solid #ccc;padding:3px 6px;text-align:right}"
-        "img{max-width:100%;border:1px solid #eee;margin:6px 0}.error{color:#b00}</style></head><body>",
-        "<h1>gvbench-nb: geometric verification report</h1>",
-        f"<p>Generated {html.escape(_dt.datetime.now().isoformat(timespec='seconds'))} from "
-        f"{len(output_dirs)} run folder(s): " + ", ".join(html.escape(str(d)) for d in output_dirs) + ".</p>",
-        "<h2>AP and max recall at 100% precision (%)</h2>",
-        f"<p>Bold: the best of its column. {paper_note}</p>",
-        table_html,
-    ]
-    radar = report_dir / "max_recall_radar.png"
-    if radar.is_file():
-        parts.append(f"<h3>Max recall across sequences</h3><img src='{_relative(radar, report_dir)}'>")
-    curves = pr_curve_figures(report_dir, output_dirs)
-    if curves:
-        from gvbench_nb.evaluation import plots
-
-        styles = {"-": "solid", "--": "dashed", ":": "dotted"}
-        profiles = ", ".join(
-            f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines {plots.run_label('', p).strip(' ()')}"
-            for p in dict.fromkeys(results["profile"])
-        )
-        parts.append(
-            "<h2>Precision-recall curves per sequence</h2><p>Every method the runs hold, each in its own colour; "
-            f"{profiles}; the legend gives AP and MR in %, the dot is the max recall at 100% precision.</p>"
-        )
-        parts.extend(f"<img src='{_relative(path, report_dir)}'>" for path in curves.values())
-    parts.extend(paper_sections(report_dir, output_dirs))
-    parts.append("<h2>Notebooks</h2><ul>")
-    for item in executed:
-        label = f"{item.sequence or 'all sequences'}: {item.notebook.stem}"
-        link = (
-            f"<a href='{_relative(item.html, report_dir)}'>{html.escape(label)}</a>"
-            if item.html
-            else html.escape(label)
-        )
-        error = f" <span class='error'>failed: {html.escape(item.error)}</span>" if item.error else ""
-        parts.append(f"<li>{link}{error}</li>")
-    parts.append("</ul>")
+    folders = []
     for folder, name in page_folders(output_dirs).items():
-        figures = [report_dir / name / figure.format(sequence=_sequence_name(folder)) for figure in KEY_FIGURES]
-        shown = [f for f in figures if f.is_file()]
+        rows = results[results["output_dir"] == str(folder)]
+        tables = {m: scoring.load_pairs_table(folder, m) for m in rows["method"]}
+        sequence = str(rows["sequence"].iloc[0])
+        figures = [report_dir / name / figure.format(sequence=sequence) for figure in KEY_FIGURES]
         intervals = report_dir / name / "bootstrap_intervals.csv"
-        if shown or intervals.is_file():
-            parts.append(f"<h2>{html.escape(_sequence_name(folder))}</h2>")
-        if intervals.is_file():
-            parts.append("<h3>95% bootstrap intervals (queries resampled)</h3>")
-            parts.append(_intervals_html(intervals, folder))
-        parts.extend(f"<p>{html.escape(line)}</p>" for line in absent_figures(folder))
-        parts.extend(f"<img src='{_relative(f, report_dir)}'>" for f in shown)
-    parts.append("</body></html>")
-    return "\n".join(parts)
+        folders.append(
+            {
+                "path": str(folder),
+                "sequence": sequence,
+                "left_out": scoring.left_out(folder),
+                "warnings": collapsed_inliers.collapse_warnings(tables),
+                "intervals": _intervals_html(intervals, rows) if intervals.is_file() else "",
+                # The figures a run is left out of, and why: imported scores have no seconds, and
+                # those imported from a table of scores no inlier counts.
+                "absent": runtime_vs_mr.unmeasured_lines(rows) + inlier_histograms.with_inlier_counts(tables)[1],
+                "figures": [_relative(f, report_dir) for f in figures if f.is_file()],
+            }
+        )
+    styles = {"-": "solid", "--": "dashed", ":": "dotted"}
+    line_styles = ", ".join(
+        f"{styles[plots.PROFILE_LINE_STYLES.get(p, ':')]} lines {plots.run_label('', p).strip(' ()')}"
+        for p in dict.fromkeys(results["profile"])
+    )
+    radar = report_dir / "max_recall_radar.png"
+    return _render(
+        "index.html.j2",
+        generated=_dt.datetime.now().isoformat(timespec="seconds"),
+        folders=folders,
+        table=results_table.style_results_table(wide).to_html(),
+        table_note=table_note(wide, paper_found=len(paper) > 0),
+        radar=_relative(radar, report_dir) if radar.is_file() else None,
+        curves=[_relative(path, report_dir) for path in pr_curve_figures(report_dir, results).values()],
+        line_styles=line_styles,
+        paper=paper_sections(report_dir, output_dirs, results),
+        notebooks=executed,
+        relative=lambda path: _relative(path, report_dir),
+    )
 
 
 def table_note(wide: pd.DataFrame, paper_found: bool = True) -> str:
     """The results table's header text: its rows, and only the kinds of columns it has."""
     from gvbench_nb.evaluation import run_tables
 
-    sources = set(wide.columns.get_level_values("source"))
-    notes = [f"One row a (method, profile); <b>{run_tables.OURS_LABEL}</b> columns are our runs, in that profile."]
-    if "pairs" in set(wide.columns.get_level_values("metric")):
-        notes.append(
-            "<b>pairs</b>: the pairs a run scored, all of its pair file or the first N (<code>--limit</code>)."
-        )
-    if run_tables.PAPER_LABEL in sources:
-        notes.append(
-            f"Columns labelled <b>{run_tables.PAPER_LABEL}</b> (grey italics) are the GV-Bench paper's published "
-            "values, beside our paper-profile runs, where the paper has that method and sequence."
-        )
-    if run_tables.REPOSITORY_LABEL in sources:
-        notes.append(
-            f"<b>{run_tables.REPOSITORY_LABEL}</b> columns (grey italics) are that repository's published values, "
-            "beside our repository-profile runs, where it has that method and sequence."
-        )
-    if not paper_found:
-        notes.append("The paper's table was not found: no published values are shown.")
-    elif not sources & {run_tables.PAPER_LABEL, run_tables.REPOSITORY_LABEL}:
-        notes.append("No published values exist for these methods, sequences and profiles.")
-    return " ".join(notes)
+    sources, metrics = (set(wide.columns.get_level_values(level)) for level in ("source", "metric"))
+    return _render(
+        "table_note.html.j2", labels=run_tables, sources=sources, pairs="pairs" in metrics, paper_found=paper_found
+    )
 
 
-def pr_curve_figures(report_dir: Path, output_dirs: list[Path]) -> dict[str, Path]:
-    """``<report_dir>/pr_curves_<sequence>.png``: every (method, profile) that ran the sequence."""
+def _render(template: str, **context: Any) -> str:
+    import jinja2
+
+    loader = jinja2.FileSystemLoader(TEMPLATES)
+    return (
+        jinja2.Environment(loader=loader, autoescape=True, trim_blocks=True, lstrip_blocks=True)
+        .get_template(template)
+        .render(**context)
+    )
+
+
+def pr_curve_figures(report_dir: Path, results: pd.DataFrame) -> dict[str, Path]:
+    """``<report_dir>/pr_curves_<sequence>.png``: every (method, profile) of ``results`` that ran the sequence."""
     import matplotlib.pyplot as plt
-    import pandas as pd
 
     from gvbench_nb.evaluation import plots
     from gvbench_nb.runner import scoring
 
     by_sequence: dict[str, dict[tuple[str, str], pd.DataFrame]] = {}
-    for folder in output_dirs:
-        results = pd.read_csv(folder / "results.csv")
-        for row in results.drop_duplicates("method").itertuples():
-            tables = by_sequence.setdefault(str(row.sequence), {})
-            tables[(str(row.method), str(row.profile))] = scoring.load_pairs_table(folder, str(row.method))
+    for row in results.drop_duplicates(["output_dir", "method"]).itertuples():
+        tables = by_sequence.setdefault(str(row.sequence), {})
+        tables[(str(row.method), str(row.profile))] = scoring.load_pairs_table(Path(row.output_dir), str(row.method))
     written = {}
     for sequence, tables in by_sequence.items():
         figure = plots.pr_curves_by_profile(tables, title=f"{sequence}: precision-recall (dot: MR)")
@@ -228,14 +194,13 @@ def pr_curve_figures(report_dir: Path, output_dirs: list[Path]) -> dict[str, Pat
     return written
 
 
-def _intervals_html(path: Path, output_dir: Path) -> str:
+def _intervals_html(path: Path, results: pd.DataFrame) -> str:
     import pandas as pd
 
     from gvbench_nb.evaluation import run_tables
 
     table = pd.read_csv(path)
-    # The intervals are keyed by method; a folder holds one profile a method, which results.csv names.
-    results = pd.read_csv(output_dir / "results.csv")
+    # The intervals are keyed by method; a folder shows one profile a method, which its results name.
     profiles = results.drop_duplicates("method").set_index("method")["profile"]
     table["profile"] = table["method"].map(profiles).fillna("")
     columns = ["method", "profile", "metric", "estimate", "low", "high", "n_valid"]
@@ -243,25 +208,12 @@ def _intervals_html(path: Path, output_dir: Path) -> str:
     return shown.to_html(index=False, float_format=lambda v: f"{v:.1f}")
 
 
-def absent_figures(output_dir: Path) -> list[str]:
-    """One line for each figure of the summary a run is left out of, and why: imported scores
-    have no seconds, and those imported from a table of scores no inlier counts."""
-    import pandas as pd
-
-    from gvbench_nb.runner import scoring
-    from gvbench_nb.studies import inlier_histograms, runtime_vs_mr
-
-    results = pd.read_csv(output_dir / "results.csv")
-    tables = {m: scoring.load_pairs_table(output_dir, m) for m in results["method"]}
-    return runtime_vs_mr.unmeasured_lines(results) + inlier_histograms.with_inlier_counts(tables)[1]
-
-
 def _sequence_name(output_dir: Path) -> str:
     """The sequence name the runs recorded (figures are named by it), else the folder name."""
-    import pandas as pd
+    from gvbench_nb.runner import method_outputs, scoring
 
-    names = pd.read_csv(output_dir / "results.csv")["sequence"].unique()
-    return str(names[0]) if len(names) else output_dir.name
+    methods = scoring.methods_with_results(output_dir)
+    return str(method_outputs.read_run_json(output_dir, methods[0])["sequence"]) if methods else output_dir.name
 
 
 # Run once across every sequence: the paper's tables and figures, and the deployment questions.
@@ -325,70 +277,45 @@ def study_jobs(report_dir: Path, output_dirs: list[Path]) -> list[tuple[str, Pat
 
 
 def _run_params_file(folder: Path) -> Path | None:
-    """A folder's ``params.resolved.yaml``, else the params file its first run.json names (sharded runs)."""
-    import json
-
+    """A folder's ``params.resolved.yaml``, else the params file its first method's record names (sharded runs)."""
     from gvbench_nb.runner import method_outputs, runs, scoring
 
     resolved = runs.resolved_params(folder)
     if resolved is not None:
         return resolved
-    for run in [method_outputs.method_dir(folder, m) / "run.json" for m in scoring.methods_with_results(folder)]:
-        named = (json.loads(run.read_text(encoding="utf-8")).get("pairs") or {}).get("params_file")
+    for method in scoring.methods_with_results(folder):
+        named = (method_outputs.read_run_json(folder, method).get("pairs") or {}).get("params_file")
         return Path(named) if named and Path(named).is_file() else None
     return None
 
 
-def paper_sections(report_dir: Path, output_dirs: list[Path]) -> list[str]:
-    """Table II, Table III, Fig. 1, Fig. 8, and the deployment notebook's figure and table."""
+def paper_sections(report_dir: Path, output_dirs: list[Path], results: pd.DataFrame) -> dict[str, Any]:
+    """What the index shows of Table II, Table III, Fig. 1, Fig. 8, and the deployment notebook's figure and table."""
     import pandas as pd
 
     from gvbench_nb.evaluation import run_tables
-    from gvbench_nb.studies import paper
+    from gvbench_nb.studies import deployment, paper
 
-    summary = paper.summary_text(paper.sequence_summary(output_dirs))
-    parts = [
-        "<h2 id='paper'>The paper's tables and figures</h2>",
-        "<h3 id='table-ii'>Table II: the sequences</h3><p>Each run's pairs and each official list found, "
-        f"<b>{paper.RUN_COUNTED}</b> / <b>{paper.COUNTED}</b>, beside <b>{paper.PAPER_TEXT}</b>: they differ "
-        "(Nordland's list 1,407 queries / 28,124 pairs, its text 1,415 / 28,300; UAcampus's list 640 x 15 = "
-        "9,600, its text 647 x top-10). '-': not stated.</p>",
-        summary.to_html(index=False, classes="table-ii"),
-    ]
-    real, synthetic = paper.real_and_synthetic(run_tables.load_results(output_dirs))
-    parts.append(
-        "<h3 id='table-iii'>Table III: AP and MR (%), ours, on the recorded sequences, with their average "
-        "where there are two or more</h3>"
-    )
-    parts.append(
-        paper.style_table_iii(paper.table_iii(real)).to_html() if len(real) else "<p>No recorded sequence ran.</p>"
-    )
-    if len(synthetic):
-        parts.append(
-            "<h3 id='table-iii-synthetic'>The same on the synthetic routes the package rendered "
-            "(a check of the code, never averaged with the recorded sequences)</h3>"
-        )
-        parts.append(paper.style_table_iii(paper.table_iii(synthetic, average=False)).to_html())
-    for caption, name in PAPER_FIGURES.items():
-        if (report_dir / name).is_file():
-            parts.append(f"<h3>{html.escape(caption)}</h3><img src='{name}'>")
-    parts.append("<h2 id='deployment'>Deployment: a threshold fixed on one sequence, used on another</h2>")
-    if (report_dir / "threshold_transfer.png").is_file():
-        parts.append("<img src='threshold_transfer.png'>")
+    real, synthetic = paper.real_and_synthetic(results)
     loops = report_dir / "loop_closures.csv"
-    if loops.is_file():
-        parts.append(
-            "<p>Per query, the best-scoring candidate after GV: recall@1, and the queries closing a true or a "
-            "false loop at the threshold fixed on <i>calibration</i> (retrieval recall@1 only where the pair "
-            "file keeps the retrieval order).</p>"
-        )
-        from gvbench_nb.studies import deployment
-
-        loop_table = pd.read_csv(loops)
-        labels = run_tables.run_labels(loop_table)
-        shown = run_tables.readable_table(loop_table, deployment.LOOP_SHARES, labels)
-        parts.append(shown.to_html(index=False, float_format=lambda v: f"{v:.1f}", na_rep="-"))
-    return parts
+    loop_table = pd.read_csv(loops) if loops.is_file() else None
+    return {
+        "counted_by_run": paper.RUN_COUNTED,
+        "counted": paper.COUNTED,
+        "text": paper.PAPER_TEXT,
+        "summary": paper.summary_text(paper.sequence_summary(output_dirs)).to_html(index=False, classes="table-ii"),
+        "table_iii": paper.style_table_iii(paper.table_iii(real)).to_html() if len(real) else "",
+        "table_iii_synthetic": (
+            paper.style_table_iii(paper.table_iii(synthetic, average=False)).to_html() if len(synthetic) else ""
+        ),
+        "figures": {caption: name for caption, name in PAPER_FIGURES.items() if (report_dir / name).is_file()},
+        "transfer": "threshold_transfer.png" if (report_dir / "threshold_transfer.png").is_file() else None,
+        "loops": None
+        if loop_table is None
+        else run_tables.readable_table(loop_table, deployment.LOOP_SHARES, run_tables.run_labels(loop_table)).to_html(
+            index=False, float_format=lambda v: f"{v:.1f}", na_rep="-"
+        ),
+    }
 
 
 def page_folders(output_dirs: list[Path]) -> dict[Path, str]:
@@ -425,39 +352,36 @@ def write_report(report_dir: Path, output_dirs: list[Path]) -> tuple[Path, list[
 
 
 def run_folders(args: argparse.Namespace) -> list[Path]:
-    """The OUTPUT_DIRs, else ``--outputs-root`` when it is a run folder, else the run folders under it."""
+    """The OUTPUT_DIRs, else ``--outputs-root`` when it shows runs, else the output folders under it that do."""
     from gvbench_nb.evaluation import run_tables
     from gvbench_nb.runner.method_outputs import ResultsError
 
     example = "python -m gvbench_nb run params/sample.yaml writes one, outputs/sample"
     if args.output_dirs:
-        absent = [d for d in args.output_dirs if not (Path(d) / "results.csv").is_file()]
+        absent = [d for d in args.output_dirs if not run_tables.shows_results(Path(d))]
         if absent:
-            raise ResultsError(f"{', '.join(absent)} holds no results.csv: give the output folder of a run ({example})")
+            raise ResultsError(
+                f"{', '.join(absent)} shows no finished run: give the output folder of a run ({example})"
+            )
         return [Path(d) for d in args.output_dirs]
     root = Path(args.outputs_root)
     sequences = [s.strip() for s in args.sequences.split(",") if s.strip()] if args.sequences else None
-    if not sequences and (root / "results.csv").is_file():
+    if not sequences and run_tables.shows_results(root):
         return [root]
-    try:
-        folders = run_tables.find_output_dirs(root, sequences)
-    except FileNotFoundError as error:
-        raise ResultsError(str(error)) from None
-    folders = [d for d in folders if d.resolve() != Path(args.output_dir).resolve()]
+    folders = [
+        d for d in run_tables.find_output_dirs(root, sequences) if d.resolve() != Path(args.output_dir).resolve()
+    ]
     if not folders:
-        raise ResultsError(f"no run folder with a results.csv in or under {root} ({example})")
+        raise ResultsError(f"no output folder showing a finished run in or under {root} ({example})")
     return folders
 
 
 def command_report(args: argparse.Namespace) -> int:
     output_dirs = run_folders(args)
     from gvbench_nb.evaluation import run_tables
-    from gvbench_nb.runner import scoring
 
     report_dir = Path(args.output_dir)
-    for folder in output_dirs:
-        scoring.readable_methods(folder)  # what `results` refuses, the report refuses, before any file
-    run_tables.load_results(output_dirs)  # and what the analysis notebooks refuse
+    run_tables.load_results(output_dirs)  # what `results` and the analysis notebooks refuse, before any file
     log.info(f"report over {len(output_dirs)} run folder(s): {', '.join(map(str, output_dirs))} -> {report_dir}")
     index, executed = write_report(report_dir, output_dirs)
     failed = [item for item in executed if item.error]
@@ -472,7 +396,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
         "output_dirs",
         nargs="*",
         metavar="OUTPUT_DIR",
-        help="run folders holding a results.csv, e.g. outputs/sample outputs/gardens_point "
+        help="output folders of finished runs, e.g. outputs/sample outputs/gardens_point "
         "(default: every such folder under --outputs-root)",
     )
     parser.add_argument(
@@ -483,7 +407,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "--sequences",
         help="comma-separated sequence folder names under --outputs-root (default: every folder "
-        "with a results.csv), e.g. sample,gardens_point",
+        "showing finished runs), e.g. sample,gardens_point",
     )
     parser.add_argument(
         "--outputs-root",

@@ -3,7 +3,7 @@ table, and the error when there are none."""
 
 from __future__ import annotations
 
-import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -39,8 +39,16 @@ def method_dir(output_dir: Path, method: str) -> Path:
     return runs.method_folder(output_dir, method)
 
 
-def read_run_json(output_dir: Path, method: str) -> dict[str, Any]:
-    return json.loads((method_dir(output_dir, method) / "run.json").read_text(encoding="utf-8"))
+def read_run_json(output_dir: str | os.PathLike[str], method: str) -> dict[str, Any]:
+    """A method's record (its ``run.json``) as ``runs`` reads it; ``ResultsError`` when there is none."""
+    from gvbench_nb.runner import runs
+
+    record = runs.record(output_dir, method)
+    if not isinstance(record, dict):
+        raise ResultsError(
+            f"{method_dir(Path(output_dir), method) / 'run.json'} is missing: run {method!r} on that sequence first"
+        )
+    return record
 
 
 class ResultsError(GVBenchError, FileNotFoundError):

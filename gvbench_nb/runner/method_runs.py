@@ -88,7 +88,7 @@ def finished_table(
 ) -> pd.DataFrame | None:
     """The per-pair table ``folder`` holds when its result is of these inputs (``result_identity``), else None."""
     try:
-        run = json.loads((folder / "run.json").read_text(encoding="utf-8"))
+        run = method_outputs.read_run_json(folder.parent, folder.name)
         identity = result_identity(sequence, conf, seed, device)
     except (OSError, ValueError):  # no result, or an image gone: the work names it and its pair
         return None

@@ -381,6 +381,18 @@ def method_folder(output_dir: str | os.PathLike[str], method: str) -> Path:
     return entry.folder if entry is not None else folder / method
 
 
+def record(output_dir: str | os.PathLike[str], name: str) -> dict[str, Any] | None:
+    """A method's ``run.json``: its row's in an output folder (``name`` a label, or a method: its latest
+    row), its own in a run (a finished one checked whole first, a shard's or one being built as it is)."""
+    folder = Path(output_dir)
+    if not is_run(folder):
+        view = current(folder)
+        entry = view.entries.get(name) or next(reversed(view.of(name)), None)
+        return entry.record if entry is not None else None
+    path = method_folder(folder, name) / "run.json"
+    return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
+
+
 def unfinished(output_dir: str | os.PathLike[str]) -> list[Path]:
     """The folder's runs being built, or left by a build that failed or was killed."""
     root = Path(output_dir) / RUNS

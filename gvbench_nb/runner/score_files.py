@@ -7,7 +7,6 @@ from __future__ import annotations
 import csv
 import importlib
 import io
-import json
 import pickle
 import shlex
 from pathlib import Path
@@ -298,7 +297,7 @@ def export_npy(output_dir: str | Path, method: str) -> tuple[Path, float]:
     output_dir = Path(output_dir)
     folder = method_outputs.method_dir(output_dir, method)
     table = scoring.load_pairs_table(folder.parent, method)
-    run = json.loads((folder / "run.json").read_text(encoding="utf-8"))
+    run = method_outputs.read_run_json(folder.parent, method)
     run_id, sequence = str(runs.run_id(folder.parent)), str(run.get("sequence"))
     problem = name_problem(sequence)
     if problem:

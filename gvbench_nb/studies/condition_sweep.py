@@ -82,11 +82,6 @@ def cell_name(condition: str, strength: float) -> str:
     return "clear" if float(strength) == 0.0 else f"{condition}_{strength_text(strength)}"
 
 
-def _width_height(image_size: SequenceType[int]) -> tuple[int, int]:
-    width, height = image_size  # anything but two numbers fails here, as make_route's unpacking would
-    return width, height
-
-
 def prepare_route(
     out_dir: str | Path, seed: int = 0, n_frames: int = 30, image_size: SequenceType[int] = (640, 480)
 ) -> SweepRoute:
@@ -114,7 +109,8 @@ def prepare_route(
             )
     if n_frames < 6:
         raise SweepError(f"n_frames={n_frames}: a route needs at least 6 frames to have true and false pairs")
-    route = synthetic.make_route(seed, n_frames, _width_height(image_size))
+    width, height = image_size  # anything but two numbers fails here, as make_route's unpacking would
+    route = synthetic.make_route(seed, n_frames, (width, height))
     atomic_write_json(params_path, params)
     _render_folder(image_root / REFERENCE_FOLDER, route.render_reference, route.name_width)
 
@@ -418,46 +414,3 @@ def plot_overview(sweep: pd.DataFrame) -> plt.Figure:
     figure.suptitle("MR as one condition strengthens (dashed: breaking strength, MR < half its clear value)")
     figure.tight_layout()
     return figure
-
-
-RENDER_SETTINGS: dict[str, dict[str, float]] = {
-    "clear": {},
-    **{condition: {condition: 1.0} for condition in synthetic.CONDITIONS},
-    "all three": dict.fromkeys(synthetic.CONDITIONS, 1.0),
-}
-
-
-RENDER_TIME_COLUMNS = ["setting", "conditions", "n_frames", "image_size", "repeats", "median_seconds", "min_seconds"]
-RENDER_TIME_COLUMNS += ["max_seconds", "scene_seconds", "workers", "cpu_count", "loadavg_1m"]
-
-
-def time_render(
-    n_frames: int = 100,
-    image_size: SequenceType[int] = (640, 480),
-    seed: int = 0,
-    repeats: int = 3,
-    settings: Mapping[str, Mapping[str, float]] | None = None,
-    workers: int | None = None,
-) -> pd.DataFrame:
-    """Seconds to render one ``n_frames`` query traversal per condition setting (strength 1), PNG
-    writing not counted, the scene timed apart; the load average beside each row (a busy machine is slower)."""
-    import os
-    import time
-
-    started = time.perf_counter()
-    route = synthetic.make_route(seed=seed, n_frames=n_frames, image_size=_width_height(image_size))
-    scene_seconds = time.perf_counter() - started
-    rows = []
-    for name, conditions in (settings or RENDER_SETTINGS).items():
-        seconds = []
-        for _ in range(repeats):
-            start = time.perf_counter()
-            synthetic.render_traversal(
-                route.scene, route.query, route.K, route.image_size, conditions, seed, 1, workers=workers
-            )
-            seconds.append(time.perf_counter() - start)
-        cpus = os.cpu_count()
-        values: list[Any] = [name, json.dumps(dict(conditions)), n_frames, f"{image_size[0]}x{image_size[1]}", repeats]
-        values += [float(np.median(seconds)), min(seconds), max(seconds), scene_seconds, workers or min(4, cpus or 1)]
-        rows.append(dict(zip(RENDER_TIME_COLUMNS, [*values, cpus, round(os.getloadavg()[0], 2)])))
-    return pd.DataFrame(rows)

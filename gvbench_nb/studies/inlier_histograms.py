@@ -65,28 +65,18 @@ def normalised_inlier_histograms(tables: dict[str, pd.DataFrame], title: str = "
         normalised = normalised_inliers(table)
         summary = inlier_overlap_summary(table)
         for label, name, colour in ((1, "true", "tab:green"), (0, "false", "tab:red")):
-            axis.hist(
-                normalised[table["label"] == label],
-                bins=edges,
-                color=colour,
-                alpha=0.55,
-                label=f"{name} ({int((table['label'] == label).sum())})",
-                density=True,
-            )
+            chosen = table["label"] == label
+            shown = {"color": colour, "alpha": 0.55, "label": f"{name} ({int(chosen.sum())})", "density": True}
+            axis.hist(normalised[chosen], bins=edges, **shown)
         top = summary["top_false_normalised"]
         axis.axvspan(top, 1.0, color="tab:blue", alpha=0.08)
         axis.axvline(top, color="tab:blue", linestyle="--", linewidth=1)
-        axis.text(
-            0.98,
-            0.95,
+        note = (
             f"true pairs above top false: {summary['true_above_top_false']:.1%} (= MR)\n"
-            f"true pairs with 0 inliers: {summary['true_zero_inliers']:.1%}",
-            transform=axis.transAxes,
-            ha="right",
-            va="top",
-            fontsize=7,
-            bbox={"facecolor": "white", "alpha": 0.8, "edgecolor": "none"},
+            f"true pairs with 0 inliers: {summary['true_zero_inliers']:.1%}"
         )
+        box = {"facecolor": "white", "alpha": 0.8, "edgecolor": "none"}
+        axis.text(0.98, 0.95, note, transform=axis.transAxes, ha="right", va="top", fontsize=7, bbox=box)
         profiles = table["profile"].unique() if "profile" in table else []
         if len(profiles) > 1:
             raise ValueError(

@@ -46,18 +46,13 @@ def count_pairs(sequence: str, table: pd.DataFrame, source: str) -> dict[str, An
     }
 
 
-def official_lists_dir() -> Path:
-    """Where ``data fetch gvbench-lists`` puts the official lists."""
-    from gvbench_nb.data import fetch
-
-    return fetch.data_dir() / fetch.get_dataset("gvbench-lists").folder
-
-
 def sequence_summary(
     output_dirs: Iterable[str | os.PathLike[str]], lists_dir: str | os.PathLike[str] | None = None
 ) -> pd.DataFrame:
-    """Table II: each run folder's sequence, each official list in ``lists_dir`` (default: the data
-    folder's) and the paper's text values of those sequences, each row labelled by its source."""
+    """Table II: each run folder's sequence, each official list in ``lists_dir`` (default: where ``data
+    fetch gvbench-lists`` puts them) and the paper's text values of those sequences, each row labelled by its source."""
+    from gvbench_nb.data import fetch
+
     rows = []
     folders = list(output_dirs)
     results = run_tables.load_results(folders) if folders else pd.DataFrame(columns=["output_dir"])
@@ -65,7 +60,7 @@ def sequence_summary(
         table = run_tables.load_pairs_tables(folder, [group["method"].iloc[0]])[group["method"].iloc[0]]
         rows.append(count_pairs(str(group["sequence"].iloc[0]), table, RUN_COUNTED))
     text = reference_values.paper_sequences()
-    lists = Path(lists_dir) if lists_dir else official_lists_dir()
+    lists = Path(lists_dir) if lists_dir else fetch.data_dir() / fetch.get_dataset("gvbench-lists").folder
     for name in text["sequence"]:
         path = lists / f"{name}.txt"
         if path.is_file():

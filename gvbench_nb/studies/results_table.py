@@ -48,11 +48,6 @@ def line_label(method: str, profile: str, source: str) -> str:
     return plots.run_label(method, profile) if source == run_tables.OURS_LABEL else f"{method} ({source})"
 
 
-def duplicated_runs(results: pd.DataFrame) -> pd.DataFrame:
-    """Rows of ``results`` sharing (sequence, profile, method) with another row."""
-    return results[results.duplicated(run_tables.RUN_KEY, keep=False)]
-
-
 def join_paper_table(
     results: pd.DataFrame, paper: pd.DataFrame, repository: pd.DataFrame | None = None
 ) -> pd.DataFrame:
@@ -62,9 +57,9 @@ def join_paper_table(
     if "profile" not in results:
         raise ValueError(
             "the results have no profile column: evaluate the runs again "
-            "(python -m gvbench_nb run PARAMS) so results.csv records each run's profile"
+            "(python -m gvbench_nb run PARAMS) so each run records its profile"
         )
-    twice = duplicated_runs(results)
+    twice = results[results.duplicated(run_tables.RUN_KEY, keep=False)]
     if not twice.empty:
         where = twice.get("output_dir", pd.Series(["?"] * len(twice), index=twice.index))
         runs = "; ".join(f"{r.sequence}/{r.profile}/{r.method} in {w}" for r, w in zip(twice.itertuples(), where))
@@ -244,16 +239,9 @@ def _max_recall_bars(
             if value.empty:
                 continue
             percent = 100 * float(value.iloc[0])
-            axis.barh(
-                row,
-                percent,
-                height=0.8,
-                color=colours[method],
-                hatch=None if source == run_tables.OURS_LABEL else "//",
-                alpha=SOURCE_STYLE[source]["alpha"],
-                edgecolor="black",
-                linewidth=0.4,
-            )
+            style = {"color": colours[method], "alpha": SOURCE_STYLE[source]["alpha"], "edgecolor": "black"}
+            hatch = None if source == run_tables.OURS_LABEL else "//"
+            axis.barh(row, percent, height=0.8, hatch=hatch, linewidth=0.4, **style)
             axis.text(percent, row, f" {percent:.1f}%", va="center", fontsize=7)
         axis.set_yticks(range(len(rows)), [line_label(*row) for row in rows], fontsize=7)
         axis.invert_yaxis()

@@ -140,23 +140,11 @@ def fps_vs_max_recall(runtime: pd.DataFrame, caption: str = "") -> plt.Figure:
     colours = plots.method_colours(list(dict.fromkeys(runtime["method"])))
     markers = dict(zip(dict.fromkeys(runtime["sequence"]), "osD^vP*X"))
     for row in runtime.itertuples():
-        axis.scatter(
-            row.fps,
-            100 * row.max_recall,
-            color=colours[row.method],
-            marker=markers[row.sequence],
-            s=60,
-            edgecolor="black",
-            linewidth=0.5,
-        )
-        sequence = row.sequence if runtime["sequence"].nunique() > 1 else None
-        axis.annotate(
-            plots.run_label(row.method, row.profile, sequence),
-            (row.fps, 100 * row.max_recall),
-            textcoords="offset points",
-            xytext=(5, 4),
-            fontsize=8,
-        )
+        point = (row.fps, 100 * row.max_recall)
+        style = {"color": colours[row.method], "marker": markers[row.sequence], "edgecolor": "black"}
+        axis.scatter(*point, s=60, linewidth=0.5, **style)
+        label = plots.run_label(row.method, row.profile, row.sequence if runtime["sequence"].nunique() > 1 else None)
+        axis.annotate(label, point, textcoords="offset points", xytext=(5, 4), fontsize=8)
     axis.set_xscale("log")
     # At least a decade shown, so a log axis keeps readable ticks.
     low, high = float(runtime["fps"].min()), float(runtime["fps"].max())

@@ -15,13 +15,8 @@ def bootstrap_intervals(intervals: pd.DataFrame, title: str = "", labels: dict[s
     """Point estimate and 95% percentile CI of AP and MR in %, one row a method (named by ``labels``
     where it has one, ``run_tables.run_labels``)."""
     metrics = list(dict.fromkeys(intervals["metric"]))
-    figure, axes = plt.subplots(
-        1,
-        len(metrics),
-        figsize=(5 * len(metrics), 0.45 * intervals["method"].nunique() + 1.8),
-        squeeze=False,
-        sharey=True,
-    )
+    size = (5 * len(metrics), 0.45 * intervals["method"].nunique() + 1.8)
+    figure, axes = plt.subplots(1, len(metrics), figsize=size, squeeze=False, sharey=True)
     for axis, metric in zip(axes[0], metrics):
         data = intervals[intervals["metric"] == metric].reset_index(drop=True)
         data[["estimate", "low", "high"]] *= 100  # in %, as AP and MR are everywhere
@@ -29,13 +24,8 @@ def bootstrap_intervals(intervals: pd.DataFrame, title: str = "", labels: dict[s
         errors = np.vstack([data["estimate"] - data["low"], data["high"] - data["estimate"]])
         axis.errorbar(data["estimate"], y, xerr=np.clip(errors, 0, None), fmt="o", capsize=4, color="tab:blue")
         for i, row in data.iterrows():
-            axis.text(
-                row["high"],
-                i,
-                f"  {row['estimate']:.1f} [{row['low']:.1f}, {row['high']:.1f}]",
-                va="center",
-                fontsize=7,
-            )
+            text = f"  {row['estimate']:.1f} [{row['low']:.1f}, {row['high']:.1f}]"
+            axis.text(row["high"], i, text, va="center", fontsize=7)
         axis.set_yticks(y, data["method"].replace(labels or {}))
         axis.set_xticks(np.linspace(0, 100, 6))
         header = run_tables.METRIC_HEADERS.get(metric, metric)

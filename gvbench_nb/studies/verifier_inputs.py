@@ -121,7 +121,8 @@ class CachedMatches:
         extractor = self.conf["extractor"]
         self.features = image_features.feature_store(self.cache, extractor) if extractor else None
         self._read_features = lru_cache(maxsize=512)(self._features_of)
-        self._read_image = lru_cache(maxsize=48)(self._image_of)
+        # An image (BGR, as ``cv2.imread``) is read once for the pairs that share it.
+        self.image = lru_cache(maxsize=48)(self._image_of)
 
     def _run_sequence(self) -> Sequence:
         pairs = [
@@ -189,10 +190,6 @@ class CachedMatches:
         if image is None:
             raise FileNotFoundError(f"cannot read image {path} (run {self.output_dir / self.method})")
         return image
-
-    def image(self, name: str) -> np.ndarray:
-        """The BGR image (as ``cv2.imread``), cached for the pairs that share it."""
-        return self._read_image(name)
 
     def pair(self, query: str, reference: str) -> PairMatches:
         key = pair_matching.pair_key(self.image_root, query, reference, self.seed)

@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
+from written_runs import add_run
 
 from gvbench_nb import cli
 from gvbench_nb.evaluation import plots
@@ -92,11 +93,12 @@ def test_report_on_a_run_with_its_own_cache_dir_hides_code_and_shows_pr_curves(t
 
 def test_report_takes_run_folders_or_a_run_folder_as_outputs_root(tmp_path, capsys):
     """``report OUTPUT_DIR...`` reads those run folders; ``--outputs-root`` may be a run folder
-    itself or hold them; a folder without results.csv is one sentence, before any work."""
+    itself or hold them; a folder showing no finished run is one sentence, before any work."""
     outputs = tmp_path / "outputs"
     for name in ("a", "b"):
-        (outputs / name).mkdir(parents=True)
-        (outputs / name / "results.csv").write_text("sequence,method\n")
+        add_run(
+            outputs / name, "sift-nn", pd.DataFrame({"query": ["q"], "reference": ["r"], "label": [1], "score": [1]})
+        )
     (outputs / "empty").mkdir()
     parser = argparse.ArgumentParser()
     report.add_command(parser.add_subparsers(dest="command"))
@@ -109,7 +111,7 @@ def test_report_takes_run_folders_or_a_run_folder_as_outputs_root(tmp_path, caps
     assert folders("--outputs-root", str(outputs)) == [outputs / "a", outputs / "b"]
     assert cli.main(["report", str(outputs / "empty"), "--output-dir", str(tmp_path / "report")]) == 2
     error = capsys.readouterr().err
-    assert error.count("\n") == 1 and f"{outputs / 'empty'} holds no results.csv" in error
+    assert error.count("\n") == 1 and f"{outputs / 'empty'} shows no finished run" in error
     assert not (tmp_path / "report").exists()
     # Two run folders of one name get a report sub-folder each.
     assert report.page_folders([tmp_path / "x" / "sample", tmp_path / "y" / "sample"]) == {

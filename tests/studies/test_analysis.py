@@ -235,7 +235,7 @@ def test_ensure_results_runs_nothing_when_pairs_exist(tmp_path, monkeypatch):
     assert results["method"].tolist() == ["sift-nn"]
     assert results["max_recall"].iloc[0] == pytest.approx(0.5)
     assert results["fps"].iloc[0] == pytest.approx(1 / 0.35)
-    with pytest.raises(FileNotFoundError, match="results.csv"):
+    with pytest.raises(FileNotFoundError, match="no finished run"):
         run_tables.find_output_dirs(tmp_path, ["absent"])
 
 

@@ -5,8 +5,6 @@ one sequence order, readable transfer heatmaps, caption sizes read per traversal
 
 from __future__ import annotations
 
-import json
-
 import matplotlib
 import numpy as np
 import pandas as pd
@@ -213,17 +211,15 @@ def test_a_runtime_caption_gives_each_traversals_own_image_size(tmp_path):
         (images / folder).mkdir(parents=True)
         Image.new("RGB", size).save(images / folder / "0.png")
     output = tmp_path / "out"
-    (output / "sift-nn").mkdir(parents=True)
     pairs = pd.DataFrame(
         {"query": ["night/0.png"], "reference": ["day_right/0.png"], "label": [1], "score": [3.0], "num_inliers": [3]}
     )
-    pairs.to_csv(output / "sift-nn" / "pairs.csv", index=False)
     extractor = {"name": "sift", "type": "opencv_sift", "resize_to": [512, 288]}
     run = {
         "image_root": str(images),
         "conf": {"extractor": extractor, "matcher": {"name": "nn"}, "profile": "repository"},
         "environment": {"device": "cpu", "device_name": "x", "cpu_count": 2},
     }
-    (output / "sift-nn" / "run.json").write_text(json.dumps(run))
+    add_run(output, "sift-nn", pairs, run)
     caption = runtime_vs_mr.run_description(output, ["sift-nn"], tmp_path / "cache")
     assert "sift: night 640x360, day_right 960x540; resized to 512x288" in caption

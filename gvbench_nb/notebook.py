@@ -221,11 +221,11 @@ def load_results(
     ``require_results`` (``[]``, as the report passes, checks nothing)."""
     from gvbench_nb.evaluation import run_tables
 
-    folders = as_list(output_dirs)
+    folders = [os.fspath(config.outputs_path(folder)) for folder in as_list(output_dirs)]
     for params_file in as_list(params_files):
         require_results(params_file, methods, compute_missing=compute_missing)
     results = run_tables.load_results(folders)  # refuses what `results` refuses, before a figure folder is made
-    figures = Path(figures_dir)
+    figures = config.outputs_path(figures_dir)
     figures.mkdir(parents=True, exist_ok=True)
     return AnalysisInputs(folders, results, figures)
 
@@ -268,7 +268,7 @@ def open_verifier_bench(
 ) -> VerifierBench:
     """A ``VerifierBench`` on ``results_dir/method``'s cached matches (``results_dir`` relative to the
     notebook); ``classifier`` overrides the in-domain Doppelgangers training."""
-    results_dir = Path(results_dir).resolve()
+    results_dir, output_dir = config.outputs_path(Path(results_dir).resolve()), config.outputs_path(output_dir)
     if params_file:
         require_results(
             params_file,

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import textwrap
 from pathlib import Path
 from typing import Any
 
 log = logging.getLogger(__name__)
 
+HEADER_WIDTH = 100  # the machine's line above a table, as a terminal of 100 columns shows it
 # Every column of `results --wide` and `--markdown` (the README's tables come from the latter).
 WIDE_COLUMNS = [
     *["method", "paper_name", "profile", "n_pairs", "n_positives"],
@@ -63,10 +65,10 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
     machine = "imported scores only"
     if measured:
         env = measured[0]["environment"]
-        machine = (
-            f"device {env['device']} ({env['device_name']}, {env['cpu_count']} cores), "
-            f"torch {env['torch']}, kornia {env['kornia']}, opencv {env['opencv']}"
-        )
+        libraries = f", {env['cpu_count']} cores), torch {env['torch']}, kornia {env['kornia']}, opencv {env['opencv']}"
+        room = HEADER_WIDTH - len(f"device {env['device']} ({libraries}")  # a long CPU name is cut to fit
+        name = textwrap.shorten(env["device_name"], max(room, 8), placeholder="...")
+        machine = f"device {env['device']} ({name}{libraries}"
     return f"{results['sequence'].iloc[0]} in {folder}\nruns finished {finished}{cut}\n{machine}\n"
 
 

@@ -3,6 +3,7 @@ Missing results raise ``ResultsMissingError`` naming the command, unless ``compu
 
 from __future__ import annotations
 
+import ast
 import os
 import shlex
 import types
@@ -17,6 +18,7 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
+from gvbench_nb.io_utils import unknown_keys_hint
 from gvbench_nb.runner import config, method_outputs, runs, scoring, sequence_build
 
 if TYPE_CHECKING:
@@ -43,7 +45,7 @@ class AnalysisInputs(NamedTuple):
 
 
 class ParameterError(GVBenchError, TypeError):
-    """A notebook parameter holds a value of another type than its parameters cell declares."""
+    """A notebook parameter its parameters cell does not declare, or of another type than it declares."""
 
 
 def _accepts(annotation: Any, value: Any) -> bool:
@@ -60,9 +62,25 @@ _KINDS = {list: "a list", dict: "a mapping", str: "text", int: "a whole number",
 _KINDS.update({bool: "True or False", type(None): "None"})
 
 
+def injected_names(namespace: dict[str, Any]) -> list[str]:
+    """The names papermill's injected cell (``# Parameters``, in the kernel's history ``In``) assigns."""
+    cells = [ast.parse(source) for source in namespace.get("In", ()) if source.startswith("# Parameters")]
+    assigned = [
+        target for cell in cells for node in cell.body if isinstance(node, ast.Assign) for target in node.targets
+    ]
+    return [target.id for target in assigned if isinstance(target, ast.Name)]
+
+
 def check_parameters(namespace: dict[str, Any]) -> None:
-    """Refuse, in one sentence, a parameter of another type than its annotation in the notebook's
-    ``globals()``: papermill's ``-p`` passes text, so a list or a mapping is given with ``-y``."""
+    """Refuse, in one sentence, a parameter papermill passed that the notebook's parameters cell does
+    not declare, and one of another type than its annotation, in the notebook's ``globals()``:
+    papermill's ``-p`` passes text, so a list or a mapping is given with ``-y``."""
+    declared = list(namespace.get("__annotations__", {}))
+    unknown = [name for name in injected_names(namespace) if name not in declared]
+    if unknown:
+        raise ParameterError(
+            f"unknown notebook parameter(s) {unknown_keys_hint(unknown, declared)}; this notebook's: {', '.join(declared)}"
+        )
     for name, annotation in namespace.get("__annotations__", {}).items():
         value = namespace.get(name)
         if name not in namespace or _accepts(annotation, value):

@@ -125,12 +125,10 @@ def run_command_line(params_file: PathLike, methods: SequenceType[str], **overri
 
 
 def missing_methods(output_dir: PathLike, methods: SequenceType[str]) -> list[str]:
-    """The ``methods`` (names or ``all``/``all-available``) without a ``pairs.csv`` in ``output_dir``."""
-    return [
-        m
-        for m in method_registry.expand_methods(list(methods))
-        if not (method_outputs.method_dir(Path(output_dir), m) / "pairs.csv").is_file()
-    ]
+    """The ``methods`` (names or ``all``/``all-available``) without a ``pairs.csv`` in ``output_dir``;
+    a method the folder holds is never missing, though its name is the registry's or not (an import)."""
+    held = set(scoring.methods_with_results(Path(output_dir)))
+    return [m for m in method_registry.expand_methods([m for m in methods if m not in held]) if m not in held]
 
 
 def stale_results(output_dir: PathLike) -> bool:

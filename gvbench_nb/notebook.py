@@ -19,7 +19,7 @@ from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import unknown_keys_hint
-from gvbench_nb.runner import config, method_outputs, runs, scoring, sequence_build
+from gvbench_nb.runner import config, runs, scoring, sequence_build
 
 if TYPE_CHECKING:
     from gvbench_nb.studies.alternative_verifiers import VerifierBench

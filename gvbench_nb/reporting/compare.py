@@ -15,8 +15,9 @@ log = logging.getLogger(__name__)
 
 HELP = "AP and MR with bootstrap intervals over queries, and which method rankings a paired bootstrap supports"
 DESCRIPTION = """\
-Reads the finished <method>/pairs.csv of one output folder, or of several folders run on the same
-pairs (nothing is recomputed), draws the
+Reads the pairs.csv of the runs an output folder shows (each method's latest run,
+<output_dir>/runs/<id>/<method>/pairs.csv), or of several folders run on the same pairs
+(nothing is recomputed), draws the
 queries with replacement (every pair of a drawn query counts; the same draws for every method)
 and prints each method's AP and MR with 95 % percentile intervals, then for every pair of
 methods the share of those resamples in which the first (the higher on all pairs) beats the

@@ -204,7 +204,9 @@ def add_command(commands: Any) -> None:
         "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
         "it like a run. Its run.json names the file and its SHA-256. The format is read from the file's "
         "content, not its name; a .npy pickling anything but plain data is refused without running it. Its pairs "
-        "are checked as a pair file's are, and it never replaces results computed in OUTPUT_DIR.",
+        "are checked as a pair file's are. An import under the name of a method OUTPUT_DIR already shows adds a "
+        "run and changes no byte of the other: the folder shows the import (its latest run for that method), and "
+        "the command names the other run's `results OUTPUT_DIR --run ID`.",
     )
     upgrade = commands.add_parser(
         "upgrade",
@@ -227,5 +229,6 @@ def add_command(commands: Any) -> None:
     results.add_argument(
         "--export",
         choices=["npy"],
-        help="also write each method's pairs as the GV-Bench authors' <sequence>_<method>.npy in its folder",
+        help="also write the pairs of each method's shown run as the GV-Bench authors' "
+        "<output_dir>/exports/<sequence>_<method>_<run id>.npy",
     )

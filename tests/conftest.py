@@ -84,7 +84,7 @@ def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
     before, after = session.config.stash[OUTPUTS_BEFORE], repository_outputs()
     written = sorted(path for path, mtime in after.items() if before.get(path) != mtime)
     if written and not os.environ.get("PYTEST_XDIST_WORKER"):
-        print(f"\nthe tests wrote {len(written)} files under {PROJECT_ROOT / 'outputs'}, such as {written[0]}")
+        print(f"\nthe tests wrote {len(written)} file(s) under {PROJECT_ROOT / 'outputs'}, such as {written[0]}")
         session.exitstatus = pytest.ExitCode.TESTS_FAILED
 
 

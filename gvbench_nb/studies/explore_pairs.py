@@ -82,7 +82,7 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
         rank = int(score_ranks(table).iloc[pair_index])
         values = (method, int(row["pair_index"]), row["query"], row["reference"], *counts, rank, len(table))
         rows.append(dict(zip(VIEW_COLUMNS, (*values, max_false, bool(row["score"] > max_false)))))
-    view = pd.DataFrame(rows, columns=VIEW_COLUMNS)
+    view = pd.DataFrame(rows, columns=VIEW_COLUMNS).astype({"num_matches": "Int64", "num_inliers": "Int64"})
     if view[["query", "reference"]].drop_duplicates().shape[0] > 1:
         raise ValueError(
             f"pair {pair_index} is not the same pair in every method's pairs.csv "
@@ -93,7 +93,7 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
 
 def shown_table(view: pd.DataFrame) -> Any:
     """The pair's table as the notebook shows it: its rows are methods, so pandas' row numbers are hidden."""
-    return view.style.hide(axis="index")
+    return view.style.hide(axis="index").format(na_rep="-")  # '-': not measured (an imported method)
 
 
 def batch_execution() -> bool:

@@ -65,3 +65,16 @@ def test_the_explorer_and_an_analysis_notebook_show_an_imported_method(with_impo
         "analysis_results_table.ipynb", tmp_path / "t.ipynb", {**checked, "output_dir": str(tmp_path)}
     )
     assert IMPORTED in set(pd.read_csv(tmp_path / "results_with_paper.csv")["method"])
+
+
+def test_the_explorers_table_shows_an_imported_methods_counts_as_not_measured(with_import):
+    from gvbench_nb.evaluation import run_tables
+    from gvbench_nb.studies import explore_pairs as explore
+
+    tables = run_tables.load_pairs_tables(with_import.parent / "out", ["orb-nn", IMPORTED])
+    view = explore.pair_across_methods(tables, 0)
+    assert view["num_inliers"].iloc[0] == tables["orb-nn"]["num_inliers"].iloc[0] and pd.isna(
+        view["num_inliers"].iloc[1]
+    )
+    html = explore.shown_table(view).to_html()
+    assert not any(word in html for word in ("nan", "None", "&lt;NA&gt;")), html

@@ -45,3 +45,10 @@ def test_a_path_under_the_repositorys_outputs_moves_with_gvbench_outputs(tmp_pat
     assert config.outputs_path(tmp_path / "mine") == tmp_path / "mine"  # elsewhere: as given
     monkeypatch.delenv("GVBENCH_OUTPUTS")
     assert config.outputs_path("../outputs/sample") == Path("../outputs/sample")
+
+
+def test_gvbench_outputs_naming_a_file_is_one_sentence(tmp_path, monkeypatch):
+    (tmp_path / "a-file").write_text("")
+    monkeypatch.setenv("GVBENCH_OUTPUTS", str(tmp_path / "a-file"))
+    with pytest.raises(config.SettingError, match=r"GVBENCH_OUTPUTS \(outputs/\) must name a folder"):
+        config.check_environment()

@@ -172,11 +172,7 @@ def pair_views(
     first = view.iloc[0]
     scores = figure_image(plots.score_histograms(tables, view), figures / FIGURE_FILES["scores"])
     if not measured:
-        return {
-            "table": view,
-            "matches": "no matches to draw: every method shown imported its scores",
-            "scores": scores,
-        }
+        return {"table": view, "matches": "no matches to draw: only imported scores", "scores": scores}
     run = runs[measured[0]]
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))

@@ -22,8 +22,9 @@ log = logging.getLogger(__name__)
 DESCRIPTION = """\
 gvbench-nb: benchmark local feature matching for geometric verification of loop closures
 (after GV-Bench, IROS 2024). A params YAML names a sequence (image root + labelled pairs),
-the methods and the profile; results land in <output_dir>/<method>/pairs.csv and
-<output_dir>/results.csv (AP and max recall at 100% precision), beside the executed notebooks.
+the methods and the profile. Each run adds <output_dir>/runs/<id>/ (one <method>/pairs.csv a method,
+beside the executed notebooks); <output_dir>/results.csv (AP and max recall at 100% precision) is
+the folder's view: each method's latest run, the others named with `results OUT --run ID`.
 """
 
 
@@ -50,6 +51,8 @@ environment:
                    puts datasets (default: a per-user cache folder, printed by `data list`)
   GVBENCH_CACHE    the feature cache of a run whose params name no cache_dir (default: a per-user
                    cache folder; `run` names it in its first line)
+  GVBENCH_OUTPUTS  the folder standing for the repository's outputs/: paths of params files and of the
+                   notebooks' defaults under outputs/ go there instead (the tests set it)
   GVBENCH_JOBS     images, then pairs, processed at once, as `run --jobs` sets it (default: every
                    core this process may use). Each image's and pair's timer is its job's own time;
                    `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is
@@ -251,7 +254,8 @@ def add_run_command(commands: Any) -> None:
         "run",
         help="run methods on a sequence through the notebooks (papermill) and evaluate",
         description="Extract and match every method, then execute notebooks/01_sequence, 02_verify (once a "
-        "method, finding its work cached) and 03_evaluate with papermill into the params' output_dir. "
+        "method, finding its work cached) and 03_evaluate with papermill into a new run of the params' output_dir "
+        "(<output_dir>/runs/<id>/<method>/pairs.csv, ...); the folder's results.csv then shows it. "
         "Features are extracted once per unique image into the cache; an interrupted run resumes "
         "where it stopped.",
     )

@@ -199,7 +199,7 @@ def add_command(subparsers: argparse._SubParsersAction) -> None:
     parser.add_argument(
         "output_dir",
         nargs="?",
-        default=str(config.PROJECT_ROOT / "outputs" / "sample"),
+        default=str(config.outputs_path(config.OUTPUTS_DIR / "sample")),
         metavar="OUTPUT_DIR",
         help="a finished run's output folder (default: outputs/sample, which make demo writes)",
     )

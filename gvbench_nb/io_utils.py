@@ -162,6 +162,7 @@ def progress_bar(iterable: Any = None, **options: Any) -> Any:
     stream = options.get("file") or sys.stderr
     if not getattr(stream, "isatty", lambda: False)():
         options.setdefault("mininterval", BATCH_INTERVAL_SECONDS)
+        options.setdefault("maxinterval", BATCH_INTERVAL_SECONDS)  # tqdm's monitor redraws a slow bar after it
         options["file"] = _LinePerRedraw(stream)
     return tqdm(iterable, **options)
 

@@ -3,6 +3,7 @@ Missing results raise ``ResultsMissingError`` naming the command, unless ``compu
 
 from __future__ import annotations
 
+import ast
 import os
 import shlex
 import types
@@ -17,7 +18,8 @@ import pandas as pd
 from gvbench_nb import GVBenchError
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.runner import config, method_outputs, runs, scoring, sequence_build
+from gvbench_nb.io_utils import unknown_keys_hint
+from gvbench_nb.runner import config, runs, scoring, sequence_build
 
 if TYPE_CHECKING:
     from gvbench_nb.studies.alternative_verifiers import VerifierBench
@@ -43,7 +45,7 @@ class AnalysisInputs(NamedTuple):
 
 
 class ParameterError(GVBenchError, TypeError):
-    """A notebook parameter holds a value of another type than its parameters cell declares."""
+    """A notebook parameter its parameters cell does not declare, or of another type than it declares."""
 
 
 def _accepts(annotation: Any, value: Any) -> bool:
@@ -60,9 +62,25 @@ _KINDS = {list: "a list", dict: "a mapping", str: "text", int: "a whole number",
 _KINDS.update({bool: "True or False", type(None): "None"})
 
 
+def injected_names(namespace: dict[str, Any]) -> list[str]:
+    """The names papermill's injected cell (``# Parameters``, in the kernel's history ``In``) assigns."""
+    cells = [ast.parse(source) for source in namespace.get("In", ()) if source.startswith("# Parameters")]
+    assigned = [
+        target for cell in cells for node in cell.body if isinstance(node, ast.Assign) for target in node.targets
+    ]
+    return [target.id for target in assigned if isinstance(target, ast.Name)]
+
+
 def check_parameters(namespace: dict[str, Any]) -> None:
-    """Refuse, in one sentence, a parameter of another type than its annotation in the notebook's
-    ``globals()``: papermill's ``-p`` passes text, so a list or a mapping is given with ``-y``."""
+    """Refuse, in one sentence, a parameter papermill passed that the notebook's parameters cell does
+    not declare, and one of another type than its annotation, in the notebook's ``globals()``:
+    papermill's ``-p`` passes text, so a list or a mapping is given with ``-y``."""
+    declared = list(namespace.get("__annotations__", {}))
+    unknown = [name for name in injected_names(namespace) if name not in declared]
+    if unknown:
+        raise ParameterError(
+            f"unknown notebook parameter(s) {unknown_keys_hint(unknown, declared)}; this notebook's: {', '.join(declared)}"
+        )
     for name, annotation in namespace.get("__annotations__", {}).items():
         value = namespace.get(name)
         if name not in namespace or _accepts(annotation, value):
@@ -107,12 +125,10 @@ def run_command_line(params_file: PathLike, methods: SequenceType[str], **overri
 
 
 def missing_methods(output_dir: PathLike, methods: SequenceType[str]) -> list[str]:
-    """The ``methods`` (names or ``all``/``all-available``) without a ``pairs.csv`` in ``output_dir``."""
-    return [
-        m
-        for m in method_registry.expand_methods(list(methods))
-        if not (method_outputs.method_dir(Path(output_dir), m) / "pairs.csv").is_file()
-    ]
+    """The ``methods`` (names or ``all``/``all-available``) without a ``pairs.csv`` in ``output_dir``;
+    a method the folder holds is never missing, though its name is the registry's or not (an import)."""
+    held = set(scoring.methods_with_results(Path(output_dir)))
+    return [m for m in method_registry.expand_methods([m for m in methods if m not in held]) if m not in held]
 
 
 def stale_results(output_dir: PathLike) -> bool:
@@ -221,11 +237,11 @@ def load_results(
     ``require_results`` (``[]``, as the report passes, checks nothing)."""
     from gvbench_nb.evaluation import run_tables
 
-    folders = as_list(output_dirs)
+    folders = [os.fspath(config.outputs_path(folder)) for folder in as_list(output_dirs)]
     for params_file in as_list(params_files):
         require_results(params_file, methods, compute_missing=compute_missing)
     results = run_tables.load_results(folders)  # refuses what `results` refuses, before a figure folder is made
-    figures = Path(figures_dir)
+    figures = config.outputs_path(figures_dir)
     figures.mkdir(parents=True, exist_ok=True)
     return AnalysisInputs(folders, results, figures)
 
@@ -268,7 +284,7 @@ def open_verifier_bench(
 ) -> VerifierBench:
     """A ``VerifierBench`` on ``results_dir/method``'s cached matches (``results_dir`` relative to the
     notebook); ``classifier`` overrides the in-domain Doppelgangers training."""
-    results_dir = Path(results_dir).resolve()
+    results_dir, output_dir = config.outputs_path(Path(results_dir).resolve()), config.outputs_path(output_dir)
     if params_file:
         require_results(
             params_file,

@@ -31,7 +31,6 @@
 #   of all false pairs).
 
 # %%
-from pathlib import Path
 from typing import Optional, Union
 
 import matplotlib.pyplot as plt
@@ -39,6 +38,7 @@ from IPython.display import display
 
 from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
+from gvbench_nb.runner import config
 from gvbench_nb.studies import condition_sweep
 
 # %% tags=["parameters"]
@@ -61,7 +61,7 @@ output_dir: str = "../outputs/condition_sweep_nbmake"
 
 # %%
 notebook.check_parameters(globals())  # papermill's -p passes text: a list is given with -y
-out = Path(output_dir)
+out = config.outputs_path(output_dir)  # output_dir, or where $GVBENCH_OUTPUTS moves it
 sweep = condition_sweep.run_sweep(
     out,
     methods,

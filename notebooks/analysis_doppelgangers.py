@@ -24,7 +24,6 @@
 # the GV-Bench paper's published values on its own sequences, for reference only.
 
 # %%
-from pathlib import Path
 from typing import Optional
 
 import matplotlib.pyplot as plt
@@ -73,7 +72,7 @@ bench = notebook.open_verifier_bench(
     gap_frames=gap_frames,
     tolerance=tolerance,
 )
-figures = Path(output_dir)
+figures = bench.output_dir  # output_dir, or where $GVBENCH_OUTPUTS moves it
 print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
 
 # %% [markdown]
@@ -148,4 +147,4 @@ notebook.table(alternative_verifiers.verifier_table(results).reset_index())
 figure = plots.pr_curves(tables, title=f"{bench.cached.label}, test split: GV vs Doppelgangers")
 plots.save(figure, figures / "doppelgangers_vs_gv_pr.png")
 plt.show()
-print("verifiers.csv:", alternative_verifiers.write_results(results, output_dir))
+print("verifiers.csv:", alternative_verifiers.write_results(results, figures))

@@ -23,7 +23,6 @@
 # queries (paired: every verifier sees the same resamples).
 
 # %%
-from pathlib import Path
 from typing import Optional
 
 import matplotlib.pyplot as plt
@@ -74,7 +73,7 @@ bench = notebook.open_verifier_bench(
     gap_frames=gap_frames,
     tolerance=tolerance,
 )
-figures = Path(output_dir)
+figures = bench.output_dir  # output_dir, or where $GVBENCH_OUTPUTS moves it
 print(f"matches: {bench.cached.label}; split: {bench.split_conf}")
 
 # %% [markdown]
@@ -93,7 +92,7 @@ notebook.table(verifier_inputs.split_summary(bench.pairs, bench.pairs["split"]))
 # %%
 names = list(verifier_names or alternative_verifiers.ALTERNATIVE_VERIFIERS)
 results, tables, boot = bench.evaluate(names, "test", n_resamples)
-print("verifiers.csv:", alternative_verifiers.write_results(results, output_dir))
+print("verifiers.csv:", alternative_verifiers.write_results(results, figures))
 notebook.table(alternative_verifiers.verifier_table(results).reset_index())
 
 # %% [markdown]

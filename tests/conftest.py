@@ -7,7 +7,6 @@ per-user cache): tests that need it skip with the ``data fetch`` command that fi
 
 from __future__ import annotations
 
-import hashlib
 import os
 import sys
 import tempfile
@@ -20,15 +19,12 @@ import pytest
 PROJECT_ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(PROJECT_ROOT / "benchmarks"))  # the benchmark scripts, imported by their tests
 
-# The tests that read or write the repository's outputs/sample and outputs/cache (the notebooks'
+# The tests that read or write the session's outputs/sample (``$GVBENCH_OUTPUTS``, below: the notebooks'
 # default params, and runs of params/sample.yaml, which renders its images there) run one at a
 # time under pytest-xdist (`make test` runs a worker a core): each holds a lock shared by every
-# worker of this checkout while it runs. (xdist's own `--dist loadgroup` cannot do it: with
+# worker of this session while it runs. (xdist's own `--dist loadgroup` cannot do it: with
 # pytest 9 it drops the groups silently.)
 SHARED_OUTPUTS = "shared_outputs"
-SHARED_OUTPUTS_LOCK = Path(tempfile.gettempdir()) / (
-    "gvbench-nb-tests-" + hashlib.sha1(str(PROJECT_ROOT).encode()).hexdigest()[:12] + ".lock"
-)
 # Under xdist the notebooks also go to one worker, as one unit, in their order (the scheduler
 # below): a second worker would only wait on their lock, and it runs the other tests meanwhile.
 NOTEBOOKS_UNIT = "notebooks"
@@ -45,18 +41,22 @@ LONGEST = (
 )
 
 
-# Runs whose params name no cache_dir use $GVBENCH_CACHE: a folder of this test session's (its
-# xdist workers inherit the controller's), never the user's cache; each test then gets its own
-# (``own_feature_cache``), kept beside its tmp_path/out as the tests read it.
-SESSION_CACHE = "GVBENCH_TESTS_SESSION_CACHE"
-made_session_cache: list[str] = []  # by this process, which removes it at the end
+# The user's folders stay untouched: runs whose params name no cache_dir use $GVBENCH_CACHE, and
+# the repository's outputs/ (the shipped params' and the notebooks' default folders, which nbmake
+# runs) is $GVBENCH_OUTPUTS, both in a folder of this test session's (its xdist workers and notebook
+# kernels inherit the controller's). Each test then gets its own cache (``own_feature_cache``),
+# kept beside its tmp_path/out as the tests read it.
+SESSION_FOLDER = "GVBENCH_TESTS_SESSION_FOLDER"
+made_session_folder: list[str] = []  # by this process, which removes it at the end
+OUTPUTS_BEFORE = pytest.StashKey[dict[str, int]]()
 
 
 def pytest_configure(config: pytest.Config) -> None:
-    if not os.environ.get(SESSION_CACHE):
-        os.environ[SESSION_CACHE] = tempfile.mkdtemp(prefix="gvbench-nb-tests-cache-")
-        made_session_cache.append(os.environ[SESSION_CACHE])
-    os.environ["GVBENCH_CACHE"] = os.environ[SESSION_CACHE]
+    if not os.environ.get(SESSION_FOLDER):
+        os.environ[SESSION_FOLDER] = tempfile.mkdtemp(prefix="gvbench-nb-tests-")
+        made_session_folder.append(os.environ[SESSION_FOLDER])
+    os.environ["GVBENCH_CACHE"] = os.path.join(os.environ[SESSION_FOLDER], "cache")
+    os.environ["GVBENCH_OUTPUTS"] = os.path.join(os.environ[SESSION_FOLDER], "outputs")
     if os.environ.get("PYTEST_XDIST_WORKER"):
         # One torch/OpenCV thread a worker: two workers on two cores, each spinning two threads,
         # would wait on each other. Runs (and their notebook kernels) read GVBENCH_THREADS and GVBENCH_JOBS.
@@ -70,10 +70,28 @@ def pytest_configure(config: pytest.Config) -> None:
         cv2.setNumThreads(1)
 
 
+def repository_outputs() -> dict[str, int]:
+    """Each file under the repository's outputs/ with its modification time (ns)."""
+    return {str(path): path.stat().st_mtime_ns for path in (PROJECT_ROOT / "outputs").rglob("*") if path.is_file()}
+
+
+def pytest_sessionstart(session: pytest.Session) -> None:
+    session.config.stash[OUTPUTS_BEFORE] = repository_outputs()
+
+
+def pytest_sessionfinish(session: pytest.Session, exitstatus: int) -> None:
+    """A session that wrote under the repository's outputs/ fails, naming what it wrote."""
+    before, after = session.config.stash[OUTPUTS_BEFORE], repository_outputs()
+    written = sorted(path for path, mtime in after.items() if before.get(path) != mtime)
+    if written and not os.environ.get("PYTEST_XDIST_WORKER"):
+        print(f"\nthe tests wrote {len(written)} file(s) under {PROJECT_ROOT / 'outputs'}, such as {written[0]}")
+        session.exitstatus = pytest.ExitCode.TESTS_FAILED
+
+
 def pytest_unconfigure(config: pytest.Config) -> None:
     import shutil
 
-    for folder in made_session_cache:
+    for folder in made_session_folder:
         shutil.rmtree(folder, ignore_errors=True)
 
 
@@ -88,6 +106,7 @@ def is_notebook(nodeid: str) -> bool:
     return nodeid.split("::", 1)[0].endswith(".ipynb")
 
 
+@pytest.hookimpl(optionalhook=True)  # pytest -p no:xdist
 def pytest_xdist_make_scheduler(config: pytest.Config, log: Any) -> Any:
     """xdist's load scheduling, one test a unit, except the notebooks: one unit, so one worker
     runs them in order while the others take the tests one by one as they free up."""
@@ -129,7 +148,7 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         return (yield)
     from filelock import FileLock
 
-    with FileLock(str(SHARED_OUTPUTS_LOCK)):  # setup, call and teardown of the item
+    with FileLock(os.path.join(os.environ[SESSION_FOLDER], "outputs.lock")):  # setup, call and teardown of the item
         return (yield)
 
 

@@ -5,11 +5,13 @@ from __future__ import annotations
 import argparse
 import contextlib
 import logging
+import textwrap
 from pathlib import Path
 from typing import Any
 
 log = logging.getLogger(__name__)
 
+HEADER_WIDTH = 100  # the machine's line above a table, as a terminal of 100 columns shows it
 # Every column of `results --wide` and `--markdown` (the README's tables come from the latter).
 WIDE_COLUMNS = [
     *["method", "paper_name", "profile", "n_pairs", "n_positives"],
@@ -63,10 +65,10 @@ def results_header(folder: Path, results: Any, runs: list[dict[str, Any]]) -> st
     machine = "imported scores only"
     if measured:
         env = measured[0]["environment"]
-        machine = (
-            f"device {env['device']} ({env['device_name']}, {env['cpu_count']} cores), "
-            f"torch {env['torch']}, kornia {env['kornia']}, opencv {env['opencv']}"
-        )
+        libraries = f", {env['cpu_count']} cores), torch {env['torch']}, kornia {env['kornia']}, opencv {env['opencv']}"
+        room = HEADER_WIDTH - len(f"device {env['device']} ({libraries}")  # a long CPU name is cut to fit
+        name = textwrap.shorten(env["device_name"], max(room, 8), placeholder="...")
+        machine = f"device {env['device']} ({name}{libraries}"
     return f"{results['sequence'].iloc[0]} in {folder}\nruns finished {finished}{cut}\n{machine}\n"
 
 
@@ -214,7 +216,9 @@ def add_command(commands: Any) -> None:
         "OUTPUT_DIR, beside methods scored on the same pairs and labels; results, compare and report read "
         "it like a run. Its run.json names the file and its SHA-256. The format is read from the file's "
         "content, not its name; a .npy pickling anything but plain data is refused without running it. Its pairs "
-        "are checked as a pair file's are, and it never replaces results computed in OUTPUT_DIR.",
+        "are checked as a pair file's are. An import under the name of a method OUTPUT_DIR already shows adds a "
+        "run and changes no byte of the other: the folder shows the import (its latest run for that method), and "
+        "the command names the other run's `results OUTPUT_DIR --run ID`.",
     )
     upgrade = commands.add_parser(
         "upgrade",
@@ -249,5 +253,6 @@ def add_command(commands: Any) -> None:
     results.add_argument(
         "--export",
         choices=["npy"],
-        help="also write each method's pairs as the GV-Bench authors' <sequence>_<method>.npy in its folder",
+        help="also write the pairs of each method's shown run as the GV-Bench authors' "
+        "<output_dir>/exports/<sequence>_<method>_<run id>.npy",
     )

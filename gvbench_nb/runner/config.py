@@ -3,6 +3,7 @@
 Relative paths in a params file are relative to the file's folder. ``${NAME}``
 expands from the environment; ``${GVBENCH_DATA}`` is the data folder of ``data.data_dir``
 (``$GVBENCH_DATA``, else a per-user cache folder that ``python -m gvbench_nb data fetch`` fills).
+A path under the repository's outputs/ is under ``$GVBENCH_OUTPUTS`` when that is set.
 """
 
 from __future__ import annotations
@@ -26,6 +27,7 @@ from gvbench_nb.protocol.images import ImageReadError, max_pixels, path_problem
 from gvbench_nb.runner import concurrency
 
 PROJECT_ROOT = Path(__file__).resolve().parents[2]
+OUTPUTS_DIR = PROJECT_ROOT / "outputs"
 
 
 class ParamsError(GVBenchError, ValueError):
@@ -50,6 +52,15 @@ def real_path(path: str | os.PathLike[str]) -> Path:
 def _what(text: str, **kwargs: Any) -> Any:
     """A field whose ``description`` is what a refusal says its value must be."""
     return Field(description=text, **kwargs)
+
+
+def outputs_path(path: str | os.PathLike[str]) -> Path:
+    """``path``, or where ``$GVBENCH_OUTPUTS`` puts it when it lies under the repository's outputs/:
+    the shipped params files and the notebooks' defaults write there (the tests point it elsewhere)."""
+    moved, path = os.environ.get("GVBENCH_OUTPUTS"), Path(path)
+    if not moved or not real_path(path).is_relative_to(OUTPUTS_DIR):
+        return path
+    return Path(moved).expanduser().resolve() / real_path(path).relative_to(OUTPUTS_DIR)
 
 
 def plain_name(name: str) -> str:
@@ -254,7 +265,7 @@ def resolve_params(raw: dict[str, Any], source: str, folder: Path, **overrides: 
         if "\0" in str(value):
             raise ParamsError(f"{blame(params, key)}: {key} holds a NUL byte, which no path can; fix the path")
         value = Path(_expand(str(value), source, key)).expanduser()
-        params[key] = str(value if value.is_absolute() else real_path(folder / value))
+        params[key] = str(outputs_path(value if value.is_absolute() else real_path(folder / value)))
     if params["cache_dir"] is None:
         params["cache_dir"] = str(fetch.cache_dir())
     check_environment()
@@ -273,7 +284,8 @@ def check_environment() -> None:
         max_pixels()
     except (ValueError, ImageReadError) as error:
         raise SettingError(str(error)) from None
-    for name, what in (("GVBENCH_DATA", "the data folder"), ("GVBENCH_CACHE", "the feature cache")):
+    folders = {"GVBENCH_DATA": "the data folder", "GVBENCH_CACHE": "the feature cache", "GVBENCH_OUTPUTS": "outputs/"}
+    for name, what in folders.items():
         value = os.environ.get(name) or ""
         if "\0" in value or (value and Path(value).expanduser().is_file()):
             raise SettingError(

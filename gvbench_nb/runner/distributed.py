@@ -383,7 +383,7 @@ def add_run_arguments(run: argparse.ArgumentParser) -> None:
     )
     group = run.add_argument_group("scale-out (no notebooks; results as `run` writes them)")
     group.add_argument("--shard", metavar="I/N", help="run only shard I of N (0-based) here; then --merge")
-    group.add_argument("--merge", action="store_true", help="merge finished shards: pairs.csv, run.json, results.csv")
+    group.add_argument("--merge", action="store_true", help="merge finished shards into one run (pairs.csv, run.json)")
     group.add_argument("--dask", action="store_true", help="run all shards on Dask and merge")
     group.add_argument("--scheduler", metavar="ADDR", help="Dask scheduler address (default: a LocalCluster here)")
     group.add_argument("--shards", type=int, help="number of shards with --dask (default: 2 per Dask worker)")

@@ -76,12 +76,13 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
         max_false = float(false_scores.max()) if len(false_scores) else float("-inf")
         keypoints = [row.get(name, float("nan")) for name in collapsed_inliers.INLIER_KEYPOINT_COUNTS]
         collapsed = bool(collapsed_inliers.collapsed(table.iloc[[pair_index]]).iloc[0])
-        counts = (int(row["label"]), int(row["num_matches"]), int(row["num_inliers"]), *keypoints, collapsed)
+        matched = [int(row[name]) if pd.notna(row[name]) else None for name in ("num_matches", "num_inliers")]
+        counts = (int(row["label"]), *matched, *keypoints, collapsed)  # an imported method matched nothing here
         counts += (row["score"],)
         rank = int(score_ranks(table).iloc[pair_index])
         values = (method, int(row["pair_index"]), row["query"], row["reference"], *counts, rank, len(table))
         rows.append(dict(zip(VIEW_COLUMNS, (*values, max_false, bool(row["score"] > max_false)))))
-    view = pd.DataFrame(rows, columns=VIEW_COLUMNS)
+    view = pd.DataFrame(rows, columns=VIEW_COLUMNS).astype({"num_matches": "Int64", "num_inliers": "Int64"})
     if view[["query", "reference"]].drop_duplicates().shape[0] > 1:
         raise ValueError(
             f"pair {pair_index} is not the same pair in every method's pairs.csv "
@@ -92,7 +93,7 @@ def pair_across_methods(tables: dict[str, pd.DataFrame], pair_index: int) -> pd.
 
 def shown_table(view: pd.DataFrame) -> Any:
     """The pair's table as the notebook shows it: its rows are methods, so pandas' row numbers are hidden."""
-    return view.style.hide(axis="index")
+    return view.style.hide(axis="index").format(na_rep="-")  # '-': not measured (an imported method)
 
 
 def batch_execution() -> bool:
@@ -166,18 +167,21 @@ def pair_views(
     figures.mkdir(parents=True, exist_ok=True)
     view = pair_across_methods(tables, pair_index)
     view.to_csv(figures / FIGURE_FILES["table"], index=False)
-    run = run_tables.load_run(output_dir, str(view["method"].iloc[0]))
+    runs = {m: run_tables.load_run(output_dir, m) for m in view["method"]}
+    measured = [m for m, run in runs.items() if "imported" not in run]  # imported scores have no matches to draw
     first = view.iloc[0]
+    scores = figure_image(plots.score_histograms(tables, view), figures / FIGURE_FILES["scores"])
+    if not measured:
+        return {"table": view, "matches": "no matches to draw: only imported scores", "scores": scores}
+    run = runs[measured[0]]
     image_root = Path(run["image_root"])
     images = (read_image(image_root / first["query"]), read_image(image_root / first["reference"]))
     query, reference = first["query"], first["reference"]
-    lines = {m: verifier_inputs.match_lines(output_dir, m, query, reference, cache_dir) for m in view["method"]}
+    lines = {m: verifier_inputs.match_lines(output_dir, m, query, reference, cache_dir) for m in measured}
     kind = "true" if first["label"] == 1 else "false"
     title = f"{run['sequence']} pair {first['pair_index']} ({kind}): {first['query']} | {first['reference']}"
-    matches = plots.pair_matches(images, view, lines, title)
-    scores = plots.score_histograms(tables, view)
-    return {"table": view, "matches": figure_image(matches, figures / FIGURE_FILES["matches"]),
-            "scores": figure_image(scores, figures / FIGURE_FILES["scores"])}  # fmt: skip
+    matches = plots.pair_matches(images, view[view["method"].isin(measured)], lines, title)
+    return {"table": view, "matches": figure_image(matches, figures / FIGURE_FILES["matches"]), "scores": scores}
 
 
 class ExploreControls:

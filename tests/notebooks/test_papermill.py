@@ -34,7 +34,7 @@ def test_a_params_files_keys_read_as_that_file_from_any_folder(monkeypatch, tmp_
     as_keys = notebook.load_params(None, **keys, limit=4)
     as_file = config.load_params(gardens, limit=4)
     assert {k: as_keys[k] for k in config.PATH_KEYS} == {k: as_file[k] for k in config.PATH_KEYS}
-    assert as_keys["pairs"] == str(config.PROJECT_ROOT / "outputs" / "pairs" / "gardens_point.txt")
+    assert as_keys["pairs"] == str(config.outputs_path(config.OUTPUTS_DIR / "pairs" / "gardens_point.txt"))
     assert as_keys["pairs_builder"] == "frame_tolerance" and as_keys["limit"] == 4
     # No parameters: the repository's sample, wherever the notebook runs.
     assert notebook.load_params(None)["params_file"] == str(config.PROJECT_ROOT / "params" / "sample.yaml")
@@ -51,7 +51,7 @@ def papermill_cli(cwd: Path, stage: str, output: Path, *arguments: str) -> subpr
 
 
 @pytest.mark.slow
-@pytest.mark.shared_outputs  # the sample renders its images into the repository's outputs/
+@pytest.mark.shared_outputs  # the sample renders its images into outputs/ ($GVBENCH_OUTPUTS)
 @pytest.mark.parametrize("folder", ["repository", "tmp"])
 def test_papermill_runs_the_stage_notebooks_as_they_are_from_the_repository_and_tmp(folder, tmp_path):
     cwd = config.PROJECT_ROOT if folder == "repository" else tmp_path

@@ -40,7 +40,7 @@ class ResultsMissingError(GVBenchError, FileNotFoundError):
 
 class AnalysisInputs(NamedTuple):
     output_dirs: list[str]  # the sequence output folders, as given
-    results: pd.DataFrame  # their results.csv, one table with an output_dir column
+    results: pd.DataFrame  # the table of the runs they show, one table with an output_dir column
     figures: Path  # where the notebook writes its figures and tables (created)
 
 
@@ -131,13 +131,6 @@ def missing_methods(output_dir: PathLike, methods: SequenceType[str]) -> list[st
     return [m for m in method_registry.expand_methods([m for m in methods if m not in held]) if m not in held]
 
 
-def stale_results(output_dir: PathLike) -> bool:
-    """True when ``results.csv`` is missing or does not list exactly the methods with a ``pairs.csv``."""
-    path = Path(output_dir) / "results.csv"
-    evaluated = set(pd.read_csv(path)["method"]) if path.is_file() else set()
-    return evaluated != set(scoring.methods_with_results(Path(output_dir)))
-
-
 def params_keys(namespace: dict[str, Any]) -> dict[str, Any]:
     """The params-file keys a notebook's parameters set (not None), from its ``globals()``, whose
     parameters are checked first (``check_parameters``)."""
@@ -195,35 +188,27 @@ def require_results(
     evaluate: bool = True,
     **overrides: Any,
 ) -> Path:
-    """The params' output folder, checked to hold ``methods``' results (and a current results.csv with
-    ``evaluate``); ``compute_missing=True`` runs what is missing, else ``ResultsMissingError``."""
+    """The params' output folder, checked to hold ``methods``' results; ``compute_missing=True`` runs
+    what is missing (and, with ``evaluate``, writes the folder's results.csv for people), else
+    ``ResultsMissingError``. Readers derive the table from the runs, never from results.csv."""
     params = config.load_params(params_file, **overrides)
     output_dir = Path(params["output_dir"])
     missing = missing_methods(output_dir, methods)
-    stale = evaluate and not missing and stale_results(output_dir)
-    if not (missing or stale):
+    if not missing:
         return output_dir
-    if compute_missing:
-        from gvbench_nb.runner import method_runs
-
-        if missing:
-            sequence = sequence_build.prepare_sequence(params)
-            for method in missing:
-                method_runs.run_method_of_params(params, sequence, method)
-        if evaluate:
-            scoring.refresh_view(output_dir)
-        return output_dir
-    if missing:
+    if not compute_missing:
         raise ResultsMissingError(
             f"{output_dir} has no results of {', '.join(missing)}: make them with "
             f"`{run_command_line(params_file, missing, **overrides)}`, or pass compute_missing=True to run them here."
         )
-    raise ResultsMissingError(
-        f"{output_dir / 'results.csv'} does not list exactly the methods with a pairs.csv there "
-        f"({', '.join(scoring.methods_with_results(output_dir))}): pass compute_missing=True to evaluate them "
-        "here (reads only pairs.csv), or run them again with "
-        f"`{run_command_line(params_file, scoring.methods_with_results(output_dir), **overrides)}`."
-    )
+    from gvbench_nb.runner import method_runs
+
+    sequence = sequence_build.prepare_sequence(params)
+    for method in missing:
+        method_runs.run_method_of_params(params, sequence, method)
+    if evaluate:
+        scoring.refresh_view(output_dir)
+    return output_dir
 
 
 def load_results(
@@ -233,7 +218,7 @@ def load_results(
     methods: SequenceType[str] = ("sift-nn",),
     compute_missing: bool = False,
 ) -> AnalysisInputs:
-    """The ``results.csv`` of ``output_dirs``, each of ``params_files`` first checked by
+    """The table of the runs ``output_dirs`` show, each of ``params_files`` first checked by
     ``require_results`` (``[]``, as the report passes, checks nothing)."""
     from gvbench_nb.evaluation import run_tables
 

@@ -250,7 +250,7 @@ def import_scores(
     }
     runs.check_owned(output_dir)
     _check_joins(output_dir, path, sequence, digest)  # before any file
-    earlier = runs.current(output_dir).entries.get(method) if output_dir.is_dir() else None
+    earlier = next((e for e in reversed(runs.entries(output_dir)) if e.method == method), None)
     with runs.new_run(output_dir, "import") as building:
         run = _run_record(path, kind, stated, sequence, method, binding, building)
         run["imported"]["images_checked_under"] = None if image_root is None else str(Path(image_root).resolve())

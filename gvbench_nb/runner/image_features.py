@@ -16,7 +16,7 @@ import numpy as np
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.io_utils import atomic_write_json, progress_bar
+from gvbench_nb.io_utils import atomic_write_json, hash_file, progress_bar
 from gvbench_nb.protocol import weights
 from gvbench_nb.protocol.images import (
     ImageReadError,
@@ -86,14 +86,10 @@ def content_key(path: str | os.PathLike[str]) -> str:
 
 
 def _hash_file(path: Path) -> str:
-    digest = hashlib.blake2b(digest_size=20)
     try:
-        with open(path, "rb") as stream:
-            for block in iter(lambda: stream.read(1 << 20), b""):
-                digest.update(block)
+        return f"blake2b-{hash_file(path, hashlib.blake2b(digest_size=20))}"
     except OSError as error:
         raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
-    return f"blake2b-{digest.hexdigest()}"
 
 
 def image_key(image_root: Path, name: str) -> str:

@@ -33,7 +33,7 @@ from typing import Any, NamedTuple
 
 from gvbench_nb import GVBenchError, __version__
 from gvbench_nb import methods as method_registry
-from gvbench_nb.io_utils import atomic_write_json, fsync_folder
+from gvbench_nb.io_utils import atomic_write_json, fsync_folder, hash_file
 
 RUNS = "runs"
 BUILDING = ".building-"
@@ -166,13 +166,9 @@ def _files(run: Path) -> dict[str, dict[str, Any]]:
         stat = path.stat()  # a rewrite in place changes ctime, which no tool sets back
         key = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
         if key not in _digests:
-            _digests[key] = _blake2b(path)
+            _digests[key] = hash_file(path, hashlib.blake2b())
         found[name] = {"size": stat.st_size, "blake2b": _digests[key]}
     return found
-
-
-def _blake2b(path: Path) -> str:
-    return hashlib.blake2b(path.read_bytes()).hexdigest()  # a run's files are small: tables, notebooks
 
 
 def _seal(manifest: dict[str, Any]) -> str:

@@ -120,9 +120,9 @@ def test_a_damaged_run_is_refused_naming_run_and_file_and_never_lets_an_earlier_
 
 def test_each_file_of_a_run_is_hashed_once_a_process(two_runs, monkeypatch):
     out, _, _ = two_runs
-    hashed, blake2b = [], runs._blake2b
+    hashed, hash_file = [], runs.hash_file
     monkeypatch.setattr(runs, "_digests", {})
-    monkeypatch.setattr(runs, "_blake2b", lambda path: hashed.append(path) or blake2b(path))
+    monkeypatch.setattr(runs, "hash_file", lambda path, digest: hashed.append(path) or hash_file(path, digest))
     runs.current(out)
     files = len(hashed)
     assert files == len(list((out / "runs").rglob("*.*"))) - 2  # every file but the two manifests

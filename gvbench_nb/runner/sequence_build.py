@@ -402,14 +402,12 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
 
 
 def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
-    """Where a sequence's pairs came from, as run.json records it."""
+    """Where a sequence's pairs came from, as run.json records it (its image root and seed at its top)."""
     return {
         "params_file": params["params_file"],
         "pairs_file": params["pairs"],
         "pairs_sha256": file_sha256(params["pairs"]),
-        "image_root": params["image_root"],
         "pairs_builder": params["pairs_builder"],
         "builder_options": params["builder_options"],
-        "seed": params["seed"],
         "limit": params["limit"],
     }

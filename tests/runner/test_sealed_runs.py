@@ -15,7 +15,7 @@ import time
 
 import pandas as pd
 import pytest
-from helpers import in_process_notebooks, one_sentence, params_file, run_cli, run_ids
+from helpers import PAIRS, in_process_notebooks, one_sentence, params_file, run_cli, run_ids
 from written_runs import add_run
 
 from gvbench_nb import run_and_publish
@@ -304,7 +304,8 @@ def test_run_json_names_the_pair_file_and_its_hash_once(tmp_path, root, capsys, 
     text = (runs.method_folder(tmp_path / "out", "orb-nn") / "run.json").read_text()
     record, pairs_file = json.loads(text), str(tmp_path / "params-pairs.txt")
     assert text.count(pairs_file) == 1 and text.count(record["pairs"]["pairs_sha256"]) == 1
-    assert set(record["binding"]) == {"pairs_digest", "images_digest", "n_pairs"}
+    assert set(record["binding"]) == {"pairs_digest", "images_digest"} and record["n_pairs"] == len(PAIRS)
+    assert not {"image_root", "seed"} & set(record["pairs"])  # said once, at the record's top
 
 
 if __name__ == "__main__":  # python tests/runner/test_sealed_runs.py (with tests/ on PYTHONPATH): the check's cost

@@ -79,17 +79,13 @@ def content_key(path: str | os.PathLike[str]) -> str:
     known = _known_keys.get(absolute)
     if known is not None and known[:4] == seen:
         return known[4]
-    key = _hash_file(Path(path))
+    try:
+        key = f"blake2b-{hash_file(path, hashlib.blake2b(digest_size=20))}"
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
     with _known_lock:
         _known_keys[absolute] = (*seen, key)
     return key
-
-
-def _hash_file(path: Path) -> str:
-    try:
-        return f"blake2b-{hash_file(path, hashlib.blake2b(digest_size=20))}"
-    except OSError as error:
-        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
 
 
 def image_key(image_root: Path, name: str) -> str:

@@ -98,11 +98,9 @@ def image_key(image_root: Path, name: str) -> str:
 def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, int, str]]:
     try:
         saved = json.loads((cache_dir / CONTENT_KEYS_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        return {p: (e[0], e[1], e[2], e[3], e[4]) for p, e in saved.items() if isinstance(e, list) and len(e) == 5}
+    except (OSError, ValueError, AttributeError):  # none, damaged, or not a mapping: a memo only
         return {}
-    if not isinstance(saved, dict):
-        return {}
-    return {p: (e[0], e[1], e[2], e[3], e[4]) for p, e in saved.items() if isinstance(e, list) and len(e) == 5}
 
 
 def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, int, str]]:

@@ -6,21 +6,12 @@ from __future__ import annotations
 import os
 
 import pytest
-from test_input_checks import FRAMES, add_frame, retrieval_params
-
-from gvbench_nb.runner import config, sequence_build
+from test_input_checks import add_frame, counted_retrieval_builds
 
 
 @pytest.mark.reliability
 def test_a_retrieval_pair_file_is_rebuilt_when_an_image_is_rewritten_in_place(tmp_path, monkeypatch):
-    for folder in ("night", "day"):
-        for frame in range(FRAMES):
-            add_frame(tmp_path / "images", tmp_path / "cache", folder, frame)
-    builds = []
-    build = sequence_build.PAIR_BUILDERS["retrieval"]
-    monkeypatch.setitem(sequence_build.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
-    path = retrieval_params(tmp_path)
-    prepare = lambda: sequence_build.prepare_sequence(config.load_params(path))
+    prepare, builds = counted_retrieval_builds(tmp_path, monkeypatch)
     prepare()
     assert len(builds) == 1
     image = tmp_path / "images" / "day" / "Image005.png"

@@ -18,11 +18,7 @@ from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
 from gvbench_nb.io_utils import atomic_write_json, hash_file, progress_bar
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.images import (
-    ImageReadError,
-    load_for_extraction,
-    to_original_pixels,
-)
+from gvbench_nb.protocol.images import ImageReadError, load_for_extraction, to_original_pixels
 from gvbench_nb.runner import concurrency
 from gvbench_nb.runner.store import ShardedStore
 

@@ -45,15 +45,11 @@ _DATA = "data"
 _ENTRIES_DIGEST = "_entries_digest"
 
 
-def _crc(array: np.ndarray, crc: int) -> int:
-    array = np.ascontiguousarray(array)
-    crc = zlib.crc32(f"{array.dtype.str}{array.shape}".encode(), crc)
-    return zlib.crc32(array.data.cast("B") if array.nbytes else b"", crc)
-
-
 def array_digest(array: np.ndarray) -> str:
     """CRC-32 of an array's dtype, shape and bytes (8 hex digits)."""
-    return f"{_crc(np.asarray(array), 0):08x}"
+    array = np.ascontiguousarray(array)
+    crc = zlib.crc32(f"{array.dtype.str}{array.shape}".encode())
+    return f"{zlib.crc32(array.data.cast('B') if array.nbytes else b'', crc):08x}"
 
 
 def _text_digest(text: bytes) -> str:

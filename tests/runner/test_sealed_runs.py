@@ -298,7 +298,7 @@ def hashing_cost(folder) -> tuple[int, float, float]:
     return (run / "orb-nn" / "pairs.csv").stat().st_size, cold, time.perf_counter() - started
 
 
-def test_run_json_names_the_pair_file_and_its_hash_once(tmp_path, root, capsys, notebooks_here):
+def test_run_json_says_each_thing_once(tmp_path, root, capsys, notebooks_here):
     path = params_file(tmp_path)
     assert run_cli(capsys, "run", str(path))[0] == 0
     text = (runs.method_folder(tmp_path / "out", "orb-nn") / "run.json").read_text()

@@ -81,9 +81,7 @@ class ShardedStore:
 
     # -- reading -----------------------------------------------------------------
     def shards(self) -> list[Path]:
-        if not self.folder.is_dir():
-            return []
-        return sorted(p for p in self.folder.iterdir() if p.name.endswith(SHARD_SUFFIX) and not p.name.startswith("."))
+        return sorted(p for p in self.folder.glob(f"*{SHARD_SUFFIX}") if not p.name.startswith("."))
 
     def refresh(self) -> None:
         """Re-list the committed shards (other processes may have added some)."""
@@ -179,8 +177,6 @@ class ShardedStore:
         import psutil
 
         removed: list[Path] = []
-        if not self.folder.is_dir():
-            return removed
         for path in self.folder.glob(f".shard-*.{_HOST}.tmp"):
             pid_text = path.name.split("-")[1]
             if pid_text.isdigit() and not psutil.pid_exists(int(pid_text)):

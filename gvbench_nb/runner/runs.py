@@ -370,8 +370,7 @@ def method_folder(output_dir: str | os.PathLike[str], method: str) -> Path:
 
 def unfinished(output_dir: str | os.PathLike[str]) -> list[Path]:
     """The folder's runs being built, or left by a build that failed or was killed."""
-    root = Path(output_dir) / RUNS
-    return sorted(root.glob(f"{BUILDING}*")) if root.is_dir() else []
+    return sorted((Path(output_dir) / RUNS).glob(f"{BUILDING}*"))
 
 
 ABANDONED_AFTER = 24 * 3600  # seconds unchanged after which a build of another machine is taken as abandoned

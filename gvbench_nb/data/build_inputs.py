@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Annotated, Any
@@ -142,30 +142,34 @@ def list_images(image_root: Path, folder: str) -> list[str]:
     return names
 
 
-def _stat_digest(path: Path, folder: bool) -> str | None:
-    """BLAKE2b of a folder's images' (or a file's) names, sizes, mtimes and inodes; None when unreadable."""
+def _digest(path: Path, folder: bool, content_key: Callable[[Path], str]) -> str | None:
+    """BLAKE2b of a folder's images' (or a file's) names and content keys; None when unreadable."""
     try:
         found = (
             sorted(p for p in path.iterdir() if p.suffix.lower() in IMAGE_EXTENSIONS and p.is_file())
             if folder
             else [path]
         )
-        lines = [f"{p.name}\0{s.st_size}\0{s.st_mtime_ns}\0{s.st_ino}\n" for p, s in ((p, p.stat()) for p in found)]
+        lines = [f"{p.name}\0{content_key(p)}\n" for p in found]
     except OSError:
         return None
     return hashlib.blake2b("".join(lines).encode(), digest_size=16).hexdigest()
 
 
-def inputs_digest(image_root: str | Path, options: Mapping[str, Any]) -> dict[str, str | None]:
-    """A digest per image folder and per metadata or label_params file a build reads, from the raw
-    options, so a stale pair file shows before they are parsed."""
+def inputs_digest(
+    image_root: str | Path, options: Mapping[str, Any], content_key: Callable[[Path], str]
+) -> dict[str, str | None]:
+    """A digest per image folder and per metadata or label_params file a build reads, by the files'
+    ``content_key`` (the feature cache's), from the raw options, so a stale pair file shows before they are parsed."""
     references = options.get("reference_folders") or ()
     folders = [options.get("query_folder"), *([references] if isinstance(references, str) else references)]
     metadata = options.get("metadata")
     files = [metadata.get("csv") if isinstance(metadata, Mapping) else None, options.get("label_params_file")]
     named = [("folder", f) for f in folders] + [("file", f) for f in files]
     return {
-        f"{kind}:{n}": _stat_digest(Path(image_root) / n, kind == "folder") for kind, n in named if isinstance(n, str)
+        f"{kind}:{n}": _digest(Path(image_root) / n, kind == "folder", content_key)
+        for kind, n in named
+        if isinstance(n, str)
     }
 
 

@@ -18,7 +18,6 @@ import requests
 from gvbench_nb.data import fetch
 from gvbench_nb.io_utils import atomic_write_json, file_sha256
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.weights import git_blob_id
 
 RECORDED_NAME = "gvbench-weights-sha256.json"  # file name -> SHA-256 of its first fetch
 
@@ -65,7 +64,7 @@ def _bring(checkpoint: weights.Checkpoint, source_dir: Path | None, work: Path) 
 
 def _difference(checkpoint: weights.Checkpoint, path: Path, sha256: str, whence: str) -> str:
     """How the file differs from the git blob id its repository publishes, or from ``sha256``; "" if it does not."""
-    if checkpoint.git_blob and (found := git_blob_id(path)) != checkpoint.git_blob[0]:
+    if checkpoint.git_blob and (found := weights.git_blob_id(path)) != checkpoint.git_blob[0]:
         return f"git blob id {found}, not {checkpoint.git_blob[0]} (published in {checkpoint.git_blob[1]})"
     if sha256 and (found := file_sha256(path)) != sha256:
         return f"SHA-256 {found}, not {sha256} ({whence})"

@@ -99,16 +99,10 @@ def example_pairs(image_root: Path, pairs: pd.DataFrame, n: int = 4, title: str 
             axis.imshow(image)
             axis.set_title(name, fontsize=8)
             axis.axis("off")
-        axis_row[0].text(
-            -0.02,
-            0.5,
-            "true" if row["label"] == 1 else "false",
-            transform=axis_row[0].transAxes,
-            rotation=90,
-            va="center",
-            ha="right",
-            fontsize=11,
-            color="green" if row["label"] == 1 else "red",
+        word, colour = ("true", "green") if row["label"] == 1 else ("false", "red")
+        first = axis_row[0]
+        first.text(
+            -0.02, 0.5, word, transform=first.transAxes, rotation=90, va="center", ha="right", fontsize=11, color=colour
         )
     if title:
         figure.suptitle(title)
@@ -173,8 +167,7 @@ def pair_matches(
         draw_matches(*images, drawn["points0"], drawn["points1"], drawn["inlier_mask"], axis=axis)
         axis.set_title(
             f"{method}: score {row.score} ({row.num_inliers} inliers{collapsed_inliers.inlier_keypoints_words(row)} "
-            f"of {row.num_matches} matches), "
-            f"rank {row.rank} of {row.n_pairs}",
+            f"of {row.num_matches} matches), rank {row.rank} of {row.n_pairs}",
             fontsize=9,
         )
     if title:

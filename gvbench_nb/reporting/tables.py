@@ -189,8 +189,7 @@ def command_clean(args: argparse.Namespace) -> int:
 def add_command(commands: Any) -> None:
     """Register ``results`` (``--export npy``: per-pair scores out) and ``import-scores FILE`` (in)."""
     results = commands.add_parser(
-        "results",
-        help="print the results table of finished runs (from their pairs.csv, nothing recomputed)",
+        "results", help="print the results table of finished runs (from their pairs.csv, nothing recomputed)"
     )
     results.add_argument("output_dirs", nargs="+", help="sequence output folders, e.g. outputs/gardens_point")
     results.add_argument(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import os
@@ -16,13 +17,9 @@ import numpy as np
 
 from gvbench_nb import methods as method_registry
 from gvbench_nb.data.sequences import Sequence
-from gvbench_nb.io_utils import atomic_write_json, progress_bar
+from gvbench_nb.io_utils import atomic_write_json, hash_file, progress_bar
 from gvbench_nb.protocol import weights
-from gvbench_nb.protocol.images import (
-    ImageReadError,
-    load_for_extraction,
-    to_original_pixels,
-)
+from gvbench_nb.protocol.images import ImageReadError, load_for_extraction, to_original_pixels
 from gvbench_nb.runner import concurrency
 from gvbench_nb.runner.store import ShardedStore
 
@@ -79,21 +76,13 @@ def content_key(path: str | os.PathLike[str]) -> str:
     known = _known_keys.get(absolute)
     if known is not None and known[:4] == seen:
         return known[4]
-    key = _hash_file(Path(path))
+    try:
+        key = f"blake2b-{hash_file(path, hashlib.blake2b(digest_size=20))}"
+    except OSError as error:
+        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
     with _known_lock:
         _known_keys[absolute] = (*seen, key)
     return key
-
-
-def _hash_file(path: Path) -> str:
-    digest = hashlib.blake2b(digest_size=20)
-    try:
-        with open(path, "rb") as stream:
-            for block in iter(lambda: stream.read(1 << 20), b""):
-                digest.update(block)
-    except OSError as error:
-        raise ImageReadError(f"cannot read image {path}: {error.strerror or error}") from error
-    return f"blake2b-{digest.hexdigest()}"
 
 
 def image_key(image_root: Path, name: str) -> str:
@@ -106,11 +95,9 @@ def image_key(image_root: Path, name: str) -> str:
 def _saved_keys(cache_dir: Path) -> dict[str, tuple[int, int, int, int, str]]:
     try:
         saved = json.loads((cache_dir / CONTENT_KEYS_FILE).read_text(encoding="utf-8"))
-    except (OSError, ValueError):
+        return {p: (e[0], e[1], e[2], e[3], e[4]) for p, e in saved.items() if isinstance(e, list) and len(e) == 5}
+    except (OSError, ValueError, AttributeError):  # none, damaged, or not a mapping: a memo only
         return {}
-    if not isinstance(saved, dict):
-        return {}
-    return {p: (e[0], e[1], e[2], e[3], e[4]) for p, e in saved.items() if isinstance(e, list) and len(e) == 5}
 
 
 def reuse_saved_keys(cache_dir: str | os.PathLike[str]) -> dict[str, tuple[int, int, int, int, str]]:
@@ -148,15 +135,11 @@ def image_keys(
 def _save_keys(cache_dir: Path, entries: dict[str, tuple[int, int, int, int, str]]) -> None:
     """Merge ``entries`` into the cache folder's content-keys file: one writer at a time (a file lock),
     the file replaced whole; a folder that is not there or cannot be written keeps none (a memo only)."""
-    from filelock import FileLock, Timeout
+    from filelock import FileLock
 
-    if not cache_dir.is_dir():
-        return
-    try:
-        with FileLock(str(cache_dir / f"{CONTENT_KEYS_FILE}.lock"), timeout=60):
+    if cache_dir.is_dir():  # the lock's Timeout is an OSError too
+        with contextlib.suppress(OSError), FileLock(str(cache_dir / f"{CONTENT_KEYS_FILE}.lock"), timeout=60):
             atomic_write_json(cache_dir / CONTENT_KEYS_FILE, {**_saved_keys(cache_dir), **entries})
-    except (OSError, Timeout):
-        pass
 
 
 def content_keys(sequence: Sequence, cache_dir: str | os.PathLike[str] | None = None) -> set[str]:

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 from gvbench_nb import methods as method_registry
-from gvbench_nb.data import build_inputs
+from gvbench_nb.data import build_inputs, sequences
 from gvbench_nb.data.sequences import PairFileError, Sequence, frame_tolerance_pairs, pair_line_numbers, read_pairs
 from gvbench_nb.io_utils import atomic_write_json, unknown_keys_hint
 from gvbench_nb.protocol import metrics
@@ -89,10 +89,8 @@ def decoder_messages(sequence: Sequence, keys: dict[str, str], cache_dir: Path) 
         except ImageReadError as error:
             raise ImageReadError(f"{error} ({image_features.first_pair_using(sequence, name)})") from None
     _decoded.update({key: known[key] for key in keys.values()})
-    if unsaved and path.parent.is_dir():
-        atomic_write_json(
-            path, {**saved, **{key: known[key] for key in keys.values()}}
-        )  # two runs at once: the later file wins, the other's images are decoded again
+    if unsaved and path.parent.is_dir():  # two runs at once: the later file wins, the other's images decode again
+        atomic_write_json(path, {**saved, **{key: known[key] for key in keys.values()}})
     return {name: known[key] for name, key in keys.items() if known[key]}
 
 
@@ -183,17 +181,14 @@ def device_problem(device: str) -> str | None:
     return None
 
 
-def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
-    """The sequence the frame_tolerance builder would make (nothing written), its options checked."""
+def _check_frame_tolerance_options(params: dict[str, Any]) -> list[sequences.Pair]:
+    """The pairs the frame_tolerance builder would make (nothing written), its options checked."""
     import inspect
 
     options = params["builder_options"]
     where = f"{config.blame(params, 'builder_options')}: builder_options"
-    rule = [
-        k
-        for k in inspect.signature(frame_tolerance_pairs).parameters
-        if k not in ("query_names", "reference_names", "seed")
-    ]
+    given = ("query_names", "reference_names", "seed")
+    rule = [k for k in inspect.signature(frame_tolerance_pairs).parameters if k not in given]
     known = ["query_folder", "reference_folder", *rule]
     unknown = [k for k in options if k not in known]
     if unknown:
@@ -205,8 +200,7 @@ def _check_frame_tolerance_options(params: dict[str, Any]) -> Sequence:
             raise config.ParamsError(
                 f"{where}: {key} must name a folder of images under image_root, got {options.get(key)!r}"
             )
-    pairs = sequence_build.frame_tolerance_sequence_pairs(params)
-    return Sequence(params["sequence"], Path(params["image_root"]), pairs, origin={"pairs_file": params["pairs"]})
+    return sequence_build.frame_tolerance_sequence_pairs(params)
 
 
 def check_labels_defined(sequence: Sequence, params: dict[str, Any]) -> None:
@@ -268,16 +262,15 @@ def check_run_inputs(
                     "set the folder names (or image_root) to folders of images"
                 )
     if builder == "frame_tolerance":
-        sequence = _check_frame_tolerance_options(params).limited(params["limit"])
+        pairs = _check_frame_tolerance_options(params)
     elif builder is not None:
         return None  # the builder makes the pair file and images: ``run`` checks them once built
     else:
         if path_problem(params["pairs"]) is not None:
             raise sequence_build.missing_pairs_error(params)
-        origin = {"pairs_file": params["pairs"]}
-        sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=origin).limited(
-            params["limit"]
-        )
+        pairs = read_pairs(params["pairs"])
+    origin = {"pairs_file": params["pairs"]}
+    sequence = Sequence(params["sequence"], root, pairs, origin=origin).limited(params["limit"])
     check_labels_defined(sequence, params)  # what the pair file alone decides, before any image is read
     sequence.check_images()
     return check_image_contents(sequence, params["cache_dir"], params["allow_damaged_images"])

@@ -120,19 +120,11 @@ def compute_method(
     # Dense matchers take one pair at a time: their one job gets every core's threads.
     threads = concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else jobs)
     started = time.perf_counter()
-    extraction = (
-        image_features.extract_features(
-            sequence,
-            conf["extractor"],
-            cache_dir,
-            resolved_device,
-            progress,
-            jobs=jobs,
-            run_id=run_id,
+    extraction = {"images": 0, "cached": 0, "extracted": 0}  # a dense matcher extracts nothing
+    if conf["extractor"]:
+        extraction = image_features.extract_features(
+            sequence, conf["extractor"], cache_dir, resolved_device, progress, jobs=jobs, run_id=run_id
         )
-        if conf["extractor"]
-        else {"images": 0, "cached": 0, "extracted": 0}
-    )
     extracted = time.perf_counter()
     matching = pair_matching.match_and_verify(sequence, conf, cache_dir, resolved_device, seed, progress, jobs=jobs)
     finished = time.perf_counter()

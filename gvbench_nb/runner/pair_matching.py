@@ -199,7 +199,7 @@ def match_and_verify(
             pair_matches, match_scores = matcher(features0, features1)
         match_seconds = time.perf_counter() - start
         keypoints = features0["keypoints"], features1["keypoints"]
-        sizes = image_sizes(features0, features1)
+        sizes = features0.get("image_size"), features1.get("image_size")  # original (width, height)
         verified = _verify_pair(pair, conf, seed, *keypoints, pair_matches, match_scores, sizes)
         return pair_matches, match_scores, verified, match_seconds
 
@@ -217,11 +217,6 @@ def match_and_verify(
             bar.update()
     bar.close()
     return counts
-
-
-def image_sizes(features0: dict[str, np.ndarray], features1: dict[str, np.ndarray]) -> tuple[Any, Any]:
-    """Original (width, height) of both images of a pair, from their cached features."""
-    return features0.get("image_size"), features1.get("image_size")
 
 
 def _verify_pair(

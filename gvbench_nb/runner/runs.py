@@ -33,7 +33,7 @@ from typing import Any, NamedTuple
 
 from gvbench_nb import GVBenchError, __version__
 from gvbench_nb import methods as method_registry
-from gvbench_nb.io_utils import atomic_write_json, fsync_folder
+from gvbench_nb.io_utils import atomic_write_json, fsync_folder, hash_file
 
 RUNS = "runs"
 BUILDING = ".building-"
@@ -87,8 +87,7 @@ def is_run(folder: str | os.PathLike[str]) -> bool:
 
 def run_id(folder: str | os.PathLike[str]) -> str | None:
     """The id of a run's folder (also while it is built), else None."""
-    name = Path(folder).name
-    return name.removeprefix(BUILDING) if is_run(folder) else None
+    return Path(folder).name.removeprefix(BUILDING) if is_run(folder) else None
 
 
 def output_folder(folder: str | os.PathLike[str]) -> Path:
@@ -127,11 +126,6 @@ def claim(output_dir: str | os.PathLike[str]) -> None:
         (Path(output_dir) / RUNS).mkdir(parents=True, exist_ok=True)
 
 
-def _new_id(door: str) -> str:
-    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
-    return f"{stamp}-{door}-{secrets.token_hex(3)}"
-
-
 def start(output_dir: str | os.PathLike[str], door: str) -> Path:
     """A new run's folder, built aside (``runs/.building-<id>``) until ``finish`` makes it visible."""
     check_owned(output_dir)
@@ -144,7 +138,8 @@ def start(output_dir: str | os.PathLike[str], door: str) -> Path:
 
 
 def _building(output_dir: Path, door: str) -> Path:
-    folder = output_dir / RUNS / f"{BUILDING}{_new_id(door)}"
+    stamp = _dt.datetime.now(_dt.timezone.utc).strftime("%Y%m%dT%H%M%S")
+    folder = output_dir / RUNS / f"{BUILDING}{stamp}-{door}-{secrets.token_hex(3)}"
     folder.mkdir(parents=True)
     # Who builds it: ``clean`` removes a build only once that process has ended.
     builder = {"pid": os.getpid(), "host": platform.node()}
@@ -166,13 +161,9 @@ def _files(run: Path) -> dict[str, dict[str, Any]]:
         stat = path.stat()  # a rewrite in place changes ctime, which no tool sets back
         key = (stat.st_dev, stat.st_ino, stat.st_size, stat.st_mtime_ns, stat.st_ctime_ns)
         if key not in _digests:
-            _digests[key] = _blake2b(path)
+            _digests[key] = hash_file(path, hashlib.blake2b())
         found[name] = {"size": stat.st_size, "blake2b": _digests[key]}
     return found
-
-
-def _blake2b(path: Path) -> str:
-    return hashlib.blake2b(path.read_bytes()).hexdigest()  # a run's files are small: tables, notebooks
 
 
 def _seal(manifest: dict[str, Any]) -> str:
@@ -312,11 +303,6 @@ def recipe(record: dict[str, Any]) -> dict[str, Any] | None:
     )
 
 
-def _inputs(record: dict[str, Any]) -> tuple[Any, Any]:
-    binding = record.get("binding") or {}
-    return binding.get("pairs_digest"), binding.get("images_digest")
-
-
 def _labelled(rows: list[Entry]) -> dict[str, Entry]:
     """Each row under its label: its method, and, where the method has several rows, what tells their
     recipes apart (``orb-nn (paper profile)``, ``orb-nn (seed 1)``, ``orb-nn (threshold_px 8)``)."""
@@ -339,7 +325,8 @@ def current(output_dir: str | os.PathLike[str]) -> View:
     found = entries(output_dir)
     if not found:
         return View({}, {})
-    described = [(entry, *_inputs(entry.record), entry.recipe) for entry in found]
+    bindings = [entry.record.get("binding") or {} for entry in found]
+    described = [(e, b.get("pairs_digest"), b.get("images_digest"), e.recipe) for e, b in zip(found, bindings)]
     pairs = described[-1][1]
     computed = [d for d in described if d[1] == pairs and d[3] is not None]
     images = computed[-1][2] if computed else None
@@ -395,8 +382,7 @@ def record(output_dir: str | os.PathLike[str], name: str) -> dict[str, Any] | No
 
 def unfinished(output_dir: str | os.PathLike[str]) -> list[Path]:
     """The folder's runs being built, or left by a build that failed or was killed."""
-    root = Path(output_dir) / RUNS
-    return sorted(root.glob(f"{BUILDING}*")) if root.is_dir() else []
+    return sorted((Path(output_dir) / RUNS).glob(f"{BUILDING}*"))
 
 
 ABANDONED_AFTER = 24 * 3600  # seconds unchanged after which a build of another machine is taken as abandoned

@@ -244,15 +244,12 @@ def import_scores(
     binding = {
         "pairs_digest": digest,
         "images_digest": None,  # no images were read: the binding is the pairs and labels alone
-        "n_pairs": len(table),
-        "pairs_file": None,
-        "pairs_sha256": None,
     }
     runs.check_owned(output_dir)
     _check_joins(output_dir, path, sequence, digest)  # before any file
     earlier = next((e for e in reversed(runs.entries(output_dir)) if e.method == method), None)
     with runs.new_run(output_dir, "import") as building:
-        run = _run_record(path, kind, stated, sequence, method, binding, building)
+        run = _run_record(path, kind, stated, sequence, method, binding, building) | {"n_pairs": len(table)}
         run["imported"]["images_checked_under"] = None if image_root is None else str(Path(image_root).resolve())
         atomic_write_json(building / method / "run.json", run)
         atomic_write_csv(building / method / "pairs.csv", _pairs_csv(table, method))
@@ -268,7 +265,6 @@ def _run_record(
     return {
         "sequence": sequence,
         "image_root": "",  # no images were read
-        "n_pairs": binding["n_pairs"],
         "pairs": {"pairs_file": None, "pairs_sha256": None, "imported_from": str(path)},
         "binding": binding,
         "conf": {

@@ -46,7 +46,6 @@ def sequence_binding(sequence: Sequence) -> dict[str, Any]:
     return {
         "pairs_digest": pairs_digest((p.query, p.reference, p.label) for p in sequence.pairs),
         "images_digest": images_digest(sequence.image_root, sequence.images),
-        "n_pairs": len(sequence.pairs),
     }
 
 

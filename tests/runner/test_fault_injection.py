@@ -152,7 +152,7 @@ def test_run_json_records_the_pair_file_hash_builder_options_and_image_root(root
     assert recorded["pairs"]["pairs_sha256"] == hashlib.sha256(pairs_file.read_bytes()).hexdigest()
     assert recorded["pairs"]["pairs_file"] == str(pairs_file)
     assert recorded["pairs"]["builder_options"] == {} and recorded["pairs"]["pairs_builder"] is None
-    assert recorded["image_root"] == recorded["pairs"]["image_root"] == str(root)
+    assert recorded["image_root"] == str(root) and recorded["seed"] == params["seed"]
 
 
 # ------------------------------------------------------ 4, 5: a run owns its outputs --

@@ -11,6 +11,7 @@ import subprocess
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -227,15 +228,21 @@ def retrieval_params(tmp_path: Path) -> Path:
     )
 
 
-def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_added_or_replaced(tmp_path, monkeypatch):
+def counted_retrieval_builds(tmp_path: Path, monkeypatch) -> tuple[Any, list[int]]:
+    """Night and day folders of ``FRAMES`` frames with a retrieval params file: a call preparing its
+    sequence, and the list that grows by one at each build of its pair file."""
     for folder in ("night", "day"):
         for frame in range(FRAMES):
             add_frame(tmp_path / "images", tmp_path / "cache", folder, frame)
-    builds = []
+    builds: list[int] = []
     build = sequence_build.PAIR_BUILDERS["retrieval"]
     monkeypatch.setitem(sequence_build.PAIR_BUILDERS, "retrieval", lambda params: (builds.append(1), build(params)))
     path = retrieval_params(tmp_path)
-    prepare = lambda: sequence_build.prepare_sequence(config.load_params(path))
+    return (lambda: sequence_build.prepare_sequence(config.load_params(path))), builds
+
+
+def test_a_retrieval_pair_file_is_rebuilt_when_a_frame_is_added_or_replaced(tmp_path, monkeypatch):
+    prepare, builds = counted_retrieval_builds(tmp_path, monkeypatch)
     assert len(prepare().pairs) == 3 * FRAMES and len(builds) == 1
     assert len(prepare().pairs) == 3 * FRAMES and len(builds) == 1  # unchanged: not rebuilt
     for folder in ("night", "day"):

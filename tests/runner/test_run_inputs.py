@@ -14,7 +14,6 @@ import pytest
 from helpers import PAIRS, one_sentence, params_file, photo, run_cli
 
 from gvbench_nb import methods
-from gvbench_nb.data import weights_fetch
 from gvbench_nb.data.sequences import Pair, Sequence
 from gvbench_nb.protocol import weights
 from gvbench_nb.runner import (
@@ -89,7 +88,7 @@ def test_an_image_rewritten_in_place_with_its_size_mtime_and_inode_is_extracted_
 def test_other_bytes_at_a_published_checkpoint_are_named_before_any_work(tmp_path, root, empty_hub, capsys):
     empty_hub.mkdir(parents=True, exist_ok=True)
     (empty_hub / "xfeat.pt").write_bytes(b"other weights")
-    found = weights_fetch.git_blob_id(empty_hub / "xfeat.pt")
+    found = weights.git_blob_id(empty_hub / "xfeat.pt")
     code, out, err = run_cli(capsys, "run", str(params_file(tmp_path, methods=["xfeat-nn"])))
     assert code != 0 and not (tmp_path / "out").exists()  # before any work
     sentence = one_sentence(err)
@@ -122,7 +121,7 @@ def test_a_run_records_its_weights_and_other_weights_never_reuse_cached_features
     torch.save({"weight": torch.zeros(3)}, checkpoint)
     run(root, tmp_path / "work", method=method)
     record = run_record(tmp_path / "work" / "out", method)
-    first = weights_fetch.git_blob_id(checkpoint)
+    first = weights.git_blob_id(checkpoint)
     assert record["weights"] == {"xfeat.pt": {"path": str(checkpoint), "blob": first, "published": False}}
     assert record["this_run"]["extraction"]["extracted"] == 4
     torch.save({"weight": torch.ones(3)}, checkpoint)  # other weights at the checkpoint's path

@@ -15,7 +15,7 @@ import time
 
 import pandas as pd
 import pytest
-from helpers import in_process_notebooks, one_sentence, params_file, run_cli, run_ids
+from helpers import PAIRS, in_process_notebooks, one_sentence, params_file, run_cli, run_ids
 from written_runs import add_run
 
 from gvbench_nb import run_and_publish
@@ -120,9 +120,9 @@ def test_a_damaged_run_is_refused_naming_run_and_file_and_never_lets_an_earlier_
 
 def test_each_file_of_a_run_is_hashed_once_a_process(two_runs, monkeypatch):
     out, _, _ = two_runs
-    hashed, blake2b = [], runs._blake2b
+    hashed, hash_file = [], runs.hash_file
     monkeypatch.setattr(runs, "_digests", {})
-    monkeypatch.setattr(runs, "_blake2b", lambda path: hashed.append(path) or blake2b(path))
+    monkeypatch.setattr(runs, "hash_file", lambda path, digest: hashed.append(path) or hash_file(path, digest))
     runs.current(out)
     files = len(hashed)
     assert files == len(list((out / "runs").rglob("*.*"))) - 2  # every file but the two manifests
@@ -298,13 +298,14 @@ def hashing_cost(folder) -> tuple[int, float, float]:
     return (run / "orb-nn" / "pairs.csv").stat().st_size, cold, time.perf_counter() - started
 
 
-def test_run_json_names_the_pair_file_and_its_hash_once(tmp_path, root, capsys, notebooks_here):
+def test_run_json_says_each_thing_once(tmp_path, root, capsys, notebooks_here):
     path = params_file(tmp_path)
     assert run_cli(capsys, "run", str(path))[0] == 0
     text = (runs.method_folder(tmp_path / "out", "orb-nn") / "run.json").read_text()
     record, pairs_file = json.loads(text), str(tmp_path / "params-pairs.txt")
     assert text.count(pairs_file) == 1 and text.count(record["pairs"]["pairs_sha256"]) == 1
-    assert set(record["binding"]) == {"pairs_digest", "images_digest", "n_pairs"}
+    assert set(record["binding"]) == {"pairs_digest", "images_digest"} and record["n_pairs"] == len(PAIRS)
+    assert not {"image_root", "seed"} & set(record["pairs"])  # said once, at the record's top
 
 
 if __name__ == "__main__":  # python tests/runner/test_sealed_runs.py (with tests/ on PYTHONPATH): the check's cost

@@ -157,9 +157,9 @@ def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
         shipped = shipped_params_file(given["sequence"])
         whole = all(key in given for key in config.REQUIRED_KEYS)
         if whole and (shipped is None or not set(config.read_yaml_mapping(shipped)) <= set(given)):
-            folder = Path.cwd()
+            folder, given_file = Path.cwd(), papermill_params_file()
             print(f"params: the notebook's parameters (no params_file); relative paths are read from {folder}")
-            return config.resolve_params(given, "the notebook's parameters", folder)
+            return config.resolve_params(given, str(given_file or "the notebook's parameters"), folder)
         if shipped is None:
             missing = [key for key in config.REQUIRED_KEYS if key not in given]
             raise config.ParamsError(
@@ -169,7 +169,53 @@ def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
             )
         params_file = shipped
         print(f"params: {shipped} with the notebook's parameters; relative paths are read from {shipped.parent}")
+    if params_file and not Path(params_file).exists() and runs.is_run(Path(params_file).parent):
+        # ``run`` names its params by their path in the finished run; until then they are where it is built
+        run = Path(params_file).parent
+        params_file = run.with_name(runs.BUILDING + run.name) / Path(params_file).name
     return config.load_params(params_file or DEFAULT_PARAMS_FILE, **given)
+
+
+def papermill_params_file() -> Path | None:
+    """The params file ``papermill -f`` gave this kernel (its parent's command line, the last -f), else None."""
+    import psutil
+
+    try:
+        parent = psutil.Process().parent()
+        words, folder = (parent.cmdline(), parent.cwd()) if parent else ([], ".")
+    except psutil.Error:
+        return None
+    if not any("papermill" in word for word in words[:3]):
+        return None
+    given = [value for flag, value in zip(words, words[1:]) if flag in ("-f", "--parameters_file")]
+    return Path(folder, given[-1]).resolve() if given else None
+
+
+def start_run(params: dict[str, Any], name: str) -> Path:
+    """The run a stage notebook (``notebooks/<name>.ipynb``) writes into: the run executing it (``run``),
+    else a run of its own built aside with its params, made visible by ``finish_run``."""
+    if runs.is_run(params["output_dir"]):
+        return Path(params["output_dir"])
+    building = runs.start(params["output_dir"], name)
+    config.write_resolved_params(params, building, f"notebooks/{name}.ipynb")
+    return building
+
+
+def finish_run(params: dict[str, Any], run: Path) -> Path:
+    """``run`` finished, once every file of it is written, when ``start_run`` began it; the finished run."""
+    if runs.is_run(params["output_dir"]):
+        return run
+    finished = runs.finish(run)
+    scoring.refresh_view(params["output_dir"])
+    print(f"added run {finished.name} to {params['output_dir']}")
+    return finished
+
+
+def final_path(path: PathLike) -> Path:
+    """``path``, when in a run being built, by its place in the finished run (what an executed notebook keeps)."""
+    path = Path(path)
+    run = next((folder for folder in (path, *path.parents) if runs.is_run(folder)), None)
+    return path if run is None else run.with_name(str(runs.run_id(run))) / path.relative_to(run)
 
 
 def load_sequence(params_file: PathLike | None, **overrides: Any) -> tuple[dict[str, Any], Sequence]:

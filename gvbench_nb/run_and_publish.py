@@ -176,10 +176,11 @@ def stage_notebooks(
 ) -> tuple[dict[str, Any], list[tuple[str, str, dict[str, Any]]]]:
     """The params as the stage's notebooks load them (resolved once, the same sequence) and the
     notebooks to execute: (template, executed name, parameters)."""
+    from gvbench_nb import notebook
     from gvbench_nb.runner import config
 
     run_params = {**params, "output_dir": str(stage)}
-    common = {"params_file": str(config.write_resolved_params(run_params, stage))}
+    common = {"params_file": str(notebook.final_path(config.write_resolved_params(run_params, stage)))}
     notebooks: list[tuple[str, str, dict[str, Any]]] = [("01_sequence.ipynb", "01_sequence.ipynb", common)]
     notebooks += [
         ("02_verify.ipynb", f"02_verify_{m}.ipynb", {**common, "method": m, "jobs": jobs}) for m in params["methods"]

@@ -15,18 +15,17 @@
 
 # %% [markdown]
 # # 02 - Verify: one method on one sequence
-# Extract (cached), match, fit F with RANSAC; writes `<method>/pairs.csv` in the run (on its own: a run
-# of its own, `<output_dir>/runs/<id>/<method>/pairs.csv`).
+# Extract (cached), match, fit F with RANSAC; writes `<method>/pairs.csv` and its figure in the run (on its
+# own: a run of its own, `<output_dir>/runs/<id>/`, finished by the last cell).
 
 # %%
-from pathlib import Path
 from typing import Optional, Union
 
 import matplotlib.pyplot as plt
 
 from gvbench_nb import notebook
 from gvbench_nb.evaluation import plots
-from gvbench_nb.runner import method_outputs, method_runs
+from gvbench_nb.runner import method_runs, runs
 
 # %% tags=["parameters"]
 params_file: Optional[str] = None  # a params YAML; None: the repository's params/sample.yaml
@@ -58,11 +57,11 @@ allow_damaged_images: Optional[bool] = None  # true: run on images whose decoder
 
 # %%
 params, seq = notebook.load_sequence(params_file, **notebook.params_keys(globals()))
-out = Path(params["output_dir"])
-table = method_runs.run_method_of_params(params, seq, method, jobs=jobs)
-written = method_outputs.method_dir(out, method) / "pairs.csv"
-run = f"{method} ({params['profile']}) on {seq.name}"
-print(f"{run}: {len(table)} pairs -> {written}")
+run = notebook.start_run(params, "02_verify")
+table = method_runs.run_method_of_params({**params, "output_dir": str(run)}, seq, method, jobs=jobs)
+print(
+    f"{method} ({params['profile']}) on {seq.name}: {len(table)} pairs -> {method}/pairs.csv of run {runs.run_id(run)}"
+)
 table.head()
 
 # %% [markdown]
@@ -79,5 +78,6 @@ notebook.quartiles_by_label(table)
 
 # %%
 figure = plots.inlier_histogram(table, title=f"{method} on {seq.name}")
-plots.save(figure, out / f"inliers_{method}.png")
+plots.save(figure, run / f"inliers_{method}.png")
 plt.show()
+run = notebook.finish_run(params, run)

@@ -58,7 +58,7 @@ allow_damaged_images: Optional[bool] = None  # true: run on images whose decoder
 params = notebook.load_params(params_file, **notebook.params_keys(globals()))
 out = Path(params["output_dir"])
 results = scoring.evaluate(out, methods)
-print(f"results table: {out / 'results.csv'}")
+print(f"results table: {notebook.final_path(out / 'results.csv')}")
 display(results)
 
 # %% [markdown]

@@ -14,7 +14,7 @@ import pandas as pd
 import pytest
 import yaml
 
-from gvbench_nb import cli
+from gvbench_nb import cli, notebook
 from gvbench_nb.data.sequences import Pair, write_pairs
 from gvbench_nb.protocol import metrics
 from gvbench_nb.runner import config, method_outputs, method_runs, scoring, sequence_build
@@ -63,7 +63,7 @@ def write_root(root: Path, photos: tuple[str, ...] = ("astronaut", "coffee"), si
 def in_process_notebooks(name: str, output_path: Path, parameters: dict) -> None:
     """What the stage notebooks of a ``run`` compute, here, in place of papermill's
     ``execute_notebook``: 02_verify runs its method, 03_evaluate evaluates."""
-    params = config.load_params(parameters["params_file"])
+    params = notebook.load_params(parameters["params_file"])
     if name == "02_verify.ipynb":
         sequence = sequence_build.prepare_sequence(params)
         method_runs.run_method_of_params(params, sequence, parameters["method"], progress=False)

@@ -8,6 +8,7 @@ A path under the repository's outputs/ is under ``$GVBENCH_OUTPUTS`` when that i
 
 from __future__ import annotations
 
+import hashlib
 import os
 import re
 from pathlib import Path
@@ -296,16 +297,20 @@ def check_environment() -> None:
 RESOLVED_PARAMS_NAME = "params.resolved.yaml"
 
 
-def write_resolved_params(params: dict[str, Any], folder: str | os.PathLike[str]) -> Path:
-    """The params a run uses, command-line overrides applied and paths absolute, as one
-    YAML the notebooks load (``<output_dir>/params.resolved.yaml``)."""
+def write_resolved_params(
+    params: dict[str, Any], folder: str | os.PathLike[str], door: str = "python -m gvbench_nb run"
+) -> Path:
+    """The params a run uses, command-line overrides applied and paths absolute, as one YAML the
+    notebooks load (``<run>/params.resolved.yaml``), headed by the file given (path, SHA-256) and ``door``."""
     keys = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)
     values = {key: params[key] for key in keys if key in params}
     source = params.get("params_file")  # params given in code (``run_method_of_params``) have no file
+    if source and Path(source).is_file():
+        source = f"{Path(source).resolve()} (sha256 {hashlib.sha256(Path(source).read_bytes()).hexdigest()})"
     header = (
-        f"# The params this run used: {source} with the command line's overrides.\n"
+        f"# The params this run used: {source} with the overrides given.\n"
         if source
         else "# The params this run used, given in code.\n"
-    ) + "# Written by `python -m gvbench_nb run`; every notebook of the run loads this file.\n"
+    ) + f"# Written by `{door}`; every notebook of the run loads this file.\n"
     text = header + yaml.safe_dump(values, sort_keys=False, allow_unicode=True)
     return atomic_write_text(Path(folder) / RESOLVED_PARAMS_NAME, text)

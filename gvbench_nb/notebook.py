@@ -170,8 +170,7 @@ def load_params(params_file: PathLike | None, **keys: Any) -> dict[str, Any]:
         params_file = shipped
         print(f"params: {shipped} with the notebook's parameters; relative paths are read from {shipped.parent}")
     if params_file and not Path(params_file).exists() and runs.is_run(Path(params_file).parent):
-        # ``run`` names its params by their path in the finished run; until then they are where it is built
-        run = Path(params_file).parent
+        run = Path(params_file).parent  # ``run`` names its params in the finished run: read where it is built
         params_file = run.with_name(runs.BUILDING + run.name) / Path(params_file).name
     return config.load_params(params_file or DEFAULT_PARAMS_FILE, **given)
 
@@ -182,18 +181,15 @@ def papermill_params_file() -> Path | None:
 
     try:
         parent = psutil.Process().parent()
-        words, folder = (parent.cmdline(), parent.cwd()) if parent else ([], ".")
+        words, folder = (parent.cmdline(), parent.cwd()) if parent else ([], "")
     except psutil.Error:
         return None
-    if not any("papermill" in word for word in words[:3]):
-        return None
     given = [value for flag, value in zip(words, words[1:]) if flag in ("-f", "--parameters_file")]
-    return Path(folder, given[-1]).resolve() if given else None
+    return Path(folder, given[-1]).resolve() if given and "papermill" in " ".join(words[:3]) else None
 
 
 def start_run(params: dict[str, Any], name: str) -> Path:
-    """The run a stage notebook (``notebooks/<name>.ipynb``) writes into: the run executing it (``run``),
-    else a run of its own built aside with its params, made visible by ``finish_run``."""
+    """The run stage notebook ``name`` writes into: the run executing it, else one of its own (``finish_run``)."""
     if runs.is_run(params["output_dir"]):
         return Path(params["output_dir"])
     building = runs.start(params["output_dir"], name)
@@ -202,7 +198,7 @@ def start_run(params: dict[str, Any], name: str) -> Path:
 
 
 def finish_run(params: dict[str, Any], run: Path) -> Path:
-    """``run`` finished, once every file of it is written, when ``start_run`` began it; the finished run."""
+    """``run``, finished (every file of it written) when ``start_run`` began it."""
     if runs.is_run(params["output_dir"]):
         return run
     finished = runs.finish(run)

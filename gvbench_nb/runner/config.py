@@ -297,9 +297,7 @@ def check_environment() -> None:
 RESOLVED_PARAMS_NAME = "params.resolved.yaml"
 
 
-def write_resolved_params(
-    params: dict[str, Any], folder: str | os.PathLike[str], door: str = "python -m gvbench_nb run"
-) -> Path:
+def write_resolved_params(params: dict[str, Any], folder: Path, door: str = "python -m gvbench_nb run") -> Path:
     """The params a run uses, command-line overrides applied and paths absolute, as one YAML the
     notebooks load (``<run>/params.resolved.yaml``), headed by the file given (path, SHA-256) and ``door``."""
     keys = list(REQUIRED_KEYS) + list(OPTIONAL_KEYS)

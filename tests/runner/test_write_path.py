@@ -142,7 +142,7 @@ def test_a_limit_notebook_adds_a_run_and_removes_nothing(tmp_path, capsys, noteb
         name: data for name, data in before.items() if name != "results.csv"
     }  # every earlier run, notebook and figure, byte for byte
     finished, added = check_runs_whole(out)
-    assert "-notebook-" in added and len(pd.read_csv(out / "runs" / added / "orb-nn" / "pairs.csv")) == 4
+    assert "-02_verify-" in added and len(pd.read_csv(out / "runs" / added / "orb-nn" / "pairs.csv")) == 4
     code, text, err = run_cli(capsys, "results", str(out))
     assert code == 0 and shown(out) == {"orb-nn": ("repository", 4)} and "sift-opencv-nn" not in text
     assert not_in_table(err) == [

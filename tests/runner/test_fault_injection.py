@@ -18,7 +18,7 @@ import pytest
 import yaml
 from helpers import PAIRS, check_stage_outputs, cli_error, photo, write_params, write_root
 
-from gvbench_nb import cli, methods, run_and_publish
+from gvbench_nb import cli, methods, notebook, run_and_publish
 from gvbench_nb.data.sequences import Pair, Sequence, frame_tolerance_pairs, read_pairs, write_pairs
 from gvbench_nb.protocol.images import ImageReadError
 from gvbench_nb.runner import (
@@ -162,7 +162,7 @@ def test_cli_overrides_reach_every_notebook_through_one_resolved_params_file(roo
     seen: list[dict] = []
 
     def fake_execute(name, output_path, parameters):  # what each notebook's first cell loads
-        loaded = config.load_params(parameters["params_file"], profile=parameters.get("profile"))
+        loaded = notebook.load_params(parameters["params_file"], profile=parameters.get("profile"))
         written = all((output_path.parent / METHOD / f).is_file() for f in ("pairs.csv", "run.json"))
         keys = ("image_root", "limit", "profile", "output_dir")
         seen.append({"notebook": name, "result_written": written, **{k: loaded[k] for k in keys}})

@@ -157,7 +157,10 @@ def not_in_table(err: str) -> list[str]:
 def verify_on_its_own(path: Path, method: str = "orb-nn", **overrides) -> None:
     """What ``02_verify`` does when papermill, JupyterLab or nbmake runs it on its own."""
     params = config.load_params(path, **overrides)
-    method_runs.run_method_of_params(params, sequence_build.prepare_sequence(params), method, progress=False)
+    run = notebook.start_run(params, "02_verify")
+    sequence = sequence_build.prepare_sequence(params)
+    method_runs.run_method_of_params({**params, "output_dir": str(run)}, sequence, method, progress=False)
+    notebook.finish_run(params, run)
 
 
 def write_params(tmp_path: Path, **changes: object) -> Path:

@@ -122,7 +122,7 @@ def test_every_door_adds_a_run_and_changes_no_byte_of_the_earlier_ones(tmp_path,
         ("run", lambda: run_cli(capsys, "run", str(path))),
         ("run", lambda: run_cli(capsys, "run", str(path))),  # a rerun
         ("run", lambda: run_cli(capsys, "run", str(path), "--limit", "2")),
-        ("notebook", lambda: helpers.verify_on_its_own(path, "sift-opencv-nn")),
+        ("02_verify", lambda: helpers.verify_on_its_own(path, "sift-opencv-nn")),
         ("shard", lambda: run_cli(capsys, "run", str(path), "--shard", "0/2")),
         ("shard", lambda: run_cli(capsys, "run", str(path), "--shard", "1/2")),
         ("merge", lambda: run_cli(capsys, "run", str(path), "--merge")),

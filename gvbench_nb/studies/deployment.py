@@ -53,9 +53,10 @@ class DeploymentInputs:
     def __init__(self, output_dirs: Iterable[str | os.PathLike[str]]):
         folders = [Path(f) for f in output_dirs]
         self.results = run_tables.load_results(folders)
-        self.tables: dict[str, dict[str, pd.DataFrame]] = {}
+        # sequence -> method -> profile -> its pairs table: a folder labels a row by what tells its own
+        # rows apart (``orb-nn (paper profile)``), which another folder need not share
+        self.tables: dict[str, dict[str, dict[str, pd.DataFrame]]] = {}
         self.keeps_retrieval_order: dict[str, bool] = {}
-        self.profiles = {(r.sequence, r.method): r.profile for r in self.results.itertuples()}
         for folder in folders:
             rows = self.results[self.results["output_dir"] == str(folder)]
             sequence = str(rows["sequence"].iloc[0])
@@ -64,7 +65,12 @@ class DeploymentInputs:
                     f"{folder}: sequence {sequence!r} is given twice; pass one output folder a sequence"
                 )
             methods = list(rows["method"])
-            self.tables[sequence] = run_tables.load_pairs_tables(folder, methods)
+            tables = run_tables.load_pairs_tables(folder, methods)
+            base = rows["method"].str.split(" (", n=1, regex=False).str[0]
+            twice = pd.Series(list(zip(base, rows["profile"])), index=rows.index).duplicated(keep=False)
+            self.tables[sequence] = {}
+            for label, method, profile in zip(methods, base.where(~twice, rows["method"]), rows["profile"]):
+                self.tables[sequence].setdefault(method, {})[profile] = tables[label]
             builder = (run_tables.load_run(folder, methods[0]).get("pairs") or {}).get("pairs_builder")
             self.keeps_retrieval_order[sequence] = builder == RETRIEVAL_BUILDER
 
@@ -90,16 +96,14 @@ def transfer_table(inputs: DeploymentInputs, calibrations: Iterable[str] | None 
     rows = []
     for method in inputs.methods():
         for calibration in calibrations:
-            if method not in inputs.tables[calibration]:
-                continue
-            source = inputs.tables[calibration][method]
-            threshold = oracle_threshold(source["label"], source["score"])
-            profile = inputs.profiles[(calibration, method)]
-            for target, tables in inputs.tables.items():
-                if method in tables and inputs.profiles[(target, method)] == profile:
-                    applied = apply_threshold(tables[method]["label"], tables[method]["score"], threshold)
-                    rows.append({"method": method, "profile": profile, "calibration": calibration,
-                                 "target": target, "threshold": threshold, **applied})  # fmt: skip
+            for profile, source in inputs.tables[calibration].get(method, {}).items():
+                threshold = oracle_threshold(source["label"], source["score"])
+                for target, tables in inputs.tables.items():
+                    if profile in tables.get(method, {}):
+                        target_table = tables[method][profile]
+                        applied = apply_threshold(target_table["label"], target_table["score"], threshold)
+                        rows.append({"method": method, "profile": profile, "calibration": calibration,
+                                     "target": target, "threshold": threshold, **applied})  # fmt: skip
     return pd.DataFrame(rows)
 
 
@@ -113,19 +117,20 @@ def not_transferred(inputs: DeploymentInputs, calibrations: Iterable[str], table
             if method not in inputs.tables[calibration]:
                 lines.append(f"{method}: no threshold, calibration sequence {calibration} has no results of it")
                 continue
-            profile = inputs.profiles[(calibration, method)]
-            for target in inputs.sequences:
-                held = inputs.profiles.get((target, method))
-                if held != profile:
-                    why = (
-                        "has no results of it"
-                        if held is None
-                        else f"holds it under the {held} profile (a threshold goes only to a run of the same profile)"
-                    )
-                    lines.append(
-                        f"{method} ({profile} profile, calibrated on {calibration}): not transferred to {target}, "
-                        f"which {why}"
-                    )
+            for profile in inputs.tables[calibration][method]:
+                for target in inputs.sequences:
+                    held = list(inputs.tables[target].get(method, {}))
+                    if profile not in held:
+                        why = (
+                            f"holds it under the {' and '.join(held)} profile (a threshold goes only to a run of "
+                            "the same profile)"
+                            if held
+                            else "has no results of it"
+                        )
+                        lines.append(
+                            f"{method} ({profile} profile, calibrated on {calibration}): not transferred to "
+                            f"{target}, which {why}"
+                        )
     done = set(table["target"]) if len(table) else set()
     lines += [f"target {t} left out: no method could take a threshold there" for t in inputs.sequences if t not in done]
     return lines
@@ -175,7 +180,7 @@ def loop_closure_table(transfer: pd.DataFrame, inputs: DeploymentInputs) -> pd.D
     whose best candidate passes the transferred threshold, a true or a false loop."""
     rows = []
     for row in transfer.itertuples():
-        outcomes = query_outcomes(inputs.tables[row.target][row.method], row.threshold)
+        outcomes = query_outcomes(inputs.tables[row.target][row.method][row.profile], row.threshold)
         findable = outcomes[outcomes["has_true"]]
         closed = outcomes[outcomes["best_passes"]]
         kept = inputs.keeps_retrieval_order[row.target]

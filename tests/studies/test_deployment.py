@@ -155,3 +155,19 @@ def test_transfer_names_every_method_and_target_it_could_not_do_and_exits_3(tmp_
     assert cli.main(["transfer", str(tmp_path / "night"), str(tmp_path / "night")]) != 0  # a sequence twice
     assert cli.main(["transfer", str(tmp_path / "dusk"), str(tmp_path / "night")]) == 3
     assert "not done: target night left out" in capsys.readouterr().err
+
+
+@pytest.mark.reliability
+def test_a_method_the_calibration_holds_under_two_profiles_transfers_to_a_target_holding_one(tmp_path):
+    """The calibration folder labels its orb-nn rows by profile; the target, holding one, by name
+    alone: the transfer still pairs the runs of one method and profile across the folders."""
+    for profile in ("repository", "paper"):
+        write_method(tmp_path / "day", "orb-nn", "day", [1, 0, 1, 0], [9, 4, 6, 1], "frame_tolerance", profile)
+    write_method(tmp_path / "night", "orb-nn", "night", [0, 1, 1, 0], [8, 7, 2, 3], "frame_tolerance", "repository")
+    inputs = deployment.DeploymentInputs([tmp_path / "day", tmp_path / "night"])
+    table = deployment.transfer_table(inputs)
+    crossed = table[(table.calibration == "day") & (table.target == "night")]
+    assert crossed[["method", "profile"]].values.tolist() == [["orb-nn", "repository"]]
+    assert crossed.iloc[0]["recall"] == pytest.approx(0.5)  # threshold 6: true 7 passes, true 2 does not
+    left = deployment.not_transferred(inputs, inputs.sequences, table)
+    assert any("paper" in line and "night" in line for line in left)

@@ -301,7 +301,7 @@ def score_pairs(
             scores,
             verifier,
             seed=pair_matching.pair_seed(seed, pair.query, pair.reference),
-            image_sizes=pair_matching.image_sizes(f0, f1),
+            image_sizes=(f0.get("image_size"), f1.get("image_size")),
         )
         threshold = verifier.get("min_match_score")
         keep = np.ones(len(pair_matches), bool) if threshold is None else np.asarray(scores) > threshold

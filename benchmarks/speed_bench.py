@@ -194,7 +194,7 @@ def run_per_pair_pipeline(
             extracted = time.perf_counter()
             matches, match_scores = matcher(features0, features1)
             points0, points1 = features0["keypoints"], features1["keypoints"]
-            sizes = pair_matching.image_sizes(features0, features1)
+            sizes = (features0.get("image_size"), features1.get("image_size"))
         matched = time.perf_counter()
         verified = verify_matches(
             points0,

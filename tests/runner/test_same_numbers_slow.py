@@ -77,16 +77,18 @@ def assert_every_split_equal(
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.reliability
+@pytest.mark.parametrize("method", CHEAP_METHODS)
 @pytest.mark.parametrize("profile", ["repository", "paper"])
-def test_whole_gardens_point_gives_one_table_on_one_job_two_jobs_and_two_shards(shared_data, tmp_path, profile):
-    assert_every_split_equal(shared_data, tmp_path, profile, CHEAP_METHODS, None)
+def test_whole_gardens_point_gives_one_table_on_one_job_two_jobs_and_two_shards(shared_data, tmp_path, profile, method):
+    assert_every_split_equal(shared_data, tmp_path, profile, (method,), None)
 
 
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.reliability
-def test_learned_methods_give_one_table_on_one_job_two_jobs_and_two_shards(shared_data, tmp_path):
-    assert_every_split_equal(shared_data, tmp_path, "paper", LEARNED_METHODS, LEARNED_PAIRS)
+@pytest.mark.parametrize("method", LEARNED_METHODS)
+def test_learned_methods_give_one_table_on_one_job_two_jobs_and_two_shards(shared_data, tmp_path, method):
+    assert_every_split_equal(shared_data, tmp_path, "paper", (method,), LEARNED_PAIRS)
 
 
 @pytest.mark.slow

@@ -2,6 +2,7 @@
 jobs it ran or on how many threads each job had."""
 
 import io
+import json
 from pathlib import Path
 
 import numpy as np
@@ -63,3 +64,12 @@ def test_paper_profile_gives_the_same_table_and_caches_with_one_job_on_two_threa
     assert pairs_without_timers(two / "out", METHOD) == table
     for kind in ("features", "matches"):
         assert_same_entries(store_entries(two / "cache", kind), store_entries(one / "cache", kind))
+    # A run served from the other split's cache holds what it would have computed; its jobs are its own.
+    served = tmp_path / "served"
+    method_runs.run_method(
+        sequence, METHOD, PROFILE, served, two / "cache", device="cpu", progress=False, **splits["one_job"]
+    )
+    assert pairs_without_timers(served, METHOD) == table
+    (run,) = served.glob(f"runs/*/{METHOD}/run.json")
+    this_run = json.loads(run.read_text())["this_run"]
+    assert this_run["jobs"] == 1 and this_run["matching"] == {"pairs": 2, "cached": 2, "matched": 0}

@@ -38,7 +38,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument(
         "--threads",
         type=int,
-        help="torch and OpenCV threads for both pipelines (default: every core; on a loaded "
+        help="OpenCV threads for both pipelines, torch running on one (default: every core; on a loaded "
         "machine fewer threads than cores avoids spin-waiting, see the report)",
     )
     add_jobs_argument(

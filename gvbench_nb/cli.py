@@ -55,9 +55,10 @@ environment:
                    notebooks' defaults under outputs/ go there instead (the tests set it)
   GVBENCH_JOBS     images, then pairs, processed at once, as `run --jobs` sets it (default: every
                    core this process may use). Each image's and pair's timer is its job's own time;
-                   `--jobs 1` runs one at a time on every core's threads. (`run --dask-workers` is
-                   the size of a Dask cluster instead.)
-  GVBENCH_THREADS  torch, OpenCV and BLAS threads a job (default: the cores shared by the jobs)
+                   `--jobs 1` runs one at a time. (`run --dask-workers` is the size of a Dask
+                   cluster instead.)
+  GVBENCH_THREADS  OpenCV's threads a job (default: the cores shared by the jobs; torch and BLAS
+                   run on one thread a job, so that any split gives the same numbers)
   GVBENCH_MAX_PIXELS  the largest image read, in pixels (default 64,000,000; checked from the header)
 """
 

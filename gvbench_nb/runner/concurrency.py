@@ -36,19 +36,21 @@ def available_cores() -> int:
         return os.cpu_count() or 1
 
 
-THREADS_ENV = "GVBENCH_THREADS"  # threads a job: torch, OpenCV and numpy's BLAS
+THREADS_ENV = "GVBENCH_THREADS"  # threads a job: OpenCV's
 
 
 def configure_threads(n_threads: int | None = None, jobs: int = 1) -> int:
-    """Set torch's, OpenCV's and BLAS thread counts: ``n_threads``, else $GVBENCH_THREADS, else the
-    available cores shared by ``jobs`` (more threads than cores wait on each other)."""
-    import torch
+    """Set OpenCV's thread count: ``n_threads``, else $GVBENCH_THREADS, else the available cores shared
+    by ``jobs`` (more threads than cores wait on each other). torch and numpy's BLAS run on one thread
+    a job: their sums round differently on each thread count, OpenCV's steps that a run uses do not."""
     from threadpoolctl import threadpool_limits
 
+    from gvbench_nb.protocol.features.base import torch_on_one_thread
+
     n = n_threads or threads_of_environment() or max(1, available_cores() // max(jobs, 1))
-    torch.set_num_threads(n)
+    torch_on_one_thread()
     cv2.setNumThreads(n)
-    threadpool_limits(n)  # numpy's BLAS (the OpenCV-rule L2 products); kept for the process
+    threadpool_limits(1)  # numpy's BLAS (the OpenCV-rule L2 products); kept for the process
     return n
 
 

@@ -117,7 +117,7 @@ def compute_method(
 
     resolved_device = resolve_device(device)
     jobs = concurrency.job_count(jobs)
-    # Dense matchers take one pair at a time: their one job gets every core's threads.
+    # Dense matchers take one pair at a time: their one job gets every core's OpenCV threads.
     threads = concurrency.configure_threads(threads, 1 if method_registry.is_dense(conf) else jobs)
     started = time.perf_counter()
     extraction = {"images": 0, "cached": 0, "extracted": 0}  # a dense matcher extracts nothing

@@ -14,7 +14,8 @@ if TYPE_CHECKING:
 
 
 def build_extractor(conf: dict[str, Any], device: torch.device) -> Extractor:
-    from gvbench_nb.protocol.features.base import Extractor
+    from gvbench_nb.protocol.features.base import Extractor, torch_on_one_thread
 
+    torch_on_one_thread()
     extractor: Extractor = registry.model_class("extractor type", Extractor, __name__, conf)(conf, device)
     return extractor

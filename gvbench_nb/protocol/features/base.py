@@ -23,6 +23,13 @@ class Extractor(Model):
         raise NotImplementedError
 
 
+def torch_on_one_thread() -> None:
+    """Run torch on one thread in this process: oneDNN's convolutions and MKL's products round
+    differently on each thread count, so a model's output would depend on how the work was split.
+    The cores are used by jobs side by side, each on one thread (docs/protocol.md: the cost)."""
+    torch.set_num_threads(1)
+
+
 def resolve_device(device: str | torch.device | None = "auto") -> torch.device:
     if device in (None, "auto"):
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")

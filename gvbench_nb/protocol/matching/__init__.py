@@ -14,7 +14,9 @@ if TYPE_CHECKING:
 
 
 def build_matcher(conf: dict[str, Any], device: torch.device) -> Matcher:
+    from gvbench_nb.protocol.features.base import torch_on_one_thread
     from gvbench_nb.protocol.matching.base import Matcher
 
+    torch_on_one_thread()
     matcher: Matcher = registry.model_class("matcher type", Matcher, __name__, conf)(conf, device)
     return matcher

@@ -11,7 +11,7 @@ STAMP := $(VENV)/.installed
 TEST_DATA := $(or $(GVBENCH_DATA),$(CURDIR)/.data)
 DATA_MIRROR := ../shared/data
 
-.PHONY: setup demo test test-data test-slow test-reference lint notebooks clean setup-imm lab
+.PHONY: setup demo test test-data test-slow test-long test-reference lint notebooks clean setup-imm lab
 
 setup: $(STAMP)
 
@@ -84,7 +84,13 @@ test: test-data
 # The slow tier (CI runs it after `test`): whole-pipeline runs on many pairs, concurrent and
 # killed runs, the browser tests, learned models on whole sequences.
 test-slow: test-data
-	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m slow tests
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m "slow and not long" tests
+
+# The long tier: the same numbers on every split for the whole-sequence cases past CI's time
+# (xfeat-nn and paper sift-nn on all of Gardens Point, the LightGlue methods on 100 pairs; about
+# 50 minutes on a quiet 2-core CPU).
+test-long: test-data
+	GVBENCH_DATA=$(TEST_DATA) $(PY) -m pytest -q $(PYTEST_PARALLEL) -m long tests
 
 # The reference tier: Magic Leap's SuperPoint and SuperGlue, cvg's LightGlue and
 # image-matching-models' OpenCV matchers run beside ours (tests/protocol/test_reference_parity.py); it

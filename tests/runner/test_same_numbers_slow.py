@@ -18,6 +18,15 @@ CHEAP_METHODS = ("sift-nn", "orb-nn", "xfeat-nn")
 LEARNED_METHODS = ("aliked-nn", "xfeat-lg", "aliked-lg")
 LEARNED_PAIRS = 100  # the learned methods' first pairs: a whole sequence of them is hours on a CPU
 DASK_PAIRS = 40  # the Dask cluster's sample: its workers start processes of their own
+# Past CI's time beside the rest of the slow tier (about 50 minutes of these on a quiet 2-core CPU):
+# `make test-long` runs them; `make test-slow` runs the others.
+LONG = {
+    ("repository", "xfeat-nn"),
+    ("paper", "sift-nn"),
+    ("paper", "xfeat-nn"),
+    ("paper", "xfeat-lg"),
+    ("paper", "aliked-lg"),
+}
 
 
 def params_of(data: Path, folder: Path, profile: str, methods: tuple[str, ...], limit: int | None) -> dict:
@@ -80,8 +89,14 @@ def assert_every_split_equal(
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.reliability
-@pytest.mark.parametrize("method", CHEAP_METHODS)
-@pytest.mark.parametrize("profile", ["repository", "paper"])
+@pytest.mark.parametrize(
+    ("profile", "method"),
+    [
+        pytest.param(profile, method, marks=[pytest.mark.long] if (profile, method) in LONG else [])
+        for profile in ("repository", "paper")
+        for method in CHEAP_METHODS
+    ],
+)
 def test_whole_gardens_point_gives_one_table_on_one_job_two_jobs_and_two_shards(shared_data, tmp_path, profile, method):
     assert_every_split_equal(shared_data, tmp_path, profile, (method,), None)
 
@@ -89,7 +104,9 @@ def test_whole_gardens_point_gives_one_table_on_one_job_two_jobs_and_two_shards(
 @pytest.mark.slow
 @pytest.mark.real_data
 @pytest.mark.reliability
-@pytest.mark.parametrize("method", LEARNED_METHODS)
+@pytest.mark.parametrize(
+    "method", [pytest.param(m, marks=[pytest.mark.long] if ("paper", m) in LONG else []) for m in LEARNED_METHODS]
+)
 def test_learned_methods_give_one_table_on_one_job_two_jobs_and_two_shards(shared_data, tmp_path, method):
     assert_every_split_equal(shared_data, tmp_path, "paper", (method,), LEARNED_PAIRS)
 

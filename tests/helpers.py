@@ -292,3 +292,27 @@ def papermill_from(cwd: Path, stage: str, output: Path, *arguments: str) -> str:
     papermill_process(cwd, config.PROJECT_ROOT / "notebooks" / f"{stage}.ipynb", output, *arguments)
     cells = json.loads(output.read_text())["cells"]
     return "".join("".join(o.get("text", "")) for c in cells for o in c.get("outputs", []) if o.get("name") == "stdout")
+
+
+def tiny_route_run(folder: Path, methods: list[str]) -> Path:
+    """``methods`` run on a synthetic route of 6 frames (160x120, 36 pairs, 4 false), each as a notebook
+    on its own runs it (a run of its own, on one thread); the params file."""
+    params = {
+        "sequence": "tiny",
+        "pairs_builder": "sample",
+        "builder_options": {"n_frames": 6, "image_size": [160, 120]},
+        "image_root": str(folder / "data"),
+        "pairs": str(folder / "data" / "pairs.txt"),
+        "methods": methods,
+        "profile": "repository",
+        "output_dir": str(folder / "out"),
+        "cache_dir": str(folder / "cache"),
+        "seed": 0,
+    }
+    path = folder / "tiny.yaml"
+    path.write_text(yaml.safe_dump(params))
+    loaded = config.load_params(path) | {"device": "cpu"}
+    sequence = sequence_build.prepare_sequence(loaded)
+    for method in methods:
+        method_runs.run_method_of_params(loaded, sequence, method, progress=False, threads=1)
+    return path

@@ -7,11 +7,11 @@ from pathlib import Path
 
 import pandas as pd
 import pytest
-import yaml
+from helpers import tiny_route_run
 
 from gvbench_nb import cli, notebook
 from gvbench_nb.reporting import execute
-from gvbench_nb.runner import config, method_outputs, method_runs, sequence_build
+from gvbench_nb.runner import method_outputs
 
 IMPORTED = "my-tool"
 
@@ -20,22 +20,7 @@ IMPORTED = "my-tool"
 def with_import(tmp_path_factory) -> Path:
     """orb-nn on a synthetic route of 6 frames (160x120) and IMPORTED's scores of the same pairs; the params."""
     folder = tmp_path_factory.mktemp("imported")
-    params = {
-        "sequence": "tiny",
-        "pairs_builder": "sample",
-        "builder_options": {"n_frames": 6, "image_size": [160, 120]},
-        "image_root": str(folder / "data"),
-        "pairs": str(folder / "data" / "pairs.txt"),
-        "methods": ["orb-nn"],
-        "profile": "repository",
-        "output_dir": str(folder / "out"),
-        "cache_dir": str(folder / "cache"),
-        "seed": 0,
-    }
-    path = folder / "tiny.yaml"
-    path.write_text(yaml.safe_dump(params))
-    loaded = config.load_params(path) | {"device": "cpu"}
-    method_runs.run_method_of_params(loaded, sequence_build.prepare_sequence(loaded), "orb-nn", progress=False)
+    path = tiny_route_run(folder, ["orb-nn"])
     table = pd.read_csv(method_outputs.method_dir(folder / "out", "orb-nn") / "pairs.csv")
     scores = folder / "scores.csv"
     table.assign(score=table["score"] * 2 + 1)[["query", "reference", "label", "score"]].to_csv(scores, index=False)

@@ -10,12 +10,12 @@ from pathlib import Path
 import numpy as np
 import pandas as pd
 import pytest
-import yaml
+from helpers import tiny_route_run
 from written_runs import add_run
 
 from gvbench_nb import cli, explore_lab
 from gvbench_nb.evaluation import plots, run_tables
-from gvbench_nb.runner import config, method_outputs, method_runs, runs, sequence_build
+from gvbench_nb.runner import method_outputs, runs
 from gvbench_nb.studies import explore_pairs as explore
 
 NOTEBOOKS = Path(__file__).resolve().parents[2] / "notebooks"
@@ -30,25 +30,7 @@ def expected_rank(table: pd.DataFrame, index: int) -> int:
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory) -> Path:
     """sift-nn and orb-nn on the synthetic route, 6 frames of 160x120 (36 pairs, 4 false)."""
-    folder = tmp_path_factory.mktemp("explore")
-    params = {
-        "sequence": "tiny",
-        "pairs_builder": "sample",
-        "builder_options": {"n_frames": 6, "image_size": [160, 120]},
-        "image_root": str(folder / "data"),
-        "pairs": str(folder / "data" / "pairs.txt"),
-        "methods": METHODS,
-        "profile": "repository",
-        "output_dir": str(folder / "out"),
-        "seed": 0,
-    }
-    path = folder / "tiny.yaml"
-    path.write_text(yaml.safe_dump(params))
-    loaded = config.load_params(path) | {"device": "cpu"}
-    sequence = sequence_build.prepare_sequence(loaded)
-    for method in METHODS:  # as a notebook on its own runs it: a run of its own, with the params it ran on
-        method_runs.run_method_of_params(loaded, sequence, method, progress=False, threads=1)
-    return path
+    return tiny_route_run(tmp_path_factory.mktemp("explore"), METHODS)
 
 
 def test_choose_pair_by_index_and_by_a_methods_failures_and_a_tie_shares_the_best_rank():

@@ -3,8 +3,8 @@
 The reference drive stays a clear day; the query drive is rendered once per (condition, strength)
 with only that condition set, so poses, pairs and labels are the same in every cell. ``out_dir``
 holds images/ (route.json, pairs.csv, reference/, query_clear/, query_<condition>_<strength>/),
-runs/<profile>/<cell>/<method>/, cache/ and sweep.csv (one row a cell, rewritten atomically after
-each cell, so an interrupted sweep resumes)."""
+cells/<profile>/<cell>/ (an output folder each, its runs under runs/), cache/ and sweep.csv (one
+row a cell, rewritten atomically after each cell, so an interrupted sweep resumes)."""
 
 from __future__ import annotations
 
@@ -279,7 +279,7 @@ def run_sweep(
             if wanted:
                 # The cell's query folder rendered (if needed), the method run, one row a condition.
                 render_query(sweep_route, wanted[0], strength)
-                run_dir = out_dir / "runs" / method_profile / cell_name(wanted[0], strength)
+                run_dir = out_dir / "cells" / method_profile / cell_name(wanted[0], strength)
                 sequence = sweep_route.sequence(wanted[0], strength)
                 scored = method_runs.run_method(sequence, method, method_profile, run_dir, out_dir / "cache", **options)
                 where = str(method_outputs.method_dir(run_dir, method) / "pairs.csv")

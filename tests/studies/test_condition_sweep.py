@@ -45,7 +45,7 @@ def test_sweep_table_has_one_row_a_cell_and_one_shared_clear_run(sweep: pd.DataF
     # The clear cell is one run, shared by every condition.
     clear = sweep[sweep["strength"] == 0.0]
     assert clear[["ap", "max_recall", "n_pairs"]].nunique().max() == 1
-    runs = sorted(p.name for p in (sweep_dir / "runs" / "paper").iterdir())
+    runs = sorted(p.name for p in (sweep_dir / "cells" / "paper").iterdir())
     assert runs == ["clear", "illumination_1.00", "season_1.00", "weather_1.00"]
 
 
@@ -57,7 +57,7 @@ def test_full_strength_degrades_illumination_and_weather(sweep: pd.DataFrame) ->
 
 def test_reference_drive_is_extracted_once(sweep: pd.DataFrame, sweep_dir: Path) -> None:
     extracted = {}
-    for cell in (sweep_dir / "runs" / "paper").iterdir():
+    for cell in (sweep_dir / "cells" / "paper").iterdir():
         extracted[cell.name] = method_outputs.read_run_json(cell, "sift-nn")["this_run"]["extraction"]
     n = TINY["n_frames"]
     assert extracted["clear"]["extracted"] == 2 * n  # the first run pays for the reference
@@ -88,7 +88,7 @@ def test_a_new_strength_runs_only_its_cell(sweep: pd.DataFrame, sweep_dir: Path)
         sweep_dir, ["sift-nn"], conditions=("weather",), strengths=(0.0, 0.5, 1.0), threads=1, progress=False, **TINY
     )
     assert sorted(table["strength"]) == [0.0, 0.5, 1.0]
-    run = method_outputs.read_run_json(sweep_dir / "runs" / "paper" / "weather_0.50", "sift-nn")
+    run = method_outputs.read_run_json(sweep_dir / "cells" / "paper" / "weather_0.50", "sift-nn")
     n = TINY["n_frames"]
     assert run["this_run"]["extraction"] == {"images": 2 * n, "cached": n, "extracted": n}
     after = cs.read_sweep(sweep_dir)

@@ -363,9 +363,14 @@ def method_folder(output_dir: str | os.PathLike[str], method: str) -> Path:
         if not folder.name.startswith("."):
             sealed(folder)
         return folder / method
-    view = current(folder)
-    entry = view.entries.get(method) or next(reversed(view.of(method)), None)
+    entry = _row(folder, method)
     return entry.folder if entry is not None else folder / method
+
+
+def _row(output_dir: Path, name: str) -> Entry | None:
+    """The row an output folder shows under ``name``: a label, or a method (its latest row)."""
+    view = current(output_dir)
+    return view.entries.get(name) or next(reversed(view.of(name)), None)
 
 
 def record(output_dir: str | os.PathLike[str], name: str) -> dict[str, Any] | None:
@@ -373,8 +378,7 @@ def record(output_dir: str | os.PathLike[str], name: str) -> dict[str, Any] | No
     row), its own in a run (a finished one checked whole first, a shard's or one being built as it is)."""
     folder = Path(output_dir)
     if not is_run(folder):
-        view = current(folder)
-        entry = view.entries.get(name) or next(reversed(view.of(name)), None)
+        entry = _row(folder, name)
         return entry.record if entry is not None else None
     path = method_folder(folder, name) / "run.json"
     return json.loads(path.read_text(encoding="utf-8")) if path.is_file() else None
